@@ -1,0 +1,60 @@
+"""Input validation: every error names the argument, what was expected and what was given.
+
+Only metadata (shape, dtype, device) is inspected, so these checks cost no host sync and
+are transparent to torch.func.vmap and torch.compile.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def floating(x, name: str) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(
+            f"{name} must have a floating dtype (torch.float32 or torch.float64), got {x.dtype}"
+        )
+    return x
+
+
+def vector(x, size: int, name: str) -> torch.Tensor:
+    """A tensor of shape (..., size)."""
+    floating(x, name)
+    if x.dim() < 1 or x.shape[-1] != size:
+        raise ValueError(f"{name} must have shape (..., {size}), got {tuple(x.shape)}")
+    return x
+
+
+def matrix(x, n: int, name: str) -> torch.Tensor:
+    """A tensor of shape (..., n, n)."""
+    floating(x, name)
+    if x.dim() < 2 or x.shape[-2:] != (n, n):
+        raise ValueError(f"{name} must have shape (..., {n}, {n}), got {tuple(x.shape)}")
+    return x
+
+
+def same_device_dtype(**tensors: torch.Tensor) -> None:
+    items = list(tensors.items())
+    (n0, t0) = items[0]
+    for n, t in items[1:]:
+        if t.device != t0.device:
+            raise ValueError(
+                f"{n} is on {t.device} but {n0} is on {t0.device}; move them to one device"
+            )
+        if t.dtype != t0.dtype:
+            raise TypeError(f"{n} has dtype {t.dtype} but {n0} has dtype {t0.dtype}")
+
+
+def broadcast_batch(**batch_shapes: torch.Size) -> torch.Size:
+    try:
+        return torch.broadcast_shapes(*batch_shapes.values())
+    except RuntimeError:
+        desc = ", ".join(f"{k} {tuple(v)}" for k, v in batch_shapes.items())
+        raise ValueError(f"batch shapes do not broadcast: {desc}") from None
+
+
+def binary(a: torch.Tensor, a_tail: int, b: torch.Tensor, b_tail: int, a_name: str, b_name: str):
+    """Checks device, dtype and broadcastable batch shapes of two operands."""
+    same_device_dtype(**{a_name: a, b_name: b})
+    broadcast_batch(**{a_name: a.shape[: a.dim() - a_tail], b_name: b.shape[: b.dim() - b_tail]})

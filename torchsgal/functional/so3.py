@@ -1,0 +1,106 @@
+"""SO(3) on plain tensors: rotation matrices (..., 3, 3), tangent phi (..., 3).
+
+Equation numbers refer to kelly-giamou-uncertainty-sgal3.txt, (3.7)-(3.12).
+"""
+from __future__ import annotations
+
+import sys
+
+import torch
+
+from . import blocks as B
+from . import checks
+from ._autograd import make_exp_log
+
+NAME = "SO3"
+DOF = 3
+MATRIX_DIM = 3
+SIZES = [3]
+PHI = slice(0, 3)
+
+
+def components(M: torch.Tensor):
+    return (M,)
+
+
+def from_components(C: torch.Tensor) -> torch.Tensor:
+    return C
+
+
+def hat(phi: torch.Tensor) -> torch.Tensor:
+    checks.vector(phi, DOF, "xi")
+    return B.skew(phi)
+
+
+def vee(X: torch.Tensor) -> torch.Tensor:
+    """Vector of the skew part of X."""
+    checks.matrix(X, MATRIX_DIM, "X")
+    return B.unskew(X)
+
+
+def exp_impl(phi: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula (3.7)."""
+    checks.vector(phi, DOF, "xi")
+    return B.rotation(B.coefficients(phi, 2), phi)
+
+
+def log_impl(C: torch.Tensor) -> torch.Tensor:
+    """(3.10)-(3.11), accurate near 0 and pi (see blocks.rotation_log)."""
+    checks.matrix(C, MATRIX_DIM, "M")
+    return B.rotation_log(C)
+
+
+def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    return A @ Bm
+
+
+def inverse(C: torch.Tensor) -> torch.Tensor:
+    return C.transpose(-1, -2)
+
+
+def adjoint(C: torch.Tensor) -> torch.Tensor:
+    return C
+
+
+def ad(phi: torch.Tensor) -> torch.Tensor:
+    return hat(phi)
+
+
+def jl(phi: torch.Tensor) -> torch.Tensor:
+    """D(phi) = Gamma_1(phi), (3.8) (with the corrected u^u^ coefficient)."""
+    checks.vector(phi, DOF, "xi")
+    return B.gamma_mat(B.coefficients(phi, 3), 1, phi)
+
+
+def jl_inv(phi: torch.Tensor) -> torch.Tensor:
+    """D^-1(phi), (3.12)."""
+    checks.vector(phi, DOF, "xi")
+    return B.jac_inv_mat(phi)
+
+
+def jr(phi: torch.Tensor) -> torch.Tensor:
+    return jl(-phi)
+
+
+def jr_inv(phi: torch.Tensor) -> torch.Tensor:
+    return jl_inv(-phi)
+
+
+def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Points (..., 3) -> C p."""
+    checks.vector(p, 3, "p")
+    checks.binary(C, 2, p, 1, "g", "p")
+    return (C @ p.unsqueeze(-1)).squeeze(-1)
+
+
+def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    checks.vector(d, 3, "d")
+    checks.binary(C, 2, d, 1, "g", "d")
+    return (C @ d.unsqueeze(-1)).squeeze(-1)
+
+
+def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    return B.random_rotation(batch_shape, dtype, device, generator)
+
+
+exp, log = make_exp_log(sys.modules[__name__])

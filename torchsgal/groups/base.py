@@ -1,0 +1,241 @@
+"""Thin group classes over the functional layer.
+
+A group element wraps one tensor, its homogeneous matrix (..., n, n).  It is not a Tensor
+subclass, so torch.func and torch.compile see plain tensors.  Every method calls the
+group's functional module (``_f``), the one place its maths lives.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from ..functional import blocks, checks
+
+
+class LieGroup:
+    """Base of SO3, SE3, SE23 and SGal3; subclasses set ``dof``, ``matrix_dim`` and ``_f``."""
+
+    dof: int
+    matrix_dim: int
+    _f = None  # functional module of the group
+
+    __slots__ = ("_matrix",)
+
+    def __init__(self, matrix: torch.Tensor):
+        """Wraps a group matrix without checking it; prefer ``from_matrix``."""
+        checks.matrix(matrix, self.matrix_dim, "matrix")
+        self._matrix = matrix
+
+    # ---------------------------------------------------------------- constructors
+    @classmethod
+    def exp(cls, xi: torch.Tensor):
+        """exp(xi^) for tangent vectors (..., dof); differentiable w.r.t. xi (custom backward)."""
+        return cls(cls._f.exp(xi))
+
+    @classmethod
+    def from_matrix(cls, matrix: torch.Tensor, check: bool = False, tol: float | None = None):
+        """From homogeneous matrices (..., n, n).  With ``check=True`` raises ValueError if any
+        matrix is not in the group (orthonormal rotation with det +1, fixed rows), within
+        ``tol`` (default 1e-4 for float32, 1e-9 for float64).  Checking syncs with the host."""
+        checks.matrix(matrix, cls.matrix_dim, "matrix")
+        if check:
+            cls._check_membership(matrix, tol)
+        return cls(matrix)
+
+    @classmethod
+    def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
+        if tol is None:
+            tol = 1e-4 if M.dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-9
+        C = M[..., :3, :3]
+        eye = blocks.eye(3, M)
+        orth = (C.transpose(-1, -2) @ C - eye).abs().amax(dim=(-1, -2))
+        det = (torch.linalg.det(C) - 1).abs()
+        # The fixed rows: rebuild the matrix from its free entries and compare.
+        rebuilt = cls._f.from_components(*cls._f.components(M))
+        rows = (M - rebuilt).abs().amax(dim=(-1, -2))
+        finite = torch.isfinite(M).all()
+        worst = torch.stack((orth.max(), det.max(), rows.max())) if M.numel() else None
+        if not bool(finite):
+            raise ValueError(f"matrix is not in {cls.__name__}: it has non-finite entries")
+        if worst is not None and bool((worst > tol).any()):
+            o, d, r = worst.tolist()
+            raise ValueError(
+                f"matrix is not in {cls.__name__} (tol {tol:g}): max |C^T C - I| = {o:.3g}, "
+                f"max |det C - 1| = {d:.3g}, max deviation of the fixed rows = {r:.3g}"
+            )
+
+    @classmethod
+    def identity(cls, batch_shape: Sequence[int] = (), dtype=None, device=None):
+        dtype = dtype or torch.get_default_dtype()
+        eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
+        return cls(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
+
+    @classmethod
+    def random(cls, batch_shape: Sequence[int] = (), dtype=None, device=None, generator=None):
+        """Uniform rotations; translations, velocities and times standard normal."""
+        if isinstance(batch_shape, int):
+            batch_shape = (batch_shape,)
+        dtype = dtype or torch.get_default_dtype()
+        return cls(cls._f.random(tuple(batch_shape), dtype, device, generator))
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self._matrix.shape[:-2]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._matrix.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._matrix.device
+
+    def as_matrix(self) -> torch.Tensor:
+        return self._matrix
+
+    def rotation(self) -> torch.Tensor:
+        """Rotation matrix C (..., 3, 3)."""
+        return self._matrix[..., :3, :3]
+
+    # ------------------------------------------------------------------ operations
+    def _same_type(self, other, name: str):
+        if not isinstance(other, type(self)):
+            raise TypeError(f"{name} must be a {type(self).__name__}, got {type(other).__name__}")
+        checks.binary(self._matrix, 2, other._matrix, 2, "self", name)
+        return other
+
+    def log(self) -> torch.Tensor:
+        """Principal logarithm (..., dof), rotation angle in [0, pi] (custom backward)."""
+        return self._f.log(self._matrix)
+
+    def compose(self, other):
+        self._same_type(other, "other")
+        return type(self)(self._f.compose(self._matrix, other._matrix))
+
+    def __matmul__(self, other):
+        if not isinstance(other, LieGroup):
+            return NotImplemented
+        return self.compose(other)
+
+    def inverse(self):
+        return type(self)(self._f.inverse(self._matrix))
+
+    def adjoint(self) -> torch.Tensor:
+        """Ad(g) (..., dof, dof): Ad(g) xi = vee(g hat(xi) g^-1)."""
+        return self._f.adjoint(self._matrix)
+
+    def rplus(self, delta: torch.Tensor):
+        """g exp(delta)."""
+        return self @ type(self).exp(delta)
+
+    def lplus(self, delta: torch.Tensor):
+        """exp(delta) g."""
+        return type(self).exp(delta) @ self
+
+    def rminus(self, other) -> torch.Tensor:
+        """log(other^-1 g)."""
+        return self._same_type(other, "other").between(self).log()
+
+    def lminus(self, other) -> torch.Tensor:
+        """log(g other^-1)."""
+        return (self @ self._same_type(other, "other").inverse()).log()
+
+    def between(self, other):
+        """g^-1 other."""
+        return self.inverse() @ self._same_type(other, "other")
+
+    def interpolate(self, other, alpha):
+        """Geodesic g exp(alpha log(g^-1 h)); alpha a scalar or a tensor broadcasting with the
+        batch (0 gives g, 1 gives h)."""
+        delta = self.between(other).log()
+        alpha = torch.as_tensor(alpha, dtype=delta.dtype, device=delta.device)
+        return self.rplus(alpha.unsqueeze(-1) * delta)
+
+    def act_direction(self, d: torch.Tensor) -> torch.Tensor:
+        """Directions (..., 3), homogeneous [d, 0(, 0)]: C d."""
+        return self._f.act_direction(self._matrix, d)
+
+    # ----------------------------------------------------------- static algebra maps
+    @classmethod
+    def hat(cls, xi: torch.Tensor) -> torch.Tensor:
+        return cls._f.hat(xi)
+
+    @classmethod
+    def vee(cls, X: torch.Tensor) -> torch.Tensor:
+        return cls._f.vee(X)
+
+    @classmethod
+    def ad(cls, xi: torch.Tensor) -> torch.Tensor:
+        """ad(xi) (..., dof, dof): ad(xi) eta = vee([hat xi, hat eta])."""
+        return cls._f.ad(xi)
+
+    @classmethod
+    def jl(cls, xi: torch.Tensor) -> torch.Tensor:
+        """Left Jacobian: exp(xi + d) ~ exp(J_l d) exp(xi)."""
+        return cls._f.jl(xi)
+
+    @classmethod
+    def jr(cls, xi: torch.Tensor) -> torch.Tensor:
+        """Right Jacobian J_l(-xi): exp(xi + d) ~ exp(xi) exp(J_r d)."""
+        return cls._f.jr(xi)
+
+    @classmethod
+    def jl_inv(cls, xi: torch.Tensor) -> torch.Tensor:
+        return cls._f.jl_inv(xi)
+
+    @classmethod
+    def jr_inv(cls, xi: torch.Tensor) -> torch.Tensor:
+        return cls._f.jr_inv(xi)
+
+    # ---------------------------------------------------------------- batch handling
+    def __getitem__(self, index):
+        if not isinstance(index, tuple):
+            index = (index,)
+        if any(i is Ellipsis for i in index):
+            raise IndexError("Ellipsis is not supported when indexing a group batch")
+        return type(self)(self._matrix[index + (slice(None), slice(None))])
+
+    def __len__(self) -> int:
+        if not self.batch_shape:
+            raise TypeError(f"len() of an unbatched {type(self).__name__}")
+        return self.batch_shape[0]
+
+    def reshape(self, *shape):
+        if len(shape) == 1 and not isinstance(shape[0], int):
+            shape = tuple(shape[0])
+        n = self.matrix_dim
+        return type(self)(self._matrix.reshape(*shape, n, n))
+
+    def expand(self, *shape):
+        if len(shape) == 1 and not isinstance(shape[0], int):
+            shape = tuple(shape[0])
+        n = self.matrix_dim
+        return type(self)(self._matrix.expand(*shape, n, n))
+
+    def unsqueeze(self, dim: int):
+        if dim < 0:
+            dim = dim + len(self.batch_shape) + 1
+        return type(self)(self._matrix.unsqueeze(dim))
+
+    @classmethod
+    def stack(cls, elements: Sequence["LieGroup"], dim: int = 0):
+        if dim < 0:
+            dim = dim + len(elements[0].batch_shape) + 1
+        return cls(torch.stack([e._matrix for e in elements], dim=dim))
+
+    def to(self, *args, **kwargs):
+        return type(self)(self._matrix.to(*args, **kwargs))
+
+    def detach(self):
+        return type(self)(self._matrix.detach())
+
+    def clone(self):
+        return type(self)(self._matrix.clone())
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
+            f"device={self.device})"
+        )

@@ -1,0 +1,52 @@
+from __future__ import annotations
+
+import torch
+
+from ..functional import sgal3 as _sgal3
+from ._components import prepare
+from .base import LieGroup
+
+
+class SGal3(LieGroup):
+    """Special Galilean transformations [[C, v, r], [0, 1, tau], [0, 0, 1]];
+    tangent [rho, nu, phi, iota] (..., 10)."""
+
+    dof = 10
+    matrix_dim = 5
+    _f = _sgal3
+    __slots__ = ()
+
+    @classmethod
+    def from_components(
+        cls,
+        rotation: torch.Tensor,
+        velocity: torch.Tensor,
+        position: torch.Tensor,
+        time: torch.Tensor,
+    ):
+        """rotation (..., 3, 3), velocity (..., 3), position (..., 3), time (...)."""
+        C, v, r, tau = prepare(
+            rotation=(rotation, (3, 3)),
+            velocity=(velocity, (3,)),
+            position=(position, (3,)),
+            time=(time.unsqueeze(-1) if isinstance(time, torch.Tensor) else time, (1,)),
+        )
+        return cls(_sgal3.from_components(C, v, r, tau))
+
+    def velocity(self) -> torch.Tensor:
+        return self._matrix[..., :3, 3]
+
+    def position(self) -> torch.Tensor:
+        return self._matrix[..., :3, 4]
+
+    def time(self) -> torch.Tensor:
+        """The time offset tau (...)."""
+        return self._matrix[..., 3, 4]
+
+    def act(self, e: torch.Tensor) -> torch.Tensor:
+        """Events (..., 4) = (x, t): (C x + v t + r, t + tau), (3.31)."""
+        return self._f.act(self._matrix, e)
+
+    def act_velocity(self, u: torch.Tensor) -> torch.Tensor:
+        """Velocities (..., 3), homogeneous [u, 1, 0]: C u + v."""
+        return self._f.act_velocity(self._matrix, u)

@@ -1,0 +1,23 @@
+from __future__ import annotations
+
+import torch
+
+from ..functional import so3 as _so3
+from .base import LieGroup
+
+
+class SO3(LieGroup):
+    """Rotations, (..., 3, 3) matrices; tangent phi (..., 3)."""
+
+    dof = 3
+    matrix_dim = 3
+    _f = _so3
+    __slots__ = ()
+
+    @classmethod
+    def from_rotation(cls, rotation: torch.Tensor, check: bool = False):
+        return cls.from_matrix(rotation, check=check)
+
+    def act(self, p: torch.Tensor) -> torch.Tensor:
+        """Points (..., 3): C p."""
+        return self._f.act(self._matrix, p)
