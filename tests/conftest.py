@@ -1,0 +1,84 @@
+"""Shared test machinery: one decorator runs a property over every group, several batch
+shapes and both float dtypes; samples always include the small-angle and near-pi bands."""
+from __future__ import annotations
+
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+import torchsgal as ts  # noqa: E402
+
+GROUP_CLASSES = list(ts.GROUPS)
+BATCH_SHAPES = [(), (5,), (2, 3, 1)]
+DTYPES = [torch.float64, torch.float32]
+
+# Rotation angles cycled over a batch: the Taylor branches, the closed form, and near pi.
+ANGLES = [0.0, 1e-9, 1e-5, 1e-3, 0.7, 1e-12, 1e-6, 0.3, 2.0, math.pi - 1e-6, 1.0, 3.0]
+UNBATCHED_ANGLE = 1e-6
+
+
+def angles_for(batch_shape) -> np.ndarray:
+    n = int(np.prod(batch_shape)) if batch_shape else 1
+    if not batch_shape:
+        return np.array([UNBATCHED_ANGLE])
+    return np.array([ANGLES[i % len(ANGLES)] for i in range(n)])
+
+
+def sample_tangent(G, batch_shape, dtype, seed=0, scale=1.0, angles=None) -> torch.Tensor:
+    """Tangent vectors whose rotation angles are ``angles`` (default: the cycle above)."""
+    rng = np.random.default_rng(seed)
+    ang = angles_for(batch_shape) if angles is None else np.asarray(angles, dtype=float)
+    n = ang.size
+    xi = scale * rng.standard_normal((n, G.dof))
+    phi_slice = G._f.PHI
+    axis = rng.standard_normal((n, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    xi[:, phi_slice] = axis * ang[:, None]
+    return torch.tensor(xi.reshape(*batch_shape, G.dof) if batch_shape else xi[0], dtype=dtype)
+
+
+def sample_group(G, batch_shape, dtype, seed=0):
+    return G.exp(sample_tangent(G, batch_shape, dtype, seed))
+
+
+def tol(dtype) -> float:
+    """Relative-to-magnitude tolerance: CONVENTIONS.md, Numerics."""
+    return 1e-10 if dtype == torch.float64 else 2e-5
+
+
+def assert_close(actual, expected, dtype, scale=None, factor=1.0, msg=""):
+    actual = np.asarray(actual.detach().cpu().numpy() if torch.is_tensor(actual) else actual)
+    expected = np.asarray(
+        expected.detach().cpu().numpy() if torch.is_tensor(expected) else expected, dtype=float
+    )
+    assert actual.shape == expected.shape, f"shape {actual.shape} != {expected.shape} {msg}"
+    if scale is None:
+        scale = max(1.0, float(np.abs(expected).max(initial=0.0)))
+    err = float(np.abs(actual.astype(float) - expected).max(initial=0.0))
+    assert np.isfinite(actual).all(), f"non-finite values {msg}"
+    assert err <= factor * tol(dtype) * scale, f"max error {err:.3g} > {factor * tol(dtype) * scale:.3g} {msg}"
+
+
+def all_groups(fn=None, *, batch_shapes=BATCH_SHAPES, dtypes=DTYPES):
+    """Runs a test over every (group, batch_shape, dtype)."""
+
+    def wrap(f):
+        f = pytest.mark.parametrize("dtype", dtypes, ids=lambda d: str(d).split(".")[-1])(f)
+        f = pytest.mark.parametrize("batch_shape", batch_shapes, ids=lambda b: "b" + "x".join(map(str, b)))(f)
+        return pytest.mark.parametrize("G", GROUP_CLASSES, ids=lambda g: g.__name__)(f)
+
+    return wrap(fn) if fn is not None else wrap
+
+
+def gname(G) -> str:
+    return G.__name__
+
+
+def np64(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().double().numpy()

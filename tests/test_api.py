@@ -1,0 +1,237 @@
+"""The class API: constructors, accessors, actions, plus/minus, interpolation, batching, and
+clear errors on bad input.  Expected values come from plain matrix algebra on the
+homogeneous matrices (numpy), independent of the code under test."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+
+import torchsgal as ts
+from conftest import all_groups, assert_close, np64, sample_group, sample_tangent
+
+IDS = lambda g: g.__name__  # noqa: E731
+
+
+def test_dimensions():
+    assert [(G.dof, G.matrix_dim) for G in ts.GROUPS] == [(3, 3), (6, 4), (9, 5), (10, 5)]
+
+
+def test_worked_event_example():
+    """kelly-all-about-sgal3.txt, 'A Simple Transform Example': (1, 1, 0, 2) -> (3, 2, 0, 1)."""
+    F = torch.tensor(
+        [[0, -1, 0, 2, 0], [1, 0, 0, 0, 1], [0, 0, 1, 0, 0], [0, 0, 0, 1, -1], [0, 0, 0, 0, 1]],
+        dtype=torch.float64,
+    )
+    g = ts.SGal3.from_matrix(F, check=True)
+    out = g.act(torch.tensor([1.0, 1.0, 0.0, 2.0], dtype=torch.float64))
+    assert out.tolist() == [3.0, 2.0, 0.0, 1.0]
+    # the same element from its components: rotation pi/2 about z, boost 2 in x, y + 1, t - 1
+    C = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=torch.float64)
+    h = ts.SGal3.from_components(
+        C, torch.tensor([2.0, 0, 0], dtype=torch.float64), torch.tensor([0.0, 1, 0], dtype=torch.float64),
+        torch.tensor(-1.0, dtype=torch.float64),
+    )
+    assert torch.equal(h.as_matrix(), F)
+
+
+def _homogeneous(G, x, kind):
+    """Homogeneous coordinates per CONVENTIONS.md."""
+    n = G.matrix_dim
+    out = np.zeros(x.shape[:-1] + (n,))
+    if kind == "point":
+        out[..., : x.shape[-1]] = x
+        if G is ts.SGal3:
+            out[..., 4] = 1.0  # event [x, t, 1]
+        elif G is not ts.SO3:
+            out[..., n - 1] = 1.0  # point [x, (0,) 1]
+    elif kind == "velocity":
+        out[..., :3] = x
+        out[..., 3] = 1.0  # [v, 1, 0]
+    else:
+        out[..., :3] = x  # direction [d, 0, 0]
+    return out
+
+
+@all_groups
+def test_actions_match_homogeneous_products(G, batch_shape, dtype):
+    g = sample_group(G, batch_shape, dtype, seed=11)
+    M = np64(g.as_matrix())
+    dim = 4 if G is ts.SGal3 else 3
+    p = torch.randn(*batch_shape, dim, dtype=dtype)
+    want = np.einsum("...ij,...j->...i", M, _homogeneous(G, np64(p), "point"))[..., :dim]
+    assert_close(g.act(p), want, dtype)
+    d = torch.randn(*batch_shape, 3, dtype=dtype)
+    want = np.einsum("...ij,...j->...i", M, _homogeneous(G, np64(d), "direction"))[..., :3]
+    assert_close(g.act_direction(d), want, dtype)
+    if hasattr(g, "act_velocity"):
+        want = np.einsum("...ij,...j->...i", M, _homogeneous(G, np64(d), "velocity"))
+        assert_close(g.act_velocity(d), want[..., :3], dtype)
+        np.testing.assert_allclose(want[..., 3], 1.0)  # stays a velocity
+
+
+@all_groups
+def test_plus_minus_between(G, batch_shape, dtype):
+    g = sample_group(G, batch_shape, dtype, seed=12)
+    h = sample_group(G, batch_shape, dtype, seed=13)
+    d = 0.3 * sample_tangent(G, batch_shape, dtype, seed=14)
+    Mg, Mh, Ed = np64(g.as_matrix()), np64(h.as_matrix()), np64(G.exp(d).as_matrix())
+    assert_close(g.rplus(d).as_matrix(), Mg @ Ed, dtype)
+    assert_close(g.lplus(d).as_matrix(), Ed @ Mg, dtype)
+    assert_close(g.between(h).as_matrix(), np.linalg.inv(Mg) @ Mh, dtype, factor=10)
+    assert_close(g.rplus(d).rminus(g), np64(d), dtype, factor=10)
+    assert_close(g.lplus(d).lminus(g), np64(d), dtype, factor=10)
+
+
+@all_groups(dtypes=[torch.float64])
+def test_interpolate_is_the_geodesic(G, batch_shape, dtype):
+    g = sample_group(G, batch_shape, dtype, seed=15)
+    h = sample_group(G, batch_shape, dtype, seed=16)
+    assert_close(g.interpolate(h, 0.0).as_matrix(), np64(g.as_matrix()), dtype)
+    assert_close(g.interpolate(h, 1.0).as_matrix(), np64(h.as_matrix()), dtype, factor=100)
+    # alpha as a batched tensor: g expm(alpha logm(g^-1 h)) from scipy
+    alpha = torch.rand(batch_shape, dtype=dtype)
+    got = np64(g.interpolate(h, alpha).as_matrix()).reshape(-1, G.matrix_dim, G.matrix_dim)
+    Mg = np64(g.as_matrix()).reshape(-1, G.matrix_dim, G.matrix_dim)
+    Mh = np64(h.as_matrix()).reshape(-1, G.matrix_dim, G.matrix_dim)
+    a = np64(alpha).reshape(-1)
+    for k in range(Mg.shape[0]):
+        rel = np.real(scipy.linalg.logm(np.linalg.inv(Mg[k]) @ Mh[k]))
+        np.testing.assert_allclose(got[k], Mg[k] @ scipy.linalg.expm(a[k] * rel), atol=1e-9)
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_batch_broadcasting_indexing_reshaping(G):
+    g = G.random((5,), dtype=torch.float64)
+    h = G.random((2, 1), dtype=torch.float64)
+    gh = g @ h
+    assert gh.batch_shape == (2, 5)
+    np.testing.assert_allclose(
+        np64(gh.as_matrix()[1, 3]), np64(g.as_matrix()[3]) @ np64(h.as_matrix()[1, 0]), atol=1e-14
+    )
+    assert gh[1].batch_shape == (5,)
+    assert gh[:, 2:4].batch_shape == (2, 2)
+    assert gh.reshape(10).batch_shape == (10,)
+    assert gh.reshape(-1, 5).batch_shape == (2, 5)
+    assert g.unsqueeze(0).batch_shape == (1, 5)
+    assert len(g) == 5
+    assert G.stack([g, g], dim=0).batch_shape == (2, 5)
+    assert g.to(torch.float32).dtype == torch.float32
+    assert g.detach().as_matrix().requires_grad is False
+    i = G.identity((3,), dtype=torch.float32)
+    assert i.batch_shape == (3,) and i.dtype == torch.float32
+    assert torch.equal(i.as_matrix()[0], torch.eye(G.matrix_dim))
+    # random elements are members of the group
+    G.from_matrix(G.random((100,), dtype=torch.float64).as_matrix(), check=True)
+    assert "batch_shape=(5,)" in repr(g)
+
+
+def test_components_round_trip():
+    g = ts.SGal3.random((4,), dtype=torch.float64)
+    h = ts.SGal3.from_components(g.rotation(), g.velocity(), g.position(), g.time())
+    assert torch.equal(g.as_matrix(), h.as_matrix())
+    e = ts.SE23.random((4,), dtype=torch.float64)
+    assert torch.equal(
+        ts.SE23.from_components(e.rotation(), e.velocity(), e.position()).as_matrix(), e.as_matrix()
+    )
+    p = ts.SE3.random((4,), dtype=torch.float64)
+    assert torch.equal(ts.SE3.from_components(p.rotation(), p.position()).as_matrix(), p.as_matrix())
+    # components broadcast: one rotation, a batch of positions
+    q = ts.SE3.from_components(torch.eye(3), torch.zeros(7, 3))
+    assert q.batch_shape == (7,)
+
+
+# ------------------------------------------------------------------------------ bad input
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_wrong_trailing_dimension(G):
+    with pytest.raises(ValueError, match=rf"xi must have shape \(\.\.\., {G.dof}\), got \(4, {G.dof + 1}\)"):
+        G.exp(torch.zeros(4, G.dof + 1))
+    with pytest.raises(ValueError, match=r"matrix must have shape"):
+        G.from_matrix(torch.zeros(2, G.matrix_dim + 1, G.matrix_dim + 1))
+    with pytest.raises(ValueError, match=r"must have shape"):
+        G.jl(torch.zeros(G.dof - 1))
+    g = G.random((2,))
+    with pytest.raises(ValueError, match=r"must have shape \(\.\.\., [34]\), got \(2, 7\)"):
+        g.act(torch.zeros(2, 7))
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_batch_shapes_that_do_not_broadcast(G):
+    g, h = G.random((3,)), G.random((4,))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: self \(3,\), other \(4,\)"):
+        g @ h
+    dim = 4 if G is ts.SGal3 else 3
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast"):
+        g.act(torch.zeros(5, dim))
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_integer_and_mixed_dtypes(G):
+    with pytest.raises(TypeError, match=r"xi must have a floating dtype .* got torch.int64"):
+        G.exp(torch.zeros(G.dof, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"floating dtype"):
+        G.from_matrix(torch.eye(G.matrix_dim, dtype=torch.int32))
+    with pytest.raises(TypeError, match=r"dtype torch.float32 but self has dtype torch.float64"):
+        G.random((), dtype=torch.float64) @ G.random((), dtype=torch.float32)
+    with pytest.raises(TypeError, match=r"must be a torch.Tensor"):
+        G.exp([0.0] * G.dof)
+    with pytest.raises(TypeError, match=r"other must be a"):
+        G.random(()).between(ts.SO3.random(()) if G is not ts.SO3 else ts.SE3.random(()))
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_mixed_devices(G):
+    """Tensors on different devices are refused before any kernel runs (meta stands in for a
+    second device where no GPU is available)."""
+    g = G.random((2,))
+    other = G(torch.empty(2, G.matrix_dim, G.matrix_dim, device="meta"))
+    with pytest.raises(ValueError, match=r"other is on meta but self is on cpu"):
+        g @ other
+    with pytest.raises(ValueError, match=r"is on meta but g is on cpu"):
+        g.act_direction(torch.zeros(2, 3, device="meta"))
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_from_matrix_check(G):
+    M = G.random((3,), dtype=torch.float64).as_matrix().clone()
+    G.from_matrix(M, check=True)
+    bad = M.clone()
+    bad[1, 0, 0] += 1e-3  # not orthonormal
+    with pytest.raises(ValueError, match=rf"not in {G.__name__}.*C\^T C - I"):
+        G.from_matrix(bad, check=True)
+    refl = M.clone()
+    refl[0, :3, :3] = -refl[0, :3, :3]  # det -1
+    with pytest.raises(ValueError, match=r"det C - 1"):
+        G.from_matrix(refl, check=True)
+    if G.matrix_dim > 3:
+        row = M.clone()
+        row[2, -1, 0] = 0.5  # the fixed bottom row
+        with pytest.raises(ValueError, match=r"fixed rows"):
+            G.from_matrix(row, check=True)
+    nan = M.clone()
+    nan[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"non-finite"):
+        G.from_matrix(nan, check=True)
+    G.from_matrix(bad, check=False)  # unchecked wrapping is allowed
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+def test_no_nan_for_finite_input(G):
+    """Exact identity, exact pi rotations and huge angles: finite results everywhere."""
+    xi = torch.zeros(6, G.dof, dtype=torch.float64)
+    phi = G._f.PHI
+    xi[1, phi] = torch.tensor([np.pi, 0, 0])
+    xi[2, phi] = torch.tensor([0, 0, -np.pi])
+    xi[3, phi] = torch.tensor([1e3, -2e3, 5e2])
+    xi[4, phi] = torch.tensor([1e-300, 0, 0])
+    xi[5] = 1e6
+    for fn in ("jl", "jr", "jl_inv", "jr_inv", "ad"):
+        assert torch.isfinite(getattr(G, fn)(xi[[0, 1, 2, 4]])).all(), fn
+    g = G.exp(xi)
+    assert torch.isfinite(g.as_matrix()).all()
+    assert torch.isfinite(g.log()).all()
+    assert torch.isfinite(g.adjoint()).all()
+    # rotation by exactly pi: log returns angle pi about the right axis (either sign)
+    phi_back = g.log()[1:3, phi]
+    np.testing.assert_allclose(np64(phi_back.abs()), np64(xi[1:3, phi].abs()), atol=1e-12)
