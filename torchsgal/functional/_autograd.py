@@ -45,7 +45,7 @@ def make_exp_log(mod):
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
             w = mod.vee(M.transpose(-1, -2) @ grad_M) * _phi_scale(mod, xi, 2.0)
-            return (mod.jr(xi).transpose(-1, -2) @ w.unsqueeze(-1)).squeeze(-1)
+            return mod.jl_tmv(-xi, w)  # J_r(xi)^T w = J_l(-xi)^T w
 
     class Log(torch.autograd.Function):
         generate_vmap_rule = True
@@ -61,7 +61,7 @@ def make_exp_log(mod):
         @staticmethod
         def backward(ctx, grad_xi):
             M, xi = ctx.saved_tensors
-            w = (mod.jr_inv(xi).transpose(-1, -2) @ grad_xi.unsqueeze(-1)).squeeze(-1)
+            w = mod.jl_inv_tmv(-xi, grad_xi)  # J_r(xi)^-T grad_xi
             V = mod.hat(w * _phi_scale(mod, xi, 0.5))
             return mod.inverse(M).transpose(-1, -2) @ V
 

@@ -1,11 +1,16 @@
 """SO(3) building blocks shared by every group (Barfoot, "Integral Forms", Sec. 3-4).
 
-    Gamma_l(phi) = sum_n (phi^)^n / (n + l)! = I/l! + c_(l+1) phi^ + c_(l+2) phi^ phi^
+    Gamma_l(phi) = sum_n (phi^)^n / (n + l)! = c_l I + c_(l+1) phi^ + c_(l+2) phi phi^T
 
-Gamma_0 = C (Rodrigues, (3.7)), Gamma_1 = D = J_SO3 (3.8), Gamma_2 = E = N (3.9).  The
-Q-type blocks of the SE(3), SE_2(3) and SGal(3) Jacobians follow from the derivative of
-Gamma_l(phi) x with respect to phi (see ``q_block``), which avoids the cancellation-prone
-closed forms printed in the papers.
+(c_m from ``numerics``).  Gamma_0 = C (Rodrigues, (3.7)), Gamma_1 = D = J_SO3 (3.8),
+Gamma_2 = E (3.9).  The Q-type blocks of the SE(3), SE_2(3) and SGal(3) Jacobians follow from
+the derivative of Gamma_l(phi) x with respect to phi (``q_block``), which avoids the
+cancellation of the closed forms printed in the papers.
+
+Layout: inside the library a 3-vector is stored component-first, (3, *batch), so that every
+operation is elementwise on contiguous (*batch) tensors (several times faster on CPU than
+strided (..., 3) views); scalars are (*batch) and broadcast against it.  Matrices keep the
+public layout (..., 3, 3).  ``first``/``last`` convert at the boundary.
 """
 from __future__ import annotations
 
@@ -16,54 +21,98 @@ import torch
 from . import numerics
 
 
+# ------------------------------------------------------------------------- layout
+def first(x: torch.Tensor) -> torch.Tensor:
+    """(..., k) -> (k, ...) view."""
+    return x.movedim(-1, 0)
+
+
+def last(*parts: torch.Tensor) -> torch.Tensor:
+    """Component-first parts (k_i, ...) -> one contiguous (..., sum k_i) (pass a scalar s as
+    s[None])."""
+    return torch.stack([comp for p in parts for comp in p.unbind(0)], dim=-1)
+
+
+def vec(*components: torch.Tensor) -> torch.Tensor:
+    return torch.stack(components, dim=0)
+
+
+def column(v: torch.Tensor) -> torch.Tensor:
+    """(3, ...) -> (..., 3, 1)."""
+    return v.movedim(0, -1).unsqueeze(-1)
+
+
+# ------------------------------------------------------------------- vector algebra
+def cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    u0, u1, u2 = u
+    v0, v1, v2 = v
+    return torch.stack((u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0), dim=0)
+
+
+def dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def theta_squared(phi: torch.Tensor) -> torch.Tensor:
+    return dot(phi, phi)
+
+
 def skew(v: torch.Tensor) -> torch.Tensor:
-    """v^ (..., 3, 3) from v (..., 3)."""
-    x, y, z = v.unbind(-1)
+    """v^ (..., 3, 3) from v (3, ...)."""
+    x, y, z = v
     o = torch.zeros_like(x)
     return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).unflatten(-1, (3, 3))
 
 
 def unskew(m: torch.Tensor) -> torch.Tensor:
-    """The vector of the skew part of m (..., 3, 3): vee((m - m^T)/2)."""
-    return 0.5 * torch.stack(
-        (m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]),
-        dim=-1,
-    )
+    """The vector (3, ...) of the skew part of m (..., 3, 3): vee((m - m^T)/2)."""
+    return 0.5 * vec(m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1])
 
 
-def skew_transpose(m: torch.Tensor) -> torch.Tensor:
-    """Adjoint of ``skew`` for the Frobenius product: <m, v^> = <skew_transpose(m), v>."""
-    return 2.0 * unskew(m)
+def outer(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """u v^T (..., 3, 3) from u, v (3, ...)."""
+    return u.movedim(0, -1).unsqueeze(-1) * v.movedim(0, -1).unsqueeze(-2)
 
 
-def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return (a * b).sum(-1, keepdim=True)
+def eye(n: int, like: torch.Tensor) -> torch.Tensor:
+    return torch.eye(n, dtype=like.dtype, device=like.device)
 
 
-def theta_squared(phi: torch.Tensor) -> torch.Tensor:
-    return (phi * phi).sum(-1)
-
-
+# ------------------------------------------------------------------ Gamma blocks
 def coefficients(phi: torch.Tensor, order: int = numerics.MAX_ORDER) -> list[torch.Tensor]:
-    """[c_0 .. c_order](theta), each (..., 1) for broadcasting against vectors."""
-    return [c.unsqueeze(-1) for c in numerics.series_coefficients(theta_squared(phi), order)]
+    """[c_0 .. c_order](theta), each (...)."""
+    return numerics.series_coefficients(theta_squared(phi), order)
 
 
 def gamma_vec(c: list[torch.Tensor], l: int, phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Gamma_l(phi) x without forming the matrix."""
-    px = torch.linalg.cross(phi, x, dim=-1)
-    ppx = torch.linalg.cross(phi, px, dim=-1)
-    return x / math.factorial(l) + c[l + 1] * px + c[l + 2] * ppx
+    """Gamma_l(phi) x (3, ...) without forming the matrix; Gamma_l(-phi) x = Gamma_l^T x."""
+    px = cross(phi, x)
+    return x / math.factorial(l) + c[l + 1] * px + c[l + 2] * cross(phi, px)
+
+
+def sym_skew_entries(d, a, b, phi: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Row-major entries of d I + a phi^ + b phi phi^T from scalars (...)."""
+    x, y, z = phi
+    ax, ay, az = a * x, a * y, a * z
+    bx, by = b * x, b * y
+    bxy, bxz, byz = bx * y, bx * z, by * z
+    return (d + bx * x, bxy - az, bxz + ay, bxy + az, d + by * y, byz - ax, bxz - ay, byz + ax,
+            d + b * z * z)
+
+
+def sym_skew_matrix(d, a, b, phi: torch.Tensor) -> torch.Tensor:
+    return torch.stack(sym_skew_entries(d, a, b, phi), dim=-1).unflatten(-1, (3, 3))
+
+
+def gamma_entries(c: list[torch.Tensor], l: int, phi: torch.Tensor):
+    """Entries of Gamma_l = c_l I + c_(l+1) phi^ + c_(l+2) phi phi^T (phi^ phi^ = phi phi^T -
+    theta^2 I and c_l = 1/l! - theta^2 c_(l+2))."""
+    return sym_skew_entries(c[l], c[l + 1], c[l + 2], phi)
 
 
 def gamma_mat(c: list[torch.Tensor], l: int, phi: torch.Tensor) -> torch.Tensor:
-    """Gamma_l(phi) as a (..., 3, 3) matrix; uses phi^ phi^ = phi phi^T - theta^2 I."""
-    theta2 = theta_squared(phi)[..., None, None]
-    a = c[l + 1][..., None]
-    b = c[l + 2][..., None]
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    outer = phi.unsqueeze(-1) * phi.unsqueeze(-2)
-    return (1.0 / math.factorial(l) - b * theta2) * eye + a * skew(phi) + b * outer
+    """Gamma_l(phi) (..., 3, 3)."""
+    return sym_skew_matrix(c[l], c[l + 1], c[l + 2], phi)
 
 
 def rotation(c: list[torch.Tensor], phi: torch.Tensor) -> torch.Tensor:
@@ -80,18 +129,34 @@ def gamma_vec_derivative(
       d(a phi^x)/dphi = e_(l+1) (phi^x) phi^T - a x^
       d(b phi^phi^x)/dphi = e_(l+2) (phi^phi^x) phi^T + b ((phi.x) I + phi x^T - 2 x phi^T)
     """
-    px = torch.linalg.cross(phi, x, dim=-1)
-    ppx = torch.linalg.cross(phi, px, dim=-1)
+    px = cross(phi, x)
+    ppx = cross(phi, px)
     ea = numerics.series_derivative(c, l + 1)
     eb = numerics.series_derivative(c, l + 2)
-    a = c[l + 1][..., None]
-    b = c[l + 2][..., None]
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    outer = lambda u, w: u.unsqueeze(-1) * w.unsqueeze(-2)  # noqa: E731
+    a, b = c[l + 1], c[l + 2]
+    # d I + a' x^ terms as one sym-skew-shaped matrix, plus the rank-one outer products
+    diag = (b * dot(phi, x))[..., None, None] * eye(3, phi)
     return (
-        outer(ea * px + eb * ppx, phi)
-        - a * skew(x)
-        + b * (dot(phi, x)[..., None] * eye + outer(phi, x) - 2.0 * outer(x, phi))
+        outer(ea * px + eb * ppx - 2.0 * b * x, phi)
+        + b[..., None, None] * outer(phi, x)
+        + diag
+        - a[..., None, None] * skew(x)
+    )
+
+
+def gamma_vec_derivative_t(
+    c: list[torch.Tensor], l: int, phi: torch.Tensor, x: torch.Tensor, w: torch.Tensor
+) -> torch.Tensor:
+    """(d/dphi [Gamma_l(phi) x])^T w (3, ...), the transpose of ``gamma_vec_derivative``."""
+    px = cross(phi, x)
+    ppx = cross(phi, px)
+    ea = numerics.series_derivative(c, l + 1)
+    eb = numerics.series_derivative(c, l + 2)
+    b = c[l + 2]
+    return (
+        phi * (ea * dot(px, w) + eb * dot(ppx, w) - 2.0 * b * dot(x, w))
+        + c[l + 1] * cross(x, w)
+        + b * (dot(phi, x) * w + x * dot(phi, w))
     )
 
 
@@ -100,30 +165,34 @@ def q_block(c: list[torch.Tensor], phi: torch.Tensor, x: torch.Tensor, jac: torc
     SE(3) left Jacobian (Barfoot Table 1; M(phi, nu) of (3.25)).
 
     From exp(J_l d) exp(xi) = exp(xi + d):  Q = d(Gamma_1 x)/dphi + (Gamma_1 x)^ Gamma_1.
-    ``jac`` is Gamma_1(phi).  Returns (Q, Gamma_1 x).
+    ``jac`` is Gamma_1(phi) (..., 3, 3).
     """
+    return gamma_vec_derivative(c, 1, phi, x) + skew(gamma_vec(c, 1, phi, x)) @ jac
+
+
+def q_block_t(c: list[torch.Tensor], phi: torch.Tensor, x: torch.Tensor, w: torch.Tensor):
+    """Q(x, phi)^T w = (d(Gamma_1 x)/dphi)^T w + Gamma_1^T (w x Gamma_1 x)."""
     g1x = gamma_vec(c, 1, phi, x)
-    return gamma_vec_derivative(c, 1, phi, x) + skew(g1x) @ jac, g1x
+    return gamma_vec_derivative_t(c, 1, phi, x, w) + gamma_vec(c, 1, -phi, cross(w, g1x))
 
 
 def jac_inv_mat(phi: torch.Tensor) -> torch.Tensor:
     """D^-1(phi) = I - phi^/2 + d(theta) phi^ phi^, (3.12)."""
-    theta2 = theta_squared(phi)[..., None, None]
-    d = numerics.jinv_coefficient(theta_squared(phi))[..., None, None]
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    outer = phi.unsqueeze(-1) * phi.unsqueeze(-2)
-    return (1.0 - d * theta2) * eye - 0.5 * skew(phi) + d * outer
+    theta2 = theta_squared(phi)
+    d = numerics.jinv_coefficient(theta2)
+    return sym_skew_matrix(1.0 - d * theta2, torch.full_like(d, -0.5), d, phi)
 
 
-def jac_inv_vec(phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """D^-1(phi) x without forming the matrix."""
-    d = numerics.jinv_coefficient(theta_squared(phi)).unsqueeze(-1)
-    px = torch.linalg.cross(phi, x, dim=-1)
-    return x - 0.5 * px + d * torch.linalg.cross(phi, px, dim=-1)
+def jac_inv_vec(phi: torch.Tensor, x: torch.Tensor, d: torch.Tensor | None = None) -> torch.Tensor:
+    """D^-1(phi) x (3, ...) without forming the matrix (``d``: jinv_coefficient(theta^2))."""
+    if d is None:
+        d = numerics.jinv_coefficient(theta_squared(phi))
+    px = cross(phi, x)
+    return x - 0.5 * px + d * cross(phi, px)
 
 
 def rotation_log(C: torch.Tensor) -> torch.Tensor:
-    """phi = log(C)^vee with the angle in [0, pi], accurate near 0 and near pi.
+    """phi = log(C)^vee (3, ...) with the angle in [0, pi], accurate near 0 and near pi.
 
     theta = atan2(|s|, c) with s = vee(C - C^T)/2 = sin(theta) u and c = (tr C - 1)/2.  For
     c >= LOG_SYMMETRIC_COS, phi = (theta / sin theta) s  (3.11); below it the axis comes from
@@ -132,7 +201,9 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     """
     s = unskew(C)
     cos = 0.5 * (C[..., 0, 0] + C[..., 1, 1] + C[..., 2, 2] - 1.0)
-    sin = torch.linalg.vector_norm(s, dim=-1)
+    ss = dot(s, s)
+    positive = ss > 0
+    sin = torch.where(positive, torch.sqrt(torch.where(positive, ss, torch.ones_like(ss))), 0.0)
     theta = torch.atan2(sin, cos)
 
     # Near 0 / moderate angles: theta / sin theta, Taylor when sin is tiny.
@@ -140,33 +211,33 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     sin_safe = torch.where(tiny, torch.ones_like(sin), sin)
     t2 = theta * theta
     ratio = torch.where(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0, theta / sin_safe)
-    phi_small = ratio.unsqueeze(-1) * s
 
-    # Near pi: axis from the symmetric part.
-    sym = 0.5 * (C + C.transpose(-1, -2)) - cos[..., None, None] * torch.eye(
-        3, dtype=C.dtype, device=C.device
+    # Near pi: axis from the symmetric part, its largest diagonal entry's column.
+    d0, d1, d2 = C[..., 0, 0] - cos, C[..., 1, 1] - cos, C[..., 2, 2] - cos
+    s01 = 0.5 * (C[..., 0, 1] + C[..., 1, 0])
+    s02 = 0.5 * (C[..., 0, 2] + C[..., 2, 0])
+    s12 = 0.5 * (C[..., 1, 2] + C[..., 2, 1])
+    pick0 = (d0 >= d1) & (d0 >= d2)
+    pick1 = d1 >= d2
+    col = vec(
+        torch.where(pick0, d0, torch.where(pick1, s01, s02)),
+        torch.where(pick0, s01, torch.where(pick1, d1, s12)),
+        torch.where(pick0, s02, torch.where(pick1, s12, d2)),
     )
-    d0, d1, d2 = sym[..., 0, 0], sym[..., 1, 1], sym[..., 2, 2]
-    col = torch.where(
-        ((d0 >= d1) & (d0 >= d2)).unsqueeze(-1),
-        sym[..., :, 0],
-        torch.where((d1 >= d2).unsqueeze(-1), sym[..., :, 1], sym[..., :, 2]),
-    )
-    sign = torch.where(dot(col, s) < 0, -1.0, 1.0).to(C.dtype)
     near_pi = cos < numerics.LOG_SYMMETRIC_COS
-    col_norm = torch.linalg.vector_norm(col, dim=-1, keepdim=True)
-    col_norm = torch.where(near_pi.unsqueeze(-1), col_norm, torch.ones_like(col_norm))
-    phi_pi = (sign * theta.unsqueeze(-1)) * col / col_norm
-    return torch.where(near_pi.unsqueeze(-1), phi_pi, phi_small)
+    sign = torch.where(dot(col, s) < 0, -1.0, 1.0).to(C.dtype)
+    col_norm = torch.sqrt(torch.where(near_pi, dot(col, col), torch.ones_like(cos)))
+    return torch.where(near_pi, (sign * theta / col_norm) * col, ratio * s)
 
 
-def block_matrix(rows, sizes: list[int], like: torch.Tensor) -> torch.Tensor:
-    """Assemble a (..., n, n) matrix from blocks; ``None`` is a zero block.
+# ----------------------------------------------------------------------- assembly
+def block_matrix(rows, sizes: list[int], batch_shape, like: torch.Tensor) -> torch.Tensor:
+    """Assemble a (..., n, n) matrix from (..., h, w) blocks; ``None`` is a zero block.
 
-    ``sizes`` are the block sizes of the partition; ``like`` is any (..., k) tensor whose
-    batch shape, dtype and device the result takes.  Uses torch.cat only (vmap-safe).
+    ``sizes`` are the block sizes of the partition; ``like`` gives dtype and device.  Uses
+    torch.cat only (vmap-safe).
     """
-    batch = like.shape[:-1]
+    batch = tuple(batch_shape)
     out = []
     for i, row in enumerate(rows):
         parts = []
@@ -177,15 +248,37 @@ def block_matrix(rows, sizes: list[int], like: torch.Tensor) -> torch.Tensor:
     return torch.cat(out, dim=-2)
 
 
-def eye(n: int, like: torch.Tensor) -> torch.Tensor:
-    return torch.eye(n, dtype=like.dtype, device=like.device)
+def homogeneous(rot, cols, bottom) -> torch.Tensor:
+    """A (..., n, n) group matrix in one stack: ``rot`` the 9 row-major rotation entries, ``cols``
+    the extra columns (each (3, ...)), ``bottom`` the last rows (lists of scalars (...))."""
+    entries = []
+    for i in range(3):
+        entries.extend(rot[3 * i: 3 * i + 3])
+        entries.extend(col[i] for col in cols)
+    for row in bottom:
+        entries.extend(row)
+    n = 3 + len(cols)
+    return torch.stack(entries, dim=-1).unflatten(-1, (n, n))
+
+
+def entries(C: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Row-major entries of (..., 3, 3)."""
+    return tuple(C[..., i, j] for i in range(3) for j in range(3))
+
+
+def transpose_entries(C: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    return tuple(C[..., j, i] for i in range(3) for j in range(3))
+
+
+def matvec_entries(e, v: torch.Tensor) -> torch.Tensor:
+    """Row-major 3x3 entries times v (3, ...) -> (3, ...)."""
+    return vec(*(e[3 * i] * v[0] + e[3 * i + 1] * v[1] + e[3 * i + 2] * v[2] for i in range(3)))
 
 
 def random_rotation(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     """Uniformly distributed rotation matrices (normalised Gaussian quaternions)."""
-    q = torch.randn(*batch_shape, 4, dtype=dtype, device=device, generator=generator)
-    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
+    q = torch.randn(4, *batch_shape, dtype=dtype, device=device, generator=generator)
+    w, x, y, z = q / torch.sqrt((q * q).sum(0))
     return torch.stack(
         (
             1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),

@@ -1,6 +1,6 @@
 """SE_2(3), extended poses: (..., 5, 5) [[C, v, r], [0, 1, 0], [0, 0, 1]], tangent
 (..., 9) [rho, nu, phi].  The isochronous subgroup of SGal(3) (iota = 0); Barfoot,
-"Integral Forms", Table 1.
+"Integral Forms", Table 1.  Internally vectors are component-first (see blocks).
 """
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import torch
 
 from . import blocks as B
 from . import checks
+from . import numerics
 from ._autograd import make_exp_log
 
 NAME = "SE23"
@@ -19,50 +20,53 @@ SIZES = [3, 3, 3]
 PHI = slice(6, 9)
 
 
-def split(xi: torch.Tensor):
-    return xi[..., 0:3], xi[..., 3:6], xi[..., 6:9]
+def _split(xi: torch.Tensor):
+    X = B.first(xi)
+    return X[0:3], X[3:6], X[6:9]
 
 
 def components(M: torch.Tensor):
-    """(C, v, r)."""
+    """(C, v, r) in the public layout."""
     return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4]
 
 
+def _matrix(rot, v, r) -> torch.Tensor:
+    z = torch.zeros_like(v[0])
+    o = torch.ones_like(z)
+    return B.homogeneous(rot, [v, r], [[z, z, z, o, z], [z, z, z, z, o]])
+
+
 def from_components(C, v, r) -> torch.Tensor:
-    top = torch.cat((C, v.unsqueeze(-1), r.unsqueeze(-1)), dim=-1)
-    z = torch.zeros_like(v)
-    o = torch.ones_like(v[..., :1])
-    row4 = torch.cat((z, o, torch.zeros_like(o)), dim=-1)
-    row5 = torch.cat((z, torch.zeros_like(o), o), dim=-1)
-    return torch.cat((top, row4.unsqueeze(-2), row5.unsqueeze(-2)), dim=-2)
+    return _matrix(B.entries(C), B.first(v), B.first(r))
 
 
 def hat(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
-    rho, nu, phi = split(xi)
-    top = torch.cat((B.skew(phi), nu.unsqueeze(-1), rho.unsqueeze(-1)), dim=-1)
-    return torch.cat((top, torch.zeros_like(top[..., :2, :])), dim=-2)
+    rho, nu, (x, y, z) = _split(xi)
+    o = torch.zeros_like(x)
+    rot = (o, -z, y, z, o, -x, -y, x, o)
+    return B.homogeneous(rot, [nu, rho], [[o] * 5, [o] * 5])
 
 
 def vee(X: torch.Tensor) -> torch.Tensor:
     checks.matrix(X, MATRIX_DIM, "X")
-    return torch.cat((X[..., :3, 4], X[..., :3, 3], B.unskew(X[..., :3, :3])), dim=-1)
+    return B.last(B.first(X[..., :3, 4]), B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]))
 
 
 def exp_impl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
-    rho, nu, phi = split(xi)
+    rho, nu, phi = _split(xi)
     c = B.coefficients(phi, 3)
-    return from_components(
-        B.rotation(c, phi), B.gamma_vec(c, 1, phi, nu), B.gamma_vec(c, 1, phi, rho)
-    )
+    return _matrix(B.gamma_entries(c, 0, phi), B.gamma_vec(c, 1, phi, nu), B.gamma_vec(c, 1, phi, rho))
 
 
 def log_impl(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
-    C, v, r = components(M)
-    phi = B.rotation_log(C)
-    return torch.cat((B.jac_inv_vec(phi, r), B.jac_inv_vec(phi, v), phi), dim=-1)
+    phi = B.rotation_log(M[..., :3, :3])
+    d = numerics.jinv_coefficient(B.theta_squared(phi))
+    rho = B.jac_inv_vec(phi, B.first(M[..., :3, 4]), d)
+    nu = B.jac_inv_vec(phi, B.first(M[..., :3, 3]), d)
+    return B.last(rho, nu, phi)
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
@@ -70,52 +74,75 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
 
 
 def inverse(M: torch.Tensor) -> torch.Tensor:
-    C, v, r = components(M)
-    Ct = C.transpose(-1, -2)
-    mv = lambda x: -(Ct @ x.unsqueeze(-1)).squeeze(-1)  # noqa: E731
-    return from_components(Ct, mv(v), mv(r))
+    Ct = B.transpose_entries(M[..., :3, :3])
+    v, r = B.first(M[..., :3, 3]), B.first(M[..., :3, 4])
+    return _matrix(Ct, -B.matvec_entries(Ct, v), -B.matvec_entries(Ct, r))
 
 
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, 0, r^ C], [0, C, v^ C], [0, 0, C]]."""
     C, v, r = components(M)
     return B.block_matrix(
-        [[C, None, B.skew(r) @ C], [None, C, B.skew(v) @ C], [None, None, C]], SIZES, v
+        [[C, None, B.skew(B.first(r)) @ C], [None, C, B.skew(B.first(v)) @ C], [None, None, C]],
+        SIZES, M.shape[:-2], M,
     )
 
 
 def ad(xi: torch.Tensor) -> torch.Tensor:
     """[[phi^, 0, rho^], [0, phi^, nu^], [0, 0, phi^]]."""
     checks.vector(xi, DOF, "xi")
-    rho, nu, phi = split(xi)
+    rho, nu, phi = _split(xi)
     P = B.skew(phi)
     return B.block_matrix(
-        [[P, None, B.skew(rho)], [None, P, B.skew(nu)], [None, None, P]], SIZES, xi
+        [[P, None, B.skew(rho)], [None, P, B.skew(nu)], [None, None, P]], SIZES, xi.shape[:-1], xi
     )
 
 
 def _jl_blocks(xi: torch.Tensor):
-    rho, nu, phi = split(xi)
+    rho, nu, phi = _split(xi)
     c = B.coefficients(phi, 5)
     J = B.gamma_mat(c, 1, phi)
-    Q_rho, _ = B.q_block(c, phi, rho, J)
-    Q_nu, _ = B.q_block(c, phi, nu, J)
-    return J, Q_rho, Q_nu
+    return J, B.q_block(c, phi, rho, J), B.q_block(c, phi, nu, J)
 
 
 def jl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     J, Q_rho, Q_nu = _jl_blocks(xi)
-    return B.block_matrix([[J, None, Q_rho], [None, J, Q_nu], [None, None, J]], SIZES, xi)
+    return B.block_matrix(
+        [[J, None, Q_rho], [None, J, Q_nu], [None, None, J]], SIZES, xi.shape[:-1], xi
+    )
 
 
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     _, Q_rho, Q_nu = _jl_blocks(xi)
-    Ji = B.jac_inv_mat(xi[..., PHI])
+    Ji = B.jac_inv_mat(_split(xi)[2])
     return B.block_matrix(
-        [[Ji, None, -Ji @ Q_rho @ Ji], [None, Ji, -Ji @ Q_nu @ Ji], [None, None, Ji]], SIZES, xi
+        [[Ji, None, -Ji @ Q_rho @ Ji], [None, Ji, -Ji @ Q_nu @ Ji], [None, None, Ji]],
+        SIZES, xi.shape[:-1], xi,
     )
+
+
+def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """J_l(xi)^T w with vector operations only."""
+    rho, nu, phi = _split(xi)
+    w_rho, w_nu, w_phi = _split(w)
+    c = B.coefficients(phi, 5)
+    o_phi = B.q_block_t(c, phi, rho, w_rho) + B.q_block_t(c, phi, nu, w_nu)
+    o_phi = o_phi + B.gamma_vec(c, 1, -phi, w_phi)
+    return B.last(B.gamma_vec(c, 1, -phi, w_rho), B.gamma_vec(c, 1, -phi, w_nu), o_phi)
+
+
+def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """J_l(xi)^-T g by forward substitution on the transposed blocks."""
+    rho, nu, phi = _split(xi)
+    g_rho, g_nu, g_phi = _split(g)
+    c = B.coefficients(phi, 5)
+    d = numerics.jinv_coefficient(B.theta_squared(phi))
+    y_rho = B.jac_inv_vec(-phi, g_rho, d)
+    y_nu = B.jac_inv_vec(-phi, g_nu, d)
+    rhs = g_phi - B.q_block_t(c, phi, rho, y_rho) - B.q_block_t(c, phi, nu, y_nu)
+    return B.last(y_rho, y_nu, B.jac_inv_vec(-phi, rhs, d))
 
 
 def jr(xi: torch.Tensor) -> torch.Tensor:
@@ -130,16 +157,14 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points (..., 3) -> C p + r."""
     checks.vector(p, 3, "p")
     checks.binary(M, 2, p, 1, "g", "p")
-    C, _, r = components(M)
-    return (C @ p.unsqueeze(-1)).squeeze(-1) + r
+    return (M[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + M[..., :3, 4]
 
 
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Velocities [u, 1, 0] -> C u + v."""
     checks.vector(u, 3, "u")
     checks.binary(M, 2, u, 1, "g", "u")
-    C, v, _ = components(M)
-    return (C @ u.unsqueeze(-1)).squeeze(-1) + v
+    return (M[..., :3, :4] @ torch.cat((u, torch.ones_like(u[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -150,8 +175,8 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     C = B.random_rotation(batch_shape, dtype, device, generator)
-    v, r = torch.randn(2, *batch_shape, 3, dtype=dtype, device=device, generator=generator)
-    return from_components(C, v, r)
+    v, r = torch.randn(2, 3, *batch_shape, dtype=dtype, device=device, generator=generator)
+    return _matrix(B.entries(C), v, r)
 
 
 exp, log = make_exp_log(sys.modules[__name__])

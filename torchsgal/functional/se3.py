@@ -1,6 +1,7 @@
 """SE(3) on plain tensors: (..., 4, 4) [[C, r], [0, 1]], tangent (..., 6) [rho, phi].
 
 Barfoot, "Integral Forms", Table 1: exp r = Gamma_1 rho, J_l = [[J, Q], [0, J]].
+Internally vectors are component-first (see blocks).
 """
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import torch
 
 from . import blocks as B
 from . import checks
+from . import numerics
 from ._autograd import make_exp_log
 
 NAME = "SE3"
@@ -19,45 +21,48 @@ SIZES = [3, 3]
 PHI = slice(3, 6)
 
 
-def split(xi: torch.Tensor):
-    return xi[..., 0:3], xi[..., 3:6]
+def _split(xi: torch.Tensor):
+    X = B.first(xi)
+    return X[0:3], X[3:6]
 
 
 def components(M: torch.Tensor):
-    """(C, r)."""
+    """(C, r) in the public layout."""
     return M[..., :3, :3], M[..., :3, 3]
 
 
+def _matrix(rot, r) -> torch.Tensor:
+    z = torch.zeros_like(r[0])
+    return B.homogeneous(rot, [r], [[z, z, z, torch.ones_like(z)]])
+
+
 def from_components(C, r) -> torch.Tensor:
-    top = torch.cat((C, r.unsqueeze(-1)), dim=-1)
-    row = torch.cat((torch.zeros_like(r), torch.ones_like(r[..., :1])), dim=-1)
-    return torch.cat((top, row.unsqueeze(-2)), dim=-2)
+    return _matrix(B.entries(C), B.first(r))
 
 
 def hat(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
-    rho, phi = split(xi)
-    top = torch.cat((B.skew(phi), rho.unsqueeze(-1)), dim=-1)
-    return torch.cat((top, torch.zeros_like(top[..., :1, :])), dim=-2)
+    rho, (x, y, z) = _split(xi)
+    o = torch.zeros_like(x)
+    return B.homogeneous((o, -z, y, z, o, -x, -y, x, o), [rho], [[o] * 4])
 
 
 def vee(X: torch.Tensor) -> torch.Tensor:
     checks.matrix(X, MATRIX_DIM, "X")
-    return torch.cat((X[..., :3, 3], B.unskew(X[..., :3, :3])), dim=-1)
+    return B.last(B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]))
 
 
 def exp_impl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
-    rho, phi = split(xi)
+    rho, phi = _split(xi)
     c = B.coefficients(phi, 3)
-    return from_components(B.rotation(c, phi), B.gamma_vec(c, 1, phi, rho))
+    return _matrix(B.gamma_entries(c, 0, phi), B.gamma_vec(c, 1, phi, rho))
 
 
 def log_impl(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
-    C, r = components(M)
-    phi = B.rotation_log(C)
-    return torch.cat((B.jac_inv_vec(phi, r), phi), dim=-1)
+    phi = B.rotation_log(M[..., :3, :3])
+    return B.last(B.jac_inv_vec(phi, B.first(M[..., :3, 3])), phi)
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
@@ -65,45 +70,63 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
 
 
 def inverse(M: torch.Tensor) -> torch.Tensor:
-    C, r = components(M)
-    Ct = C.transpose(-1, -2)
-    return from_components(Ct, -(Ct @ r.unsqueeze(-1)).squeeze(-1))
+    Ct = B.transpose_entries(M[..., :3, :3])
+    return _matrix(Ct, -B.matvec_entries(Ct, B.first(M[..., :3, 3])))
 
 
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, r^ C], [0, C]]."""
     C, r = components(M)
-    return B.block_matrix([[C, B.skew(r) @ C], [None, C]], SIZES, r)
+    return B.block_matrix([[C, B.skew(B.first(r)) @ C], [None, C]], SIZES, M.shape[:-2], M)
 
 
 def ad(xi: torch.Tensor) -> torch.Tensor:
     """[[phi^, rho^], [0, phi^]]."""
     checks.vector(xi, DOF, "xi")
-    rho, phi = split(xi)
+    rho, phi = _split(xi)
     P = B.skew(phi)
-    return B.block_matrix([[P, B.skew(rho)], [None, P]], SIZES, xi)
+    return B.block_matrix([[P, B.skew(rho)], [None, P]], SIZES, xi.shape[:-1], xi)
 
 
 def _jl_blocks(xi: torch.Tensor):
-    rho, phi = split(xi)
+    rho, phi = _split(xi)
     c = B.coefficients(phi, 5)
     J = B.gamma_mat(c, 1, phi)
-    Q, _ = B.q_block(c, phi, rho, J)
-    return J, Q
+    return J, B.q_block(c, phi, rho, J)
 
 
 def jl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     J, Q = _jl_blocks(xi)
-    return B.block_matrix([[J, Q], [None, J]], SIZES, xi)
+    return B.block_matrix([[J, Q], [None, J]], SIZES, xi.shape[:-1], xi)
 
 
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """[[J^-1, -J^-1 Q J^-1], [0, J^-1]]."""
     checks.vector(xi, DOF, "xi")
     _, Q = _jl_blocks(xi)
-    Ji = B.jac_inv_mat(xi[..., PHI])
-    return B.block_matrix([[Ji, -Ji @ Q @ Ji], [None, Ji]], SIZES, xi)
+    Ji = B.jac_inv_mat(_split(xi)[1])
+    return B.block_matrix([[Ji, -Ji @ Q @ Ji], [None, Ji]], SIZES, xi.shape[:-1], xi)
+
+
+def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """J_l(xi)^T w with vector operations only: (J^T w_rho, Q^T w_rho + J^T w_phi)."""
+    rho, phi = _split(xi)
+    w_rho, w_phi = _split(w)
+    c = B.coefficients(phi, 5)
+    o_phi = B.q_block_t(c, phi, rho, w_rho) + B.gamma_vec(c, 1, -phi, w_phi)
+    return B.last(B.gamma_vec(c, 1, -phi, w_rho), o_phi)
+
+
+def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """J_l(xi)^-T g by forward substitution on the transposed blocks."""
+    rho, phi = _split(xi)
+    g_rho, g_phi = _split(g)
+    c = B.coefficients(phi, 5)
+    d = numerics.jinv_coefficient(B.theta_squared(phi))
+    y_rho = B.jac_inv_vec(-phi, g_rho, d)
+    y_phi = B.jac_inv_vec(-phi, g_phi - B.q_block_t(c, phi, rho, y_rho), d)
+    return B.last(y_rho, y_phi)
 
 
 def jr(xi: torch.Tensor) -> torch.Tensor:
@@ -118,8 +141,7 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points (..., 3) -> C p + r."""
     checks.vector(p, 3, "p")
     checks.binary(M, 2, p, 1, "g", "p")
-    C, r = components(M)
-    return (C @ p.unsqueeze(-1)).squeeze(-1) + r
+    return (M[..., :3, :] @ torch.cat((p, torch.ones_like(p[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -130,8 +152,8 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     C = B.random_rotation(batch_shape, dtype, device, generator)
-    r = torch.randn(*batch_shape, 3, dtype=dtype, device=device, generator=generator)
-    return from_components(C, r)
+    r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)
+    return _matrix(B.entries(C), r)
 
 
 exp, log = make_exp_log(sys.modules[__name__])

@@ -29,25 +29,26 @@ def from_components(C: torch.Tensor) -> torch.Tensor:
 
 def hat(phi: torch.Tensor) -> torch.Tensor:
     checks.vector(phi, DOF, "xi")
-    return B.skew(phi)
+    return B.skew(B.first(phi))
 
 
 def vee(X: torch.Tensor) -> torch.Tensor:
     """Vector of the skew part of X."""
     checks.matrix(X, MATRIX_DIM, "X")
-    return B.unskew(X)
+    return B.last(B.unskew(X))
 
 
 def exp_impl(phi: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula (3.7)."""
     checks.vector(phi, DOF, "xi")
-    return B.rotation(B.coefficients(phi, 2), phi)
+    p = B.first(phi)
+    return B.rotation(B.coefficients(p, 2), p)
 
 
 def log_impl(C: torch.Tensor) -> torch.Tensor:
     """(3.10)-(3.11), accurate near 0 and pi (see blocks.rotation_log)."""
     checks.matrix(C, MATRIX_DIM, "M")
-    return B.rotation_log(C)
+    return B.last(B.rotation_log(C))
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
@@ -69,13 +70,25 @@ def ad(phi: torch.Tensor) -> torch.Tensor:
 def jl(phi: torch.Tensor) -> torch.Tensor:
     """D(phi) = Gamma_1(phi), (3.8) (with the corrected u^u^ coefficient)."""
     checks.vector(phi, DOF, "xi")
-    return B.gamma_mat(B.coefficients(phi, 3), 1, phi)
+    p = B.first(phi)
+    return B.gamma_mat(B.coefficients(p, 3), 1, p)
 
 
 def jl_inv(phi: torch.Tensor) -> torch.Tensor:
     """D^-1(phi), (3.12)."""
     checks.vector(phi, DOF, "xi")
-    return B.jac_inv_mat(phi)
+    return B.jac_inv_mat(B.first(phi))
+
+
+def jl_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """J_l(phi)^T w = Gamma_1(-phi) w."""
+    p = B.first(phi)
+    return B.last(B.gamma_vec(B.coefficients(p, 3), 1, -p, B.first(w)))
+
+
+def jl_inv_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """J_l(phi)^-T w = D^-1(-phi) w."""
+    return B.last(B.jac_inv_vec(-B.first(phi), B.first(w)))
 
 
 def jr(phi: torch.Tensor) -> torch.Tensor:
