@@ -23,12 +23,6 @@ import torch
 from . import checks
 
 
-def _phi_scale(mod, like: torch.Tensor, value: float) -> torch.Tensor:
-    s = torch.ones(mod.DOF, dtype=like.dtype, device=like.device)
-    s[mod.PHI] = value
-    return s
-
-
 def make_exp_log(mod):
     class Exp(torch.autograd.Function):
         generate_vmap_rule = True
@@ -44,8 +38,8 @@ def make_exp_log(mod):
         @staticmethod
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
-            w = mod.vee(M.transpose(-1, -2) @ grad_M) * _phi_scale(mod, xi, 2.0)
-            return mod.jl_tmv(-xi, w)  # J_r(xi)^T w = J_l(-xi)^T w
+            # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
+            return mod.jl_tmv(-xi, mod.exp_pullback(M, grad_M))
 
     class Log(torch.autograd.Function):
         generate_vmap_rule = True
@@ -61,9 +55,8 @@ def make_exp_log(mod):
         @staticmethod
         def backward(ctx, grad_xi):
             M, xi = ctx.saved_tensors
-            w = mod.jl_inv_tmv(-xi, grad_xi)  # J_r(xi)^-T grad_xi
-            V = mod.hat(w * _phi_scale(mod, xi, 0.5))
-            return mod.inverse(M).transpose(-1, -2) @ V
+            # M^-T vee^T(J_r(xi)^-T grad_xi)
+            return mod.log_pullback(M, mod.jl_inv_tmv(-xi, grad_xi))
 
     Exp.__name__ = f"{mod.NAME}Exp"
     Log.__name__ = f"{mod.NAME}Log"

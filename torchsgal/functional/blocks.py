@@ -23,8 +23,8 @@ from . import numerics
 
 # ------------------------------------------------------------------------- layout
 def first(x: torch.Tensor) -> torch.Tensor:
-    """(..., k) -> (k, ...) view."""
-    return x.movedim(-1, 0)
+    """(..., k) -> contiguous (k, ...): one copy, after which every read is contiguous."""
+    return x.movedim(-1, 0).contiguous()
 
 
 def last(*parts: torch.Tensor) -> torch.Tensor:
@@ -199,8 +199,9 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     the symmetric part (C + C^T)/2 - c I = (1 - c) u u^T (its largest column), with the sign
     of s, so that nothing divides by sin(theta) near pi.
     """
-    s = unskew(C)
-    cos = 0.5 * (C[..., 0, 0] + C[..., 1, 1] + C[..., 2, 2] - 1.0)
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = entries(C)
+    s = 0.5 * vec(c21 - c12, c02 - c20, c10 - c01)
+    cos = 0.5 * (c00 + c11 + c22 - 1.0)
     ss = dot(s, s)
     positive = ss > 0
     sin = torch.where(positive, torch.sqrt(torch.where(positive, ss, torch.ones_like(ss))), 0.0)
@@ -213,10 +214,8 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     ratio = torch.where(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0, theta / sin_safe)
 
     # Near pi: axis from the symmetric part, its largest diagonal entry's column.
-    d0, d1, d2 = C[..., 0, 0] - cos, C[..., 1, 1] - cos, C[..., 2, 2] - cos
-    s01 = 0.5 * (C[..., 0, 1] + C[..., 1, 0])
-    s02 = 0.5 * (C[..., 0, 2] + C[..., 2, 0])
-    s12 = 0.5 * (C[..., 1, 2] + C[..., 2, 1])
+    d0, d1, d2 = c00 - cos, c11 - cos, c22 - cos
+    s01, s02, s12 = 0.5 * (c01 + c10), 0.5 * (c02 + c20), 0.5 * (c12 + c21)
     pick0 = (d0 >= d1) & (d0 >= d2)
     pick1 = d1 >= d2
     col = vec(
@@ -262,17 +261,34 @@ def homogeneous(rot, cols, bottom) -> torch.Tensor:
 
 
 def entries(C: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Row-major entries of (..., 3, 3)."""
-    return tuple(C[..., i, j] for i in range(3) for j in range(3))
+    """Row-major entries of (..., 3, 3), each a contiguous (...)."""
+    return first(C.flatten(-2)).unbind(0)
 
 
 def transpose_entries(C: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    return tuple(C[..., j, i] for i in range(3) for j in range(3))
+    return entries(C.transpose(-1, -2))
 
 
 def matvec_entries(e, v: torch.Tensor) -> torch.Tensor:
     """Row-major 3x3 entries times v (3, ...) -> (3, ...)."""
     return vec(*(e[3 * i] * v[0] + e[3 * i + 1] * v[1] + e[3 * i + 2] * v[2] for i in range(3)))
+
+
+def rows(C: torch.Tensor) -> list[torch.Tensor]:
+    """The rows of (..., 3, 3) as component-first vectors."""
+    E = first(C[..., :3, :3].flatten(-2))
+    return [E[0:3], E[3:6], E[6:9]]
+
+
+def rotation_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """2 unskew(C^T G[:3, :3]) = sum_k G[k, :3] x C[k, :]: the rotation part of hat^T(M^T G)."""
+    Cr, Gr = rows(C), rows(G[..., :3, :3])
+    return cross(Gr[0], Cr[0]) + cross(Gr[1], Cr[1]) + cross(Gr[2], Cr[2])
+
+
+def rotation_skew_rows(C: torch.Tensor, p: torch.Tensor) -> list[torch.Tensor]:
+    """The rows of C p^ (C (..., 3, 3), p (3, ...)): row_i = C[i, :] x p."""
+    return [cross(r, p) for r in rows(C)]
 
 
 def random_rotation(batch_shape, dtype, device, generator=None) -> torch.Tensor:

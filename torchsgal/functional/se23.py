@@ -124,12 +124,13 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
 
 
 def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """J_l(xi)^T w with vector operations only."""
+    """J_l(xi)^T w with vector operations only: Q^T a = gvdt(1, x, a) + J^T (a x Gamma_1 x)."""
     rho, nu, phi = _split(xi)
     w_rho, w_nu, w_phi = _split(w)
     c = B.coefficients(phi, 5)
-    o_phi = B.q_block_t(c, phi, rho, w_rho) + B.q_block_t(c, phi, nu, w_nu)
-    o_phi = o_phi + B.gamma_vec(c, 1, -phi, w_phi)
+    S = B.gamma_vec_derivative_t(c, 1, phi, rho, w_rho) + B.gamma_vec_derivative_t(c, 1, phi, nu, w_nu)
+    z = B.cross(w_rho, B.gamma_vec(c, 1, phi, rho)) + B.cross(w_nu, B.gamma_vec(c, 1, phi, nu))
+    o_phi = S + B.gamma_vec(c, 1, -phi, z + w_phi)
     return B.last(B.gamma_vec(c, 1, -phi, w_rho), B.gamma_vec(c, 1, -phi, w_nu), o_phi)
 
 
@@ -141,8 +142,33 @@ def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     d = numerics.jinv_coefficient(B.theta_squared(phi))
     y_rho = B.jac_inv_vec(-phi, g_rho, d)
     y_nu = B.jac_inv_vec(-phi, g_nu, d)
-    rhs = g_phi - B.q_block_t(c, phi, rho, y_rho) - B.q_block_t(c, phi, nu, y_nu)
-    return B.last(y_rho, y_nu, B.jac_inv_vec(-phi, rhs, d))
+    S = B.gamma_vec_derivative_t(c, 1, phi, rho, y_rho) + B.gamma_vec_derivative_t(c, 1, phi, nu, y_nu)
+    z = B.cross(y_rho, B.gamma_vec(c, 1, phi, rho)) + B.cross(y_nu, B.gamma_vec(c, 1, phi, nu))
+    return B.last(y_rho, y_nu, B.jac_inv_vec(-phi, g_phi - S, d) - z)
+
+
+def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """hat^T(M^T G) (exp's backward)."""
+    Ct = B.transpose_entries(M[..., :3, :3])
+    return B.last(B.matvec_entries(Ct, B.first(G[..., :3, 4])),
+                  B.matvec_entries(Ct, B.first(G[..., :3, 3])),
+                  B.rotation_pullback(M[..., :3, :3], G))
+
+
+def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """M^-T vee^T(w) (log's backward); M^-T = [[C, 0, 0], [a^T, 1, 0], [b^T, 0, 1]] with
+    a = -C^T v, b = -C^T r."""
+    rho, nu, phi = _split(w)
+    half = 0.5 * phi
+    C = M[..., :3, :3]
+    Ce, Ct = B.entries(C), B.transpose_entries(C)
+    a = -B.matvec_entries(Ct, B.first(M[..., :3, 3]))
+    b = -B.matvec_entries(Ct, B.first(M[..., :3, 4]))
+    rot = [x for row in B.rotation_skew_rows(C, half) for x in row]
+    ah, bh = B.cross(a, half), B.cross(b, half)
+    bottom = [[ah[0], ah[1], ah[2], B.dot(a, nu), B.dot(a, rho)],
+              [bh[0], bh[1], bh[2], B.dot(b, nu), B.dot(b, rho)]]
+    return B.homogeneous(rot, [B.matvec_entries(Ce, nu), B.matvec_entries(Ce, rho)], bottom)
 
 
 def jr(xi: torch.Tensor) -> torch.Tensor:

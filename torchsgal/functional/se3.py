@@ -114,7 +114,8 @@ def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     rho, phi = _split(xi)
     w_rho, w_phi = _split(w)
     c = B.coefficients(phi, 5)
-    o_phi = B.q_block_t(c, phi, rho, w_rho) + B.gamma_vec(c, 1, -phi, w_phi)
+    z = B.cross(w_rho, B.gamma_vec(c, 1, phi, rho))
+    o_phi = B.gamma_vec_derivative_t(c, 1, phi, rho, w_rho) + B.gamma_vec(c, 1, -phi, z + w_phi)
     return B.last(B.gamma_vec(c, 1, -phi, w_rho), o_phi)
 
 
@@ -125,8 +126,26 @@ def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     c = B.coefficients(phi, 5)
     d = numerics.jinv_coefficient(B.theta_squared(phi))
     y_rho = B.jac_inv_vec(-phi, g_rho, d)
-    y_phi = B.jac_inv_vec(-phi, g_phi - B.q_block_t(c, phi, rho, y_rho), d)
-    return B.last(y_rho, y_phi)
+    S = B.gamma_vec_derivative_t(c, 1, phi, rho, y_rho)
+    z = B.cross(y_rho, B.gamma_vec(c, 1, phi, rho))
+    return B.last(y_rho, B.jac_inv_vec(-phi, g_phi - S, d) - z)
+
+
+def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """hat^T(M^T G) (exp's backward)."""
+    Ct = B.transpose_entries(M[..., :3, :3])
+    return B.last(B.matvec_entries(Ct, B.first(G[..., :3, 3])), B.rotation_pullback(M[..., :3, :3], G))
+
+
+def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """M^-T vee^T(w) (log's backward); M^-T = [[C, 0], [b^T, 1]] with b = -C^T r."""
+    rho, phi = _split(w)
+    half = 0.5 * phi
+    C = M[..., :3, :3]
+    b = -B.matvec_entries(B.transpose_entries(C), B.first(M[..., :3, 3]))
+    rot = [x for row in B.rotation_skew_rows(C, half) for x in row]
+    bh = B.cross(b, half)
+    return B.homogeneous(rot, [B.matvec_entries(B.entries(C), rho)], [[bh[0], bh[1], bh[2], B.dot(b, rho)]])
 
 
 def jr(xi: torch.Tensor) -> torch.Tensor:

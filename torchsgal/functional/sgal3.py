@@ -184,42 +184,96 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
-def _coupling_t(c, phi, rho, nu, iota, a, b):
-    """N^T a + M^T b, with N = dr/dphi + r^ D - iota M (see _jl_blocks)."""
-    r = B.gamma_vec(c, 1, phi, rho) + iota * B.gamma_vec(c, 2, phi, nu)
-    return (
-        B.gamma_vec_derivative_t(c, 1, phi, rho, a)
-        + iota * B.gamma_vec_derivative_t(c, 2, phi, nu, a)
-        + B.gamma_vec(c, 1, -phi, B.cross(a, r))
-        + B.q_block_t(c, phi, nu, b - iota * a)
-    )
+def _transpose_parts(xi: torch.Tensor):
+    """Quantities shared by the transposed products of (3.23)."""
+    rho, nu, phi, iota = _split(xi)
+    c = B.coefficients(phi, 6)
+    pr, pn = B.cross(phi, rho), B.cross(phi, nu)
+    ppr, ppn = B.cross(phi, pr), B.cross(phi, pn)
+    g1n = nu + c[2] * pn + c[3] * ppn  # Gamma_1 nu
+    g2n = 0.5 * nu + c[3] * pn + c[4] * ppn  # Gamma_2 nu
+    r = rho + c[2] * pr + c[3] * ppr + iota * g2n
+    return rho, nu, phi, iota, c, pr, ppr, pn, ppn, g1n, g2n, r
+
+
+def _coupling_t(parts, a, b):
+    """(S, z) with N^T a + M^T b = S + D^T z (N, M of _jl_blocks), all vector operations.
+
+    Sums gvdt(1, rho, a) + iota gvdt(2, nu, a) + gvdt(1, nu, b') with b' = b - iota a
+    (B.gamma_vec_derivative_t written out to share its cross products), and
+    z = a x r + b' x Gamma_1 nu.
+    """
+    rho, nu, phi, iota, c, pr, ppr, pn, ppn, g1n, g2n, r = parts
+    e2, e3, e4 = (numerics.series_derivative(c, m) for m in (2, 3, 4))
+    bp = b - iota * a
+    u1 = iota * e3 * a + e2 * bp
+    u2 = iota * e4 * a + e3 * bp
+    u3 = iota * c[4] * a + c[3] * bp
+    u4 = iota * c[3] * a + c[2] * bp
+    scal = (e2 * B.dot(pr, a) + e3 * B.dot(ppr, a) - 2.0 * c[3] * B.dot(rho, a)
+            + B.dot(pn, u1) + B.dot(ppn, u2) - 2.0 * B.dot(nu, u3))
+    S = (phi * scal + c[2] * B.cross(rho, a) + B.cross(nu, u4)
+         + c[3] * (B.dot(phi, rho) * a + rho * B.dot(phi, a))
+         + B.dot(phi, nu) * u3 + nu * B.dot(phi, u3))
+    return S, B.cross(a, r) + B.cross(bp, g1n)
 
 
 def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only (the transposed blocks of (3.23))."""
-    rho, nu, phi, iota = _split(xi)
+    parts = _transpose_parts(xi)
+    phi, iota, c, g2n = parts[2], parts[3], parts[4], parts[10]
     w_rho, w_nu, w_phi, w_iota = _split(w)
-    c = B.coefficients(phi, 6)
-    DT_w_rho = B.gamma_vec(c, 1, -phi, w_rho)
-    LT_w_rho = DT_w_rho - B.gamma_vec(c, 2, -phi, w_rho)
-    o_nu = B.gamma_vec(c, 1, -phi, w_nu) - iota * LT_w_rho
-    o_phi = _coupling_t(c, phi, rho, nu, iota, w_rho, w_nu) + B.gamma_vec(c, 1, -phi, w_phi)
-    o_iota = B.dot(B.gamma_vec(c, 2, phi, nu), w_rho) + w_iota
+    p = B.cross(phi, w_rho)
+    pp = B.cross(phi, p)
+    DT_w_rho = w_rho - c[2] * p + c[3] * pp
+    ET_w_rho = 0.5 * w_rho - c[3] * p + c[4] * pp
+    o_nu = B.gamma_vec(c, 1, -phi, w_nu) - iota * (DT_w_rho - ET_w_rho)
+    S, z = _coupling_t(parts, w_rho, w_nu)
+    o_phi = S + B.gamma_vec(c, 1, -phi, z + w_phi)
+    o_iota = B.dot(g2n, w_rho) + w_iota
     return B.last(DT_w_rho, o_nu, o_phi, o_iota[None])
 
 
 def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks of (3.23)."""
-    rho, nu, phi, iota = _split(xi)
+    parts = _transpose_parts(xi)
+    phi, iota, c, g2n = parts[2], parts[3], parts[4], parts[10]
     g_rho, g_nu, g_phi, g_iota = _split(g)
-    c = B.coefficients(phi, 6)
     d = numerics.jinv_coefficient(B.theta_squared(phi))
     y_rho = B.jac_inv_vec(-phi, g_rho, d)
-    LT_y_rho = B.gamma_vec(c, 1, -phi, y_rho) - B.gamma_vec(c, 2, -phi, y_rho)
+    p = B.cross(phi, y_rho)
+    LT_y_rho = 0.5 * y_rho - (c[2] - c[3]) * p + (c[3] - c[4]) * B.cross(phi, p)  # (D - E)^T
     y_nu = B.jac_inv_vec(-phi, g_nu + iota * LT_y_rho, d)
-    y_phi = B.jac_inv_vec(-phi, g_phi - _coupling_t(c, phi, rho, nu, iota, y_rho, y_nu), d)
-    y_iota = g_iota - B.dot(B.gamma_vec(c, 2, phi, nu), y_rho)
+    S, z = _coupling_t(parts, y_rho, y_nu)
+    y_phi = B.jac_inv_vec(-phi, g_phi - S, d) - z  # D^-T (g - S - D^T z)
+    y_iota = g_iota - B.dot(g2n, y_rho)
     return B.last(y_rho, y_nu, y_phi, y_iota[None])
+
+
+def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """hat^T(M^T G), the tangent vector paired with a matrix cotangent G (exp's backward)."""
+    Ct = B.transpose_entries(M[..., :3, :3])
+    g5 = B.first(G[..., :3, 4])
+    w_iota = B.dot(B.first(M[..., :3, 3]), g5) + G[..., 3, 4]
+    return B.last(B.matvec_entries(Ct, g5), B.matvec_entries(Ct, B.first(G[..., :3, 3])),
+                  B.rotation_pullback(M[..., :3, :3], G), w_iota[None])
+
+
+def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """M^-T vee^T(w) (log's backward): with M^-T = [[C, 0, 0], [a^T, 1, 0], [b^T, -tau, 1]],
+    a = -C^T v, b = -C^T (r - tau v), and vee^T(w) = hat(w with phi halved)."""
+    rho, nu, phi, iota = _split(w)
+    half = 0.5 * phi
+    C = M[..., :3, :3]
+    Ce, Ct = B.entries(C), B.transpose_entries(C)
+    v, r, tau = B.first(M[..., :3, 3]), B.first(M[..., :3, 4]), M[..., 3, 4]
+    a = -B.matvec_entries(Ct, v)
+    b = -B.matvec_entries(Ct, r - tau * v)
+    rot = [x for row in B.rotation_skew_rows(C, half) for x in row]
+    ah, bh = B.cross(a, half), B.cross(b, half)
+    bottom = [[ah[0], ah[1], ah[2], B.dot(a, nu), B.dot(a, rho) + iota],
+              [bh[0], bh[1], bh[2], B.dot(b, nu), B.dot(b, rho) - tau * iota]]
+    return B.homogeneous(rot, [B.matvec_entries(Ce, nu), B.matvec_entries(Ce, rho)], bottom)
 
 
 def jr(xi: torch.Tensor) -> torch.Tensor:

@@ -91,6 +91,17 @@ def jl_inv_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.last(B.jac_inv_vec(-B.first(phi), B.first(w)))
 
 
+def exp_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """hat^T(C^T G) (exp's backward)."""
+    return B.last(B.rotation_pullback(C, G))
+
+
+def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """C^-T vee^T(w) = C (w/2)^ (log's backward)."""
+    r = B.rotation_skew_rows(C, 0.5 * B.first(w))
+    return torch.stack([x for row in r for x in row], dim=-1).unflatten(-1, (3, 3))
+
+
 def jr(phi: torch.Tensor) -> torch.Tensor:
     return jl(-phi)
 
