@@ -77,3 +77,18 @@ def test_paper_printed_D_has_the_known_typo():
     assert ref.rel_err(corrected, want) < 1e-14
     assert ref.rel_err(printed, want) > 1e-6  # detectably wrong (4.6e-3 here)
     assert ref.rel_err(ts.SO3.jl(torch.tensor(phi)).numpy(), want) < 1e-14
+
+
+@pytest.mark.parametrize("G", ts.GROUPS, ids=lambda g: g.__name__)
+def test_log_relative_error_against_mpmath(G):
+    """log of the correctly rounded exp (mpmath) returns xi to 1e-12 relative to |xi|, from
+    1e-12 rad to pi - 1e-6 (the axis near pi comes from the symmetric part of C)."""
+    worst = 0.0
+    for i, angle in enumerate(ANGLES):
+        xi = sample_tangent(G, (), torch.float64, seed=300 + i, angles=[angle]).numpy()
+        M = ref.exp_mp(G.__name__, xi)
+        got = G.from_matrix(torch.tensor(M)).log().numpy()
+        err = ref.blockwise_rel_err(got, xi, G.__name__, kind="vector").rel
+        worst = max(worst, err)
+        assert err <= 1e-12, f"{G.__name__}.log at angle {angle:g}: relative error {err:.3g}"
+    print(f"{G.__name__}.log: worst blockwise relative error {worst:.2e}")
