@@ -1,0 +1,174 @@
+"""Small, honest timing helpers shared by the benchmark scripts.
+
+Rules followed by :func:`measure`:
+
+* the first call (warm-up) is never part of the statistics; it is timed only to
+  calibrate how many calls go into one sample;
+* a sample is ``number`` back-to-back calls (``number`` chosen so a sample lasts at
+  least ``min_sample_s``, which keeps tiny batches out of timer resolution);
+* samples are taken until ``target_s`` seconds of sampling have elapsed, with at least
+  ``min_repeats`` (and at most ``max_repeats``) samples;
+* the reported figure is the median over samples of (sample time / number);
+* on CUDA the device is synchronised before starting and before stopping the clock;
+* Python's garbage collector is disabled while the clock runs (as ``timeit`` does).
+
+Inputs must be created by the caller outside the timed callable.
+"""
+from __future__ import annotations
+
+import gc
+import math
+import os
+import statistics
+import time
+from typing import Callable
+
+import torch
+
+
+def synchronize(device: torch.device | str | None) -> None:
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _timed(fn: Callable[[], object], number: int, device) -> float:
+    synchronize(device)
+    t0 = time.perf_counter()
+    for _ in range(number):
+        fn()
+    synchronize(device)
+    return time.perf_counter() - t0
+
+
+def measure(
+    fn: Callable[[], object],
+    *,
+    device: torch.device | str | None = None,
+    target_s: float = 0.5,
+    min_repeats: int = 3,
+    max_repeats: int = 200,
+    min_sample_s: float = 0.02,
+    warmup: int = 1,
+) -> dict:
+    """Time ``fn()``; returns seconds per call (median, min, max) and the sampling plan."""
+    gc.collect()
+    # Warm-up call(s): excluded from the statistics.
+    t_call = 0.0
+    for _ in range(max(1, warmup)):
+        t_call = _timed(fn, 1, device)
+    # Calibration (also excluded): the warm-up is a poor estimate (lazy init, a context
+    # switch), so re-time one call unless that is expensive, then a short burst if tiny.
+    if t_call < 0.2:
+        t_call = min(t_call, _timed(fn, 1, device))
+    if t_call < min_sample_s:
+        n_cal = max(1, min(1000, int(min_sample_s / max(t_call, 1e-7) / 4)))
+        t_call = _timed(fn, n_cal, device) / n_cal
+    number = max(1, math.ceil(min_sample_s / max(t_call, 1e-9)))
+
+    # Samples: at least min_repeats, then more until target_s of sampling has elapsed.
+    times = []
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        with ForeignLoad() as load:
+            t_begin = time.perf_counter()
+            while len(times) < min_repeats or (
+                time.perf_counter() - t_begin < target_s and len(times) < max_repeats
+            ):
+                times.append(_timed(fn, number, device) / number)
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    repeats = len(times)
+    return {
+        "median_s": statistics.median(times),
+        "min_s": min(times),
+        "max_s": max(times),
+        "repeats": repeats,
+        "number": number,
+        "total_s": sum(times) * number,
+        "foreign_cpu": load.share,
+    }
+
+
+def fmt_ns(ns: float | None) -> str:
+    if ns is None or (isinstance(ns, float) and math.isnan(ns)):
+        return "–"
+    if ns >= 1e5:
+        return f"{ns / 1e3:,.0f} µs"
+    if ns >= 100:
+        return f"{ns:,.0f}"
+    if ns >= 10:
+        return f"{ns:.1f}"
+    return f"{ns:.2f}"
+
+
+def fmt_bytes(b: float | None) -> str:
+    if b is None:
+        return "–"
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if b >= scale:
+            return f"{b / scale:.1f} {unit}"
+    return f"{b:.0f} B"
+
+
+def _cpu_ticks() -> tuple[int, int] | None:
+    """(busy ticks of the whole machine, ticks used by this process), from /proc."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+        busy = sum(v) - v[3] - (v[4] if len(v) > 4 else 0)  # minus idle and iowait
+        with open("/proc/self/stat") as f:
+            st = f.read().rsplit(")", 1)[1].split()
+        return busy, int(st[11]) + int(st[12])  # utime + stime
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class ForeignLoad:
+    """Share of the machine's CPU used by *other* processes while the block ran (0..1).
+
+    A value well above 0 means someone else was computing during the measurement, which on
+    a small machine inflates timings (multi-threaded torch kernels wait for descheduled
+    threads).  Resolution is the kernel tick (10 ms), so short blocks read as noisy."""
+
+    def __enter__(self):
+        self._t0, self._c0 = time.perf_counter(), _cpu_ticks()
+        self.share = None
+        return self
+
+    def __exit__(self, *exc):
+        c1 = _cpu_ticks()
+        dt = time.perf_counter() - self._t0
+        if self._c0 is None or c1 is None or dt <= 0:
+            return False
+        hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        ncpu = os.cpu_count() or 1
+        other = (c1[0] - self._c0[0]) - (c1[1] - self._c0[1])
+        self.share = max(0.0, min(1.0, other / hz / (dt * ncpu)))
+        return False
+
+
+def mem_available_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo (Linux), or None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or "unknown"
