@@ -193,8 +193,6 @@ class LieGroup:
     def __getitem__(self, index):
         if not isinstance(index, tuple):
             index = (index,)
-        if any(i is Ellipsis for i in index):
-            raise IndexError("Ellipsis is not supported when indexing a group batch")
         return type(self)(self._matrix[index + (slice(None), slice(None))])
 
     def __len__(self) -> int:

@@ -1,0 +1,172 @@
+"""GDH chains: link matrices against the classical DH matrix, velocities against finite
+differences, accelerations against forward-mode autodiff (torch.func.jvp), (51) against the
+top-left block of (50), the paper's product velocity shown to differ, batching, bad input.
+The comparison with pytorch-kinematics is in test_kinematics_pk.py."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchsgal as ts
+from torchsgal.kinematics import GDHChain, iiwa7, scara, ur5
+
+ROBOTS = [scara, ur5, iiwa7]
+IDS = ["scara", "ur5", "iiwa7"]
+
+
+def _sample(chain, batch=(6,), seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = chain.n_joints
+    return [torch.randn(*batch, n, dtype=torch.float64, generator=g) for _ in range(3)]
+
+
+def _dh_matrix(a, alpha, d, theta):
+    """Classical 4x4 standard DH matrix Rz(theta) Tz(d) Tx(a) Rx(alpha)."""
+    ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
+    return np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
+                     [0, sa, ca, d], [0, 0, 0, 1.0]])
+
+
+@pytest.mark.parametrize("robot", ROBOTS, ids=IDS)
+def test_link_matrices_are_dh_plus_velocity(robot):
+    """(43) with the fourth row and column deleted is the classical DH matrix; its fourth
+    column is the derivative (44) of the position column."""
+    chain = robot()
+    q, qd, _ = _sample(chain, batch=())
+    K = chain.link_transforms(q, qd).as_matrix().numpy()
+    for i in range(chain.n_joints):
+        rev = chain.joint_types[i] == "revolute"
+        theta = chain.theta_offset[i].item() + (q[i].item() if rev else 0.0)
+        d = chain.d[i].item() + (0.0 if rev else q[i].item())
+        want = _dh_matrix(chain.a[i].item(), chain.alpha[i].item(), d, theta)
+        got = K[i][np.ix_([0, 1, 2, 4], [0, 1, 2, 4])]
+        np.testing.assert_allclose(got, want, atol=1e-15)
+        h = 1e-6
+        dq = torch.zeros_like(q)
+        dq[i] = h
+        up = chain.link_transforms(q + dq * qd[i] / 1.0).as_matrix()[i, :3, 4]
+        dn = chain.link_transforms(q - dq * qd[i] / 1.0).as_matrix()[i, :3, 4]
+        np.testing.assert_allclose(K[i][:3, 3], ((up - dn) / (2 * h)).numpy(), atol=1e-8)
+
+
+def _fd_velocity(chain, q, qd, qdd, h=1e-6):
+    def pose(t):
+        return chain.forward(q + t * qd + 0.5 * t * t * qdd).pose
+    P1, P0 = pose(h), pose(-h)
+    lin = (P1[..., :3, 3] - P0[..., :3, 3]) / (2 * h)
+    W = (P1[..., :3, :3] - P0[..., :3, :3]) / (2 * h) @ pose(0.0)[..., :3, :3].mT
+    return lin, torch.stack((W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]), dim=-1)
+
+
+@pytest.mark.parametrize("robot", ROBOTS, ids=IDS)
+def test_velocity_against_finite_differences(robot):
+    chain = robot()
+    q, qd, qdd = _sample(chain)
+    state = chain.forward(q, qd)
+    lin_fd, ang_fd = _fd_velocity(chain, q, qd, qdd)
+    np.testing.assert_allclose(state.linear_velocity.numpy(), lin_fd.numpy(), atol=1e-8)
+    np.testing.assert_allclose(state.angular_velocity.numpy(), ang_fd.numpy(), atol=1e-8)
+
+
+@pytest.mark.parametrize("robot", ROBOTS, ids=IDS)
+def test_product_velocity_column_is_not_the_end_effector_velocity(robot):
+    """The departure from the paper: (45)'s velocity column is sum_i R_(0,i-1) v_i (each link's
+    own coordinate velocity), which differs from dp/dt whenever an inner revolute joint moves."""
+    chain = robot()
+    q, qd, _ = _sample(chain)
+    state = chain.forward(q, qd)
+    links = chain.link_transforms(q, qd)
+    expected = torch.zeros_like(state.linear_velocity)
+    R = torch.eye(3, dtype=torch.float64).expand(*q.shape[:-1], 3, 3)
+    for i in range(chain.n_joints):
+        expected = expected + (R @ links[..., i].velocity().unsqueeze(-1)).squeeze(-1)
+        R = R @ links[..., i].rotation()
+    np.testing.assert_allclose(state.end_effector.velocity().numpy(), expected.numpy(), atol=1e-12)
+    assert (state.end_effector.velocity() - state.linear_velocity).abs().max() > 1e-2
+
+
+@pytest.mark.parametrize("robot", ROBOTS, ids=IDS)
+def test_acceleration_against_forward_mode_autodiff(robot):
+    """d/dt of the velocity along q(t) with q' = qd, q'' = qdd: torch.func.jvp (exact)."""
+    chain = robot()
+    q, qd, qdd = _sample(chain, seed=1)
+
+    def velocity(q_, qd_):
+        s = chain.forward(q_, qd_)
+        return s.linear_velocity, s.angular_velocity
+
+    _, (lin_t, ang_t) = torch.func.jvp(velocity, (q, qd), (qd, qdd))
+    lin, ang = chain.acceleration(q, qd, qdd)
+    np.testing.assert_allclose(lin.numpy(), lin_t.numpy(), atol=1e-12)
+    np.testing.assert_allclose(ang.numpy(), ang_t.numpy(), atol=1e-12)
+
+
+@pytest.mark.parametrize("robot", ROBOTS, ids=IDS)
+def test_angular_velocity_sum_51_is_top_left_of_50(robot):
+    """(51): the end-effector angular velocity (its frame) is sum_i q_i R_(n,i-1) e3."""
+    chain = robot()
+    q, qd, _ = _sample(chain, seed=2)
+    state = chain.forward(q, qd)
+    frames = state.frames.as_matrix()
+    R_n = frames[..., -1, :3, :3]
+    total = torch.zeros(*q.shape[:-1], 3, dtype=torch.float64)
+    for i in range(chain.n_joints):
+        if chain.joint_types[i] != "revolute":
+            continue
+        R_prev = torch.eye(3, dtype=torch.float64) if i == 0 else frames[..., i - 1, :3, :3]
+        z_prev = R_prev[..., :, 2]
+        total = total + qd[..., i : i + 1] * (R_n.mT @ z_prev.unsqueeze(-1)).squeeze(-1)
+    np.testing.assert_allclose(state.chain_input[..., 6:9].numpy(), total.numpy(), atol=1e-12)
+
+
+def test_prismatic_joint_moves_along_its_axis():
+    chain = scara()
+    q = torch.tensor([0.3, -0.7, 0.05, 1.1], dtype=torch.float64)
+    qd = torch.tensor([0.0, 0.0, 0.25, 0.0], dtype=torch.float64)  # only the prismatic joint
+    state = chain.forward(q, qd)
+    z2 = state.frames[1].rotation()[:, 2]  # joint 3 slides along z of frame 2
+    np.testing.assert_allclose(state.linear_velocity.numpy(), (0.25 * z2).numpy(), atol=1e-15)
+    np.testing.assert_allclose(state.angular_velocity.numpy(), np.zeros(3), atol=1e-15)
+
+
+def test_batch_shapes_broadcast():
+    chain = ur5()
+    q = torch.randn(2, 1, 6, dtype=torch.float64)
+    qd = torch.randn(3, 6, dtype=torch.float64)
+    state = chain.forward(q, qd)
+    assert state.linear_velocity.shape == (2, 3, 3)
+    assert state.frames.batch_shape == (2, 3, 6)
+    assert state.pose.shape == (2, 3, 4, 4)
+    one = chain.forward(q[1, 0], qd[2])
+    np.testing.assert_allclose(state.linear_velocity[1, 2].numpy(), one.linear_velocity.numpy(), atol=1e-14)
+    lin, ang = chain.acceleration(q, qd, torch.zeros(6, dtype=torch.float64))
+    assert lin.shape == ang.shape == (2, 3, 3)
+
+
+def test_bad_input():
+    chain = iiwa7()
+    with pytest.raises(ValueError, match=r"q must have shape \(\.\.\., 7\) for the 7 joints of 'iiwa7', got \(4, 6\)"):
+        chain.forward(torch.zeros(4, 6, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: q \(4,\), qdot \(3,\)"):
+        chain.forward(torch.zeros(4, 7, dtype=torch.float64), torch.zeros(3, 7, dtype=torch.float64))
+    with pytest.raises(TypeError, match=r"q must have a floating dtype"):
+        chain.forward(torch.zeros(7, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"qdot .* must match q"):
+        chain.forward(torch.zeros(7, dtype=torch.float64), torch.zeros(7, dtype=torch.float32))
+    with pytest.raises(ValueError, match=r"equal, non-zero length"):
+        GDHChain([0.1, 0.2], [0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    with pytest.raises(ValueError, match=r"joint_types\[1\] must be"):
+        GDHChain([0.1, 0.2], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], ["R", "spherical"])
+
+
+def test_float32_matches_float64():
+    c64, c32 = iiwa7(), iiwa7(dtype=torch.float32)
+    q, qd, qdd = _sample(c64)
+    s64, s32 = c64.forward(q, qd), c32.forward(q.float(), qd.float())
+    np.testing.assert_allclose(s32.linear_velocity.numpy(), s64.linear_velocity.numpy(), atol=1e-5)
+    a64, a32 = c64.acceleration(q, qd, qdd)[0], c32.acceleration(q.float(), qd.float(), qdd.float())[0]
+    np.testing.assert_allclose(a32.numpy(), a64.numpy(), atol=1e-4)
+    assert isinstance(s32.end_effector, ts.SE23)

@@ -1,0 +1,247 @@
+"""Generalised Denavit-Hartenberg (GDH) chains on extended poses SE_2(3).
+
+Mahony, Kelly and Weiss, "Galilean Symmetry in Robotics", Section 5 (equation numbers).  A
+link is the extended pose (43)
+
+    K_i = [[R_i, v_i, p_i], [0, 1, 0], [0, 0, 1]],   R_i = Rz(theta_i) Rx(alpha_i),
+    p_i = (a cos theta, a sin theta, d),             v_i = dp_i/dt (44),
+
+and its motion is dK_i/dt = K_i N - N K_i + K_i U_i with the link input U_i = (0, a_i, w_i)
+(tangent order [rho, nu, phi]) of (46)-(47).  The chain K = K_1 ... K_n (45) moves with the
+input U = sum_i Ad(iK_n^-1) U_i (50).
+
+Two departures from the paper, both checked against pytorch-kinematics in the tests:
+
+* The velocity column of the product (45) is sum_i R_(0,i-1) v_i, each link's own coordinate
+  velocity; it lacks the transport of the outer links by the inner joints' rotation.  The
+  end-effector coordinate velocity is dp/dt = v + R U_rho, with U_rho the rho part of (50)
+  (from K^-1 (dK/dt - [K, N]) = U).  ``GDHState.linear_velocity`` is this one.
+* (47) prints -a_i qdot_i^2 for the first component; differentiating (44) gives -a_i q_i^2
+  (q_i = dtheta_i/dt, the centripetal term).
+
+Accelerations: with X_i = iK_n, W_i = Ad(X_i^-1) U_i, V_i = sum_(j>i) W_j, differentiating (50)
+gives (the N terms reduce to a translation by -v(X_i^-1))
+
+    dU/dt = sum_i Ad(X_i^-1) dU_i/dt + ad(W_i) (V_i + (-v(X_i^-1), 0, 0)),
+
+and d2p/dt2 = R (U_nu + U_phi x U_rho + dU_rho/dt), dw/dt = R dU_phi/dt (base frame).  Only the
+rho and phi parts of dU/dt are needed, so no joint jerk enters.
+
+Only the public group API (SE23) is used.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from ..groups import SE23
+
+REVOLUTE, PRISMATIC = "revolute", "prismatic"
+_ALIASES = {"r": REVOLUTE, "revolute": REVOLUTE, "p": PRISMATIC, "prismatic": PRISMATIC}
+
+
+@dataclass
+class GDHState:
+    """Forward kinematics of a GDH chain; all quantities in the base frame {0}."""
+
+    frames: SE23  # 0K_1 .. 0K_n, batch (..., n)
+    end_effector: SE23  # 0K_n (45)
+    chain_input: torch.Tensor | None  # 0U_n (50), (..., 9), in the end-effector frame
+    linear_velocity: torch.Tensor | None  # dp_n/dt (..., 3)
+    angular_velocity: torch.Tensor | None  # (..., 3)
+
+    @property
+    def pose(self) -> torch.Tensor:
+        """End-effector pose (..., 4, 4)."""
+        M = self.end_effector.as_matrix()
+        top = torch.cat((M[..., :3, :3], M[..., :3, 4:5]), dim=-1)
+        bottom = torch.zeros_like(top[..., :1, :])
+        bottom[..., 0, 3] = 1.0
+        return torch.cat((top, bottom), dim=-2)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.cross(a, b, dim=-1)
+
+
+def _matvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return (M @ x.unsqueeze(-1)).squeeze(-1)
+
+
+class GDHChain:
+    """A serial chain from a standard DH table (a, alpha, d, theta offset, joint type).
+
+    Joint variable q_i: theta_i = theta_offset_i + q_i (revolute) or d_i = d_offset_i + q_i
+    (prismatic).  Only standard DH (as in the paper) is supported, not modified (Craig) DH.
+    Every method broadcasts over leading batch dimensions of q, qdot, qddot (..., n).
+    """
+
+    def __init__(
+        self,
+        a: Sequence[float],
+        alpha: Sequence[float],
+        d: Sequence[float],
+        theta_offset: Sequence[float],
+        joint_types: Sequence[str],
+        *,
+        dtype: torch.dtype = torch.float64,
+        device=None,
+        name: str = "chain",
+    ):
+        cols = {"a": a, "alpha": alpha, "d": d, "theta_offset": theta_offset}
+        lengths = {k: len(v) for k, v in cols.items()}
+        lengths["joint_types"] = len(joint_types)
+        n = lengths["a"]
+        if n < 1 or any(v != n for v in lengths.values()):
+            raise ValueError(f"DH table columns must have one equal, non-zero length; got {lengths}")
+        types = []
+        for i, t in enumerate(joint_types):
+            key = str(t).lower()
+            if key not in _ALIASES:
+                raise ValueError(
+                    f"joint_types[{i}] must be 'revolute'/'R' or 'prismatic'/'P', got {t!r}"
+                )
+            types.append(_ALIASES[key])
+        self.name = name
+        self.n_joints = n
+        self.joint_types = tuple(types)
+        as_t = lambda v: torch.as_tensor(v, dtype=dtype, device=device).reshape(n)  # noqa: E731
+        self.a, self.alpha, self.d, self.theta_offset = (as_t(cols[k]) for k in cols)
+        self._revolute = torch.tensor([t == REVOLUTE for t in types], device=device)
+
+    def __repr__(self) -> str:
+        kinds = "".join("R" if t == REVOLUTE else "P" for t in self.joint_types)
+        return f"GDHChain({self.name!r}, {self.n_joints} joints {kinds}, dtype={self.a.dtype})"
+
+    # ------------------------------------------------------------------ validation
+    def _joint_tensor(self, x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        if not x.is_floating_point():
+            raise TypeError(f"{name} must have a floating dtype, got {x.dtype}")
+        if x.dim() < 1 or x.shape[-1] != self.n_joints:
+            raise ValueError(
+                f"{name} must have shape (..., {self.n_joints}) for the {self.n_joints} joints "
+                f"of {self.name!r}, got {tuple(x.shape)}"
+            )
+        if like is not None:
+            if x.device != like.device or x.dtype != like.dtype:
+                raise ValueError(
+                    f"{name} ({x.dtype}, {x.device}) must match q ({like.dtype}, {like.device})"
+                )
+            try:
+                torch.broadcast_shapes(x.shape, like.shape)
+            except RuntimeError:
+                raise ValueError(
+                    f"batch shapes do not broadcast: q {tuple(like.shape[:-1])}, "
+                    f"{name} {tuple(x.shape[:-1])}"
+                ) from None
+        return x
+
+    def _table(self, like: torch.Tensor):
+        t = [x.to(dtype=like.dtype, device=like.device) for x in (self.a, self.alpha, self.d, self.theta_offset)]
+        return (*t, self._revolute.to(like.device))
+
+    # --------------------------------------------------------------------- links
+    def link_transforms(self, q: torch.Tensor, qdot: torch.Tensor | None = None) -> SE23:
+        """The GDH matrices (43), an SE23 with batch (..., n)."""
+        q = self._joint_tensor(q, "q")
+        if qdot is None:
+            qdot = torch.zeros_like(q)
+        qdot = self._joint_tensor(qdot, "qdot", like=q)
+        q, qdot = torch.broadcast_tensors(q, qdot)
+        a, alpha, d, offset, rev = self._table(q)
+        theta = offset + torch.where(rev, q, 0.0)
+        dd = d + torch.where(rev, 0.0, q)
+        qv = torch.where(rev, qdot, 0.0)  # q_i = dtheta_i/dt
+        wv = torch.where(rev, 0.0, qdot)  # w_i = dd_i/dt
+        ct, st, ca, sa = torch.cos(theta), torch.sin(theta), torch.cos(alpha), torch.sin(alpha)
+        zero, one = torch.zeros_like(ct), torch.ones_like(ct)
+        R = torch.stack(
+            (ct, -st * ca, st * sa, st, ct * ca, -ct * sa, zero, sa * one, ca * one), dim=-1
+        ).unflatten(-1, (3, 3))
+        p = torch.stack((a * ct, a * st, dd), dim=-1)
+        v = torch.stack((-a * st * qv, a * ct * qv, wv), dim=-1)  # (44)
+        return SE23.from_components(R, v, p)
+
+    def link_inputs(self, q: torch.Tensor, qdot: torch.Tensor, qddot: torch.Tensor) -> torch.Tensor:
+        """U_i = (0, a_i, w_i) (..., n, 9) from (46)-(47) (first component -a q^2, see module)."""
+        q = self._joint_tensor(q, "q")
+        qdot = self._joint_tensor(qdot, "qdot", like=q)
+        qddot = self._joint_tensor(qddot, "qddot", like=q)
+        q, qdot, qddot = torch.broadcast_tensors(q, qdot, qddot)
+        a, alpha, _, _, rev = self._table(q)
+        qv, qa = torch.where(rev, qdot, 0.0), torch.where(rev, qddot, 0.0)
+        wa = torch.where(rev, 0.0, qddot)
+        ca, sa = torch.cos(alpha), torch.sin(alpha)
+        omega = torch.stack((torch.zeros_like(qv), qv * sa, qv * ca), dim=-1)  # (46)
+        acc = torch.stack((-a * qv * qv, a * ca * qa + sa * wa, -a * sa * qa + ca * wa), dim=-1)
+        return torch.cat((torch.zeros_like(acc), acc, omega), dim=-1)
+
+    # ------------------------------------------------------------------- chain
+    def _products(self, links: SE23):
+        """Prefix products 0K_1..0K_n and suffix products iK_n (i = 1..n, the last = I)."""
+        n = self.n_joints
+        prefix, acc = [], None
+        for i in range(n):
+            acc = links[(..., i)] if acc is None else acc @ links[(..., i)]
+            prefix.append(acc)
+        suffix = [None] * n
+        ident = SE23.identity(links.batch_shape[:-1], dtype=links.dtype, device=links.device)
+        suffix[n - 1] = ident
+        for i in range(n - 2, -1, -1):
+            suffix[i] = links[(..., i + 1)] @ suffix[i + 1]
+        return prefix, suffix
+
+    def forward(self, q: torch.Tensor, qdot: torch.Tensor | None = None) -> GDHState:
+        """Frames (45) and, with qdot, the end-effector velocities in the base frame."""
+        links = self.link_transforms(q, qdot)
+        prefix, suffix = self._products(links)
+        frames = SE23.stack(prefix, dim=-1)
+        ee = prefix[-1]
+        if qdot is None:
+            return GDHState(frames, ee, None, None, None)
+        q_b, qdot_b = torch.broadcast_tensors(q, qdot)
+        # the link accelerations do not enter U_rho, U_phi (Ad maps phi into rho, nu, phi only)
+        U_links = self.link_inputs(q_b, qdot_b, torch.zeros_like(qdot_b))
+        W = [_matvec(suffix[i].inverse().adjoint(), U_links[..., i, :]) for i in range(self.n_joints)]
+        U = torch.stack(W, dim=0).sum(0)  # (50)
+        R = ee.rotation()
+        lin = ee.velocity() + _matvec(R, U[..., 0:3])
+        ang = _matvec(R, U[..., 6:9])
+        return GDHState(frames, ee, U, lin, ang)
+
+    def acceleration(self, q: torch.Tensor, qdot: torch.Tensor, qddot: torch.Tensor):
+        """End-effector (linear, angular) acceleration (..., 3) each, base frame (module doc)."""
+        U_links = self.link_inputs(q, qdot, qddot)
+        q, qdot, qddot = torch.broadcast_tensors(q, qdot, qddot)
+        links = self.link_transforms(q, qdot)
+        _, suffix = self._products(links)
+        n = self.n_joints
+        inv = [s.inverse() for s in suffix]
+        W = [_matvec(inv[i].adjoint(), U_links[..., i, :]) for i in range(n)]
+        U = torch.stack(W, dim=0).sum(0)
+        # dU_i/dt: only its phi part (d/dt of (46)) reaches the rho and phi parts of dU/dt
+        dU_links = torch.cat((torch.zeros_like(U_links[..., :6]), _omega_rate(self, qddot, q)), dim=-1)
+        dU = torch.zeros_like(U)
+        V = torch.zeros_like(U)  # sum_{j > i} W_j, built from the outermost link inwards
+        for i in range(n - 1, -1, -1):
+            dU_link = dU_links[..., i, :]
+            shift = torch.cat((-inv[i].velocity(), torch.zeros_like(U[..., 3:])), dim=-1)
+            dU = dU + _matvec(inv[i].adjoint(), dU_link) + _matvec(SE23.ad(W[i]), V + shift)
+            V = V + W[i]
+        ee = links[(..., 0)] @ suffix[0]
+        R = ee.rotation()
+        U_rho, U_nu, U_phi = U[..., 0:3], U[..., 3:6], U[..., 6:9]
+        lin = _matvec(R, U_nu + _cross(U_phi, U_rho) + dU[..., 0:3])
+        ang = _matvec(R, dU[..., 6:9])
+        return lin, ang
+
+
+def _omega_rate(chain: GDHChain, qddot: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """d/dt of (46): (0, qddot sin alpha, qddot cos alpha) for revolute joints."""
+    _, alpha, _, _, rev = chain._table(like)
+    qa = torch.where(rev, qddot, 0.0)
+    return torch.stack((torch.zeros_like(qa), qa * torch.sin(alpha), qa * torch.cos(alpha)), dim=-1)
