@@ -18,7 +18,7 @@ import math
 
 import torch
 
-from . import numerics
+from . import checks, numerics
 
 
 # ------------------------------------------------------------------------- layout
@@ -289,6 +289,18 @@ def rotation_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
 def rotation_skew_rows(C: torch.Tensor, p: torch.Tensor) -> list[torch.Tensor]:
     """The rows of C p^ (C (..., 3, 3), p (3, ...)): row_i = C[i, :] x p."""
     return [cross(r, p) for r in rows(C)]
+
+
+def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, tail: tuple = (), rows: int = 3):
+    """The first ``rows`` entries of M [x, *tail] for x (..., 3 or 4): points, events, velocities
+    and directions in homogeneous coordinates (CONVENTIONS.md), with the input checks."""
+    size = 4 if rows == 4 else 3
+    checks.vector(x, size, name)
+    checks.binary(M, 2, x, 1, "g", name)
+    if tail:
+        pad = torch.tensor(tail, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], len(tail))
+        x = torch.cat((x, pad), dim=-1)
+    return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
 
 
 def random_rotation(batch_shape, dtype, device, generator=None) -> torch.Tensor:

@@ -157,16 +157,13 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
 
 
 def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """Points (..., 3) -> C p + r."""
-    checks.vector(p, 3, "p")
-    checks.binary(M, 2, p, 1, "g", "p")
-    return (M[..., :3, :] @ torch.cat((p, torch.ones_like(p[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
+    """Points [p, 1] -> C p + r."""
+    return B.act_homogeneous(M, p, "p", (1.0,))
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    checks.vector(d, 3, "d")
-    checks.binary(M, 2, d, 1, "g", "d")
-    return (M[..., :3, :3] @ d.unsqueeze(-1)).squeeze(-1)
+    """Directions [d, 0] -> C d."""
+    return B.act_homogeneous(M, d, "d")
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

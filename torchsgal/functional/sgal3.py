@@ -286,24 +286,18 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
 
 
 def act(M: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
-    """Events (..., 4) = (x, t) -> (C x + v t + r, t + tau), (3.31)."""
-    checks.vector(e, 4, "e")
-    checks.binary(M, 2, e, 1, "g", "e")
-    return (M[..., :4, :] @ torch.cat((e, torch.ones_like(e[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
+    """Events [x, t, 1] -> (C x + v t + r, t + tau), (3.31)."""
+    return B.act_homogeneous(M, e, "e", (1.0,), rows=4)
 
 
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Inertial velocities [u, 1, 0] -> C u + v."""
-    checks.vector(u, 3, "u")
-    checks.binary(M, 2, u, 1, "g", "u")
-    return (M[..., :3, :4] @ torch.cat((u, torch.ones_like(u[..., :1])), -1).unsqueeze(-1)).squeeze(-1)
+    return B.act_homogeneous(M, u, "u", (1.0,))
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0, 0] -> C d."""
-    checks.vector(d, 3, "d")
-    checks.binary(M, 2, d, 1, "g", "d")
-    return (M[..., :3, :3] @ d.unsqueeze(-1)).squeeze(-1)
+    return B.act_homogeneous(M, d, "d")
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

@@ -112,15 +112,11 @@ def jr_inv(phi: torch.Tensor) -> torch.Tensor:
 
 def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points (..., 3) -> C p."""
-    checks.vector(p, 3, "p")
-    checks.binary(C, 2, p, 1, "g", "p")
-    return (C @ p.unsqueeze(-1)).squeeze(-1)
+    return B.act_homogeneous(C, p, "p")
 
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    checks.vector(d, 3, "d")
-    checks.binary(C, 2, d, 1, "g", "d")
-    return (C @ d.unsqueeze(-1)).squeeze(-1)
+    return B.act_homogeneous(C, d, "d")
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
