@@ -181,63 +181,84 @@ class GDHChain:
         return torch.cat((torch.zeros_like(acc), acc, omega), dim=-1)
 
     # ------------------------------------------------------------------- chain
-    def _products(self, links: SE23):
-        """Prefix products 0K_1..0K_n and suffix products iK_n (i = 1..n, the last = I)."""
-        n = self.n_joints
+    def _prefix(self, links: SE23) -> list[SE23]:
+        """Prefix products 0K_1 .. 0K_n (45)."""
         prefix, acc = [], None
-        for i in range(n):
-            acc = links[(..., i)] if acc is None else acc @ links[(..., i)]
+        for i in range(self.n_joints):
+            acc = links[..., i] if acc is None else acc @ links[..., i]
             prefix.append(acc)
-        suffix = [None] * n
-        ident = SE23.identity(links.batch_shape[:-1], dtype=links.dtype, device=links.device)
-        suffix[n - 1] = ident
-        for i in range(n - 2, -1, -1):
-            suffix[i] = links[(..., i + 1)] @ suffix[i + 1]
-        return prefix, suffix
+        return prefix
+
+    @staticmethod
+    def _base_inputs(prefix: list[SE23], U_links: torch.Tensor):
+        """S_i = Ad(0K_i) U_i (base frame), as (rho, nu, phi) lists, Ad applied blockwise:
+        phi' = C phi, rho' = C rho + r x phi', nu' = C nu + v x phi' (U_i has rho = 0)."""
+        S = []
+        for i, K in enumerate(prefix):
+            C = K.rotation()
+            phi = _matvec(C, U_links[..., i, 6:9])
+            rho = _cross(K.position(), phi)
+            nu = _matvec(C, U_links[..., i, 3:6]) + _cross(K.velocity(), phi)
+            S.append((rho, nu, phi))
+        return S
+
+    @staticmethod
+    def _to_end_effector(K: SE23, rho, nu, phi):
+        """Ad(K^-1) (rho, nu, phi) = C^T (rho - r x phi, nu - v x phi, phi)."""
+        Ct = K.rotation().transpose(-1, -2)
+        return (_matvec(Ct, rho - _cross(K.position(), phi)),
+                _matvec(Ct, nu - _cross(K.velocity(), phi)), _matvec(Ct, phi))
 
     def forward(self, q: torch.Tensor, qdot: torch.Tensor | None = None) -> GDHState:
-        """Frames (45) and, with qdot, the end-effector velocities in the base frame."""
+        """Frames (45) and, with qdot, the end-effector velocities in the base frame.
+
+        ``chain_input`` is 0U_n of (50) at zero joint accelerations (its rho and phi parts,
+        which give the velocities, do not depend on them).
+        """
         links = self.link_transforms(q, qdot)
-        prefix, suffix = self._products(links)
+        prefix = self._prefix(links)
         frames = SE23.stack(prefix, dim=-1)
         ee = prefix[-1]
         if qdot is None:
             return GDHState(frames, ee, None, None, None)
         q_b, qdot_b = torch.broadcast_tensors(q, qdot)
-        # the link accelerations do not enter U_rho, U_phi (Ad maps phi into rho, nu, phi only)
         U_links = self.link_inputs(q_b, qdot_b, torch.zeros_like(qdot_b))
-        W = [_matvec(suffix[i].inverse().adjoint(), U_links[..., i, :]) for i in range(self.n_joints)]
-        U = torch.stack(W, dim=0).sum(0)  # (50)
-        R = ee.rotation()
-        lin = ee.velocity() + _matvec(R, U[..., 0:3])
-        ang = _matvec(R, U[..., 6:9])
-        return GDHState(frames, ee, U, lin, ang)
+        S = self._base_inputs(prefix, U_links)
+        total = [sum(parts) for parts in zip(*S)]  # sum_i Ad(0K_i) U_i
+        U = torch.cat(self._to_end_effector(ee, *total), dim=-1)  # (50)
+        lin = ee.velocity() + total[0] - _cross(ee.position(), total[2])  # v + R U_rho
+        return GDHState(frames, ee, U, lin, total[2])
 
     def acceleration(self, q: torch.Tensor, qdot: torch.Tensor, qddot: torch.Tensor):
-        """End-effector (linear, angular) acceleration (..., 3) each, base frame (module doc)."""
+        """End-effector (linear, angular) acceleration (..., 3) each, base frame (module doc).
+
+        Computed in the base frame with ad(Ad_g a) Ad_g b = Ad_g ad(a) b:
+        dU/dt = Ad(K^-1) sum_i [Ad(0K_i) dU_i/dt + ad(S_i)(sum_(j>i) S_j + (v_K - v_i, 0, 0))].
+        """
         U_links = self.link_inputs(q, qdot, qddot)
         q, qdot, qddot = torch.broadcast_tensors(q, qdot, qddot)
         links = self.link_transforms(q, qdot)
-        _, suffix = self._products(links)
-        n = self.n_joints
-        inv = [s.inverse() for s in suffix]
-        W = [_matvec(inv[i].adjoint(), U_links[..., i, :]) for i in range(n)]
-        U = torch.stack(W, dim=0).sum(0)
-        # dU_i/dt: only its phi part (d/dt of (46)) reaches the rho and phi parts of dU/dt
-        dU_links = torch.cat((torch.zeros_like(U_links[..., :6]), _omega_rate(self, qddot, q)), dim=-1)
-        dU = torch.zeros_like(U)
-        V = torch.zeros_like(U)  # sum_{j > i} W_j, built from the outermost link inwards
-        for i in range(n - 1, -1, -1):
-            dU_link = dU_links[..., i, :]
-            shift = torch.cat((-inv[i].velocity(), torch.zeros_like(U[..., 3:])), dim=-1)
-            dU = dU + _matvec(inv[i].adjoint(), dU_link) + _matvec(SE23.ad(W[i]), V + shift)
-            V = V + W[i]
-        ee = links[(..., 0)] @ suffix[0]
+        prefix = self._prefix(links)
+        ee = prefix[-1]
+        S = self._base_inputs(prefix, U_links)
+        omega_rate = _omega_rate(self, qddot, q)
+        D_rho = torch.zeros_like(S[0][0])
+        D_phi = torch.zeros_like(D_rho)
+        T_rho, T_phi = torch.zeros_like(D_rho), torch.zeros_like(D_rho)  # sum_{j > i} S_j
+        for i in range(self.n_joints - 1, -1, -1):
+            K = prefix[i]
+            s_rho, _, s_phi = S[i]
+            dphi = _matvec(K.rotation(), omega_rate[..., i, :])  # Ad(0K_i) (0, 0, dw_i)
+            y_rho = T_rho + ee.velocity() - K.velocity()
+            D_rho = D_rho + _cross(K.position(), dphi) + _cross(s_phi, y_rho) + _cross(s_rho, T_phi)
+            D_phi = D_phi + dphi + _cross(s_phi, T_phi)
+            T_rho, T_phi = T_rho + s_rho, T_phi + s_phi
+        total = [sum(parts) for parts in zip(*S)]
+        U_rho, U_nu, U_phi = self._to_end_effector(ee, *total)
+        dU_rho, _, dU_phi = self._to_end_effector(ee, D_rho, torch.zeros_like(D_rho), D_phi)
         R = ee.rotation()
-        U_rho, U_nu, U_phi = U[..., 0:3], U[..., 3:6], U[..., 6:9]
-        lin = _matvec(R, U_nu + _cross(U_phi, U_rho) + dU[..., 0:3])
-        ang = _matvec(R, dU[..., 6:9])
-        return lin, ang
+        lin = _matvec(R, U_nu + _cross(U_phi, U_rho) + dU_rho)
+        return lin, _matvec(R, dU_phi)
 
 
 def _omega_rate(chain: GDHChain, qddot: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
