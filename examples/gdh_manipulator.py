@@ -37,8 +37,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import math
-import os
 import sys
 import time
 from pathlib import Path

@@ -1,7 +1,6 @@
 """Validation and broadcasting of the components given to ``from_components``."""
 from __future__ import annotations
 
-import torch
 
 from ..functional import checks
 
