@@ -245,8 +245,6 @@ def test_bad_input():
 
 # ------------------------------------------------------------- event fusion (mahony Sec. 6)
 def _event_problem(seed=20):
-    from torchsgal.uncertainty import near_inertial_relative_frame  # noqa: F401
-
     gen = torch.Generator().manual_seed(seed)
     C = ts.SO3.exp(torch.tensor([0.0, 0.0, 0.3], dtype=torch.float64)).as_matrix()
     F_hat = ts.SGal3.from_components(C, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
