@@ -4,6 +4,7 @@ than first order, log_prob integrating to 1 (importance sampling), fusion agains
 brute-force maximisation of the posterior, and bad input."""
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -256,8 +257,9 @@ def _event_problem(seed=20):
     return prior, event, Sigma
 
 
-def _event_cost(prior, event, Sigma, eps):
-    """The negative log posterior (64)-(66) in the exponential coordinates E = exp(eps) (65)."""
+def _event_cost(prior, event, Sigma, eps, time_row=False):
+    """The negative log posterior (64)-(66) in the exponential coordinates E = exp(eps) (65);
+    by default without the uninformative time row (see torchsgal/uncertainty/events.py)."""
     from torchsgal.uncertainty import near_inertial_relative_frame
 
     F_hat, Q = prior.mean, prior.covariance
@@ -269,46 +271,70 @@ def _event_cost(prior, event, Sigma, eps):
     kF = near_inertial_relative_frame(event[3], F_hat.time())
     y0 = torch.tensor([0, 0, 0, 0, 1.0], dtype=torch.float64)
     pred = (ts.SGal3.exp(eps).as_matrix() @ kF.as_matrix() @ y0)[:4]
-    r = d - pred
-    return eps @ torch.linalg.solve(Q, eps) + r @ torch.linalg.solve(S, r)
+    n = 4 if time_row else 3
+    r = (d - pred)[:n]
+    return eps @ torch.linalg.solve(Q, eps) + r @ torch.linalg.solve(S[:n, :n], r)
 
 
-def test_event_fusion_matches_brute_force_posterior():
+@pytest.mark.parametrize("time_row", [False, True], ids=["default", "paper-time-row"])
+def test_event_fusion_matches_brute_force_posterior(time_row):
     from torchsgal.uncertainty import fuse_event
 
     prior, event, Sigma = _event_problem()
+    cost_fn = functools.partial(_event_cost, time_row=time_row)
+
     eps = torch.zeros(10, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.LBFGS([eps], lr=1, max_iter=500, tolerance_grad=1e-15,
                             tolerance_change=1e-18, line_search_fn="strong_wolfe")
 
     def closure():
         opt.zero_grad()
-        c = _event_cost(prior, event, Sigma, eps)
+        c = cost_fn(prior, event, Sigma, eps)
         c.backward()
         return c
 
     opt.step(closure)
+    # polish with Newton steps on the autograd Hessian (LBFGS stops near 1e-6 in gradient)
+    e = eps.detach()
+    for _ in range(5):
+        g = torch.func.grad(lambda x: cost_fn(prior, event, Sigma, x))(e)
+        e = e - torch.linalg.solve(torch.autograd.functional.hessian(lambda x: cost_fn(prior, event, Sigma, x), e), g)
+    eps = e.clone().requires_grad_(True)
     best = prior.mean.rplus(eps.detach())
-    iterated = fuse_event(prior, event, Sigma, iterations=10)
+    iterated = fuse_event(prior, event, Sigma, iterations=10, time_row=time_row)
     np.testing.assert_allclose(iterated.mean.as_matrix().numpy(), best.as_matrix().numpy(), atol=1e-8)
     # the paper's single step lands near the optimum; it lowers the cost a lot
-    one = fuse_event(prior, event, Sigma)
+    one = fuse_event(prior, event, Sigma, time_row=time_row)
     eps_one = one.mean.rminus(prior.mean)
-    c0 = float(_event_cost(prior, event, Sigma, torch.zeros(10, dtype=torch.float64)))
-    c1 = float(_event_cost(prior, event, Sigma, eps_one))
-    cb = float(_event_cost(prior, event, Sigma, eps.detach()))
+    c0 = float(cost_fn(prior, event, Sigma, torch.zeros(10, dtype=torch.float64)))
+    c1 = float(cost_fn(prior, event, Sigma, eps_one))
+    cb = float(cost_fn(prior, event, Sigma, eps.detach()))
     assert cb <= c1 < cb + 0.05 * (c0 - cb)
     # the printed sign of (68) (E ~ I - eps^) moves the estimate the wrong way
-    assert float(_event_cost(prior, event, Sigma, -eps_one)) > c0
+    assert float(cost_fn(prior, event, Sigma, -eps_one)) > c0
     # the posterior covariance: J_r P J_r^T with P the inverse Gauss-Newton information, the
     # Jacobian of the measurement taken by autograd
     eps_b = eps.detach()
-    W = torch.autograd.functional.hessian(lambda e: _event_cost(prior, event, Sigma, e), eps_b)
+    W = torch.autograd.functional.hessian(lambda e: cost_fn(prior, event, Sigma, e), eps_b)
     assert torch.linalg.eigvalsh(W).min() > 0  # a minimum
     Jr = ts.SGal3.jr(eps_b)
     assert torch.allclose(iterated.covariance, iterated.covariance.T)
     rel = (iterated.covariance - Jr @ torch.linalg.inv(0.5 * W) @ Jr.T).norm() / iterated.covariance.norm()
     assert rel < 0.05  # GN vs the full Hessian differ only by residual-curvature terms
+
+
+def test_event_time_row_is_uninformative():
+    """The time row's residual is -eps_iota for every eps (it is built from tau itself): with an
+    uncorrelated prior the posterior time variance stays the prior's by default, and the paper's
+    model halves it (double counting)."""
+    from torchsgal.uncertainty import fuse_event
+
+    prior, event, Sigma = _event_problem()
+    default = fuse_event(prior, event, Sigma)
+    paper = fuse_event(prior, event, Sigma, time_row=True)
+    q = prior.covariance[9, 9]
+    assert abs(float(default.covariance[9, 9] / q) - 1.0) < 1e-6
+    assert abs(float(paper.covariance[9, 9] / q) - 0.5) < 1e-6
 
 
 def test_event_fusion_trades_time_against_position():

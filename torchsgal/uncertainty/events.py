@@ -13,10 +13,20 @@ identity but for the time offset tau - t_hat_k; a preintegrated estimate may be 
     eps     = (Q^-1 + C^T S^-1 C)^-1 C^T S^-1 d_tilde,   F* = F_hat exp(eps)
     Q*      = J_r(eps) (Q^-1 + C^T S^-1 C)^-1 J_r(eps)^T         (the reset, end of 6.4)
 
-Departures, both checked by the tests against a brute-force maximisation of the posterior:
-the paper substitutes E ~ I - eps^ although E = exp(eps^) (65); linearising exp gives
-E ~ I + eps^, hence C eps = +I4^T eps^ kF_i y0 (the printed sign moves the estimate away from
-the measurement).  The reset is written J_r P J_r^T from exp(eps + d) ~ exp(eps) exp(J_r d).
+Departures, checked by the tests (brute-force posterior) and examples/timestamp_fusion.py:
+
+* The paper substitutes E ~ I - eps^ although E = exp(eps^) (65); linearising exp gives
+  E ~ I + eps^, hence C eps = +I4^T eps^ kF_i y0 (the printed sign moves the estimate away
+  from the measurement).
+* The time row carries no information: kF_i is built from tau itself, so d_t - (E kF_i y0)_t
+  = -eps_iota identically, and its noise is exactly -eta_iota (with (58)'s sign corrected:
+  tau - t_hat = (t_i - t_k) + mu_t + eta_iota), not noise independent of the prior.  The paper
+  adds it as N_eta Q N_eta^T, which counts the prior's time information twice (the time NEES
+  doubles).  By default only the three position rows are fused; their noise already holds the
+  timestamp jitter along the velocity (-C^T v Sigma_t).  ``time_row=True`` gives the printed
+  model.
+* The reset is written J_r P J_r^T from exp(eps + d) ~ exp(eps) exp(J_r d).
+
 ``iterations > 1`` re-linearises exp (Gauss-Newton on eps with the exact Jacobian).
 """
 from __future__ import annotations
@@ -42,9 +52,11 @@ def _event_columns(x: torch.Tensor) -> torch.Tensor:
 
 
 def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covariance: torch.Tensor,
-               relative_frame: SGal3 | None = None, iterations: int = 1) -> ConcentratedGaussian:
+               relative_frame: SGal3 | None = None, iterations: int = 1,
+               time_row: bool = False) -> ConcentratedGaussian:
     """Posterior concentrated Gaussian (right perturbation) after fusing the event
-    (..., 4) = (y, tau) with covariance (..., 4, 4) into ``prior`` on SGal3."""
+    (..., 4) = (y, tau) with covariance (..., 4, 4) into ``prior`` on SGal3.  ``time_row``:
+    also fuse the (uninformative) time row as the paper prints it (see the module doc)."""
     if prior.group is not SGal3:
         raise TypeError(f"fuse_event needs a prior on SGal3, got {prior.group.__name__}")
     if event.shape[-1:] != (4,):
@@ -61,9 +73,11 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     N_mu = F_hat.inverse().as_matrix()[..., :4, :4].clone()
     N_mu[..., 3, 3] = N_mu[..., 3, 3] - 1.0
     S = N_mu @ event_covariance @ N_mu.transpose(-1, -2)
-    S = S.clone()
-    S[..., 3, 3] = S[..., 3, 3] + Q[..., 9, 9]
-    S_inv = torch.linalg.inv(_sym(S))
+    rows = 4 if time_row else 3
+    if time_row:
+        S = S.clone()
+        S[..., 3, 3] = S[..., 3, 3] + Q[..., 9, 9]
+    S_inv = torch.linalg.inv(_sym(S[..., :rows, :rows]))
     Q_inv = torch.linalg.inv(_sym(Q))
     y0 = torch.zeros(*event.shape[:-1], 5, dtype=event.dtype, device=event.device)
     y0[..., 4] = 1.0
@@ -71,14 +85,14 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     eps = torch.zeros(*event.shape[:-1], 10, dtype=event.dtype, device=event.device)
     for _ in range(max(1, iterations)):
         Ex = (SGal3.exp(eps).as_matrix() @ x.unsqueeze(-1)).squeeze(-1)
-        r = d - Ex[..., :4]  # residual at the current eps
+        r = (d - Ex[..., :4])[..., :rows]  # residual at the current eps
         # d/d(delta) I4^T exp(eps + delta) x = C(exp(eps) x) J_l(eps)
-        C = _event_columns(Ex) @ SGal3.jl(eps)
+        C = (_event_columns(Ex) @ SGal3.jl(eps))[..., :rows, :]
         H = Q_inv + C.transpose(-1, -2) @ S_inv @ C
         g = _mv(C.transpose(-1, -2) @ S_inv, r) - _mv(Q_inv, eps)
         eps = eps + torch.linalg.solve(H, g)
     Ex = (SGal3.exp(eps).as_matrix() @ x.unsqueeze(-1)).squeeze(-1)
-    C = _event_columns(Ex) @ SGal3.jl(eps)
+    C = (_event_columns(Ex) @ SGal3.jl(eps))[..., :rows, :]
     P = torch.linalg.inv(Q_inv + C.transpose(-1, -2) @ S_inv @ C)
     J = SGal3.jr(eps)
     return ConcentratedGaussian(F_hat.rplus(eps), _sym(J @ P @ J.transpose(-1, -2)), "right",
