@@ -42,6 +42,15 @@ REVOLUTE, PRISMATIC = "revolute", "prismatic"
 _ALIASES = {"r": REVOLUTE, "revolute": REVOLUTE, "p": PRISMATIC, "prismatic": PRISMATIC}
 
 
+def normalize_joint_type(t, index: int | None = None) -> str:
+    """'revolute'/'R' or 'prismatic'/'P' (any case) -> REVOLUTE or PRISMATIC."""
+    key = str(t).strip().lower()
+    if key not in _ALIASES:
+        where = "joint type" if index is None else f"joint_types[{index}]"
+        raise ValueError(f"{where} must be 'revolute'/'R' or 'prismatic'/'P', got {t!r}")
+    return _ALIASES[key]
+
+
 @dataclass
 class GDHState:
     """Forward kinematics of a GDH chain; all quantities in the base frame {0}."""
@@ -96,14 +105,7 @@ class GDHChain:
         n = lengths["a"]
         if n < 1 or any(v != n for v in lengths.values()):
             raise ValueError(f"DH table columns must have one equal, non-zero length; got {lengths}")
-        types = []
-        for i, t in enumerate(joint_types):
-            key = str(t).lower()
-            if key not in _ALIASES:
-                raise ValueError(
-                    f"joint_types[{i}] must be 'revolute'/'R' or 'prismatic'/'P', got {t!r}"
-                )
-            types.append(_ALIASES[key])
+        types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
         self.name = name
         self.n_joints = n
         self.joint_types = tuple(types)

@@ -44,8 +44,7 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-_REVOLUTE = ("revolute", "r")
-_PRISMATIC = ("prismatic", "p")
+from .gdh import normalize_joint_type
 
 
 def _import_pk():
@@ -59,15 +58,6 @@ def _import_pk():
             "(pip install pytorch-kinematics)"
         ) from exc
     return pk, pk_frame, pk_tf
-
-
-def _normalise_type(t: str) -> str:
-    s = str(t).strip().lower()
-    if s in _REVOLUTE:
-        return "revolute"
-    if s in _PRISMATIC:
-        return "prismatic"
-    raise ValueError(f"joint type must be 'revolute' or 'prismatic', got {t!r}")
 
 
 def _as_list(x, name: str) -> list:
@@ -129,7 +119,7 @@ def build_pk_chain(
     pk, pk_frame, pk_tf = _import_pk()
     a_, al_, d_, th_ = (_as_list(v, n) for v, n in
                         ((a, "a"), (alpha, "alpha"), (d, "d"), (theta_offset, "theta_offset")))
-    types = [_normalise_type(t) for t in joint_types]
+    types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
     n = len(types)
     if not (len(a_) == len(al_) == len(d_) == len(th_) == n):
         raise ValueError(
