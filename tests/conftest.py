@@ -14,7 +14,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import torchsgal as ts  # noqa: E402
 
-GROUP_CLASSES = list(ts.GROUPS)
+GROUP_CLASSES = list(ts.ALL_GROUPS)
 BATCH_SHAPES = [(), (5,), (2, 3, 1)]
 DTYPES = [torch.float64, torch.float32]
 
@@ -37,7 +37,7 @@ def sample_tangent(G, batch_shape, dtype, seed=0, scale=1.0, angles=None) -> tor
     n = ang.size
     xi = scale * rng.standard_normal((n, G.dof))
     phi_slice = G._f.PHI
-    axis = rng.standard_normal((n, 3))
+    axis = rng.standard_normal((n, phi_slice.stop - phi_slice.start))  # a sign for SO2/SE2
     axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
     xi[:, phi_slice] = axis * ang[:, None]
     return torch.tensor(xi.reshape(*batch_shape, G.dof) if batch_shape else xi[0], dtype=dtype)

@@ -54,13 +54,15 @@ __all__ = [
     "blockwise_rel_err",
 ]
 
-GROUPS = ("SO3", "SE3", "SE23", "SGal3")
-DOF = {"SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10}
-MATRIX_SIZE = {"SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5}
+GROUPS = ("SO2", "SE2", "SO3", "SE3", "SE23", "SGal3")
+DOF = {"SO2": 1, "SE2": 3, "SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10}
+MATRIX_SIZE = {"SO2": 2, "SE2": 3, "SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5}
 # Partition of the tangent vector into blocks (rho / nu / phi / iota).
-BLOCKS = {"SO3": [3], "SE3": [3, 3], "SE23": [3, 3, 3], "SGal3": [3, 3, 3, 1]}
+BLOCKS = {"SO2": [1], "SE2": [2, 1], "SO3": [3], "SE3": [3, 3], "SE23": [3, 3, 3], "SGal3": [3, 3, 3, 1]}
 # Where the rotation part phi sits in the tangent vector.
 ROT_SLICE = {
+    "SO2": slice(0, 1),
+    "SE2": slice(2, 3),
     "SO3": slice(0, 3),
     "SE3": slice(3, 6),
     "SE23": slice(6, 9),
@@ -125,9 +127,15 @@ def _split(group, xi):
 def hat(group, xi):
     """Tangent vector(s) (..., dof) -> algebra matrix (..., n, n)."""
     xi = _check_vec(group, xi)
-    rho, nu, phi, iota = _split(group, xi)
     n = MATRIX_SIZE[group]
     X = np.zeros(xi.shape[:-1] + (n, n))
+    if group in ("SO2", "SE2"):  # planar: theta J top-left, rho in the last column
+        t = xi[..., -1]
+        X[..., 0, 1], X[..., 1, 0] = -t, t
+        if group == "SE2":
+            X[..., 0:2, 2] = xi[..., 0:2]
+        return X
+    rho, nu, phi, iota = _split(group, xi)
     X[..., 0:3, 0:3] = skew(phi)
     if group == "SE3":
         X[..., 0:3, 3] = rho
@@ -143,6 +151,9 @@ def vee(group, X):
     """Algebra matrix (..., n, n) -> tangent vector (..., dof). Reads only the
     defining entries (the rotation part from the antisymmetric part of the 3x3 block)."""
     X = _check_mat(group, X, "X")
+    if group in ("SO2", "SE2"):
+        t = 0.5 * (X[..., 1, 0] - X[..., 0, 1])[..., None]
+        return t if group == "SO2" else np.concatenate([X[..., 0:2, 2], t], axis=-1)
     A = X[..., 0:3, 0:3]
     phi = 0.5 * np.stack(
         [A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]],
@@ -281,8 +292,9 @@ def random_tangent(group, rng, angle=None, scale=1.0, size=None):
     shape = () if size is None else ((size,) if np.isscalar(size) else tuple(size))
     d = DOF[group]
     xi = scale * rng.standard_normal(shape + (d,))
-    u = rng.standard_normal(shape + (3,))
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    k = ROT_SLICE[group].stop - ROT_SLICE[group].start
+    u = rng.standard_normal(shape + (k,))
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)  # a random sign when k == 1
     if angle is None:
         a = rng.uniform(0.0, np.pi, size=shape)[..., None]
     else:
@@ -309,6 +321,11 @@ def _mp_hat(group, x):
     z = mpmath.mpf(0)
     n = MATRIX_SIZE[group]
     X = [[z] * n for _ in range(n)]
+    if group in ("SO2", "SE2"):
+        X[0][1], X[1][0] = -x[-1], x[-1]
+        if group == "SE2":
+            X[0][2], X[1][2] = x[0], x[1]
+        return X
     if group == "SO3":
         p = x[0:3]
     elif group == "SE3":
@@ -330,6 +347,9 @@ def _mp_hat(group, x):
 
 def _mp_vee(group, X):
     h = mpmath.mpf(0.5)
+    if group in ("SO2", "SE2"):
+        t = [h * (X[1][0] - X[0][1])]
+        return t if group == "SO2" else [X[0][2], X[1][2]] + t
     phi = [h * (X[2][1] - X[1][2]), h * (X[0][2] - X[2][0]), h * (X[1][0] - X[0][1])]
     if group == "SO3":
         return phi

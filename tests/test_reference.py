@@ -23,6 +23,12 @@ def _rng(seed=0):
 
 def _hand_hat(group, x):
     """hat written out entry by entry from CONVENTIONS.md (1-based comments)."""
+    if group in ("SO2", "SE2"):  # theta J, rho in column 3
+        X = np.zeros((R.MATRIX_SIZE[group],) * 2)
+        X[0, 1], X[1, 0] = -x[-1], x[-1]
+        if group == "SE2":
+            X[:2, 2] = x[:2]
+        return X
     if group == "SO3":
         p = x
     elif group == "SE3":
@@ -114,11 +120,12 @@ def test_expm_hat_vs_exp_mp(group, angle):
     M = R.expm_hat(group, xi)
     Mmp = R.exp_mp(group, xi, dps=30)
     assert R.rel_err(M, Mmp) < 1e-13
-    C = Mmp[:3, :3]
-    np.testing.assert_allclose(C.T @ C, np.eye(3), atol=1e-14)
+    k = 2 if group in ("SO2", "SE2") else 3
+    C = Mmp[:k, :k]
+    np.testing.assert_allclose(C.T @ C, np.eye(k), atol=1e-14)
     assert abs(np.linalg.det(C) - 1) < 1e-14
     n = R.MATRIX_SIZE[group]
-    if n > 3:
+    if n > k:
         np.testing.assert_array_equal(Mmp[n - 1], np.eye(n)[n - 1])
     if group == "SE23":
         np.testing.assert_array_equal(Mmp[3], [0, 0, 0, 1, 0])

@@ -18,6 +18,8 @@ class LieGroup:
 
     dof: int
     matrix_dim: int
+    point_dim: int  # size of the points (events for SGal3) that act() takes
+    rotation_dim: int = 3  # 2 for the planar groups
     _f = None  # functional module of the group
 
     __slots__ = ("_matrix",)
@@ -47,8 +49,9 @@ class LieGroup:
     def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
         if tol is None:
             tol = 1e-4 if M.dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-9
-        C = M[..., :3, :3]
-        eye = blocks.eye(3, M)
+        k = cls.rotation_dim
+        C = M[..., :k, :k]
+        eye = blocks.eye(k, M)
         orth = (C.transpose(-1, -2) @ C - eye).abs().amax(dim=(-1, -2))
         det = (torch.linalg.det(C) - 1).abs()
         # The fixed rows: rebuild the matrix from its free entries and compare.
@@ -96,8 +99,9 @@ class LieGroup:
         return self._matrix
 
     def rotation(self) -> torch.Tensor:
-        """Rotation matrix C (..., 3, 3)."""
-        return self._matrix[..., :3, :3]
+        """Rotation matrix C (..., 3, 3) (2 x 2 for the planar groups)."""
+        k = self.rotation_dim
+        return self._matrix[..., :k, :k]
 
     # ------------------------------------------------------------------ operations
     def _same_type(self, other, name: str):
@@ -154,7 +158,7 @@ class LieGroup:
         return self.rplus(alpha.unsqueeze(-1) * delta)
 
     def act_direction(self, d: torch.Tensor) -> torch.Tensor:
-        """Directions (..., 3), homogeneous [d, 0(, 0)]: C d."""
+        """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d."""
         return self._f.act_direction(self._matrix, d)
 
     # ----------------------------------------------------------- static algebra maps

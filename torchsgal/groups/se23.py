@@ -12,6 +12,7 @@ class SE23(LieGroup):
 
     dof = 9
     matrix_dim = 5
+    point_dim = 3  # size of the vectors act() takes
     _f = _se23
     __slots__ = ()
 

@@ -12,6 +12,7 @@ class SE3(LieGroup):
 
     dof = 6
     matrix_dim = 4
+    point_dim = 3  # size of the vectors act() takes
     _f = _se3
     __slots__ = ()
 

@@ -13,6 +13,7 @@ class SGal3(LieGroup):
 
     dof = 10
     matrix_dim = 5
+    point_dim = 4  # size of the vectors act() takes
     _f = _sgal3
     __slots__ = ()
 

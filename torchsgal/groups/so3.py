@@ -11,6 +11,7 @@ class SO3(LieGroup):
 
     dof = 3
     matrix_dim = 3
+    point_dim = 3  # size of the vectors act() takes
     _f = _so3
     __slots__ = ()
 

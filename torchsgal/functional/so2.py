@@ -1,0 +1,124 @@
+"""SO(2) on plain tensors: rotation matrices (..., 2, 2), tangent theta (..., 1).
+
+Barfoot, "Integral Forms", Section 4.5 and Table 1: the group is abelian, so Ad = 1, ad = 0
+and J_l = J_r = 1.
+"""
+from __future__ import annotations
+
+import sys
+
+import torch
+
+from . import checks
+from ._autograd import make_exp_log
+
+NAME = "SO2"
+DOF = 1
+MATRIX_DIM = 2
+SIZES = [1]
+PHI = slice(0, 1)
+
+
+def components(M: torch.Tensor):
+    return (M,)
+
+
+def from_components(C: torch.Tensor) -> torch.Tensor:
+    return C
+
+
+def _rot(c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    return torch.stack((c, -s, s, c), dim=-1).unflatten(-1, (2, 2))
+
+
+def hat(theta: torch.Tensor) -> torch.Tensor:
+    """theta J with J = [[0, -1], [1, 0]]."""
+    checks.vector(theta, DOF, "xi")
+    t = theta[..., 0]
+    return _rot(torch.zeros_like(t), t)
+
+
+def vee(X: torch.Tensor) -> torch.Tensor:
+    """The skew part of X: (X10 - X01) / 2."""
+    checks.matrix(X, MATRIX_DIM, "X")
+    return (0.5 * (X[..., 1, 0] - X[..., 0, 1])).unsqueeze(-1)
+
+
+def exp_impl(theta: torch.Tensor) -> torch.Tensor:
+    checks.vector(theta, DOF, "xi")
+    t = theta[..., 0]
+    return _rot(torch.cos(t), torch.sin(t))
+
+
+def log_impl(C: torch.Tensor) -> torch.Tensor:
+    """theta = atan2(C10, C00) in (-pi, pi]."""
+    checks.matrix(C, MATRIX_DIM, "M")
+    return torch.atan2(0.5 * (C[..., 1, 0] - C[..., 0, 1]), 0.5 * (C[..., 0, 0] + C[..., 1, 1])).unsqueeze(-1)
+
+
+def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    return A @ Bm
+
+
+def inverse(C: torch.Tensor) -> torch.Tensor:
+    return C.transpose(-1, -2)
+
+
+def _ones(x: torch.Tensor, batch) -> torch.Tensor:
+    return torch.ones(*batch, 1, 1, dtype=x.dtype, device=x.device)
+
+
+def adjoint(C: torch.Tensor) -> torch.Tensor:
+    return _ones(C, C.shape[:-2])
+
+
+def ad(theta: torch.Tensor) -> torch.Tensor:
+    checks.vector(theta, DOF, "xi")
+    return torch.zeros_like(theta).unsqueeze(-1)
+
+
+def jl(theta: torch.Tensor) -> torch.Tensor:
+    checks.vector(theta, DOF, "xi")
+    return _ones(theta, theta.shape[:-1])
+
+
+jr = jl_inv = jr_inv = jl
+
+
+def jl_tmv(theta: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    return w
+
+
+jl_inv_tmv = jl_tmv
+
+
+def exp_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """hat^T(C^T G) = (C^T G)_10 - (C^T G)_01."""
+    A = C.transpose(-1, -2) @ G
+    return (A[..., 1, 0] - A[..., 0, 1]).unsqueeze(-1)
+
+
+def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """C^-T vee^T(w) = C hat(w / 2)."""
+    return C @ hat(0.5 * w)
+
+
+def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Points (..., 2) -> C p."""
+    checks.vector(p, 2, "p")
+    checks.binary(C, 2, p, 1, "g", "p")
+    return (C @ p.unsqueeze(-1)).squeeze(-1)
+
+
+def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    checks.vector(d, 2, "d")
+    checks.binary(C, 2, d, 1, "g", "d")
+    return (C @ d.unsqueeze(-1)).squeeze(-1)
+
+
+def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    t = (torch.rand(tuple(batch_shape), dtype=dtype, device=device, generator=generator) * 2 - 1) * torch.pi
+    return _rot(torch.cos(t), torch.sin(t))
+
+
+exp, log = make_exp_log(sys.modules[__name__])

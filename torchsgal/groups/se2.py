@@ -1,0 +1,30 @@
+from __future__ import annotations
+
+import torch
+
+from ..functional import se2 as _se2
+from ._components import prepare
+from .base import LieGroup
+
+
+class SE2(LieGroup):
+    """Planar rigid motions [[C, r], [0, 1]] (..., 3, 3); tangent [rho (2), theta] (..., 3)."""
+
+    dof = 3
+    matrix_dim = 3
+    point_dim = 2
+    rotation_dim = 2
+    _f = _se2
+    __slots__ = ()
+
+    @classmethod
+    def from_components(cls, rotation: torch.Tensor, position: torch.Tensor):
+        C, r = prepare(rotation=(rotation, (2, 2)), position=(position, (2,)))
+        return cls(_se2.from_components(C, r))
+
+    def position(self) -> torch.Tensor:
+        return self._matrix[..., :2, 2]
+
+    def act(self, p: torch.Tensor) -> torch.Tensor:
+        """Points (..., 2): C p + r."""
+        return self._f.act(self._matrix, p)
