@@ -39,7 +39,7 @@ def _mc_cov(x):
 
 
 @pytest.mark.parametrize("side", ["right", "left"])
-@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_sample_statistics_match_parameters(G, side):
     d = _dist(G, scale=0.3, seed=1, side=side)
     xi = d.perturbation(d.sample(N_MC, generator=torch.Generator().manual_seed(2)))
@@ -52,7 +52,7 @@ def test_sample_statistics_match_parameters(G, side):
     assert z.abs().max() < 5.0, f"covariance: max |z| = {z.abs().max():.2f}"
 
 
-@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_propagation_matches_monte_carlo(G):
     """compose (independent and correlated), inverse, between, act: small noise, within a
     few percent (relative Frobenius error of the covariance)."""
@@ -76,7 +76,7 @@ def test_propagation_matches_monte_carlo(G):
     cc = d1.compose(joint, cross_covariance=d1.covariance)
     assert rel(_mc_cov(cc.perturbation(s1 @ s2c)), cc.covariance) < 0.05
     # actions: a Gaussian on R^n
-    dim = 4 if G is ts.SGal3 else 3
+    dim, k = G.point_dim, G.rotation_dim
     x = torch.randn(dim, dtype=torch.float64, generator=gen)
     ga = d1.act(x)
     assert rel(_mc_cov(s1.act(x)), ga.covariance) < 0.05
@@ -87,13 +87,13 @@ def test_propagation_matches_monte_carlo(G):
     n = G.matrix_dim
     xh = torch.zeros(n, dtype=torch.float64)
     xh[:dim] = x
-    if n > 3:
+    if n > dim:
         xh[n - 1] = 1.0
     predicted = ga.mean + 0.5 * (d1.mean.as_matrix() @ E2 @ xh)[:dim]
     se = ys.std(0) / math.sqrt(N_MC)
     assert ((ys.mean(0) - predicted).abs() < 4 * se).all()
-    gd = d1.act_direction(x[:3])
-    assert rel(_mc_cov(s1.act_direction(x[:3])), gd.covariance) < 0.05
+    gd = d1.act_direction(x[:k])
+    assert rel(_mc_cov(s1.act_direction(x[:k])), gd.covariance) < 0.05
     if hasattr(s1, "act_velocity"):
         gv = d1.act_velocity(x[:3])
         assert rel(_mc_cov(s1.act_velocity(x[:3])), gv.covariance) < 0.05
@@ -163,7 +163,7 @@ def test_log_prob_integrates_to_one(G):
     assert abs(wrong - 1.0) > 6 * se_w, f"without |det J|: {wrong:.4f} +- {se_w:.4f}"
 
 
-@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_to_side_round_trip_and_consistency(G):
     d = _dist(G, 0.1, seed=11)
     back = d.to_side("left").to_side("right")
@@ -174,7 +174,7 @@ def test_to_side_round_trip_and_consistency(G):
     assert float((emp - left.covariance).norm() / left.covariance.norm()) < 0.05
 
 
-@pytest.mark.parametrize("G", ts.GROUPS, ids=IDS)
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_fusion_matches_brute_force_posterior(G):
     """The fused mean maximises p1 p2 (LBFGS with autograd); its covariance is the Gauss-Newton
     posterior (sum_k J_k^T W_k J_k)^-1 at that point, with the residual Jacobians J_k taken

@@ -226,7 +226,7 @@ class ConcentratedGaussian:
         y = getattr(r.mean, fn_name)(x)  # validates x
         M = r.mean.as_matrix()
         n, k = M.shape[-1], x.shape[-1]
-        pad = {"act": [1.0] if n > 3 else [], "act_velocity": [1.0], "act_direction": []}[fn_name]
+        pad = {"act": [1.0] if n > k else [], "act_velocity": [1.0], "act_direction": []}[fn_name]
         tail = torch.zeros(*x.shape[:-1], n - k, dtype=x.dtype, device=x.device)
         xh = torch.cat((x, tail), dim=-1)
         if pad:
