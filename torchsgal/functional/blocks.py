@@ -170,12 +170,6 @@ def q_block(c: list[torch.Tensor], phi: torch.Tensor, x: torch.Tensor, jac: torc
     return gamma_vec_derivative(c, 1, phi, x) + skew(gamma_vec(c, 1, phi, x)) @ jac
 
 
-def q_block_t(c: list[torch.Tensor], phi: torch.Tensor, x: torch.Tensor, w: torch.Tensor):
-    """Q(x, phi)^T w = (d(Gamma_1 x)/dphi)^T w + Gamma_1^T (w x Gamma_1 x)."""
-    g1x = gamma_vec(c, 1, phi, x)
-    return gamma_vec_derivative_t(c, 1, phi, x, w) + gamma_vec(c, 1, -phi, cross(w, g1x))
-
-
 def jac_inv_mat(phi: torch.Tensor) -> torch.Tensor:
     """D^-1(phi) = I - phi^/2 + d(theta) phi^ phi^, (3.12)."""
     theta2 = theta_squared(phi)
@@ -292,14 +286,12 @@ def rotation_skew_rows(C: torch.Tensor, p: torch.Tensor) -> list[torch.Tensor]:
 
 
 def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, tail: tuple = (), rows: int = 3):
-    """The first ``rows`` entries of M [x, *tail] for x (..., 3 or 4): points, events, velocities
+    """The first ``rows`` entries of M [x, *tail] for x (..., rows): points, events, velocities
     and directions in homogeneous coordinates (CONVENTIONS.md), with the input checks."""
-    size = 4 if rows == 4 else 3
-    checks.vector(x, size, name)
+    checks.vector(x, rows, name)
     checks.binary(M, 2, x, 1, "g", name)
-    if tail:
-        pad = torch.tensor(tail, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], len(tail))
-        x = torch.cat((x, pad), dim=-1)
+    if tail:  # constants built on x's device without a host-to-device copy
+        x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
 
 

@@ -15,6 +15,7 @@ import sys
 
 import torch
 
+from . import blocks as B
 from . import checks, numerics
 from ._autograd import make_exp_log
 
@@ -181,16 +182,13 @@ def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """Points (..., 2) -> C p + r."""
-    checks.vector(p, 2, "p")
-    checks.binary(M, 2, p, 1, "g", "p")
-    return (M[..., :2, :2] @ p.unsqueeze(-1)).squeeze(-1) + M[..., :2, 2]
+    """Points [p, 1] -> C p + r."""
+    return B.act_homogeneous(M, p, "p", (1.0,), rows=2)
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    checks.vector(d, 2, "d")
-    checks.binary(M, 2, d, 1, "g", "d")
-    return (M[..., :2, :2] @ d.unsqueeze(-1)).squeeze(-1)
+    """Directions [d, 0] -> C d."""
+    return B.act_homogeneous(M, d, "d", rows=2)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

@@ -9,6 +9,7 @@ import sys
 
 import torch
 
+from . import blocks as B
 from . import checks
 from ._autograd import make_exp_log
 
@@ -105,15 +106,11 @@ def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points (..., 2) -> C p."""
-    checks.vector(p, 2, "p")
-    checks.binary(C, 2, p, 1, "g", "p")
-    return (C @ p.unsqueeze(-1)).squeeze(-1)
+    return B.act_homogeneous(C, p, "p", rows=2)
 
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    checks.vector(d, 2, "d")
-    checks.binary(C, 2, d, 1, "g", "d")
-    return (C @ d.unsqueeze(-1)).squeeze(-1)
+    return B.act_homogeneous(C, d, "d", rows=2)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

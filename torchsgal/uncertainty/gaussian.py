@@ -226,12 +226,10 @@ class ConcentratedGaussian:
         y = getattr(r.mean, fn_name)(x)  # validates x
         M = r.mean.as_matrix()
         n, k = M.shape[-1], x.shape[-1]
-        pad = {"act": [1.0] if n > k else [], "act_velocity": [1.0], "act_direction": []}[fn_name]
-        tail = torch.zeros(*x.shape[:-1], n - k, dtype=x.dtype, device=x.device)
-        xh = torch.cat((x, tail), dim=-1)
-        if pad:
-            idx = n - 1 if fn_name == "act" else 3
-            xh = xh.index_fill(-1, torch.tensor([idx], device=x.device), 1.0)
+        # x_h = [x, pad]: points [p, (0,) 1], events [x, t, 1], velocities [u, 1, 0], directions [d, 0, ...]
+        pads = {"act": [0.0] * (n - k - 1) + [1.0] if n > k else [],
+                "act_velocity": [1.0] + [0.0] * (n - k - 1), "act_direction": [0.0] * (n - k)}[fn_name]
+        xh = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in pads], dim=-1)
         hats = self.group.hat(torch.eye(self.dof, dtype=x.dtype, device=x.device))  # (dof, n, n)
         Y = torch.einsum("jab,...b->...ja", hats, xh)
         H = torch.einsum("...ab,...jb->...aj", M, Y)[..., :k, :]
