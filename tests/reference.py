@@ -10,8 +10,10 @@ Nothing here imports torchsgal. Everything is built from the definitions in
 * ``J_l(xi) = sum_n ad(xi)^n / (n+1)!`` and ``J_r(xi) = J_l(-xi)`` by their series,
   in float64 and in high precision (mpmath).
 
-Groups: ``"SO3"``, ``"SE3"``, ``"SE23"``, ``"SGal3"``.  Tangent orderings:
-SO3 ``phi``; SE3 ``[rho, phi]``; SE23 ``[rho, nu, phi]``; SGal3 ``[rho, nu, phi, iota]``.
+Groups: ``"SO2"``, ``"SE2"``, ``"SO3"``, ``"SE3"``, ``"SE23"``, ``"SGal3"``, ``"Sim3"``.  Tangent
+orderings: SO3 ``phi``; SE3 ``[rho, phi]``; SE23 ``[rho, nu, phi]``; SGal3 ``[rho, nu, phi, iota]``;
+Sim3 ``[rho, phi, lambda]`` with hat ``[[phi^, rho], [0, -lambda]]`` (Barfoot (78)), so the
+matrix stores ``exp(-lambda)`` bottom-right.
 
 The numpy functions accept a leading batch shape (``(..., dof)`` vectors and
 ``(..., n, n)`` matrices); the matrix functions loop over the batch.  The mpmath
@@ -54,11 +56,12 @@ __all__ = [
     "blockwise_rel_err",
 ]
 
-GROUPS = ("SO2", "SE2", "SO3", "SE3", "SE23", "SGal3")
-DOF = {"SO2": 1, "SE2": 3, "SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10}
-MATRIX_SIZE = {"SO2": 2, "SE2": 3, "SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5}
+GROUPS = ("SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3")
+DOF = {"SO2": 1, "SE2": 3, "SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10, "Sim3": 7}
+MATRIX_SIZE = {"SO2": 2, "SE2": 3, "SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5, "Sim3": 4}
 # Partition of the tangent vector into blocks (rho / nu / phi / iota).
-BLOCKS = {"SO2": [1], "SE2": [2, 1], "SO3": [3], "SE3": [3, 3], "SE23": [3, 3, 3], "SGal3": [3, 3, 3, 1]}
+BLOCKS = {"SO2": [1], "SE2": [2, 1], "SO3": [3], "SE3": [3, 3], "SE23": [3, 3, 3], "SGal3": [3, 3, 3, 1],
+          "Sim3": [3, 3, 1]}
 # Where the rotation part phi sits in the tangent vector.
 ROT_SLICE = {
     "SO2": slice(0, 1),
@@ -67,6 +70,7 @@ ROT_SLICE = {
     "SE3": slice(3, 6),
     "SE23": slice(6, 9),
     "SGal3": slice(6, 9),
+    "Sim3": slice(3, 6),
 }
 
 
@@ -135,6 +139,11 @@ def hat(group, xi):
         if group == "SE2":
             X[..., 0:2, 2] = xi[..., 0:2]
         return X
+    if group == "Sim3":
+        X[..., 0:3, 0:3] = skew(xi[..., 3:6])
+        X[..., 0:3, 3] = xi[..., 0:3]
+        X[..., 3, 3] = -xi[..., 6]
+        return X
     rho, nu, phi, iota = _split(group, xi)
     X[..., 0:3, 0:3] = skew(phi)
     if group == "SE3":
@@ -163,6 +172,8 @@ def vee(group, X):
         return phi
     if group == "SE3":
         return np.concatenate([X[..., 0:3, 3], phi], axis=-1)
+    if group == "Sim3":
+        return np.concatenate([X[..., 0:3, 3], phi, -X[..., 3, 3][..., None]], axis=-1)
     parts = [X[..., 0:3, 4], X[..., 0:3, 3], phi]
     if group == "SGal3":
         parts.append(X[..., 3, 4][..., None])
@@ -328,6 +339,11 @@ def _mp_hat(group, x):
         return X
     if group == "SO3":
         p = x[0:3]
+    elif group == "Sim3":
+        p = x[3:6]
+        for i in range(3):
+            X[i][3] = x[i]
+        X[3][3] = -x[6]
     elif group == "SE3":
         p = x[3:6]
         for i in range(3):
@@ -355,6 +371,8 @@ def _mp_vee(group, X):
         return phi
     if group == "SE3":
         return [X[0][3], X[1][3], X[2][3]] + phi
+    if group == "Sim3":
+        return [X[0][3], X[1][3], X[2][3]] + phi + [-X[3][3]]
     out = [X[0][4], X[1][4], X[2][4], X[0][3], X[1][3], X[2][3]] + phi
     if group == "SGal3":
         out.append(X[3][4])

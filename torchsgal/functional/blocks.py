@@ -307,3 +307,40 @@ def random_rotation(batch_shape, dtype, device, generator=None) -> torch.Tensor:
         ),
         dim=-1,
     ).unflatten(-1, (3, 3))
+
+
+# ------------------------------------------------------------- general phi^ polynomials
+def poly_vec(m0, m1, m2, phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """(m0 I + m1 phi^ + m2 phi^ phi^) x (3, ...) for scalars (...) (Sim(3)'s M(phi, lambda))."""
+    px = cross(phi, x)
+    return m0 * x + m1 * px + m2 * cross(phi, px)
+
+
+def poly_mat(m0, m1, m2, phi: torch.Tensor) -> torch.Tensor:
+    """m0 I + m1 phi^ + m2 phi^ phi^ (..., 3, 3), written as (m0 - theta^2 m2) I + m1 phi^ + m2 phi phi^T."""
+    return sym_skew_matrix(m0 - theta_squared(phi) * m2, m1, m2, phi)
+
+
+def poly_vec_derivative(m1, m2, e1, e2, phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """d/dphi [(m1 phi^ + m2 phi^ phi^) x] (..., 3, 3) for scalar functions m_k(theta) with
+    e_k = m_k'(theta)/theta (the same algebra as ``gamma_vec_derivative``)."""
+    px = cross(phi, x)
+    ppx = cross(phi, px)
+    diag = (m2 * dot(phi, x))[..., None, None] * eye(3, phi)
+    return (
+        outer(e1 * px + e2 * ppx - 2.0 * m2 * x, phi)
+        + m2[..., None, None] * outer(phi, x)
+        + diag
+        - m1[..., None, None] * skew(x)
+    )
+
+
+def poly_inverse(m0, m1, m2, theta2):
+    """Coefficients (n0, n1, n2) of (m0 I + m1 phi^ + m2 phi^ phi^)^-1 = n0 I + n1 phi^ + n2 phi^ phi^.
+
+    On the eigenvalues 0, +-i theta of phi^: n0 = 1/m0 and, with mu = (m0 - m2 theta^2) + i m1 theta,
+    n1 = -m1/|mu|^2, n2 = (m1^2 - m0 m2 + m2^2 theta^2)/(m0 |mu|^2) (no division by theta).
+    """
+    re = m0 - m2 * theta2
+    mu2 = re * re + m1 * m1 * theta2
+    return 1.0 / m0, -m1 / mu2, (m1 * m1 - m0 * m2 + m2 * m2 * theta2) / (m0 * mu2)

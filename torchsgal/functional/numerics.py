@@ -109,3 +109,111 @@ def jinv_coefficient(theta2: torch.Tensor) -> torch.Tensor:
     return select(mask, taylor, closed)
 # sin(theta) below which SO(3) log uses theta/sin(theta) = 1 + theta^2/6 + 7 theta^4/360.
 LOG_SIN_TAYLOR = 1e-4
+
+
+# ----------------------------------------------------------------------------- Sim(3)
+# The Sim(3) scalar families (Barfoot, "Integral Forms", Sec. 4.4, (90); docs/sim3_jacobian.md).
+# Moments of the scale weight w(a) = exp(-(1 - a) lambda) on [0, 1]:
+#     q_j(x) = phi_(j+1)(x) = sum_n x^n / (n + j + 1)! = int_0^1 a^j/j! e^((1-a) x) da,  x = -lambda,
+#     q_(j-1) = 1/j! + x q_j  (downward, stable for |x| < j),
+#     q_j = (q_(j-1) - 1/j!) / x  (upward, stable for |x| > j), q_0 = expm1(x)/x.
+# Index j takes the upward value where |x| > j + SCALE_UPWARD_MARGIN, else the downward one.
+SCALE_UPWARD_MARGIN = 0.5
+# The downward recursion starts this many orders above the highest moment requested, from
+# Taylor series of SCALE_TAYLOR_TERMS terms.
+SCALE_EXTRA_ORDERS = 6
+SCALE_TAYLOR_TERMS = 16
+# theta below which the Sim(3) coefficients use their theta^2 series (with the moments above);
+# above it, the complex closed forms in w = lambda + i theta (|w| >= theta >= 1).
+SIM3_SERIES_THRESHOLD = 1.0
+SIM3_SERIES_TERMS = 11
+
+
+def scale_moments(x: torch.Tensor, order: int) -> list[torch.Tensor]:
+    """[q_0, ..., q_order](x) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)), each
+    accurate to a few ulp for every finite x whose exp(x) does not overflow.
+
+    Both recursions run on safe inputs; each order takes the stable one (see the constants
+    above), merged with exact 0/1 masks, so values and gradients stay finite.
+    """
+    top = order + SCALE_EXTRA_ORDERS
+    ax = x.abs()
+    # Downward from Taylor series at the top; inputs with |x| >= top never use it.
+    x_dn = torch.where(ax < top, x, torch.zeros_like(x))
+    down: list[torch.Tensor | None] = [None] * (top + 1)
+    for j in (top, top - 1):
+        out = torch.full_like(x, 1.0 / math.factorial(j + SCALE_TAYLOR_TERMS))
+        for n in range(SCALE_TAYLOR_TERMS - 1, -1, -1):
+            out = out * x_dn + 1.0 / math.factorial(j + 1 + n)
+        down[j] = out
+    for j in range(top - 1, 0, -1):
+        down[j - 1] = 1.0 / math.factorial(j) + x_dn * down[j]
+    # Upward from expm1(x)/x; inputs with |x| <= SCALE_UPWARD_MARGIN never use it.
+    use_up0 = ax > SCALE_UPWARD_MARGIN
+    x_up = torch.where(use_up0, x, torch.ones_like(x))
+    up = [torch.expm1(x_up) / x_up]
+    for j in range(1, order + 1):
+        up.append((up[-1] - 1.0 / math.factorial(j)) / x_up)
+    out = []
+    for j in range(order + 1):
+        mask = (ax > j + SCALE_UPWARD_MARGIN).to(x.dtype)
+        out.append(select(mask, up[j], down[j]))
+    return out
+
+
+def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The scalar coefficients of the Sim(3) translation block and its derivatives.
+
+    M(phi, lambda) = int_0^1 e^(-(1-a) lambda) C(a phi) da = m0 I + m1 phi^ + m2 phi^ phi^,
+    e_k = (dm_k/dtheta)/theta, p_k = dm_k/dlambda (docs/sim3_jacobian.md).  Inputs broadcast.
+    Returns a dict with keys m0, m1, m2, e1, e2, p0, p1, p2.
+    """
+    theta2, lam = torch.broadcast_tensors(theta2, lam)
+    K = SIM3_SERIES_TERMS
+    q = scale_moments(-lam, 2 * K + 2)
+    m0 = q[0]
+    p0 = q[1] - q[0]
+
+    small = theta2 < SIM3_SERIES_THRESHOLD**2
+    mask = small.to(theta2.dtype)
+    # Small angle: series in u = -theta^2 with the moments as coefficients (Horner).
+    u = -(theta2 * mask)
+
+    def horner(coef):
+        acc = coef(K - 1)
+        for k in range(K - 2, -1, -1):
+            acc = acc * u + coef(k)
+        return acc
+
+    s_m1 = horner(lambda k: q[2 * k + 1])
+    s_m2 = horner(lambda k: q[2 * k + 2])
+    s_e1 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 3])
+    s_e2 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 4])
+    s_p1 = -horner(lambda k: q[2 * k + 1] - (2 * k + 2) * q[2 * k + 2])
+    s_p2 = -horner(lambda k: q[2 * k + 2] - (2 * k + 3) * q[2 * k + 3])
+
+    # Large angle: K = int e^(-(1-a) lam) e^(i a theta) da = (e^(i theta) - e^(-lam)) / w,
+    # K1 = int a (...) da = (e^(i theta) - K) / w, w = lam + i theta, |w| >= theta >= 1.
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    cos, sin = torch.cos(t), torch.sin(t)
+    w2 = lam * lam + t2
+    a_re = cos - torch.exp(-lam)
+    k_re = (a_re * lam + sin * t) / w2
+    k_im = (sin * lam - a_re * t) / w2
+    b_re, b_im = cos - k_re, sin - k_im
+    k1_re = (b_re * lam + b_im * t) / w2
+    k1_im = (b_im * lam - b_re * t) / w2
+    l_m1 = k_im / t
+    l_m2 = (m0 - k_re) / t2
+    l_e1 = (k1_re - l_m1) / t2
+    l_e2 = (k1_im / t - 2.0 * l_m2) / t2
+    l_p1 = (k1_im - k_im) / t
+    l_p2 = (p0 + k_re - k1_re) / t2
+
+    return {
+        "m0": m0, "p0": p0,
+        "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2),
+        "e1": select(mask, s_e1, l_e1), "e2": select(mask, s_e2, l_e2),
+        "p1": select(mask, s_p1, l_p1), "p2": select(mask, s_p2, l_p2),
+    }

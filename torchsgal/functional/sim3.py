@@ -1,0 +1,227 @@
+"""Sim(3) on plain tensors: (..., 4, 4) [[C, r], [0, 1/s]], tangent (..., 7) [rho, phi, lambda].
+
+Convention (Barfoot, "Integral Forms", Sec. 4.4, (78)-(80); the same as GTSAM's Similarity3):
+
+    hat(xi) = [[phi^, rho], [0, -lambda]],   exp(hat(xi)) = [[C(phi), M(phi, lambda) rho], [0, 1/s]],
+
+with scale s = exp(lambda) (the matrix stores 1/s = exp(-lambda)) and
+
+    M(phi, lambda) = int_0^1 exp(-(1 - a) lambda) C(a phi) da = m0 I + m1 phi^ + m2 phi^ phi^   (90).
+
+A point p acts as the homogeneous [p, 1]:  p -> s (C p + r)  (= (C p + r) / M[3, 3]).  A
+direction [d, 0] is rotated only: d -> C d.
+
+    Ad = [[s C, s r^ C, -s r], [0, C, 0], [0, 0, 1]],   ad(xi) = [[phi^ + lambda I, rho^, -rho],
+                                                                   [0, phi^, 0], [0, 0, 0]]  (80),
+    J_l = int_0^1 Ad(exp(a xi)) da = [[s M, s (d(M rho)/dphi + r^ Gamma_1), s dM/dlambda rho],
+                                      [0, Gamma_1, 0], [0, 0, 1]]
+
+(docs/sim3_jacobian.md derives J_l from exp(J_l d) exp(xi) = exp(xi + d); the scalar
+coefficients m_k, their theta- and lambda-derivatives come from ``numerics.sim3_coefficients``).
+"""
+from __future__ import annotations
+
+import sys
+
+import torch
+
+from . import blocks as B
+from . import checks, numerics
+from ._autograd import make_exp_log
+
+NAME = "Sim3"
+DOF = 7
+MATRIX_DIM = 4
+SIZES = [3, 3, 1]
+PHI = slice(3, 6)
+SCALE = slice(6, 7)  # lambda, the log of the scale
+
+
+def _split(xi: torch.Tensor):
+    X = B.first(xi)
+    return X[0:3], X[3:6], X[6]
+
+
+def components(M: torch.Tensor):
+    """(C, r, s) in the public layout; s = 1 / M[3, 3]."""
+    return M[..., :3, :3], M[..., :3, 3], 1.0 / M[..., 3, 3]
+
+
+def _matrix(rot, r, inv_s) -> torch.Tensor:
+    z = torch.zeros_like(inv_s)
+    return B.homogeneous(rot, [r], [[z, z, z, inv_s]])
+
+
+def from_components(C, r, s) -> torch.Tensor:
+    return _matrix(B.entries(C), B.first(r), 1.0 / s)
+
+
+def hat(xi: torch.Tensor) -> torch.Tensor:
+    checks.vector(xi, DOF, "xi")
+    rho, (x, y, z), lam = _split(xi)
+    o = torch.zeros_like(x)
+    return B.homogeneous((o, -z, y, z, o, -x, -y, x, o), [rho], [[o, o, o, -lam]])
+
+
+def vee(X: torch.Tensor) -> torch.Tensor:
+    checks.matrix(X, MATRIX_DIM, "X")
+    return B.last(B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]), -X[..., 3, 3][None])
+
+
+def _coefficients(phi: torch.Tensor, lam: torch.Tensor):
+    return numerics.sim3_coefficients(B.theta_squared(phi), lam)
+
+
+def exp_impl(xi: torch.Tensor) -> torch.Tensor:
+    checks.vector(xi, DOF, "xi")
+    rho, phi, lam = _split(xi)
+    c = B.coefficients(phi, 2)
+    m = _coefficients(phi, lam)
+    r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
+    return _matrix(B.gamma_entries(c, 0, phi), r, torch.exp(-lam))
+
+
+def _m_inverse_vec(m, phi, x):
+    """M(phi, lambda)^-1 x."""
+    return B.poly_vec(*B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi)), phi, x)
+
+
+def log_impl(M: torch.Tensor) -> torch.Tensor:
+    checks.matrix(M, MATRIX_DIM, "M")
+    phi = B.rotation_log(M[..., :3, :3])
+    lam = -torch.log(M[..., 3, 3])
+    rho = _m_inverse_vec(_coefficients(phi, lam), phi, B.first(M[..., :3, 3]))
+    return B.last(rho, phi, lam[None])
+
+
+def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    return A @ Bm
+
+
+def inverse(M: torch.Tensor) -> torch.Tensor:
+    """[[C^T, -s C^T r], [0, s]]."""
+    Ct = B.transpose_entries(M[..., :3, :3])
+    s = 1.0 / M[..., 3, 3]
+    return _matrix(Ct, -s * B.matvec_entries(Ct, B.first(M[..., :3, 3])), s)
+
+
+def adjoint(M: torch.Tensor) -> torch.Tensor:
+    """[[s C, s r^ C, -s r], [0, C, 0], [0, 0, 1]]  (80)."""
+    C, r, s = components(M)
+    sC = s[..., None, None] * C
+    col = -(s[..., None] * r).unsqueeze(-1)
+    one = torch.ones_like(s)[..., None, None]
+    return B.block_matrix(
+        [[sC, B.skew(B.first(r)) @ sC, col], [None, C, None], [None, None, one]],
+        SIZES, M.shape[:-2], M,
+    )
+
+
+def ad(xi: torch.Tensor) -> torch.Tensor:
+    """[[phi^ + lambda I, rho^, -rho], [0, phi^, 0], [0, 0, 0]]."""
+    checks.vector(xi, DOF, "xi")
+    rho, phi, lam = _split(xi)
+    P = B.skew(phi)
+    A = P + lam[..., None, None] * B.eye(3, xi)
+    return B.block_matrix(
+        [[A, B.skew(rho), -B.column(rho)], [None, P, None], [None, None, None]],
+        SIZES, xi.shape[:-1], xi,
+    )
+
+
+def _jl_parts(xi: torch.Tensor):
+    """(m, s, Gamma_1, r, coupling, lam_col): J_l = [[s M, s coupling, s lam_col], [0, Gamma_1, 0],
+    [0, 0, 1]] with coupling = d(M rho)/dphi + r^ Gamma_1 and lam_col = dM/dlambda rho."""
+    rho, phi, lam = _split(xi)
+    c = B.coefficients(phi, 3)
+    m = _coefficients(phi, lam)
+    G1 = B.gamma_mat(c, 1, phi)
+    r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
+    coupling = B.poly_vec_derivative(m["m1"], m["m2"], m["e1"], m["e2"], phi, rho) + B.skew(r) @ G1
+    lam_col = B.poly_vec(m["p0"], m["p1"], m["p2"], phi, rho)
+    return m, torch.exp(lam), phi, G1, coupling, lam_col
+
+
+def jl(xi: torch.Tensor) -> torch.Tensor:
+    checks.vector(xi, DOF, "xi")
+    m, s, phi, G1, coupling, lam_col = _jl_parts(xi)
+    s2 = s[..., None, None]
+    one = torch.ones_like(s)[..., None, None]
+    Mmat = B.poly_mat(m["m0"], m["m1"], m["m2"], phi)
+    return B.block_matrix(
+        [[s2 * Mmat, s2 * coupling, s2 * B.column(lam_col)], [None, G1, None], [None, None, one]],
+        SIZES, xi.shape[:-1], xi,
+    )
+
+
+def jl_inv(xi: torch.Tensor) -> torch.Tensor:
+    """[[M^-1 / s, -M^-1 coupling Gamma_1^-1, -M^-1 lam_col], [0, Gamma_1^-1, 0], [0, 0, 1]]."""
+    checks.vector(xi, DOF, "xi")
+    m, s, phi, _, coupling, lam_col = _jl_parts(xi)
+    n0, n1, n2 = B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi))
+    Minv = B.poly_mat(n0, n1, n2, phi)
+    G1inv = B.jac_inv_mat(phi)
+    one = torch.ones_like(s)[..., None, None]
+    return B.block_matrix(
+        [
+            [Minv / s[..., None, None], -Minv @ coupling @ G1inv, -B.column(B.poly_vec(n0, n1, n2, phi, lam_col))],
+            [None, G1inv, None],
+            [None, None, one],
+        ],
+        SIZES, xi.shape[:-1], xi,
+    )
+
+
+def jr(xi: torch.Tensor) -> torch.Tensor:
+    return jl(-xi)
+
+
+def jr_inv(xi: torch.Tensor) -> torch.Tensor:
+    return jl_inv(-xi)
+
+
+def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """J_l(xi)^T w."""
+    return (jl(xi).transpose(-1, -2) @ w.unsqueeze(-1)).squeeze(-1)
+
+
+def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """J_l(xi)^-T g."""
+    return (jl_inv(xi).transpose(-1, -2) @ g.unsqueeze(-1)).squeeze(-1)
+
+
+def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+    """hat^T(M^T G) (exp's backward): (A[:3, 3], vee of the rotation block's skew part times 2,
+    -A[3, 3]) with A = M^T G."""
+    A = M.transpose(-1, -2) @ G
+    rot = torch.stack(
+        (A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]), dim=-1
+    )
+    return torch.cat((A[..., :3, 3], rot, -A[..., 3:, 3]), dim=-1)
+
+
+def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """M^-T vee^T(w) = M^-T hat(w_rho, w_phi / 2, w_lambda)."""
+    half = torch.cat((w[..., :3], 0.5 * w[..., 3:6], w[..., 6:]), dim=-1)
+    return inverse(M).transpose(-1, -2) @ hat(half)
+
+
+def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Points [p, 1] -> s (C p + r) = (C p + r) / M[3, 3]."""
+    return B.act_homogeneous(M, p, "p", (1.0,)) / M[..., 3, 3].unsqueeze(-1)
+
+
+def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Directions [d, 0] -> C d (rotated, not scaled)."""
+    return B.act_homogeneous(M, d, "d")
+
+
+def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    """Uniform rotation, standard normal translation, log-scale lambda standard normal."""
+    C = B.random_rotation(batch_shape, dtype, device, generator)
+    r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)
+    lam = torch.randn(*batch_shape, dtype=dtype, device=device, generator=generator)
+    return _matrix(B.entries(C), r, torch.exp(-lam))
+
+
+exp, log = make_exp_log(sys.modules[__name__])

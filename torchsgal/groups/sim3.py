@@ -1,0 +1,46 @@
+from __future__ import annotations
+
+import torch
+
+from ..functional import sim3 as _sim3
+from ._components import prepare
+from .base import LieGroup
+
+
+class Sim3(LieGroup):
+    """Similarity transformations [[C, r], [0, 1/s]] (..., 4, 4), scale s = exp(lambda) > 0;
+    tangent [rho, phi, lambda] (..., 7) (Barfoot's (78); GTSAM's Similarity3 matrix).
+
+    ``act`` maps points p -> s (C p + r); ``act_direction`` rotates directions, d -> C d."""
+
+    dof = 7
+    matrix_dim = 4
+    point_dim = 3  # size of the vectors act() takes
+    log_scale_slice = _sim3.SCALE  # lambda: the matrix stores exp(-lambda)
+    _f = _sim3
+    __slots__ = ()
+
+    @classmethod
+    def from_components(cls, rotation: torch.Tensor, position: torch.Tensor, scale: torch.Tensor):
+        """rotation (..., 3, 3), position r (..., 3), scale s (...) (positive; not checked)."""
+        C, r, s = prepare(rotation=(rotation, (3, 3)), position=(position, (3,)), scale=(scale, ()))
+        return cls(_sim3.from_components(C, r, s))
+
+    @classmethod
+    def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
+        super()._check_membership(M, tol)
+        if M.numel() and bool((M[..., 3, 3] <= 0).any()):
+            worst = float(M[..., 3, 3].min())
+            raise ValueError(f"matrix is not in Sim3: M[3, 3] = 1/s must be positive, got {worst:.3g}")
+
+    def position(self) -> torch.Tensor:
+        """r (..., 3), the translation column of the matrix."""
+        return self._matrix[..., :3, 3]
+
+    def scale(self) -> torch.Tensor:
+        """s = exp(lambda) (...) = 1 / M[3, 3]."""
+        return 1.0 / self._matrix[..., 3, 3]
+
+    def act(self, p: torch.Tensor) -> torch.Tensor:
+        """Points (..., 3): s (C p + r)."""
+        return self._f.act(self._matrix, p)
