@@ -1,0 +1,123 @@
+"""Conversions to and from GTSAM and pypose, and reference runs of their preintegrators.
+
+The peers are optional dependencies: they are imported inside the functions.  These helpers
+loop over windows (GTSAM has no batching); they serve comparisons, not speed.
+
+Frames: GTSAM's ``NavState(R, p, v)`` and pypose's ``{'rot', 'vel', 'pos'}`` hold the same
+rotation, velocity and position as a Galilean frame (R, v, p, t); the time is dropped going
+out and given separately coming back.  An increment Delta converts to GTSAM's
+``deltaXij()`` (Delta R, Delta p, Delta v), which has the same meaning.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .. import SGal3
+from .preintegration import STANDARD_GRAVITY
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().cpu().to(torch.float64).numpy()
+
+
+def to_gtsam_navstate(frames: SGal3) -> list:
+    """A flat list of ``gtsam.NavState`` (row-major over the batch; time dropped)."""
+    import gtsam
+
+    R = _np(frames.rotation()).reshape(-1, 3, 3)
+    v = _np(frames.velocity()).reshape(-1, 3)
+    p = _np(frames.position()).reshape(-1, 3)
+    return [gtsam.NavState(gtsam.Rot3(R[i]), p[i], v[i]) for i in range(R.shape[0])]
+
+
+def from_gtsam_navstate(states, time: torch.Tensor) -> SGal3:
+    """SGal3 of batch ``time.shape`` from a flat list of NavState (row-major) and the times."""
+    n = time.numel()
+    if len(states) != n:
+        raise ValueError(f"states must have {n} entries (time.numel()), got {len(states)}")
+    R = np.stack([s.attitude().matrix() for s in states]) if n else np.zeros((0, 3, 3))
+    v = np.stack([np.asarray(s.velocity()) for s in states]) if n else np.zeros((0, 3))
+    p = np.stack([np.asarray(s.position()) for s in states]) if n else np.zeros((0, 3))
+    kw = dict(dtype=time.dtype, device=time.device)
+    shape = tuple(time.shape)
+    return SGal3.from_components(
+        rotation=torch.tensor(R, **kw).reshape(*shape, 3, 3),
+        velocity=torch.tensor(v, **kw).reshape(*shape, 3),
+        position=torch.tensor(p, **kw).reshape(*shape, 3),
+        time=time,
+    )
+
+
+def to_pypose_state(frames: SGal3) -> dict:
+    """pypose's ``init_state`` for ``IMUPreintegrator``: rot (pp.SO3, (..., 1, 4)), vel, pos
+    (..., 1, 3), in the frames' dtype."""
+    import pypose as pp
+
+    return {
+        "rot": pp.mat2SO3(frames.rotation().unsqueeze(-3), check=False),
+        "vel": frames.velocity().unsqueeze(-2),
+        "pos": frames.position().unsqueeze(-2),
+    }
+
+
+def gtsam_params(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY,
+                 gyro_noise_density: float = 1e-3, acc_noise_density: float = 1e-2,
+                 integration_sigma: float = 0.0):
+    """``PreintegrationParams`` (MakeSharedU for z-up, MakeSharedD for NED) with isotropic
+    continuous-time noise densities."""
+    import gtsam
+
+    if frame not in ("z_up", "ned"):
+        raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    params = (gtsam.PreintegrationParams.MakeSharedU if frame == "z_up"
+              else gtsam.PreintegrationParams.MakeSharedD)(magnitude)
+    params.setGyroscopeCovariance(gyro_noise_density**2 * np.eye(3))
+    params.setAccelerometerCovariance(acc_noise_density**2 * np.eye(3))
+    params.setIntegrationCovariance(integration_sigma**2 * np.eye(3))
+    return params
+
+
+def gtsam_preintegrate(gyro, acc, dt, params, gyro_bias=None, acc_bias=None) -> list:
+    """One ``PreintegratedImuMeasurements`` per window (a loop over windows and samples).
+
+    gyro, acc (..., K, 3), dt (..., K); biases (3,) or None (one bias for all windows)."""
+    import gtsam
+
+    g, a, h = _np(gyro).reshape(-1, gyro.shape[-2], 3), _np(acc).reshape(-1, gyro.shape[-2], 3), _np(dt)
+    h = np.broadcast_to(h, gyro.shape[:-1]).reshape(-1, gyro.shape[-2])
+    bias = gtsam.imuBias.ConstantBias(
+        np.zeros(3) if acc_bias is None else _np(acc_bias).reshape(3),
+        np.zeros(3) if gyro_bias is None else _np(gyro_bias).reshape(3),
+    )
+    pims = []
+    for w in range(g.shape[0]):
+        pim = gtsam.PreintegratedImuMeasurements(params, bias)
+        for k in range(g.shape[1]):
+            pim.integrateMeasurement(a[w, k], g[w, k], float(h[w, k]))
+        pims.append(pim)
+    return pims
+
+
+def gtsam_predict(pims: list, start: SGal3) -> SGal3:
+    """GTSAM's prediction from ``start`` (batch (B,) or broadcast), with each window's bias."""
+    starts = to_gtsam_navstate(start.expand(len(pims)) if start.batch_shape != (len(pims),) else start)
+    out = [pim.predict(s, pim.biasHat()) for pim, s in zip(pims, starts)]
+    T = torch.tensor([pim.deltaTij() for pim in pims], dtype=start.dtype, device=start.device)
+    return from_gtsam_navstate(out, start.time().expand(len(pims)) + T)
+
+
+def pypose_predict(gyro, acc, dt, start: SGal3, frame: str = "z_up",
+                   magnitude: float = STANDARD_GRAVITY) -> SGal3:
+    """pypose ``IMUPreintegrator`` (batched over windows, reset each call) from ``start`` (B,):
+    the state at the end of each window.  gyro, acc (B, K, 3), dt (B, K)."""
+    import pypose as pp
+
+    if frame not in ("z_up", "ned"):
+        raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    gravity = magnitude if frame == "z_up" else -magnitude  # pypose subtracts R^T [0, 0, gravity]
+    integrator = pp.module.IMUPreintegrator(gravity=gravity, prop_cov=False, reset=True).to(gyro.dtype)
+    out = integrator(dt.unsqueeze(-1), gyro, acc, init_state=to_pypose_state(start))
+    R = out["rot"][:, -1].matrix()
+    return SGal3.from_components(rotation=R, velocity=out["vel"][:, -1], position=out["pos"][:, -1],
+                                 time=start.time() + dt.sum(-1))
