@@ -220,7 +220,7 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     """Uniform rotation, standard normal translation, log-scale lambda standard normal."""
     C = B.random_rotation(batch_shape, dtype, device, generator)
     r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)
-    lam = torch.randn(*batch_shape, dtype=dtype, device=device, generator=generator)
+    lam = torch.randn(tuple(batch_shape), dtype=dtype, device=device, generator=generator)
     return _matrix(B.entries(C), r, torch.exp(-lam))
 
 
