@@ -1,0 +1,347 @@
+"""Galilean IMU preintegration (torchsgal.imu): each result against something independent.
+
+- increments against scipy's expm of the algebra element (constant inputs, any dt);
+- the parallel scan against a sequential product;
+- prediction against analytic motions and a scipy ODE solution of mahony (29);
+- covariance against the sequential recursion of the brief on a subdivided stream, and
+  against a Monte Carlo of noisy streams (NEES inside the chi-square 95% band);
+- bias Jacobians against central finite differences of full re-integration.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.stats
+from scipy.integrate import solve_ivp
+import torch
+
+from torchsgal import SGal3
+from torchsgal.imu import (
+    earth_rate_vector,
+    gravity_vector,
+    increment_tangents,
+    predict,
+    preintegrate,
+    suffix_products,
+    window_product,
+)
+from torchsgal.imu.preintegration import noise_map
+from torchsgal.imu.trajectory import SinusoidalTrajectory
+
+F64 = torch.float64
+
+
+def algebra(omega, a, kappa=1.0):
+    """mahony (10)/(15)-(16): U(omega, a) + kappa N as a 5 x 5 numpy matrix."""
+    w = np.asarray(omega, float)
+    U = np.zeros((5, 5))
+    U[:3, :3] = [[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]
+    U[:3, 3] = a
+    U[3, 4] = kappa
+    return U
+
+
+def random_stream(B, K, seed, dt_range=(0.002, 0.012), rate=1.0, acc=3.0, dtype=F64):
+    g = torch.Generator().manual_seed(seed)
+    gyro = rate * torch.randn(B, K, 3, generator=g, dtype=dtype)
+    f = acc * torch.randn(B, K, 3, generator=g, dtype=dtype)
+    dt = dt_range[0] + (dt_range[1] - dt_range[0]) * torch.rand(B, K, generator=g, dtype=dtype)
+    return gyro, f, dt
+
+
+# ------------------------------------------------------------------------- increments
+@pytest.mark.parametrize("dt", [1e-3, 0.05, 0.5, 2.0])
+def test_constant_inputs_match_expm_for_any_dt(dt):
+    omegas = [[0.0, 0.0, 0.0], [1e-9, 0.0, 0.0], [0.3, -0.2, 0.5], [0.0, 0.0, 3.0], [2.0, 1.0, -1.5]]
+    accs = [[0.1, 0.2, 9.8], [1.0, -2.0, 0.5], [0.0, 0.0, 0.0], [3.0, 0.0, -1.0], [-0.5, 0.7, 4.0]]
+    K = 7
+    gyro = torch.tensor(omegas, dtype=F64)[:, None, :].expand(-1, K, 3)
+    acc = torch.tensor(accs, dtype=F64)[:, None, :].expand(-1, K, 3)
+    h = torch.full((len(omegas), K), dt, dtype=F64)
+    for cov in (False, True):
+        delta = preintegrate(gyro, acc, h, covariance=cov, bias_jacobian=cov).delta.as_matrix().numpy()
+        for i, (w, a) in enumerate(zip(omegas, accs)):
+            ref = scipy.linalg.expm(algebra(w, a) * K * dt)
+            scale = max(1.0, np.abs(ref).max())
+            np.testing.assert_allclose(delta[i], ref, rtol=0, atol=1e-10 * scale)
+
+
+def test_constant_inputs_closed_form_and_varying_dt():
+    # R = Exp(w T), v = Gamma_1(w T) a T, p = Gamma_2(w T) a T^2 (barfoot N(phi) = Gamma_2),
+    # written with Rodrigues coefficients; the samples' dt vary, only their sum matters.
+    w, a = np.array([0.4, -1.1, 0.7]), np.array([1.5, 0.3, -9.0])
+    h = torch.tensor([0.01, 0.3, 0.002, 0.15, 0.07], dtype=F64)
+    T = float(h.sum())
+    K = h.numel()
+    delta = preintegrate(torch.tensor(w).expand(K, 3), torch.tensor(a).expand(K, 3), h).delta
+    th = np.linalg.norm(w * T)
+    P = algebra(w * T, [0, 0, 0], 0.0)[:3, :3]
+    c = [(1 - math.cos(th)) / th**2, (th - math.sin(th)) / th**3, (th**2 / 2 - 1 + math.cos(th)) / th**4]
+    R = np.eye(3) + math.sin(th) / th * P + c[0] * P @ P
+    G1 = np.eye(3) + c[0] * P + c[1] * P @ P
+    G2 = 0.5 * np.eye(3) + c[1] * P + c[2] * P @ P
+    np.testing.assert_allclose(delta.rotation().numpy(), R, atol=1e-12)
+    np.testing.assert_allclose(delta.velocity().numpy(), G1 @ a * T, atol=1e-12)
+    np.testing.assert_allclose(delta.position().numpy(), G2 @ a * T**2, atol=1e-12)
+    assert abs(float(delta.time()) - T) < 1e-15
+
+
+def test_float32_increment():
+    gyro, acc, dt = random_stream(4, 50, seed=3)
+    ref = preintegrate(gyro, acc, dt).delta.as_matrix()
+    r32 = preintegrate(gyro.float(), acc.float(), dt.float(), gyro_noise_density=1e-3, acc_noise_density=1e-2)
+    assert torch.allclose(r32.delta.as_matrix().double(), ref, atol=2e-5 * ref.abs().max())
+    assert torch.isfinite(r32.covariance).all() and torch.isfinite(r32.bias_jacobian).all()
+
+
+@pytest.mark.parametrize("K", [1, 2, 3, 8, 13, 64])
+def test_scan_matches_sequential_product(K):
+    g = torch.Generator().manual_seed(K)
+    E = torch.linalg.matrix_exp(0.4 * torch.randn(3, K, 5, 5, generator=g, dtype=F64))
+    seq, ref = torch.eye(5, dtype=F64).expand(3, 5, 5), []
+    for k in reversed(range(K)):
+        seq = E[:, k] @ seq
+        ref.append(seq)
+    ref = torch.stack(ref[::-1], dim=1)
+    assert torch.allclose(suffix_products(E), ref, rtol=0, atol=1e-13 * ref.abs().max())
+    assert torch.allclose(window_product(E), ref[:, 0], rtol=0, atol=1e-13 * ref.abs().max())
+
+
+def test_tangents_are_mahony_inputs():
+    # exp(xi_k) = expm((U(omega - b_g, f - b_a) + N) dt): the ordering conversion at the boundary.
+    gyro, acc, dt = random_stream(1, 4, seed=5)
+    bg, ba = torch.tensor([0.01, -0.02, 0.03], dtype=F64), torch.tensor([0.1, 0.0, -0.2], dtype=F64)
+    xi = increment_tangents(gyro, acc, dt, bg, ba)
+    for k in range(4):
+        U = algebra((gyro[0, k] - bg).numpy(), (acc[0, k] - ba).numpy()) * float(dt[0, k])
+        np.testing.assert_allclose(SGal3.exp(xi[0, k]).as_matrix().numpy(), scipy.linalg.expm(U), atol=1e-14)
+
+
+def test_gradients_through_preintegration():
+    gyro, acc, dt = random_stream(2, 5, seed=9)
+    gyro.requires_grad_(True)
+    acc.requires_grad_(True)
+    fn = lambda g, a: preintegrate(g, a, dt, covariance=False, bias_jacobian=False).delta.as_matrix()
+    assert torch.autograd.gradcheck(fn, (gyro, acc))
+
+
+def test_noise_map_is_adjoint_columns():
+    F = SGal3.random((4, 3), dtype=F64, generator=torch.Generator().manual_seed(2))
+    assert torch.allclose(noise_map(F), F.adjoint()[..., 3:10], atol=1e-13)
+
+
+# -------------------------------------------------------------------------- prediction
+@pytest.mark.parametrize("frame", ["z_up", "ned"])
+def test_predict_free_fall_and_rest(frame):
+    g = gravity_vector(frame, 9.81, dtype=F64)
+    gen = torch.Generator().manual_seed(0)
+    X0 = SGal3.random((3,), dtype=F64, generator=gen)
+    K, h = 20, 0.05
+    T = K * h
+    dt = torch.full((3, K), h, dtype=F64)
+    # free fall: no specific force, the body spins freely
+    gyro = torch.tensor([0.3, -0.1, 0.2], dtype=F64).expand(3, K, 3)
+    X1 = predict(X0, preintegrate(gyro, torch.zeros(3, K, 3, dtype=F64), dt).delta, g)
+    assert torch.allclose(X1.velocity(), X0.velocity() + g * T, atol=1e-12)
+    assert torch.allclose(X1.position(), X0.position() + X0.velocity() * T + 0.5 * g * T**2, atol=1e-12)
+    assert torch.allclose(X1.time(), X0.time() + T, atol=1e-14)
+    # unaccelerated: the accelerometer reads -R^T g, no rotation: inertial motion p0 + v0 T
+    f = -(X0.rotation().transpose(-1, -2) @ g)[:, None, :].expand(3, K, 3)
+    X2 = predict(X0, preintegrate(torch.zeros(3, K, 3, dtype=F64), f, dt).delta, g)
+    assert torch.allclose(X2.as_matrix()[..., :3, :4], X0.as_matrix()[..., :3, :4], atol=1e-12)
+    assert torch.allclose(X2.position(), X0.position() + X0.velocity() * T, atol=1e-12)
+
+
+def _ode_reference(X0, gyro, acc, dt, g, Omega):
+    """scipy DOP853 on mahony (29) (sign of g_A e3 corrected; see docs/imu.md) with Xdot = ...,
+    sample by sample (inputs constant on each interval)."""
+    W = algebra(Omega, [0, 0, 0], 0.0)[:3, :3]
+    y = np.concatenate([X0.rotation().numpy().ravel(), X0.velocity().numpy(), X0.position().numpy(),
+                        [float(X0.time())]])
+
+    def rhs(_, y, w, f):
+        R, v, p = y[:9].reshape(3, 3), y[9:12], y[12:15]
+        dR = -W @ R + R @ algebra(w, [0, 0, 0], 0.0)[:3, :3]
+        return np.concatenate([dR.ravel(), -np.cross(Omega, v) + g + R @ f, -np.cross(Omega, p) + v, [1.0]])
+
+    for k in range(gyro.shape[0]):
+        sol = solve_ivp(rhs, (0.0, float(dt[k])), y, method="DOP853", rtol=1e-12, atol=1e-13,
+                        args=(gyro[k].numpy(), acc[k].numpy()))
+        y = sol.y[:, -1]
+    return y
+
+
+def test_predict_with_earth_rotation_matches_ode():
+    # An exaggerated Earth rate (0.2 rad/s) so that every term of (29) matters.
+    g = gravity_vector("ned", 9.8, dtype=F64)
+    Omega = torch.tensor([0.12, -0.05, -0.15], dtype=F64)
+    gyro, acc, dt = random_stream(2, 12, seed=11, dt_range=(0.02, 0.1))
+    X0 = SGal3.random((2,), dtype=F64, generator=torch.Generator().manual_seed(4))
+    X1 = predict(X0, preintegrate(gyro, acc, dt).delta, g, Omega)
+    for b in range(2):
+        y = _ode_reference(X0[b], gyro[b], acc[b], dt[b], g.numpy(), Omega.numpy())
+        got = np.concatenate([X1[b].rotation().numpy().ravel(), X1[b].velocity().numpy(),
+                              X1[b].position().numpy(), [float(X1[b].time())]])
+        np.testing.assert_allclose(got, y, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("frame", ["z_up", "ned"])
+def test_point_fixed_on_rotating_earth_stays_fixed(frame):
+    # A body fixed in the Earth frame at p: inertial velocity v = Omega x p, gyro R^T Omega,
+    # specific force R^T (Omega x (Omega x p) - g).  (29) with the corrected sign keeps it there.
+    g = gravity_vector(frame, 9.8, dtype=F64)
+    Omega = earth_rate_vector(math.radians(48.0), frame, dtype=F64)
+    R = SGal3.random((), dtype=F64, generator=torch.Generator().manual_seed(1)).rotation()
+    p = torch.tensor([3e3, -2e3, 50.0], dtype=F64)
+    v = torch.linalg.cross(Omega, p)
+    X0 = SGal3.from_components(rotation=R, velocity=v, position=p, time=torch.tensor(7.0, dtype=F64))
+    K, h = 100, 0.1
+    gyro = (R.T @ Omega).expand(K, 3)
+    acc = (R.T @ (torch.linalg.cross(Omega, v) - g)).expand(K, 3)
+    X1 = predict(X0, preintegrate(gyro, acc, torch.full((K,), h, dtype=F64)).delta, g, Omega)
+    assert torch.allclose(X1.rotation(), R, atol=1e-12)
+    assert torch.allclose(X1.velocity(), v, atol=1e-9)
+    assert torch.allclose(X1.position(), p, atol=1e-8)
+    # the printed sign (- g_A e3 in (29b)/(31)) would make it fall at 2 g: 0.5 * 2 * 9.8 * 100 m
+    assert abs(float(X1.time()) - 17.0) < 1e-12
+
+
+def test_trajectory_imu_matches_finite_differences():
+    traj = SinusoidalTrajectory()
+    g = gravity_vector("z_up", dtype=F64)
+    t = torch.tensor([0.3, 1.9], dtype=F64)
+    gyro, acc = traj.imu(t, g)
+    e = 1e-5
+    Xm, X, Xp = traj.state(t - e), traj.state(t), traj.state(t + e)
+    Rdot = (Xp.rotation() - Xm.rotation()) / (2 * e)
+    W = X.rotation().transpose(-1, -2) @ Rdot
+    omega = torch.stack((W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]), dim=-1)
+    assert torch.allclose(omega, gyro, atol=1e-8)
+    a_world = (Xp.velocity() - Xm.velocity()) / (2 * e)
+    assert torch.allclose((X.rotation() @ acc.unsqueeze(-1)).squeeze(-1) + g, a_world, atol=1e-7)
+    assert torch.allclose((Xp.position() - Xm.position()) / (2 * e), X.velocity(), atol=1e-8)
+
+
+def test_sinusoid_midpoint_samples_converge_at_second_order():
+    traj = SinusoidalTrajectory()
+    g = gravity_vector("z_up", dtype=F64)
+    t0 = torch.tensor([0.0, 0.7, 2.3], dtype=F64)
+    X0, X1 = traj.state(t0), traj.state(t0 + 1.0)
+    errs = []
+    for h in (0.02, 0.01, 0.005):
+        gyro, acc, dt = traj.stream(t0, 1.0, h, g)
+        Xp = preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False).predict(X0, g)
+        errs.append(float((Xp.position() - X1.position()).norm(dim=-1).max()))
+    assert errs[0] / errs[1] > 3.5 and errs[1] / errs[2] > 3.5, errs
+
+
+# -------------------------------------------------------------------------- covariance
+def _sequential_covariance(gyro, acc, dt, s_g, s_a, s_t):
+    """The brief's recursion, Sigma <- Ad(E^-1) Sigma Ad(E^-1)^T + J_r Q J_r^T (noise held
+    constant over each sample), with the core's adjoint and J_r."""
+    xi = increment_tangents(gyro, acc, dt)
+    B, K = xi.shape[:2]
+    Sig = torch.zeros(B, 10, 10, dtype=F64)
+    q = torch.tensor([s_a**2] * 3 + [s_g**2] * 3 + [s_t**2], dtype=F64)
+    for k in range(K):
+        A = SGal3.exp(xi[:, k]).inverse().adjoint()
+        Bk = SGal3.jr(xi[:, k])[..., 3:10]
+        Sig = A @ Sig @ A.transpose(-1, -2) + Bk @ torch.diag_embed(q * dt[:, k, None]) @ Bk.transpose(-1, -2)
+    return Sig
+
+
+def test_covariance_matches_sequential_recursion_on_a_fine_stream():
+    # Both discretise the same continuous-time integral: the recursion on a stream subdivided
+    # m-fold (the same piecewise-constant inputs) converges to it as O((dt/m)^2).
+    gyro, acc, dt = random_stream(2, 12, seed=21, dt_range=(0.01, 0.03), rate=2.0, acc=5.0)
+    dens = dict(gyro_noise_density=2e-3, acc_noise_density=3e-2, time_noise_density=1e-3)
+    cov = preintegrate(gyro, acc, dt, **dens).covariance
+    refs = []
+    for m in (4, 8):
+        fine = [x.repeat_interleave(m, dim=1) for x in (gyro, acc)] + [dt.repeat_interleave(m, dim=1) / m]
+        refs.append(_sequential_covariance(*fine, 2e-3, 3e-2, 1e-3))
+    refs.append((4 * refs[1] - refs[0]) / 3)  # Richardson: the O((dt/m)^2) term removed
+    sd = refs[1].diagonal(dim1=-2, dim2=-1).sqrt()
+    diffs = [float(((cov - ref).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()) for ref in refs]
+    assert diffs[0] / diffs[1] > 3.5, diffs  # the reference converges at second order ...
+    assert diffs[2] < 0.02 * diffs[1], diffs  # ... to ours
+
+
+@pytest.mark.parametrize("time_noise", [0.0, 2e-3])
+def test_nees_monte_carlo_in_chi2_band(time_noise):
+    # N noisy streams around one nominal stream; each sample's noise is held over its interval
+    # (variance density^2 / dt) as a real IMU delivers it.
+    N, K = 400, 100
+    gyro, acc, dt = random_stream(1, K, seed=7, dt_range=(0.005, 0.015), rate=1.5, acc=4.0)
+    s_g, s_a = 0.02, 0.2
+    r = preintegrate(gyro, acc, dt, gyro_noise_density=s_g, acc_noise_density=s_a, time_noise_density=time_noise)
+    gen = torch.Generator().manual_seed(123)
+    root_dt = dt.sqrt().unsqueeze(-1)
+    n_g = s_g / root_dt * torch.randn(N, K, 3, generator=gen, dtype=F64)
+    n_a = s_a / root_dt * torch.randn(N, K, 3, generator=gen, dtype=F64)
+    xi = increment_tangents(gyro - n_g, acc - n_a, dt.expand(N, K))
+    n_t = time_noise * dt.sqrt() * torch.randn(N, K, generator=gen, dtype=F64)
+    xi = torch.cat((xi[..., :9], xi[..., 9:] + n_t.unsqueeze(-1)), dim=-1)
+    true = SGal3(window_product(SGal3.exp(xi).as_matrix()))
+    eps = true.rminus(r.delta.expand(N))  # log(delta^-1 true): the right perturbation
+    dims = 10 if time_noise > 0 else 9
+    cov = r.covariance[0, :dims, :dims]
+    nees = (eps[:, :dims] * torch.linalg.solve(cov, eps[:, :dims].T).T).sum(-1)
+    lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], N * dims) / N
+    assert lo < float(nees.mean()) < hi, (float(nees.mean()), lo, hi)
+
+
+# ------------------------------------------------------------------------------ biases
+def test_bias_jacobian_matches_finite_differences():
+    gyro, acc, dt = random_stream(3, 60, seed=31, dt_range=(0.004, 0.012), rate=1.5, acc=4.0)
+    b0g = torch.tensor([0.02, -0.01, 0.03], dtype=F64)
+    b0a = torch.tensor([0.1, -0.2, 0.05], dtype=F64)
+    r = preintegrate(gyro, acc, dt, b0g, b0a)
+    e = 1e-6
+    cols = []
+    for j in range(6):
+        d = torch.zeros(6, dtype=F64)
+        d[j] = e
+        plus = preintegrate(gyro, acc, dt, b0g + d[:3], b0a + d[3:], covariance=False, bias_jacobian=False).delta
+        minus = preintegrate(gyro, acc, dt, b0g - d[:3], b0a - d[3:], covariance=False, bias_jacobian=False).delta
+        cols.append((plus.rminus(r.delta) - minus.rminus(r.delta)) / (2 * e))
+    fd = torch.stack(cols, dim=-1)
+    assert torch.allclose(r.bias_jacobian, fd, rtol=0, atol=1e-8 * fd.abs().max()), \
+        float((r.bias_jacobian - fd).abs().max())
+
+
+def test_bias_correction_is_first_order():
+    gyro, acc, dt = random_stream(2, 100, seed=41)
+    r = preintegrate(gyro, acc, dt)
+    db_g, db_a = torch.tensor([0.02, -0.03, 0.01], dtype=F64), torch.tensor([0.2, 0.1, -0.3], dtype=F64)
+    errs, raw = [], []
+    for s in (1.0, 0.5, 0.25):
+        exact = preintegrate(gyro, acc, dt, s * db_g, s * db_a, covariance=False, bias_jacobian=False).delta
+        errs.append(float(r.corrected(s * db_g, s * db_a).rminus(exact).norm(dim=-1).max()))
+        raw.append(float(r.delta.rminus(exact).norm(dim=-1).max()))
+    assert errs[0] / errs[1] > 3.5 and errs[1] / errs[2] > 3.5, errs  # O(db^2)
+    assert all(e < 0.05 * w for e, w in zip(errs, raw)), (errs, raw)
+
+
+# ------------------------------------------------------------------------------ errors
+def test_bad_input_raises_with_names():
+    gyro, acc, dt = random_stream(2, 5, seed=0)
+    with pytest.raises(ValueError, match="acc must have the shape of gyro"):
+        preintegrate(gyro, acc[:, :4], dt)
+    with pytest.raises(ValueError, match=r"dt must have shape \(\.\.\., K\) with K = 5"):
+        preintegrate(gyro, acc, dt[:, :3])
+    with pytest.raises(ValueError, match=r"gyro must have shape \(\.\.\., 3\)"):
+        preintegrate(gyro[..., :2], acc, dt)
+    with pytest.raises(TypeError, match="dt must have a floating dtype"):
+        preintegrate(gyro, acc, torch.ones(2, 5, dtype=torch.int64))
+    with pytest.raises(TypeError, match="acc has dtype torch.float32"):
+        preintegrate(gyro, acc.float(), dt)
+    with pytest.raises(ValueError, match=r"gyro_bias must have shape \(\.\.\., 3\)"):
+        preintegrate(gyro, acc, dt, gyro_bias=torch.zeros(2, dtype=F64))
+    with pytest.raises(ValueError, match="frame must be 'z_up' or 'ned'"):
+        gravity_vector("enu")
+    with pytest.raises(ValueError, match="bias_jacobian is None"):
+        preintegrate(gyro, acc, dt, bias_jacobian=False).corrected(torch.zeros(3, dtype=F64))
