@@ -92,3 +92,107 @@ def test_log_relative_error_against_mpmath(G):
         worst = max(worst, err)
         assert err <= 1e-12, f"{G.__name__}.log at angle {angle:g}: relative error {err:.3g}"
     print(f"{G.__name__}.log: worst blockwise relative error {worst:.2e}")
+
+
+# ------------------------------------------------------------------------------ Sim(3)
+# Rotation angles x log-scales lambda (docs/sim3_jacobian.md): the small-scale branch (lambda
+# down to 0), both signs, |lambda| up to 5, and the joint small-angle & small-scale corner.
+SIM3_LAMBDAS = [0.0, 1e-12, 1e-8, 1e-5, -1e-3, 0.5, -1.0, 2.0, -3.0, 5.0, -5.0]
+
+
+def _sim3_xi(i, j, angle, lam, scale=1.0):
+    xi = sample_tangent(ts.Sim3, (), torch.float64, seed=1000 + 31 * i + j, scale=scale, angles=[angle])
+    xi[6] = lam
+    return xi.numpy()
+
+
+@pytest.mark.parametrize("fn", ["jl", "jl_inv"])
+def test_sim3_jacobian_over_angles_and_scales(fn):
+    """J_l and its inverse against the 50-digit series sum ad^n/(n+1)! (and its mpmath
+    inverse), block by block, over the whole grid of angles and scales."""
+    worst = (0.0, None, None)
+    for i, angle in enumerate(ANGLES):
+        for j, lam in enumerate(SIM3_LAMBDAS):
+            xi = _sim3_xi(i, j, angle, lam)
+            e = ref.blockwise_rel_err(_ours(ts.Sim3, fn, xi), _reference(ts.Sim3, fn, xi), "Sim3")
+            assert e.zero_abs == 0.0, f"angle {angle:g}, lambda {lam:g}: non-zero entry in a zero block"
+            assert e.rel <= 1e-12, f"Sim3.{fn} at angle {angle:g}, lambda {lam:g}: {e.rel:.3g}"
+            worst = max(worst, (e.rel, angle, lam), key=lambda t: t[0])
+    print(f"Sim3.{fn}: worst blockwise relative error {worst[0]:.2e} (angle {worst[1]:g}, lambda {worst[2]:g})")
+
+
+@pytest.mark.parametrize("fn", ["jr", "jr_inv"])
+@pytest.mark.parametrize("scale", [1e-3, 30.0])
+def test_sim3_jacobian_with_small_and_large_translation(fn, scale):
+    """Relative accuracy does not depend on the size of rho (right Jacobians, a sub-grid)."""
+    for i, angle in enumerate([1e-7, 1e-4, 1e-3, 0.9, 1.1, 2.5]):
+        for j, lam in enumerate([1e-9, -1e-4, 0.7, -4.0]):
+            xi = _sim3_xi(i, j, angle, lam, scale=scale)
+            e = ref.blockwise_rel_err(_ours(ts.Sim3, fn, xi), _reference(ts.Sim3, fn, xi), "Sim3")
+            assert e.rel <= 1e-12 and e.zero_abs == 0.0, f"angle {angle}, lambda {lam}: {e.rel:.3g}"
+
+
+def test_sim3_exp_and_log_over_angles_and_scales():
+    """exp against the 50-digit matrix series; log of that correctly rounded matrix back to
+    xi.  The matrix stores exp(-lambda), which fixes lambda only to about eps/2 absolute, so
+    lambda's error is taken relative to max(|lambda|, 1); rho and phi blockwise."""
+    worst_exp = worst_log = 0.0
+    for i, angle in enumerate(ANGLES):
+        for j, lam in enumerate(SIM3_LAMBDAS):
+            xi = _sim3_xi(i, j, angle, lam)
+            M = ref.exp_mp("Sim3", xi)
+            e_exp = ref.rel_err(_ours(ts.Sim3, "exp", xi), M)
+            back = ts.Sim3.from_matrix(torch.tensor(M)).log().numpy()
+            e_log = max(
+                ref.blockwise_rel_err(back[:6], xi[:6], [3, 3], kind="vector").rel,
+                abs(back[6] - xi[6]) / max(abs(xi[6]), 1.0),
+            )
+            assert e_exp <= 1e-12, f"exp at angle {angle:g}, lambda {lam:g}: {e_exp:.3g}"
+            assert e_log <= 1e-12, f"log at angle {angle:g}, lambda {lam:g}: {e_log:.3g}"
+            worst_exp, worst_log = max(worst_exp, e_exp), max(worst_log, e_log)
+    print(f"Sim3.exp: worst relative error {worst_exp:.2e}; Sim3.log: {worst_log:.2e}")
+
+
+def _moment_mp(x: float, j: int):
+    """q_j(x) = sum_n x^n/(n+j+1)! summed in mpmath until the terms fall below 1e-45."""
+    import mpmath
+
+    x = mpmath.mpf(x)
+    total, term, n = mpmath.mpf(0), 1 / mpmath.factorial(j + 1), 0
+    while abs(term) > mpmath.mpf(10) ** -45 or n <= abs(x):
+        total, n = total + term, n + 1
+        term = term * x / (n + j + 1)
+    return total
+
+
+def test_sim3_scale_moments_against_mpmath():
+    """q_j(x) (numerics.scale_moments, the orders Sim(3) uses) across both recursions and their
+    switches at |x| = j + 1/2: every order to 1e-15 relative for |x| <= 6 (|lambda| <= 6), the
+    leading orders to 1e-14 up to |x| = 40."""
+    import mpmath
+
+    from torchsgal.functional import numerics
+
+    order = 2 * numerics.SIM3_SERIES_TERMS + 2
+    xs = [0.0, 1e-12, -1e-6, 0.3, -0.49, 0.51, -1.2, 2.49, -2.51, 4.0, -5.0, 5.6, -5.6, 7.5, -9.0,
+          -12.5, 20.0, -20.0, 40.0, -40.0]
+    got = numerics.scale_moments(torch.tensor(xs, dtype=torch.float64), order)
+    with mpmath.workdps(40):
+        for i, x in enumerate(xs):
+            for j in range(order + 1 if abs(x) <= 6 else 9):
+                want = float(_moment_mp(x, j))
+                err = abs(float(got[j][i]) - want) / abs(want)
+                assert err <= (1e-15 if abs(x) <= 6 else 1e-14), f"q_{j}({x}): relative error {err:.3g}"
+
+
+@pytest.mark.parametrize("lam", [1e-9, 0.5, -2.5, 5.0])
+def test_sim3_gradients_across_scales(lam):
+    """gradcheck of exp, log(exp) and J_l at a scale-branch switch (|lambda| = j + 1/2), near 0
+    and at the ends of the range, at a small and a large angle."""
+    f = ts.functional.sim3
+    for angle in (1e-5, 2.0):
+        xi = sample_tangent(ts.Sim3, (1,), torch.float64, seed=77, angles=[angle])
+        xi[:, 6] = lam
+        xi.requires_grad_(True)
+        for fn in (f.exp, lambda x: f.log(f.exp(x)), f.jl):
+            assert torch.autograd.gradcheck(fn, (xi,), eps=1e-6, atol=1e-6, rtol=1e-5)

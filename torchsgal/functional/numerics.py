@@ -121,8 +121,8 @@ LOG_SIN_TAYLOR = 1e-4
 SCALE_UPWARD_MARGIN = 0.5
 # The downward recursion starts this many orders above the highest moment requested, from
 # Taylor series of SCALE_TAYLOR_TERMS terms.
-SCALE_EXTRA_ORDERS = 6
-SCALE_TAYLOR_TERMS = 16
+SCALE_EXTRA_ORDERS = 8
+SCALE_TAYLOR_TERMS = 20
 # theta below which the Sim(3) coefficients use their theta^2 series (with the moments above);
 # above it, the complex closed forms in w = lambda + i theta (|w| >= theta >= 1).
 SIM3_SERIES_THRESHOLD = 1.0
