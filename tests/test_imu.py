@@ -130,7 +130,10 @@ def test_gradients_through_preintegration():
 
 def test_noise_map_is_adjoint_columns():
     F = SGal3.random((4, 3), dtype=F64, generator=torch.Generator().manual_seed(2))
-    assert torch.allclose(noise_map(F), F.adjoint()[..., 3:10], atol=1e-13)
+    ref = F.adjoint()[..., 3:10].movedim(-3, -1)  # nodes along the last axis
+    assert torch.allclose(noise_map(F), ref, atol=1e-13)
+    scale = torch.rand(4, 3, dtype=F64)
+    assert torch.allclose(noise_map(F, scale), ref * scale[:, None, None, :], atol=1e-13)
 
 
 # -------------------------------------------------------------------------- prediction
@@ -241,11 +244,12 @@ def test_sinusoid_midpoint_samples_converge_at_second_order():
 # -------------------------------------------------------------------------- covariance
 def _sequential_covariance(gyro, acc, dt, s_g, s_a, s_t):
     """The brief's recursion, Sigma <- Ad(E^-1) Sigma Ad(E^-1)^T + J_r Q J_r^T (noise held
-    constant over each sample), with the core's adjoint and J_r."""
+    constant over each sample), with the core's adjoint and J_r; s_g, s_a per axis (3,)."""
     xi = increment_tangents(gyro, acc, dt)
     B, K = xi.shape[:2]
     Sig = torch.zeros(B, 10, 10, dtype=F64)
-    q = torch.tensor([s_a**2] * 3 + [s_g**2] * 3 + [s_t**2], dtype=F64)
+    q = torch.cat((torch.as_tensor(s_a, dtype=F64).expand(3), torch.as_tensor(s_g, dtype=F64).expand(3),
+                   torch.tensor([s_t], dtype=F64))) ** 2
     for k in range(K):
         A = SGal3.exp(xi[:, k]).inverse().adjoint()
         Bk = SGal3.jr(xi[:, k])[..., 3:10]
@@ -253,21 +257,35 @@ def _sequential_covariance(gyro, acc, dt, s_g, s_a, s_t):
     return Sig
 
 
-def test_covariance_matches_sequential_recursion_on_a_fine_stream():
+@pytest.mark.parametrize("per_axis", [False, True])
+def test_covariance_matches_sequential_recursion_on_a_fine_stream(per_axis):
     # Both discretise the same continuous-time integral: the recursion on a stream subdivided
-    # m-fold (the same piecewise-constant inputs) converges to it as O((dt/m)^2).
-    gyro, acc, dt = random_stream(2, 12, seed=21, dt_range=(0.01, 0.03), rate=2.0, acc=5.0)
-    dens = dict(gyro_noise_density=2e-3, acc_noise_density=3e-2, time_noise_density=1e-3)
-    cov = preintegrate(gyro, acc, dt, **dens).covariance
+    # m-fold (the same piecewise-constant inputs) converges to it as O((dt/m)^2).  Isotropic
+    # densities (floats) take the closed-form path, per-axis ones the general path.
+    gyro, acc, dt = random_stream(1, 8, seed=21, dt_range=(0.01, 0.03), rate=2.0, acc=5.0)
+    if per_axis:
+        s_g, s_a = torch.tensor([2e-3, 1e-3, 4e-3], dtype=F64), torch.tensor([3e-2, 5e-2, 1e-2], dtype=F64)
+    else:
+        s_g, s_a = 2e-3, 3e-2
+    cov = preintegrate(gyro, acc, dt, gyro_noise_density=s_g, acc_noise_density=s_a,
+                       time_noise_density=1e-3).covariance
     refs = []
     for m in (4, 8):
         fine = [x.repeat_interleave(m, dim=1) for x in (gyro, acc)] + [dt.repeat_interleave(m, dim=1) / m]
-        refs.append(_sequential_covariance(*fine, 2e-3, 3e-2, 1e-3))
+        refs.append(_sequential_covariance(*fine, s_g, s_a, 1e-3))
     refs.append((4 * refs[1] - refs[0]) / 3)  # Richardson: the O((dt/m)^2) term removed
     sd = refs[1].diagonal(dim1=-2, dim2=-1).sqrt()
     diffs = [float(((cov - ref).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()) for ref in refs]
     assert diffs[0] / diffs[1] > 3.5, diffs  # the reference converges at second order ...
     assert diffs[2] < 0.02 * diffs[1], diffs  # ... to ours
+
+
+def test_isotropic_and_per_axis_paths_agree():
+    gyro, acc, dt = random_stream(3, 30, seed=22)
+    iso = preintegrate(gyro, acc, dt, gyro_noise_density=1e-3, acc_noise_density=2e-2, time_noise_density=1e-4)
+    axes = preintegrate(gyro, acc, dt, gyro_noise_density=torch.full((3,), 1e-3, dtype=F64),
+                        acc_noise_density=torch.full((3,), 2e-2, dtype=F64), time_noise_density=1e-4)
+    assert torch.allclose(iso.covariance, axes.covariance, rtol=0, atol=1e-14 * axes.covariance.abs().max())
 
 
 @pytest.mark.parametrize("time_noise", [0.0, 2e-3])

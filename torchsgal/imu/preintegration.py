@@ -114,19 +114,113 @@ def suffix_products(E: torch.Tensor) -> torch.Tensor:
     return torch.cat((inter, S_pairs[..., n_odd:, :, :]), dim=-3) if K % 2 else inter
 
 
-def noise_map(node: SGal3) -> torch.Tensor:
-    """Ad(node) G (..., 10, 7): how tangent noise [nu, phi, iota] entering at ``node`` moves the
-    right perturbation (the nu, phi and iota columns of kelly-giamou (3.16),
-    Ad = [[C, -tau C, (r - tau v)^ C, v], [0, C, v^ C, 0], [0, 0, C, 0], [0, 0, 0, 1]])."""
-    C, v, r, tau = node.rotation(), node.velocity(), node.position(), node.time()
-    lever = r - tau.unsqueeze(-1) * v
-    zero = torch.zeros_like(C)
-    col_nu = torch.cat((-tau[..., None, None] * C, C, zero, zero[..., :1, :]), dim=-2)
-    cross = lambda a: torch.linalg.cross(a.unsqueeze(-1).expand_as(C), C, dim=-2)  # a^ C
-    col_phi = torch.cat((cross(lever), cross(v), C, zero[..., :1, :]), dim=-2)
-    one = torch.ones_like(tau)[..., None, None]
-    col_iota = torch.cat((v.unsqueeze(-1), zero[..., :, :1], zero[..., :, :1], one), dim=-2)
-    return torch.cat((col_nu, col_phi, col_iota), dim=-1)
+def _cross_columns(a: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """a^ X for a (..., 3, N) and X (..., 3, m, N) (node axis last)."""
+    a0, a1, a2 = (a[..., i, None, :] for i in range(3))
+    x0, x1, x2 = X[..., 0, :, :], X[..., 1, :, :], X[..., 2, :, :]
+    return torch.stack((a1 * x2 - a2 * x1, a2 * x0 - a0 * x2, a0 * x1 - a1 * x0), dim=-3)
+
+
+def noise_map(nodes: SGal3, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """Ad(F) G for the N nodes of the last batch axis, laid out (..., 10, 7, N) (node axis last),
+    optionally times ``scale`` (..., N): how tangent noise [nu, phi, iota] entering at a node
+    moves the right perturbation.  These are the nu, phi and iota columns of kelly-giamou
+    (3.16), Ad = [[C, -tau C, (r - tau v)^ C, v], [0, C, v^ C, 0], [0, 0, C, 0], [0, 0, 0, 1]]."""
+    C = nodes.rotation().movedim(-3, -1)  # (..., 3, 3, N)
+    v = nodes.velocity().movedim(-2, -1)  # (..., 3, N)
+    r = nodes.position().movedim(-2, -1)
+    tau = nodes.time().unsqueeze(-2)  # (..., 1, N)
+    if scale is not None:
+        C = C * scale[..., None, None, :]
+        one = scale.unsqueeze(-2)
+    else:
+        one = torch.ones_like(tau)
+    W = C.new_zeros(*C.shape[:-3], 10, 7, C.shape[-1])
+    W[..., 0:3, 0:3, :] = -tau.unsqueeze(-2) * C
+    W[..., 3:6, 0:3, :] = C
+    W[..., 0:3, 3:6, :] = _cross_columns(r - tau * v, C)
+    W[..., 3:6, 3:6, :] = _cross_columns(v, C)
+    W[..., 6:9, 3:6, :] = C
+    W[..., 0:3, 6, :] = v * one
+    W[..., 9, 6, :] = one[..., 0, :]
+    return W
+
+
+def _time_density(x, like: torch.Tensor, name: str = "time_noise_density") -> torch.Tensor:
+    """A scalar density (float or 0-d tensor) as a 0-d tensor like ``like``."""
+    t = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+    if t.dim() != 0:
+        raise ValueError(f"{name} must be a float or a 0-d tensor, got shape {tuple(t.shape)}")
+    return t
+
+
+_LEVI_CIVITA = torch.zeros(3, 3, 3, dtype=torch.float64)
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _LEVI_CIVITA[_i, _j, _k], _LEVI_CIVITA[_i, _k, _j] = 1.0, -1.0
+
+
+def _node_moments(suffixes: SGal3, weights: torch.Tensor) -> dict:
+    """Weighted sums over the nodes F = X^-1 (X the suffix products) that the covariance and
+    the bias Jacobian need.  With X = (C, v, r, tau): F has rotation C^T, velocity
+    vh = -C^T v, lever (r - tau v of F) lh = -C^T r and time -tau."""
+    C = suffixes.rotation()
+    vr = C.transpose(-1, -2) @ torch.stack((suffixes.velocity(), suffixes.position()), dim=-1)
+    vh, lh, th = -vr[..., 0], -vr[..., 1], -suffixes.time()
+    w = weights.unsqueeze(-1)
+    coef = torch.cat((w, w * th.unsqueeze(-1), w * lh, w * vh), dim=-1)  # (..., N, 8)
+    Ch = C.transpose(-1, -2)
+    Y = coef.transpose(-1, -2) @ Ch.reshape(*Ch.shape[:-2], 9)  # (..., 8, 9): sums of coef * C^T
+    lv = torch.cat((lh, vh), dim=-1)
+    outer = (lv * w).transpose(-1, -2) @ lv  # (..., 6, 6): sums of w [l; v][l; v]^T
+    return {"w": weights.sum(-1), "wt": (weights * th).sum(-1), "wtt": (weights * th * th).sum(-1),
+            "wl": (w * lh).sum(-2), "wv": (w * vh).sum(-2), "outer": outer, "Y": Y}
+
+
+def _skew(a: torch.Tensor) -> torch.Tensor:
+    o = torch.zeros_like(a[..., 0])
+    x, y, z = a[..., 0], a[..., 1], a[..., 2]
+    return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).reshape(*a.shape[:-1], 3, 3)
+
+
+def _isotropic_covariance(m: dict, s_a: torch.Tensor, s_g: torch.Tensor, s_t: torch.Tensor) -> torch.Tensor:
+    """sum_j w_j Ad(F_j) G Q_c G^T Ad(F_j)^T for Q_c = diag(s_a^2 I, s_g^2 I, s_t^2) in closed form:
+    with C C^T = I and a^ b^ = b a^T - (a.b) I only sums of scalars, vectors and outer products
+    of the nodes' lever l and velocity v remain."""
+    w = m["w"]
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    I = lambda x: x[..., None, None] * eye  # noqa: E731
+    ll, lv, vv = m["outer"][..., :3, :3], m["outer"][..., :3, 3:], m["outer"][..., 3:, 3:]
+    tr = lambda M: M.diagonal(dim1=-2, dim2=-1).sum(-1)  # noqa: E731
+    a2, g2, t2 = s_a**2, s_g**2, s_t**2
+    rr = a2 * I(m["wtt"]) + g2 * (I(tr(ll)) - ll) + t2 * vv
+    rn = -a2 * I(m["wt"]) + g2 * (I(tr(lv)) - lv.transpose(-1, -2))
+    rp = g2 * _skew(m["wl"])
+    nn = a2 * I(w) + g2 * (I(tr(vv)) - vv)
+    npb = g2 * _skew(m["wv"])
+    pp = g2 * I(w)
+    ri = (t2 * m["wv"]).unsqueeze(-1)
+    z3 = torch.zeros_like(rr)
+    z1 = torch.zeros_like(ri)
+    rows = [
+        torch.cat((rr, rn, rp, ri), -1),
+        torch.cat((rn.transpose(-1, -2), nn, npb, z1), -1),
+        torch.cat((rp.transpose(-1, -2), npb.transpose(-1, -2), pp, z1), -1),
+        torch.cat((ri.transpose(-1, -2), z1.transpose(-1, -2), z1.transpose(-1, -2), (t2 * w)[..., None, None]), -1),
+    ]
+    return torch.cat(rows, dim=-2)
+
+
+def _bias_jacobian(m: dict) -> torch.Tensor:
+    """-sum_j w_j Ad(F_j) G over the gyro (phi) and accelerometer (nu) columns."""
+    Y = m["Y"].reshape(*m["Y"].shape[:-2], 8, 3, 3)
+    sC, stC = Y[..., 0, :, :], Y[..., 1, :, :]
+    eps = _LEVI_CIVITA.to(dtype=Y.dtype, device=Y.device)
+    slC = torch.einsum("ikl,...klm->...im", eps, Y[..., 2:5, :, :])  # sum w l^ C
+    svC = torch.einsum("ikl,...klm->...im", eps, Y[..., 5:8, :, :])  # sum w v^ C
+    z = torch.zeros_like(sC)
+    gyro_cols = torch.cat((slC, svC, sC, z[..., :1, :]), dim=-2)
+    acc_cols = torch.cat((-stC, sC, z, z[..., :1, :]), dim=-2)
+    return -torch.cat((gyro_cols, acc_cols), dim=-1)
 
 
 # -------------------------------------------------------------------------- results
@@ -217,35 +311,36 @@ def preintegrate(
         return Preintegration(SGal3(window_product(E)), None, None, b_g, b_a)
 
     H = SGal3.exp(0.5 * xi).as_matrix()  # half-sample factors: E_k = H_k H_k exactly
-    E = H @ H
-    S = suffix_products(E)  # S_k = E_k ... E_{K-1}
+    S = suffix_products(H @ H)  # S_k = E_k ... E_{K-1}
     delta = S[..., 0, :, :]
     # Simpson nodes of the noise integral in the right perturbation: at the sample instants
     # Delta^-1 Delta(t_k) = S_k^-1 (S_K = I) and at the midpoints (H_k S_{k+1})^-1.
     eye = torch.eye(5, dtype=xi.dtype, device=xi.device).expand_as(S[..., :1, :, :])
     S_after = torch.cat((S[..., 1:, :, :], eye), dim=-3)  # S_{k+1}
-    nodes = SGal3(torch.cat((S, eye, H @ S_after), dim=-3)).inverse()  # (..., 2K + 1)
-    P = noise_map(nodes)  # (..., 2K + 1, 10, 7)
+    suffixes = SGal3(torch.cat((S, eye, H @ S_after), dim=-3))  # (..., 2K + 1)
     h = dt.expand(*batch, K)
     zero = torch.zeros_like(h[..., :1])
     weights = torch.cat((torch.cat((h, zero), -1) + torch.cat((zero, h), -1), 4.0 * h), -1) / 6.0
 
-    cov = None
-    if covariance:
+    isotropic = all(not isinstance(d, torch.Tensor) or d.dim() == 0
+                    for d in (gyro_noise_density, acc_noise_density))
+    cov = jac = None
+    if covariance and not isotropic:
+        W = noise_map(suffixes.inverse(), weights.sqrt())  # (..., 10, 7, 2K + 1): Ad(node) G sqrt(w)
         s_a = _as_vector(acc_noise_density, gyro, "acc_noise_density", batch)
         s_g = _as_vector(gyro_noise_density, gyro, "gyro_noise_density", batch)
-        s_t = torch.as_tensor(time_noise_density, dtype=gyro.dtype, device=gyro.device)
-        if s_t.dim() != 0:
-            raise ValueError(f"time_noise_density must be a float or a 0-d tensor, got shape {tuple(s_t.shape)}")
         s_a, s_g = torch.broadcast_tensors(s_a, s_g)
-        dens = torch.cat((s_a, s_g, s_t.expand(*s_a.shape[:-1], 1)), dim=-1).unsqueeze(-2)  # (..., 1, 7)
-        W = P * (dens * weights.unsqueeze(-1).sqrt()).unsqueeze(-2)  # sqrt of w_j Q_c
-        W = W.transpose(-3, -2).reshape(*P.shape[:-3], 10, -1)
-        cov = W @ W.transpose(-1, -2)
-    jac = None
-    if bias_jacobian:
-        Pw = (P * weights[..., None, None]).sum(-3)
-        jac = -torch.cat((Pw[..., 3:6], Pw[..., 0:3]), dim=-1)
+        dens = torch.cat((s_a, s_g, _time_density(time_noise_density, gyro).expand(*s_a.shape[:-1], 1)), dim=-1)
+        Wq = (W * dens[..., None, :, None]).reshape(*W.shape[:-3], 10, -1)  # sqrt(w_j Q_c)
+        cov = Wq @ Wq.transpose(-1, -2)
+    if (covariance and isotropic) or bias_jacobian:
+        moments = _node_moments(suffixes, weights)
+        if covariance and isotropic:
+            cov = _isotropic_covariance(moments, _time_density(acc_noise_density, gyro, "acc_noise_density"),
+                                        _time_density(gyro_noise_density, gyro, "gyro_noise_density"),
+                                        _time_density(time_noise_density, gyro))
+        if bias_jacobian:
+            jac = _bias_jacobian(moments)
     return Preintegration(SGal3(delta), cov, jac, b_g, b_a)
 
 
