@@ -285,9 +285,10 @@ def preintegrate(
     gyro (..., K, 3) [rad/s] and acc (..., K, 3) [m/s^2, specific force] in the body frame,
     constant over sample k's interval dt (..., K) [s] (dt may vary).  Biases (..., 3) or None.
 
-    Noise densities (continuous time, per axis, float or (..., 3)): gyro [rad/s/sqrt(Hz)],
-    accelerometer [m/s^2/sqrt(Hz)], and the clock [s/s/sqrt(Hz)] (a float: white noise on the
-    rate of time, entering iota; 0 = exact timestamps).  Sample k's tangent noise
+    Noise densities (continuous time): gyro [rad/s/sqrt(Hz)] and accelerometer [m/s^2/sqrt(Hz)]
+    as floats (isotropic: the covariance is then summed in closed form, since C C^T = I) or
+    per-axis tensors (..., 3) (general path, about 2x slower); the clock [s/s/sqrt(Hz)] (a float:
+    white noise on the rate of time, entering iota; 0 = exact timestamps).  Sample k's tangent noise
     [0, -n_a dt, -n_g dt, n_t dt] has covariance diag(0, s_a^2 dt, s_g^2 dt, s_t^2 dt).
 
     Covariance (right perturbation, Delta_true = Delta exp(eps), tangent [rho, nu, phi, iota]):
