@@ -116,3 +116,22 @@ def test_left_samples_all_first_order():
         errs["pypose"].append(_end_errors(peers.pypose_predict(gyro, acc, dt, X0, "z_up", G), X1))
     for name, (e1, e2) in errs.items():
         assert np.all((1.6 < e1 / e2) & (e1 / e2 < 2.5)), (name, e1, e2)
+
+
+def test_covariance_agrees_with_gtsam_to_first_order():
+    # GTSAM propagates a first-order discretisation (O(dt)); mapped to our right perturbation
+    # its covariance approaches ours linearly in dt.
+    traj = SinusoidalTrajectory()
+    g = gravity_vector("z_up", G, dtype=F64)
+    t0 = torch.tensor([0.3], dtype=F64)
+    s_g, s_a = 2e-3, 3e-2
+    diffs = []
+    for h in (0.01, 0.005):
+        gyro, acc, dt = traj.stream(t0, 1.0, h, g)
+        ours = preintegrate(gyro, acc, dt, gyro_noise_density=s_g, acc_noise_density=s_a).covariance[0, :9, :9]
+        pim = peers.gtsam_preintegrate(gyro, acc, dt, peers.gtsam_params("z_up", G, s_g, s_a))[0]
+        theirs = peers.gtsam_covariance(pim)
+        sd = ours.diagonal().sqrt()
+        diffs.append(float(((theirs - ours).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()))
+    assert diffs[1] < 2e-3, diffs
+    assert 1.6 < diffs[0] / diffs[1] < 2.5, diffs

@@ -107,6 +107,25 @@ def gtsam_predict(pims: list, start: SGal3) -> SGal3:
     return from_gtsam_navstate(out, start.time().expand(len(pims)) + T)
 
 
+def gtsam_covariance(pim, dtype=torch.float64) -> torch.Tensor:
+    """GTSAM's ``preintMeasCov()`` mapped to torchsgal's right perturbation of the increment,
+    9 x 9 in the order [rho, nu, phi] (the time row/column, exact in GTSAM, left out).
+
+    GTSAM (tangent preintegration) perturbs its vector [theta, p, v] additively, with
+    Delta R = Exp(theta); ours is Delta exp(eps), so to first order
+    [rho, nu, phi] = [R^T dp, R^T dv, J_r(theta) dtheta]."""
+    from .. import SO3
+
+    cov = torch.tensor(np.asarray(pim.preintMeasCov()), dtype=dtype)
+    theta = torch.tensor(np.asarray(pim.preintegrated())[:3], dtype=dtype)
+    Rt = torch.tensor(pim.deltaRij().matrix(), dtype=dtype).T
+    M = torch.zeros(9, 9, dtype=dtype)
+    M[0:3, 3:6] = Rt  # rho from dp
+    M[3:6, 6:9] = Rt  # nu from dv
+    M[6:9, 0:3] = SO3.jr(theta)  # phi from dtheta
+    return M @ cov @ M.T
+
+
 def pypose_predict(gyro, acc, dt, start: SGal3, frame: str = "z_up",
                    magnitude: float = STANDARD_GRAVITY) -> SGal3:
     """pypose ``IMUPreintegrator`` (batched over windows, reset each call) from ``start`` (B,):
