@@ -159,21 +159,31 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _LEVI_CIVITA[_i, _j, _k], _LEVI_CIVITA[_i, _k, _j] = 1.0, -1.0
 
 
-def _node_moments(suffixes: SGal3, weights: torch.Tensor) -> dict:
-    """Weighted sums over the nodes F = X^-1 (X the suffix products) that the covariance and
-    the bias Jacobian need.  With X = (C, v, r, tau): F has rotation C^T, velocity
-    vh = -C^T v, lever (r - tau v of F) lh = -C^T r and time -tau."""
-    C = suffixes.rotation()
-    vr = C.transpose(-1, -2) @ torch.stack((suffixes.velocity(), suffixes.position()), dim=-1)
-    vh, lh, th = -vr[..., 0], -vr[..., 1], -suffixes.time()
-    w = weights.unsqueeze(-1)
-    coef = torch.cat((w, w * th.unsqueeze(-1), w * lh, w * vh), dim=-1)  # (..., N, 8)
-    Ch = C.transpose(-1, -2)
-    Y = coef.transpose(-1, -2) @ Ch.reshape(*Ch.shape[:-2], 9)  # (..., 8, 9): sums of coef * C^T
-    lv = torch.cat((lh, vh), dim=-1)
-    outer = (lv * w).transpose(-1, -2) @ lv  # (..., 6, 6): sums of w [l; v][l; v]^T
-    return {"w": weights.sum(-1), "wt": (weights * th).sum(-1), "wtt": (weights * th * th).sum(-1),
-            "wl": (w * lh).sum(-2), "wv": (w * vh).sum(-2), "outer": outer, "Y": Y}
+def _node_moments(groups, w_identity: torch.Tensor) -> dict:
+    """Weighted sums over the nodes F = X^-1 that the covariance and the bias Jacobian need;
+    ``groups`` is a list of (X (..., n, 5, 5), weights (..., n)), ``w_identity`` the weight of
+    an extra node F = I.  With X = (C, v, r, tau): F has rotation C^T, velocity vh = -C^T v,
+    lever (r - tau v of F) lh = -C^T r and time -tau."""
+    sums = {}
+    for X, weights in groups:
+        C = X[..., :3, :3]
+        vr = C.transpose(-1, -2) @ X[..., :3, 3:5]
+        vh, lh, th = -vr[..., 0], -vr[..., 1], -X[..., 3, 4]
+        w = weights.unsqueeze(-1)
+        coef = torch.cat((w, w * th.unsqueeze(-1), w * lh, w * vh), dim=-1)  # (..., n, 8)
+        Y = coef.transpose(-1, -2) @ X.reshape(*X.shape[:-2], 25)  # sums of coef * X entries
+        Y = Y.reshape(*Y.shape[:-1], 5, 5)[..., :3, :3].transpose(-1, -2)  # ... * C^T
+        lv = torch.cat((lh, vh), dim=-1)
+        part = {"w": weights.sum(-1), "wt": (weights * th).sum(-1), "wtt": (weights * th * th).sum(-1),
+                "wl": (w * lh).sum(-2), "wv": (w * vh).sum(-2),
+                "outer": (lv * w).transpose(-1, -2) @ lv,  # (..., 6, 6): sums of w [l; v][l; v]^T
+                "Y": Y}  # (..., 8, 3, 3)
+        sums = part if not sums else {k: sums[k] + part[k] for k in sums}
+    sums["w"] = sums["w"] + w_identity
+    eye = torch.eye(3, dtype=w_identity.dtype, device=w_identity.device)
+    sums["Y"] = sums["Y"] + torch.cat((w_identity[..., None, None, None] * eye,
+                                        torch.zeros_like(sums["Y"][..., 1:, :, :])), dim=-3)
+    return sums
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
@@ -212,7 +222,7 @@ def _isotropic_covariance(m: dict, s_a: torch.Tensor, s_g: torch.Tensor, s_t: to
 
 def _bias_jacobian(m: dict) -> torch.Tensor:
     """-sum_j w_j Ad(F_j) G over the gyro (phi) and accelerometer (nu) columns."""
-    Y = m["Y"].reshape(*m["Y"].shape[:-2], 8, 3, 3)
+    Y = m["Y"]
     sC, stC = Y[..., 0, :, :], Y[..., 1, :, :]
     eps = _LEVI_CIVITA.to(dtype=Y.dtype, device=Y.device)
     slC = torch.einsum("ikl,...klm->...im", eps, Y[..., 2:5, :, :])  # sum w l^ C
@@ -316,17 +326,24 @@ def preintegrate(
     delta = S[..., 0, :, :]
     # Simpson nodes of the noise integral in the right perturbation: at the sample instants
     # Delta^-1 Delta(t_k) = S_k^-1 (S_K = I) and at the midpoints (H_k S_{k+1})^-1.
-    eye = torch.eye(5, dtype=xi.dtype, device=xi.device).expand_as(S[..., :1, :, :])
-    S_after = torch.cat((S[..., 1:, :, :], eye), dim=-3)  # S_{k+1}
-    suffixes = SGal3(torch.cat((S, eye, H @ S_after), dim=-3))  # (..., 2K + 1)
     h = dt.expand(*batch, K)
     zero = torch.zeros_like(h[..., :1])
-    weights = torch.cat((torch.cat((h, zero), -1) + torch.cat((zero, h), -1), 4.0 * h), -1) / 6.0
-
+    w_instants = (torch.cat((h, zero), -1) + torch.cat((zero, h), -1)) / 6.0  # K + 1
+    w_mid = 4.0 * h / 6.0
+    node_groups = [  # (suffix matrices X, weights): the nodes are X^-1
+        (S, w_instants[..., :K]),  # instants 0 .. K-1
+        (H[..., K - 1 :, :, :], w_mid[..., K - 1 :]),  # last midpoint: H_{K-1} S_K = H_{K-1}
+    ]
+    if K > 1:
+        node_groups.append((H[..., : K - 1, :, :] @ S[..., 1:, :, :], w_mid[..., : K - 1]))
+    # instant K is the identity: its node map is G itself, weight w_instants[..., K]
     isotropic = all(not isinstance(d, torch.Tensor) or d.dim() == 0
                     for d in (gyro_noise_density, acc_noise_density))
     cov = jac = None
     if covariance and not isotropic:
+        eye = torch.eye(5, dtype=xi.dtype, device=xi.device).expand_as(S[..., :1, :, :])
+        suffixes = SGal3(torch.cat([X for X, _ in node_groups] + [eye], dim=-3))
+        weights = torch.cat([w for _, w in node_groups] + [w_instants[..., K:]], dim=-1)
         W = noise_map(suffixes.inverse(), weights.sqrt())  # (..., 10, 7, 2K + 1): Ad(node) G sqrt(w)
         s_a = _as_vector(acc_noise_density, gyro, "acc_noise_density", batch)
         s_g = _as_vector(gyro_noise_density, gyro, "gyro_noise_density", batch)
@@ -335,7 +352,7 @@ def preintegrate(
         Wq = (W * dens[..., None, :, None]).reshape(*W.shape[:-3], 10, -1)  # sqrt(w_j Q_c)
         cov = Wq @ Wq.transpose(-1, -2)
     if (covariance and isotropic) or bias_jacobian:
-        moments = _node_moments(suffixes, weights)
+        moments = _node_moments(node_groups, w_instants[..., K])
         if covariance and isotropic:
             cov = _isotropic_covariance(moments, _time_density(acc_noise_density, gyro, "acc_noise_density"),
                                         _time_density(gyro_noise_density, gyro, "gyro_noise_density"),
