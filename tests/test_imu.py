@@ -375,12 +375,15 @@ def test_bad_input_raises_with_names():
 @pytest.mark.parametrize("K", [1, 2, 3])
 def test_splitting_samples_changes_nothing(K):
     # A sample split into two halves with the same inputs is the same piecewise-constant
-    # stream: the increment is identical; covariance and bias Jacobian agree to Simpson's O(xi^4).
+    # stream: the increment is identical; covariance and bias Jacobian agree to Simpson's error.
+    # Its largest term here: the gyro-noise part of the position block grows as s^4 over a
+    # sample, which Simpson integrates 1/24 off on one interval; relative to the block that part
+    # is ~ (s_g |f| dt / s_a)^2 ~ 1e-5, so the normalised difference stays below 5e-7.
     gyro, acc, dt = random_stream(2, K, seed=50 + K, dt_range=(0.002, 0.004))
     dens = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2, time_noise_density=1e-4)
     one = preintegrate(gyro, acc, dt, **dens)
     two = preintegrate(gyro.repeat_interleave(2, 1), acc.repeat_interleave(2, 1), dt.repeat_interleave(2, 1) / 2, **dens)
     assert torch.allclose(one.delta.as_matrix(), two.delta.as_matrix(), atol=1e-14)
     sd = two.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
-    assert float(((one.covariance - two.covariance).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()) < 1e-8
+    assert float(((one.covariance - two.covariance).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()) < 5e-7
     assert torch.allclose(one.bias_jacobian, two.bias_jacobian, rtol=0, atol=1e-10 * two.bias_jacobian.abs().max())

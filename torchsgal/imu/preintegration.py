@@ -306,9 +306,11 @@ def preintegrate(
     Sigma_{k+1} = Ad(E_k^-1) Sigma_k Ad(E_k^-1)^T + B_k Q B_k^T; unrolled over the window it is
     the integral  Sigma = int_0^T Ad(Delta^-1 Delta(s)) G Q_c G^T Ad(Delta^-1 Delta(s))^T ds
     (G: the nu, phi, iota columns; Q_c = diag(s_a^2, s_g^2, s_t^2)).  It is evaluated by
-    Simpson's rule on each sample interval (nodes at the instants and midpoints; relative
-    error O(|xi_k|^4), below 1e-8 for |omega| dt, |f| dt < 0.05).  The bias Jacobian is the
-    same integral of Ad(Delta^-1 Delta(s)) G (minus the gyro and accelerometer columns).
+    Simpson's rule on each sample interval (nodes at the instants and midpoints): exact for the
+    parts of the integrand that are cubic in time, error O(dt^4) over the window.  (On a
+    one-sample window the gyro-noise part of the position block, quartic in time, is 1/24 of
+    itself off.)  The bias Jacobian is the same integral of Ad(Delta^-1 Delta(s)) G (minus the
+    gyro and accelerometer columns).
 
     Products: one batched SGal3.exp of the half-sample tangents over all samples, squared,
     then a work-efficient parallel scan (log-depth) over K; no loop over samples or windows.
