@@ -1,0 +1,227 @@
+"""Curve models on a group G, their residuals and Jacobians.
+
+Residual convention (right / body frame, CONVENTIONS.md): sample Y_i = gamma(t_i) exp(r_i),
+    r_i = log(gamma(t_i)^-1 Y_i),
+weighted as sqrt(w) * r_i so that the cost sum_i r_i^T diag(w) r_i is the squared
+left-invariant "log distance" of the metric with weights w (Aubray-Nicol (21), (32)).
+The cost is invariant under left translation of samples and curve together.
+
+Polynomial model (one-parameter subgroup for degree 1, geodesics of the Cartan-Schouten
+connections [Aubray-Nicol ref. 28]):
+    gamma(t) = p exp(s(t)),   s(t) = sum_{k=1..K} (t - t0)^k B x_k,
+B a fixed basis (dof, m) of the allowed generators (identity by default).  Jacobians, with
+E = exp(s) and J_l^-1(r) the inverse left Jacobian of the residual:
+    dr/dp   = -J_l^-1(r) Ad(E^-1)                 (p <- p exp(dp))
+    dr/dx_k = -(t - t0)^k J_l^-1(r) J_r(s) B      (x_k <- x_k + dx_k)
+(derived here; the tests check them against autograd).
+"""
+from __future__ import annotations
+
+import torch
+
+
+def _weighted(r: torch.Tensor, sqrt_w: torch.Tensor) -> torch.Tensor:
+    return r * sqrt_w.unsqueeze(-2)
+
+
+class PolynomialModel:
+    """gamma(t) = p exp(sum_k (t - t0)^k B x_k); x is (..., K*m)."""
+
+    def __init__(self, G, samples: torch.Tensor, tau: torch.Tensor, degree: int,
+                 sqrt_w: torch.Tensor, basis: torch.Tensor | None = None, fix_origin: bool = False):
+        self.G = G
+        self.samples = samples  # (..., N, n, n)
+        self.tau = tau  # (..., N)
+        self.degree = degree
+        self.sqrt_w = sqrt_w  # (..., dof)
+        self.basis = basis  # (dof, m) or None
+        self.fix_origin = fix_origin
+
+    @property
+    def generator_dim(self) -> int:
+        return self.G.dof if self.basis is None else self.basis.shape[-1]
+
+    def coefficients(self, x: torch.Tensor) -> torch.Tensor:
+        """x (..., K*m) -> algebra coefficients v_k (..., K, dof)."""
+        m = self.generator_dim
+        xk = x.reshape(x.shape[:-1] + (self.degree, m))
+        return xk if self.basis is None else xk @ self.basis.transpose(-1, -2)
+
+    def algebra_curve(self, x: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+        """s(t) (..., M, dof) at offsets tau (..., M)."""
+        if self.degree == 0:
+            return torch.zeros(tau.shape + (self.G.dof,), dtype=tau.dtype, device=tau.device)
+        v = self.coefficients(x)  # (..., K, dof)
+        powers = torch.stack([tau ** (k + 1) for k in range(self.degree)], dim=-1)  # (..., M, K)
+        return powers @ v
+
+    def curve(self, origin: torch.Tensor, x: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+        """gamma at offsets tau (..., M): group matrices (..., M, n, n)."""
+        s = self.algebra_curve(x, tau)
+        return origin.unsqueeze(-3) @ self.G.exp(s).as_matrix()
+
+    def raw_residuals(self, origin, x):
+        s = self.algebra_curve(x, self.tau)
+        gamma = self.G(origin.unsqueeze(-3) @ self.G.exp(s).as_matrix())
+        return gamma.between(self.G(self.samples)).log(), s
+
+    def residuals(self, origin: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        r, _ = self.raw_residuals(origin, x)
+        return _weighted(r, self.sqrt_w).flatten(-2)
+
+    def linearize(self, origin: torch.Tensor, x: torch.Tensor):
+        G = self.G
+        r, s = self.raw_residuals(origin, x)
+        jl_inv = G.jl_inv(r)  # (..., N, dof, dof)
+        blocks = []
+        if not self.fix_origin:
+            blocks.append(-jl_inv @ G.exp(-s).adjoint())
+        if self.degree > 0:
+            jv = -jl_inv @ G.jr(s)
+            if self.basis is not None:
+                jv = jv @ self.basis
+            for k in range(1, self.degree + 1):
+                blocks.append((self.tau ** k)[..., None, None] * jv)
+        J = torch.cat(blocks, dim=-1) * self.sqrt_w[..., None, :, None]
+        J = J.flatten(-3, -2)  # (..., N*dof, P)
+        return _weighted(r, self.sqrt_w).flatten(-2), J
+
+
+def euler_arnold_rhs(G, X: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """dX/dt = W^-1 ad(X)^T W X, the Euler-Arnold (Euler-Poincare) equation (24) of the
+    left-invariant metric <a, b> = a^T diag(w) b, for the body velocity X = gamma^-1 dgamma/dt.
+    The transpose in (24) is the metric one: W^-1 ad(X)^T W.  Sign: for SO(3) this is
+    Euler's I dw/dt = (I w) x w."""
+    return (G.ad(X).transpose(-1, -2) @ (weights * X).unsqueeze(-1)).squeeze(-1) / weights
+
+
+def euler_arnold_jacobian(G, X: torch.Tensor, weights: torch.Tensor,
+                          structure: torch.Tensor) -> torch.Tensor:
+    """d(rhs)/dX (..., dof, dof) of ``euler_arnold_rhs``:
+    W^-1 (M(W X) + ad(X)^T W), M(mu)_(k,i) = sum_j C[i, j, k] mu_j, C[i] = ad(e_i)."""
+    dof = X.shape[-1]
+    mu = weights * X
+    M = (mu @ structure.permute(1, 2, 0).reshape(dof, dof * dof)).unflatten(-1, (dof, dof))
+    return (M + G.ad(X).transpose(-1, -2) * weights.unsqueeze(-2)) / weights.unsqueeze(-1)
+
+
+# Commutator-free Lie-group method of order 4 (Blanes and Moan) for gamma' = gamma X(t):
+# gamma_(n+1) = gamma_n exp(h (a1 X1 + a2 X2)) exp(h (a2 X1 + a1 X2)), X1, X2 at the Gauss
+# points t_n + c_i h.
+_SQ3 = 3.0 ** 0.5
+_GAUSS = (0.5 - _SQ3 / 6, 0.5 + _SQ3 / 6)
+_A1, _A2 = 0.25 + _SQ3 / 6, 0.25 - _SQ3 / 6
+
+
+def _hermite(c: float):
+    """Cubic Hermite weights (X_n, h F_n, X_(n+1), h F_(n+1)) at fraction c of the step."""
+    return (2 * c**3 - 3 * c**2 + 1, c**3 - 2 * c**2 + c, -2 * c**3 + 3 * c**2, c**3 - c**2)
+
+
+def geodesic_flow(G, velocity: torch.Tensor, tau: torch.Tensor, weights: torch.Tensor,
+                  steps: int = 16, sensitivity: bool = False):
+    """Riemannian geodesic from the identity with initial body velocity ``velocity``
+    (..., dof), evaluated at offsets ``tau`` (..., M); weights (..., dof).
+
+    Returns Phi (..., M, n, n), X(tau) (..., M, dof) and, with ``sensitivity=True``, eta
+    (..., M, dof, dof) such that Phi(X0 + d) = Phi(X0) exp(eta d) to first order.
+
+    Each offset is integrated on its own grid of ``steps`` equal steps (h = tau / steps), all
+    in one batch: the Euler-Arnold equation (24) for X by classical RK4, and the
+    reconstruction (25) gamma' = gamma X by the fourth-order commutator-free method above, X at
+    the Gauss points from the cubic Hermite interpolant of the RK4 step.  ((26),
+    gamma = exp(int X), holds only when the X(t) commute; it is not used.)  The sensitivity is
+    the exact derivative of this discrete map (tangent-linear RK4 for S = dX/dX0 and
+    eta_(n+1) = Ad(e^-b) (Ad(e^-a) eta_n + J_r(a) da) + J_r(b) db)."""
+    X, w = velocity.unsqueeze(-2), weights.unsqueeze(-2)
+    batch = torch.broadcast_shapes(X.shape[:-1], tau.shape, w.shape[:-1])
+    tau = tau.expand(batch)
+    X = X.expand(batch + (G.dof,))
+    h = (tau / steps).unsqueeze(-1)
+    n, dof = G.matrix_dim, G.dof
+    Phi = torch.eye(n, dtype=X.dtype, device=X.device).expand(batch + (n, n))
+    f = lambda Z: euler_arnold_rhs(G, Z, w)  # noqa: E731
+    if sensitivity:
+        C = G.ad(torch.eye(dof, dtype=X.dtype, device=X.device))
+        Df = lambda Z: euler_arnold_jacobian(G, Z, w, C)  # noqa: E731
+        S = torch.eye(dof, dtype=X.dtype, device=X.device).expand(batch + (dof, dof))
+        eta = torch.zeros_like(S)
+        hm = h.unsqueeze(-1)
+    weights_g = [_hermite(c) for c in _GAUSS]
+    F = f(X)
+    if sensitivity:
+        DF = Df(X)
+        dF = DF @ S
+    for _ in range(steps):
+        k1 = F
+        k2 = f(X + 0.5 * h * k1)
+        k3 = f(X + 0.5 * h * k2)
+        X4 = X + h * k3
+        k4 = f(X4)
+        X_new = X + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        F_new = f(X_new)
+        Xg = [c0 * X + c1 * h * F + c2 * X_new + c3 * h * F_new for c0, c1, c2, c3 in weights_g]
+        a = h * (_A1 * Xg[0] + _A2 * Xg[1])
+        b = h * (_A2 * Xg[0] + _A1 * Xg[1])
+        Ea, Eb = G.exp(a), G.exp(b)
+        Phi = Phi @ Ea.as_matrix() @ Eb.as_matrix()
+        if sensitivity:
+            K1 = dF
+            Z2 = X + 0.5 * h * k1
+            K2 = Df(Z2) @ (S + 0.5 * hm * K1)
+            Z3 = X + 0.5 * h * k2
+            K3 = Df(Z3) @ (S + 0.5 * hm * K2)
+            K4 = Df(X4) @ (S + hm * K3)
+            S_new = S + hm / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
+            dF_new = Df(X_new) @ S_new
+            Sg = [c0 * S + c1 * hm * dF + c2 * S_new + c3 * hm * dF_new
+                  for c0, c1, c2, c3 in weights_g]
+            da = hm * (_A1 * Sg[0] + _A2 * Sg[1])
+            db = hm * (_A2 * Sg[0] + _A1 * Sg[1])
+            eta = Eb.inverse().adjoint() @ (Ea.inverse().adjoint() @ eta + G.jr(a) @ da) \
+                + G.jr(b) @ db
+            S, dF = S_new, dF_new
+        X, F = X_new, F_new
+    if sensitivity:
+        return Phi, X, eta
+    return Phi, X
+
+
+class RiemannianGeodesicModel:
+    """gamma(t) = p Phi(t - t0; X0), Phi the Riemannian geodesic of the left-invariant metric
+    diag(w) from the identity with initial body velocity X0 (x = X0, (..., dof)).
+
+    Jacobians from the discrete sensitivity of ``geodesic_flow`` (see ``linearize``)."""
+
+    def __init__(self, G, samples, tau, sqrt_w, weights, steps=16, fix_origin=False):
+        self.G = G
+        self.samples = samples
+        self.tau = tau
+        self.sqrt_w = sqrt_w
+        self.weights = weights
+        self.steps = steps
+        self.fix_origin = fix_origin
+
+    def curve(self, origin, x, tau):
+        Phi, _ = geodesic_flow(self.G, x, tau, self.weights, self.steps)
+        return origin.unsqueeze(-3) @ Phi
+
+    def residuals(self, origin, x):
+        G = self.G
+        gamma = self.curve(origin, x, self.tau)
+        r = G(gamma).between(G(self.samples)).log()
+        return _weighted(r, self.sqrt_w).flatten(-2)
+
+    def linearize(self, origin, x):
+        """dr/dp = -J_l^-1(r) Ad(Phi^-1), dr/dX0 = -J_l^-1(r) eta (Phi -> Phi exp(eta d))."""
+        G = self.G
+        Phi, _, eta = geodesic_flow(G, x, self.tau, self.weights, self.steps,
+                                    sensitivity=True)
+        r = G(origin.unsqueeze(-3) @ Phi).between(G(self.samples)).log()
+        jl_inv = G.jl_inv(r)
+        blocks = []
+        if not self.fix_origin:
+            blocks.append(-jl_inv @ G(Phi).inverse().adjoint())
+        blocks.append(-jl_inv @ eta)
+        J = torch.cat(blocks, dim=-1) * self.sqrt_w[..., None, :, None]
+        return _weighted(r, self.sqrt_w).flatten(-2), J.flatten(-3, -2)

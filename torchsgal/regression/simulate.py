@@ -1,0 +1,41 @@
+"""The simulated data of Aubray and Nicol, Algorithm 2 (one maneuver per data set)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..groups.base import LieGroup
+from ..functional import checks
+
+
+@dataclass
+class Maneuver:
+    times: torch.Tensor  # (..., N): i / N, i = 1..N
+    real: LieGroup  # (..., N): start exp(t_i zeta)
+    measured: LieGroup  # (..., N): start exp(t_i zeta + n_i), n_i ~ N(0, sigma^2 I) in the algebra
+
+
+def simulate_maneuver(G, velocity: torch.Tensor, n_samples: int, noise_std: float, *,
+                      start: LieGroup | None = None, generator: torch.Generator | None = None
+                      ) -> Maneuver:
+    """Algorithm 2: a maneuver with constant algebra velocity zeta = ``velocity`` (..., dof),
+    sampled at t_i = i / N, i = 1..N; the measurement adds Gaussian noise of standard deviation
+    ``noise_std`` to every algebra component before the exponential (line 6).  ``start``
+    (default identity) multiplies on the left, as x_0 does in lines 5 and 7."""
+    checks.vector(velocity, G.dof, "velocity")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 1:
+        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+    if not noise_std >= 0:
+        raise ValueError(f"noise_std must be >= 0, got {noise_std!r}")
+    dtype, device = velocity.dtype, velocity.device
+    t = torch.arange(1, n_samples + 1, dtype=dtype, device=device) / n_samples
+    t = t.expand(velocity.shape[:-1] + (n_samples,))
+    s = t.unsqueeze(-1) * velocity.unsqueeze(-2)
+    noise = torch.randn(s.shape, dtype=dtype, device=device, generator=generator) * noise_std
+    real, measured = G.exp(s), G.exp(s + noise)
+    if start is not None:
+        if not isinstance(start, G):
+            raise TypeError(f"start must be a {G.__name__}, got {type(start).__name__}")
+        real, measured = start.unsqueeze(-1) @ real, start.unsqueeze(-1) @ measured
+    return Maneuver(t, real, measured)
