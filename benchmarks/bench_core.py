@@ -3,16 +3,17 @@
 
 What is timed (ns per batch element, median over samples; see ``_timing.measure``):
 
-* torchsgal, for SO3 / SE3 / SE23 / SGal3: ``G.exp(xi)``, ``g.log()``, ``g @ h``,
-  ``g.act(p)`` (points (...,3); events (...,4) for SGal3), ``g.adjoint()``, ``G.jl(xi)``,
+* torchsgal, for SO2 / SE2 / SO3 / SE3 / SE23 / SGal3 / Sim3: ``G.exp(xi)``, ``g.log()``, ``g @ h``,
+  ``g.act(p)`` (points (...,3), (...,2) for SO2/SE2; events (...,4) for SGal3), ``g.adjoint()``, ``G.jl(xi)``,
   and the functional layer ``ts.functional.<g>.exp(xi)`` (-> matrix) / ``.log(M)``.
 * peers on the same group, batch, dtype and device:
   - ``torch.linalg.matrix_exp(G.hat(xi))`` (hat matrix built outside the timed region);
-  - pypose ``pp.so3(x).Exp()``, ``pp.SO3(q).Log()``, ``pp.se3(x).Exp()``, ``pp.SE3(T).Log()``
+  - pypose ``pp.so3(x).Exp()``, ``pp.SO3(q).Log()``, ``pp.se3(x).Exp()``, ``pp.SE3(T).Log()``,
+    ``pp.sim3(x).Exp()``, ``pp.Sim3(T).Log()``
     (LieTensors built outside the timed region; pypose's se3 is [translation, rotation],
-    its SE3 is [t, quaternion xyzw]; inputs are i.i.d. so the ordering does not change the
-    work done);
-  - GTSAM ``Rot3/Pose3/NavState/Gal3.Expmap`` and ``.Logmap`` called in a Python loop over
+    its SE3 is [t, quaternion xyzw], its sim3 [translation, rotation, log-scale]; inputs are
+    i.i.d. so the ordering does not change the work done);
+  - GTSAM ``Rot2/Pose2/Rot3/Pose3/NavState/Gal3/Similarity3.Expmap`` and ``.Logmap`` called in a Python loop over
     ``--gtsam-n`` numpy rows (float64 only; the per-element figure includes the Python
     loop and the pybind11 call overhead, which is what a Python user of GTSAM pays);
 * autograd for ``xi -> log(exp(xi)) -> sum -> backward``: the custom ``autograd.Function``
@@ -53,12 +54,16 @@ sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
 from _timing import cpu_model, fmt_bytes, fmt_ns, mem_available_bytes, measure, synchronize  # noqa: E402
 
-GROUPS = ("SO3", "SE3", "SE23", "SGal3")
-FUNCTIONAL = {"SO3": "so3", "SE3": "se3", "SE23": "se23", "SGal3": "sgal3"}
-DOF = {"SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10}
-MDIM = {"SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5}
+GROUPS = ("SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3")
+FUNCTIONAL = {"SO2": "so2", "SE2": "se2", "SO3": "so3", "SE3": "se3", "SE23": "se23", "SGal3": "sgal3",
+              "Sim3": "sim3"}
+DOF = {"SO2": 1, "SE2": 3, "SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10, "Sim3": 7}
+MDIM = {"SO2": 2, "SE2": 3, "SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5, "Sim3": 4}
+POINT_DIM = {"SO2": 2, "SE2": 2, "SO3": 3, "SE3": 3, "SE23": 3, "SGal3": 4, "Sim3": 3}
+PYPOSE_GROUPS = ("SO3", "SE3", "Sim3")  # groups pypose has
 OPS = ("exp", "log", "compose", "act", "adjoint", "jl", "F.exp", "F.log")
-GTSAM_CLASS = {"SO3": "Rot3", "SE3": "Pose3", "SE23": "NavState", "SGal3": "Gal3"}
+GTSAM_CLASS = {"SO2": "Rot2", "SE2": "Pose2", "SO3": "Rot3", "SE3": "Pose3", "SE23": "NavState",
+               "SGal3": "Gal3", "Sim3": "Similarity3"}
 TANGENT_SCALE = 0.5  # xi ~ N(0, 0.5^2) per component: rotation angles mostly in (0, 2)
 
 # Targets of the project (ratio = peer time / torchsgal time unless said otherwise).
@@ -196,7 +201,7 @@ def bench_torchsgal(res, args, ts, group, n, dtype, device, gen):
     xi2 = randn((n, dof), dtype, device, gen, TANGENT_SCALE)
     g = G.exp(xi)
     h = G.exp(xi2)
-    p = randn((n, 4 if group == "SGal3" else 3), dtype, device, gen)
+    p = randn((n, POINT_DIM[group]), dtype, device, gen)
     M = Fm.exp(xi)
     fns = {
         "exp": lambda: G.exp(xi),
@@ -241,11 +246,15 @@ def bench_pypose(res, args, pp, n, dtype, device, gen):
     q = so3.Exp()
     se3 = pp.se3(x6)
     T = se3.Exp()
+    sim3 = pp.sim3(randn((n, 7), dtype, device, gen, TANGENT_SCALE))
+    S = sim3.Exp()
     cases = [
         ("SO3", "exp", lambda: so3.Exp()),
         ("SO3", "log", lambda: q.Log()),
         ("SE3", "exp", lambda: se3.Exp()),
         ("SE3", "log", lambda: T.Log()),
+        ("Sim3", "exp", lambda: sim3.Exp()),
+        ("Sim3", "log", lambda: S.Log()),
     ]
     for group, op, fn in cases:
         if group in args.groups:
@@ -289,11 +298,9 @@ def bench_autograd(res, args, ts, pp, group, n, dtype, device, gen, bytes_per_el
         "custom Function": lambda x: Fm.log(Fm.exp(x)),
         "plain autograd": lambda x: Fm.log_impl(Fm.exp_impl(x)),
     }
-    if pp is not None and group in ("SO3", "SE3"):
-        if group == "SO3":
-            impls["pypose"] = lambda x: pp.so3(x).Exp().Log().tensor()
-        else:
-            impls["pypose"] = lambda x: pp.se3(x).Exp().Log().tensor()
+    if pp is not None and group in PYPOSE_GROUPS:
+        lie = {"SO3": pp.so3, "SE3": pp.se3, "Sim3": pp.sim3}[group]
+        impls["pypose"] = lambda x: lie(x).Exp().Log().tensor()
     grads = {}
     for impl, f in impls.items():
         key = dict(section="autograd", group=group, op="log(exp(xi)) fwd+bwd", impl=impl, dtype=dt)
@@ -404,7 +411,7 @@ def compute_ratios(res, args):
                     dict(section="peer", group="SE3", op="exp", impl="pypose"),
                     dict(section="torchsgal", group="SGal3", op="exp"), TARGET_PYPOSE)
             for g in args.groups:
-                if g in ("SO3", "SE3"):
+                if g in PYPOSE_GROUPS:
                     for op in ("exp", "log"):
                         add(f"{g}.{op} vs pypose {g} {op.capitalize()}",
                             dict(section="peer", group=g, op=op, impl="pypose"),
@@ -577,7 +584,7 @@ def main(argv=None):
     ap.add_argument("--sizes", type=parse_sizes, default=None, help="comma list, e.g. 1e3,1e5,1e6")
     ap.add_argument("--dtypes", default="float32,float64", help="comma list (default float32,float64)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (default cpu)")
-    ap.add_argument("--groups", default=",".join(GROUPS), help="comma list (default all four)")
+    ap.add_argument("--groups", default=",".join(GROUPS), help="comma list (default all seven)")
     ap.add_argument("--quick", action="store_true", help="smoke run: small sizes, few repeats")
     ap.add_argument("--full", action="store_true",
                     help="also time matrix_exp and autograd at n > 1e5 for SO3/SE3/SE23 (slow)")
@@ -699,7 +706,7 @@ def main(argv=None):
                               else heavy_skip_reason(args, group, n))
                     if reason:
                         impls = ("custom Function", "plain autograd") + (
-                            ("pypose",) if pp is not None and group in ("SO3", "SE3") else ())
+                            ("pypose",) if pp is not None and group in PYPOSE_GROUPS else ())
                         for impl in impls:
                             skip_case(res, reason, n_elem=n, impl=impl, **key)
                         continue

@@ -344,3 +344,14 @@ def poly_inverse(m0, m1, m2, theta2):
     re = m0 - m2 * theta2
     mu2 = re * re + m1 * m1 * theta2
     return 1.0 / m0, -m1 / mu2, (m1 * m1 - m0 * m2 + m2 * m2 * theta2) / (m0 * mu2)
+
+
+def poly_vec_derivative_t(m1, m2, e1, e2, phi: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(d/dphi [(m1 phi^ + m2 phi^ phi^) x])^T w (3, ...), the transpose of ``poly_vec_derivative``."""
+    px = cross(phi, x)
+    ppx = cross(phi, px)
+    return (
+        phi * (e1 * dot(px, w) + e2 * dot(ppx, w) - 2.0 * m2 * dot(x, w))
+        + m1 * cross(x, w)
+        + m2 * (dot(phi, x) * w + x * dot(phi, w))
+    )

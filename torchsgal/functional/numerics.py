@@ -130,49 +130,50 @@ SIM3_SERIES_TERMS = 11
 
 
 def scale_moments(x: torch.Tensor, order: int) -> list[torch.Tensor]:
-    """[q_0, ..., q_order](x) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)), each
-    accurate to a few ulp for every finite x whose exp(x) does not overflow.
+    """[q_0, ..., q_order](x) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)).
 
-    Both recursions run on safe inputs; each order takes the stable one (see the constants
-    above), merged with exact 0/1 masks, so values and gradients stay finite.
+    Relative error ~1e-16 at every order for |x| <= 6, and at the orders Sim(3) weighs most
+    up to |x| = 40 (tests/test_precision.py).  Both recursions run on safe inputs; each order
+    takes the stable one (see the constants above), merged with exact 0/1 masks, so values
+    and gradients stay finite.
     """
     top = order + SCALE_EXTRA_ORDERS
     ax = x.abs()
-    # Downward from Taylor series at the top; inputs with |x| >= top never use it.
+    # Downward from the Taylor series of q_top; inputs with |x| >= top never use it.
     x_dn = torch.where(ax < top, x, torch.zeros_like(x))
-    down: list[torch.Tensor | None] = [None] * (top + 1)
-    for j in (top, top - 1):
-        out = torch.full_like(x, 1.0 / math.factorial(j + SCALE_TAYLOR_TERMS))
-        for n in range(SCALE_TAYLOR_TERMS - 1, -1, -1):
-            out = out * x_dn + 1.0 / math.factorial(j + 1 + n)
-        down[j] = out
-    for j in range(top - 1, 0, -1):
-        down[j - 1] = 1.0 / math.factorial(j) + x_dn * down[j]
+    q = torch.full_like(x, 1.0 / math.factorial(top + SCALE_TAYLOR_TERMS))
+    for n in range(SCALE_TAYLOR_TERMS - 1, -1, -1):
+        q = q * x_dn + 1.0 / math.factorial(top + 1 + n)
+    for j in range(top, order, -1):
+        q = 1.0 / math.factorial(j) + x_dn * q
+    down = [q]
+    for j in range(order, 0, -1):
+        down.append(1.0 / math.factorial(j) + x_dn * down[-1])
+    down.reverse()
     # Upward from expm1(x)/x; inputs with |x| <= SCALE_UPWARD_MARGIN never use it.
-    use_up0 = ax > SCALE_UPWARD_MARGIN
-    x_up = torch.where(use_up0, x, torch.ones_like(x))
+    x_up = torch.where(ax > SCALE_UPWARD_MARGIN, x, torch.ones_like(x))
     up = [torch.expm1(x_up) / x_up]
     for j in range(1, order + 1):
         up.append((up[-1] - 1.0 / math.factorial(j)) / x_up)
-    out = []
-    for j in range(order + 1):
-        mask = (ax > j + SCALE_UPWARD_MARGIN).to(x.dtype)
-        out.append(select(mask, up[j], down[j]))
-    return out
+    # Order j takes the upward value where |x| > j + margin (one comparison for all orders).
+    j_plus = torch.arange(order + 1, dtype=x.dtype, device=x.device) + SCALE_UPWARD_MARGIN
+    mask = (ax.unsqueeze(-1) > j_plus).to(x.dtype)
+    merged = select(mask, torch.stack(up, dim=-1), torch.stack(down, dim=-1))
+    return list(merged.unbind(-1))
 
 
-def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor) -> dict[str, torch.Tensor]:
+def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool = True
+                      ) -> dict[str, torch.Tensor]:
     """The scalar coefficients of the Sim(3) translation block and its derivatives.
 
     M(phi, lambda) = int_0^1 e^(-(1-a) lambda) C(a phi) da = m0 I + m1 phi^ + m2 phi^ phi^,
     e_k = (dm_k/dtheta)/theta, p_k = dm_k/dlambda (docs/sim3_jacobian.md).  Inputs broadcast.
-    Returns a dict with keys m0, m1, m2, e1, e2, p0, p1, p2.
+    Returns a dict with keys m0, m1, m2 and, with ``derivatives``, e1, e2, p0, p1, p2.
     """
     theta2, lam = torch.broadcast_tensors(theta2, lam)
     K = SIM3_SERIES_TERMS
-    q = scale_moments(-lam, 2 * K + 2)
+    q = scale_moments(-lam, 2 * K + 2 if derivatives else 2 * K)
     m0 = q[0]
-    p0 = q[1] - q[0]
 
     small = theta2 < SIM3_SERIES_THRESHOLD**2
     mask = small.to(theta2.dtype)
@@ -187,10 +188,6 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor) -> dict[str, torc
 
     s_m1 = horner(lambda k: q[2 * k + 1])
     s_m2 = horner(lambda k: q[2 * k + 2])
-    s_e1 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 3])
-    s_e2 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 4])
-    s_p1 = -horner(lambda k: q[2 * k + 1] - (2 * k + 2) * q[2 * k + 2])
-    s_p2 = -horner(lambda k: q[2 * k + 2] - (2 * k + 3) * q[2 * k + 3])
 
     # Large angle: K = int e^(-(1-a) lam) e^(i a theta) da = (e^(i theta) - e^(-lam)) / w,
     # K1 = int a (...) da = (e^(i theta) - K) / w, w = lam + i theta, |w| >= theta >= 1.
@@ -201,19 +198,27 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor) -> dict[str, torc
     a_re = cos - torch.exp(-lam)
     k_re = (a_re * lam + sin * t) / w2
     k_im = (sin * lam - a_re * t) / w2
+    l_m1 = k_im / t
+    l_m2 = (m0 - k_re) / t2
+    out = {"m0": m0, "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2)}
+    if not derivatives:
+        return out
+
+    p0 = q[1] - q[0]
+    s_e1 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 3])
+    s_e2 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 4])
+    s_p1 = -horner(lambda k: q[2 * k + 1] - (2 * k + 2) * q[2 * k + 2])
+    s_p2 = -horner(lambda k: q[2 * k + 2] - (2 * k + 3) * q[2 * k + 3])
     b_re, b_im = cos - k_re, sin - k_im
     k1_re = (b_re * lam + b_im * t) / w2
     k1_im = (b_im * lam - b_re * t) / w2
-    l_m1 = k_im / t
-    l_m2 = (m0 - k_re) / t2
     l_e1 = (k1_re - l_m1) / t2
     l_e2 = (k1_im / t - 2.0 * l_m2) / t2
     l_p1 = (k1_im - k_im) / t
     l_p2 = (p0 + k_re - k1_re) / t2
 
-    return {
-        "m0": m0, "p0": p0,
-        "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2),
-        "e1": select(mask, s_e1, l_e1), "e2": select(mask, s_e2, l_e2),
-        "p1": select(mask, s_p1, l_p1), "p2": select(mask, s_p2, l_p2),
-    }
+    out.update(
+        p0=p0, e1=select(mask, s_e1, l_e1), e2=select(mask, s_e2, l_e2),
+        p1=select(mask, s_p1, l_p1), p2=select(mask, s_p2, l_p2),
+    )
+    return out

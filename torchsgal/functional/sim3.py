@@ -68,15 +68,15 @@ def vee(X: torch.Tensor) -> torch.Tensor:
     return B.last(B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]), -X[..., 3, 3][None])
 
 
-def _coefficients(phi: torch.Tensor, lam: torch.Tensor):
-    return numerics.sim3_coefficients(B.theta_squared(phi), lam)
+def _coefficients(phi: torch.Tensor, lam: torch.Tensor, derivatives: bool = True):
+    return numerics.sim3_coefficients(B.theta_squared(phi), lam, derivatives)
 
 
 def exp_impl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     rho, phi, lam = _split(xi)
     c = B.coefficients(phi, 2)
-    m = _coefficients(phi, lam)
+    m = _coefficients(phi, lam, derivatives=False)
     r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
     return _matrix(B.gamma_entries(c, 0, phi), r, torch.exp(-lam))
 
@@ -90,7 +90,7 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
     phi = B.rotation_log(M[..., :3, :3])
     lam = -torch.log(M[..., 3, 3])
-    rho = _m_inverse_vec(_coefficients(phi, lam), phi, B.first(M[..., :3, 3]))
+    rho = _m_inverse_vec(_coefficients(phi, lam, derivatives=False), phi, B.first(M[..., :3, 3]))
     return B.last(rho, phi, lam[None])
 
 
@@ -180,30 +180,66 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 
 
+def _tmv_parts(xi: torch.Tensor):
+    rho, phi, lam = _split(xi)
+    c = B.coefficients(phi, 3)
+    m = _coefficients(phi, lam)
+    r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
+    lam_col = B.poly_vec(m["p0"], m["p1"], m["p2"], phi, rho)
+    return rho, phi, lam, c, m, r, lam_col
+
+
+def _coupling_t(c, m, phi, rho, r, w):
+    """coupling^T w = (d(M rho)/dphi)^T w + Gamma_1^T (w x r)."""
+    return B.poly_vec_derivative_t(m["m1"], m["m2"], m["e1"], m["e2"], phi, rho, w) + B.gamma_vec(
+        c, 1, -phi, B.cross(w, r)
+    )
+
+
 def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """J_l(xi)^T w."""
-    return (jl(xi).transpose(-1, -2) @ w.unsqueeze(-1)).squeeze(-1)
+    """J_l(xi)^T w with vector operations only:
+    (s M^T w_rho, s coupling^T w_rho + Gamma_1^T w_phi, s lam_col . w_rho + w_lambda)."""
+    rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
+    s = torch.exp(lam)
+    w_rho, w_phi, w_lam = _split(w)
+    out_rho = s * B.poly_vec(m["m0"], m["m1"], m["m2"], -phi, w_rho)
+    out_phi = s * _coupling_t(c, m, phi, rho, r, w_rho) + B.gamma_vec(c, 1, -phi, w_phi)
+    return B.last(out_rho, out_phi, (s * B.dot(lam_col, w_rho) + w_lam)[None])
 
 
 def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """J_l(xi)^-T g."""
-    return (jl_inv(xi).transpose(-1, -2) @ g.unsqueeze(-1)).squeeze(-1)
+    """J_l(xi)^-T g by substitution on the transposed blocks: with y = M^-T g_rho,
+    (y / s, Gamma_1^-T (g_phi - coupling^T y), g_lambda - lam_col . y)."""
+    rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
+    g_rho, g_phi, g_lam = _split(g)
+    n = B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi))
+    y = B.poly_vec(*n, -phi, g_rho)
+    out_phi = B.jac_inv_vec(-phi, g_phi - _coupling_t(c, m, phi, rho, r, y))
+    return B.last(y * torch.exp(-lam), out_phi, (g_lam - B.dot(lam_col, y))[None])
 
 
 def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
-    """hat^T(M^T G) (exp's backward): (A[:3, 3], vee of the rotation block's skew part times 2,
-    -A[3, 3]) with A = M^T G."""
-    A = M.transpose(-1, -2) @ G
-    rot = torch.stack(
-        (A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]), dim=-1
-    )
-    return torch.cat((A[..., :3, 3], rot, -A[..., 3:, 3]), dim=-1)
+    """hat^T(M^T G) (exp's backward).  With A = M^T G: (A[:3, 3], 2 unskew(A[:3, :3]), -A[3, 3]),
+    A[:3, :] = C^T G[:3, :] and A[3, 3] = r . G[:3, 3] + M[3, 3] G[3, 3]."""
+    C = M[..., :3, :3]
+    g = B.first(G[..., :3, 3])
+    lam = -(B.dot(B.first(M[..., :3, 3]), g) + M[..., 3, 3] * G[..., 3, 3])
+    return B.last(B.matvec_entries(B.transpose_entries(C), g), B.rotation_pullback(C, G), lam[None])
 
 
 def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """M^-T vee^T(w) = M^-T hat(w_rho, w_phi / 2, w_lambda)."""
-    half = torch.cat((w[..., :3], 0.5 * w[..., 3:6], w[..., 6:]), dim=-1)
-    return inverse(M).transpose(-1, -2) @ hat(half)
+    """M^-T vee^T(w) = M^-T hat(w_rho, w_phi / 2, w_lambda); M^-T = [[C, 0], [b^T, s]] with
+    b = -s C^T r, so the product is [[C h^, C w_rho], [(b x h)^T, b . w_rho - s w_lambda]], h = w_phi/2."""
+    rho, phi, lam = _split(w)
+    half = 0.5 * phi
+    C = M[..., :3, :3]
+    s = 1.0 / M[..., 3, 3]
+    b = -s * B.matvec_entries(B.transpose_entries(C), B.first(M[..., :3, 3]))
+    rot = [x for row in B.rotation_skew_rows(C, half) for x in row]
+    bh = B.cross(b, half)
+    return B.homogeneous(
+        rot, [B.matvec_entries(B.entries(C), rho)], [[bh[0], bh[1], bh[2], B.dot(b, rho) - s * lam]]
+    )
 
 
 def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
