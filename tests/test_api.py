@@ -140,6 +140,26 @@ def test_components_round_trip():
     # components broadcast: one rotation, a batch of positions
     q = ts.SE3.from_components(torch.eye(3), torch.zeros(7, 3))
     assert q.batch_shape == (7,)
+    # Sim3 stores 1/s: the round trip through the scale is exact up to one rounding
+    m = ts.Sim3.random((4,), dtype=torch.float64)
+    back = ts.Sim3.from_components(m.rotation(), m.position(), m.scale()).as_matrix()
+    np.testing.assert_allclose(np64(back), np64(m.as_matrix()), rtol=2e-16, atol=0)
+    np.testing.assert_allclose(np64(m.scale()), 1.0 / np64(m.as_matrix()[:, 3, 3]), rtol=0)
+    p = torch.randn(4, 3, dtype=torch.float64)
+    want = np64(m.scale())[:, None] * np.einsum("bij,bj->bi", np64(m.rotation()), np64(p)) \
+        + np64(m.scale())[:, None] * np64(m.position())
+    np.testing.assert_allclose(np64(m.act(p)), want, rtol=1e-14, atol=1e-14)
+
+
+def test_sim3_scale_must_be_positive():
+    M = ts.Sim3.random((3,), dtype=torch.float64).as_matrix().clone()
+    M[1, 3, 3] = -0.5
+    with pytest.raises(ValueError, match=r"not in Sim3: M\[3, 3\] = 1/s must be positive, got -0.5"):
+        ts.Sim3.from_matrix(M, check=True)
+    with pytest.raises(TypeError, match=r"scale must have a floating dtype"):
+        ts.Sim3.from_components(torch.eye(3), torch.zeros(3), torch.ones((), dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: rotation \(\), position \(3,\), scale \(4,\)"):
+        ts.Sim3.from_components(torch.eye(3), torch.zeros(3, 3), torch.ones(4))
 
 
 # ------------------------------------------------------------------------------ bad input
