@@ -159,8 +159,10 @@ def fit_riemannian_geodesic(samples: LieGroup, times: torch.Tensor, *, weights=N
     X(t0) = X0.  Shooting on (p, X0) as in Algorithm 3, but by Gauss-Newton (or LBFGS) instead
     of gradient descent; each sample's geodesic is integrated with ``steps`` RKMK4 steps.
     Started from the one-parameter-subgroup fit."""
-    if not isinstance(steps, int) or steps < 1:
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be a positive int, got {steps!r}")
+    _checks.group_samples(samples, "samples")
+    _checks.degree(1, samples.batch_shape[-1])
     G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, 2)
     with torch.no_grad():
         start = fit_polynomial(G(Y), t, 1, weights=w, time_origin=t0, max_iterations=20)

@@ -1,0 +1,460 @@
+"""torchsgal.regression: exact recovery on noise-free data for every model and group, the
+Jacobians against autograd and finite differences, the Euler-Arnold integrator against
+closed forms and an independent ODE solver, R^2 as the noise vanishes, and bad input."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm, logm
+from scipy.spatial.transform import Rotation
+
+import torchsgal as ts
+from torchsgal import regression as reg
+from torchsgal.regression.models import PolynomialModel, RiemannianGeodesicModel
+
+F64 = torch.float64
+GROUPS3 = [ts.SE3, ts.SE23, ts.SGal3]
+ids = lambda G: G.__name__  # noqa: E731
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+
+
+def _poly_data(G, batch, n, degree, t=None):
+    p = G.exp(0.8 * torch.randn(batch + (G.dof,), dtype=F64))
+    v = torch.randn(batch + (degree, G.dof), dtype=F64) / torch.arange(1, degree + 1, dtype=F64)[:, None]
+    t = torch.linspace(-0.9, 1.1, n, dtype=F64) if t is None else t
+    powers = torch.stack([t ** (k + 1) for k in range(degree)], -1)  # (n, K)
+    Y = p.unsqueeze(-1) @ G.exp(powers @ v)
+    return p, v, t, Y
+
+
+# ------------------------------------------------------------------ exact recovery
+@pytest.mark.parametrize("G", GROUPS3, ids=ids)
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_polynomial_exact_recovery_gauss_newton(G, degree):
+    p, v, t, Y = _poly_data(G, (3,), 8, degree)
+    fit = reg.fit_polynomial(Y, t, degree)
+    assert bool(fit.converged.all())
+    torch.testing.assert_close(fit.coefficients, v, atol=1e-9, rtol=0)
+    torch.testing.assert_close(fit.origin.as_matrix(), p.as_matrix(), atol=1e-9, rtol=0)
+    assert float(fit.cost.max()) < 1e-20
+
+
+@pytest.mark.parametrize("G", GROUPS3, ids=ids)
+def test_subgroup_exact_recovery_lbfgs_and_matrix_exponential(G):
+    """gamma(t) = p exp(t v) built with scipy's expm of hat(v), not the library's exp."""
+    p = G.exp(torch.randn(2, G.dof, dtype=F64))
+    v = torch.randn(2, G.dof, dtype=F64)
+    t = torch.linspace(0.1, 1.0, 6, dtype=F64)
+    hat = G.hat(v).numpy()
+    E = np.stack([[expm(ti * hat[b]) for ti in t.numpy()] for b in range(2)])
+    Y = G(p.as_matrix().unsqueeze(-3) @ torch.from_numpy(E))
+    for method in ("gauss_newton", "lbfgs"):
+        fit = reg.fit_subgroup(Y, t, method=method)
+        assert bool(fit.converged.all()), method
+        torch.testing.assert_close(fit.coefficients[..., 0, :], v, atol=1e-8, rtol=0)
+        torch.testing.assert_close(fit.origin.as_matrix(), p.as_matrix(), atol=1e-8, rtol=0)
+
+
+def test_polynomial_lbfgs_agrees_with_gauss_newton_on_noisy_data():
+    G = ts.SE23
+    p, v, t, Y = _poly_data(G, (2,), 9, 2)
+    Y = Y.rplus(0.05 * torch.randn(Y.batch_shape + (G.dof,), dtype=F64))
+    gn = reg.fit_polynomial(Y, t, 2)
+    lb = reg.fit_polynomial(Y, t, 2, method="lbfgs")
+    assert bool(gn.converged.all()) and bool(lb.converged.all())
+    torch.testing.assert_close(lb.cost, gn.cost, rtol=1e-9, atol=0)
+    torch.testing.assert_close(lb.coefficients, gn.coefficients, atol=1e-6, rtol=0)
+
+
+def test_batch_elements_are_independent_and_times_broadcast():
+    G = ts.SE3
+    p, v, t, Y = _poly_data(G, (3,), 7, 1)
+    Y = Y.rplus(0.1 * torch.randn(Y.batch_shape + (6,), dtype=F64))
+    batch = reg.fit_subgroup(Y, t)  # times (N,) broadcast over the batch (3,)
+    for b in range(3):
+        one = reg.fit_subgroup(Y[b], t)
+        torch.testing.assert_close(batch.coefficients[b], one.coefficients, atol=1e-10, rtol=0)
+        torch.testing.assert_close(batch.cost[b], one.cost, atol=1e-12, rtol=1e-9)
+
+
+def test_time_origin_and_float32():
+    G = ts.SGal3
+    p, v, t, Y = _poly_data(G, (2,), 6, 1, t=torch.linspace(10.0, 11.0, 6, dtype=F64))
+    # gamma(t) = p exp(t v) = p' exp((t - 10) v) with p' = p exp(10 v)
+    fit = reg.fit_subgroup(Y, t, time_origin=10.0)
+    expected = p @ G.exp(10.0 * v[:, 0])
+    torch.testing.assert_close(fit.origin.as_matrix(), expected.as_matrix(), atol=1e-8, rtol=0)
+    fit32 = reg.fit_subgroup(G(Y.as_matrix().float()), t.float(), time_origin=10.0)
+    torch.testing.assert_close(fit32.coefficients.double(), v, atol=2e-4, rtol=0)
+
+
+@pytest.mark.parametrize("G", GROUPS3, ids=ids)
+def test_riemannian_geodesic_exact_recovery(G):
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    p = G.exp(torch.randn(2, G.dof, dtype=F64))
+    X0 = torch.randn(2, G.dof, dtype=F64)
+    t = torch.linspace(0.1, 1.0, 6, dtype=F64)
+    Phi, _ = reg.geodesic_flow(G, X0, t, w, steps=8)
+    Y = G(p.as_matrix().unsqueeze(-3) @ Phi)
+    fit = reg.fit_riemannian_geodesic(Y, t, weights=w, steps=8)
+    assert bool(fit.converged.all())
+    torch.testing.assert_close(fit.coefficients[..., 0, :], X0, atol=1e-9, rtol=0)
+    torch.testing.assert_close(fit.origin.as_matrix(), p.as_matrix(), atol=1e-9, rtol=0)
+    torch.testing.assert_close(fit(t).as_matrix(), Y.as_matrix(), atol=1e-9, rtol=0)
+
+
+def test_riemannian_geodesic_recovers_se3_product_geodesic():
+    """SE(3), weights [1,1,1,2,2,2]: the geodesic is R0 exp(t w), p0 + t u (product metric),
+    built here without the integrator."""
+    w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
+    t = torch.linspace(0.2, 1.0, 5, dtype=F64)
+    rot0 = ts.SO3.exp(torch.randn(3, dtype=F64))
+    omega, u, p0 = torch.randn(3, dtype=F64), torch.randn(3, dtype=F64), torch.randn(3, dtype=F64)
+    R = rot0.as_matrix() @ ts.SO3.exp(t[:, None] * omega).as_matrix()
+    Y = ts.SE3.from_components(rotation=R, position=p0 + t[:, None] * u)
+    X0 = torch.cat([rot0.as_matrix().T @ u, omega])  # body velocity at t = 0
+    fit = reg.fit_riemannian_geodesic(Y, t, weights=w, steps=32)
+    # The integrator's error at 32 steps (order 4) bounds the agreement.
+    torch.testing.assert_close(fit.coefficients[0], X0, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fit.origin.position(), p0, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fit.origin.rotation(), rot0.as_matrix(), atol=1e-5, rtol=0)
+
+
+def test_riemannian_geodesic_lbfgs_agrees_with_gauss_newton_on_noisy_data():
+    w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
+    t = torch.linspace(0.2, 1.0, 5, dtype=F64)
+    Y = ts.SE3.exp(0.5 * torch.randn(5, 6, dtype=F64))
+    gn = reg.fit_riemannian_geodesic(Y, t, weights=w, steps=8)
+    lb = reg.fit_riemannian_geodesic(Y, t, weights=w, steps=8, method="lbfgs")
+    assert bool(gn.converged) and bool(lb.converged)
+    assert float(gn.cost) > 1.0  # a genuinely noisy problem
+    torch.testing.assert_close(lb.cost, gn.cost, rtol=1e-10, atol=0)
+    torch.testing.assert_close(lb.coefficients, gn.coefficients, atol=1e-6, rtol=0)
+
+
+def test_inertial_worldline_exact_recovery():
+    """gamma(t) = p exp(t iota e_tau) = [[C, v, r + iota t v], [0, 1, tau + iota t], [0, 0, 1]],
+    built from components (no exponential)."""
+    p = ts.SGal3.random((3,), dtype=F64)
+    iota = torch.tensor([0.5, 1.0, 2.0], dtype=F64)
+    t = torch.linspace(-1.0, 2.0, 7, dtype=F64)
+    s = iota[:, None] * t  # (3, 7)
+    C = p.rotation().unsqueeze(-3).expand(3, 7, 3, 3)
+    vel = p.velocity().unsqueeze(-2).expand(3, 7, 3)
+    Y = ts.SGal3.from_components(rotation=C, velocity=vel,
+                                 position=p.position().unsqueeze(-2) + s[..., None] * vel,
+                                 time=p.time().unsqueeze(-1) + s)
+    for method in ("gauss_newton", "lbfgs"):
+        fit = reg.fit_inertial_worldline(Y, t, method=method)
+        assert bool(fit.converged.all())
+        torch.testing.assert_close(fit.coefficients[..., 0, 9], iota, atol=1e-8, rtol=0)
+        torch.testing.assert_close(fit.coefficients[..., 0, :9], torch.zeros(3, 9, dtype=F64), atol=0, rtol=0)
+        torch.testing.assert_close(fit.origin.as_matrix(), p.as_matrix(), atol=1e-8, rtol=0)
+
+
+def test_inertial_worldline_noisy_matches_least_squares_theory():
+    """Frames y_i = gamma(t_i) exp(n_i), n_i ~ N(0, sigma^2 I): the time component of the
+    residual is tau_y - tau_p - iota t, so the clock rate's error has the least-squares
+    slope's standard deviation sigma / sqrt(sum (t_i - mean t)^2) (400 data sets: the rms
+    is within 15%, about 4 standard errors)."""
+    sigma = 0.05
+    p = ts.SGal3.random((400,), dtype=F64)
+    for n in (5, 40):
+        t = torch.linspace(0.0, 1.0, n, dtype=F64)
+        Y = p.unsqueeze(-1) @ ts.SGal3.exp(t[:, None] * torch.tensor([0.0] * 9 + [1.0], dtype=F64))
+        Y = Y.rplus(sigma * torch.randn(400, n, 10, dtype=F64))
+        fit = reg.fit_inertial_worldline(Y, t)
+        assert bool(fit.converged.all())
+        rms = float((fit.coefficients[..., 0, 9] - 1).pow(2).mean().sqrt())
+        theory = sigma / float(((t - t.mean()) ** 2).sum().sqrt())
+        assert abs(rms / theory - 1) < 0.15, (n, rms, theory)
+
+
+# ------------------------------------------------------------------ Jacobians
+def _retracted(model, origin, x, delta):
+    dof = model.G.dof
+    o = origin if model.fix_origin else origin @ model.G.exp(delta[..., :dof]).as_matrix()
+    return model.residuals(o, x + delta[..., (0 if model.fix_origin else dof):])
+
+
+@pytest.mark.parametrize("G", GROUPS3, ids=ids)
+@pytest.mark.parametrize("with_basis", [False, True])
+def test_polynomial_jacobian_matches_autograd(G, with_basis):
+    """Closed-form Jacobian at non-zero residuals against torch.func.jacrev of the residuals
+    under the retraction p exp(dp), x + dx."""
+    p, v, t, Y = _poly_data(G, (), 5, 2)
+    Y = Y.rplus(0.3 * torch.randn(5, G.dof, dtype=F64))
+    basis = torch.linalg.qr(torch.randn(G.dof, 3, dtype=F64))[0] if with_basis else None
+    m = G.dof if basis is None else 3
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    model = PolynomialModel(G, Y.as_matrix(), t, 2, w.sqrt(), basis)
+    origin = G.exp(torch.randn(G.dof, dtype=F64)).as_matrix()
+    x = torch.randn(2 * m, dtype=F64)
+    r, J = model.linearize(origin, x)
+    delta = torch.zeros(G.dof + 2 * m, dtype=F64)
+    J_ad = torch.func.jacrev(lambda d: _retracted(model, origin, x, d))(delta)
+    assert float(r.abs().max()) > 0.1  # genuinely non-zero residuals
+    torch.testing.assert_close(J, J_ad, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=ids)
+def test_riemannian_jacobian_matches_finite_differences(G):
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    t = torch.linspace(-0.5, 1.0, 4, dtype=F64)
+    Y = G.exp(torch.randn(4, G.dof, dtype=F64))
+    model = RiemannianGeodesicModel(G, Y.as_matrix(), t, w.sqrt(), w, steps=6)
+    origin = G.exp(torch.randn(G.dof, dtype=F64)).as_matrix()
+    x = torch.randn(G.dof, dtype=F64)
+    _, J = model.linearize(origin, x)
+    eps = 1e-6
+    cols = []
+    for j in range(2 * G.dof):
+        d = torch.zeros(2 * G.dof, dtype=F64)
+        d[j] = eps
+        cols.append((_retracted(model, origin, x, d) - _retracted(model, origin, x, -d)) / (2 * eps))
+    torch.testing.assert_close(J, torch.stack(cols, -1), atol=1e-7, rtol=1e-7)
+
+
+def test_cost_gradient_matches_finite_differences_of_an_independent_cost():
+    """The GN gradient 2 J^T r of the subgroup cost on SE(3) against central differences of
+    the cost computed with scipy expm/logm."""
+    G = ts.SE3
+    w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
+    t = torch.linspace(0.1, 1.0, 5, dtype=F64)
+    Y = G.exp(torch.randn(5, 6, dtype=F64))
+    model = PolynomialModel(G, Y.as_matrix(), t, 1, w.sqrt())
+    origin = G.exp(torch.randn(6, dtype=F64)).as_matrix()
+    x = 0.5 * torch.randn(6, dtype=F64)
+    r, J = model.linearize(origin, x)
+    grad = 2 * J.T @ r
+    hat = lambda a: G.hat(torch.as_tensor(a, dtype=F64)).numpy()  # noqa: E731
+    Ynp = Y.as_matrix().numpy()
+
+    def cost(d):
+        P = origin.numpy() @ expm(hat(d[:6]))
+        c = 0.0
+        for i, ti in enumerate(t.numpy()):
+            L = logm(np.linalg.inv(P @ expm(ti * hat(x.numpy() + d[6:]))) @ Ynp[i]).real
+            r_i = G.vee(torch.from_numpy(L)).numpy()
+            c += float((w.numpy() * r_i ** 2).sum())
+        return c
+
+    eps = 1e-6
+    fd = [(cost(e) - cost(-e)) / (2 * eps) for e in eps * np.eye(12)]
+    np.testing.assert_allclose(grad.numpy(), fd, atol=1e-6, rtol=1e-6)
+
+
+# ------------------------------------------------------------------ Euler-Arnold
+def test_euler_arnold_se3_product_metric_closed_form_and_order():
+    """weights [1,1,1,2,2,2] make SE(3)'s metric the product 2|w|^2 + |dp/dt|^2: geodesics
+    R = exp(t w), p = t u.  The error falls ~16x per halving of the step (order 4)."""
+    w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
+    X0 = torch.randn(3, 6, dtype=F64)
+    t = torch.linspace(-1.0, 1.5, 6, dtype=F64)
+    Rt = ts.SO3.exp(t[:, None] * X0[:, None, 3:]).as_matrix()
+    pt = t[:, None] * X0[:, None, :3]
+    errs = []
+    for steps in (8, 16, 32):
+        Phi, _ = reg.geodesic_flow(ts.SE3, X0, t, w, steps)
+        errs.append(max(float((Phi[..., :3, :3] - Rt).abs().max()),
+                        float((Phi[..., :3, 3] - pt).abs().max())))
+    assert errs[-1] < 1e-5
+    for a, b in zip(errs, errs[1:]):
+        assert 12 < a / b < 20, errs
+
+
+def test_euler_arnold_so3_against_scipy_rigid_body():
+    """SO(3) with inertia diag(1, 2, 3): Euler's I dw/dt = (I w) x w and dR/dt = R w^,
+    integrated by scipy's RK45 at tight tolerance."""
+    inertia = np.array([1.0, 2.0, 3.0])
+    w0 = np.array([0.3, 1.2, -0.7])
+
+    def rhs(_, y):
+        R, om = y[:9].reshape(3, 3), y[9:]
+        dR = R @ np.array([[0, -om[2], om[1]], [om[2], 0, -om[0]], [-om[1], om[0], 0]])
+        return np.concatenate([dR.ravel(), np.cross(inertia * om, om) / inertia])
+
+    sol = solve_ivp(rhs, (0, 2.0), np.concatenate([np.eye(3).ravel(), w0]), rtol=1e-12,
+                    atol=1e-12, t_eval=[0.5, 1.0, 2.0])
+    Phi, X = reg.geodesic_flow(ts.SO3, torch.tensor(w0), torch.tensor([0.5, 1.0, 2.0], dtype=F64),
+                               torch.tensor(inertia), steps=64)
+    np.testing.assert_allclose(Phi.numpy(), sol.y[:9].T.reshape(3, 3, 3), atol=1e-7)
+    np.testing.assert_allclose(X.numpy(), sol.y[9:].T, atol=1e-7)
+
+
+@pytest.mark.parametrize("G", [ts.SE23, ts.SGal3], ids=ids)
+def test_euler_arnold_conserves_spatial_momentum(G):
+    """Noether: the spatial momentum Ad(gamma^-1)^T W X(t) of a left-invariant metric is
+    constant along its geodesics (sign-sensitive, unlike the energy: with the opposite sign
+    of (24) the drift is O(1))."""
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    X0 = torch.randn(G.dof, dtype=F64)
+    t = torch.tensor([0.0, 0.5, 1.0, 1.5], dtype=F64)
+    drift = []
+    for steps in (16, 32, 64):
+        Phi, X = reg.geodesic_flow(G, X0, t, w, steps=steps)
+        mu = (G(Phi).inverse().adjoint().transpose(-1, -2) @ (w * X).unsqueeze(-1)).squeeze(-1)
+        drift.append(float((mu - w * X0).abs().max()))
+    # conserved up to the integrator's error, which falls at order 4
+    assert drift[-1] < 1e-6 and 10 < drift[0] / drift[1] < 24 and 10 < drift[1] / drift[2] < 24, drift
+    # and the curve is not a one-parameter subgroup (the test is not vacuous)
+    assert float((X[-1] - X0).abs().max()) > 1e-2
+
+
+@pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=ids)
+def test_geodesic_flow_sensitivity_matches_finite_differences(G):
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    X0 = torch.randn(2, G.dof, dtype=F64)
+    t = torch.tensor([-0.7, 0.4, 1.2], dtype=F64)
+    Phi, _, eta = reg.geodesic_flow(G, X0, t, w, 8, sensitivity=True)
+    eps, cols = 1e-6, []
+    for j in range(G.dof):
+        d = torch.zeros(G.dof, dtype=F64)
+        d[j] = eps
+        Pp, _ = reg.geodesic_flow(G, X0 + d, t, w, 8)
+        Pm, _ = reg.geodesic_flow(G, X0 - d, t, w, 8)
+        cols.append((G(Phi).between(G(Pp)).log() - G(Phi).between(G(Pm)).log()) / (2 * eps))
+    torch.testing.assert_close(eta, torch.stack(cols, -1), atol=1e-7, rtol=1e-7)
+
+
+def test_se3_product_metric_distance_equals_geodesic_length():
+    """The Riemannian distance used by the Table 1 example, 2 angle^2 + |dp|^2, is the squared
+    length |X0|_W^2 of the integrated geodesic from I to Phi(1) (angles below pi)."""
+    w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
+    X0 = torch.randn(4, 6, dtype=F64)
+    X0[:, 3:] *= 0.5
+    Phi, _ = reg.geodesic_flow(ts.SE3, X0, torch.ones(1, dtype=F64), w, 32)
+    Phi = ts.SE3(Phi[:, 0])
+    angle = ts.SO3(Phi.rotation()).log().norm(dim=-1)
+    d2 = 2 * angle ** 2 + (Phi.position() ** 2).sum(-1)
+    torch.testing.assert_close(d2, (w * X0 ** 2).sum(-1), atol=1e-7, rtol=0)
+
+
+# ------------------------------------------------------------------ statistics
+def test_frechet_mean_so3_against_scipy_fixed_point():
+    """On SO(3) (bi-invariant) the Frechet mean is the exponential barycenter: the fixed point
+    m <- m exp(mean_j log(m^T y_j)), iterated here with scipy's Rotation."""
+    Y = ts.SO3.exp(torch.tensor([0.3, -0.2, 0.5], dtype=F64) + 0.4 * torch.randn(7, 3, dtype=F64))
+    fm = reg.frechet_mean(Y)
+    ys = Rotation.from_matrix(Y.as_matrix().numpy())
+    m = ys[0]
+    for _ in range(100):
+        m = m * Rotation.from_rotvec((m.inv() * ys).as_rotvec().mean(0))
+    np.testing.assert_allclose(fm.mean.as_matrix().numpy(), m.as_matrix(), atol=1e-10)
+    d2 = ((m.inv() * ys).as_rotvec() ** 2).sum(-1)
+    assert abs(float(fm.variance) - d2.mean()) < 1e-10
+
+
+def test_frechet_mean_se23_is_a_stationary_point_of_its_cost():
+    G = ts.SE23
+    w = 0.5 + torch.rand(9, dtype=F64)
+    Y = G.exp(0.5 * torch.randn(6, 9, dtype=F64))
+    fm = reg.frechet_mean(Y, weights=w)
+    cost = lambda m: (reg.log_distance(m, Y, w) ** 2).sum()  # noqa: E731
+    base = cost(fm.mean.unsqueeze(0))
+    for j in range(9):
+        d = torch.zeros(9, dtype=F64)
+        d[j] = 1e-4
+        up, down = cost(fm.mean.rplus(d).unsqueeze(0)), cost(fm.mean.rplus(-d).unsqueeze(0))
+        assert abs(float(up - down)) / 2e-4 < 1e-7  # zero gradient
+        assert float(up) > float(base) and float(down) > float(base)  # a minimum
+    assert abs(float(fm.variance) - float(base) / 6) < 1e-12
+
+
+def test_r_squared_tends_to_one_as_noise_vanishes():
+    zeta = torch.tensor([2.0, 0.3, 0.0, 0.0, 0.0, 1.0], dtype=F64).expand(20, 6)
+    gen = torch.Generator().manual_seed(3)
+    one_minus = []
+    for sigma in (1e-1, 1e-2, 1e-3, 1e-4):
+        sim = reg.simulate_maneuver(ts.SE3, zeta, 15, sigma, generator=gen)
+        fit = reg.fit_subgroup(sim.measured, sim.times[0])
+        one_minus.append(float((1 - reg.r_squared(sim.measured, fit(sim.times[0]))).mean()))
+    # first order: 1 - R^2 = 6 sigma^2 (N - 2) / SST, SST ~ |zeta|^2 (N^2 - 1) / (12 N) ~ 6.4,
+    # i.e. 1.3e-7 at sigma = 1e-4
+    assert one_minus[-1] < 3e-7, one_minus
+    for a, b in zip(one_minus, one_minus[1:]):  # 1 - R^2 ~ sigma^2: 100x per decade
+        assert 50 < a / b < 200, one_minus
+
+
+def test_r_squared_against_hand_computed_euclidean_case():
+    """On SE(3) with pure translations, a subgroup restricted to translations (basis) is a
+    straight line and the log distance is Euclidean: R^2 is the ordinary least-squares R^2 of
+    the positions, computed with numpy.  (An unrestricted subgroup bends into an arc and fits
+    the noise better.)"""
+    t = torch.linspace(0.1, 1.0, 10, dtype=F64)
+    pos = torch.randn(10, 3, dtype=F64) * 0.3 + t[:, None] * torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    Y = ts.SE3.from_components(rotation=torch.eye(3, dtype=F64).expand(10, 3, 3), position=pos)
+    fit = reg.fit_subgroup(Y, t, basis=torch.eye(6, dtype=F64)[:, :3])
+    r2 = float(reg.r_squared(Y, fit(t)))
+    free = reg.fit_subgroup(Y, t)
+    assert float(free.cost) < float(fit.cost)
+    A = np.stack([np.ones(10), t.numpy()], 1)
+    coef, *_ = np.linalg.lstsq(A, pos.numpy(), rcond=None)
+    sse = ((pos.numpy() - A @ coef) ** 2).sum()
+    sst = ((pos.numpy() - pos.numpy().mean(0)) ** 2).sum()
+    assert abs(r2 - (1 - sse / sst)) < 1e-10
+
+
+def test_simulate_maneuver_matches_algorithm_2():
+    zeta = torch.tensor([1.0, 0.0, 0.5, 0.2, -0.1, 0.8], dtype=F64)
+    sim = reg.simulate_maneuver(ts.SE3, zeta, 10, 0.0)
+    torch.testing.assert_close(sim.times, torch.arange(1, 11, dtype=F64) / 10)
+    hat = ts.SE3.hat(zeta).numpy()
+    expected = np.stack([expm(ti * hat) for ti in sim.times.numpy()])
+    np.testing.assert_allclose(sim.real.as_matrix().numpy(), expected, atol=1e-12)
+    noisy = reg.simulate_maneuver(ts.SE3, zeta.expand(400, 6), 10, 0.05,
+                                  generator=torch.Generator().manual_seed(0))
+    n = noisy.measured.log() - noisy.times[..., None] * zeta  # exp(t zeta + n), no wrap here
+    assert abs(float(n.std()) / 0.05 - 1) < 0.03
+    assert abs(float(n.mean())) < 0.003
+
+
+# ------------------------------------------------------------------ bad input
+def test_bad_input_raises_clear_errors():
+    G = ts.SE3
+    Y = G.exp(torch.randn(5, 6, dtype=F64))
+    t = torch.linspace(0, 1, 5, dtype=F64)
+    with pytest.raises(ValueError, match="times must be sorted"):
+        reg.fit_subgroup(Y, t.flip(0))
+    with pytest.raises(ValueError, match="times must be strictly increasing.*duplicate"):
+        reg.fit_subgroup(Y, torch.tensor([0, 0.2, 0.2, 0.5, 1], dtype=F64))
+    with pytest.raises(ValueError, match="too few samples for degree 5.*at least 6.*N = 5"):
+        reg.fit_polynomial(Y, t, 5)
+    with pytest.raises(ValueError, match=r"times must have shape \(\.\.\., 5\).*\(4,\)"):
+        reg.fit_subgroup(Y, t[:4])
+    with pytest.raises(TypeError, match="times must have a floating dtype"):
+        reg.fit_subgroup(Y, torch.arange(5))
+    with pytest.raises(TypeError, match="times has dtype torch.float32"):
+        reg.fit_subgroup(Y, t.float())
+    with pytest.raises(TypeError, match="samples must be a torchsgal group element"):
+        reg.fit_subgroup(Y.as_matrix(), t)
+    with pytest.raises(ValueError, match=r"samples must have batch shape \(\.\.\., N\)"):
+        reg.fit_subgroup(Y[0], t)
+    with pytest.raises(ValueError, match=r"weights must have shape \(\.\.\., 6\)"):
+        reg.fit_subgroup(Y, t, weights=torch.ones(5, dtype=F64))
+    with pytest.raises(ValueError, match="weights must be positive"):
+        reg.fit_subgroup(Y, t, weights=torch.tensor([1.0, 1, 1, 1, 1, 0], dtype=F64))
+    with pytest.raises(ValueError, match="batch shapes do not broadcast: times"):
+        reg.fit_subgroup(G.exp(torch.randn(3, 5, 6, dtype=F64)), t.expand(2, 5))
+    with pytest.raises(ValueError, match="method must be one of"):
+        reg.fit_subgroup(Y, t, method="newton")
+    with pytest.raises(ValueError, match=r"basis must have shape \(6, m\)"):
+        reg.fit_subgroup(Y, t, basis=torch.ones(5, 1, dtype=F64))
+    with pytest.raises(TypeError, match="samples must be a torchsgal.SGal3"):
+        reg.fit_inertial_worldline(Y, t)
+    with pytest.raises(ValueError, match="too few samples for degree 1"):
+        reg.fit_riemannian_geodesic(Y[:1], t[:1])
+    with pytest.raises(ValueError, match="steps must be a positive int"):
+        reg.fit_riemannian_geodesic(Y, t, steps=0)
+    with pytest.raises(ValueError, match=r"velocity must have shape \(\.\.\., 6\)"):
+        reg.simulate_maneuver(G, torch.ones(5, dtype=F64), 10, 0.1)
+    with pytest.raises(TypeError, match="fitted must be a SE3"):
+        reg.r_squared(Y, ts.SE23.exp(torch.randn(5, 9, dtype=F64)))
