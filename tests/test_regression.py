@@ -3,7 +3,6 @@ Jacobians against autograd and finite differences, the Euler-Arnold integrator a
 closed forms and an independent ODE solver, R^2 as the noise vanishes, and bad input."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

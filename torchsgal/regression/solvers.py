@@ -52,7 +52,8 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
         diag = H.diagonal(dim1=-2, dim2=-1)
         scale = diag + 1e-9 * diag.amax(-1, keepdim=True) + floor
         A = H + torch.diag_embed(lam.unsqueeze(-1) * scale)
-        step = -torch.linalg.solve(A, g)
+        # solve_ex: no host sync; a singular system gives a non-finite step, rejected below
+        step = -torch.linalg.solve_ex(A, g.unsqueeze(-1))[0].squeeze(-1)
         step = torch.where(converged.unsqueeze(-1), torch.zeros_like(step), step)
         o_new, x_new = _retract(model, origin, x, step)
         r_new, J_new = model.linearize(o_new, x_new)
@@ -122,6 +123,6 @@ def lbfgs(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: int = 50
         H = H + torch.diag_embed(1e-12 * diag + torch.finfo(cost.dtype).tiny ** 0.5)
         # Converged when the Gauss-Newton step from the final point (an estimate of the
         # distance to the optimum) is shorter than 1e4 * tolerance * (1 + |x|).
-        gn_step = torch.linalg.solve(H, g).norm(dim=-1)
+        gn_step = torch.linalg.solve_ex(H, g.unsqueeze(-1))[0].squeeze(-1).norm(dim=-1)
         converged = gn_step <= 1e4 * tolerance * (1.0 + x.norm(dim=-1))
     return SolverState(origin, x, cost, converged, it)
