@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from ..groups.base import LieGroup
+from ..groups import LieGroup
 
 
 def group_samples(samples, name: str = "samples", min_samples: int = 1) -> LieGroup:

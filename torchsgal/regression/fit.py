@@ -13,8 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..groups.base import LieGroup
-from ..groups.sgal3 import SGal3
+from ..groups import LieGroup, SGal3
 from . import _checks
 from .models import PolynomialModel, RiemannianGeodesicModel
 from .solvers import gauss_newton, lbfgs

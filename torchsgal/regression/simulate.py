@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..groups.base import LieGroup
+from ..groups import LieGroup
 from ..functional import checks
 
 

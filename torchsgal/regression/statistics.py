@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..groups.base import LieGroup
+from ..groups import LieGroup
 from . import _checks
 from .fit import fit_polynomial
 
