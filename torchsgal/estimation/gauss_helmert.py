@@ -1,0 +1,166 @@
+"""Errors-in-variables (Gauss-Helmert) least squares, batched.
+
+Unknowns x and observation residuals e (B, N, m) with e_n ~ N(0, Sigma_n) are tied by condition
+functions c_n(x, e_n) = 0 (B, N, k).  Minimise 1/2 sum_n e_n^T Sigma_n^-1 e_n subject to the
+conditions.  Linearising at (x, e0):
+
+    c + A delta + Bm (e - e0) = 0,   A = dc/dx (B, N, k, d),  Bm = dc/de (B, N, k, m).
+
+Eliminating e with Lagrange multipliers gives the reduced problem in delta with the misclosure
+w = c - Bm e0 and the effective covariance S = Bm Sigma Bm^T (kelly-giamou (5.23)):
+
+    (sum A^T S^-1 A) delta = -sum A^T S^-1 w                                       (5.24)
+    e = -Sigma Bm^T S^-1 (w + A delta).
+
+``variant="paper"`` re-linearises at e0 = 0 on every iteration, as (5.18) does; ``"iterated"``
+re-linearises at the current estimate of e (the classical Gauss-Helmert iteration), which needs
+the condition Jacobians at non-zero residuals and converges to the constrained optimum.
+The whitened reduced residual L^-1 w (S = L L^T) drives the shared Levenberg-Marquardt loop of
+``solver.iterate``; its cost 1/2 w^T S^-1 w is the linearised errors-in-variables cost.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from . import variables as V
+from .solver import Linearisation, Solution, iterate
+
+VARIANTS = ("iterated", "paper")
+
+
+def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
+    """Symmetric positive definite (..., m, m); raises naming ``name`` otherwise (host sync)."""
+    if not isinstance(S, torch.Tensor):
+        raise TypeError(f"{name} must be a tensor (..., {m}, {m}), got {type(S).__name__}")
+    if S.dim() < 2 or S.shape[-2:] != (m, m):
+        raise ValueError(f"{name} must have shape (..., {m}, {m}), got {tuple(S.shape)}")
+    if not S.is_floating_point():
+        raise TypeError(f"{name} must be floating point, got {S.dtype}")
+    if not bool(torch.isfinite(S).all()):
+        raise ValueError(f"{name} has non-finite entries")
+    asym = (S - S.transpose(-1, -2)).abs().amax()
+    scale = S.abs().amax().clamp_min(torch.finfo(S.dtype).tiny)
+    if bool(asym > 1e3 * torch.finfo(S.dtype).eps * scale):
+        raise ValueError(f"{name} is not symmetric: max |S - S^T| = {float(asym):.3g}")
+    _, info = torch.linalg.cholesky_ex(S)
+    if bool((info != 0).any()):
+        raise ValueError(f"{name} is not positive definite ({int((info != 0).sum())} of "
+                         f"{info.numel()} matrices fail Cholesky)")
+    return S
+
+
+class _CovarianceBlocks:
+    """Block-diagonal observation covariance: B Sigma B^T = sum_i (B_i R_i)(B_i R_i)^T with
+    R_i the Cholesky factor of block i, or its square-root diagonal when the block is diagonal
+    (checked once, at entry)."""
+
+    def __init__(self, covariance):
+        blocks = covariance if isinstance(covariance, (tuple, list)) else (covariance,)
+        self.sizes, self.factors, self.diagonal = [], [], []
+        for i, S in enumerate(blocks):
+            name = "observation_covariance" + (f"[{i}]" if len(blocks) > 1 else "")
+            if not isinstance(S, torch.Tensor) or S.dim() < 2:
+                raise ValueError(f"{name} must be a tensor (..., m, m), got "
+                                 f"{tuple(getattr(S, 'shape', ()))}")
+            check_covariance(S, S.shape[-1], name)
+            d = S.diagonal(dim1=-2, dim2=-1)
+            diagonal = bool((S - torch.diag_embed(d)).abs().amax() == 0)
+            self.sizes.append(S.shape[-1])
+            self.diagonal.append(diagonal)
+            self.factors.append(d.sqrt() if diagonal else torch.linalg.cholesky(S))
+
+    @property
+    def dim(self) -> int:
+        return sum(self.sizes)
+
+    def _split(self, Bm):
+        out, i = [], 0
+        for k in self.sizes:
+            out.append(Bm[..., i:i + k])
+            i += k
+        return out
+
+    def whiten(self, Bm):
+        """[B_i R_i] per block."""
+        return [Bi * R[..., None, :] if diag else Bi @ R
+                for Bi, R, diag in zip(self._split(Bm), self.factors, self.diagonal)]
+
+    def effective(self, Bw):
+        """S = sum_i (B_i R_i)(B_i R_i)^T."""
+        S = None
+        for W in Bw:
+            term = W @ W.transpose(-1, -2)
+            S = term if S is None else S + term
+        return S
+
+    def apply_transposed(self, Bw, y):
+        """Sigma B^T y = concat_i R_i (B_i R_i)^T y; y (..., k)."""
+        parts = []
+        for W, R, diag in zip(Bw, self.factors, self.diagonal):
+            u = (W.transpose(-1, -2) @ y[..., None])[..., 0]
+            parts.append(u * R if diag else (R @ u[..., None])[..., 0])
+        return torch.cat(parts, dim=-1)
+
+
+def gauss_helmert(
+    condition: Callable,
+    x0,
+    observation_covariance,
+    *,
+    variant: str = "iterated",
+    e0: torch.Tensor | None = None,
+    **options,
+) -> Solution:
+    """Solves a batch of errors-in-variables problems.
+
+    condition: (x, e) -> (c (B, N, k), A (B, N, k, d), Bm (B, N, k, m)); e is (B, N, m), or
+        None for e = 0 (the condition may take a cheaper path then).  Any invertible factor
+        per condition may multiply c's linearisation (A, Bm and the linear part of c) without
+        changing the solution.
+    x0: the unknowns (see ``variables``).
+    observation_covariance: (B or 1, N or 1, m, m) symmetric positive definite, or a tuple of
+        such blocks along the diagonal (sizes adding up to m); diagonal blocks are detected and
+        handled elementwise.
+    variant: "iterated" (default) or "paper" (see the module docstring).
+    options: see ``solver.iterate``.  The iterated variant accepts steps whose linearised cost
+        rises by at most ``accept_tol`` (default 1e-6, relative), since that cost is
+        re-evaluated at the new residual estimate.
+    Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    x0 = V.check_values(x0)
+    cov = _CovarianceBlocks(observation_covariance)
+    iterated = variant == "iterated"
+    if iterated:
+        options.setdefault("accept_tol", 1e-6)
+
+    def linearise(x, e):
+        c, A, Bm = condition(x, e if iterated else None)
+        if Bm.shape[-1] != cov.dim:
+            raise ValueError(f"condition returned Bm with {Bm.shape[-1]} columns, but the "
+                             f"observation covariance has size {cov.dim}")
+        w = c - (Bm @ e[..., None])[..., 0] if (iterated and e is not None) else c
+        Bw = cov.whiten(Bm)
+        L, _ = torch.linalg.cholesky_ex(cov.effective(Bw))
+        rw = torch.linalg.solve_triangular(L, w[..., None], upper=False)[..., 0]
+        Aw = torch.linalg.solve_triangular(L, A, upper=False)
+        Bn, N, k = c.shape
+        return Linearisation(rw.reshape(Bn, N * k), Aw.reshape(Bn, N * k, A.shape[-1]),
+                             extra=(L, Bw))
+
+    def post_step(x, e, lin, delta):
+        L, Bw = lin.extra
+        Bn = delta.shape[0]
+        N, k = L.shape[1], L.shape[-1]
+        z = (lin.r + (lin.J @ delta[..., None])[..., 0]).reshape(Bn, N, k)
+        y = torch.linalg.solve_triangular(L.transpose(-1, -2), z[..., None], upper=True)[..., 0]
+        return -cov.apply_transposed(Bw, y)
+
+    # The observation residual estimate starts at e0 (zero by default).
+    if e0 is None:
+        c0, _, _ = condition(x0, None)
+        e0 = torch.zeros(c0.shape[:2] + (cov.dim,), dtype=c0.dtype, device=c0.device)
+    return iterate(linearise, x0, e0, post_step, **options)

@@ -1,0 +1,250 @@
+"""Batched Gauss-Newton / Levenberg-Marquardt over group and Euclidean unknowns.
+
+Every problem of the batch has its own damping, step, cost and status, kept with
+``torch.where``, so one bad problem never spoils the others.  The loop stops when no problem
+is still running (one host sync per iteration, outside the group ops).
+
+The normal equations use the whitened residual r (B, m) and its Jacobian J (B, m, d) with
+respect to right perturbations of the unknowns (``variables.retract``):
+(J^T J + lambda diag(J^T J)) delta = -J^T r.  The Laplace covariance of the solution is
+(J^T J)^-1 at the last linearisation point.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from . import variables as V
+
+
+class SolverStatus(enum.IntEnum):
+    RUNNING = -1
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    DIVERGED = 2  # the damping grew past its limit without an acceptable step
+    NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start
+    SINGULAR = 4  # the information J^T J is singular at the solution (unobservable directions)
+
+
+@dataclass
+class SolverReport:
+    """Per-problem outcome; every tensor has the batch shape (B,)."""
+
+    status: torch.Tensor  # SolverStatus codes (int64)
+    iterations: torch.Tensor  # accepted + rejected steps taken
+    initial_cost: torch.Tensor  # 1/2 |r|^2 at x0
+    cost: torch.Tensor  # 1/2 |r|^2 at the solution
+    step_norm: torch.Tensor  # sqrt(delta^T J^T J delta) of the last step (in standard deviations)
+    gradient_norm: torch.Tensor  # |J^T r| at the solution
+
+    @property
+    def converged(self) -> torch.Tensor:
+        return self.status == SolverStatus.CONVERGED
+
+    def counts(self) -> dict[str, int]:
+        """{status name: number of problems}."""
+        return {s.name: int((self.status == s).sum()) for s in SolverStatus
+                if s != SolverStatus.RUNNING and int((self.status == s).sum())}
+
+
+@dataclass
+class Solution:
+    x: tuple  # the unknowns, same blocks as x0
+    covariance: torch.Tensor  # (B, d, d) Laplace covariance (J^T J)^-1, right perturbations
+    report: SolverReport
+    aux: object = None  # solver-specific state (the observation residuals for Gauss-Helmert)
+
+
+@dataclass
+class Linearisation:
+    r: torch.Tensor  # (B, m) whitened residual
+    J: torch.Tensor  # (B, m, d)
+    extra: object = None  # passed to the post-step hook
+
+
+def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torch.Tensor:
+    """(B,) True where the Jacobi-scaled information has reciprocal condition below ``rcond``
+    (default 1e3 eps) or is not finite."""
+    if rcond is None:
+        rcond = 1e3 * torch.finfo(H.dtype).eps
+    d = H.diagonal(dim1=-2, dim2=-1)
+    s = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
+    Hs = H * s[..., :, None] * s[..., None, :]
+    finite = torch.isfinite(Hs).all(dim=(-1, -2))
+    ev = torch.linalg.eigvalsh(torch.where(finite[..., None, None], Hs, torch.eye(
+        H.shape[-1], dtype=H.dtype, device=H.device)))
+    return ~finite | (d <= 0).any(dim=-1) | (ev[..., 0] <= rcond * ev[..., -1])
+
+
+def covariance_from_information(H: torch.Tensor, singular: torch.Tensor) -> torch.Tensor:
+    """H^-1 by Cholesky; NaN where ``singular`` (the report's status says SINGULAR there)."""
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    Hs = torch.where(singular[..., None, None], eye, H)
+    L, _ = torch.linalg.cholesky_ex(Hs)
+    P = torch.cholesky_inverse(L)
+    return torch.where(singular[..., None, None], torch.full_like(P, float("nan")), P)
+
+
+def iterate(
+    linearise: Callable,
+    x0,
+    aux0=None,
+    post_step: Callable | None = None,
+    *,
+    max_iterations: int = 50,
+    damping: float | None = 1e-4,
+    step_tol: float = 1e-6,
+    cost_tol: float = 1e-12,
+    accept_tol: float = 0.0,
+    max_damping: float = 1e10,
+) -> Solution:
+    """The shared loop of ``gauss_newton`` and ``gauss_helmert``.
+
+    ``linearise(x, aux) -> Linearisation`` at the current point; ``post_step(x, aux, lin,
+    delta) -> aux`` gives the solver state that goes with the new point (None: unchanged).
+    ``damping=None`` takes plain Gauss-Newton steps (every step accepted); otherwise
+    Levenberg-Marquardt with per-problem damping starting at ``damping``.  A step is accepted
+    when the new cost is at most (1 + accept_tol) times the old one.  A problem converges when
+    an accepted step is shorter than ``step_tol`` in the metric of the information,
+    sqrt(delta^T J^T J delta) (that is, in standard deviations of the Laplace posterior, a
+    dimensionless test), or when the cost falls by less than ``cost_tol`` relative.
+    """
+    x = V.check_values(x0)
+    aux = aux0
+    lin = linearise(x, aux)
+    Bn, d = lin.J.shape[0], lin.J.shape[-1]
+    dtype, device = lin.J.dtype, lin.J.device
+    eye = torch.eye(d, dtype=dtype, device=device)
+
+    def cost_of(r):
+        return 0.5 * r.square().sum(dim=-1)
+
+    ok0 = V.finite(x) & torch.isfinite(lin.r).all(-1) & torch.isfinite(lin.J).flatten(1).all(-1)
+    status = torch.where(ok0, SolverStatus.RUNNING, SolverStatus.NON_FINITE).to(torch.int64)
+    # Sanitise non-finite problems so that they cannot poison shared reductions.
+    r = torch.where(ok0[:, None], lin.r, torch.zeros_like(lin.r))
+    J = torch.where(ok0[:, None, None], lin.J, torch.zeros_like(lin.J))
+    lin = Linearisation(r, J, lin.extra)
+    cost = cost_of(r)
+    initial_cost = cost.clone()
+    lam = torch.full((Bn,), damping if damping is not None else 0.0, dtype=dtype, device=device)
+    iterations = torch.zeros(Bn, dtype=torch.int64, device=device)
+    step_norm = torch.zeros(Bn, dtype=dtype, device=device)
+
+    for _ in range(max_iterations):
+        running = status == SolverStatus.RUNNING
+        if not bool(running.any()):
+            break
+        H = lin.J.transpose(-1, -2) @ lin.J
+        g = (lin.J.transpose(-1, -2) @ lin.r[..., None])[..., 0]
+        diag = H.diagonal(dim1=-2, dim2=-1)
+        # Damping scaled by the diagonal, floored so that unobservable directions stay solvable.
+        floor = 1e-12 * diag.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
+        Hd = H + torch.diag_embed(lam[:, None] * torch.maximum(diag, floor)) if damping is not None else H
+        L, info = torch.linalg.cholesky_ex(torch.where(running[:, None, None], Hd, eye))
+        solvable = info == 0
+        delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
+        delta = torch.where((running & solvable)[:, None], delta, torch.zeros_like(delta))
+        x_new = V.retract(x, delta)
+        aux_new = post_step(x, aux, lin, delta) if post_step is not None else aux
+        lin_new = linearise(x_new, aux_new)
+        cost_new = cost_of(lin_new.r)
+        finite_new = (V.finite(x_new) & torch.isfinite(cost_new)
+                      & torch.isfinite(lin_new.J).flatten(1).all(-1))
+        if damping is None:
+            accept = running & solvable & finite_new
+        else:
+            accept = running & solvable & finite_new & (cost_new <= cost * (1 + accept_tol))
+        step = (delta * (H @ delta[..., None])[..., 0]).sum(-1).clamp_min(0).sqrt()
+        iterations = iterations + running.to(torch.int64)
+        step_norm = torch.where(running, step, step_norm)
+        # Keep the accepted problems' new point; the others keep theirs.
+        x = V.select(accept, x_new, x)
+        if aux is not None or aux_new is not None:
+            aux = _select_aux(accept, aux_new, aux)
+        r = torch.where(accept[:, None], torch.where(finite_new[:, None], lin_new.r, 0), lin.r)
+        J = torch.where(accept[:, None, None], torch.where(finite_new[:, None, None], lin_new.J, 0), lin.J)
+        extra = _select_aux(accept, lin_new.extra, lin.extra)
+        lin = Linearisation(r, J, extra)
+        old_cost = cost
+        cost = torch.where(accept, cost_new, cost)
+        if damping is not None:
+            lam = torch.where(accept, (lam / 10).clamp_min(1e-12), lam * 10)
+        decrease = old_cost - cost
+        converged = running & accept & (
+            (step <= step_tol) | ((decrease >= 0) & (decrease <= cost_tol * old_cost)))
+        diverged = running & ~converged & (
+            (lam > max_damping) if damping is not None else ~(solvable & finite_new))
+        status = torch.where(converged, SolverStatus.CONVERGED, status)
+        status = torch.where(diverged, SolverStatus.DIVERGED, status)
+    status = torch.where(status == SolverStatus.RUNNING, SolverStatus.MAX_ITERATIONS, status)
+
+    H = lin.J.transpose(-1, -2) @ lin.J
+    g = (lin.J.transpose(-1, -2) @ lin.r[..., None])[..., 0]
+    singular = information_is_singular(H) & (status != SolverStatus.NON_FINITE)
+    status = torch.where(singular, SolverStatus.SINGULAR, status)
+    P = covariance_from_information(H, singular | (status == SolverStatus.NON_FINITE))
+    report = SolverReport(status=status, iterations=iterations, initial_cost=initial_cost,
+                          cost=cost, step_norm=step_norm, gradient_norm=g.norm(dim=-1))
+    return Solution(x=x, covariance=P, report=report, aux=aux)
+
+
+def _select_aux(mask, new, old):
+    if new is None or old is None:
+        return new if old is None else old
+    if isinstance(new, torch.Tensor):
+        m = mask.reshape(mask.shape + (1,) * (new.dim() - 1))
+        return torch.where(m, new, old)
+    if isinstance(new, (tuple, list)):
+        return type(new)(_select_aux(mask, a, b) for a, b in zip(new, old))
+    if isinstance(new, dict):
+        return {k: _select_aux(mask, new[k], old[k]) for k in new}
+    raise TypeError(f"cannot select solver state of type {type(new).__name__}")
+
+
+def autograd_jacobian(residual: Callable, x) -> torch.Tensor:
+    """J (B, m, d) of residual(retract(x, delta)) at delta = 0 by reverse-mode autodiff.
+
+    The problems are independent, so the Jacobian of the batch-summed residual with respect
+    to the batched perturbation holds every problem's Jacobian; one ``jacrev`` call."""
+    x = V.detach(x)
+    Bn, d = V.batch_size(x), V.tangent_dim(x)
+    ref = x[0].as_matrix() if hasattr(x[0], "as_matrix") else x[0]
+    zero = torch.zeros(Bn, d, dtype=ref.dtype, device=ref.device)
+    J = torch.func.jacrev(lambda dl: residual(V.retract(x, dl)).sum(0))(zero)  # (m, B, d)
+    return J.permute(1, 0, 2)
+
+
+def gauss_newton(
+    residual: Callable,
+    x0,
+    jacobian: Callable | None = None,
+    **options,
+) -> Solution:
+    """Minimises 1/2 |residual(x)|^2 for every problem of a batch.
+
+    residual: x -> (B, m), whitened (divide by the noise's square root yourself).
+    x0: a group element of batch shape (B,), a tensor (B, k), or a tuple of them.
+    jacobian: x -> (B, m, d) with respect to right perturbations (``variables.retract``); by
+        default autodiff through ``residual`` (``autograd_jacobian``).
+    options: see ``iterate`` (max_iterations, damping, step_tol, cost_tol, ...).
+    Returns a ``Solution`` with the unknowns, the Laplace covariance and the per-problem report.
+    """
+    x0 = V.check_values(x0)
+
+    def linearise(x, _aux):
+        with torch.no_grad():
+            r = residual(x)
+        if r.dim() != 2 or r.shape[0] != V.batch_size(x):
+            raise ValueError(f"residual(x) must return (B, m) with B = {V.batch_size(x)}, "
+                             f"got {tuple(r.shape)}")
+        J = jacobian(x) if jacobian is not None else autograd_jacobian(residual, x)
+        expected = (r.shape[0], r.shape[1], V.tangent_dim(x))
+        if tuple(J.shape) != expected:
+            raise ValueError(f"jacobian(x) must return {expected}, got {tuple(J.shape)}")
+        return Linearisation(r, J)
+
+    return iterate(linearise, x0, **options)

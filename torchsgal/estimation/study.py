@@ -1,0 +1,314 @@
+"""The Monte Carlo study of kelly-giamou Section 5(c), Table 1.
+
+Simulation (the paper leaves the true transforms unspecified; this is our choice, see
+docs/estimation.md):
+- F_ga0: uniform rotation, position N(0, separation^2 I), clock N(0, clock_offset^2), and the
+  velocity -speed/2 along a random direction w (expressed in g);
+- F_a0b0: uniform rotation, velocity speed * w' (w' = C_ga0^T w: the frames move apart at the
+  relative ``speed``), position N(0, separation^2 I), clock offset N(0, clock_offset^2);
+- dtau = nominal_dtau + N(0, dtau_sigma^2) per trial: the paper's "additional noise on dtau"
+  read as the trial-to-trial uncertainty of the true interval, which the estimators do not
+  know: both start from the nominal interval;
+- F_ga_n = F_ga0 T^-n, F_gb_n = F_gb0 T^-n (so that (5.4) holds), n = 0..N; observations
+  F~ = F exp(-eps), eps ~ N(0, Sigma) of (5.27), independent per frame and sample;
+- initial guess F~_ga0^-1 F~_gb0 for F_a0b0, the nominal interval for dtau.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+
+import torch
+
+from ..groups import SE23, SGal3
+from . import metrics
+from .solver import SolverStatus
+from .tls import TLSProblem, solve_baseline, solve_sgal3
+
+PAPER_TABLE1 = {
+    "SGal(3)": {"position": 0.441, "velocity": 0.069, "orientation": 0.013, "time_offset": 0.027,
+                "interval": 0.004, "ANEES": 12.49, "MMD": 3.45},
+    "SE_2(3) x R": {"position": 0.575, "velocity": 0.071, "orientation": 0.013,
+                    "time_offset": 0.028, "interval": 0.004, "ANEES": 97.08, "MMD": 8.99},
+}
+PAPER_ANEES_BAND = (10.74, 11.27)
+
+
+def paper_covariance(dtype=torch.float64, device=None) -> torch.Tensor:
+    """(5.27): diag(0.2^2 (rho, nu), (pi/60)^2 (phi), 0.2^2 (iota))."""
+    d = [0.2 ** 2] * 6 + [(math.pi / 60) ** 2] * 3 + [0.2 ** 2]
+    return torch.diag(torch.tensor(d, dtype=dtype, device=device))
+
+
+@dataclass
+class StudyConfig:
+    trials: int = 1200
+    samples: int = 101  # N + 1 observations per frame
+    nominal_dtau: float = -1.0  # s; sample n + 1 one second after sample n, see tls.py
+    dtau_sigma: float = 0.2  # s, the paper's additional noise on dtau (trial-to-trial)
+    speed: float = 10.0  # m/s, relative speed of the two frames
+    separation: float = 5.0  # m, std of the initial positions
+    clock_offset: float = 1.0  # s, std of the clocks of a_0 and of the offset b_0 - a_0
+    seed: int = 0
+    variants: tuple = ("iterated", "paper")
+    max_iterations: int = 50
+    dtype: str = "float64"
+
+
+@dataclass
+class TrialSet:
+    problem: TLSProblem
+    F_true: SGal3  # F_a0b0
+    dtau_true: torch.Tensor  # (B,)
+    F_ga0: SGal3  # true frame a at n = 0 (defines the baseline's truth)
+
+
+def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Generator | None = None
+             ) -> TrialSet:
+    dtype = getattr(torch, cfg.dtype)
+    K = cfg.trials if trials is None else trials
+    g = generator or torch.Generator().manual_seed(cfg.seed)
+
+    def normal(*shape):
+        return torch.randn(*shape, generator=g, dtype=dtype)
+
+    def unit(*shape):
+        u = normal(*shape, 3)
+        return u / u.norm(dim=-1, keepdim=True)
+
+    def rotation():
+        return random_rotation(K, g, dtype)
+
+    w = unit(K)
+    C_ga = rotation()
+    F_ga0 = SGal3.from_components(C_ga, -0.5 * cfg.speed * w, cfg.separation * normal(K, 3),
+                                  cfg.clock_offset * normal(K))
+    w_a = (C_ga.transpose(-1, -2) @ w[..., None])[..., 0]
+    F_true = SGal3.from_components(rotation(), cfg.speed * w_a, cfg.separation * normal(K, 3),
+                                   cfg.clock_offset * normal(K))
+    F_gb0 = F_ga0 @ F_true
+    dtau = cfg.nominal_dtau + cfg.dtau_sigma * normal(K)
+    n = torch.arange(cfg.samples, dtype=dtype)
+    xi = torch.zeros(K, cfg.samples, 10, dtype=dtype)
+    xi[..., 9] = -n * dtau[:, None]
+    T_inv = SGal3.exp(xi)  # T^-n
+    F_ga = F_ga0.unsqueeze(-1) @ T_inv
+    F_gb = F_gb0.unsqueeze(-1) @ T_inv
+    Sigma = paper_covariance(dtype)
+    Lc = torch.linalg.cholesky(Sigma)
+    eps_a = (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
+    eps_b = (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
+    obs_a = F_ga @ SGal3.exp(-eps_a)
+    obs_b = F_gb @ SGal3.exp(-eps_b)
+    problem = TLSProblem(obs_a, obs_b, Sigma, Sigma, indices=n)
+    return TrialSet(problem, F_true, dtau, F_ga0)
+
+
+def random_rotation(K, generator, dtype):
+    """Uniform rotations (Haar) as SO3 matrices, from normalised quaternions."""
+    q = torch.randn(K, 4, generator=generator, dtype=dtype)
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    R = torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)
+    return R.reshape(K, 3, 3)
+
+
+def errors_sgal3(sol, trials: TrialSet) -> torch.Tensor:
+    """(5.28): [log(F^ ^-1 F) (10), dtau - dtau^] (K, 11)."""
+    F_hat, dtau_hat = sol.x
+    return torch.cat([trials.F_true.rminus(F_hat), (trials.dtau_true - dtau_hat[:, 0])[:, None]], -1)
+
+
+def baseline_truth(F_ab: SGal3, F_ga0: SGal3):
+    """The (X', tau0) of SE_2(3) x R that reproduces the true observations: composing in the
+    product group drops the term v_ga tau of SGal(3)'s product F_ga F_ab, so
+    X' = (C, v, r + C_ga^T v_ga tau), tau0 = tau (see docs/estimation.md)."""
+    C_ga, v_ga = F_ga0.rotation(), F_ga0.velocity()
+    tau = F_ab.time()
+    shift = (C_ga.transpose(-1, -2) @ v_ga[..., None])[..., 0] * tau[..., None]
+    return SE23.from_components(F_ab.rotation(), F_ab.velocity(), F_ab.position() + shift), tau
+
+
+def errors_baseline(sol, trials: TrialSet) -> torch.Tensor:
+    """[log(X^ ^-1 X) (9), tau0 - tau0^, dtau - dtau^] (K, 11) in the baseline's coordinates."""
+    X_hat, tau_hat, dtau_hat = sol.x
+    X_true, tau_true = baseline_truth(trials.F_true, trials.F_ga0)
+    return torch.cat([X_true.rminus(X_hat), (tau_true - tau_hat[:, 0])[:, None],
+                      (trials.dtau_true - dtau_hat[:, 0])[:, None]], -1)
+
+
+COMPONENTS = {"position": slice(0, 3), "velocity": slice(3, 6), "orientation": slice(6, 9),
+              "time_offset": slice(9, 10), "interval": slice(10, 11)}
+
+
+def summarise(err: torch.Tensor, cov: torch.Tensor, status: torch.Tensor) -> dict:
+    ok = status == SolverStatus.CONVERGED
+    e, P = err[ok], cov[ok]
+    q = metrics.nees(e, P)
+    out = {name: float(metrics.rmse(e[:, sl])) for name, sl in COMPONENTS.items()}
+    out["ANEES"] = float(q.mean())
+    out["MMD"] = float(q.sqrt().mean())
+    out["converged"] = int(ok.sum())
+    out["trials"] = int(status.numel())
+    out["nees"] = q.tolist()
+    return out
+
+
+def run(cfg: StudyConfig, chunk: int = 300, progress: bool = True) -> dict:
+    """Runs the study; returns a dict with the config, per-estimator results and timings."""
+    g = torch.Generator().manual_seed(cfg.seed)
+    estimators = {("SGal(3)", v): (solve_sgal3, errors_sgal3) for v in cfg.variants}
+    estimators.update({("SE_2(3) x R", v): (solve_baseline, errors_baseline) for v in cfg.variants})
+    acc = {k: {"err": [], "cov": [], "status": [], "iterations": [], "time": 0.0} for k in estimators}
+    bar = _progress(cfg.trials, progress)
+    sim_time = 0.0
+    done = 0
+    while done < cfg.trials:
+        k = min(chunk, cfg.trials - done)
+        t0 = time.perf_counter()
+        trials = simulate(cfg, k, g)
+        sim_time += time.perf_counter() - t0
+        for key, (solve, errs) in estimators.items():
+            t0 = time.perf_counter()
+            sol = solve(trials.problem, dtau0=cfg.nominal_dtau, variant=key[1],
+                        max_iterations=cfg.max_iterations)
+            acc[key]["time"] += time.perf_counter() - t0
+            acc[key]["err"].append(errs(sol, trials))
+            acc[key]["cov"].append(sol.covariance)
+            acc[key]["status"].append(sol.report.status)
+            acc[key]["iterations"].append(sol.report.iterations)
+        done += k
+        bar(k)
+    bar(0, close=True)
+    results = {}
+    for (name, variant), a in acc.items():
+        status = torch.cat(a["status"])
+        res = summarise(torch.cat(a["err"]), torch.cat(a["cov"]), status)
+        res["time_s"] = a["time"]
+        res["iterations_median"] = float(torch.cat(a["iterations"]).double().median())
+        res["status"] = {s.name: int((status == s).sum()) for s in SolverStatus
+                         if s != SolverStatus.RUNNING and int((status == s).sum())}
+        results.setdefault(name, {})[variant] = res
+    lo, hi = metrics.anees_band(cfg.trials, 11)
+    return {"config": asdict(cfg), "anees_band_95": [lo, hi], "expected_mmd": metrics.expected_mmd(11),
+            "simulation_time_s": sim_time, "results": results, "paper": PAPER_TABLE1,
+            "paper_anees_band_95": list(PAPER_ANEES_BAND),
+            "torch": torch.__version__, "threads": torch.get_num_threads()}
+
+
+def _progress(total: int, enabled: bool):
+    """A tqdm bar when tqdm is installed, else a plain line on stderr."""
+    if not enabled:
+        return lambda k, close=False: None
+    try:
+        from tqdm import tqdm
+        bar = tqdm(total=total, desc="trials", unit="trial", file=sys.stderr)
+
+        def update(k, close=False):
+            bar.update(k)
+            if close:
+                bar.close()
+        return update
+    except ImportError:
+        state = {"n": 0}
+
+        def update(k, close=False):
+            state["n"] += k
+            if close:
+                print(file=sys.stderr)
+            else:
+                print(f"\rtrials {state['n']}/{total}", end="", file=sys.stderr, flush=True)
+        return update
+
+
+def table_markdown(out: dict) -> str:
+    """Table 1 with our figures next to the paper's."""
+    res, paper = out["results"], out["paper"]
+    lo, hi = out["anees_band_95"]
+    rows = [("position", "RMSE position"), ("velocity", "RMSE velocity"),
+            ("orientation", "RMSE orientation"), ("time_offset", "RMSE time offset"),
+            ("interval", "RMSE interval dtau"), ("ANEES", "ANEES"), ("MMD", "MMD")]
+    cols = []
+    for name in ("SGal(3)", "SE_2(3) x R"):
+        for variant in res.get(name, {}):
+            cols.append((name, variant))
+    head = "| metric | " + " | ".join(f"{n} {v}" for n, v in cols) + \
+        " | paper SGal(3) | paper SE_2(3) x R |"
+    lines = [head, "|" + "---|" * (len(cols) + 3)]
+    for key, label in rows:
+        vals = [f"{res[n][v][key]:.3f}" if key not in ("ANEES", "MMD") else f"{res[n][v][key]:.2f}"
+                for n, v in cols]
+        lines.append(f"| {label} | " + " | ".join(vals) +
+                     f" | {paper['SGal(3)'][key]} | {paper['SE_2(3) x R'][key]} |")
+    lines.append("| converged / trials | " + " | ".join(
+        f"{res[n][v]['converged']}/{res[n][v]['trials']}" for n, v in cols) + " | | |")
+    lines.append("| solve time (s) | " + " | ".join(f"{res[n][v]['time_s']:.2f}" for n, v in cols)
+                 + " | | |")
+    cfg = out["config"]
+    lines.append("")
+    lines.append(f"ANEES 95% band for {cfg['trials']} trials, 11 dof: [{lo:.2f}, {hi:.2f}] "
+                 f"(paper: [{out['paper_anees_band_95'][0]}, {out['paper_anees_band_95'][1]}]); "
+                 f"expected MMD {out['expected_mmd']:.2f}.")
+    lines.append(f"Setup: {cfg['trials']} trials, {cfg['samples']} samples, nominal dtau "
+                 f"{cfg['nominal_dtau']} s (+ N(0, {cfg['dtau_sigma']}^2) per trial), relative speed "
+                 f"{cfg['speed']} m/s, separation {cfg['separation']} m, clock offset "
+                 f"{cfg['clock_offset']} s, seed {cfg['seed']}, {cfg['dtype']}.")
+    return "\n".join(lines)
+
+
+def write_outputs(out: dict, directory: str, plot: bool = True) -> list[str]:
+    import os
+    os.makedirs(directory, exist_ok=True)
+    paths = []
+    slim = json.loads(json.dumps(out))
+    for name in slim["results"].values():
+        for res in name.values():
+            res.pop("nees", None)
+    p = os.path.join(directory, "tls_study.json")
+    with open(p, "w") as f:
+        json.dump(slim, f, indent=2)
+    paths.append(p)
+    p = os.path.join(directory, "tls_study.md")
+    with open(p, "w") as f:
+        f.write("# Kelly-Giamou Table 1, reproduced\n\n" + table_markdown(out) + "\n")
+    paths.append(p)
+    if plot:
+        p = plot_nees(out, os.path.join(directory, "tls_nees.png"))
+        if p:
+            paths.append(p)
+    return paths
+
+
+def plot_nees(out: dict, path: str) -> str | None:
+    """Histograms of the NEES per estimator with the chi2_11 density; None without matplotlib."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not installed: no NEES plot (pip install matplotlib)", file=sys.stderr)
+        return None
+    res = out["results"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    x = torch.linspace(0.01, 60, 400, dtype=torch.float64)
+    k = 11
+    dens = torch.exp((k / 2 - 1) * x.log() - x / 2 - (k / 2) * math.log(2) - math.lgamma(k / 2))
+    for ax, name in zip(axes, ("SGal(3)", "SE_2(3) x R")):
+        for variant, r in res.get(name, {}).items():
+            q = torch.tensor(r["nees"])
+            ax.hist(q.clamp(max=200).numpy(), bins=80, range=(0, 200 if name != "SGal(3)" else 60),
+                    density=True, alpha=0.5, label=f"{variant}: ANEES {r['ANEES']:.2f}")
+        ax.plot(x.numpy(), dens.numpy(), "k-", lw=1.5, label="chi2, 11 dof")
+        ax.set_title(f"NEES, {name}")
+        ax.set_xlabel("NEES")
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

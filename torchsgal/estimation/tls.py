@@ -1,0 +1,363 @@
+"""The total-least-squares problem of kelly-giamou Section 5, batched.
+
+Two inertial frames a and b are observed at N + 1 sample indices n = 0..N.  The unknowns are
+the initial relative transform F = F_a0b0 in SGal(3) and the sampling interval dtau.  Inertial
+motion, (5.2)-(5.4): F_{a_n a_0} = F_{b_n b_0} = T^n with T = F_dtau the pure time translation,
+so that
+
+    F_gb_n = F_ga_n A_n,   A_n = T^n F T^-n.                                          (5.4)
+
+With the paper's (5.2), sample n + 1 later than sample n means dtau < 0 (the origin of a_0 is
+at a_1-time dtau); ``simulate`` uses dtau = -1 s for 1 s sampling.
+
+Observations F~ with right-perturbation noise, (5.5): F = F~ exp(eps), eps ~ N(0, Sigma).
+Our condition function, one per n (the paper's (5.12) up to the side its exp(eps_b) is on):
+
+    c_n(x, eps_a, eps_b) = log(M_n exp(eps_a) A_n exp(-eps_b)),   M_n = F~_gb_n^-1 F~_ga_n.
+
+Its Jacobians (derived in docs/estimation.md, checked against autograd in the tests), with
+E = exp(c), right perturbations F <- F exp(d), dtau <- dtau + d:
+
+    dc/deps_a = J_r(c)^-1 Ad(exp(eps_b)) Ad(A_n^-1) J_r(eps_a)
+    dc/deps_b = -J_r(c)^-1 J_l(eps_b)
+    dc/dF     = J_r(c)^-1 Ad(exp(eps_b)) Ad(T^n)                                    (5.22)
+    dc/ddtau  = J_r(c)^-1 Ad(exp(eps_b)) n (Ad(T^n F^-1) - I) e_10                 (5.21)
+
+At eps = 0 these are (5.19)-(5.22) with the paper's sign of eps.
+
+The SE_2(3) x R baseline (``baseline_condition``) is defined in docs/estimation.md: the direct
+product of SE_2(3) and the clock, so that a clock error never moves a position.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..groups import SE23, SGal3
+from .gauss_helmert import check_covariance, gauss_helmert
+from .solver import Solution
+
+E10 = 9  # index of iota, the time component of the SGal(3) tangent
+
+
+def _time_translation(s: torch.Tensor) -> SGal3:
+    """T^n = exp(s e_10) for s = n dtau (...)."""
+    xi = torch.zeros(s.shape + (10,), dtype=s.dtype, device=s.device)
+    xi = torch.cat([xi[..., :E10], s[..., None]], dim=-1)
+    return SGal3.exp(xi)
+
+
+def _check_observations(F_ga, F_gb, cov_a, cov_b, indices, group=SGal3):
+    for name, F in (("F_ga", F_ga), ("F_gb", F_gb)):
+        if not isinstance(F, group):
+            raise TypeError(f"{name} must be {group.__name__} of batch shape (B, N+1), got "
+                            f"{type(F).__name__}")
+        if len(F.batch_shape) != 2:
+            raise ValueError(f"{name} must have batch shape (B, N+1), got {tuple(F.batch_shape)}")
+    if F_ga.batch_shape != F_gb.batch_shape:
+        raise ValueError(f"F_ga and F_gb must have the same batch shape, got "
+                         f"{tuple(F_ga.batch_shape)} and {tuple(F_gb.batch_shape)}")
+    Bn, N1 = F_ga.batch_shape
+    if N1 < 3:
+        raise ValueError(f"need at least 3 observation pairs (11 unknowns, 10 per pair, and "
+                         f"dtau needs two sample indices besides 0), got {N1}")
+    for name, S in (("cov_a", cov_a), ("cov_b", cov_b)):
+        check_covariance(S, 10, name)
+        if S.dim() > 4 or any(s not in (1, t) for s, t in zip(S.shape[:-2][::-1], (N1, Bn))):
+            raise ValueError(f"{name} must broadcast to (B, N+1, 10, 10) = ({Bn}, {N1}, 10, 10), "
+                             f"got {tuple(S.shape)}")
+    if indices.shape != (N1,):
+        raise ValueError(f"indices must have shape (N+1,) = ({N1},), got {tuple(indices.shape)}")
+    return Bn, N1
+
+
+@dataclass
+class TLSProblem:
+    """Paired observations of frames a and b: F_ga, F_gb SGal3 of batch shape (B, N+1);
+    covariances of their right-perturbation noise (B or 1, N+1 or 1, 10, 10); sample indices
+    n (N+1,) (default 0..N)."""
+
+    F_ga: SGal3
+    F_gb: SGal3
+    cov_a: torch.Tensor
+    cov_b: torch.Tensor
+    indices: torch.Tensor | None = None
+
+    def __post_init__(self):
+        if self.indices is None:
+            self.indices = torch.arange(self.F_ga.batch_shape[-1], dtype=self.F_ga.dtype,
+                                        device=self.F_ga.device)
+        self.indices = self.indices.to(self.F_ga.dtype)
+        _check_observations(self.F_ga, self.F_gb, self.cov_a, self.cov_b, self.indices)
+        self.M = self.F_gb.inverse() @ self.F_ga  # (B, N+1)
+        self.covariance = (self.cov_a, self.cov_b)  # block-diagonal over (eps_a, eps_b)
+
+    @property
+    def batch_size(self) -> int:
+        return self.F_ga.batch_shape[0]
+
+    def initial_guess(self, dtau: torch.Tensor | float) -> tuple:
+        """F from the first pair (F~_ga0^-1 F~_gb0) and the given dtau (B,) or scalar."""
+        F0 = self.F_ga[:, 0].inverse() @ self.F_gb[:, 0]
+        dt = torch.as_tensor(dtau, dtype=self.F_ga.dtype, device=self.F_ga.device)
+        return F0, dt.expand(self.batch_size).reshape(-1, 1).clone()
+
+
+def _ad_time_left(s: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """Ad(T^s) M = (I + s ad(e_10)) M: the rho rows minus s times the nu rows (ad(e_10)^2 = 0)."""
+    top = M[..., 0:3, :] - s[..., None, None] * M[..., 3:6, :]
+    rest = M[..., 3:, :]
+    return torch.cat([top, rest.expand(top.shape[:-2] + rest.shape[-2:])], dim=-2)
+
+
+def _ad_time_right_inverse(M: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """M Ad(T^-s) = M (I - s ad(e_10)): the nu columns plus s times the rho columns."""
+    mid = M[..., :, 3:6] + s[..., None, None] * M[..., :, 0:3]
+    shape = mid.shape[:-2] + (M.shape[-2],)
+    return torch.cat([M[..., :, 0:3].expand(shape + (3,)), mid, M[..., :, 6:].expand(shape + (M.shape[-1] - 6,))],
+                     dim=-1)
+
+
+def _drift_sgal3(F: SGal3, s: torch.Tensor) -> SGal3:
+    """A_n = T^n F T^-n = (C, v, r - s v, tau) for s = n dtau."""
+    v = F.velocity()
+    return SGal3.from_components(F.rotation(), v, F.position() - s[..., None] * v, F.time())
+
+
+def sgal3_condition(problem: TLSProblem):
+    """The condition function (x, e) -> (c, A, Bm) of the SGal(3) estimator; x = (F, dtau).
+
+    Returns the linearisation multiplied on the left by J_r(c): the Gauss-Helmert solution is
+    unchanged by an invertible factor per condition, J_r(c) c = c, and the factor removes the
+    J_r(c)^-1 of every Jacobian.  So A = [Ad(exp(eps_b)) Ad(T^n), Ad(exp(eps_b)) n (Ad(T^n F^-1)
+    - I) e_10] and Bm = [Ad(exp(eps_b)) Ad(A_n^-1) J_r(eps_a), -J_l(eps_b)], with
+    Ad(A_n^-1) = Ad(T^n) Ad(F^-1) Ad(T^-n) and Ad(T^n) = I + n dtau ad(e_10).
+    """
+    n = problem.indices
+    M = problem.M
+    eye = torch.eye(10, dtype=M.dtype, device=M.device)
+    e10 = eye[E10]
+
+    def condition(x, e):
+        F, dtau = x
+        s = n * dtau  # (B, N+1)
+        Ad_Finv = F.inverse().adjoint()[:, None]  # (B, 1, 10, 10)
+        A = _drift_sgal3(F.unsqueeze(-1), s)
+        Ad_Ainv = _ad_time_right_inverse(_ad_time_left(s, Ad_Finv), s)
+        d_F = _ad_time_left(s, eye)
+        d_t = n[:, None, None] * (_ad_time_left(s, Ad_Finv[..., E10:E10 + 1]) - e10[:, None])
+        if e is None:
+            c = (M @ A).log()
+            d_a, d_b = Ad_Ainv, -eye.expand(c.shape + (10,))
+        else:
+            ea, eb = e[..., :10], e[..., 10:]
+            c = (M @ SGal3.exp(ea) @ A @ SGal3.exp(-eb)).log()
+            left = SGal3.exp(eb).adjoint()
+            d_a = left @ Ad_Ainv @ SGal3.jr(ea)
+            d_b = -SGal3.jl(eb)
+            d_F, d_t = left @ d_F, left @ d_t
+        Ax = torch.cat([d_F.expand(c.shape + (10,)), d_t], dim=-1)  # (B, N+1, 10, 11)
+        Bm = torch.cat([d_a, d_b], dim=-1)  # (B, N+1, 10, 20)
+        return c, Ax, Bm
+
+    return condition
+
+
+# ------------------------------------------------------------------------ SE_2(3) x R baseline
+def split_clock(F: SGal3) -> tuple[SE23, torch.Tensor]:
+    """(SE_2(3) part, clock) of SGal(3) elements: the baseline's view of an observation."""
+    C, v, r, tau = F.rotation(), F.velocity(), F.position(), F.time()
+    return SE23.from_components(C, v, r), tau
+
+
+def _drift(X: SE23, s: torch.Tensor) -> SE23:
+    """A'_n = (C, v, r - s v): the SE_2(3) part of T^n F T^-n, an automorphism of SE_2(3)."""
+    C, v, r = X.rotation(), X.velocity(), X.position()
+    return SE23.from_components(C, v, r - s[..., None] * v)
+
+
+def baseline_condition(problem: TLSProblem):
+    """The SE_2(3) x R estimator's condition function; x = (X' in SE_2(3), tau0 (B, 1),
+    dtau (B, 1)); observation residuals per frame (eps' (9), clock error (1)).
+
+    Spatial part (9): log(M'_n exp(eps'_a) A'_n exp(-eps'_b)) in SE_2(3), with the observations
+    composed in SE_2(3) (their clocks dropped) and A'_n = drift of X' by s = n dtau.
+    Clock part (1): t~_a + iota_a + tau0 - t~_b - iota_b.
+    As in ``sgal3_condition`` the spatial rows are returned multiplied by J_r(c).
+    """
+    n = problem.indices
+    Xa, ta = split_clock(problem.F_ga)
+    Xb, tb = split_clock(problem.F_gb)
+    M = Xb.inverse() @ Xa
+    dclock = ta - tb  # (B, N+1)
+    eye9 = torch.eye(9, dtype=M.dtype, device=M.device)
+
+    def condition(x, e):
+        X, tau0, dtau = x
+        s = n * dtau  # (B, N+1)
+        A = _drift(X.unsqueeze(-1), s)
+        # The drift is an automorphism with differential P = I + s ad(e_10) restricted to
+        # SE_2(3) (rho <- rho - s nu), so Ad(A^-1) = P Ad(X^-1) P^-1; d/d dtau: rho = -n C^T v.
+        Ad_Xinv = X.inverse().adjoint()[:, None]
+        Ad_Ainv = _ad_time_right_inverse(_ad_time_left(s, Ad_Xinv), s)
+        P = _ad_time_left(s, eye9)
+        Cv = (X.rotation().transpose(-1, -2) @ X.velocity()[..., None])[:, None, :, 0]  # (B, 1, 3)
+        nCv = -n[:, None] * Cv  # (B, N+1, 3)
+        dt_col = torch.cat([nCv, torch.zeros_like(nCv), torch.zeros_like(nCv)], -1)[..., None]
+        if e is None:
+            c9 = (M @ A).log()
+            d_a, d_b = Ad_Ainv, -eye9.expand(c9.shape + (9,))
+            ia = ib = 0.0
+        else:
+            ea, eb = e[..., :9], e[..., 10:19]
+            ia, ib = e[..., 9], e[..., 19]
+            c9 = (M @ SE23.exp(ea) @ A @ SE23.exp(-eb)).log()
+            left = SE23.exp(eb).adjoint()
+            d_a = left @ Ad_Ainv @ SE23.jr(ea)
+            d_b = -SE23.jl(eb)
+            P, dt_col = left @ P, left @ dt_col
+        ct = dclock + ia + tau0 - ib  # (B, N+1)
+        c = torch.cat([c9, ct[..., None]], dim=-1)
+        z9 = torch.zeros(s.shape + (9, 1), dtype=s.dtype, device=s.device)
+        zr = torch.zeros(s.shape + (1, 9), dtype=s.dtype, device=s.device)
+        one = torch.ones(s.shape + (1, 1), dtype=s.dtype, device=s.device)
+        d_X = torch.cat([P.expand(s.shape + (9, 9)), zr], dim=-2)  # (B, N+1, 10, 9)
+        d_tau0 = torch.cat([z9, one], dim=-2)
+        d_dtau = torch.cat([dt_col, 0 * one], dim=-2)
+        Ax = torch.cat([d_X, d_tau0, d_dtau], dim=-1)  # (B, N+1, 10, 11)
+        Ba = torch.cat([torch.cat([d_a, z9], -1), torch.cat([zr, one], -1)], -2)
+        Bb = torch.cat([torch.cat([d_b, z9], -1), torch.cat([zr, -one], -1)], -2)
+        return c, Ax, torch.cat([Ba, Bb], dim=-1)
+
+    return condition
+
+
+def baseline_covariance(problem: TLSProblem) -> tuple:
+    """The baseline's observation covariance blocks (eps'_a, iota_a), (eps'_b, iota_b): each
+    frame's SE_2(3) block and clock variance, their cross terms dropped (independent by
+    construction of the product group)."""
+    out = []
+    for S in (problem.cov_a, problem.cov_b):
+        S = S.clone()
+        keep = S[..., 9, 9].clone()
+        S[..., 9, :] = 0
+        S[..., :, 9] = 0
+        S[..., 9, 9] = keep
+        out.append(S)
+    return tuple(out)
+
+
+# ------------------------------------------------------------------------------------ solvers
+def _default_options(variant: str, options: dict) -> None:
+    """The paper's scheme is plain Gauss-Newton: its fixed point (the gradient of the
+    condition cost with the weights S held fixed) is not a minimum of that cost once S moves
+    with x, so Levenberg-Marquardt's cost test stalls it.  The iterated variant is damped."""
+    options.setdefault("damping", None if variant == "paper" else 1e-4)
+
+
+def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
+                **options) -> Solution:
+    """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau]."""
+    x0 = problem.initial_guess(dtau0) if x0 is None else x0
+    _default_options(variant, options)
+    return gauss_helmert(sgal3_condition(problem), x0, problem.covariance, variant=variant,
+                         **options)
+
+
+def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
+                   **options) -> Solution:
+    """Estimates (X' in SE_2(3), tau0, dtau) on SE_2(3) x R; covariance (B, 11, 11) over
+    [dxi' (9), dtau0, ddtau]."""
+    if x0 is None:
+        F0, dt = problem.initial_guess(dtau0)
+        X0, t0 = split_clock(F0)
+        x0 = (X0, t0[:, None], dt)
+    _default_options(variant, options)
+    return gauss_helmert(baseline_condition(problem), x0, baseline_covariance(problem),
+                         variant=variant, **options)
+
+
+def eiv_cost(problem: TLSProblem):
+    """The exact errors-in-variables cost of the SGal(3) model with the true frames a as
+    nuisance variables F_ga_n = F~_ga_n exp(u_n):
+
+        1/2 sum_n u_n^T Sigma_a^-1 u_n + 1/2 sum_n eps_b^T Sigma_b^-1 eps_b,
+        eps_b = log(F~_gb_n^-1 F_ga_n A_n)  (F_gb_n = F_ga_n A_n exactly).
+
+    Returns cost(x, u) -> (B,) with u (B, N+1, 10); the Gauss-Helmert iterated variant and
+    the GTSAM factor graph minimise the same function."""
+    n = problem.indices
+    La = torch.linalg.cholesky(problem.cov_a)
+    Lb = torch.linalg.cholesky(problem.cov_b)
+    Fb_inv = problem.F_gb.inverse()
+
+    def cost(x, u):
+        F, dtau = x
+        A = _drift_sgal3(F.unsqueeze(-1), n * dtau)
+        eb = (Fb_inv @ problem.F_ga @ SGal3.exp(u) @ A).log()
+        wa = torch.linalg.solve_triangular(La, u[..., None], upper=False)[..., 0]
+        wb = torch.linalg.solve_triangular(Lb, eb[..., None], upper=False)[..., 0]
+        return 0.5 * (wa.square().sum((-1, -2)) + wb.square().sum((-1, -2)))
+
+    return cost
+
+
+def condition_cost(problem: TLSProblem):
+    """The reduced cost of the Gauss-Helmert linearisation at zero observation residual,
+    1/2 sum_n c_n^T S_n^-1 c_n with c_n = log(M_n A_n) and S_n = Ad(A_n^-1) Sigma_a Ad(A_n^-1)^T
+    + Sigma_b (the merit of the paper variant, (5.23)-(5.24)), differentiable in x."""
+    cond = sgal3_condition(problem)
+    Sa, Sb = problem.cov_a, problem.cov_b
+
+    def cost(x, _extra=None):
+        c, _, Bm = cond(x, None)
+        Ga = Bm[..., :10]
+        S = Ga @ Sa @ Ga.transpose(-1, -2) + Sb
+        L = torch.linalg.cholesky(S)
+        w = torch.linalg.solve_triangular(L, c[..., None], upper=False)[..., 0]
+        return 0.5 * w.square().sum((-1, -2))
+
+    return cost
+
+
+def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, **options) -> Solution:
+    """Minimises the exact errors-in-variables cost (``eiv_cost``) with LBFGS over (F, dtau)
+    and the nuisance frames, by autograd through the group operations.
+
+    The problems share LBFGS's line search and the nuisance directions are badly scaled
+    (lever arms of hundreds of metres times radians), so the variables are preconditioned by
+    the blocks of the Gauss-Newton Hessian at x0: (F, dtau) by the inverse Cholesky factor of
+    its own block H_xx (nuisance held fixed), each nuisance residual u_n by the inverse Cholesky factor of its own 10 x 10
+    block I + J_n^T J_n (whitened coordinates).  The covariance returned is the inverse
+    Gauss-Helmert information at the solution; ``aux`` holds the observation residuals
+    (u_n, eps_b,n)."""
+    from .lbfgs import lbfgs
+    x0 = problem.initial_guess(dtau0) if x0 is None else x0
+    cond = sgal3_condition(problem)
+    La = torch.linalg.cholesky(problem.cov_a)
+    Lb = torch.linalg.cholesky(problem.cov_b)
+    c, Ax, Bm = cond(x0, None)
+    jri = SGal3.jr_inv(c)
+    # Whitened derivatives of eps_b: by x, J_r(c)^-1 A; by u, J_r(c)^-1 Ad(A^-1) L_a.
+    Jx = torch.linalg.solve_triangular(Lb, jri @ Ax, upper=False)
+    Hxx = (Jx.transpose(-1, -2) @ Jx).sum(1)
+    scale = torch.linalg.solve_triangular(torch.linalg.cholesky(Hxx).transpose(-1, -2), torch.eye(
+        Hxx.shape[-1], dtype=c.dtype, device=c.device).expand_as(Hxx), upper=True)
+    Jw = torch.linalg.solve_triangular(Lb, jri @ Bm[..., :10], upper=False) @ La
+    K = torch.eye(10, dtype=c.dtype, device=c.device) + Jw.transpose(-1, -2) @ Jw
+    R = torch.linalg.cholesky(K)
+    w_scale = torch.linalg.solve_triangular(R.transpose(-1, -2), torch.eye(
+        10, dtype=c.dtype, device=c.device).expand_as(R), upper=True)  # R^-T
+    base = eiv_cost(problem)
+
+    def cost(x, w):
+        return base(x, (La @ w[..., None])[..., 0])
+
+    Bn, N1 = problem.F_ga.batch_shape
+    w0 = torch.zeros(Bn, N1, 10, dtype=problem.F_ga.dtype, device=problem.F_ga.device)
+    x, w, report = lbfgs(cost, x0, scale=scale, extra=w0, extra_scale=w_scale, **options)
+    u = (La @ w[..., None])[..., 0]
+    e = torch.cat([u, torch.zeros_like(u)], -1)
+    at = gauss_helmert(cond, x, problem.covariance, variant="iterated", max_iterations=0, e0=e)
+    return Solution(x=x, covariance=at.covariance, report=report, aux=e)

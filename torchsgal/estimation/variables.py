@@ -1,0 +1,112 @@
+"""Unknowns of a batched least-squares problem: a tuple of blocks, each a group element
+(a ``LieGroup`` of batch shape (B,)) or a Euclidean tensor (B, k).
+
+The tangent vector of the tuple is the concatenation of the blocks' tangents, in order.
+Group blocks move by right perturbation, ``g.rplus(d) = g exp(d)`` (CONVENTIONS.md); Euclidean
+blocks by addition.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from ..groups import LieGroup
+
+Block = LieGroup | torch.Tensor
+Values = tuple
+
+
+def as_values(x) -> Values:
+    """Normalises a single block or a sequence of blocks to a tuple."""
+    if isinstance(x, (LieGroup, torch.Tensor)):
+        return (x,)
+    return tuple(x)
+
+
+def block_dims(x: Values) -> list[int]:
+    return [b.dof if isinstance(b, LieGroup) else b.shape[-1] for b in x]
+
+
+def tangent_dim(x: Values) -> int:
+    return sum(block_dims(x))
+
+
+def batch_size(x: Values) -> int:
+    return x[0].batch_shape[0] if isinstance(x[0], LieGroup) else x[0].shape[0]
+
+
+def check_values(x: Values, name: str = "x0") -> Values:
+    """Checks that every block has the same single batch dimension, dtype and device."""
+    x = as_values(x)
+    if not x:
+        raise ValueError(f"{name} must hold at least one block, got none")
+    shapes, dtypes, devices = [], set(), set()
+    for i, b in enumerate(x):
+        if isinstance(b, LieGroup):
+            shapes.append(tuple(b.batch_shape))
+            if len(b.batch_shape) != 1:
+                raise ValueError(f"{name}[{i}] ({type(b).__name__}) must have batch shape (B,), "
+                                 f"got {tuple(b.batch_shape)}")
+        elif isinstance(b, torch.Tensor):
+            if b.dim() != 2:
+                raise ValueError(f"{name}[{i}] must be a tensor of shape (B, k), got {tuple(b.shape)}")
+            if not b.is_floating_point():
+                raise TypeError(f"{name}[{i}] must be floating point, got {b.dtype}")
+            shapes.append((b.shape[0],))
+        else:
+            raise TypeError(f"{name}[{i}] must be a LieGroup or a tensor, got {type(b).__name__}")
+        dtypes.add(b.dtype)
+        devices.add(b.device)
+    if len({s[0] for s in shapes}) != 1:
+        raise ValueError(f"the blocks of {name} must share the batch size B, got {shapes}")
+    if len(dtypes) != 1 or len(devices) != 1:
+        raise ValueError(f"the blocks of {name} must share dtype and device, got "
+                         f"{sorted(map(str, dtypes))} on {sorted(map(str, devices))}")
+    return x
+
+
+def retract(x: Values, delta: torch.Tensor) -> Values:
+    """x boxplus delta: group blocks g exp(d), Euclidean blocks x + d; delta (B, dim)."""
+    out, i = [], 0
+    for b, k in zip(x, block_dims(x)):
+        d = delta[..., i:i + k]
+        out.append(b.rplus(d) if isinstance(b, LieGroup) else b + d)
+        i += k
+    return tuple(out)
+
+
+def local(x: Values, y: Values) -> torch.Tensor:
+    """y boxminus x: the tangent d with retract(x, d) = y (group blocks log(x^-1 y))."""
+    parts = [yb.rminus(xb) if isinstance(xb, LieGroup) else yb - xb for xb, yb in zip(x, y)]
+    return torch.cat(parts, dim=-1)
+
+
+def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
+    """Blockwise torch.where over the batch: new where mask (B,) else old."""
+    out = []
+    for a, b in zip(new, old):
+        if isinstance(a, LieGroup):
+            m = mask[:, None, None]
+            out.append(type(a)(torch.where(m, a.as_matrix(), b.as_matrix())))
+        else:
+            out.append(torch.where(mask[:, None], a, b))
+    return tuple(out)
+
+
+def detach(x: Values) -> Values:
+    return tuple(b.detach() for b in x)
+
+
+def finite(x: Values) -> torch.Tensor:
+    """(B,) True where every entry of every block is finite."""
+    ok = None
+    for b in x:
+        t = b.as_matrix().flatten(1) if isinstance(b, LieGroup) else b
+        f = torch.isfinite(t).all(dim=-1)
+        ok = f if ok is None else ok & f
+    return ok
+
+
+def names(x: Sequence[Block]) -> list[str]:
+    return [type(b).__name__ if isinstance(b, LieGroup) else f"R^{b.shape[-1]}" for b in x]
