@@ -75,10 +75,13 @@ def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Te
     batch = _check_stream(gyro, acc, dt)
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch).unsqueeze(-2)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch).unsqueeze(-2)
+    shape = torch.broadcast_shapes(gyro.shape, b_g.shape, b_a.shape)[:-1]
+    xi = gyro.new_zeros(*shape, 10)  # written in place: no concatenation
     h = dt.unsqueeze(-1)
-    omega, f = torch.broadcast_tensors(gyro - b_g, acc - b_a)
-    h = h.expand(*omega.shape[:-1], 1)
-    return torch.cat((torch.zeros_like(omega), f * h, omega * h, h), dim=-1)
+    xi[..., 3:6] = (acc - b_a) * h
+    xi[..., 6:9] = (gyro - b_g) * h
+    xi[..., 9] = dt
+    return xi
 
 
 # --------------------------------------------------------------------------- products
@@ -209,7 +212,6 @@ def _isotropic_covariance(m: dict, s_a: torch.Tensor, s_g: torch.Tensor, s_t: to
     npb = g2 * _skew(m["wv"])
     pp = g2 * I(w)
     ri = (t2 * m["wv"]).unsqueeze(-1)
-    z3 = torch.zeros_like(rr)
     z1 = torch.zeros_like(ri)
     rows = [
         torch.cat((rr, rn, rp, ri), -1),
