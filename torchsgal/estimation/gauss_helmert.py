@@ -126,7 +126,8 @@ def gauss_helmert(
     variant: "iterated" (default) or "paper" (see the module docstring).
     options: see ``solver.iterate``.  The iterated variant accepts steps whose linearised cost
         rises by at most ``accept_tol`` (default 1e-6, relative), since that cost is
-        re-evaluated at the new residual estimate.
+        re-evaluated at the new residual estimate, and by default stops on the step size only
+        (``cost_tol=0``).
     Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.
     """
     if variant not in VARIANTS:
@@ -135,7 +136,10 @@ def gauss_helmert(
     cov = _CovarianceBlocks(observation_covariance)
     iterated = variant == "iterated"
     if iterated:
+        # Its linearised cost is re-evaluated at each new residual estimate and converges
+        # linearly: stop on the step (in standard deviations) only.
         options.setdefault("accept_tol", 1e-6)
+        options.setdefault("cost_tol", 0.0)
 
     def linearise(x, e):
         c, A, Bm = condition(x, e if iterated else None)

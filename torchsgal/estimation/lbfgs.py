@@ -26,7 +26,7 @@ def lbfgs(
     extra_scale: torch.Tensor | None = None,
     max_iterations: int = 200,
     history_size: int = 20,
-    gradient_tol: float = 1e-7,
+    gradient_tol: float = 1e-6,
 ):
     """Minimises cost(x, extra) -> (B,) for every problem of a batch.
 

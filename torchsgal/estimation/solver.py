@@ -66,8 +66,10 @@ class Linearisation:
 
 
 def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torch.Tensor:
-    """(B,) True where the Jacobi-scaled information has reciprocal condition below ``rcond``
-    (default 1e3 eps) or is not finite."""
+    """(B,) True where the information is numerically singular: a diagonal entry below
+    ``rcond`` times the largest (a direction that no residual sees, whatever the units), or
+    the Jacobi-scaled matrix with reciprocal condition below ``rcond`` (collinear
+    directions), or non-finite entries.  Default rcond: 1e3 eps."""
     if rcond is None:
         rcond = 1e3 * torch.finfo(H.dtype).eps
     d = H.diagonal(dim1=-2, dim2=-1)
@@ -76,7 +78,8 @@ def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torc
     finite = torch.isfinite(Hs).all(dim=(-1, -2))
     ev = torch.linalg.eigvalsh(torch.where(finite[..., None, None], Hs, torch.eye(
         H.shape[-1], dtype=H.dtype, device=H.device)))
-    return ~finite | (d <= 0).any(dim=-1) | (ev[..., 0] <= rcond * ev[..., -1])
+    tiny = d <= rcond * d.amax(dim=-1, keepdim=True)
+    return ~finite | tiny.any(dim=-1) | (ev[..., 0] <= rcond * ev[..., -1])
 
 
 def covariance_from_information(H: torch.Tensor, singular: torch.Tensor) -> torch.Tensor:
@@ -162,13 +165,16 @@ def iterate(
         iterations = iterations + running.to(torch.int64)
         step_norm = torch.where(running, step, step_norm)
         # Keep the accepted problems' new point; the others keep theirs.
-        x = V.select(accept, x_new, x)
-        if aux is not None or aux_new is not None:
-            aux = _select_aux(accept, aux_new, aux)
-        r = torch.where(accept[:, None], torch.where(finite_new[:, None], lin_new.r, 0), lin.r)
-        J = torch.where(accept[:, None, None], torch.where(finite_new[:, None, None], lin_new.J, 0), lin.J)
-        extra = _select_aux(accept, lin_new.extra, lin.extra)
-        lin = Linearisation(r, J, extra)
+        if bool(accept.all()):  # the common case: no selection copies
+            x, aux, lin = x_new, aux_new, lin_new
+        else:
+            x = V.select(accept, x_new, x)
+            if aux is not None or aux_new is not None:
+                aux = _select_aux(accept, aux_new, aux)
+            r = torch.where(accept[:, None], torch.where(finite_new[:, None], lin_new.r, 0), lin.r)
+            J = torch.where(accept[:, None, None],
+                            torch.where(finite_new[:, None, None], lin_new.J, 0), lin.J)
+            lin = Linearisation(r, J, _select_aux(accept, lin_new.extra, lin.extra))
         old_cost = cost
         cost = torch.where(accept, cost_new, cost)
         if damping is not None:

@@ -53,6 +53,7 @@ class StudyConfig:
     separation: float = 5.0  # m, std of the initial positions
     clock_offset: float = 1.0  # s, std of the clocks of a_0 and of the offset b_0 - a_0
     seed: int = 0
+    noise_scale: float = 1.0  # scales the simulated observation noise (the model keeps (5.27))
     variants: tuple = ("iterated", "paper")
     max_iterations: int = 50
     dtype: str = "float64"
@@ -99,8 +100,8 @@ def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Gener
     F_gb = F_gb0.unsqueeze(-1) @ T_inv
     Sigma = paper_covariance(dtype)
     Lc = torch.linalg.cholesky(Sigma)
-    eps_a = (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
-    eps_b = (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
+    eps_a = cfg.noise_scale * (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
+    eps_b = cfg.noise_scale * (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
     obs_a = F_ga @ SGal3.exp(-eps_a)
     obs_b = F_gb @ SGal3.exp(-eps_b)
     problem = TLSProblem(obs_a, obs_b, Sigma, Sigma, indices=n)

@@ -152,8 +152,9 @@ def sgal3_condition(problem: TLSProblem):
             d_a, d_b = Ad_Ainv, -eye.expand(c.shape + (10,))
         else:
             ea, eb = e[..., :10], e[..., 10:]
-            c = (M @ SGal3.exp(ea) @ A @ SGal3.exp(-eb)).log()
-            left = SGal3.exp(eb).adjoint()
+            Eb = SGal3.exp(eb)
+            c = (M @ SGal3.exp(ea) @ A @ Eb.inverse()).log()
+            left = Eb.adjoint()
             d_a = left @ Ad_Ainv @ SGal3.jr(ea)
             d_b = -SGal3.jl(eb)
             d_F, d_t = left @ d_F, left @ d_t
@@ -212,8 +213,9 @@ def baseline_condition(problem: TLSProblem):
         else:
             ea, eb = e[..., :9], e[..., 10:19]
             ia, ib = e[..., 9], e[..., 19]
-            c9 = (M @ SE23.exp(ea) @ A @ SE23.exp(-eb)).log()
-            left = SE23.exp(eb).adjoint()
+            Eb = SE23.exp(eb)
+            c9 = (M @ SE23.exp(ea) @ A @ Eb.inverse()).log()
+            left = Eb.adjoint()
             d_a = left @ Ad_Ainv @ SE23.jr(ea)
             d_b = -SE23.jl(eb)
             P, dt_col = left @ P, left @ dt_col

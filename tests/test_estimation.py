@@ -1,0 +1,228 @@
+"""The generic batched solvers on small problems with known answers."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchsgal as ts
+from torchsgal.estimation import (SolverStatus, autograd_jacobian, gauss_helmert, gauss_newton,
+                                  metrics, variables as V)
+from torchsgal.estimation.lbfgs import lbfgs
+
+f64 = torch.float64
+
+
+def _time_flow_problem(B=4, K=6, seed=0, noise=0.0):
+    """Unknowns (g in SGal3, s in R): data Y_k = g exp(t_k s e_10) (+ noise)."""
+    gen = torch.Generator().manual_seed(seed)
+    g_true = ts.SGal3(ts.functional.sgal3.random((B,), f64, None, gen))
+    s_true = torch.randn(B, 1, generator=gen, dtype=f64)
+    t = torch.linspace(-1, 2, K, dtype=f64)
+
+    def flow(g, s):
+        xi = torch.zeros(B, K, 10, dtype=f64)
+        xi = torch.cat([xi[..., :9], (t * s)[..., None]], -1)
+        return g.unsqueeze(-1) @ ts.SGal3.exp(xi)
+
+    Y = flow(g_true, s_true)
+    if noise:
+        Y = Y.rplus(noise * torch.randn(B, K, 10, generator=gen, dtype=f64))
+
+    def residual(x):
+        g, s = x
+        return Y.rminus(flow(g, s)).reshape(B, K * 10)
+
+    return residual, (g_true, s_true)
+
+
+def test_gauss_newton_recovers_group_and_scalar_unknowns():
+    residual, (g_true, s_true) = _time_flow_problem()
+    x0 = (g_true.rplus(0.3 * torch.randn(4, 10, dtype=f64)), s_true + 0.5)
+    sol = gauss_newton(residual, x0)
+    assert sol.report.converged.all()
+    assert g_true.rminus(sol.x[0]).abs().max() < 1e-10
+    assert (sol.x[1] - s_true).abs().max() < 1e-10
+    assert sol.report.cost.max() < 1e-20
+
+
+def test_autograd_jacobian_matches_finite_differences():
+    residual, (g, s) = _time_flow_problem(B=2, K=3, noise=0.1)
+    x = (g.rplus(0.2 * torch.ones(2, 10, dtype=f64)), s)
+    J = autograd_jacobian(residual, x)
+    h = 1e-6
+    cols = []
+    for j in range(11):
+        d = torch.zeros(2, 11, dtype=f64)
+        d[:, j] = h
+        cols.append((residual(V.retract(x, d)) - residual(V.retract(x, -d))) / (2 * h))
+    fd = torch.stack(cols, -1)
+    assert (J - fd).abs().max() < 1e-7
+
+
+def test_linear_least_squares_solution_and_covariance_match_lstsq():
+    gen = torch.Generator().manual_seed(1)
+    B, m, d = 5, 12, 3
+    A = torch.randn(B, m, d, generator=gen, dtype=f64)
+    y = torch.randn(B, m, generator=gen, dtype=f64)
+    sol = gauss_newton(lambda x: (A @ x[0][..., None])[..., 0] - y, torch.zeros(B, d, dtype=f64),
+                       jacobian=lambda x: A)
+    ref = torch.linalg.lstsq(A, y[..., None]).solution[..., 0]
+    assert (sol.x[0] - ref).abs().max() < 1e-12
+    P = torch.linalg.inv(A.transpose(-1, -2) @ A)
+    assert (sol.covariance - P).abs().max() < 1e-12
+    assert sol.report.converged.all()
+
+
+def test_one_bad_problem_does_not_spoil_the_batch():
+    residual, (g_true, s_true) = _time_flow_problem(B=4)
+    M = g_true.as_matrix().clone()
+    x0 = (g_true.rplus(0.1 * torch.ones(4, 10, dtype=f64)), s_true + 0.2)
+    m0 = x0[0].as_matrix().clone()
+    m0[2, 0, 0] = float("nan")
+    sol = gauss_newton(residual, (ts.SGal3(m0), x0[1]))
+    status = sol.report.status.tolist()
+    assert status[2] == SolverStatus.NON_FINITE
+    ok = [0, 1, 3]
+    assert all(status[i] == SolverStatus.CONVERGED for i in ok)
+    assert ts.SGal3(M[ok]).rminus(sol.x[0][ok]).abs().max() < 1e-10
+    assert torch.isnan(sol.covariance[2]).all() and torch.isfinite(sol.covariance[ok]).all()
+
+
+def test_unobservable_direction_is_reported_singular():
+    gen = torch.Generator().manual_seed(2)
+    A = torch.randn(3, 6, 2, generator=gen, dtype=f64)
+    A[1, :, 1] = 2 * A[1, :, 0]  # problem 1: rank deficient
+    y = torch.randn(3, 6, generator=gen, dtype=f64)
+    sol = gauss_newton(lambda x: (A @ x[0][..., None])[..., 0] - y, torch.zeros(3, 2, dtype=f64),
+                       jacobian=lambda x: A)
+    assert sol.report.status.tolist() == [SolverStatus.CONVERGED, SolverStatus.SINGULAR,
+                                          SolverStatus.CONVERGED]
+
+
+def test_max_iterations_status():
+    residual, (g_true, s_true) = _time_flow_problem()
+    x0 = (g_true.rplus(0.5 * torch.ones(4, 10, dtype=f64)), s_true + 0.5)
+    sol = gauss_newton(residual, x0, max_iterations=1)
+    assert (sol.report.status == SolverStatus.MAX_ITERATIONS).all()
+
+
+def test_errors_name_the_argument():
+    r = lambda x: x[0]
+    with pytest.raises(ValueError, match=r"x0\[0\].*\(B, k\)"):
+        gauss_newton(r, torch.zeros(3, dtype=f64))
+    with pytest.raises(ValueError, match="batch size"):
+        gauss_newton(r, (torch.zeros(3, 2, dtype=f64), torch.zeros(4, 1, dtype=f64)))
+    with pytest.raises(TypeError, match=r"x0\[0\] must be floating point"):
+        gauss_newton(r, torch.zeros(3, 2, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"residual\(x\) must return \(B, m\)"):
+        gauss_newton(lambda x: x[0].sum(-1), torch.zeros(3, 2, dtype=f64))
+    with pytest.raises(ValueError, match=r"jacobian\(x\) must return"):
+        gauss_newton(r, torch.zeros(3, 2, dtype=f64), jacobian=lambda x: torch.zeros(3, 2, 5))
+
+
+# ------------------------------------------------------------------ errors in variables
+def _line_data(B=3, K=40, seed=3, sigma=0.3):
+    gen = torch.Generator().manual_seed(seed)
+    a, b = torch.randn(B, generator=gen, dtype=f64), torch.randn(B, generator=gen, dtype=f64)
+    u = 4 * torch.rand(B, K, generator=gen, dtype=f64) - 2
+    x = u + sigma * torch.randn(B, K, generator=gen, dtype=f64)
+    y = a[:, None] * u + b[:, None] + sigma * torch.randn(B, K, generator=gen, dtype=f64)
+    return x, y
+
+
+def _line_condition(x, y):
+    """c = (y + e_y) - a (x + e_x) - b; unknowns (a, b); e = (e_x, e_y)."""
+    def condition(p, e):
+        ab = p[0]
+        a, b = ab[:, 0:1], ab[:, 1:2]
+        ex = 0 if e is None else e[..., 0]
+        ey = 0 if e is None else e[..., 1]
+        c = (y + ey - a * (x + ex) - b)[..., None]
+        A = torch.stack([-(x + ex), -torch.ones_like(x)], -1)[..., None, :]
+        Bm = torch.stack([-a.expand_as(x), torch.ones_like(x)], -1)[..., None, :]
+        return c, A, Bm
+    return condition
+
+
+def _orthogonal_regression(x, y):
+    D = np.stack([x.numpy(), y.numpy()], -1)
+    D = D - D.mean(0)
+    n = np.linalg.svd(D)[2][-1]  # normal of the line
+    slope = -n[0] / n[1]
+    return slope, y.mean().item() - slope * x.mean().item()
+
+
+def test_gauss_helmert_iterated_line_fit_is_orthogonal_regression():
+    """With equal isotropic noise on x and y, the errors-in-variables optimum is the
+    orthogonal-regression line: the smallest right singular vector of the centred data."""
+    x, y = _line_data()
+    cov = 0.09 * torch.eye(2, dtype=f64)
+    # It converges linearly here: ask for a step below 1e-10 standard deviations.
+    sol = gauss_helmert(_line_condition(x, y), torch.zeros(3, 2, dtype=f64), cov,
+                        step_tol=1e-10, max_iterations=100)
+    assert sol.report.converged.all()
+    for k in range(3):
+        slope, icpt = _orthogonal_regression(x[k], y[k])
+        assert abs(sol.x[0][k, 0].item() - slope) < 1e-8
+        assert abs(sol.x[0][k, 1].item() - icpt) < 1e-8
+    # The estimated residuals satisfy the conditions.
+    c, _, _ = _line_condition(x, y)(sol.x, sol.aux)
+    assert c.abs().max() < 1e-8
+
+
+def test_gauss_helmert_paper_variant_reaches_its_own_fixed_point():
+    """Linearising at e = 0 every time keeps A = -[x, 1] at the observed x: the fixed point
+    solves sum A^T S^-1 c(x, 0) = 0 with S = Bm Sigma Bm^T, which is not the optimum."""
+    x, y = _line_data()
+    cov = 0.09 * torch.eye(2, dtype=f64)
+    cond = _line_condition(x, y)
+    sol = gauss_helmert(cond, torch.zeros(3, 2, dtype=f64), cov, variant="paper")
+    assert sol.report.converged.all()
+    c, A, Bm = cond(sol.x, None)
+    S = Bm @ cov @ Bm.transpose(-1, -2)
+    g = (A.transpose(-1, -2) @ torch.linalg.solve(S, c[..., None])).sum(1)[..., 0]
+    assert g.abs().max() < 1e-6
+    slope, _ = _orthogonal_regression(x[0], y[0])
+    assert abs(sol.x[0][0, 0].item() - slope) > 1e-3
+
+
+def test_gauss_helmert_covariance_checks():
+    x, y = _line_data()
+    cond = _line_condition(x, y)
+    x0 = torch.zeros(3, 2, dtype=f64)
+    with pytest.raises(ValueError, match="not symmetric"):
+        gauss_helmert(cond, x0, torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=f64))
+    with pytest.raises(ValueError, match="not positive definite"):
+        gauss_helmert(cond, x0, torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=f64))
+    with pytest.raises(ValueError, match=r"\(\.\.\., m, m\)"):
+        gauss_helmert(cond, x0, torch.ones(2, dtype=f64))
+    with pytest.raises(ValueError, match="variant"):
+        gauss_helmert(cond, x0, torch.eye(2, dtype=f64), variant="exact")
+    with pytest.raises(ValueError, match="observation covariance has size 3"):
+        gauss_helmert(cond, x0, torch.eye(3, dtype=f64))
+
+
+def test_lbfgs_matches_gauss_newton_on_a_group_problem():
+    residual, (g_true, s_true) = _time_flow_problem(B=3, noise=0.05)
+    x0 = (g_true.rplus(0.2 * torch.ones(3, 10, dtype=f64)), s_true + 0.1)
+    gn = gauss_newton(residual, x0)
+    x, _, rep = lbfgs(lambda x, _: 0.5 * residual(x).square().sum(-1), x0, max_iterations=300)
+    assert rep.converged.all()
+    assert gn.x[0].rminus(x[0]).abs().max() < 1e-6
+    assert (gn.x[1] - x[1]).abs().max() < 1e-6
+
+
+def test_chi2_band_and_expected_mmd_against_scipy():
+    stats = pytest.importorskip("scipy.stats")
+    lo, hi = metrics.anees_band(1200, 11)
+    assert lo == pytest.approx(stats.chi2.ppf(0.025, 13200) / 1200, rel=1e-6)
+    assert hi == pytest.approx(stats.chi2.ppf(0.975, 13200) / 1200, rel=1e-6)
+    assert metrics.expected_mmd(11) == pytest.approx(stats.chi(11).mean(), rel=1e-12)
+    # The paper's band (10.74, 11.27) and expected MMD (3.24), to the digits it prints.
+    assert (round(lo, 2), round(hi, 2)) == (10.74, 11.27)
+    assert round(metrics.expected_mmd(11), 2) == 3.24
+    P = torch.diag(torch.tensor([4.0, 9.0], dtype=f64))[None]
+    e = torch.tensor([[2.0, 3.0]], dtype=f64)
+    assert metrics.nees(e, P).item() == pytest.approx(2.0)
+    assert math.isclose(metrics.rmse(torch.tensor([[3.0, 4.0], [0.0, 0.0]])).item(), math.sqrt(12.5))

@@ -1,0 +1,219 @@
+"""The total-least-squares problem of kelly-giamou Section 5: Jacobians, exactness,
+consistency, robustness, the GTSAM peer and the command line."""
+import json
+import math
+
+import pytest
+import torch
+
+import torchsgal as ts
+from torchsgal.estimation import SolverStatus, metrics, study, tls, variables as V
+
+f64 = torch.float64
+
+
+def _problem(B=3, N1=5, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    Fa = ts.SGal3(ts.functional.sgal3.random((B, N1), f64, None, gen))
+    Fb = ts.SGal3(ts.functional.sgal3.random((B, N1), f64, None, gen))
+    S = study.paper_covariance()
+    return tls.TLSProblem(Fa, Fb, S, S), gen
+
+
+def _per_condition_jacobian(f, e):
+    """d f(e)_n / d e_n for f: (B, N, m) -> (B, N, k), by autograd."""
+    J = torch.autograd.functional.jacobian(f, e)  # (B, N, k, B, N, m)
+    B, N = e.shape[:2]
+    return torch.stack([torch.stack([J[b, n, :, b, n, :] for n in range(N)]) for b in range(B)])
+
+
+@pytest.mark.parametrize("estimator", ["sgal3", "baseline"])
+@pytest.mark.parametrize("at_zero", [True, False])
+def test_condition_jacobians_match_autograd(estimator, at_zero):
+    """(5.19)-(5.22) and our derivation at non-zero residuals: J_r(c)^-1 times the returned
+    Jacobians equals autograd of c = log(...) (the J_r(c) factor is dropped on purpose)."""
+    P, gen = _problem()
+    if estimator == "sgal3":
+        cond = tls.sgal3_condition(P)
+        x = (ts.SGal3(ts.functional.sgal3.random((3,), f64, None, gen)),
+             torch.randn(3, 1, generator=gen, dtype=f64))
+        G, rows = ts.SGal3, 10
+    else:
+        cond = tls.baseline_condition(P)
+        x = (ts.SE23(ts.functional.se23.random((3,), f64, None, gen)),
+             torch.randn(3, 1, generator=gen, dtype=f64), torch.randn(3, 1, generator=gen, dtype=f64))
+        G, rows = ts.SE23, 9
+    e = None if at_zero else 0.3 * torch.randn(3, 5, 20, generator=gen, dtype=f64)
+    c, A, Bm = cond(x, e)
+    jri = G.jr_inv(c[..., :rows])
+    A = torch.cat([jri @ A[..., :rows, :], A[..., rows:, :]], -2)
+    Bm = torch.cat([jri @ Bm[..., :rows, :], Bm[..., rows:, :]], -2)
+    ee = torch.zeros(3, 5, 20, dtype=f64) if e is None else e
+    JA = torch.func.jacrev(lambda d: cond(V.retract(x, d), e)[0].sum(0))(torch.zeros(3, 11, dtype=f64))
+    assert (A - JA.permute(2, 0, 1, 3)).abs().max() < 1e-9
+    JB = _per_condition_jacobian(lambda de: cond(x, ee + de)[0], torch.zeros_like(ee))
+    assert (Bm - JB).abs().max() < 1e-9
+
+
+def test_printed_jacobian_5_21_at_zero_residual():
+    """(5.21) as printed, J_r(eps)^-1 (n Ad(F_dtau^n F^-1) - n I) e_10, built from matrices."""
+    P, gen = _problem(B=2, N1=4)
+    cond = tls.sgal3_condition(P)
+    F = ts.SGal3(ts.functional.sgal3.random((2,), f64, None, gen))
+    dtau = torch.tensor([[0.7], [-1.3]], dtype=f64)
+    c, A, _ = cond((F, dtau), None)
+    for b in range(2):
+        for n in range(4):
+            xi = torch.zeros(10, dtype=f64)
+            xi[9] = n * dtau[b, 0]
+            T = ts.SGal3.exp(xi)
+            col = n * ((T @ F[b].inverse()).adjoint() - torch.eye(10, dtype=f64))[:, 9]
+            assert torch.allclose(A[b, n, :, 10], col, atol=1e-12)
+            assert torch.allclose(A[b, n, :, :10], T.adjoint(), atol=1e-12)  # (5.22)
+
+
+@pytest.mark.parametrize("variant", ["iterated", "paper"])
+def test_noise_free_observations_are_recovered_exactly(variant):
+    cfg = study.StudyConfig(trials=6, samples=21, noise_scale=0.0, seed=1)
+    trials = study.simulate(cfg)
+    sol = tls.solve_sgal3(trials.problem, variant=variant)
+    assert sol.report.converged.all()
+    assert trials.F_true.rminus(sol.x[0]).abs().max() < 1e-9
+    assert (trials.dtau_true - sol.x[1][:, 0]).abs().max() < 1e-10
+    base = tls.solve_baseline(trials.problem, variant=variant)
+    X_true, tau_true = study.baseline_truth(trials.F_true, trials.F_ga0)
+    assert base.report.converged.all()
+    assert X_true.rminus(base.x[0]).abs().max() < 1e-9
+    assert (tau_true - base.x[1][:, 0]).abs().max() < 1e-10
+    assert (trials.dtau_true - base.x[2][:, 0]).abs().max() < 1e-10
+
+
+def test_iterated_variant_is_the_errors_in_variables_optimum():
+    """At the iterated Gauss-Helmert solution (x, e_a), the exact EIV cost with the true frames
+    as nuisance variables is stationary in every variable."""
+    cfg = study.StudyConfig(trials=4, samples=21, seed=2)
+    trials = study.simulate(cfg)
+    sol = tls.solve_sgal3(trials.problem, variant="iterated", step_tol=1e-10, max_iterations=60)
+    assert sol.report.converged.all()
+    cost = tls.eiv_cost(trials.problem)
+    d = torch.zeros(4, 11, dtype=f64, requires_grad=True)
+    u = sol.aux[..., :10].clone().requires_grad_(True)
+    gx, gu = torch.autograd.grad(cost(V.retract(sol.x, d), u).sum(), [d, u])
+    # Gradients in whitened units: times the standard deviations of the variables.
+    sd = sol.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert (gx * sd).abs().max() < 1e-6
+    assert (gu * study.paper_covariance().diagonal().sqrt()).abs().max() < 1e-6
+    # The paper variant stops elsewhere: within a fraction of a standard deviation.
+    paper = tls.solve_sgal3(trials.problem, variant="paper")
+    gap = paper.x[0].rminus(sol.x[0]) / sd[:, :10]
+    assert 1e-6 < gap.abs().max() < 1.0
+
+
+def test_small_monte_carlo_consistency():
+    """Correctly specified model: the iterated SGal(3) estimator's ANEES lies in the 95% band;
+    the SE_2(3) x R baseline is clearly overconfident."""
+    cfg = study.StudyConfig(trials=120, samples=31, seed=3, variants=("iterated",))
+    out = study.run(cfg, progress=False)
+    lo, hi = out["anees_band_95"]
+    sg = out["results"]["SGal(3)"]["iterated"]
+    bl = out["results"]["SE_2(3) x R"]["iterated"]
+    assert sg["converged"] == bl["converged"] == 120
+    assert lo <= sg["ANEES"] <= hi
+    assert bl["ANEES"] > 3 * hi
+
+
+def test_bad_initialisation_converges_to_the_same_solution():
+    """Rotation errors up to 90 degrees and dtau off by 50% (iterated variant, damped)."""
+    cfg = study.StudyConfig(trials=12, samples=31, seed=4)
+    trials = study.simulate(cfg)
+    good = tls.solve_sgal3(trials.problem, variant="iterated")
+    gen = torch.Generator().manual_seed(5)
+    axis = torch.randn(12, 3, generator=gen, dtype=f64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    angle = torch.linspace(0.1, math.pi / 2, 12, dtype=f64)
+    delta = torch.zeros(12, 10, dtype=f64)
+    delta[:, 6:9] = axis * angle[:, None]
+    F0 = trials.F_true.rplus(delta)
+    dtau0 = (1.5 * trials.dtau_true)[:, None]
+    bad = tls.solve_sgal3(trials.problem, x0=(F0, dtau0), variant="iterated", max_iterations=100)
+    assert bad.report.converged.all()
+    sd = good.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert (bad.x[0].rminus(good.x[0]) / sd[:, :10]).abs().max() < 1e-3
+
+
+def test_non_finite_observation_spoils_only_its_trial():
+    cfg = study.StudyConfig(trials=4, samples=11, seed=6)
+    trials = study.simulate(cfg)
+    M = trials.problem.F_ga.as_matrix().clone()
+    M[1, 3, 0, 4] = float("inf")
+    P = tls.TLSProblem(ts.SGal3(M), trials.problem.F_gb, trials.problem.cov_a, trials.problem.cov_b)
+    sol = tls.solve_sgal3(P)
+    assert sol.report.status.tolist() == [0, SolverStatus.NON_FINITE, 0, 0]
+    ref = tls.solve_sgal3(trials.problem)
+    ok = [0, 2, 3]
+    assert ref.x[0][ok].rminus(sol.x[0][ok]).abs().max() < 1e-12
+
+
+def test_frames_at_rest_make_dtau_unobservable():
+    """With no relative velocity, dtau does not enter the conditions: SINGULAR information."""
+    cfg = study.StudyConfig(trials=3, samples=11, speed=0.0, noise_scale=0.0, seed=7)
+    trials = study.simulate(cfg)
+    sol = tls.solve_sgal3(trials.problem)
+    assert (sol.report.status == SolverStatus.SINGULAR).all()
+
+
+def test_bad_input_gets_clear_errors():
+    P, _ = _problem()
+    S = study.paper_covariance()
+    with pytest.raises(ValueError, match="at least 3 observation pairs"):
+        tls.TLSProblem(P.F_ga[:, :2], P.F_gb[:, :2], S, S)
+    with pytest.raises(ValueError, match="F_ga and F_gb must have the same batch shape"):
+        tls.TLSProblem(P.F_ga, P.F_gb[:, :4], S, S)
+    with pytest.raises(ValueError, match=r"F_ga must have batch shape \(B, N\+1\)"):
+        tls.TLSProblem(P.F_ga[0], P.F_gb[0], S, S)
+    with pytest.raises(TypeError, match="F_gb must be SGal3"):
+        tls.TLSProblem(P.F_ga, ts.SE23.identity((3, 5), dtype=f64), S, S)
+    with pytest.raises(ValueError, match="cov_b is not symmetric"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S, S + torch.triu(torch.ones(10, 10, dtype=f64), 1))
+    with pytest.raises(ValueError, match="cov_a is not positive definite"):
+        tls.TLSProblem(P.F_ga, P.F_gb, -S, S)
+    with pytest.raises(ValueError, match=r"cov_a must have shape \(\.\.\., 10, 10\)"):
+        tls.TLSProblem(P.F_ga, P.F_gb, torch.eye(9, dtype=f64), S)
+    with pytest.raises(ValueError, match="cov_a must broadcast"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S.expand(7, 10, 10), S)
+    with pytest.raises(ValueError, match=r"indices must have shape \(N\+1,\)"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=torch.arange(4))
+
+
+def test_gtsam_factor_graph_agrees():
+    pytest.importorskip("gtsam")
+    from torchsgal.estimation import gtsam_peer
+    cfg = study.StudyConfig(trials=2, samples=31, seed=8)
+    trials = study.simulate(cfg)
+    P = trials.problem
+    ours = tls.solve_sgal3(P, variant="iterated", step_tol=1e-9)
+    F0, dt0 = P.initial_guess(cfg.nominal_dtau)
+    for k in range(2):
+        F, dtau, cov, _ = gtsam_peer.solve_trial(
+            P.F_ga.as_matrix()[k].numpy(), P.F_gb.as_matrix()[k].numpy(), P.cov_a.numpy(),
+            P.cov_b.numpy(), F0.as_matrix()[k].numpy(), float(dt0[k, 0]))
+        sd = ours.covariance[k].diagonal().sqrt()
+        assert (ts.SGal3(torch.tensor(F)).rminus(ours.x[0][k]) / sd[:10]).abs().max() < 1e-5
+        assert abs(dtau - float(ours.x[1][k, 0])) / float(sd[10]) < 1e-5
+        rel = (torch.tensor(cov) - ours.covariance[k]) / torch.outer(sd, sd)
+        assert rel.abs().max() < 1e-6
+
+
+def test_command_line_writes_the_study(tmp_path):
+    from torchsgal.__main__ import main
+    rc = main(["tls", "--trials", "6", "--samples", "11", "--out", str(tmp_path), "--quiet",
+               "--no-plot", "--seed", "3"])
+    assert rc == 0
+    out = json.loads((tmp_path / "tls_study.json").read_text())
+    assert out["config"]["trials"] == 6
+    assert set(out["results"]) == {"SGal(3)", "SE_2(3) x R"}
+    for est in out["results"].values():
+        assert set(est) == {"iterated", "paper"}
+        for r in est.values():
+            assert r["converged"] == 6 and math.isfinite(r["ANEES"]) and r["ANEES"] > 0
+    assert "paper SGal(3)" in (tmp_path / "tls_study.md").read_text()
