@@ -366,6 +366,8 @@ def test_bad_input_raises_with_names():
         preintegrate(gyro, acc.float(), dt)
     with pytest.raises(ValueError, match=r"gyro_bias must have shape \(\.\.\., 3\)"):
         preintegrate(gyro, acc, dt, gyro_bias=torch.zeros(2, dtype=F64))
+    with pytest.raises(ValueError, match=r"at least one sample \(K >= 1\)"):
+        preintegrate(gyro[:, :0], acc[:, :0], dt[:, :0])
     with pytest.raises(ValueError, match="frame must be 'z_up' or 'ned'"):
         gravity_vector("enu")
     with pytest.raises(ValueError, match="bias_jacobian is None"):

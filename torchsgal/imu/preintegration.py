@@ -27,7 +27,6 @@ import torch
 from .. import SGal3
 from ..functional import checks
 
-RHO, NU, PHI, IOTA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 10)
 STANDARD_GRAVITY = 9.80665  # m/s^2
 EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
 
@@ -40,6 +39,8 @@ def _check_stream(gyro, acc, dt):
     checks.same_device_dtype(gyro=gyro, acc=acc, dt=dt)
     if gyro.dim() < 2:
         raise ValueError(f"gyro must have shape (..., K, 3) with K samples, got {tuple(gyro.shape)}")
+    if gyro.shape[-2] == 0:
+        raise ValueError(f"gyro must hold at least one sample (K >= 1), got shape {tuple(gyro.shape)}")
     if gyro.shape != acc.shape:
         raise ValueError(f"acc must have the shape of gyro {tuple(gyro.shape)}, got {tuple(acc.shape)}")
     if dt.dim() < 1 or dt.shape[-1] != gyro.shape[-2]:
@@ -299,7 +300,7 @@ def preintegrate(
 
     Noise densities (continuous time): gyro [rad/s/sqrt(Hz)] and accelerometer [m/s^2/sqrt(Hz)]
     as floats (isotropic: the covariance is then summed in closed form, since C C^T = I) or
-    per-axis tensors (..., 3) (general path, about 2x slower); the clock [s/s/sqrt(Hz)] (a float:
+    per-axis tensors (..., 3) (general path, about 2.5x slower); the clock [s/s/sqrt(Hz)] (a float:
     white noise on the rate of time, entering iota; 0 = exact timestamps).  Sample k's tangent noise
     [0, -n_a dt, -n_g dt, n_t dt] has covariance diag(0, s_a^2 dt, s_g^2 dt, s_t^2 dt).
 
@@ -314,8 +315,9 @@ def preintegrate(
     itself off.)  The bias Jacobian is the same integral of Ad(Delta^-1 Delta(s)) G (minus the
     gyro and accelerometer columns).
 
-    Products: one batched SGal3.exp of the half-sample tangents over all samples, squared,
-    then a work-efficient parallel scan (log-depth) over K; no loop over samples or windows.
+    Products: one batched SGal3.exp over all samples, then a log-depth tree product (increment
+    only) or, with covariance or bias Jacobians, the exps of the half-sample tangents, squared,
+    and a work-efficient parallel scan over K; no loop over samples or windows.
     """
     xi = increment_tangents(gyro, acc, dt, gyro_bias, acc_bias)
     batch, K = xi.shape[:-2], xi.shape[-2]
