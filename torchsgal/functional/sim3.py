@@ -130,8 +130,9 @@ def ad(xi: torch.Tensor) -> torch.Tensor:
 
 
 def _jl_parts(xi: torch.Tensor):
-    """(m, s, Gamma_1, r, coupling, lam_col): J_l = [[s M, s coupling, s lam_col], [0, Gamma_1, 0],
-    [0, 0, 1]] with coupling = d(M rho)/dphi + r^ Gamma_1 and lam_col = dM/dlambda rho."""
+    """(m, s, phi, Gamma_1, coupling, lam_col): J_l = [[s M, s coupling, s lam_col],
+    [0, Gamma_1, 0], [0, 0, 1]] with coupling = d(M rho)/dphi + r^ Gamma_1, r = M rho, and
+    lam_col = dM/dlambda rho (docs/sim3_jacobian.md)."""
     rho, phi, lam = _split(xi)
     c = B.coefficients(phi, 3)
     m = _coefficients(phi, lam)
