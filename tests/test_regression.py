@@ -337,6 +337,67 @@ def test_se3_product_metric_distance_equals_geodesic_length():
     torch.testing.assert_close(d2, (w * X0 ** 2).sum(-1), atol=1e-7, rtol=0)
 
 
+def test_levi_civita_is_torsion_free_and_metric():
+    """nabla_X Y - nabla_Y X = [X, Y] and <nabla_X Y, Z> + <Y, nabla_X Z> = 0 (left-invariant
+    fields have constant inner products), for random weights on every group."""
+    for G in (ts.SE3, ts.SE23, ts.SGal3):
+        w = 0.5 + torch.rand(G.dof, dtype=F64)
+        X, Y, Z = torch.randn(3, 5, G.dof, dtype=F64)
+        bracket = (G.ad(X) @ Y.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(reg.levi_civita(G, X, Y, w) - reg.levi_civita(G, Y, X, w), bracket)
+        ip = lambda a, b: (w * a * b).sum(-1)  # noqa: E731
+        torch.testing.assert_close(ip(reg.levi_civita(G, X, Y, w), Z) + ip(Y, reg.levi_civita(G, X, Z, w)),
+                                   torch.zeros(5, dtype=F64), atol=1e-12, rtol=0)
+        # degree 1 of the polynomial equations is the Euler-Arnold equation
+        torch.testing.assert_close(reg.polynomial_rhs(G, X.unsqueeze(-2), w)[..., 0, :],
+                                   reg.euler_arnold_rhs(G, X, w))
+
+
+def test_riemannian_quadratic_se3_product_metric_closed_form():
+    """SE(3), weights [1,1,1,2,2,2] (product metric): a degree-2 Riemannian polynomial from I
+    with v_1(0) = (u, w), v_2(0) = (a, c w) has p(t) = u t + a t^2 / 2 and, the angular
+    acceleration being parallel to w, R(t) = exp((t + c t^2 / 2) w)."""
+    w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
+    u, a, om = torch.randn(3, 3, dtype=F64)
+    c = 0.7
+    V0 = torch.stack([torch.cat([u, om]), torch.cat([a, c * om])])
+    t = torch.tensor([-0.5, 0.5, 1.0], dtype=F64)
+    Phi, _ = reg.polynomial_flow(ts.SE3, V0, t, w, steps=64)
+    torch.testing.assert_close(Phi[..., :3, 3], t[:, None] * u + t[:, None] ** 2 / 2 * a, atol=1e-8, rtol=0)
+    R = ts.SO3.exp((t + c * t ** 2 / 2)[:, None] * om).as_matrix()
+    torch.testing.assert_close(Phi[..., :3, :3], R, atol=1e-8, rtol=0)
+
+
+def test_polynomial_flow_sensitivity_matches_finite_differences():
+    G = ts.SGal3
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    V0 = torch.randn(2, 2, G.dof, dtype=F64) * torch.tensor([[1.0], [0.5]], dtype=F64)
+    t = torch.tensor([-0.7, 0.4, 1.2], dtype=F64)
+    Phi, _, eta = reg.polynomial_flow(G, V0, t, w, 6, sensitivity=True)
+    eps, cols = 1e-6, []
+    for j in range(2 * G.dof):
+        d = torch.zeros(2 * G.dof, dtype=F64)
+        d[j] = eps
+        Pp, _ = reg.polynomial_flow(G, V0 + d.view(2, G.dof), t, w, 6)
+        Pm, _ = reg.polynomial_flow(G, V0 - d.view(2, G.dof), t, w, 6)
+        cols.append((G(Phi).between(G(Pp)).log() - G(Phi).between(G(Pm)).log()) / (2 * eps))
+    torch.testing.assert_close(eta, torch.stack(cols, -1), atol=1e-7, rtol=1e-7)
+
+
+@pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=ids)
+def test_riemannian_polynomial_exact_recovery(G):
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    p = G.exp(torch.randn(2, G.dof, dtype=F64))
+    V0 = torch.randn(2, 2, G.dof, dtype=F64) * torch.tensor([[1.0], [0.5]], dtype=F64)
+    t = torch.linspace(0.1, 1.0, 7, dtype=F64)
+    Phi, _ = reg.polynomial_flow(G, V0, t, w, steps=8)
+    Y = G(p.as_matrix().unsqueeze(-3) @ Phi)
+    fit = reg.fit_riemannian_polynomial(Y, t, 2, weights=w, steps=8)
+    assert bool(fit.converged.all())
+    torch.testing.assert_close(fit.coefficients, V0, atol=1e-8, rtol=0)
+    torch.testing.assert_close(fit.origin.as_matrix(), p.as_matrix(), atol=1e-9, rtol=0)
+
+
 # ------------------------------------------------------------------ statistics
 def test_frechet_mean_so3_against_scipy_fixed_point():
     """On SO(3) (bi-invariant) the Frechet mean is the exponential barycenter: the fixed point
@@ -451,6 +512,8 @@ def test_bad_input_raises_clear_errors():
         reg.fit_inertial_worldline(Y, t)
     with pytest.raises(ValueError, match="too few samples for degree 1"):
         reg.fit_riemannian_geodesic(Y[:1], t[:1])
+    with pytest.raises(ValueError, match="too few samples for degree 5"):
+        reg.fit_riemannian_polynomial(Y, t, 5)
     with pytest.raises(ValueError, match="steps must be a positive int"):
         reg.fit_riemannian_geodesic(Y, t, steps=0)
     with pytest.raises(ValueError, match=r"velocity must have shape \(\.\.\., 6\)"):

@@ -9,13 +9,14 @@ differentiated through (fits run under ``torch.no_grad``).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
 from ..groups import LieGroup, SGal3
 from . import _checks
-from .models import PolynomialModel, RiemannianGeodesicModel
+from .models import PolynomialModel, RiemannianPolynomialModel
 from .solvers import gauss_newton, lbfgs
 
 METHODS = ("gauss_newton", "lbfgs")
@@ -150,27 +151,45 @@ def fit_subgroup(samples: LieGroup, times: torch.Tensor, **kwargs) -> CurveFit:
     return fit_polynomial(samples, times, 1, **kwargs)
 
 
-def fit_riemannian_geodesic(samples: LieGroup, times: torch.Tensor, *, weights=None,
-                            time_origin=0.0, steps: int = 16, method: str = "gauss_newton",
-                            max_iterations: int | None = None, tolerance: float = 1e-10) -> CurveFit:
-    """Fits a Riemannian geodesic of the left-invariant metric diag(weights) (20)-(21):
-    gamma(t) = p Phi(t - t0), Phi' = Phi X, X solving the Euler-Arnold equation (24) from
-    X(t0) = X0.  Shooting on (p, X0) as in Algorithm 3, but by Gauss-Newton (or LBFGS) instead
-    of gradient descent; each sample's geodesic is integrated with ``steps`` RKMK4 steps.
-    Started from the one-parameter-subgroup fit."""
+def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: int = 1, *,
+                              weights=None, time_origin=0.0, steps: int = 16,
+                              method: str = "gauss_newton", max_iterations: int | None = None,
+                              tolerance: float = 1e-10) -> CurveFit:
+    """Fits a Riemannian polynomial (28) of the left-invariant metric diag(weights) (20)-(21):
+    gamma(t) = p Phi(t - t0), Phi' = Phi v_1, with (v_1, ..., v_K) solving the forward
+    equations (30)/(33) of the Levi-Civita connection (29) from V0 at t0; degree 1 is the
+    geodesic, whose v_1 solves the Euler-Arnold equation (24).  Shooting on (p, V0) as in
+    Algorithm 3, but by Gauss-Newton (or LBFGS) instead of gradient descent; each sample's
+    curve is integrated with ``steps`` steps.  Started from ``fit_polynomial`` of the same
+    degree (v_k(0) ~ k! times its coefficients).  ``coefficients`` is V0 (..., K, dof)."""
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be a positive int, got {steps!r}")
     _checks.group_samples(samples, "samples")
-    _checks.degree(1, samples.batch_shape[-1])
-    G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, 2)
+    _checks.degree(degree, samples.batch_shape[-1])
+    if degree < 1:
+        raise ValueError(f"degree must be >= 1 for a Riemannian polynomial, got {degree}")
+    G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, degree + 1)
     with torch.no_grad():
-        start = fit_polynomial(G(Y), t, 1, weights=w, time_origin=t0, max_iterations=20)
-        model = RiemannianGeodesicModel(G, Y, t - t0.unsqueeze(-1), w.sqrt(), w, steps)
-        x = start.coefficients[..., 0, :]
+        start = fit_polynomial(G(Y), t, degree, weights=w, time_origin=t0, max_iterations=20)
+        factorials = torch.tensor([math.factorial(k) for k in range(1, degree + 1)],
+                                  dtype=Y.dtype, device=Y.device)
+        model = RiemannianPolynomialModel(G, Y, t - t0.unsqueeze(-1), w.sqrt(), w, degree, steps)
+        x = (start.coefficients * factorials[:, None]).flatten(-2)
         state = _solve(model, start.origin.as_matrix(), x, method, max_iterations, tolerance)
-    return CurveFit(G, "riemannian_geodesic", G(state.origin), state.coefficients.unsqueeze(-2),
+    return CurveFit(G, "riemannian_polynomial", G(state.origin), model.initial(state.coefficients),
                     t0, state.cost, state.converged, state.iterations, method, model,
                     state.coefficients)
+
+
+def fit_riemannian_geodesic(samples: LieGroup, times: torch.Tensor, *, weights=None,
+                            time_origin=0.0, steps: int = 16, method: str = "gauss_newton",
+                            max_iterations: int | None = None, tolerance: float = 1e-10) -> CurveFit:
+    """Fits a Riemannian geodesic of the left-invariant metric diag(weights): gamma(t) =
+    p Phi(t - t0), Phi' = Phi X, X solving the Euler-Arnold equation (24) from X(t0) = X0
+    (``fit_riemannian_polynomial`` with degree 1; ``coefficients[..., 0, :]`` is X0)."""
+    return fit_riemannian_polynomial(samples, times, 1, weights=weights, time_origin=time_origin,
+                                     steps=steps, method=method, max_iterations=max_iterations,
+                                     tolerance=tolerance)
 
 
 def fit_inertial_worldline(samples: SGal3, times: torch.Tensor, *, weights=None, time_origin=0.0,

@@ -95,16 +95,6 @@ def euler_arnold_rhs(G, X: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     return (G.ad(X).transpose(-1, -2) @ (weights * X).unsqueeze(-1)).squeeze(-1) / weights
 
 
-def euler_arnold_jacobian(G, X: torch.Tensor, weights: torch.Tensor,
-                          structure: torch.Tensor) -> torch.Tensor:
-    """d(rhs)/dX (..., dof, dof) of ``euler_arnold_rhs``:
-    W^-1 (M(W X) + ad(X)^T W), M(mu)_(k,i) = sum_j C[i, j, k] mu_j, C[i] = ad(e_i)."""
-    dof = X.shape[-1]
-    mu = weights * X
-    M = (mu @ structure.permute(1, 2, 0).reshape(dof, dof * dof)).unflatten(-1, (dof, dof))
-    return (M + G.ad(X).transpose(-1, -2) * weights.unsqueeze(-2)) / weights.unsqueeze(-1)
-
-
 # Commutator-free Lie-group method of order 4 (Blanes and Moan) for gamma' = gamma X(t):
 # gamma_(n+1) = gamma_n exp(h (a1 X1 + a2 X2)) exp(h (a2 X1 + a1 X2)), X1, X2 at the Gauss
 # points t_n + c_i h.
@@ -118,6 +108,56 @@ def _hermite(c: float):
     return (2 * c**3 - 3 * c**2 + 1, c**3 - 2 * c**2 + c, -2 * c**3 + 3 * c**2, c**3 - c**2)
 
 
+def levi_civita(G, X: torch.Tensor, Y: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """The Levi-Civita connection of the left-invariant metric diag(w) on left-invariant
+    fields, (29) in vector form: nabla_X Y = 1/2 ([X, Y] - ad*_X Y - ad*_Y X), with the metric
+    adjoint ad*_X = W^-1 ad(X)^T W.  Along a curve with body velocity X, a field with body
+    components Y(t) has covariant derivative dY/dt + nabla_X Y."""
+    adj = lambda A, B: (G.ad(A).transpose(-1, -2) @ (weights * B).unsqueeze(-1)).squeeze(-1)  # noqa: E731
+    bracket = (G.ad(X) @ Y.unsqueeze(-1)).squeeze(-1)
+    return 0.5 * (bracket - (adj(X, Y) + adj(Y, X)) / weights)
+
+
+def _levi_civita_jacobians(G, X, Y, weights, structure):
+    """d(nabla_X Y)/dX and d(nabla_X Y)/dY (..., dof, dof)."""
+    dof = X.shape[-1]
+    Cm = structure.permute(1, 2, 0).reshape(dof, dof * dof)
+    M = lambda mu: (mu @ Cm).unflatten(-1, (dof, dof))  # noqa: E731  M(mu) d = ad(d)^T mu
+    wl, wr = weights.unsqueeze(-1), weights.unsqueeze(-2)
+    adX, adY = G.ad(X), G.ad(Y)
+    dY = 0.5 * (adX - (adX.transpose(-1, -2) * wr + M(weights * X)) / wl)
+    dX = 0.5 * (-adY - (M(weights * Y) + adY.transpose(-1, -2) * wr) / wl)
+    return dX, dY
+
+
+def polynomial_rhs(G, V: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """The forward equations (30)/(33) of a Riemannian polynomial of degree K in body
+    coordinates, V = (v_1, ..., v_K) (..., K, dof), v_1 the body velocity and
+    v_(i+1) = nabla_(gamma') v_i:  dv_i/dt = v_(i+1) - nabla_(v_1) v_i, v_(K+1) = 0.
+    K = 1 is the Euler-Arnold equation (24)."""
+    w = weights.unsqueeze(-2)
+    nab = levi_civita(G, V[..., :1, :].expand(V.shape), V, w)
+    return torch.cat([V[..., 1:, :], torch.zeros_like(V[..., :1, :])], dim=-2) - nab
+
+
+def _polynomial_rhs_jacobian(G, V, weights, structure):
+    """d polynomial_rhs / dV, (..., K dof, K dof) in the flattened order of V."""
+    K, dof = V.shape[-2], V.shape[-1]
+    dX, dY = _levi_civita_jacobians(G, V[..., :1, :].expand(V.shape), V, weights.unsqueeze(-2),
+                                    structure)  # (..., K, dof, dof)
+    eye = torch.eye(dof, dtype=V.dtype, device=V.device).expand(V.shape[:-2] + (dof, dof))
+    zero = torch.zeros_like(eye)
+    rows = []
+    for i in range(K):
+        blocks = [zero] * K
+        blocks[0] = -dX[..., i, :, :]
+        blocks[i] = blocks[i] - dY[..., i, :, :]
+        if i + 1 < K:
+            blocks[i + 1] = eye
+        rows.append(torch.cat(blocks, dim=-1))
+    return torch.cat(rows, dim=-2)
+
+
 def geodesic_flow(G, velocity: torch.Tensor, tau: torch.Tensor, weights: torch.Tensor,
                   steps: int = 16, sensitivity: bool = False):
     """Riemannian geodesic from the identity with initial body velocity ``velocity``
@@ -125,85 +165,103 @@ def geodesic_flow(G, velocity: torch.Tensor, tau: torch.Tensor, weights: torch.T
 
     Returns Phi (..., M, n, n), X(tau) (..., M, dof) and, with ``sensitivity=True``, eta
     (..., M, dof, dof) such that Phi(X0 + d) = Phi(X0) exp(eta d) to first order.
+    ``polynomial_flow`` with degree 1 (the Euler-Arnold equation (24))."""
+    out = polynomial_flow(G, velocity.unsqueeze(-2), tau, weights, steps, sensitivity)
+    return (out[0], out[1][..., 0, :]) + tuple(out[2:])
+
+
+def polynomial_flow(G, initial: torch.Tensor, tau: torch.Tensor, weights: torch.Tensor,
+                    steps: int = 16, sensitivity: bool = False):
+    """Riemannian polynomial (28) of degree K of the left-invariant metric diag(w) from the
+    identity, initial body coordinates ``initial`` = (v_1, ..., v_K)(0) (..., K, dof),
+    evaluated at offsets ``tau`` (..., M).
+
+    Returns Phi (..., M, n, n), V(tau) (..., M, K, dof) and, with ``sensitivity=True``, eta
+    (..., M, dof, K dof) such that Phi(V0 + d) = Phi(V0) exp(eta d) to first order.
 
     Each offset is integrated on its own grid of ``steps`` equal steps (h = tau / steps), all
-    in one batch: the Euler-Arnold equation (24) for X by classical RK4, and the
-    reconstruction (25) gamma' = gamma X by the fourth-order commutator-free method above, X at
-    the Gauss points from the cubic Hermite interpolant of the RK4 step.  ((26),
-    gamma = exp(int X), holds only when the X(t) commute; it is not used.)  The sensitivity is
-    the exact derivative of this discrete map (tangent-linear RK4 for S = dX/dX0 and
+    in one batch: ``polynomial_rhs`` by classical RK4, and the reconstruction (25)
+    gamma' = gamma v_1 by the fourth-order commutator-free method above, v_1 at the Gauss
+    points from the cubic Hermite interpolant of the RK4 step.  ((26), gamma = exp(int X),
+    holds only when the X(t) commute; it is not used.)  The sensitivity is the exact
+    derivative of this discrete map (tangent-linear RK4 for S = dV/dV0 and
     eta_(n+1) = Ad(e^-b) (Ad(e^-a) eta_n + J_r(a) da) + J_r(b) db)."""
-    X, w = velocity.unsqueeze(-2), weights.unsqueeze(-2)
-    batch = torch.broadcast_shapes(X.shape[:-1], tau.shape, w.shape[:-1])
+    K, dof = initial.shape[-2], G.dof
+    V, w = initial.unsqueeze(-3), weights.unsqueeze(-2)
+    batch = torch.broadcast_shapes(V.shape[:-2], tau.shape, w.shape[:-1])
     tau = tau.expand(batch)
-    X = X.expand(batch + (G.dof,))
-    h = (tau / steps).unsqueeze(-1)
-    n, dof = G.matrix_dim, G.dof
-    Phi = torch.eye(n, dtype=X.dtype, device=X.device).expand(batch + (n, n))
-    f = lambda Z: euler_arnold_rhs(G, Z, w)  # noqa: E731
+    V = V.expand(batch + (K, dof))
+    h = (tau / steps)[..., None, None]
+    n = G.matrix_dim
+    Phi = torch.eye(n, dtype=V.dtype, device=V.device).expand(batch + (n, n))
+    f = lambda Z: polynomial_rhs(G, Z, w)  # noqa: E731
     if sensitivity:
-        C = G.ad(torch.eye(dof, dtype=X.dtype, device=X.device))
-        Df = lambda Z: euler_arnold_jacobian(G, Z, w, C)  # noqa: E731
-        S = torch.eye(dof, dtype=X.dtype, device=X.device).expand(batch + (dof, dof))
-        eta = torch.zeros_like(S)
-        hm = h.unsqueeze(-1)
+        C = G.ad(torch.eye(dof, dtype=V.dtype, device=V.device))
+        Df = lambda Z: _polynomial_rhs_jacobian(G, Z, w, C)  # noqa: E731
+        S = torch.eye(K * dof, dtype=V.dtype, device=V.device).expand(batch + (K * dof, K * dof))
+        eta = torch.zeros(batch + (dof, K * dof), dtype=V.dtype, device=V.device)
+        hm = h[..., 0, :, None]
     weights_g = [_hermite(c) for c in _GAUSS]
-    F = f(X)
+    F = f(V)
     if sensitivity:
-        DF = Df(X)
-        dF = DF @ S
+        dF = Df(V) @ S
     for _ in range(steps):
         k1 = F
-        k2 = f(X + 0.5 * h * k1)
-        k3 = f(X + 0.5 * h * k2)
-        X4 = X + h * k3
-        k4 = f(X4)
-        X_new = X + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        F_new = f(X_new)
-        Xg = [c0 * X + c1 * h * F + c2 * X_new + c3 * h * F_new for c0, c1, c2, c3 in weights_g]
-        a = h * (_A1 * Xg[0] + _A2 * Xg[1])
-        b = h * (_A2 * Xg[0] + _A1 * Xg[1])
+        k2 = f(V + 0.5 * h * k1)
+        k3 = f(V + 0.5 * h * k2)
+        V4 = V + h * k3
+        k4 = f(V4)
+        V_new = V + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        F_new = f(V_new)
+        Xg = [(c0 * V + c1 * h * F + c2 * V_new + c3 * h * F_new)[..., 0, :]
+              for c0, c1, c2, c3 in weights_g]
+        a = h[..., 0, :] * (_A1 * Xg[0] + _A2 * Xg[1])
+        b = h[..., 0, :] * (_A2 * Xg[0] + _A1 * Xg[1])
         Ea, Eb = G.exp(a), G.exp(b)
         Phi = Phi @ Ea.as_matrix() @ Eb.as_matrix()
         if sensitivity:
             K1 = dF
-            Z2 = X + 0.5 * h * k1
-            K2 = Df(Z2) @ (S + 0.5 * hm * K1)
-            Z3 = X + 0.5 * h * k2
-            K3 = Df(Z3) @ (S + 0.5 * hm * K2)
-            K4 = Df(X4) @ (S + hm * K3)
+            K2 = Df(V + 0.5 * h * k1) @ (S + 0.5 * hm * K1)
+            K3 = Df(V + 0.5 * h * k2) @ (S + 0.5 * hm * K2)
+            K4 = Df(V4) @ (S + hm * K3)
             S_new = S + hm / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
-            dF_new = Df(X_new) @ S_new
-            Sg = [c0 * S + c1 * hm * dF + c2 * S_new + c3 * hm * dF_new
+            dF_new = Df(V_new) @ S_new
+            Sg = [(c0 * S + c1 * hm * dF + c2 * S_new + c3 * hm * dF_new)[..., :dof, :]
                   for c0, c1, c2, c3 in weights_g]
             da = hm * (_A1 * Sg[0] + _A2 * Sg[1])
             db = hm * (_A2 * Sg[0] + _A1 * Sg[1])
             eta = Eb.inverse().adjoint() @ (Ea.inverse().adjoint() @ eta + G.jr(a) @ da) \
                 + G.jr(b) @ db
             S, dF = S_new, dF_new
-        X, F = X_new, F_new
+        V, F = V_new, F_new
     if sensitivity:
-        return Phi, X, eta
-    return Phi, X
+        return Phi, V, eta
+    return Phi, V
 
 
-class RiemannianGeodesicModel:
-    """gamma(t) = p Phi(t - t0; X0), Phi the Riemannian geodesic of the left-invariant metric
-    diag(w) from the identity with initial body velocity X0 (x = X0, (..., dof)).
+class RiemannianPolynomialModel:
+    """gamma(t) = p Phi(t - t0; V0), Phi the Riemannian polynomial of degree K of the
+    left-invariant metric diag(w) from the identity with initial body coordinates
+    V0 = (v_1, ..., v_K)(0) (x = V0 flattened, (..., K dof)); K = 1 is the geodesic.
 
-    Jacobians from the discrete sensitivity of ``geodesic_flow`` (see ``linearize``)."""
+    dr/dp = -J_l^-1(r) Ad(Phi^-1), dr/dV0 = -J_l^-1(r) eta (Phi -> Phi exp(eta d)), eta the
+    exact sensitivity of the discrete flow (``polynomial_flow``)."""
 
-    def __init__(self, G, samples, tau, sqrt_w, weights, steps=16, fix_origin=False):
+    def __init__(self, G, samples, tau, sqrt_w, weights, degree=1, steps=16, fix_origin=False):
         self.G = G
         self.samples = samples
         self.tau = tau
         self.sqrt_w = sqrt_w
         self.weights = weights
+        self.degree = degree
         self.steps = steps
         self.fix_origin = fix_origin
 
+    def initial(self, x):
+        return x.unflatten(-1, (self.degree, self.G.dof))
+
     def curve(self, origin, x, tau):
-        Phi, _ = geodesic_flow(self.G, x, tau, self.weights, self.steps)
+        Phi, _ = polynomial_flow(self.G, self.initial(x), tau, self.weights, self.steps)
         return origin.unsqueeze(-3) @ Phi
 
     def residuals(self, origin, x):
@@ -213,10 +271,9 @@ class RiemannianGeodesicModel:
         return _weighted(r, self.sqrt_w).flatten(-2)
 
     def linearize(self, origin, x):
-        """dr/dp = -J_l^-1(r) Ad(Phi^-1), dr/dX0 = -J_l^-1(r) eta (Phi -> Phi exp(eta d))."""
         G = self.G
-        Phi, _, eta = geodesic_flow(G, x, self.tau, self.weights, self.steps,
-                                    sensitivity=True)
+        Phi, _, eta = polynomial_flow(G, self.initial(x), self.tau, self.weights, self.steps,
+                                      sensitivity=True)
         r = G(origin.unsqueeze(-3) @ Phi).between(G(self.samples)).log()
         jl_inv = G.jl_inv(r)
         blocks = []
@@ -225,3 +282,6 @@ class RiemannianGeodesicModel:
         blocks.append(-jl_inv @ eta)
         J = torch.cat(blocks, dim=-1) * self.sqrt_w[..., None, :, None]
         return _weighted(r, self.sqrt_w).flatten(-2), J.flatten(-3, -2)
+
+
+RiemannianGeodesicModel = RiemannianPolynomialModel  # degree 1
