@@ -1,5 +1,6 @@
 """Regression of time-stamped group samples: polynomial (one-parameter subgroup) curves,
-Riemannian geodesics of a left-invariant metric, and the inertial worldline on SGal(3).
+Riemannian geodesics and polynomials of a left-invariant metric, and the inertial worldline
+on SGal(3).
 
 Equation numbers refer to Aubray and Nicol, "Polynomial regression on Lie groups and
 application to SE(3)" (aubray-nicol-polynomial-regression-se3.txt).  Every fit minimises
@@ -27,8 +28,9 @@ class CurveFit:
     """A fitted curve on ``group`` for a batch of data sets.
 
     origin: gamma(time_origin) (batch (...)); coefficients: the algebra coefficients v_k
-    (..., K, dof) of the polynomial model, or the initial body velocity X0 (..., 1, dof) of a
-    Riemannian geodesic; cost: sum_i d(gamma(t_i), y_i)^2 (...); converged: (...) bool.
+    (..., K, dof) of the polynomial model, or the initial body coordinates
+    (v_1, ..., v_K)(t0) (..., K, dof) of a Riemannian polynomial (v_1 = X0 for a geodesic);
+    cost: sum_i d(gamma(t_i), y_i)^2 (...); converged: (...) bool.
     Call ``fit(times)`` for gamma at times (..., M)."""
 
     group: type
