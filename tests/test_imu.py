@@ -24,6 +24,7 @@ from torchsgal.imu import (
     gravity_vector,
     increment_tangents,
     predict,
+    predict_jacobians,
     preintegrate,
     suffix_products,
     window_product,
@@ -389,3 +390,51 @@ def test_splitting_samples_changes_nothing(K):
     sd = two.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
     assert float(((one.covariance - two.covariance).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()) < 5e-7
     assert torch.allclose(one.bias_jacobian, two.bias_jacobian, rtol=0, atol=1e-10 * two.bias_jacobian.abs().max())
+
+
+def test_predict_jacobians_match_finite_differences():
+    gen = torch.Generator().manual_seed(3)
+    gyro, acc, dt = random_stream(2, 20, seed=60, dt_range=(0.03, 0.06))
+    delta = preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False).delta
+    X0 = SGal3.random((2,), dtype=F64, generator=gen)
+    g = gravity_vector("ned", 9.8, dtype=F64)
+    Omega = torch.tensor([0.1, -0.2, 0.15], dtype=F64)  # exaggerated: every term matters
+    J_start, J_delta = predict_jacobians(X0, delta, g, Omega)
+    X1 = predict(X0, delta, g, Omega)
+    e = 1e-6
+    for J, perturb in ((J_start, lambda d: predict(X0.rplus(d), delta, g, Omega)),
+                       (J_delta, lambda d: predict(X0, delta.rplus(d), g, Omega))):
+        cols = []
+        for k in range(10):
+            d = torch.zeros(10, dtype=F64)
+            d[k] = e
+            cols.append((perturb(d).rminus(X1) - perturb(-d).rminus(X1)) / (2 * e))
+        fd = torch.stack(cols, dim=-1)
+        assert torch.allclose(J, fd, rtol=0, atol=1e-8 * fd.abs().max()), float((J - fd).abs().max())
+
+
+def test_predicted_covariance_nees():
+    N, K = 400, 50
+    gen = torch.Generator().manual_seed(77)
+    gyro, acc, dt = random_stream(1, K, seed=61, dt_range=(0.005, 0.015), rate=1.0, acc=3.0)
+    s_g, s_a, s_t = 0.01, 0.1, 1e-3
+    r = preintegrate(gyro, acc, dt, gyro_noise_density=s_g, acc_noise_density=s_a, time_noise_density=s_t)
+    X0 = SGal3.random((1,), dtype=F64, generator=gen)
+    g = gravity_vector("z_up", dtype=F64)
+    Omega = torch.tensor([0.0, 0.05, 0.08], dtype=F64)
+    L = 1e-2 * torch.randn(10, 10, dtype=F64, generator=gen)
+    P0 = L @ L.T + 1e-6 * torch.eye(10, dtype=F64)
+    P1 = r.predict_covariance(X0, P0, g, Omega)[0]
+    # Monte Carlo: perturbed starts and noisy streams (noise held over each sample)
+    eps0 = torch.randn(N, 10, generator=gen, dtype=F64) @ torch.linalg.cholesky(P0).T
+    root = dt.sqrt().unsqueeze(-1)
+    xi = increment_tangents(gyro - s_g / root * torch.randn(N, K, 3, generator=gen, dtype=F64),
+                            acc - s_a / root * torch.randn(N, K, 3, generator=gen, dtype=F64), dt.expand(N, K))
+    n_t = s_t * dt.sqrt() * torch.randn(N, K, generator=gen, dtype=F64)
+    xi = torch.cat((xi[..., :9], xi[..., 9:] + n_t.unsqueeze(-1)), dim=-1)
+    true_delta = SGal3(window_product(SGal3.exp(xi).as_matrix()))
+    truth = predict(X0.expand(N).rplus(eps0), true_delta, g, Omega)
+    eps1 = truth.rminus(r.predict(X0, g, Omega).expand(N))
+    nees = (eps1 * torch.linalg.solve(P1, eps1.T).T).sum(-1)
+    lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], N * 10) / N
+    assert lo < float(nees.mean()) < hi, (float(nees.mean()), lo, hi)

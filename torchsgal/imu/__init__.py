@@ -8,11 +8,12 @@ from .preintegration import (
     gravity_vector,
     increment_tangents,
     predict,
+    predict_jacobians,
     preintegrate,
     suffix_products,
     window_product,
 )
 
 __all__ = ["EARTH_RATE", "STANDARD_GRAVITY", "Preintegration", "earth_rate_vector",
-           "gravity_vector", "increment_tangents", "predict", "preintegrate", "suffix_products",
-           "window_product"]
+           "gravity_vector", "increment_tangents", "predict", "predict_jacobians", "preintegrate",
+           "suffix_products", "window_product"]

@@ -272,6 +272,18 @@ class Preintegration:
         db = torch.cat(torch.broadcast_tensors(g - self.gyro_bias, a - self.acc_bias), dim=-1)
         return self.delta.rplus((self.bias_jacobian @ db.unsqueeze(-1)).squeeze(-1))
 
+    def predict_covariance(self, start: SGal3, start_covariance: torch.Tensor, gravity: torch.Tensor,
+                           earth_rate=None) -> torch.Tensor:
+        """Covariance (..., 10, 10) of the predicted state (right perturbation), from the start's
+        (right perturbation) and the increment's, taken independent:
+        J_s Sigma_i J_s^T + J_d Sigma_Delta J_d^T with (J_s, J_d) = :func:`predict_jacobians`."""
+        if self.covariance is None:
+            raise ValueError("covariance is None: preintegrate with covariance=True")
+        checks.matrix(start_covariance, 10, "start_covariance")
+        J_start, J_delta = predict_jacobians(start, self.delta, gravity, earth_rate)
+        return (J_start @ start_covariance @ J_start.transpose(-1, -2)
+                + J_delta @ self.covariance @ J_delta.transpose(-1, -2))
+
     def predict(self, start: SGal3, gravity: torch.Tensor, earth_rate=None,
                 gyro_bias=None, acc_bias=None) -> SGal3:
         """The state at the window's end; see :func:`predict`.  With biases given, the
@@ -410,6 +422,13 @@ def predict(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None) 
     the IMU increment a right factor.  Without Earth rotation this is R_j = R_i dR,
     v_j = v_i + g T + R_i dv, p_j = p_i + v_i T + g T^2 / 2 + R_i dp, t_j = t_i + T.
     """
+    A, t_i, start0 = _prediction_factors(start, delta, gravity, earth_rate)
+    return _time_shift(t_i) @ A @ start0 @ delta
+
+
+def _prediction_factors(start, delta, gravity, earth_rate):
+    """(A, t_i, X_i0) with X_j = S(t_i) A X_i0 Delta: A = S(T) exp([0, g T, -Omega T, -T]) and
+    X_i0 = S(-t_i) X_i (the start with its time set to zero)."""
     if not isinstance(start, SGal3):
         raise TypeError(f"start must be a SGal3, got {type(start).__name__}")
     if not isinstance(delta, SGal3):
@@ -417,8 +436,6 @@ def predict(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None) 
     ref = delta.as_matrix()
     checks.vector(gravity, 3, "gravity")
     checks.same_device_dtype(delta=ref, gravity=gravity)
-    T = delta.time()
-    t_i = start.time()
     if earth_rate is None:
         earth_rate = torch.zeros_like(gravity)
     else:
@@ -426,9 +443,31 @@ def predict(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None) 
         checks.same_device_dtype(delta=ref, earth_rate=earth_rate)
     batch = checks.broadcast_batch(start=start.batch_shape, delta=delta.batch_shape,
                                    gravity=gravity.shape[:-1], earth_rate=earth_rate.shape[:-1])
-    Tv = T.unsqueeze(-1)
     g, w = torch.broadcast_tensors(gravity.expand(*batch, 3), earth_rate.expand(*batch, 3))
-    Tb = Tv.expand(*batch, 1)
-    left = SGal3.exp(torch.cat((torch.zeros_like(g), g * Tb, -w * Tb, -Tb), dim=-1))
-    t_i = t_i.expand(batch)
-    return _time_shift(t_i + T) @ left @ _time_shift(-t_i) @ start @ delta
+    T = delta.time().unsqueeze(-1).expand(*batch, 1)
+    A = _time_shift(T[..., 0]) @ SGal3.exp(torch.cat((torch.zeros_like(g), g * T, -w * T, -T), dim=-1))
+    t_i = start.time().expand(batch)
+    return A, t_i, _time_shift(-t_i) @ start
+
+
+def predict_jacobians(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None):
+    """(J_start, J_delta), each (..., 10, 10): first-order maps of right perturbations
+    X_i exp(e_i) and Delta exp(d) to the predicted state's, X_j exp(J_start e_i + J_delta d).
+
+    Both time perturbations move the left factor: with A(T) = S(T) exp(T h), h = [0, g, -Omega, -1],
+    S(iota) A S(-iota) = A exp(iota (Ad(A^-1) - I) e_iota) and A(T + iota) = S(iota) A exp(iota h),
+    so besides Ad(Delta^-1) and I the iota columns gain Ad((X_i0 Delta)^-1) u with
+    u = Ad(A^-1) e_iota - e_iota (start) and u + [0, g, -Omega, 0] (increment)."""
+    A, _, start0 = _prediction_factors(start, delta, gravity, earth_rate)
+    batch = A.batch_shape
+    back = (start0 @ delta).inverse().adjoint()  # Ad((X_i0 Delta)^-1)
+    u = A.inverse().adjoint()[..., :, 9].clone()
+    u[..., 9] -= 1.0
+    J_start = delta.inverse().adjoint().expand(*batch, 10, 10).clone()
+    J_start[..., :, 9] += (back @ u.unsqueeze(-1)).squeeze(-1)
+    g = gravity.expand(*batch, 3)
+    w = earth_rate.expand(*batch, 3) if earth_rate is not None else torch.zeros_like(g)
+    u_delta = u + torch.cat((torch.zeros_like(g), g, -w, torch.zeros_like(g[..., :1])), dim=-1)
+    J_delta = torch.eye(10, dtype=u.dtype, device=u.device).expand(*batch, 10, 10).clone()
+    J_delta[..., :, 9] += (back @ u_delta.unsqueeze(-1)).squeeze(-1)
+    return J_start, J_delta
