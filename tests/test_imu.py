@@ -90,12 +90,18 @@ def test_constant_inputs_closed_form_and_varying_dt():
     assert abs(float(delta.time()) - T) < 1e-15
 
 
-def test_float32_increment():
-    gyro, acc, dt = random_stream(4, 50, seed=3)
-    ref = preintegrate(gyro, acc, dt).delta.as_matrix()
-    r32 = preintegrate(gyro.float(), acc.float(), dt.float(), gyro_noise_density=1e-3, acc_noise_density=1e-2)
-    assert torch.allclose(r32.delta.as_matrix().double(), ref, atol=2e-5 * ref.abs().max())
-    assert torch.isfinite(r32.covariance).all() and torch.isfinite(r32.bias_jacobian).all()
+def test_float32_matches_float64():
+    gyro, acc, dt = random_stream(4, 200, seed=3)
+    dens = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2, time_noise_density=1e-4)
+    r64 = preintegrate(gyro, acc, dt, **dens)
+    r32 = preintegrate(gyro.float(), acc.float(), dt.float(), **dens)
+    ref = r64.delta.as_matrix()
+    assert torch.allclose(r32.delta.as_matrix().double(), ref, rtol=0, atol=2e-5 * ref.abs().max())
+    sd = r64.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
+    rel = (r32.covariance.double() - r64.covariance).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)
+    assert float(rel.max()) < 1e-5
+    J = r64.bias_jacobian
+    assert torch.allclose(r32.bias_jacobian.double(), J, rtol=0, atol=2e-5 * J.abs().max())
 
 
 @pytest.mark.parametrize("K", [1, 2, 3, 8, 13, 64])
