@@ -93,6 +93,18 @@ def test_time_origin_and_float32():
     torch.testing.assert_close(fit.origin.as_matrix(), expected.as_matrix(), atol=1e-8, rtol=0)
     fit32 = reg.fit_subgroup(G(Y.as_matrix().float()), t.float(), time_origin=10.0)
     torch.testing.assert_close(fit32.coefficients.double(), v, atol=2e-4, rtol=0)
+    assert bool(fit32.converged.all())
+
+
+@pytest.mark.parametrize("method", ["gauss_newton", "lbfgs"])
+def test_float32_noisy_fit_converges_to_the_float64_optimum(method):
+    G = ts.SE3
+    p, v, t, Y = _poly_data(G, (4,), 8, 1)
+    Y = Y.rplus(0.01 * torch.randn(4, 8, 6, dtype=F64))
+    fit64 = reg.fit_subgroup(Y, t)
+    fit32 = reg.fit_subgroup(G(Y.as_matrix().float()), t.float(), method=method)
+    assert bool(fit32.converged.all()) and bool(fit64.converged.all())
+    torch.testing.assert_close(fit32.coefficients.double(), fit64.coefficients, atol=1e-3, rtol=0)
 
 
 @pytest.mark.parametrize("G", GROUPS3, ids=ids)
@@ -384,7 +396,7 @@ def test_polynomial_flow_sensitivity_matches_finite_differences():
     torch.testing.assert_close(eta, torch.stack(cols, -1), atol=1e-7, rtol=1e-7)
 
 
-@pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=ids)
+@pytest.mark.parametrize("G", GROUPS3, ids=ids)
 def test_riemannian_polynomial_exact_recovery(G):
     w = 0.5 + torch.rand(G.dof, dtype=F64)
     p = G.exp(torch.randn(2, G.dof, dtype=F64))

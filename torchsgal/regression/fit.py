@@ -102,6 +102,8 @@ def _initial_subgroup(G, Y, t, t0):
 def _solve(model, origin, x, method, max_iterations, tolerance):
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if tolerance is None:  # relative step length; float32 resolves ~1e-6 at best
+        tolerance = 1e-10 if x.dtype == torch.float64 else 1e-5
     if method == "gauss_newton":
         return gauss_newton(model, origin, x, max_iterations or 50, tolerance)
     return lbfgs(model, origin, x, max_iterations or 500, tolerance)
@@ -121,7 +123,7 @@ def _basis(basis, G, like):
 def fit_polynomial(samples: LieGroup, times: torch.Tensor, degree: int = 1, *, weights=None,
                    time_origin=0.0, basis: torch.Tensor | None = None,
                    method: str = "gauss_newton", max_iterations: int | None = None,
-                   tolerance: float = 1e-10) -> CurveFit:
+                   tolerance: float | None = None) -> CurveFit:
     """Fits gamma(t) = p exp(sum_{k=1..degree} (t - t0)^k B v_k) to samples y_i at times t_i.
 
     samples: a group element (SE3, SE23, SGal3, ...) with batch shape (..., N); times: (..., N),
@@ -130,7 +132,9 @@ def fit_polynomial(samples: LieGroup, times: torch.Tensor, degree: int = 1, *, w
     identity).  degree 1 is the one-parameter subgroup (geodesic of the Cartan-Schouten
     connections), degree 0 the Frechet mean of the log distance.  method: "gauss_newton"
     (batched Levenberg-Marquardt with closed-form Jacobians; max_iterations default 50) or
-    "lbfgs" (``torch.optim.LBFGS`` on the tangent perturbation; default 500 per round)."""
+    "lbfgs" (``torch.optim.LBFGS`` on the tangent perturbation; default 500 per round).
+    tolerance: relative step length for convergence (default 1e-10 in float64, 1e-5 in
+    float32)."""
     _checks.group_samples(samples, "samples")
     _checks.degree(degree, samples.batch_shape[-1])
     G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, max(1, degree + 1))
@@ -156,7 +160,7 @@ def fit_subgroup(samples: LieGroup, times: torch.Tensor, **kwargs) -> CurveFit:
 def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: int = 1, *,
                               weights=None, time_origin=0.0, steps: int = 16,
                               method: str = "gauss_newton", max_iterations: int | None = None,
-                              tolerance: float = 1e-10) -> CurveFit:
+                              tolerance: float | None = None) -> CurveFit:
     """Fits a Riemannian polynomial (28) of the left-invariant metric diag(weights) (20)-(21):
     gamma(t) = p Phi(t - t0), Phi' = Phi v_1, with (v_1, ..., v_K) solving the forward
     equations (30)/(33) of the Levi-Civita connection (29) from V0 at t0; degree 1 is the
@@ -185,7 +189,7 @@ def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: in
 
 def fit_riemannian_geodesic(samples: LieGroup, times: torch.Tensor, *, weights=None,
                             time_origin=0.0, steps: int = 16, method: str = "gauss_newton",
-                            max_iterations: int | None = None, tolerance: float = 1e-10) -> CurveFit:
+                            max_iterations: int | None = None, tolerance: float | None = None) -> CurveFit:
     """Fits a Riemannian geodesic of the left-invariant metric diag(weights): gamma(t) =
     p Phi(t - t0), Phi' = Phi X, X solving the Euler-Arnold equation (24) from X(t0) = X0
     (``fit_riemannian_polynomial`` with degree 1; ``coefficients[..., 0, :]`` is X0)."""
@@ -196,7 +200,7 @@ def fit_riemannian_geodesic(samples: LieGroup, times: torch.Tensor, *, weights=N
 
 def fit_inertial_worldline(samples: SGal3, times: torch.Tensor, *, weights=None, time_origin=0.0,
                            method: str = "gauss_newton", max_iterations: int | None = None,
-                           tolerance: float = 1e-10) -> CurveFit:
+                           tolerance: float | None = None) -> CurveFit:
     """The worldline of an inertial observer on SGal(3): gamma(t) = p exp((t - t0) [0, 0, 0, iota])
     (a pure time translation in the body frame: constant rotation and velocity, position
     r + v s, clock tau + s, s = iota (t - t0)).  Fits p and the clock rate iota to noisy frames

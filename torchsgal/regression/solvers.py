@@ -35,9 +35,9 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
                  tolerance: float = 1e-10, damping: float = 1e-4) -> SolverState:
     """Levenberg-Marquardt (Marquardt's diagonal scaling) on every batch element at once.
 
-    An element has converged when an accepted step is shorter than
-    ``tolerance * (1 + |x|)`` or its cost is below ``tolerance**2 * 1e-10``;
-    the loop stops when all have, or when the damping of the rest exceeds 1e16 (stalled).
+    An element has converged when a step is shorter than ``tolerance * (1 + |x|)`` or its
+    cost falls below ``tolerance**2 * 1e-10``; the loop stops when all have, or when the
+    damping of the rest exceeds 1e16 (stalled, reported as not converged).
     """
     r, J = model.linearize(origin, x)
     cost = (r * r).sum(-1)
@@ -68,7 +68,9 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
         J = torch.where(a[..., None, None], J_new, J)
         cost = torch.where(a, cost_new, cost)
         lam = torch.where(a, (lam / 3).clamp_min(1e-12), lam * 4)
-        converged = converged | (a & (small | tiny))
+        # A short step, accepted or not (a rejected short step means no decrease is possible
+        # at working precision), or a vanishing cost.
+        converged = converged | small | (a & tiny)
         if bool((converged | (lam > 1e16)).all()):
             break
     return SolverState(origin, x, cost, converged, it)
@@ -107,7 +109,7 @@ def lbfgs(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: int = 50
                 return (r * r).sum()
 
         opt.step(closure)
-        it += opt.state[opt._params[0]].get("n_iter", 0)
+        it += opt.state[params[0]].get("n_iter", 0)
         with torch.no_grad():
             if not model.fix_origin:
                 origin = origin @ model.G.exp(delta.detach()).as_matrix()
@@ -122,7 +124,8 @@ def lbfgs(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: int = 50
         diag = H.diagonal(dim1=-2, dim2=-1)
         H = H + torch.diag_embed(1e-12 * diag + torch.finfo(cost.dtype).tiny ** 0.5)
         # Converged when the Gauss-Newton step from the final point (an estimate of the
-        # distance to the optimum) is shorter than 1e4 * tolerance * (1 + |x|).
+        # distance to the optimum) is shorter than 0.1 sqrt(tolerance) (1 + |x|): a line
+        # search on the cost resolves the parameters to about sqrt(eps) only.
         gn_step = torch.linalg.solve_ex(H, g.unsqueeze(-1))[0].squeeze(-1).norm(dim=-1)
-        converged = gn_step <= 1e4 * tolerance * (1.0 + x.norm(dim=-1))
+        converged = gn_step <= 0.1 * tolerance ** 0.5 * (1.0 + x.norm(dim=-1))
     return SolverState(origin, x, cost, converged, it)

@@ -29,7 +29,7 @@ class FrechetMean:
 
 
 def frechet_mean(samples: LieGroup, weights=None, max_iterations: int = 50,
-                 tolerance: float = 1e-12) -> FrechetMean:
+                 tolerance: float | None = None) -> FrechetMean:
     """Frechet mean argmin_y sum_j d(y, y_j)^2 of samples with batch (..., N), by the same
     Gauss-Newton as the curve fits (it is the degree-0 polynomial), and the Frechet variance
     of (50): Var_F = (1/N) min_y sum_j d(y, y_j)^2."""
