@@ -14,6 +14,10 @@ E = exp(s) and J_l^-1(r) the inverse left Jacobian of the residual:
     dr/dp   = -J_l^-1(r) Ad(E^-1)                 (p <- p exp(dp))
     dr/dx_k = -(t - t0)^k J_l^-1(r) J_r(s) B      (x_k <- x_k + dx_k)
 (derived here; the tests check them against autograd).
+
+Riemannian polynomial model (geodesic for degree 1): gamma(t) = p Phi(t - t0), Phi the
+curve of ``polynomial_flow`` (forward equations (30)/(33) of the Levi-Civita connection of
+diag(w), Euler-Arnold (24) for degree 1), with Jacobians from its exact discrete sensitivity.
 """
 from __future__ import annotations
 
