@@ -125,9 +125,9 @@ def gauss_helmert(
         handled elementwise.
     variant: "iterated" (default) or "paper" (see the module docstring).
     options: see ``solver.iterate``.  The iterated variant accepts steps whose linearised cost
-        rises by at most ``accept_tol`` (default 1e-6, relative), since that cost is
-        re-evaluated at the new residual estimate, and by default stops on the step size only
-        (``cost_tol=0``).
+        rises by at most ``accept_tol`` (default 1e-6, relative) or whose step is below
+        ``always_accept_below`` (0.1) standard deviations, since that cost is re-evaluated at
+        the new residual estimate, and by default stops on the step size only (``cost_tol=0``).
     Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.
     """
     if variant not in VARIANTS:
@@ -136,9 +136,11 @@ def gauss_helmert(
     cov = _CovarianceBlocks(observation_covariance)
     iterated = variant == "iterated"
     if iterated:
-        # Its linearised cost is re-evaluated at each new residual estimate and converges
-        # linearly: stop on the step (in standard deviations) only.
+        # Its linearised cost is re-evaluated at each new residual estimate, so it can rise a
+        # little even for a vanishing step: steps shorter than 0.1 standard deviations are
+        # always accepted, and it stops on the step size only (it converges linearly).
         options.setdefault("accept_tol", 1e-6)
+        options.setdefault("always_accept_below", 0.1)
         options.setdefault("cost_tol", 0.0)
 
     def linearise(x, e):

@@ -102,6 +102,7 @@ def iterate(
     step_tol: float = 1e-6,
     cost_tol: float = 1e-12,
     accept_tol: float = 0.0,
+    always_accept_below: float = 0.0,
     max_damping: float = 1e10,
 ) -> Solution:
     """The shared loop of ``gauss_newton`` and ``gauss_helmert``.
@@ -110,7 +111,8 @@ def iterate(
     delta) -> aux`` gives the solver state that goes with the new point (None: unchanged).
     ``damping=None`` takes plain Gauss-Newton steps (every step accepted); otherwise
     Levenberg-Marquardt with per-problem damping starting at ``damping``.  A step is accepted
-    when the new cost is at most (1 + accept_tol) times the old one.  A problem converges when
+    when the new cost is at most (1 + accept_tol) times the old one, or when the step is
+    shorter than ``always_accept_below`` standard deviations.  A problem converges when
     an accepted step is shorter than ``step_tol`` in the metric of the information,
     sqrt(delta^T J^T J delta) (that is, in standard deviations of the Laplace posterior, a
     dimensionless test), or when the cost falls by less than ``cost_tol`` relative.
@@ -157,11 +159,12 @@ def iterate(
         cost_new = cost_of(lin_new.r)
         finite_new = (V.finite(x_new) & torch.isfinite(cost_new)
                       & torch.isfinite(lin_new.J).flatten(1).all(-1))
+        step = (delta * (H @ delta[..., None])[..., 0]).sum(-1).clamp_min(0).sqrt()
         if damping is None:
             accept = running & solvable & finite_new
         else:
-            accept = running & solvable & finite_new & (cost_new <= cost * (1 + accept_tol))
-        step = (delta * (H @ delta[..., None])[..., 0]).sum(-1).clamp_min(0).sqrt()
+            accept = running & solvable & finite_new & (
+                (cost_new <= cost * (1 + accept_tol)) | (step <= always_accept_below))
         iterations = iterations + running.to(torch.int64)
         step_norm = torch.where(running, step, step_norm)
         # Keep the accepted problems' new point; the others keep theirs.

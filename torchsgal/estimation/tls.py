@@ -36,7 +36,7 @@ import torch
 
 from ..groups import SE23, SGal3
 from .gauss_helmert import check_covariance, gauss_helmert
-from .solver import Solution
+from .solver import Solution, SolverReport, SolverStatus
 
 E10 = 9  # index of iota, the time component of the SGal(3) tangent
 
@@ -258,13 +258,54 @@ def _default_options(variant: str, options: dict) -> None:
     options.setdefault("damping", None if variant == "paper" else 1e-4)
 
 
+def subset(problem: TLSProblem, index) -> TLSProblem:
+    """The trials ``index`` (a slice or index tensor) of a problem."""
+    def pick(S):
+        return S[index] if S.dim() == 4 and S.shape[0] > 1 else S
+    return TLSProblem(problem.F_ga[index], problem.F_gb[index], pick(problem.cov_a),
+                      pick(problem.cov_b), indices=problem.indices)
+
+
+def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> Solution:
+    """Gauss-Helmert with the stragglers compacted: after ``first_round`` iterations (default
+    8; most trials converge in 5-9) the trials still running are solved again on their own,
+    from where they stopped, so the whole batch does not iterate for its slowest member."""
+    max_it = options.pop("max_iterations", 50)
+    first = min(options.pop("first_round", 8), max_it)
+    sol = gauss_helmert(condition_of(problem), x0, covariance_of(problem), variant=variant,
+                        max_iterations=first, **options)
+    pending = sol.report.status == SolverStatus.MAX_ITERATIONS
+    if max_it <= first or not bool(pending.any()):
+        return sol
+    idx = pending.nonzero()[:, 0]
+    sub = subset(problem, idx)
+    x_sub = tuple(b[idx] for b in sol.x)
+    rest = gauss_helmert(condition_of(sub), x_sub, covariance_of(sub), variant=variant,
+                         e0=sol.aux[idx], max_iterations=max_it - first, **options)
+    x = []
+    for full, part in zip(sol.x, rest.x):
+        if isinstance(full, torch.Tensor):
+            x.append(full.index_copy(0, idx, part))
+        else:
+            x.append(type(full)(full.as_matrix().index_copy(0, idx, part.as_matrix())))
+    report = sol.report
+    fields = {}
+    for name in ("status", "initial_cost", "cost", "step_norm", "gradient_norm"):
+        t = getattr(report, name)
+        fields[name] = t if name == "initial_cost" else t.index_copy(0, idx, getattr(rest.report, name))
+    fields["iterations"] = report.iterations.index_add(0, idx, rest.report.iterations)
+    return Solution(x=tuple(x), covariance=sol.covariance.index_copy(0, idx, rest.covariance),
+                    report=SolverReport(**fields), aux=sol.aux.index_copy(0, idx, rest.aux))
+
+
 def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
                 **options) -> Solution:
-    """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau]."""
+    """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau].
+    options: see ``gauss_helmert`` and ``solver.iterate``; ``first_round`` (8) iterations on
+    the whole batch before the stragglers are compacted."""
     x0 = problem.initial_guess(dtau0) if x0 is None else x0
     _default_options(variant, options)
-    return gauss_helmert(sgal3_condition(problem), x0, problem.covariance, variant=variant,
-                         **options)
+    return _in_rounds(sgal3_condition, lambda p: p.covariance, problem, x0, variant, options)
 
 
 def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
@@ -276,8 +317,7 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         X0, t0 = split_clock(F0)
         x0 = (X0, t0[:, None], dt)
     _default_options(variant, options)
-    return gauss_helmert(baseline_condition(problem), x0, baseline_covariance(problem),
-                         variant=variant, **options)
+    return _in_rounds(baseline_condition, baseline_covariance, problem, x0, variant, options)
 
 
 def eiv_cost(problem: TLSProblem):
