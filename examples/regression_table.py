@@ -2,7 +2,7 @@
 application to SE(3)" (Entropy 2024): R^2 of geodesic regression on SE(3) for simulated
 maneuvers (Algorithm 2), next to the paper's values.
 
-    python examples/regression_table.py            # default: 30 data sets per cell (~45 s)
+    python examples/regression_table.py            # default: 30 data sets per cell (~35 s)
     python examples/regression_table.py --quick    # a smoke run (4 data sets per cell)
 
 The paper's model: geodesics of the left-invariant metric <A, B> = tr(A^T B) on se(3), i.e.
