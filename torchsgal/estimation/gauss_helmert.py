@@ -70,6 +70,12 @@ class _CovarianceBlocks:
             self.sizes.append(S.shape[-1])
             self.diagonal.append(diagonal)
             self.factors.append(d.sqrt() if diagonal else torch.linalg.cholesky(S))
+        # All blocks diagonal: one square-root diagonal for the whole of e.
+        self.all_diagonal = all(self.diagonal)
+        if self.all_diagonal:
+            shapes = [f.shape[:-1] for f in self.factors]
+            batch = torch.broadcast_shapes(*shapes)
+            self.sqrt_diag = torch.cat([f.expand(batch + f.shape[-1:]) for f in self.factors], -1)
 
     @property
     def dim(self) -> int:
@@ -83,7 +89,9 @@ class _CovarianceBlocks:
         return out
 
     def whiten(self, Bm):
-        """[B_i R_i] per block."""
+        """[B_i R_i] per block (one block when every block is diagonal)."""
+        if self.all_diagonal:
+            return [Bm * self.sqrt_diag[..., None, :]]
         return [Bi * R[..., None, :] if diag else Bi @ R
                 for Bi, R, diag in zip(self._split(Bm), self.factors, self.diagonal)]
 
@@ -97,6 +105,8 @@ class _CovarianceBlocks:
 
     def apply_transposed(self, Bw, y):
         """Sigma B^T y = concat_i R_i (B_i R_i)^T y; y (..., k)."""
+        if self.all_diagonal:
+            return (Bw[0] * y[..., :, None]).sum(-2) * self.sqrt_diag
         parts = []
         for W, R, diag in zip(Bw, self.factors, self.diagonal):
             u = (W.transpose(-1, -2) @ y[..., None])[..., 0]

@@ -106,17 +106,18 @@ class TLSProblem:
 
 def _ad_time_left(s: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
     """Ad(T^s) M = (I + s ad(e_10)) M: the rho rows minus s times the nu rows (ad(e_10)^2 = 0)."""
-    top = M[..., 0:3, :] - s[..., None, None] * M[..., 3:6, :]
-    rest = M[..., 3:, :]
-    return torch.cat([top, rest.expand(top.shape[:-2] + rest.shape[-2:])], dim=-2)
+    shape = torch.broadcast_shapes(s.shape + (1, 1), M.shape)
+    out = M.expand(shape).clone()
+    out[..., 0:3, :] -= s[..., None, None] * M[..., 3:6, :]
+    return out
 
 
 def _ad_time_right_inverse(M: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """M Ad(T^-s) = M (I - s ad(e_10)): the nu columns plus s times the rho columns."""
-    mid = M[..., :, 3:6] + s[..., None, None] * M[..., :, 0:3]
-    shape = mid.shape[:-2] + (M.shape[-2],)
-    return torch.cat([M[..., :, 0:3].expand(shape + (3,)), mid, M[..., :, 6:].expand(shape + (M.shape[-1] - 6,))],
-                     dim=-1)
+    shape = torch.broadcast_shapes(s.shape + (1, 1), M.shape)
+    out = M.expand(shape).clone()
+    out[..., :, 3:6] += s[..., None, None] * M[..., :, 0:3]
+    return out
 
 
 def _drift_sgal3(F: SGal3, s: torch.Tensor) -> SGal3:
@@ -157,9 +158,15 @@ def sgal3_condition(problem: TLSProblem):
             left = Eb.adjoint()
             d_a = left @ Ad_Ainv @ SGal3.jr(ea)
             d_b = -SGal3.jl(eb)
-            d_F, d_t = left @ d_F, left @ d_t
-        Ax = torch.cat([d_F.expand(c.shape + (10,)), d_t], dim=-1)  # (B, N+1, 10, 11)
-        Bm = torch.cat([d_a, d_b], dim=-1)  # (B, N+1, 10, 20)
+            # left Ad(T^n) = left (I + s ad(e_10)): elementwise instead of a product.
+            d_F = _ad_time_right_inverse(left, -s)
+            d_t = (left * d_t.transpose(-1, -2)).sum(-1, keepdim=True)
+        Ax = c.new_empty(c.shape + (11,))  # (B, N+1, 10, 11)
+        Ax[..., :10] = d_F
+        Ax[..., 10:] = d_t
+        Bm = c.new_empty(c.shape + (20,))  # (B, N+1, 10, 20)
+        Bm[..., :10] = d_a
+        Bm[..., 10:] = d_b
         return c, Ax, Bm
 
     return condition
@@ -221,16 +228,16 @@ def baseline_condition(problem: TLSProblem):
             P, dt_col = left @ P, left @ dt_col
         ct = dclock + ia + tau0 - ib  # (B, N+1)
         c = torch.cat([c9, ct[..., None]], dim=-1)
-        z9 = torch.zeros(s.shape + (9, 1), dtype=s.dtype, device=s.device)
-        zr = torch.zeros(s.shape + (1, 9), dtype=s.dtype, device=s.device)
-        one = torch.ones(s.shape + (1, 1), dtype=s.dtype, device=s.device)
-        d_X = torch.cat([P.expand(s.shape + (9, 9)), zr], dim=-2)  # (B, N+1, 10, 9)
-        d_tau0 = torch.cat([z9, one], dim=-2)
-        d_dtau = torch.cat([dt_col, 0 * one], dim=-2)
-        Ax = torch.cat([d_X, d_tau0, d_dtau], dim=-1)  # (B, N+1, 10, 11)
-        Ba = torch.cat([torch.cat([d_a, z9], -1), torch.cat([zr, one], -1)], -2)
-        Bb = torch.cat([torch.cat([d_b, z9], -1), torch.cat([zr, -one], -1)], -2)
-        return c, Ax, torch.cat([Ba, Bb], dim=-1)
+        Ax = c.new_zeros(c.shape + (11,))  # (B, N+1, 10, 11): [X' (9), tau0, dtau]
+        Ax[..., :9, :9] = P
+        Ax[..., :9, 10:] = dt_col
+        Ax[..., 9, 9] = 1.0
+        Bm = c.new_zeros(c.shape + (20,))  # (B, N+1, 10, 20): [eps'_a, iota_a, eps'_b, iota_b]
+        Bm[..., :9, :9] = d_a
+        Bm[..., 9, 9] = 1.0
+        Bm[..., :9, 10:19] = d_b
+        Bm[..., 9, 19] = -1.0
+        return c, Ax, Bm
 
     return condition
 
@@ -268,10 +275,10 @@ def subset(problem: TLSProblem, index) -> TLSProblem:
 
 def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> Solution:
     """Gauss-Helmert with the stragglers compacted: after ``first_round`` iterations (default
-    8; most trials converge in 5-9) the trials still running are solved again on their own,
+    10; most trials converge in 5-10) the trials still running are solved again on their own,
     from where they stopped, so the whole batch does not iterate for its slowest member."""
     max_it = options.pop("max_iterations", 50)
-    first = min(options.pop("first_round", 8), max_it)
+    first = min(options.pop("first_round", 10), max_it)
     sol = gauss_helmert(condition_of(problem), x0, covariance_of(problem), variant=variant,
                         max_iterations=first, **options)
     pending = sol.report.status == SolverStatus.MAX_ITERATIONS
@@ -301,7 +308,7 @@ def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> So
 def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
                 **options) -> Solution:
     """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau].
-    options: see ``gauss_helmert`` and ``solver.iterate``; ``first_round`` (8) iterations on
+    options: see ``gauss_helmert`` and ``solver.iterate``; ``first_round`` (10) iterations on
     the whole batch before the stragglers are compacted."""
     x0 = problem.initial_guess(dtau0) if x0 is None else x0
     _default_options(variant, options)
