@@ -104,13 +104,17 @@ def iterate(
     accept_tol: float = 0.0,
     always_accept_below: float = 0.0,
     max_damping: float = 1e10,
+    stop_below_fraction: float = 0.0,
 ) -> Solution:
     """The shared loop of ``gauss_newton`` and ``gauss_helmert``.
 
     ``linearise(x, aux) -> Linearisation`` at the current point; ``post_step(x, aux, lin,
     delta) -> aux`` gives the solver state that goes with the new point (None: unchanged).
     ``damping=None`` takes plain Gauss-Newton steps (every step accepted); otherwise
-    Levenberg-Marquardt with per-problem damping starting at ``damping``.  A step is accepted
+    Levenberg-Marquardt with per-problem damping starting at ``damping``.
+    ``stop_below_fraction``: leave the loop (the problems still running get MAX_ITERATIONS)
+    once at most this fraction of the batch is running, so that a caller can finish the
+    stragglers in a smaller batch instead of iterating the whole batch for them.  A step is accepted
     when the new cost is at most (1 + accept_tol) times the old one, or when the step is
     shorter than ``always_accept_below`` standard deviations.  A problem converges when
     an accepted step is shorter than ``step_tol`` in the metric of the information,
@@ -141,7 +145,8 @@ def iterate(
 
     for _ in range(max_iterations):
         running = status == SolverStatus.RUNNING
-        if not bool(running.any()):
+        n_running = int(running.sum())
+        if n_running == 0 or n_running <= stop_below_fraction * Bn:
             break
         H = lin.J.transpose(-1, -2) @ lin.J
         g = (lin.J.transpose(-1, -2) @ lin.r[..., None])[..., 0]

@@ -274,13 +274,14 @@ def subset(problem: TLSProblem, index) -> TLSProblem:
 
 
 def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> Solution:
-    """Gauss-Helmert with the stragglers compacted: after ``first_round`` iterations (default
-    10; most trials converge in 5-10) the trials still running are solved again on their own,
-    from where they stopped, so the whole batch does not iterate for its slowest member."""
+    """Gauss-Helmert with the stragglers compacted: once at most ``straggler_fraction``
+    (default 5%) of the trials are still running, they are solved again on their own, from
+    where they stopped, so the whole batch does not iterate for its slowest members."""
     max_it = options.pop("max_iterations", 50)
-    first = min(options.pop("first_round", 10), max_it)
+    fraction = options.pop("straggler_fraction", 0.05)
     sol = gauss_helmert(condition_of(problem), x0, covariance_of(problem), variant=variant,
-                        max_iterations=first, **options)
+                        max_iterations=max_it, stop_below_fraction=fraction, **options)
+    first = int(sol.report.iterations.max())
     pending = sol.report.status == SolverStatus.MAX_ITERATIONS
     if max_it <= first or not bool(pending.any()):
         return sol
@@ -308,8 +309,8 @@ def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> So
 def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
                 **options) -> Solution:
     """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau].
-    options: see ``gauss_helmert`` and ``solver.iterate``; ``first_round`` (10) iterations on
-    the whole batch before the stragglers are compacted."""
+    options: see ``gauss_helmert`` and ``solver.iterate``; ``straggler_fraction`` (0.05): the
+    running fraction below which the stragglers are finished in a batch of their own."""
     x0 = problem.initial_guess(dtau0) if x0 is None else x0
     _default_options(variant, options)
     return _in_rounds(sgal3_condition, lambda p: p.covariance, problem, x0, variant, options)
