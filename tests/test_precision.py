@@ -200,3 +200,34 @@ def test_sim3_gradients_across_scales(lam):
         xi.requires_grad_(True)
         for fn in (f.exp, lambda x: f.log(f.exp(x)), f.jl):
             assert torch.autograd.gradcheck(fn, (xi,), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_sim3_reference_oracle():
+    """The Sim3 oracle of reference.py against hand-written layouts and Barfoot's (80):
+    hat/vee, ad = [[phi^ + lambda I, rho^, -rho], [0, phi^, 0], [0, 0, 0]], scipy expm against
+    the mpmath series, Ad(exp xi) = expm(ad xi), and the float64 against the mpmath J_l."""
+    import scipy.linalg
+
+    x = np.arange(1.0, 8.0)
+    X = np.zeros((4, 4))
+    X[:3, :3] = ref.skew(x[3:6])
+    X[:3, 3] = x[:3]
+    X[3, 3] = -x[6]
+    np.testing.assert_array_equal(ref.hat("Sim3", x), X)
+    np.testing.assert_array_equal(ref.vee("Sim3", ref.hat("Sim3", x)), x)
+    for angle in (0.0, 1e-3, 1.0, 3.0):
+        xi = ref.random_tangent("Sim3", 6, angle=angle)
+        rho, phi, lam = xi[:3], xi[3:6], xi[6]
+        want = np.zeros((7, 7))
+        want[:3, :3] = ref.skew(phi) + lam * np.eye(3)
+        want[:3, 3:6] = ref.skew(rho)
+        want[:3, 6] = -rho
+        want[3:6, 3:6] = ref.skew(phi)
+        np.testing.assert_allclose(ref.ad("Sim3", xi), want, rtol=0, atol=1e-15)
+        M = ref.expm_hat("Sim3", xi)
+        assert ref.rel_err(M, ref.exp_mp("Sim3", xi, dps=30)) < 1e-13
+        np.testing.assert_allclose(M[3], [0, 0, 0, np.exp(-lam)], rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(
+            ref.Ad_from_matrix("Sim3", M), scipy.linalg.expm(ref.ad("Sim3", xi)), rtol=0, atol=1e-12
+        )
+        assert ref.rel_err(ref.jl_series("Sim3", xi), ref.jl_mp("Sim3", xi)) < 1e-13
