@@ -231,3 +231,17 @@ def test_sim3_reference_oracle():
             ref.Ad_from_matrix("Sim3", M), scipy.linalg.expm(ref.ad("Sim3", xi)), rtol=0, atol=1e-12
         )
         assert ref.rel_err(ref.jl_series("Sim3", xi), ref.jl_mp("Sim3", xi)) < 1e-13
+
+
+@pytest.mark.parametrize("lam", [-50.0, 50.0])
+def test_sim3_float32_at_large_scales(lam):
+    """float32 J_l^-1 and log at |lambda| = 50 (e^(2|lambda|) overflows float32): against the
+    float64 mpmath references, to float32 accuracy (the inverse of M is normalised by m0)."""
+    for i, angle in enumerate([0.0, 1e-3, 0.5, 2.0, 3.1]):
+        xi = _sim3_xi(i, 0, angle, lam)
+        t = torch.tensor(xi, dtype=torch.float32)
+        e = ref.rel_err(ts.Sim3.jl_inv(t).double().numpy(), ref.jl_inv_mp("Sim3", xi))
+        assert e <= 1e-5, f"jl_inv float32 at angle {angle}, lambda {lam}: {e:.3g}"
+        back = ts.Sim3.exp(t).log().double().numpy()
+        assert np.isfinite(back).all()
+        assert np.abs(back - xi).max() <= 1e-5 * max(1.0, np.abs(xi).max()), f"log float32 at angle {angle}"

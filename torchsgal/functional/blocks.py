@@ -338,12 +338,15 @@ def poly_vec_derivative(m1, m2, e1, e2, phi: torch.Tensor, x: torch.Tensor) -> t
 def poly_inverse(m0, m1, m2, theta2):
     """Coefficients (n0, n1, n2) of (m0 I + m1 phi^ + m2 phi^ phi^)^-1 = n0 I + n1 phi^ + n2 phi^ phi^.
 
-    On the eigenvalues 0, +-i theta of phi^: n0 = 1/m0 and, with mu = (m0 - m2 theta^2) + i m1 theta,
-    n1 = -m1/|mu|^2, n2 = (m1^2 - m0 m2 + m2^2 theta^2)/(m0 |mu|^2) (no division by theta).
+    On the eigenvalues 0, +-i theta of phi^, with b = m1/m0, c = m2/m0 (normalised so that no
+    square of m0 overflows) and mu = (1 - c theta^2) + i b theta:
+    n0 = 1/m0, n1 = -b/(m0 |mu|^2), n2 = (b^2 - c + c^2 theta^2)/(m0 |mu|^2) (no division by theta).
     """
-    re = m0 - m2 * theta2
-    mu2 = re * re + m1 * m1 * theta2
-    return 1.0 / m0, -m1 / mu2, (m1 * m1 - m0 * m2 + m2 * m2 * theta2) / (m0 * mu2)
+    n0 = 1.0 / m0
+    b, c = m1 * n0, m2 * n0
+    re = 1.0 - c * theta2
+    scale = n0 / (re * re + b * b * theta2)
+    return n0, -b * scale, (b * b - c + c * c * theta2) * scale
 
 
 def poly_vec_derivative_t(m1, m2, e1, e2, phi: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
