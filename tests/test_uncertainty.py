@@ -85,18 +85,7 @@ def test_propagation_matches_monte_carlo(G):
         assert rel(_mc_cov(s1.act_velocity(x[:3])), gv.covariance) < 0.05
 
 
-# Sim(3) acts on points projectively, p -> (C p + r) / M[3, 3]; ConcentratedGaussian._act
-# linearises the affine map (M x_h)[:k], so its covariance and mean are wrong for Sim3 until
-# torchsgal/uncertainty/gaussian.py divides by the last homogeneous coordinate.  Strict: the
-# mark must go once that is fixed.
-_PROJECTIVE = pytest.mark.xfail(
-    strict=True, reason="ConcentratedGaussian._act assumes an affine point action; Sim3's is projective"
-)
-
-
-@pytest.mark.parametrize(
-    "G", [pytest.param(G, marks=_PROJECTIVE) if G is ts.Sim3 else G for G in ts.ALL_GROUPS], ids=IDS
-)
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_point_action_propagation_matches_monte_carlo(G):
     """act on points (events for SGal3): covariance against Monte Carlo, the first-order mean
     plus its second-order bias, and an uncertain point."""
@@ -120,7 +109,19 @@ def test_point_action_propagation_matches_monte_carlo(G):
     xh[:dim] = x
     if n > dim:
         xh[n - 1] = 1.0
-    predicted = ga.mean + 0.5 * (d1.mean.as_matrix() @ E2 @ xh)[:dim]
+    # z = M exp(xi^) x_h: E[z] = z0 + (M/2) E[xi^ xi^] x_h to second order; y = z[:k] / z[n-1]
+    # (z[n-1] = 1 for the affine groups), so by the delta method for a ratio
+    # E[y] = E[z_k]/E[z_n] - Cov(z_k, z_n)/z_n^2 + z_k Var(z_n)/z_n^3.
+    M = d1.mean.as_matrix()
+    Ez = M @ xh + 0.5 * (M @ E2 @ xh)
+    Hz = M @ torch.einsum("jab,b->aj", hats, xh)
+    Cz = Hz @ d1.covariance @ Hz.T
+    if n > dim:
+        zn = (M @ xh)[n - 1]
+        predicted = (Ez[:dim] / Ez[n - 1] - Cz[:dim, n - 1] / zn**2
+                     + (M @ xh)[:dim] * Cz[n - 1, n - 1] / zn**3)
+    else:  # rotations: no homogeneous coordinate
+        predicted = Ez[:dim]
     se = ys.std(0) / math.sqrt(N_MC)
     assert ((ys.mean(0) - predicted).abs() < 4 * se).all()
     # with an uncertain point: exact linear term

@@ -220,8 +220,10 @@ class ConcentratedGaussian:
     # ------------------------------------------------------------------ actions
     def _act(self, fn_name: str, x: torch.Tensor, x_cov: torch.Tensor | None) -> Gaussian:
         """y = F x in homogeneous coordinates x_h (x in its first k slots), first order:
-        right perturbation y ~ (M (I + xi^) x_h)[:k], so dy/dxi_j = (M hat(e_j) x_h)[:k]
-        and dy/dx = M[:k, :k] (exact, the action is linear in x)."""
+        right perturbation z ~ M (I + xi^) x_h, so dz/dxi_j = (M hat(e_j) x_h) and dz/dx =
+        M[:, :k].  Points are z[:k] / z[n-1] (projective: Sim3's last row is [0, 1/s]; for the
+        other groups z[n-1] = 1 and the division changes nothing), so
+        dy = (dz[:k] - y dz[n-1]) / z[n-1].  Velocities and directions are z[:k]."""
         r = self._right()
         y = getattr(r.mean, fn_name)(x)  # validates x
         M = r.mean.as_matrix()
@@ -232,10 +234,15 @@ class ConcentratedGaussian:
         xh = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in pads], dim=-1)
         hats = self.group.hat(torch.eye(self.dof, dtype=x.dtype, device=x.device))  # (dof, n, n)
         Y = torch.einsum("jab,...b->...ja", hats, xh)
-        H = torch.einsum("...ab,...jb->...aj", M, Y)[..., :k, :]
+        Hfull = torch.einsum("...ab,...jb->...aj", M, Y)  # (..., n, dof)
+        H, Jx = Hfull[..., :k, :], M[..., :k, :k]
+        if fn_name == "act" and n > k:
+            z_last = (M[..., n - 1, :] * xh).sum(-1)[..., None, None]
+            yk = y[..., :, None]
+            H = (H - yk * Hfull[..., n - 1:n, :]) / z_last
+            Jx = (Jx - yk * M[..., n - 1:n, :k]) / z_last
         S = H @ r.covariance @ H.transpose(-1, -2)
         if x_cov is not None:
-            Jx = M[..., :k, :k]
             S = S + Jx @ x_cov @ Jx.transpose(-1, -2)
         return Gaussian(y, _sym(S))
 
