@@ -306,7 +306,7 @@ def plot_nees(out: dict, path: str) -> str | None:
             ax.hist(q.clamp(max=200).numpy(), bins=80, range=(0, 200 if name != "SGal(3)" else 60),
                     density=True, alpha=0.5, label=f"{variant}: ANEES {r['ANEES']:.2f}")
         ax.plot(x.numpy(), dens.numpy(), "k-", lw=1.5, label="chi2, 11 dof")
-        ax.set_title(f"NEES, {name}")
+        ax.set_title(f"NEES, {name}" + (" (clamped at 200)" if name != "SGal(3)" else ""))
         ax.set_xlabel("NEES")
         ax.legend()
     fig.tight_layout()
