@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import torch
 
 from ..groups import SE23, SGal3
+from . import variables as V
 from .gauss_helmert import check_covariance, gauss_helmert
 from .solver import Solution, SolverReport, SolverStatus
 
@@ -353,61 +354,83 @@ def eiv_cost(problem: TLSProblem):
     return cost
 
 
-def condition_cost(problem: TLSProblem):
+def condition_cost(problem: TLSProblem, weights_at=None):
     """The reduced cost of the Gauss-Helmert linearisation at zero observation residual,
     1/2 sum_n c_n^T S_n^-1 c_n with c_n = log(M_n A_n) and S_n = Ad(A_n^-1) Sigma_a Ad(A_n^-1)^T
-    + Sigma_b (the merit of the paper variant, (5.23)-(5.24)), differentiable in x."""
+    + Sigma_b ((5.23)-(5.24)).  With ``weights_at`` (unknowns x_ref) the weights S_n are frozen
+    at x_ref: the paper variant's Gauss-Newton fixed point is the minimum of that cost with
+    x_ref = the minimiser.  Without, S_n moves with x (a different, biased estimator)."""
     cond = sgal3_condition(problem)
     Sa, Sb = problem.cov_a, problem.cov_b
 
-    def cost(x, _extra=None):
+    def factor(x):
         c, _, Bm = cond(x, None)
         Ga = Bm[..., :10]
-        S = Ga @ Sa @ Ga.transpose(-1, -2) + Sb
-        L = torch.linalg.cholesky(S)
+        return torch.linalg.cholesky(Ga @ Sa @ Ga.transpose(-1, -2) + Sb), c
+
+    frozen = None
+    if weights_at is not None:
+        # The condition's linearisation is returned multiplied by K = J_r(c), so the true
+        # effective covariance is K^-1 S' K^-T and the frozen weight is K^T S'^-1 K.
+        with torch.no_grad():
+            L, c_ref = factor(V.detach(weights_at))
+            frozen = (L, SGal3.jr(c_ref))
+
+    def cost(x, _extra=None):
+        if frozen is None:
+            L, c = factor(x)  # K c = c: the factor K drops out of c^T S^-1 c
+        else:
+            L, K = frozen
+            c, _, _ = cond(x, None)
+            c = (K @ c[..., None])[..., 0]
         w = torch.linalg.solve_triangular(L, c[..., None], upper=False)[..., 0]
         return 0.5 * w.square().sum((-1, -2))
 
     return cost
 
 
-def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, **options) -> Solution:
-    """Minimises the exact errors-in-variables cost (``eiv_cost``) with LBFGS over (F, dtau)
-    and the nuisance frames, by autograd through the group operations.
+def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = False,
+                      reweightings: int = 60, step_tol: float = 1e-4, **options) -> Solution:
+    """The paper variant's estimate by a first-order method: ``torch.optim.LBFGS`` on the
+    reduced condition cost 1/2 sum c^T S^-1 c with the weights S frozen, re-evaluated between
+    LBFGS runs (at most ``reweightings`` times, until the estimate moves by less than
+    ``step_tol`` standard deviations), by autograd through the group operations.
 
-    The problems share LBFGS's line search and the nuisance directions are badly scaled
-    (lever arms of hundreds of metres times radians), so the variables are preconditioned by
-    the blocks of the Gauss-Newton Hessian at x0: (F, dtau) by the inverse Cholesky factor of
-    its own block H_xx (nuisance held fixed), each nuisance residual u_n by the inverse Cholesky factor of its own 10 x 10
-    block I + J_n^T J_n (whitened coordinates).  The covariance returned is the inverse
-    Gauss-Helmert information at the solution; ``aux`` holds the observation residuals
-    (u_n, eps_b,n)."""
+    The tangent perturbation is preconditioned by the Cholesky factor of the Gauss-Newton
+    covariance at the current weights (delta = L z).  torch.optim.LBFGS has one line search
+    and one stopping test, so by default the problems are solved one at a time (a Python loop
+    over the batch); ``batched=True`` sums them into one LBFGS problem instead, which couples
+    them.  The covariance is the inverse Gauss-Newton information at the solution."""
     from .lbfgs import lbfgs
-    x0 = problem.initial_guess(dtau0) if x0 is None else x0
+    x = problem.initial_guess(dtau0) if x0 is None else x0
     cond = sgal3_condition(problem)
-    La = torch.linalg.cholesky(problem.cov_a)
-    Lb = torch.linalg.cholesky(problem.cov_b)
-    c, Ax, Bm = cond(x0, None)
-    jri = SGal3.jr_inv(c)
-    # Whitened derivatives of eps_b: by x, J_r(c)^-1 A; by u, J_r(c)^-1 Ad(A^-1) L_a.
-    Jx = torch.linalg.solve_triangular(Lb, jri @ Ax, upper=False)
-    Hxx = (Jx.transpose(-1, -2) @ Jx).sum(1)
-    scale = torch.linalg.solve_triangular(torch.linalg.cholesky(Hxx).transpose(-1, -2), torch.eye(
-        Hxx.shape[-1], dtype=c.dtype, device=c.device).expand_as(Hxx), upper=True)
-    Jw = torch.linalg.solve_triangular(Lb, jri @ Bm[..., :10], upper=False) @ La
-    K = torch.eye(10, dtype=c.dtype, device=c.device) + Jw.transpose(-1, -2) @ Jw
-    R = torch.linalg.cholesky(K)
-    w_scale = torch.linalg.solve_triangular(R.transpose(-1, -2), torch.eye(
-        10, dtype=c.dtype, device=c.device).expand_as(R), upper=True)  # R^-T
-    base = eiv_cost(problem)
+    options.setdefault("max_iterations", 200)
 
-    def cost(x, w):
-        return base(x, (La @ w[..., None])[..., 0])
+    def run(prob, x_start, scale):
+        return lbfgs(condition_cost(prob, weights_at=x_start), x_start, scale=scale, **options)
 
-    Bn, N1 = problem.F_ga.batch_shape
-    w0 = torch.zeros(Bn, N1, 10, dtype=problem.F_ga.dtype, device=problem.F_ga.device)
-    x, w, report = lbfgs(cost, x0, scale=scale, extra=w0, extra_scale=w_scale, **options)
-    u = (La @ w[..., None])[..., 0]
-    e = torch.cat([u, torch.zeros_like(u)], -1)
-    at = gauss_helmert(cond, x, problem.covariance, variant="iterated", max_iterations=0, e0=e)
-    return Solution(x=x, covariance=at.covariance, report=report, aux=e)
+    iterations = torch.zeros(problem.batch_size, dtype=torch.int64)
+    for _ in range(max(1, reweightings)):
+        info = gauss_helmert(cond, x, problem.covariance, variant="paper", max_iterations=0)
+        scale = torch.linalg.cholesky(info.covariance)
+        if batched:
+            x_new, _, report = run(problem, x, scale)
+        else:
+            parts = [run(subset(problem, slice(k, k + 1)), tuple(b[k:k + 1] for b in x),
+                         scale[k:k + 1]) for k in range(problem.batch_size)]
+            x_new = tuple(type(parts[0][0][i]).stack([p[0][i] for p in parts]).reshape(-1)
+                          if hasattr(parts[0][0][i], "as_matrix")
+                          else torch.cat([p[0][i] for p in parts]) for i in range(len(x)))
+            report = SolverReport(**{f: torch.cat([getattr(p[2], f) for p in parts])
+                                     for f in ("status", "iterations", "initial_cost", "cost",
+                                               "step_norm", "gradient_norm")})
+        iterations = iterations + report.iterations
+        d = torch.cat([x_new[0].rminus(x[0]), x_new[1] - x[1]], -1)
+        moved = (d * (torch.linalg.inv(info.covariance) @ d[..., None])[..., 0]).sum(-1).sqrt()
+        x = x_new
+        if bool((moved <= step_tol).all()):
+            break
+    report.iterations = iterations
+    report.step_norm = moved
+    at = gauss_helmert(cond, x, problem.covariance, variant="paper", max_iterations=0)
+    return Solution(x=x, covariance=at.covariance, report=report)
