@@ -37,11 +37,6 @@ def timed(fn):
     return out, time.perf_counter() - t0
 
 
-def subset(problem: tls.TLSProblem, idx) -> tls.TLSProblem:
-    return tls.TLSProblem(problem.F_ga[idx], problem.F_gb[idx], problem.cov_a, problem.cov_b,
-                          indices=problem.indices)
-
-
 def deviation_in_sigma(F_a, dt_a, F_b, dt_b, cov):
     """max over trials and components of |difference| / standard deviation."""
     sd = cov.diagonal(dim1=-2, dim2=-1).sqrt()
@@ -73,7 +68,7 @@ def main(argv=None) -> int:
         xs, covs, status, its, auxs = [], [], [], [], []
         t = 0.0
         for s in range(0, K, args.chunk):
-            runs = [timed(lambda: solve(subset(P, slice(s, s + args.chunk)), variant=variant,
+            runs = [timed(lambda: solve(tls.subset(P, slice(s, s + args.chunk)), variant=variant,
                                         dtau0=cfg.nominal_dtau)) for _ in range(args.repeats)]
             sol = runs[0][0]
             t += statistics.median(r[1] for r in runs)
@@ -108,7 +103,7 @@ def main(argv=None) -> int:
         times = []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
-            xs = [tls.solve_sgal3(subset(P, slice(k, k + 1)), variant=variant).x for k in range(S)]
+            xs = [tls.solve_sgal3(tls.subset(P, slice(k, k + 1)), variant=variant).x for k in range(S)]
             times.append(time.perf_counter() - t0)
         t = statistics.median(times)
         b_per = res["batched"][f"SGal(3) {variant}"]["per_trial_ms"]
@@ -125,7 +120,7 @@ def main(argv=None) -> int:
     # LBFGS (the paper variant's cost, reweighted) on a subset, one trial at a time.
     L = min(args.lbfgs, K)
     if L:
-        sol, t = timed(lambda: tls.solve_sgal3_lbfgs(subset(P, slice(0, L)), dtau0=cfg.nominal_dtau))
+        sol, t = timed(lambda: tls.solve_sgal3_lbfgs(tls.subset(P, slice(0, L)), dtau0=cfg.nominal_dtau))
         xb, covb, _ = batch[("SGal(3)", "paper")]
         res["lbfgs"] = {"trials": L, "time_s": t, "per_trial_ms": 1e3 * t / L,
                         "converged": int(sol.report.converged.sum()),
@@ -173,7 +168,7 @@ def main(argv=None) -> int:
     xb, covb, _ = batch[("SGal(3)", "iterated")]
     for s in range(0, K, args.chunk):
         sl = slice(s, s + args.chunk)
-        sol, dt = timed(lambda: tls.solve_sgal3(subset(P, sl), x0=(F_bad[sl], dt_bad[sl]),
+        sol, dt = timed(lambda: tls.solve_sgal3(tls.subset(P, sl), x0=(F_bad[sl], dt_bad[sl]),
                                                 variant="iterated", max_iterations=100))
         t += dt
         sd = covb[sl].diagonal(dim1=-2, dim2=-1).sqrt()

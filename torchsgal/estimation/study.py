@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from ..groups import SE23, SGal3
+from ..groups import SE23, SO3, SGal3
 from . import metrics
 from .solver import SolverStatus
 from .tls import TLSProblem, solve_baseline, solve_sgal3
@@ -81,7 +81,7 @@ def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Gener
         return u / u.norm(dim=-1, keepdim=True)
 
     def rotation():
-        return random_rotation(K, g, dtype)
+        return SO3.random((K,), dtype=dtype, generator=g).as_matrix()
 
     w = unit(K)
     C_ga = rotation()
@@ -106,18 +106,6 @@ def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Gener
     obs_b = F_gb @ SGal3.exp(-eps_b)
     problem = TLSProblem(obs_a, obs_b, Sigma, Sigma, indices=n)
     return TrialSet(problem, F_true, dtau, F_ga0)
-
-
-def random_rotation(K, generator, dtype):
-    """Uniform rotations (Haar) as SO3 matrices, from normalised quaternions."""
-    q = torch.randn(K, 4, generator=generator, dtype=dtype)
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)
-    return R.reshape(K, 3, 3)
 
 
 def errors_sgal3(sol, trials: TrialSet) -> torch.Tensor:

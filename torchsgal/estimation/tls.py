@@ -42,13 +42,6 @@ from .solver import Solution, SolverReport, SolverStatus
 E10 = 9  # index of iota, the time component of the SGal(3) tangent
 
 
-def _time_translation(s: torch.Tensor) -> SGal3:
-    """T^n = exp(s e_10) for s = n dtau (...)."""
-    xi = torch.zeros(s.shape + (10,), dtype=s.dtype, device=s.device)
-    xi = torch.cat([xi[..., :E10], s[..., None]], dim=-1)
-    return SGal3.exp(xi)
-
-
 def _check_observations(F_ga, F_gb, cov_a, cov_b, indices, group=SGal3):
     for name, F in (("F_ga", F_ga), ("F_gb", F_gb)):
         if not isinstance(F, group):
