@@ -172,3 +172,13 @@ def cpu_model() -> str:
     import platform
 
     return platform.processor() or "unknown"
+
+
+def dist_version(name: str) -> str | None:
+    """Installed version of a distribution, or None."""
+    try:
+        from importlib.metadata import version
+
+        return version(name)
+    except Exception:
+        return None

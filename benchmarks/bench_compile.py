@@ -31,7 +31,6 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _timing import cpu_model, measure  # noqa: E402
 
-import torchsgal as ts  # noqa: E402
 from torchsgal.functional import sgal3 as F  # noqa: E402
 
 HERE = Path(__file__).resolve().parent

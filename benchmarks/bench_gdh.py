@@ -56,7 +56,7 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import ForeignLoad, cpu_model  # noqa: E402
+from _timing import ForeignLoad, cpu_model, dist_version  # noqa: E402
 
 import torchsgal  # noqa: E402
 from torchsgal.kinematics import iiwa7  # noqa: E402
@@ -309,7 +309,7 @@ def main(argv=None) -> int:
         "benchmark": "bench_gdh.py",
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "torch": torch.__version__,
-        "pytorch_kinematics": getattr(pk, "__version__", None) or _dist_version("pytorch-kinematics"),
+        "pytorch_kinematics": getattr(pk, "__version__", None) or dist_version("pytorch-kinematics"),
         "torchsgal": f"{getattr(torchsgal, '__version__', '?')} ({Path(torchsgal.__file__).parent})",
         "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(),
@@ -359,15 +359,6 @@ def main(argv=None) -> int:
         (args.out_dir / "gdh_cpu.md").write_text(text)
         log(f"wrote {args.out_dir / 'gdh_cpu.json'} and {args.out_dir / 'gdh_cpu.md'}")
     return 0
-
-
-def _dist_version(name: str):
-    try:
-        from importlib.metadata import version
-
-        return version(name)
-    except Exception:
-        return None
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import ForeignLoad, cpu_model  # noqa: E402
+from _timing import ForeignLoad, cpu_model, dist_version  # noqa: E402
 
 import torchsgal  # noqa: E402
 from torchsgal.imu import gravity_vector, preintegrate  # noqa: E402
@@ -269,7 +269,7 @@ def main(argv=None) -> int:
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "torch": torch.__version__,
         "pypose": getattr(pypose, "__version__", None),
-        "gtsam": _dist_version("gtsam"),
+        "gtsam": dist_version("gtsam"),
         "torchsgal": f"{getattr(torchsgal, '__version__', '?')} ({Path(torchsgal.__file__).parent})",
         "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(),
@@ -303,15 +303,6 @@ def main(argv=None) -> int:
         (args.out_dir / "imu_cpu.md").write_text("\n".join(md))
         log(f"wrote {args.out_dir / 'imu_cpu.json'} and {args.out_dir / 'imu_cpu.md'}")
     return 0
-
-
-def _dist_version(name: str):
-    try:
-        from importlib.metadata import version
-
-        return version(name)
-    except Exception:
-        return None
 
 
 if __name__ == "__main__":

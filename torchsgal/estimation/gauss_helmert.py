@@ -175,8 +175,5 @@ def gauss_helmert(
         y = torch.linalg.solve_triangular(L.transpose(-1, -2), z[..., None], upper=True)[..., 0]
         return -cov.apply_transposed(Bw, y)
 
-    # The observation residual estimate starts at e0 (zero by default).
-    if e0 is None:
-        c0, _, _ = condition(x0, None)
-        e0 = torch.zeros(c0.shape[:2] + (cov.dim,), dtype=c0.dtype, device=c0.device)
+    # The observation residual estimate starts at e0; None is zero (the condition's cheap path).
     return iterate(linearise, x0, e0, post_step, **options)

@@ -82,7 +82,7 @@ def lbfgs(
     status = torch.where(gnorm <= gradient_tol * (1 + c.abs()), SolverStatus.CONVERGED,
                          SolverStatus.MAX_ITERATIONS)
     status = torch.where(finite, status, SolverStatus.NON_FINITE).to(torch.int64)
-    it = opt.state[opt._params[0]].get("n_iter", 0)
+    it = opt.state[z].get("n_iter", 0)
     report = SolverReport(status=status, iterations=torch.full((Bn,), it, dtype=torch.int64),
                           initial_cost=initial.detach(), cost=c, step_norm=torch.zeros_like(c),
                           gradient_norm=gnorm.detach())

@@ -143,10 +143,10 @@ def iterate(
     iterations = torch.zeros(Bn, dtype=torch.int64, device=device)
     step_norm = torch.zeros(Bn, dtype=dtype, device=device)
 
-    for _ in range(max_iterations):
+    for it in range(max_iterations):
         running = status == SolverStatus.RUNNING
         n_running = int(running.sum())
-        if n_running == 0 or n_running <= stop_below_fraction * Bn:
+        if n_running == 0 or (it > 0 and n_running <= stop_below_fraction * Bn):
             break
         H = lin.J.transpose(-1, -2) @ lin.J
         g = (lin.J.transpose(-1, -2) @ lin.r[..., None])[..., 0]
@@ -207,6 +207,10 @@ def iterate(
 
 
 def _select_aux(mask, new, old):
+    """Per-problem selection of solver state; a state of None stands for zeros (the
+    Gauss-Helmert residual estimate before the first step)."""
+    if isinstance(new, torch.Tensor) and old is None:
+        old = torch.zeros_like(new)
     if new is None or old is None:
         return new if old is None else old
     if isinstance(new, torch.Tensor):

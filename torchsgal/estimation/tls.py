@@ -283,7 +283,8 @@ def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> So
     sub = subset(problem, idx)
     x_sub = tuple(b[idx] for b in sol.x)
     rest = gauss_helmert(condition_of(sub), x_sub, covariance_of(sub), variant=variant,
-                         e0=sol.aux[idx], max_iterations=max_it - first, **options)
+                         e0=None if sol.aux is None else sol.aux[idx],
+                         max_iterations=max_it - first, **options)
     x = []
     for full, part in zip(sol.x, rest.x):
         if isinstance(full, torch.Tensor):
@@ -297,7 +298,8 @@ def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> So
         fields[name] = t if name == "initial_cost" else t.index_copy(0, idx, getattr(rest.report, name))
     fields["iterations"] = report.iterations.index_add(0, idx, rest.report.iterations)
     return Solution(x=tuple(x), covariance=sol.covariance.index_copy(0, idx, rest.covariance),
-                    report=SolverReport(**fields), aux=sol.aux.index_copy(0, idx, rest.aux))
+                    report=SolverReport(**fields),
+                    aux=rest.aux if sol.aux is None else sol.aux.index_copy(0, idx, rest.aux))
 
 
 def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",

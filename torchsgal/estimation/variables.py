@@ -7,8 +7,6 @@ blocks by addition.
 """
 from __future__ import annotations
 
-from typing import Sequence
-
 import torch
 
 from ..groups import LieGroup
@@ -106,7 +104,3 @@ def finite(x: Values) -> torch.Tensor:
         f = torch.isfinite(t).all(dim=-1)
         ok = f if ok is None else ok & f
     return ok
-
-
-def names(x: Sequence[Block]) -> list[str]:
-    return [type(b).__name__ if isinstance(b, LieGroup) else f"R^{b.shape[-1]}" for b in x]
