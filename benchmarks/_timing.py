@@ -182,3 +182,48 @@ def dist_version(name: str) -> str | None:
         return version(name)
     except Exception:
         return None
+
+
+def loadavg() -> tuple[float, float, float] | None:
+    return os.getloadavg() if hasattr(os, "getloadavg") else None
+
+
+def wait_for_idle(seconds: float, threshold: float = 0.5, poll_s: float = 2.0) -> None:
+    """Wait up to ``seconds`` for the 1-minute load average to drop below ``threshold``."""
+    if seconds <= 0 or loadavg() is None:
+        return
+    t0 = time.time()
+    while os.getloadavg()[0] > threshold and time.time() - t0 < seconds:
+        time.sleep(poll_s)
+
+
+def environment(benchmark: str, argv: list[str] | None = None, **extra) -> dict:
+    """The header every results file starts with: what ran, where, with which versions, and
+    the load average at the start; ``extra`` entries are appended."""
+    import datetime as _dt
+    import platform
+    import sys
+    from pathlib import Path
+
+    try:
+        import torchsgal
+
+        where = f"{getattr(torchsgal, '__version__', '?')} ({Path(torchsgal.__file__).parent})"
+    except Exception as e:  # the peer sections of a benchmark can still run
+        where = f"not importable ({type(e).__name__}: {e})"
+    env = {
+        "benchmark": benchmark,
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "torch": torch.__version__,
+        "torchsgal": where,
+        "cpu_model": cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "torch_num_threads": torch.get_num_threads(),
+        "torch_num_interop_threads": torch.get_num_interop_threads(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "command": " ".join([Path(sys.argv[0]).name] + (sys.argv[1:] if argv is None else list(argv))),
+        "loadavg_at_start": loadavg(),
+    }
+    env.update(extra)
+    return env

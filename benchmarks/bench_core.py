@@ -38,10 +38,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import json
-import os
-import platform
 import sys
 import time
 import traceback
@@ -52,7 +49,8 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import cpu_model, fmt_bytes, fmt_ns, mem_available_bytes, measure, synchronize  # noqa: E402
+from _timing import (cpu_model, environment, fmt_bytes, fmt_ns, loadavg, mem_available_bytes,  # noqa: E402
+                     measure, synchronize, wait_for_idle)
 
 GROUPS = ("SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3")
 FUNCTIONAL = {"SO2": "so2", "SE2": "se2", "SO3": "so3", "SE3": "se3", "SE23": "se23", "SGal3": "sgal3",
@@ -622,39 +620,26 @@ def main(argv=None):
     if device.type == "cuda" and not torch.cuda.is_available():
         sys.exit("CUDA requested but torch.cuda.is_available() is False")
 
-    if args.wait_idle > 0 and hasattr(os, "getloadavg"):
-        t_wait = time.time()
-        while os.getloadavg()[0] > 0.5 and time.time() - t_wait < args.wait_idle:
-            time.sleep(5)
+    wait_for_idle(args.wait_idle)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     t_start = time.time()
-    load_start = os.getloadavg() if hasattr(os, "getloadavg") else None
-    env = {
-        "loadavg_at_start": load_start,
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "torch": torch.__version__,
-        "device": str(device),
-        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model(),
-        "cpu_model": cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "torch_num_threads": torch.get_num_threads(),
-        "torch_num_interop_threads": torch.get_num_interop_threads(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "command": " ".join([Path(sys.argv[0]).name] + (argv if argv is not None else sys.argv[1:])),
-        "memory_measure": "bytes held for backward: saved_tensors_hooks + custom-Function ctx tensor "
-                          "attributes, de-duplicated by storage, excluding the input"
-                          + ("; plus torch.cuda.max_memory_allocated peak" if device.type == "cuda" else ""),
-        "timing": f"median of >= {args.min_repeats} samples, adaptive repeats targeting {args.target} s, "
-                  "one untimed warm-up, gc disabled while timing",
-    }
+    env = environment(
+        "bench_core.py", argv,
+        device=str(device),
+        device_name=torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model(),
+        memory_measure="bytes held for backward: saved_tensors_hooks + custom-Function ctx tensor "
+                       "attributes, de-duplicated by storage, excluding the input"
+                       + ("; plus torch.cuda.max_memory_allocated peak" if device.type == "cuda" else ""),
+        timing=f"median of >= {args.min_repeats} samples, adaptive repeats targeting {args.target} s, "
+               "one untimed warm-up, gc disabled while timing",
+    )
+    load_start = env["loadavg_at_start"]
 
     try:
         import torchsgal as ts
 
         _ = (ts.SO3, ts.functional)  # fail early if the package is not there yet
-        env["torchsgal"] = f"{getattr(ts, '__version__', 'unknown')} ({Path(ts.__file__).parent})"
     except Exception as e:
         ts = None
         env["torchsgal"] = f"not importable ({type(e).__name__}: {e})"
@@ -716,7 +701,7 @@ def main(argv=None):
         bench_gtsam(res, args, gtsam, gen)
 
     env["wall_s"] = round(time.time() - t_start, 1)
-    env["loadavg_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    env["loadavg_at_end"] = loadavg()
     if load_start is not None and load_start[0] > 0.5:
         env["warning"] = (f"1-min load average was {load_start[0]:.2f} at start: other processes were "
                           "using the CPU, so timings (especially multi-threaded ones) may be inflated")

@@ -41,11 +41,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import gc
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -56,9 +53,8 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import ForeignLoad, cpu_model, dist_version  # noqa: E402
+from _timing import ForeignLoad, dist_version, environment, loadavg, wait_for_idle  # noqa: E402
 
-import torchsgal  # noqa: E402
 from torchsgal.kinematics import iiwa7  # noqa: E402
 
 
@@ -297,39 +293,25 @@ def main(argv=None) -> int:
         args.n, args.target_a, args.target_b, args.min_rounds = 1000, 0.0, 0.0, 3
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    if args.wait_idle > 0 and hasattr(os, "getloadavg"):
-        t_wait = time.time()
-        while os.getloadavg()[0] > 0.5 and time.time() - t_wait < args.wait_idle:
-            time.sleep(2)
+    wait_for_idle(args.wait_idle)
 
     import pytorch_kinematics as pk
 
     t_start = time.perf_counter()
-    env = {
-        "benchmark": "bench_gdh.py",
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "torch": torch.__version__,
-        "pytorch_kinematics": getattr(pk, "__version__", None) or dist_version("pytorch-kinematics"),
-        "torchsgal": f"{getattr(torchsgal, '__version__', '?')} ({Path(torchsgal.__file__).parent})",
-        "cpu_model": cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "torch_num_threads": torch.get_num_threads(),
-        "torch_num_interop_threads": torch.get_num_interop_threads(),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
-        "loadavg_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
-        "robot": "iiwa7 (KUKA LBR iiwa, 7 revolute joints, standard DH)",
-        "batch": args.n,
-        "method": ("interleaved round-robin timing, 2 untimed warm-up calls per case, GC off, "
-                   "median over rounds; ratios are medians of per-round ratios; one process, "
-                   "same batch for every case"),
-    }
+    env = environment(
+        "bench_gdh.py", argv,
+        pytorch_kinematics=getattr(pk, "__version__", None) or dist_version("pytorch-kinematics"),
+        robot="iiwa7 (KUKA LBR iiwa, 7 revolute joints, standard DH)",
+        batch=args.n,
+        method=("interleaved round-robin timing, 2 untimed warm-up calls per case, GC off, "
+                "median over rounds; ratios are medians of per-round ratios; one process, "
+                "same batch for every case"),
+    )
     log(f"torch {env['torch']} | pk {env['pytorch_kinematics']} | {env['cpu_model']} | "
         f"threads {env['torch_num_threads']} | n={args.n:,}")
     results = [run_dtype(getattr(torch, d.strip()), args) for d in args.dtypes.split(",")]
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
-    env["loadavg_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    env["loadavg_at_end"] = loadavg()
 
     md = [f"# GDH chain benchmark: iiwa7, batch {args.n:,} ({env['cpu_model']}, {env['date']})", "",
           "| | |", "|---|---|"]

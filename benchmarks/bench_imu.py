@@ -38,11 +38,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import gc
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -53,9 +50,8 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import ForeignLoad, cpu_model, dist_version  # noqa: E402
+from _timing import ForeignLoad, dist_version, environment, loadavg, wait_for_idle  # noqa: E402
 
-import torchsgal  # noqa: E402
 from torchsgal.imu import gravity_vector, preintegrate  # noqa: E402
 from torchsgal.imu import peers  # noqa: E402
 from torchsgal.imu.trajectory import SinusoidalTrajectory  # noqa: E402
@@ -256,37 +252,25 @@ def main(argv=None) -> int:
         args.windows, args.target, args.min_rounds = 100, 0.0, 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    if args.wait_idle > 0 and hasattr(os, "getloadavg"):
-        t_wait = time.time()
-        while os.getloadavg()[0] > 0.5 and time.time() - t_wait < args.wait_idle:
-            time.sleep(2)
+    wait_for_idle(args.wait_idle)
     import gtsam  # noqa: F401
     import pypose
 
     t_start = time.perf_counter()
-    env = {
-        "benchmark": "bench_imu.py",
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "torch": torch.__version__,
-        "pypose": getattr(pypose, "__version__", None),
-        "gtsam": dist_version("gtsam"),
-        "torchsgal": f"{getattr(torchsgal, '__version__', '?')} ({Path(torchsgal.__file__).parent})",
-        "cpu_model": cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "torch_num_threads": torch.get_num_threads(),
-        "python": platform.python_version(),
-        "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
-        "loadavg_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
-        "windows": args.windows,
-        "samples": args.samples,
-        "dt": args.dt,
-        "noise densities": f"gyro {SIGMA_G} rad/s/sqrt(Hz), accelerometer {SIGMA_A} m/s^2/sqrt(Hz) (isotropic)",
-    }
+    env = environment(
+        "bench_imu.py", argv,
+        pypose=getattr(pypose, "__version__", None),
+        gtsam=dist_version("gtsam"),
+        windows=args.windows,
+        samples=args.samples,
+        dt=args.dt,
+        noise_densities=f"gyro {SIGMA_G} rad/s/sqrt(Hz), accelerometer {SIGMA_A} m/s^2/sqrt(Hz) (isotropic)",
+    )
     log(f"torch {env['torch']} | pypose {env['pypose']} | gtsam {env['gtsam']} | {env['cpu_model']} | "
         f"threads {env['torch_num_threads']} | {args.windows} x {args.samples}")
     res = run(args)
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
-    env["loadavg_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    env["loadavg_at_end"] = loadavg()
     body = tables(res, args)
     ver = verdict(res)
     print("\n" + "\n".join(body))
