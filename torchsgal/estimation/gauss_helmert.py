@@ -114,6 +114,20 @@ class _CovarianceBlocks:
         return torch.cat(parts, dim=-1)
 
 
+def variant_options(variant: str, options: dict) -> bool:
+    """Checks ``variant`` and sets its default solver options; True for "iterated"."""
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    if variant == "iterated":
+        # Its linearised cost is re-evaluated at each new residual estimate, so it can rise a
+        # little even for a vanishing step: steps shorter than 0.1 standard deviations are
+        # always accepted, and it stops on the step size only (it converges linearly).
+        options.setdefault("accept_tol", 1e-6)
+        options.setdefault("always_accept_below", 0.1)
+        options.setdefault("cost_tol", 0.0)
+    return variant == "iterated"
+
+
 def gauss_helmert(
     condition: Callable,
     x0,
@@ -140,18 +154,9 @@ def gauss_helmert(
         the new residual estimate, and by default stops on the step size only (``cost_tol=0``).
     Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.
     """
-    if variant not in VARIANTS:
-        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    iterated = variant_options(variant, options)
     x0 = V.check_values(x0)
     cov = _CovarianceBlocks(observation_covariance)
-    iterated = variant == "iterated"
-    if iterated:
-        # Its linearised cost is re-evaluated at each new residual estimate, so it can rise a
-        # little even for a vanishing step: steps shorter than 0.1 standard deviations are
-        # always accepted, and it stops on the step size only (it converges linearly).
-        options.setdefault("accept_tol", 1e-6)
-        options.setdefault("always_accept_below", 0.1)
-        options.setdefault("cost_tol", 0.0)
 
     def linearise(x, e):
         c, A, Bm = condition(x, e if iterated else None)

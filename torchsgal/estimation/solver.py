@@ -60,9 +60,42 @@ class Solution:
 
 @dataclass
 class Linearisation:
-    r: torch.Tensor  # (B, m) whitened residual
-    J: torch.Tensor  # (B, m, d)
+    """The whitened residual and its Jacobian, or (when ``H`` is given) the normal equations
+    themselves: a linearisation that can sum J^T J over its residuals more cheaply than forming
+    J (``tls``) gives H, g and cost and may leave r and J None."""
+
+    r: torch.Tensor | None  # (B, m) whitened residual
+    J: torch.Tensor | None  # (B, m, d)
     extra: object = None  # passed to the post-step hook
+    H: torch.Tensor | None = None  # (B, d, d) J^T J
+    g: torch.Tensor | None = None  # (B, d) J^T r
+    cost: torch.Tensor | None = None  # (B,) 1/2 |r|^2
+
+    def normal_equations(self) -> "Linearisation":
+        """Fills H, g and cost from r and J (once)."""
+        if self.H is None:
+            Jt = self.J.transpose(-1, -2)
+            self.H = Jt @ self.J
+            self.g = (Jt @ self.r[..., None])[..., 0]
+            self.cost = 0.5 * self.r.square().sum(dim=-1)
+        return self
+
+    def finite(self) -> torch.Tensor:
+        """(B,) residuals and Jacobians finite (the normal equations when there is no J)."""
+        if self.J is not None:
+            return torch.isfinite(self.r).all(-1) & torch.isfinite(self.J).flatten(1).all(-1)
+        return (torch.isfinite(self.H).flatten(1).all(-1) & torch.isfinite(self.g).all(-1)
+                & torch.isfinite(self.cost))
+
+    def select(self, mask: torch.Tensor, other: "Linearisation") -> "Linearisation":
+        """Per problem: this one where ``mask``, else ``other`` (both with normal equations)."""
+        def pick(a, b):
+            if a is None or b is None:
+                return None
+            return torch.where(mask.reshape(mask.shape + (1,) * (a.dim() - 1)), a, b)
+        return Linearisation(pick(self.r, other.r), pick(self.J, other.J),
+                             _select_aux(mask, self.extra, other.extra), pick(self.H, other.H),
+                             pick(self.g, other.g), pick(self.cost, other.cost))
 
 
 def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torch.Tensor:
@@ -124,20 +157,24 @@ def iterate(
     x = V.check_values(x0)
     aux = aux0
     lin = linearise(x, aux)
-    Bn, d = lin.J.shape[0], lin.J.shape[-1]
-    dtype, device = lin.J.dtype, lin.J.device
+    Bn = V.batch_size(x)
+    d = V.tangent_dim(x)
+    ref = lin.J if lin.J is not None else lin.H
+    dtype, device = ref.dtype, ref.device
     eye = torch.eye(d, dtype=dtype, device=device)
 
-    def cost_of(r):
-        return 0.5 * r.square().sum(dim=-1)
-
-    ok0 = V.finite(x) & torch.isfinite(lin.r).all(-1) & torch.isfinite(lin.J).flatten(1).all(-1)
+    ok0 = V.finite(x) & lin.finite()
     status = torch.where(ok0, SolverStatus.RUNNING, SolverStatus.NON_FINITE).to(torch.int64)
     # Sanitise non-finite problems so that they cannot poison shared reductions.
-    r = torch.where(ok0[:, None], lin.r, torch.zeros_like(lin.r))
-    J = torch.where(ok0[:, None, None], lin.J, torch.zeros_like(lin.J))
-    lin = Linearisation(r, J, lin.extra)
-    cost = cost_of(r)
+    if lin.J is not None:
+        lin = Linearisation(torch.where(ok0[:, None], lin.r, torch.zeros_like(lin.r)),
+                            torch.where(ok0[:, None, None], lin.J, torch.zeros_like(lin.J)),
+                            lin.extra)
+    else:
+        lin = Linearisation(None, None, lin.extra, torch.where(ok0[:, None, None], lin.H, 0),
+                            torch.where(ok0[:, None], lin.g, 0), torch.where(ok0, lin.cost, 0))
+    lin.normal_equations()
+    cost = lin.cost
     initial_cost = cost.clone()
     lam = torch.full((Bn,), damping if damping is not None else 0.0, dtype=dtype, device=device)
     iterations = torch.zeros(Bn, dtype=torch.int64, device=device)
@@ -148,8 +185,7 @@ def iterate(
         n_running = int(running.sum())
         if n_running == 0 or (it > 0 and n_running <= stop_below_fraction * Bn):
             break
-        H = lin.J.transpose(-1, -2) @ lin.J
-        g = (lin.J.transpose(-1, -2) @ lin.r[..., None])[..., 0]
+        H, g = lin.H, lin.g
         diag = H.diagonal(dim1=-2, dim2=-1)
         # Damping scaled by the diagonal, floored so that unobservable directions stay solvable.
         floor = 1e-12 * diag.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
@@ -161,9 +197,10 @@ def iterate(
         x_new = V.retract(x, delta)
         aux_new = post_step(x, aux, lin, delta) if post_step is not None else aux
         lin_new = linearise(x_new, aux_new)
-        cost_new = cost_of(lin_new.r)
-        finite_new = (V.finite(x_new) & torch.isfinite(cost_new)
-                      & torch.isfinite(lin_new.J).flatten(1).all(-1))
+        finite_new = V.finite(x_new) & lin_new.finite()
+        lin_new.normal_equations()
+        cost_new = lin_new.cost
+        finite_new = finite_new & torch.isfinite(cost_new)
         step = (delta * (H @ delta[..., None])[..., 0]).sum(-1).clamp_min(0).sqrt()
         if damping is None:
             accept = running & solvable & finite_new
@@ -179,10 +216,7 @@ def iterate(
             x = V.select(accept, x_new, x)
             if aux is not None or aux_new is not None:
                 aux = _select_aux(accept, aux_new, aux)
-            r = torch.where(accept[:, None], torch.where(finite_new[:, None], lin_new.r, 0), lin.r)
-            J = torch.where(accept[:, None, None],
-                            torch.where(finite_new[:, None, None], lin_new.J, 0), lin.J)
-            lin = Linearisation(r, J, _select_aux(accept, lin_new.extra, lin.extra))
+            lin = lin_new.select(accept, lin)
         old_cost = cost
         cost = torch.where(accept, cost_new, cost)
         if damping is not None:
@@ -196,8 +230,7 @@ def iterate(
         status = torch.where(diverged, SolverStatus.DIVERGED, status)
     status = torch.where(status == SolverStatus.RUNNING, SolverStatus.MAX_ITERATIONS, status)
 
-    H = lin.J.transpose(-1, -2) @ lin.J
-    g = (lin.J.transpose(-1, -2) @ lin.r[..., None])[..., 0]
+    H, g = lin.H, lin.g
     singular = information_is_singular(H) & (status != SolverStatus.NON_FINITE)
     status = torch.where(singular, SolverStatus.SINGULAR, status)
     P = covariance_from_information(H, singular | (status == SolverStatus.NON_FINITE))
@@ -209,6 +242,8 @@ def iterate(
 def _select_aux(mask, new, old):
     """Per-problem selection of solver state; a state of None stands for zeros (the
     Gauss-Helmert residual estimate before the first step)."""
+    if hasattr(new, "select") and not isinstance(new, torch.Tensor):
+        return new.select(mask, old)
     if isinstance(new, torch.Tensor) and old is None:
         old = torch.zeros_like(new)
     if new is None or old is None:

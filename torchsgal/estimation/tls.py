@@ -35,9 +35,10 @@ from dataclasses import dataclass
 import torch
 
 from ..groups import SE23, SGal3
+from . import _small_linalg
 from . import variables as V
-from .gauss_helmert import check_covariance, gauss_helmert
-from .solver import Solution, SolverReport, SolverStatus
+from .gauss_helmert import _CovarianceBlocks, check_covariance, gauss_helmert, variant_options
+from .solver import Linearisation, Solution, SolverReport, SolverStatus, iterate
 
 E10 = 9  # index of iota, the time component of the SGal(3) tangent
 
@@ -166,6 +167,135 @@ def sgal3_condition(problem: TLSProblem):
     return condition
 
 
+def _whiten(G: torch.Tensor, factor: torch.Tensor, diagonal: bool) -> torch.Tensor:
+    """G R for the covariance factor R (a square-root diagonal or a Cholesky factor)."""
+    return G * factor[..., None, :] if diagonal else G @ factor
+
+
+class _ChunkState:
+    """Per-condition solver state kept in chunks of trials (``slices``), so that no tensor
+    spans the whole batch: large temporaries cost page faults on every allocation."""
+
+    def __init__(self, slices, parts):
+        self.slices, self.parts = slices, parts
+
+    def select(self, mask, other):
+        return _ChunkState(self.slices, [
+            tuple(torch.where(mask[sl].reshape((-1,) + (1,) * (a.dim() - 1)), a, b)
+                  for a, b in zip(new, old))
+            for sl, new, old in zip(self.slices, self.parts, other.parts)])
+
+
+def _sgal3_structured(problem: TLSProblem, iterated: bool, chunk: int | None = None):
+    """(linearise, post_step) for ``solver.iterate``: the Gauss-Helmert reduction of
+    ``sgal3_condition`` with its normal equations summed in closed form.
+
+    The conditions are multiplied by K = Ad(T^-n) Ad(exp(eb))^-1 J_r(c) instead of J_r(c)
+    (the solution does not change, see ``gauss_helmert``).  With J_l(x) = Ad(exp(x)) J_r(x):
+
+        c' = Ad(T^-n) log(exp(-eb) M_n exp(ea) A_n)     (= K c, a conjugation)
+        A' = [I, n a],  a = Ad(F^-1) e_10 - e_10        (the same for every n)
+        Bm' = [Ga, Gb] = [Ad(F^-1) Ad(T^-n) J_r(ea), -Ad(T^-n) J_r(eb)].
+
+    With S = Bm' Sigma Bm'^T = L L^T and Li = L^-1, the whitened rows of condition n are
+    [Li, n Li a, Li w] (w = c' - Bm' e); one product per trial of their stack gives
+    H = J^T J, g = J^T r and |r|^2 (5.24).  Li comes from ``_small_linalg`` (vectorised over
+    the conditions).  The trials are processed ``chunk`` at a time (default: about 2000
+    conditions)."""
+    n = problem.indices
+    M = problem.M
+    Bn, N1 = M.batch_shape
+    chunk = chunk or max(1, 2048 // N1)
+    slices = [slice(i, min(i + chunk, Bn)) for i in range(0, Bn, chunk)]
+    cov = _CovarianceBlocks(problem.covariance)
+    (fa, fb), (da, db) = cov.factors, cov.diagonal
+    e10 = torch.zeros(10, dtype=M.dtype, device=M.device)
+    e10[E10] = 1.0
+    minus_eye = -torch.eye(10, dtype=M.dtype, device=M.device)
+
+    def per_trial(f, diagonal, sl):
+        """The chunk's rows of a covariance factor that has a trial dimension."""
+        return f[sl] if f.dim() == (3 if diagonal else 4) and f.shape[0] > 1 else f
+
+    def part(F, dtau, Mk, e, fa, fb):
+        K = Mk.batch_shape[0]
+        s = n * dtau  # (K, N+1)
+        Ad_Finv = F.inverse().adjoint()  # (K, 10, 10)
+        a = Ad_Finv[..., E10] - e10  # (K, 10)
+        A = _drift_sgal3(F.unsqueeze(-1), s)
+        if e is None:
+            c = (Mk @ A).log()
+            Ga = _ad_time_right_inverse(Ad_Finv[:, None], s)
+            Gb = _ad_time_left(-s, minus_eye)
+        else:
+            ea, eb = e[..., :10], e[..., 10:]
+            E = SGal3.exp(torch.stack([ea, -eb]))
+            c = (E[1] @ Mk @ E[0] @ A).log()
+            Jr = SGal3.jr(torch.stack([ea, eb]))
+            Ga = Ad_Finv[:, None] @ _ad_time_left(-s, Jr[0])
+            Gb = _ad_time_left(-s, -Jr[1])
+        c = c.clone()
+        c[..., 0:3] += s[..., None] * c[..., 3:6]  # Ad(T^-n) c
+        if e is not None:
+            c -= (Ga @ e[..., :10, None] + Gb @ e[..., 10:, None])[..., 0]
+        W = torch.cat([_whiten(Ga, fa, da), _whiten(Gb, fb, db)], -1)  # (K, N+1, 10, 20)
+        S_t = (W @ W.transpose(-1, -2)).flatten(0, 1).permute(1, 2, 0).contiguous()
+        L_t, info = _small_linalg.cholesky_t(S_t)
+        Li_t = _small_linalg.tril_inverse_t(L_t)  # (10, 10, K (N+1))
+        # Rows [Li, n Li a, Li w] of every condition, batch first: (K, (N+1) 10, 12).
+        rhs_t = torch.stack([a.T[:, :, None].expand(10, K, N1).reshape(10, -1),
+                             c.reshape(-1, 10).T], 1)  # (10, 2, K (N+1))
+        u_t = (Li_t[:, :, None] * rhs_t).sum(1)  # (10, 2, K (N+1))
+        u_t[:, 0] *= n.repeat(K)
+        Rows = torch.empty(K * N1, 10, 12, dtype=M.dtype, device=M.device)
+        Rows[..., :10] = Li_t.permute(2, 0, 1)
+        Rows[..., 10:] = u_t.permute(2, 0, 1)
+        Rows = Rows.reshape(K, N1 * 10, 12)
+        G = Rows.transpose(-1, -2) @ Rows
+        # A non-positive-definite S gives a non-finite factor; mark its trial explicitly.
+        bad = (info != 0).reshape(K, N1).any(-1)
+        G[:, 11, 11] = torch.where(bad, float("nan"), G[:, 11, 11])
+        return G, (Rows, W)
+
+    def linearise(x, e):
+        F, dtau = x
+        e = e if iterated else None
+        Gs, parts = [], []
+        for sl in slices:
+            G, p = part(F[sl], dtau[sl], M[sl], None if e is None else e[sl],
+                        per_trial(fa, da, sl), per_trial(fb, db, sl))
+            Gs.append(G)
+            parts.append(p)
+        G = torch.cat(Gs)
+        return Linearisation(None, None, extra=_ChunkState(slices, parts), H=G[:, :11, :11],
+                             g=G[:, :11, 11], cost=0.5 * G[:, 11, 11])
+
+    def post_step(x, e, lin, delta):
+        # e = -Sigma Bm'^T S^-1 (w + A' delta) = -R W^T Li^T (Li w + Li A' delta).
+        out = []
+        d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
+        for sl, (Rows, W) in zip(lin.extra.slices, lin.extra.parts):
+            K = W.shape[0]
+            z = (Rows @ d1[sl]).reshape(K, N1, 10)
+            y = (Rows.reshape(K, N1, 10, 12)[..., :10] * z[..., :, None]).sum(-2)  # Li^T z
+            Wy = (W * y[..., :, None]).sum(-2)  # (K, N+1, 20)
+            ea, eb = Wy[..., :10], Wy[..., 10:]
+            ra, rb = per_trial(fa, da, sl), per_trial(fb, db, sl)
+            ea = ea * ra if da else (ra @ ea[..., None])[..., 0]
+            eb = eb * rb if db else (rb @ eb[..., None])[..., 0]
+            out.append(torch.cat([ea, eb], -1))
+        return -torch.cat(out)
+
+    return linearise, post_step
+
+
+def _gauss_helmert_sgal3(problem: TLSProblem, x0, variant: str, e0=None, **options) -> Solution:
+    """``gauss_helmert(sgal3_condition(problem), ...)`` through ``_sgal3_structured``."""
+    iterated = variant_options(variant, options)
+    linearise, post_step = _sgal3_structured(problem, iterated)
+    return iterate(linearise, V.check_values(x0), e0, post_step, **options)
+
+
 # ------------------------------------------------------------------------ SE_2(3) x R baseline
 def split_clock(F: SGal3) -> tuple[SE23, torch.Tensor]:
     """(SE_2(3) part, clock) of SGal(3) elements: the baseline's view of an observation."""
@@ -267,14 +397,13 @@ def subset(problem: TLSProblem, index) -> TLSProblem:
                       pick(problem.cov_b), indices=problem.indices)
 
 
-def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> Solution:
+def _in_rounds(solve, problem, x0, options) -> Solution:
     """Gauss-Helmert with the stragglers compacted: once at most ``straggler_fraction``
     (default 5%) of the trials are still running, they are solved again on their own, from
     where they stopped, so the whole batch does not iterate for its slowest members."""
     max_it = options.pop("max_iterations", 50)
     fraction = options.pop("straggler_fraction", 0.05)
-    sol = gauss_helmert(condition_of(problem), x0, covariance_of(problem), variant=variant,
-                        max_iterations=max_it, stop_below_fraction=fraction, **options)
+    sol = solve(problem, x0, None, max_iterations=max_it, stop_below_fraction=fraction, **options)
     first = int(sol.report.iterations.max())
     pending = sol.report.status == SolverStatus.MAX_ITERATIONS
     if max_it <= first or not bool(pending.any()):
@@ -282,9 +411,8 @@ def _in_rounds(condition_of, covariance_of, problem, x0, variant, options) -> So
     idx = pending.nonzero()[:, 0]
     sub = subset(problem, idx)
     x_sub = tuple(b[idx] for b in sol.x)
-    rest = gauss_helmert(condition_of(sub), x_sub, covariance_of(sub), variant=variant,
-                         e0=None if sol.aux is None else sol.aux[idx],
-                         max_iterations=max_it - first, **options)
+    rest = solve(sub, x_sub, None if sol.aux is None else sol.aux[idx],
+                 max_iterations=max_it - first, **options)
     x = []
     for full, part in zip(sol.x, rest.x):
         if isinstance(full, torch.Tensor):
@@ -309,7 +437,8 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
     running fraction below which the stragglers are finished in a batch of their own."""
     x0 = problem.initial_guess(dtau0) if x0 is None else x0
     _default_options(variant, options)
-    return _in_rounds(sgal3_condition, lambda p: p.covariance, problem, x0, variant, options)
+    return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_sgal3(p, x, variant, e0, **kw),
+                      problem, x0, options)
 
 
 def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
@@ -321,7 +450,9 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         X0, t0 = split_clock(F0)
         x0 = (X0, t0[:, None], dt)
     _default_options(variant, options)
-    return _in_rounds(baseline_condition, baseline_covariance, problem, x0, variant, options)
+    return _in_rounds(lambda p, x, e0, **kw: gauss_helmert(
+        baseline_condition(p), x, baseline_covariance(p), variant=variant, e0=e0, **kw),
+        problem, x0, options)
 
 
 def eiv_cost(problem: TLSProblem):

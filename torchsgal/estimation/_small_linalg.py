@@ -1,0 +1,90 @@
+"""Cholesky factor, triangular inverse and SPD inverse of many small matrices at once.
+
+torch's CPU ``linalg.cholesky`` / ``cholesky_inverse`` / ``solve_triangular`` call LAPACK once
+per matrix, which dominates for batches of 10^4-10^5 matrices of size ~10.  Here the loops run
+over the (few) columns and every operation is vectorised over the batch, held in the last
+dimension (``*_t`` functions: matrices (n, n, *batch), contiguous), where each operation
+reads contiguous memory.  The batch-first wrappers move the batch there and back.
+
+Failure semantics follow ``torch.linalg.cholesky_ex``: ``info`` (int32, the batch shape) is 0
+where the matrix is positive definite, else the order of the first leading minor that is not
+(a pivot <= 0 or NaN).  The factor of such a matrix is not meaningful; here its entries from the
+failing column on are non-finite (NaN or inf), so that nothing downstream looks valid.
+"""
+from __future__ import annotations
+
+import torch
+
+# Batch sizes from which the vectorised routines beat LAPACK's per-matrix calls (CPU); below,
+# the wrappers call torch.linalg (the batch shape is known on the host, no sync).
+MIN_BATCH = 512
+
+
+def _batch_last(A: torch.Tensor) -> torch.Tensor:
+    return A.movedim((-2, -1), (0, 1)).contiguous()
+
+
+def _batch_first(A_t: torch.Tensor) -> torch.Tensor:
+    return A_t.movedim((0, 1), (-2, -1))
+
+
+def cholesky_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower Cholesky factor of S (n, n, *batch); only the lower triangle of S is read.
+    Returns (L, info) with L (n, n, *batch) and info (*batch) int32."""
+    n = S_t.shape[0]
+    L = torch.zeros_like(S_t)
+    info = torch.zeros(S_t.shape[2:], dtype=torch.int32, device=S_t.device)
+    for j in range(n):
+        v = S_t[j:, j]
+        if j:
+            v = v - (L[j:, :j] * L[j, :j]).sum(1)
+        piv = v[0]
+        # The first column j + 1 whose pivot fails (NaN fails too, as in LAPACK).
+        info = torch.where((info == 0) & ~(piv > 0), j + 1, info)
+        L[j:, j] = v * piv.rsqrt()
+    return L, info
+
+
+def tril_inverse_t(L_t: torch.Tensor) -> torch.Tensor:
+    """L^-1 of lower-triangular L (n, n, *batch) by forward substitution, row by row:
+    X[i, :i] = -L[i, i]^-1 L[i, :i] X[:i, :i], X[i, i] = L[i, i]^-1."""
+    n = L_t.shape[0]
+    X = torch.zeros_like(L_t)
+    for i in range(n):
+        di = L_t[i, i].reciprocal()
+        X[i, i] = di
+        if i:
+            X[i, :i] = (L_t[i, :i, None] * X[:i, :i]).sum(0) * -di
+    return X
+
+
+def gram_t(X_t: torch.Tensor) -> torch.Tensor:
+    """X^T X for lower-triangular X (n, n, *batch): row i is sum_{k >= i} X[k, i] X[k, :]."""
+    n = X_t.shape[0]
+    G = torch.empty_like(X_t)
+    for i in range(n):
+        G[i] = (X_t[i:, i, None] * X_t[i:]).sum(0)
+    return G
+
+
+def spd_inverse_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """S^-1 = L^-T L^-1 of symmetric positive definite S (n, n, *batch); (S^-1, info)."""
+    L, info = cholesky_t(S_t)
+    return gram_t(tril_inverse_t(L)), info
+
+
+def cholesky_ex(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batch-first (..., n, n) -> (L, info), like torch.linalg.cholesky_ex (lower)."""
+    if S.dim() < 3 or S[..., 0, 0].numel() < MIN_BATCH:
+        return torch.linalg.cholesky_ex(S)
+    L, info = cholesky_t(_batch_last(S))
+    return _batch_first(L), info
+
+
+def spd_inverse(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batch-first (..., n, n) -> (S^-1, info); S^-1 is garbage where info != 0."""
+    if S.dim() < 3 or S[..., 0, 0].numel() < MIN_BATCH:
+        L, info = torch.linalg.cholesky_ex(S)
+        return torch.cholesky_inverse(L), info
+    Si, info = spd_inverse_t(_batch_last(S))
+    return _batch_first(Si), info
