@@ -167,135 +167,6 @@ def sgal3_condition(problem: TLSProblem):
     return condition
 
 
-def _whiten(G: torch.Tensor, factor: torch.Tensor, diagonal: bool) -> torch.Tensor:
-    """G R for the covariance factor R (a square-root diagonal or a Cholesky factor)."""
-    return G * factor[..., None, :] if diagonal else G @ factor
-
-
-class _ChunkState:
-    """Per-condition solver state kept in chunks of trials (``slices``), so that no tensor
-    spans the whole batch: large temporaries cost page faults on every allocation."""
-
-    def __init__(self, slices, parts):
-        self.slices, self.parts = slices, parts
-
-    def select(self, mask, other):
-        return _ChunkState(self.slices, [
-            tuple(torch.where(mask[sl].reshape((-1,) + (1,) * (a.dim() - 1)), a, b)
-                  for a, b in zip(new, old))
-            for sl, new, old in zip(self.slices, self.parts, other.parts)])
-
-
-def _sgal3_structured(problem: TLSProblem, iterated: bool, chunk: int | None = None):
-    """(linearise, post_step) for ``solver.iterate``: the Gauss-Helmert reduction of
-    ``sgal3_condition`` with its normal equations summed in closed form.
-
-    The conditions are multiplied by K = Ad(T^-n) Ad(exp(eb))^-1 J_r(c) instead of J_r(c)
-    (the solution does not change, see ``gauss_helmert``).  With J_l(x) = Ad(exp(x)) J_r(x):
-
-        c' = Ad(T^-n) log(exp(-eb) M_n exp(ea) A_n)     (= K c, a conjugation)
-        A' = [I, n a],  a = Ad(F^-1) e_10 - e_10        (the same for every n)
-        Bm' = [Ga, Gb] = [Ad(F^-1) Ad(T^-n) J_r(ea), -Ad(T^-n) J_r(eb)].
-
-    With S = Bm' Sigma Bm'^T = L L^T and Li = L^-1, the whitened rows of condition n are
-    [Li, n Li a, Li w] (w = c' - Bm' e); one product per trial of their stack gives
-    H = J^T J, g = J^T r and |r|^2 (5.24).  Li comes from ``_small_linalg`` (vectorised over
-    the conditions).  The trials are processed ``chunk`` at a time (default: about 2000
-    conditions)."""
-    n = problem.indices
-    M = problem.M
-    Bn, N1 = M.batch_shape
-    chunk = chunk or max(1, 2048 // N1)
-    slices = [slice(i, min(i + chunk, Bn)) for i in range(0, Bn, chunk)]
-    cov = _CovarianceBlocks(problem.covariance)
-    (fa, fb), (da, db) = cov.factors, cov.diagonal
-    e10 = torch.zeros(10, dtype=M.dtype, device=M.device)
-    e10[E10] = 1.0
-    minus_eye = -torch.eye(10, dtype=M.dtype, device=M.device)
-
-    def per_trial(f, diagonal, sl):
-        """The chunk's rows of a covariance factor that has a trial dimension."""
-        return f[sl] if f.dim() == (3 if diagonal else 4) and f.shape[0] > 1 else f
-
-    def part(F, dtau, Mk, e, fa, fb):
-        K = Mk.batch_shape[0]
-        s = n * dtau  # (K, N+1)
-        Ad_Finv = F.inverse().adjoint()  # (K, 10, 10)
-        a = Ad_Finv[..., E10] - e10  # (K, 10)
-        A = _drift_sgal3(F.unsqueeze(-1), s)
-        if e is None:
-            c = (Mk @ A).log()
-            Ga = _ad_time_right_inverse(Ad_Finv[:, None], s)
-            Gb = _ad_time_left(-s, minus_eye)
-        else:
-            ea, eb = e[..., :10], e[..., 10:]
-            E = SGal3.exp(torch.stack([ea, -eb]))
-            c = (E[1] @ Mk @ E[0] @ A).log()
-            Jr = SGal3.jr(torch.stack([ea, eb]))
-            Ga = Ad_Finv[:, None] @ _ad_time_left(-s, Jr[0])
-            Gb = _ad_time_left(-s, -Jr[1])
-        c = c.clone()
-        c[..., 0:3] += s[..., None] * c[..., 3:6]  # Ad(T^-n) c
-        if e is not None:
-            c -= (Ga @ e[..., :10, None] + Gb @ e[..., 10:, None])[..., 0]
-        W = torch.cat([_whiten(Ga, fa, da), _whiten(Gb, fb, db)], -1)  # (K, N+1, 10, 20)
-        S_t = (W @ W.transpose(-1, -2)).flatten(0, 1).permute(1, 2, 0).contiguous()
-        L_t, info = _small_linalg.cholesky_t(S_t)
-        Li_t = _small_linalg.tril_inverse_t(L_t)  # (10, 10, K (N+1))
-        # Rows [Li, n Li a, Li w] of every condition, batch first: (K, (N+1) 10, 12).
-        rhs_t = torch.stack([a.T[:, :, None].expand(10, K, N1).reshape(10, -1),
-                             c.reshape(-1, 10).T], 1)  # (10, 2, K (N+1))
-        u_t = (Li_t[:, :, None] * rhs_t).sum(1)  # (10, 2, K (N+1))
-        u_t[:, 0] *= n.repeat(K)
-        Rows = torch.empty(K * N1, 10, 12, dtype=M.dtype, device=M.device)
-        Rows[..., :10] = Li_t.permute(2, 0, 1)
-        Rows[..., 10:] = u_t.permute(2, 0, 1)
-        Rows = Rows.reshape(K, N1 * 10, 12)
-        G = Rows.transpose(-1, -2) @ Rows
-        # A non-positive-definite S gives a non-finite factor; mark its trial explicitly.
-        bad = (info != 0).reshape(K, N1).any(-1)
-        G[:, 11, 11] = torch.where(bad, float("nan"), G[:, 11, 11])
-        return G, (Rows, W)
-
-    def linearise(x, e):
-        F, dtau = x
-        e = e if iterated else None
-        Gs, parts = [], []
-        for sl in slices:
-            G, p = part(F[sl], dtau[sl], M[sl], None if e is None else e[sl],
-                        per_trial(fa, da, sl), per_trial(fb, db, sl))
-            Gs.append(G)
-            parts.append(p)
-        G = torch.cat(Gs)
-        return Linearisation(None, None, extra=_ChunkState(slices, parts), H=G[:, :11, :11],
-                             g=G[:, :11, 11], cost=0.5 * G[:, 11, 11])
-
-    def post_step(x, e, lin, delta):
-        # e = -Sigma Bm'^T S^-1 (w + A' delta) = -R W^T Li^T (Li w + Li A' delta).
-        out = []
-        d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
-        for sl, (Rows, W) in zip(lin.extra.slices, lin.extra.parts):
-            K = W.shape[0]
-            z = (Rows @ d1[sl]).reshape(K, N1, 10)
-            y = (Rows.reshape(K, N1, 10, 12)[..., :10] * z[..., :, None]).sum(-2)  # Li^T z
-            Wy = (W * y[..., :, None]).sum(-2)  # (K, N+1, 20)
-            ea, eb = Wy[..., :10], Wy[..., 10:]
-            ra, rb = per_trial(fa, da, sl), per_trial(fb, db, sl)
-            ea = ea * ra if da else (ra @ ea[..., None])[..., 0]
-            eb = eb * rb if db else (rb @ eb[..., None])[..., 0]
-            out.append(torch.cat([ea, eb], -1))
-        return -torch.cat(out)
-
-    return linearise, post_step
-
-
-def _gauss_helmert_sgal3(problem: TLSProblem, x0, variant: str, e0=None, **options) -> Solution:
-    """``gauss_helmert(sgal3_condition(problem), ...)`` through ``_sgal3_structured``."""
-    iterated = variant_options(variant, options)
-    linearise, post_step = _sgal3_structured(problem, iterated)
-    return iterate(linearise, V.check_values(x0), e0, post_step, **options)
-
-
 # ------------------------------------------------------------------------ SE_2(3) x R baseline
 def split_clock(F: SGal3) -> tuple[SE23, torch.Tensor]:
     """(SE_2(3) part, clock) of SGal(3) elements: the baseline's view of an observation."""
@@ -381,6 +252,238 @@ def baseline_covariance(problem: TLSProblem) -> tuple:
     return tuple(out)
 
 
+def _whiten(G: torch.Tensor, factor: torch.Tensor, diagonal: bool) -> torch.Tensor:
+    """G R for the covariance factor R (a square-root diagonal or a Cholesky factor)."""
+    return G * factor[..., None, :] if diagonal else G @ factor
+
+
+def _shared_over_samples(S: torch.Tensor) -> torch.Tensor | None:
+    """A covariance (B or 1, N+1 or 1, d, d) that is the same for every sample, as
+    (B or 1, d, d); None when it varies with the sample."""
+    if S.dim() >= 3 and S.shape[-3] != 1:
+        return None
+    return S.reshape((-1,) + S.shape[-2:])
+
+
+class _ChunkState:
+    """Per-condition solver state kept in chunks of trials (``slices``), so that no tensor
+    spans the whole batch: large temporaries cost page faults on every allocation."""
+
+    def __init__(self, slices, parts):
+        self.slices, self.parts = slices, parts
+
+    def select(self, mask, other):
+        return _ChunkState(self.slices, [
+            tuple(torch.where(mask[sl].reshape((-1,) + (1,) * (a.dim() - 1)), a, b)
+                  for a, b in zip(new, old))
+            for sl, new, old in zip(self.slices, self.parts, other.parts)])
+
+
+class _Model:
+    """What the structured solver needs of an estimator: the group of its spatial part and
+    its compositions M_n, the spatial covariance blocks, and (baseline) the clock row."""
+
+    def __init__(self, problem: TLSProblem, baseline: bool):
+        self.baseline = baseline
+        if baseline:
+            Xa, ta = split_clock(problem.F_ga)
+            Xb, tb = split_clock(problem.F_gb)
+            self.group, self.d, self.M, self.dclock = SE23, 9, Xb.inverse() @ Xa, ta - tb
+            ca, cb = baseline_covariance(problem)
+            self.var = (ca[..., 9, 9], cb[..., 9, 9])  # clock variances (B or 1, N+1 or 1)
+            self.cov = (ca[..., :9, :9], cb[..., :9, :9])
+        else:
+            self.group, self.d, self.M, self.cov = SGal3, 10, problem.M, problem.covariance
+
+    def unknowns(self, x):
+        """(spatial element X, tau0 (K, 1) or None, dtau (K, 1))."""
+        return (x[0], x[1], x[2]) if self.baseline else (x[0], None, x[1])
+
+    def drift(self, X, s):
+        return _drift(X, s) if self.baseline else _drift_sgal3(X, s)
+
+    def dtau_direction(self, X, Ad_Xinv):
+        """a with dA'/ddtau = n a: Ad(F^-1) e_10 - e_10 (SGal(3)); [-C^T v, 0, 0] (SE_2(3))."""
+        if self.baseline:
+            Ctv = (X.rotation().transpose(-1, -2) @ X.velocity()[..., None])[..., 0]
+            return torch.cat([-Ctv, torch.zeros_like(Ctv), torch.zeros_like(Ctv)], -1)
+        a = Ad_Xinv[..., E10].clone()
+        a[..., E10] -= 1.0
+        return a
+
+
+def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
+                chunk: int | None = None):
+    """(linearise, post_step) for ``solver.iterate``: the Gauss-Helmert reduction of
+    ``sgal3_condition`` (or of ``baseline_condition``) with its normal equations summed in
+    closed form; the same solution, up to rounding.
+
+    The (spatial) conditions are multiplied by K = Ad(T^-n) Ad(exp(eb))^-1 J_r(c) instead of
+    J_r(c) (the solution does not change, see ``gauss_helmert``).  With J_l(x) = Ad(exp(x))
+    J_r(x) and Ad(A_n^-1) = Ad(T^n) Ad(F^-1) Ad(T^-n):
+
+        c' = Ad(T^-n) log(exp(-eb) M_n exp(ea) A_n)     (= K c, a conjugation)
+        A' = [I, n a]                                   (a: ``_Model.dtau_direction``)
+        Bm' = [Ga, Gb] = [Ad(F^-1) Ad(T^-n) J_r(ea), -Ad(T^-n) J_r(eb)].
+
+    With S = Bm' Sigma Bm'^T = L L^T and Li = L^-1, the whitened rows of condition n are
+    [Li, n Li a, Li w] (w = c' - Bm' e); one product per trial of their stack gives
+    H = J^T J, g = J^T r and |r|^2 (5.24).  Li comes from ``_small_linalg`` (vectorised over
+    the conditions).  At e = 0 (the paper variant) with covariances shared by the samples,
+    Ad(T^-n) = I + s N (s = n dtau, N: rho <- nu) makes S a quadratic in s with per-trial
+    coefficients.  The baseline's clock rows (scalar, independent) are appended as they are.
+    The trials are processed ``chunk`` at a time (default: about 8000 conditions), so that no
+    temporary spans the whole batch."""
+    model = _Model(problem, baseline)
+    G_, d, M = model.group, model.d, model.M
+    n = problem.indices
+    Bn, N1 = M.batch_shape
+    chunk = chunk or max(1, 8192 // N1)
+    slices = [slice(i, min(i + chunk, Bn)) for i in range(0, Bn, chunk)]
+    cov = _CovarianceBlocks(model.cov)
+    (fa, fb), (da, db) = cov.factors, cov.diagonal
+    shared = [_shared_over_samples(S) for S in model.cov]
+    quadratic = not iterated and shared[0] is not None and shared[1] is not None
+    minus_eye = -torch.eye(d, dtype=M.dtype, device=M.device)
+    nc = d + 3 if baseline else d + 2  # columns: [X, (tau0), dtau, rhs]
+    eb0 = 10  # eps_b starts at 10 in both layouts (the baseline's clock errors at 9 and 19)
+
+    def per_trial(f, nd, sl):
+        """The chunk's rows of a tensor whose leading dimension (of ``nd``) is the trial."""
+        return f[sl] if f.dim() == nd and f.shape[0] > 1 else f
+
+    def rows(Li_t, a, w, K):
+        """[Li, (0), n Li a, Li w] of every condition, batch first: (K, (N+1) d, nc)."""
+        rhs_t = torch.stack([a.T[:, :, None].expand(d, K, N1).reshape(d, -1),
+                             w.reshape(-1, d).T], 1)  # (d, 2, K (N+1))
+        u_t = (Li_t[:, :, None] * rhs_t).sum(1)
+        u_t[:, 0] *= n.repeat(K)
+        R = torch.zeros(K * N1, d, nc, dtype=M.dtype, device=M.device)
+        R[..., :d] = Li_t.permute(2, 0, 1)
+        R[..., nc - 2:] = u_t.permute(2, 0, 1)
+        return R.reshape(K, N1 * d, nc)
+
+    def clock_rows(tau0, sl):
+        """The baseline's clock conditions c = t~_a + iota_a + tau0 - t~_b - iota_b, linear in
+        e (w = c - Bm e = t~_a - t~_b + tau0), whitened by their standard deviation: rows
+        [0, 1, 0, w] / sd, (K, N+1, nc)."""
+        va, vb = (per_trial(v, 2, sl) for v in model.var)
+        ct = model.dclock[sl] + tau0
+        sd = (va + vb).sqrt().expand(ct.shape)
+        R = torch.zeros(ct.shape + (nc,), dtype=M.dtype, device=M.device)
+        R[..., d] = sd.reciprocal()
+        R[..., nc - 1] = ct / sd
+        return R
+
+    def part(x, e, sl):
+        X, tau0, dtau = model.unknowns(tuple(b[sl] for b in x))
+        Mk = M[sl]
+        K = Mk.batch_shape[0]
+        s = n * dtau  # (K, N+1)
+        Ad_Xinv = X.inverse().adjoint()  # (K, d, d)
+        a = model.dtau_direction(X, Ad_Xinv)  # (K, d)
+        A = model.drift(X.unsqueeze(-1), s)
+        if e is None:
+            c = (Mk @ A).log()
+        else:
+            ea, eb = e[..., :d], e[..., eb0:eb0 + d]
+            E = G_.exp(torch.stack([ea, -eb]))
+            c = (E[1] @ Mk @ E[0] @ A).log()
+        c = c.clone()
+        c[..., 0:3] += s[..., None] * c[..., 3:6]  # Ad(T^-n) c
+        if quadratic:
+            # S = Ad(X^-1) P Sa P^T Ad(X^-1)^T + P Sb P^T with P = I + s N:
+            # S0 + s S1 + s^2 S2, where V = Ad(X^-1) N holds Ad(X^-1)[:, 0:3] in columns 3:6.
+            Sa, Sb = (per_trial(S, 3, sl) for S in shared)
+            V = torch.zeros_like(Ad_Xinv)
+            V[..., 3:6] = Ad_Xinv[..., 0:3]
+            Z = V @ Sa @ Ad_Xinv.transpose(-1, -2)
+            NSb = Z.new_zeros(Z.shape)
+            NSb[..., 0:3, :] = Sb[..., 3:6, :]
+            S0 = Ad_Xinv @ Sa @ Ad_Xinv.transpose(-1, -2) + Sb
+            S1 = Z + Z.transpose(-1, -2) + NSb + NSb.transpose(-1, -2)
+            S2 = V @ Sa @ V.transpose(-1, -2)
+            S2[..., 0:3, 0:3] += Sb[..., 3:6, 3:6]
+            coef = torch.stack([S0, S1, S2], -1).permute(1, 2, 0, 3).reshape(d, d, K, 1, 3)
+            S_t = (coef[..., 0] + s * (coef[..., 1] + s * coef[..., 2])).reshape(d, d, -1)
+            extra = (Ad_Xinv, s)
+        else:
+            if e is None:
+                Ga = _ad_time_right_inverse(Ad_Xinv[:, None], s)
+                Gb = _ad_time_left(-s, minus_eye)
+            else:
+                Jr = G_.jr(torch.stack([ea, eb]))
+                Ga = Ad_Xinv[:, None] @ _ad_time_left(-s, Jr[0])
+                Gb = _ad_time_left(-s, -Jr[1])
+                c -= (Ga @ ea[..., None] + Gb @ eb[..., None])[..., 0]
+            W = torch.cat([_whiten(Ga, per_trial(fa, 3 if da else 4, sl), da),
+                           _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1)
+            S_t = (W @ W.transpose(-1, -2)).flatten(0, 1).permute(1, 2, 0).contiguous()
+            extra = (W,)
+        L_t, info = _small_linalg.cholesky_t(S_t)
+        R = rows(_small_linalg.tril_inverse_t(L_t), a, c, K)
+        if baseline:
+            R = torch.cat([R, clock_rows(tau0, sl)], 1)
+        G = R.transpose(-1, -2) @ R
+        # A non-positive-definite S gives a non-finite factor; mark its trial explicitly.
+        bad = (info != 0).reshape(K, N1).any(-1)
+        G[:, -1, -1] = torch.where(bad, float("nan"), G[:, -1, -1])
+        return G, (R,) + extra
+
+    def linearise(x, e):
+        e = e if iterated else None
+        Gs, parts = [], []
+        for sl in slices:
+            G, p = part(x, None if e is None else e[sl], sl)
+            Gs.append(G)
+            parts.append(p)
+        G = torch.cat(Gs)
+        return Linearisation(None, None, extra=_ChunkState(slices, parts), H=G[:, :-1, :-1],
+                             g=G[:, :-1, -1], cost=0.5 * G[:, -1, -1])
+
+    def post_step(x, e, lin, delta):
+        # e = -Sigma Bm'^T S^-1 (w + A' delta) = -Sigma Bm'^T Li^T (Li w + Li A' delta).
+        out = []
+        d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
+        for sl, (R, *extra) in zip(lin.extra.slices, lin.extra.parts):
+            K = R.shape[0]
+            z = R @ d1[sl]  # (K, rows, 1)
+            y = (R[:, :N1 * d, :d].reshape(K, N1, d, d) * z[:, :N1 * d].reshape(K, N1, d, 1)
+                 ).sum(-2)  # Li^T z
+            if quadratic:
+                # Ga^T y = P^T Ad(X^-1)^T y, Gb^T y = -P^T y, P^T: nu <- nu + s rho.
+                Ad_Xinv, s = extra
+                u = torch.stack([y @ Ad_Xinv, -y])  # (2, K, N+1, d)
+                u[..., 3:6] += s[..., None] * u[..., 0:3]
+                ea, eb = (u[i] @ per_trial(S, 3, sl) for i, S in enumerate(shared))
+            else:
+                W, = extra
+                Wy = (W * y[..., :, None]).sum(-2)  # (K, N+1, 2 d)
+                ea, eb = Wy[..., :d], Wy[..., d:]
+                ra, rb = per_trial(fa, 3 if da else 4, sl), per_trial(fb, 3 if db else 4, sl)
+                ea = ea * ra if da else (ra @ ea[..., None])[..., 0]
+                eb = eb * rb if db else (rb @ eb[..., None])[..., 0]
+            if baseline:
+                # Clock rows: y_t = z_t / sd, Bm^T y_t = (y_t, -y_t) on (iota_a, iota_b).
+                va, vb = (per_trial(v, 2, sl) for v in model.var)
+                yt = z[:, N1 * d:, 0] * R[:, N1 * d:, d]
+                ea = torch.cat([ea, (va * yt)[..., None]], -1)
+                eb = torch.cat([eb, (-vb * yt)[..., None]], -1)
+            out.append(-torch.cat([ea, eb], -1))
+        return torch.cat(out)
+
+    return linearise, post_step
+
+
+def _structured_gauss_helmert(problem: TLSProblem, x0, variant: str, e0=None,
+                              baseline: bool = False, **options) -> Solution:
+    """``gauss_helmert`` with ``sgal3_condition`` (or ``baseline_condition`` and
+    ``baseline_covariance``) through ``_structured``."""
+    iterated = variant_options(variant, options)
+    linearise, post_step = _structured(problem, iterated, baseline)
+    return iterate(linearise, V.check_values(x0), e0, post_step, **options)
+
+
 # ------------------------------------------------------------------------------------ solvers
 def _default_options(variant: str, options: dict) -> None:
     """The paper's scheme is plain Gauss-Newton: its fixed point (the gradient of the
@@ -437,7 +540,7 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
     running fraction below which the stragglers are finished in a batch of their own."""
     x0 = problem.initial_guess(dtau0) if x0 is None else x0
     _default_options(variant, options)
-    return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_sgal3(p, x, variant, e0, **kw),
+    return _in_rounds(lambda p, x, e0, **kw: _structured_gauss_helmert(p, x, variant, e0, **kw),
                       problem, x0, options)
 
 
@@ -450,9 +553,8 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         X0, t0 = split_clock(F0)
         x0 = (X0, t0[:, None], dt)
     _default_options(variant, options)
-    return _in_rounds(lambda p, x, e0, **kw: gauss_helmert(
-        baseline_condition(p), x, baseline_covariance(p), variant=variant, e0=e0, **kw),
-        problem, x0, options)
+    return _in_rounds(lambda p, x, e0, **kw: _structured_gauss_helmert(
+        p, x, variant, e0, baseline=True, **kw), problem, x0, options)
 
 
 def eiv_cost(problem: TLSProblem):
