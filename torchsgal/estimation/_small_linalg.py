@@ -73,6 +73,20 @@ def spd_inverse_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return gram_t(tril_inverse_t(L)), info
 
 
+def inverse_cholesky_factor_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """L^-1 (lower) with S = L L^T for S (n, n, m); (L^-1, info).  Below ``MIN_BATCH``
+    matrices LAPACK is called instead (fewer operations; its factor of a matrix that is not
+    positive definite is made NaN, as here)."""
+    if S_t[0, 0].numel() >= MIN_BATCH:
+        L, info = cholesky_t(S_t)
+        return tril_inverse_t(L), info
+    S = _batch_first(S_t)
+    L, info = torch.linalg.cholesky_ex(S)
+    L = torch.where((info != 0)[..., None, None], float("nan"), L)
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    return _batch_last(torch.linalg.solve_triangular(L, eye, upper=False)), info
+
+
 def cholesky_ex(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Batch-first (..., n, n) -> (L, info), like torch.linalg.cholesky_ex (lower)."""
     if S.dim() < 3 or S[..., 0, 0].numel() < MIN_BATCH:

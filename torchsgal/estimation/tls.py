@@ -420,8 +420,8 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
                            _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1)
             S_t = (W @ W.transpose(-1, -2)).flatten(0, 1).permute(1, 2, 0).contiguous()
             extra = (W,)
-        L_t, info = _small_linalg.cholesky_t(S_t)
-        R = rows(_small_linalg.tril_inverse_t(L_t), a, c, K)
+        Li_t, info = _small_linalg.inverse_cholesky_factor_t(S_t)
+        R = rows(Li_t, a, c, K)
         if baseline:
             R = torch.cat([R, clock_rows(tau0, sl)], 1)
         G = R.transpose(-1, -2) @ R
