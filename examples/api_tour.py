@@ -40,8 +40,11 @@ assert torch.equal(h.as_matrix(), F.as_matrix())
 p = ts.SE3.from_components(rotation=ts.SO3.exp(torch.tensor([0.0, 0.0, math.pi / 2])).as_matrix(),
                            position=torch.zeros(3))
 
-# Batches: indexing, reshaping, broadcasting
+# Batches: indexing, reshaping, broadcasting, stacking
 print(F[3], F[:10].reshape(2, 5).batch_shape, (ts.SGal3.random((4, 1)) @ ts.SGal3.random((3,))).batch_shape)
+# stacking and concatenation (dims count batch axes only)
+assert ts.SGal3.stack([F, F], dim=-1).batch_shape == (1024, 2)
+assert ts.SGal3.cat([F, F[:2]]).batch_shape == (1026,) and F.unsqueeze(0).batch_shape == (1, 1024)
 
 # Gradients flow through exp/log (custom backward with the closed-form Jacobians)
 x = xi[:8].clone().requires_grad_(True)

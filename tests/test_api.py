@@ -117,6 +117,11 @@ def test_batch_broadcasting_indexing_reshaping(G):
     assert g.unsqueeze(0).batch_shape == (1, 5)
     assert len(g) == 5
     assert G.stack([g, g], dim=0).batch_shape == (2, 5)
+    assert G.stack([g, g], dim=-1).batch_shape == (5, 2)
+    both = G.cat([g, g[:2]])
+    assert both.batch_shape == (7,) and torch.equal(both.as_matrix()[5:], g.as_matrix()[:2])
+    assert G.cat([gh, gh], dim=-1).batch_shape == (2, 10)
+    assert g.unsqueeze(-1).batch_shape == (5, 1)
     assert g.to(torch.float32).dtype == torch.float32
     assert g.detach().as_matrix().requires_grad is False
     i = G.identity((3,), dtype=torch.float32)
@@ -257,3 +262,21 @@ def test_no_nan_for_finite_input(G):
     # rotation by exactly pi: log returns angle pi about the right axis (either sign)
     phi_back = g.log()[1:3, phi]
     np.testing.assert_allclose(np64(phi_back.abs()), np64(xi[1:3, phi].abs()), atol=1e-12)
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_stack_cat_unsqueeze_errors(G):
+    g = G.random((5,), dtype=torch.float64)
+    with pytest.raises(IndexError, match="dim must be in \\[-2, 1\\]"):
+        G.stack([g, g], dim=2)  # would otherwise stack inside the matrix axes
+    with pytest.raises(IndexError, match="dim must be in \\[-1, 0\\]"):
+        G.cat([g, g], dim=1)
+    with pytest.raises(IndexError, match="dim must be in"):
+        g.unsqueeze(2)
+    with pytest.raises(ValueError, match="needs at least one element"):
+        G.stack([])
+    with pytest.raises(ValueError, match="use stack"):
+        G.cat([G.identity(), G.identity()])
+    other = next(H for H in ts.ALL_GROUPS if H is not G)
+    with pytest.raises(TypeError, match=f"elements\\[1\\] must be a {G.__name__}"):
+        G.stack([g, other.random((5,), dtype=torch.float64)])

@@ -217,15 +217,33 @@ class LieGroup:
         return type(self)(self._matrix.expand(*shape, n, n))
 
     def unsqueeze(self, dim: int):
-        if dim < 0:
-            dim = dim + len(self.batch_shape) + 1
-        return type(self)(self._matrix.unsqueeze(dim))
+        """A new batch axis of size 1 at ``dim`` (counted over the batch axes only)."""
+        return type(self)(self._matrix.unsqueeze(_batch_axis(dim, len(self.batch_shape) + 1, "dim")))
 
     @classmethod
     def stack(cls, elements: Sequence["LieGroup"], dim: int = 0):
-        if dim < 0:
-            dim = dim + len(elements[0].batch_shape) + 1
-        return cls(torch.stack([e._matrix for e in elements], dim=dim))
+        """Stack elements of equal batch shape along a new batch axis ``dim``."""
+        mats = cls._matrices(elements, "stack")
+        return cls(torch.stack(mats, dim=_batch_axis(dim, mats[0].dim() - 1, "dim")))
+
+    @classmethod
+    def cat(cls, elements: Sequence["LieGroup"], dim: int = 0):
+        """Concatenate elements along their existing batch axis ``dim``."""
+        mats = cls._matrices(elements, "cat")
+        if mats[0].dim() == 2:
+            raise ValueError(f"{cls.__name__}.cat needs elements with a batch axis; use stack")
+        return cls(torch.cat(mats, dim=_batch_axis(dim, mats[0].dim() - 2, "dim")))
+
+    @classmethod
+    def _matrices(cls, elements, op: str) -> list[torch.Tensor]:
+        elements = list(elements)
+        if not elements:
+            raise ValueError(f"{cls.__name__}.{op} needs at least one element")
+        for i, e in enumerate(elements):
+            if not isinstance(e, cls):
+                raise TypeError(f"{cls.__name__}.{op}: elements[{i}] must be a {cls.__name__}, "
+                                f"got {type(e).__name__}")
+        return [e._matrix for e in elements]
 
     def to(self, *args, **kwargs):
         return type(self)(self._matrix.to(*args, **kwargs))
@@ -241,3 +259,10 @@ class LieGroup:
             f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
             f"device={self.device})"
         )
+
+
+def _batch_axis(dim: int, n_axes: int, name: str) -> int:
+    """``dim`` in [-n_axes, n_axes) as a non-negative axis; the matrix axes are never counted."""
+    if not -n_axes <= dim < n_axes:
+        raise IndexError(f"{name} must be in [{-n_axes}, {n_axes - 1}] (batch axes only), got {dim}")
+    return dim % n_axes
