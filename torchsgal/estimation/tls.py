@@ -412,12 +412,17 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
                 Ga = _ad_time_right_inverse(Ad_Xinv[:, None], s)
                 Gb = _ad_time_left(-s, minus_eye)
             else:
-                Jr = G_.jr(torch.stack([ea, eb]))
-                Ga = Ad_Xinv[:, None] @ _ad_time_left(-s, Jr[0])
-                Gb = _ad_time_left(-s, -Jr[1])
-                c -= (Ga @ ea[..., None] + Gb @ eb[..., None])[..., 0]
-            W = torch.cat([_whiten(Ga, per_trial(fa, 3 if da else 4, sl), da),
-                           _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1)
+                Jr = G_.jr(torch.stack([ea, eb]))  # (2, K, N+1, d, d), a fresh tensor
+                Jr[..., 0:3, :] += s[..., None, None] * Jr[..., 3:6, :]  # Ad(T^-n) J_r
+                Ga, Gb = Ad_Xinv[:, None] @ Jr[0], -Jr[1]
+            Bm = torch.cat([Ga, Gb], -1)
+            if e is not None:
+                c -= (Bm @ torch.cat([ea, eb], -1)[..., None])[..., 0]
+            if cov.all_diagonal:
+                W = Bm * per_trial(cov.sqrt_diag, 3, sl)[..., None, :]
+            else:
+                W = torch.cat([_whiten(Ga, per_trial(fa, 3 if da else 4, sl), da),
+                               _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1)
             S_t = (W @ W.transpose(-1, -2)).flatten(0, 1).permute(1, 2, 0).contiguous()
             extra = (W,)
         Li_t, info = _small_linalg.inverse_cholesky_factor_t(S_t)
