@@ -28,11 +28,13 @@ def _batch_first(A_t: torch.Tensor) -> torch.Tensor:
     return A_t.movedim((0, 1), (-2, -1))
 
 
-def cholesky_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def cholesky_t(S_t: torch.Tensor, out: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower Cholesky factor of S (n, n, *batch); only the lower triangle of S is read.
-    Returns (L, info) with L (n, n, *batch) and info (*batch) int32."""
+    Returns (L, info) with L (n, n, *batch) (written to ``out`` if given, a reusable buffer)
+    and info (*batch) int32."""
     n = S_t.shape[0]
-    L = torch.zeros_like(S_t)
+    L = torch.zeros_like(S_t) if out is None else out.zero_()
     info = torch.zeros(S_t.shape[2:], dtype=torch.int32, device=S_t.device)
     for j in range(n):
         v = S_t[j:, j]
@@ -45,11 +47,11 @@ def cholesky_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return L, info
 
 
-def tril_inverse_t(L_t: torch.Tensor) -> torch.Tensor:
+def tril_inverse_t(L_t: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """L^-1 of lower-triangular L (n, n, *batch) by forward substitution, row by row:
-    X[i, :i] = -L[i, i]^-1 L[i, :i] X[:i, :i], X[i, i] = L[i, i]^-1."""
+    X[i, :i] = -L[i, i]^-1 L[i, :i] X[:i, :i], X[i, i] = L[i, i]^-1 (into ``out`` if given)."""
     n = L_t.shape[0]
-    X = torch.zeros_like(L_t)
+    X = torch.zeros_like(L_t) if out is None else out.zero_()
     for i in range(n):
         di = L_t[i, i].reciprocal()
         X[i, i] = di
@@ -73,13 +75,15 @@ def spd_inverse_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return gram_t(tril_inverse_t(L)), info
 
 
-def inverse_cholesky_factor_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """L^-1 (lower) with S = L L^T for S (n, n, m); (L^-1, info).  Below ``MIN_BATCH``
-    matrices LAPACK is called instead (fewer operations; its factor of a matrix that is not
-    positive definite is made NaN, as here)."""
+def inverse_cholesky_factor_t(S_t: torch.Tensor, work: tuple | None = None
+                              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """L^-1 (lower) with S = L L^T for S (n, n, m); (L^-1, info).  ``work``: two buffers
+    shaped like S_t for L and L^-1 (reused between calls).  Below ``MIN_BATCH`` matrices
+    LAPACK is called instead (fewer operations; its factor of a matrix that is not positive
+    definite is made NaN, as here)."""
     if S_t[0, 0].numel() >= MIN_BATCH:
-        L, info = cholesky_t(S_t)
-        return tril_inverse_t(L), info
+        L, info = cholesky_t(S_t, None if work is None else work[0])
+        return tril_inverse_t(L, None if work is None else work[1]), info
     S = _batch_first(S_t)
     L, info = torch.linalg.cholesky_ex(S)
     L = torch.where((info != 0)[..., None, None], float("nan"), L)

@@ -331,9 +331,9 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     H = J^T J, g = J^T r and |r|^2 (5.24).  Li comes from ``_small_linalg`` (vectorised over
     the conditions).  At e = 0 (the paper variant) with covariances shared by the samples,
     Ad(T^-n) = I + s N (s = n dtau, N: rho <- nu) makes S a quadratic in s with per-trial
-    coefficients.  The baseline's clock rows (scalar, independent) are appended as they are.
-    The trials are processed ``chunk`` at a time (default: about 8000 conditions), so that no
-    temporary spans the whole batch."""
+    coefficients.  The clock rows (scalar, independent) are appended as they are.  The trials are
+    processed ``chunk`` at a time (default: about 8000 conditions) with reused work buffers:
+    fresh temporaries that span the whole batch cost more in page faults than in arithmetic."""
     model = _Model(problem, baseline)
     G_, d, M = model.group, model.d, model.M
     n = problem.indices
@@ -347,6 +347,14 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     minus_eye = -torch.eye(d, dtype=M.dtype, device=M.device)
     nc = d + 3 if baseline else d + 2  # columns: [X, (tau0), dtau, rhs]
     eb0 = 10  # eps_b starts at 10 in both layouts (the baseline's clock errors at 9 and 19)
+    work = {}
+
+    def buffer(name, *shape):
+        """A work buffer reused between chunks and calls (one per name and shape)."""
+        key = (name,) + shape
+        if key not in work:
+            work[key] = torch.empty(shape, dtype=M.dtype, device=M.device)
+        return work[key]
 
     def per_trial(f, nd, sl):
         """The chunk's rows of a tensor whose leading dimension (of ``nd``) is the trial."""
@@ -354,11 +362,13 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
 
     def rows(Li_t, a, w, K):
         """[Li, (0), n Li a, Li w] of every condition, batch first: (K, (N+1) d, nc)."""
+        m = K * N1
         rhs_t = torch.stack([a.T[:, :, None].expand(d, K, N1).reshape(d, -1),
                              w.reshape(-1, d).T], 1)  # (d, 2, K (N+1))
-        u_t = (Li_t[:, :, None] * rhs_t).sum(1)
+        prod = torch.mul(Li_t[:, :, None], rhs_t, out=buffer("prod", d, d, 2, m))
+        u_t = prod.sum(1)
         u_t[:, 0] *= n.repeat(K)
-        R = torch.zeros(K * N1, d, nc, dtype=M.dtype, device=M.device)
+        R = torch.zeros(m, d, nc, dtype=M.dtype, device=M.device)
         R[..., :d] = Li_t.permute(2, 0, 1)
         R[..., nc - 2:] = u_t.permute(2, 0, 1)
         return R.reshape(K, N1 * d, nc)
@@ -379,6 +389,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         X, tau0, dtau = model.unknowns(tuple(b[sl] for b in x))
         Mk = M[sl]
         K = Mk.batch_shape[0]
+        m = K * N1
         s = n * dtau  # (K, N+1)
         Ad_Xinv = X.inverse().adjoint()  # (K, d, d)
         a = model.dtau_direction(X, Ad_Xinv)  # (K, d)
@@ -405,8 +416,9 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             S2 = V @ Sa @ V.transpose(-1, -2)
             S2[..., 0:3, 0:3] += Sb[..., 3:6, 3:6]
             coef = torch.stack([S0, S1, S2], -1).permute(1, 2, 0, 3).reshape(d, d, K, 1, 3)
-            S_t = (coef[..., 0] + s * (coef[..., 1] + s * coef[..., 2])).reshape(d, d, -1)
-            extra = (Ad_Xinv, s)
+            S_t = torch.addcmul(coef[..., 1], s, coef[..., 2], out=buffer("S2", d, d, K, N1))
+            S_t = torch.addcmul(coef[..., 0], s, S_t, out=buffer("S_t", d, d, K, N1))
+            S_t = S_t.reshape(d, d, m)
         else:
             if e is None:
                 Ga = _ad_time_right_inverse(Ad_Xinv[:, None], s)
@@ -415,7 +427,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
                 Jr = G_.jr(torch.stack([ea, eb]))  # (2, K, N+1, d, d), a fresh tensor
                 Jr[..., 0:3, :] += s[..., None, None] * Jr[..., 3:6, :]  # Ad(T^-n) J_r
                 Ga, Gb = Ad_Xinv[:, None] @ Jr[0], -Jr[1]
-            Bm = torch.cat([Ga, Gb], -1)
+            Bm = torch.cat([Ga, Gb], -1, out=buffer("Bm", K, N1, d, 2 * d))
             if e is not None:
                 c -= (Bm @ torch.cat([ea, eb], -1)[..., None])[..., 0]
             if cov.all_diagonal:
@@ -423,9 +435,12 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             else:
                 W = torch.cat([_whiten(Ga, per_trial(fa, 3 if da else 4, sl), da),
                                _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1)
-            S_t = (W @ W.transpose(-1, -2)).flatten(0, 1).permute(1, 2, 0).contiguous()
-            extra = (W,)
-        Li_t, info = _small_linalg.inverse_cholesky_factor_t(S_t)
+            S = torch.bmm(W.reshape(m, d, 2 * d), W.reshape(m, d, 2 * d).transpose(-1, -2),
+                          out=buffer("S", m, d, d))
+            S_t = buffer("S_t", d, d, m)
+            S_t.copy_(S.permute(1, 2, 0))
+        Li_t, info = _small_linalg.inverse_cholesky_factor_t(
+            S_t, (buffer("L", d, d, m), buffer("Li", d, d, m)))
         R = rows(Li_t, a, c, K)
         if baseline:
             R = torch.cat([R, clock_rows(tau0, sl)], 1)
@@ -433,7 +448,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         # A non-positive-definite S gives a non-finite factor; mark its trial explicitly.
         bad = (info != 0).reshape(K, N1).any(-1)
         G[:, -1, -1] = torch.where(bad, float("nan"), G[:, -1, -1])
-        return G, (R,) + extra
+        return G, (R, Ad_Xinv, s) if quadratic else (R, W)
 
     def linearise(x, e):
         e = e if iterated else None
