@@ -7,7 +7,8 @@ is still running (one host sync per iteration, outside the group ops).
 The normal equations use the whitened residual r (B, m) and its Jacobian J (B, m, d) with
 respect to right perturbations of the unknowns (``variables.retract``):
 (J^T J + lambda diag(J^T J)) delta = -J^T r.  The Laplace covariance of the solution is
-(J^T J)^-1 at the last linearisation point.
+(J^T J)^-1 at the last linearisation point.  A linearisation may give J^T J, J^T r and
+1/2 |r|^2 directly instead of r and J (``Linearisation.H``).
 """
 from __future__ import annotations
 
