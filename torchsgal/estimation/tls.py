@@ -273,10 +273,11 @@ class _ChunkState:
         self.slices, self.parts = slices, parts
 
     def select(self, mask, other):
-        return _ChunkState(self.slices, [
-            tuple(torch.where(mask[sl].reshape((-1,) + (1,) * (a.dim() - 1)), a, b)
-                  for a, b in zip(new, old))
-            for sl, new, old in zip(self.slices, self.parts, other.parts)])
+        """This state where ``mask``, else ``other``, written into this state's buffers."""
+        for sl, new, old in zip(self.slices, self.parts, other.parts):
+            for a, b in zip(new, old):
+                torch.where(mask[sl].reshape((-1,) + (1,) * (a.dim() - 1)), a, b, out=a)
+        return self
 
 
 class _Model:
@@ -332,8 +333,11 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     the conditions).  At e = 0 (the paper variant) with covariances shared by the samples,
     Ad(T^-n) = I + s N (s = n dtau, N: rho <- nu) makes S a quadratic in s with per-trial
     coefficients.  The clock rows (scalar, independent) are appended as they are.  The trials are
-    processed ``chunk`` at a time (default: about 8000 conditions) with reused work buffers:
-    fresh temporaries that span the whole batch cost more in page faults than in arithmetic."""
+    processed ``chunk`` at a time (default: about 8000 conditions) with reused buffers: fresh
+    temporaries that span the whole batch cost more in page faults than in arithmetic.  The
+    per-condition state of a linearisation lives in one of two buffer sets, used in turn, so
+    it stays valid until the next-but-one call (``solver.iterate`` keeps the current and the
+    new linearisation only, and ``_ChunkState.select`` writes into the newer one)."""
     model = _Model(problem, baseline)
     G_, d, M = model.group, model.d, model.M
     n = problem.indices
@@ -348,10 +352,12 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     nc = d + 3 if baseline else d + 2  # columns: [X, (tau0), dtau, rhs]
     eb0 = 10  # eps_b starts at 10 in both layouts (the baseline's clock errors at 9 and 19)
     work = {}
+    calls = [0]  # linearisations so far: the state buffer set is calls % 2
 
-    def buffer(name, *shape):
-        """A work buffer reused between chunks and calls (one per name and shape)."""
-        key = (name,) + shape
+    def buffer(name, *shape, state=None):
+        """A buffer reused between chunks and calls (one per name and shape), or for what
+        the linearisation keeps, one per chunk ``state`` and buffer set."""
+        key = (name, None if state is None else (state, calls[0] % 2)) + shape
         if key not in work:
             work[key] = torch.empty(shape, dtype=M.dtype, device=M.device)
         return work[key]
@@ -360,30 +366,31 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         """The chunk's rows of a tensor whose leading dimension (of ``nd``) is the trial."""
         return f[sl] if f.dim() == nd and f.shape[0] > 1 else f
 
-    def rows(Li_t, a, w, K):
-        """[Li, (0), n Li a, Li w] of every condition, batch first: (K, (N+1) d, nc)."""
+    def rows(Li_t, a, w, K, R):
+        """[Li, (0), n Li a, Li w] of every condition into R[:, :(N+1) d] (K, rows, nc)."""
         m = K * N1
         rhs_t = torch.stack([a.T[:, :, None].expand(d, K, N1).reshape(d, -1),
                              w.reshape(-1, d).T], 1)  # (d, 2, K (N+1))
         prod = torch.mul(Li_t[:, :, None], rhs_t, out=buffer("prod", d, d, 2, m))
         u_t = prod.sum(1)
         u_t[:, 0] *= n.repeat(K)
-        R = torch.zeros(m, d, nc, dtype=M.dtype, device=M.device)
-        R[..., :d] = Li_t.permute(2, 0, 1)
-        R[..., nc - 2:] = u_t.permute(2, 0, 1)
-        return R.reshape(K, N1 * d, nc)
+        Rs = R[:, :N1 * d].unflatten(1, (N1, d))  # a view: (K, N+1, d, nc)
+        Rs[..., :d] = Li_t.permute(2, 0, 1).unflatten(0, (K, N1))
+        Rs[..., nc - 2:] = u_t.permute(2, 0, 1).unflatten(0, (K, N1))
+        if baseline:
+            Rs[..., d] = 0.0
 
-    def clock_rows(tau0, sl):
+    def clock_rows(tau0, sl, R):
         """The baseline's clock conditions c = t~_a + iota_a + tau0 - t~_b - iota_b, linear in
         e (w = c - Bm e = t~_a - t~_b + tau0), whitened by their standard deviation: rows
-        [0, 1, 0, w] / sd, (K, N+1, nc)."""
+        [0, 1, 0, w] / sd into R[:, (N+1) d:] (K, N+1, nc)."""
         va, vb = (per_trial(v, 2, sl) for v in model.var)
         ct = model.dclock[sl] + tau0
         sd = (va + vb).sqrt().expand(ct.shape)
-        R = torch.zeros(ct.shape + (nc,), dtype=M.dtype, device=M.device)
-        R[..., d] = sd.reciprocal()
-        R[..., nc - 1] = ct / sd
-        return R
+        Rc = R[:, N1 * d:]
+        Rc.zero_()
+        Rc[..., d] = sd.reciprocal()
+        Rc[..., nc - 1] = ct / sd
 
     def part(x, e, sl):
         X, tau0, dtau = model.unknowns(tuple(b[sl] for b in x))
@@ -430,20 +437,22 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             Bm = torch.cat([Ga, Gb], -1, out=buffer("Bm", K, N1, d, 2 * d))
             if e is not None:
                 c -= (Bm @ torch.cat([ea, eb], -1)[..., None])[..., 0]
+            W = buffer("W", K, N1, d, 2 * d, state=sl.start)
             if cov.all_diagonal:
-                W = Bm * per_trial(cov.sqrt_diag, 3, sl)[..., None, :]
+                torch.mul(Bm, per_trial(cov.sqrt_diag, 3, sl)[..., None, :], out=W)
             else:
-                W = torch.cat([_whiten(Ga, per_trial(fa, 3 if da else 4, sl), da),
-                               _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1)
+                torch.cat([_whiten(Ga, per_trial(fa, 3 if da else 4, sl), da),
+                           _whiten(Gb, per_trial(fb, 3 if db else 4, sl), db)], -1, out=W)
             S = torch.bmm(W.reshape(m, d, 2 * d), W.reshape(m, d, 2 * d).transpose(-1, -2),
                           out=buffer("S", m, d, d))
             S_t = buffer("S_t", d, d, m)
             S_t.copy_(S.permute(1, 2, 0))
         Li_t, info = _small_linalg.inverse_cholesky_factor_t(
             S_t, (buffer("L", d, d, m), buffer("Li", d, d, m)))
-        R = rows(Li_t, a, c, K)
+        R = buffer("R", K, N1 * (d + 1) if baseline else N1 * d, nc, state=sl.start)
+        rows(Li_t, a, c, K, R)
         if baseline:
-            R = torch.cat([R, clock_rows(tau0, sl)], 1)
+            clock_rows(tau0, sl, R)
         G = R.transpose(-1, -2) @ R
         # A non-positive-definite S gives a non-finite factor; mark its trial explicitly.
         bad = (info != 0).reshape(K, N1).any(-1)
@@ -452,6 +461,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
 
     def linearise(x, e):
         e = e if iterated else None
+        calls[0] += 1
         Gs, parts = [], []
         for sl in slices:
             G, p = part(x, None if e is None else e[sl], sl)
