@@ -427,14 +427,16 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             S_t = torch.addcmul(coef[..., 0], s, S_t, out=buffer("S_t", d, d, K, N1))
             S_t = S_t.reshape(d, d, m)
         else:
+            Bm = buffer("Bm", K, N1, d, 2 * d)
+            Ga, Gb = Bm[..., :d], Bm[..., d:]
             if e is None:
-                Ga = _ad_time_right_inverse(Ad_Xinv[:, None], s)
-                Gb = _ad_time_left(-s, minus_eye)
+                Ga.copy_(_ad_time_right_inverse(Ad_Xinv[:, None], s))
+                Gb.copy_(_ad_time_left(-s, minus_eye))
             else:
                 Jr = G_.jr(torch.stack([ea, eb]))  # (2, K, N+1, d, d), a fresh tensor
                 Jr[..., 0:3, :] += s[..., None, None] * Jr[..., 3:6, :]  # Ad(T^-n) J_r
-                Ga, Gb = Ad_Xinv[:, None] @ Jr[0], -Jr[1]
-            Bm = torch.cat([Ga, Gb], -1, out=buffer("Bm", K, N1, d, 2 * d))
+                Ga.copy_(Ad_Xinv[:, None] @ Jr[0])
+                torch.neg(Jr[1], out=Gb)
             if e is not None:
                 c -= (Bm @ torch.cat([ea, eb], -1)[..., None])[..., 0]
             W = buffer("W", K, N1, d, 2 * d, state=sl.start)
