@@ -280,3 +280,25 @@ def test_stack_cat_unsqueeze_errors(G):
     other = next(H for H in ts.ALL_GROUPS if H is not G)
     with pytest.raises(TypeError, match=f"elements\\[1\\] must be a {G.__name__}"):
         G.stack([g, other.random((5,), dtype=torch.float64)])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_sgal3_packed_layout(dtype):
+    from torchsgal.functional import sgal3 as F
+
+    g = torch.Generator().manual_seed(3)
+    A = ts.SGal3.random((2, 3), dtype=dtype, generator=g).as_matrix()
+    Bm = ts.SGal3.random((2, 3), dtype=dtype, generator=g).as_matrix()
+    P, Q = F.pack(A), F.pack(Bm)
+    assert P.shape == (16, 2, 3) and torch.equal(F.unpack(P), A)
+    eps = torch.finfo(dtype).eps
+    AB = np64(A) @ np64(Bm)  # the product in float64
+    np.testing.assert_allclose(np64(F.unpack(F.compose_packed(P, Q))), AB, rtol=0, atol=50 * eps * np.abs(AB).max())
+    I = F.packed_identity(P)
+    assert I.shape == (16, 1, 1) and torch.equal(F.unpack(F.compose_packed(I.expand_as(P), P)), A)
+    xi = torch.randn(4, 10, dtype=dtype, generator=g)
+    assert torch.equal(F.unpack(F.exp_packed(xi)), F.exp_impl(xi))
+    with pytest.raises(ValueError, match=r"P must have shape \(16, \.\.\.\)"):
+        F.unpack(torch.zeros(15, 2, dtype=dtype))
+    with pytest.raises(ValueError, match="M must have shape"):
+        F.pack(torch.zeros(2, 4, 4, dtype=dtype))

@@ -26,6 +26,7 @@ import torch
 
 from .. import SGal3
 from ..functional import checks
+from ..functional import sgal3 as F
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
@@ -86,36 +87,51 @@ def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Te
 
 
 # --------------------------------------------------------------------------- products
-def _pair_products(E: torch.Tensor) -> torch.Tensor:
-    """(..., K, n, n) -> (..., ceil(K/2), n, n): E_0 E_1, E_2 E_3, ... (an odd tail kept)."""
-    K = E.shape[-3]
-    head = E[..., 0 : K - 1 : 2, :, :] @ E[..., 1:K:2, :, :]
+def _along(E: torch.Tensor, axis: int, index) -> torch.Tensor:
+    """E indexed by ``index`` (an int or a slice) on ``axis`` (non-negative)."""
+    return E[(slice(None),) * axis + (index,)]
+
+
+def _pair_products(E: torch.Tensor, mul, axis: int) -> torch.Tensor:
+    """E_0 E_1, E_2 E_3, ... along ``axis`` (an odd tail kept): ceil(K/2) factors."""
+    K = E.shape[axis]
+    head = mul(_along(E, axis, slice(0, K - 1, 2)), _along(E, axis, slice(1, K, 2)))
     if K % 2:
-        head = torch.cat((head, E[..., K - 1 :, :, :]), dim=-3)
+        head = torch.cat((head, _along(E, axis, slice(K - 1, None))), dim=axis)
     return head
+
+
+def _window_product(E: torch.Tensor, mul, axis: int) -> torch.Tensor:
+    while E.shape[axis] > 1:
+        E = _pair_products(E, mul, axis)
+    return _along(E, axis, 0)
+
+
+def _suffix_products(E: torch.Tensor, mul, axis: int, identity: torch.Tensor) -> torch.Tensor:
+    """S_k = E_k ... E_{K-1} along ``axis``; ``identity`` broadcasts against one factor."""
+    K = E.shape[axis]
+    if K == 1:
+        return E
+    S_pairs = _suffix_products(_pair_products(E, mul, axis), mul, axis, identity)  # S_pairs[j] = S_{2j}
+    # S_{2j+1} = E_{2j+1} S_{2j+2}, with S_K = I.
+    n_odd = K // 2
+    one = identity.expand_as(_along(S_pairs, axis, slice(0, 1)))
+    odd = mul(_along(E, axis, slice(1, None, 2)),
+              _along(torch.cat((S_pairs, one), dim=axis), axis, slice(1, n_odd + 1)))
+    inter = torch.stack((_along(S_pairs, axis, slice(0, n_odd)), odd), dim=axis + 1).flatten(axis, axis + 1)
+    return torch.cat((inter, _along(S_pairs, axis, slice(n_odd, None))), dim=axis) if K % 2 else inter
 
 
 def window_product(E: torch.Tensor) -> torch.Tensor:
     """E_0 E_1 ... E_{K-1} of (..., K, n, n) by a log-depth tree of batched products."""
-    while E.shape[-3] > 1:
-        E = _pair_products(E)
-    return E[..., 0, :, :]
+    return _window_product(E, torch.matmul, E.dim() - 3)
 
 
 def suffix_products(E: torch.Tensor) -> torch.Tensor:
-    """S_k = E_k E_{k+1} ... E_{K-1} for k = 0..K-1 (a work-efficient parallel scan:
-    2 log2 K levels of batched products, about 2K products in all)."""
-    K = E.shape[-3]
-    if K == 1:
-        return E
-    S_pairs = suffix_products(_pair_products(E))  # S_pairs[j] = S_{2j}
-    # S_{2j+1} = E_{2j+1} S_{2j+2}, with S_K = I.
-    eye = torch.eye(E.shape[-1], dtype=E.dtype, device=E.device).expand_as(E[..., :1, :, :])
-    n_odd = K // 2
-    odd = E[..., 1::2, :, :] @ torch.cat((S_pairs, eye), dim=-3)[..., 1 : n_odd + 1, :, :]
-    inter = torch.stack((S_pairs[..., :n_odd, :, :], odd), dim=-3)  # (..., n_odd, 2, n, n)
-    inter = inter.reshape(*E.shape[:-3], 2 * n_odd, *E.shape[-2:])
-    return torch.cat((inter, S_pairs[..., n_odd:, :, :]), dim=-3) if K % 2 else inter
+    """S_k = E_k E_{k+1} ... E_{K-1} for k = 0..K-1 of (..., K, n, n) (a work-efficient parallel
+    scan: 2 log2 K levels of batched products, about 2K products in all)."""
+    eye = torch.eye(E.shape[-1], dtype=E.dtype, device=E.device)
+    return _suffix_products(E, torch.matmul, E.dim() - 3, eye)
 
 
 def _cross_columns(a: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
@@ -163,25 +179,30 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _LEVI_CIVITA[_i, _j, _k], _LEVI_CIVITA[_i, _k, _j] = 1.0, -1.0
 
 
+def _node_sum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """sum_n a[i, ..., n] b[j, ..., n] for a (I, ..., n), b (J, ..., n) -> (..., I, J): one
+    batched matmul on strided views (unit stride along n: no copies)."""
+    return a.movedim(0, -2) @ b.movedim(0, -1)
+
+
 def _node_moments(groups, w_identity: torch.Tensor) -> dict:
     """Weighted sums over the nodes F = X^-1 that the covariance and the bias Jacobian need;
-    ``groups`` is a list of (X (..., n, 5, 5), weights (..., n)), ``w_identity`` the weight of
-    an extra node F = I.  With X = (C, v, r, tau): F has rotation C^T, velocity vh = -C^T v,
-    lever (r - tau v of F) lh = -C^T r and time -tau."""
+    ``groups`` is a list of (X packed with the node axis last (16, ..., n), weights (..., n)),
+    ``w_identity`` the weight of an extra node F = I.  With X = (C, v, r, tau): F has rotation
+    C^T, velocity vh = -C^T v, lever (r - tau v of F) lh = -C^T r and time -tau."""
     sums = {}
-    for X, weights in groups:
-        C = X[..., :3, :3]
-        vr = C.transpose(-1, -2) @ X[..., :3, 3:5]
-        vh, lh, th = -vr[..., 0], -vr[..., 1], -X[..., 3, 4]
-        w = weights.unsqueeze(-1)
-        coef = torch.cat((w, w * th.unsqueeze(-1), w * lh, w * vh), dim=-1)  # (..., n, 8)
-        Y = coef.transpose(-1, -2) @ X.reshape(*X.shape[:-2], 25)  # sums of coef * X entries
-        Y = Y.reshape(*Y.shape[:-1], 5, 5)[..., :3, :3].transpose(-1, -2)  # ... * C^T
-        lv = torch.cat((lh, vh), dim=-1)
-        part = {"w": weights.sum(-1), "wt": (weights * th).sum(-1), "wtt": (weights * th * th).sum(-1),
-                "wl": (w * lh).sum(-2), "wv": (w * vh).sum(-2),
-                "outer": (lv * w).transpose(-1, -2) @ lv,  # (..., 6, 6): sums of w [l; v][l; v]^T
-                "Y": Y}  # (..., 8, 3, 3)
+    for X, w in groups:
+        C, v, r, tau = X[0:9], X[9:12], X[12:15], X[15]
+        Ct = lambda x: torch.stack([C[j] * x[0] + C[3 + j] * x[1] + C[6 + j] * x[2] for j in range(3)])  # noqa: E731
+        vh, lh, th = -Ct(v), -Ct(r), -tau  # (3, ..., n), (3, ..., n), (..., n)
+        lv = torch.cat((lh, vh), dim=0)  # (6, ..., n)
+        wlv = w * lv
+        wt = w * th
+        coef = torch.cat((w[None], wt[None], wlv), dim=0)  # (8, ..., n)
+        part = {"w": w.sum(-1), "wt": wt.sum(-1), "wtt": (wt * th).sum(-1),
+                "wl": wlv[:3].sum(-1).movedim(0, -1), "wv": wlv[3:].sum(-1).movedim(0, -1),
+                "outer": _node_sum(wlv, lv),  # sums of w [l; v][l; v]^T
+                "Y": _node_sum(coef, C).unflatten(-1, (3, 3)).transpose(-1, -2)}  # sums of coef C^T
         sums = part if not sums else {k: sums[k] + part[k] for k in sums}
     sums["w"] = sums["w"] + w_identity
     eye = torch.eye(3, dtype=w_identity.dtype, device=w_identity.device)
@@ -327,40 +348,45 @@ def preintegrate(
     itself off.)  The bias Jacobian is the same integral of Ad(Delta^-1 Delta(s)) G (minus the
     gyro and accelerometer columns).
 
-    Products: one batched SGal3.exp over all samples, then a log-depth tree product (increment
+    Products: one batched SGal3 exp over all samples, then a log-depth tree product (increment
     only) or, with covariance or bias Jacobians, the exps of the half-sample tangents, squared,
-    and a work-efficient parallel scan over K; no loop over samples or windows.
+    and a work-efficient parallel scan over K; no loop over samples or windows.  The factors
+    stay in SGal3's packed component layout (functional.sgal3.exp_packed / compose_packed),
+    where a product is elementwise: several times faster on CPU than batched 5x5 matmuls.
     """
     xi = increment_tangents(gyro, acc, dt, gyro_bias, acc_bias)
     batch, K = xi.shape[:-2], xi.shape[-2]
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch).expand(*batch, 3)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch).expand(*batch, 3)
+    # Products in the packed layout (16, K, ...): chain axis first, contiguous halves for the scans.
     if not (covariance or bias_jacobian):
-        E = SGal3.exp(xi).as_matrix()  # (..., K, 5, 5)
-        return Preintegration(SGal3(window_product(E)), None, None, b_g, b_a)
+        E = F.exp_packed(xi.movedim(-2, 0))
+        delta = F.unpack(_window_product(E, F.compose_packed, 1))
+        return Preintegration(SGal3(delta), None, None, b_g, b_a)
 
-    H = SGal3.exp(0.5 * xi).as_matrix()  # half-sample factors: E_k = H_k H_k exactly
-    S = suffix_products(H @ H)  # S_k = E_k ... E_{K-1}
-    delta = S[..., 0, :, :]
+    H = F.exp_packed(0.5 * xi.movedim(-2, 0))  # half-sample factors: E_k = H_k H_k exactly
+    S = _suffix_products(F.compose_packed(H, H), F.compose_packed, 1, F.packed_identity(H))  # E_k ... E_{K-1}
+    delta = F.unpack(S[:, 0])
     # Simpson nodes of the noise integral in the right perturbation: at the sample instants
     # Delta^-1 Delta(t_k) = S_k^-1 (S_K = I) and at the midpoints (H_k S_{k+1})^-1.
     h = dt.expand(*batch, K)
     zero = torch.zeros_like(h[..., :1])
     w_instants = (torch.cat((h, zero), -1) + torch.cat((zero, h), -1)) / 6.0  # K + 1
     w_mid = 4.0 * h / 6.0
-    node_groups = [  # (suffix matrices X, weights): the nodes are X^-1
-        (S, w_instants[..., :K]),  # instants 0 .. K-1
-        (H[..., K - 1 :, :, :], w_mid[..., K - 1 :]),  # last midpoint: H_{K-1} S_K = H_{K-1}
+    last = lambda P: P.movedim(1, -1).contiguous()  # noqa: E731  node axis last, for the sums over nodes
+    node_groups = [  # (packed suffixes X (16, ..., n), weights (..., n)): the nodes are X^-1
+        (last(S), w_instants[..., :K]),  # instants 0 .. K-1
+        (last(H[:, K - 1 :]), w_mid[..., K - 1 :]),  # last midpoint: H_{K-1} S_K = H_{K-1}
     ]
     if K > 1:
-        node_groups.append((H[..., : K - 1, :, :] @ S[..., 1:, :, :], w_mid[..., : K - 1]))
+        node_groups.append((last(F.compose_packed(H[:, : K - 1], S[:, 1:])), w_mid[..., : K - 1]))
     # instant K is the identity: its node map is G itself, weight w_instants[..., K]
     isotropic = all(not isinstance(d, torch.Tensor) or d.dim() == 0
                     for d in (gyro_noise_density, acc_noise_density))
     cov = jac = None
     if covariance and not isotropic:
-        eye = torch.eye(5, dtype=xi.dtype, device=xi.device).expand_as(S[..., :1, :, :])
-        suffixes = SGal3(torch.cat([X for X, _ in node_groups] + [eye], dim=-3))
+        eye = torch.eye(5, dtype=xi.dtype, device=xi.device).expand(*batch, 1, 5, 5)
+        suffixes = SGal3(torch.cat([F.unpack(X) for X, _ in node_groups] + [eye], dim=-3))
         weights = torch.cat([w for _, w in node_groups] + [w_instants[..., K:]], dim=-1)
         W = noise_map(suffixes.inverse(), weights.sqrt())  # (..., 10, 7, 2K + 1): Ad(node) G sqrt(w)
         s_a = _as_vector(acc_noise_density, gyro, "acc_noise_density", batch)
