@@ -507,10 +507,21 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     return linearise, post_step
 
 
-def _structured_gauss_helmert(problem: TLSProblem, x0, variant: str, e0=None,
-                              baseline: bool = False, **options) -> Solution:
+# Below this many conditions the paper variant takes the generic path: the structured one
+# saves arithmetic but costs a few more (overhead-bound) operations (a rule on shapes only).
+STRUCTURED_MIN_CONDITIONS = 2048
+
+
+def _gauss_helmert_tls(problem: TLSProblem, x0, variant: str, e0=None,
+                       baseline: bool = False, **options) -> Solution:
     """``gauss_helmert`` with ``sgal3_condition`` (or ``baseline_condition`` and
-    ``baseline_covariance``) through ``_structured``."""
+    ``baseline_covariance``), through ``_structured`` unless the batch is small (paper)."""
+    if variant == "paper" and problem.M.batch_shape.numel() < STRUCTURED_MIN_CONDITIONS:
+        if baseline:
+            return gauss_helmert(baseline_condition(problem), x0, baseline_covariance(problem),
+                                 variant=variant, e0=e0, **options)
+        return gauss_helmert(sgal3_condition(problem), x0, problem.covariance, variant=variant,
+                             e0=e0, **options)
     iterated = variant_options(variant, options)
     linearise, post_step = _structured(problem, iterated, baseline)
     return iterate(linearise, V.check_values(x0), e0, post_step, **options)
@@ -572,7 +583,7 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
     running fraction below which the stragglers are finished in a batch of their own."""
     x0 = problem.initial_guess(dtau0) if x0 is None else x0
     _default_options(variant, options)
-    return _in_rounds(lambda p, x, e0, **kw: _structured_gauss_helmert(p, x, variant, e0, **kw),
+    return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(p, x, variant, e0, **kw),
                       problem, x0, options)
 
 
@@ -585,7 +596,7 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         X0, t0 = split_clock(F0)
         x0 = (X0, t0[:, None], dt)
     _default_options(variant, options)
-    return _in_rounds(lambda p, x, e0, **kw: _structured_gauss_helmert(
+    return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(
         p, x, variant, e0, baseline=True, **kw), problem, x0, options)
 
 
