@@ -332,9 +332,10 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     H = J^T J, g = J^T r and |r|^2 (5.24).  Li comes from ``_small_linalg`` (vectorised over
     the conditions).  At e = 0 (the paper variant) with covariances shared by the samples,
     Ad(T^-n) = I + s N (s = n dtau, N: rho <- nu) makes S a quadratic in s with per-trial
-    coefficients.  The clock rows (scalar, independent) are appended as they are.  The trials are
-    processed ``chunk`` at a time (default: about 8000 conditions) with reused buffers: fresh
-    temporaries that span the whole batch cost more in page faults than in arithmetic.  The
+    coefficients.  The baseline's clock rows (scalar, independent) are appended as they are.
+    The trials are processed ``chunk`` at a time (default: about 8000 conditions) with reused
+    buffers: fresh temporaries that span the whole batch cost more in page faults than in
+    arithmetic.  The
     per-condition state of a linearisation lives in one of two buffer sets, used in turn, so
     it stays valid until the next-but-one call (``solver.iterate`` keeps the current and the
     new linearisation only, and ``_ChunkState.select`` writes into the newer one)."""
