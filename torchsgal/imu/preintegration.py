@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from .. import SGal3
+from ..functional import blocks as B
 from ..functional import checks
 from ..functional import sgal3 as F
 
@@ -193,8 +194,8 @@ def _node_moments(groups, w_identity: torch.Tensor) -> dict:
     sums = {}
     for X, w in groups:
         C, v, r, tau = X[0:9], X[9:12], X[12:15], X[15]
-        Ct = lambda x: torch.stack([C[j] * x[0] + C[3 + j] * x[1] + C[6 + j] * x[2] for j in range(3)])  # noqa: E731
-        vh, lh, th = -Ct(v), -Ct(r), -tau  # (3, ..., n), (3, ..., n), (..., n)
+        Ct = [C[3 * j + i] for i in range(3) for j in range(3)]  # entries of C^T, row-major
+        vh, lh, th = -B.matvec_entries(Ct, v), -B.matvec_entries(Ct, r), -tau  # (3, ..., n) x2, (..., n)
         lv = torch.cat((lh, vh), dim=0)  # (6, ..., n)
         wlv = w * lv
         wt = w * th
