@@ -64,6 +64,12 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).unflatten(-1, (3, 3))
 
 
+def skew_times(x: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """x^ M for x (..., 3) in the *public* layout and M (..., 3, m): column-wise cross products,
+    one kernel (several times faster on CPU than forming x^ and a batched 3x3 matmul)."""
+    return torch.linalg.cross(x.unsqueeze(-1), M, dim=-2)
+
+
 def unskew(m: torch.Tensor) -> torch.Tensor:
     """The vector (3, ...) of the skew part of m (..., 3, 3): vee((m - m^T)/2)."""
     return 0.5 * vec(m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1])
@@ -167,7 +173,7 @@ def q_block(c: list[torch.Tensor], phi: torch.Tensor, x: torch.Tensor, jac: torc
     From exp(J_l d) exp(xi) = exp(xi + d):  Q = d(Gamma_1 x)/dphi + (Gamma_1 x)^ Gamma_1.
     ``jac`` is Gamma_1(phi) (..., 3, 3).
     """
-    return gamma_vec_derivative(c, 1, phi, x) + skew(gamma_vec(c, 1, phi, x)) @ jac
+    return gamma_vec_derivative(c, 1, phi, x) + skew_times(gamma_vec(c, 1, phi, x).movedim(0, -1), jac)
 
 
 def jac_inv_mat(phi: torch.Tensor) -> torch.Tensor:

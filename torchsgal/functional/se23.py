@@ -83,7 +83,7 @@ def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, 0, r^ C], [0, C, v^ C], [0, 0, C]]."""
     C, v, r = components(M)
     return B.block_matrix(
-        [[C, None, B.skew(B.first(r)) @ C], [None, C, B.skew(B.first(v)) @ C], [None, None, C]],
+        [[C, None, B.skew_times(r, C)], [None, C, B.skew_times(v, C)], [None, None, C]],
         SIZES, M.shape[:-2], M,
     )
 

@@ -77,7 +77,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, r^ C], [0, C]]."""
     C, r = components(M)
-    return B.block_matrix([[C, B.skew(B.first(r)) @ C], [None, C]], SIZES, M.shape[:-2], M)
+    return B.block_matrix([[C, B.skew_times(r, C)], [None, C]], SIZES, M.shape[:-2], M)
 
 
 def ad(xi: torch.Tensor) -> torch.Tensor:

@@ -104,8 +104,8 @@ def adjoint(M: torch.Tensor) -> torch.Tensor:
     t = tau.unsqueeze(-1)
     return B.block_matrix(
         [
-            [C, -t * C, B.skew(B.first(r - tau * v)) @ C, v.unsqueeze(-1)],
-            [None, C, B.skew(B.first(v)) @ C, None],
+            [C, -t * C, B.skew_times(r - tau * v, C), v.unsqueeze(-1)],
+            [None, C, B.skew_times(v, C), None],
             [None, None, C, None],
             [None, None, None, torch.ones_like(t)],
         ],
@@ -148,7 +148,7 @@ def _jl_blocks(xi: torch.Tensor):
     i3 = iota[..., None, None]
     r = B.gamma_vec(c, 1, phi, rho) + iota * B.gamma_vec(c, 2, phi, nu)
     dr = B.gamma_vec_derivative(c, 1, phi, rho) + i3 * B.gamma_vec_derivative(c, 2, phi, nu)
-    N = dr + B.skew(r) @ D - i3 * Mb
+    N = dr + B.skew_times(r.movedim(0, -1), D) - i3 * Mb
     Enu = B.column(B.gamma_vec(c, 2, phi, nu))
     return D, D - E, N, Enu, Mb, i3
 

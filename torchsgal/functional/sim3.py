@@ -112,7 +112,7 @@ def adjoint(M: torch.Tensor) -> torch.Tensor:
     col = -(s[..., None] * r).unsqueeze(-1)
     one = torch.ones_like(s)[..., None, None]
     return B.block_matrix(
-        [[sC, B.skew(B.first(r)) @ sC, col], [None, C, None], [None, None, one]],
+        [[sC, B.skew_times(r, sC), col], [None, C, None], [None, None, one]],
         SIZES, M.shape[:-2], M,
     )
 
@@ -138,7 +138,7 @@ def _jl_parts(xi: torch.Tensor):
     m = _coefficients(phi, lam)
     G1 = B.gamma_mat(c, 1, phi)
     r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
-    coupling = B.poly_vec_derivative(m["m1"], m["m2"], m["e1"], m["e2"], phi, rho) + B.skew(r) @ G1
+    coupling = B.poly_vec_derivative(m["m1"], m["m2"], m["e1"], m["e2"], phi, rho) + B.skew_times(r.movedim(0, -1), G1)
     lam_col = B.poly_vec(m["p0"], m["p1"], m["p2"], phi, rho)
     return m, torch.exp(lam), phi, G1, coupling, lam_col
 
