@@ -58,7 +58,10 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
         o_new, x_new = _retract(model, origin, x, step)
         r_new, J_new = model.linearize(o_new, x_new)
         cost_new = (r_new * r_new).sum(-1)
-        accept = (cost_new <= cost) & torch.isfinite(cost_new) & ~converged
+        # A change of the cost within its rounding still counts as a decrease, so that the last
+        # (Gauss-Newton) steps reach the optimum instead of stalling about sqrt(eps) from it.
+        no_worse = cost_new <= cost * (1.0 + 16 * torch.finfo(cost.dtype).eps)
+        accept = no_worse & torch.isfinite(cost_new) & ~converged
         small = step.norm(dim=-1) <= tolerance * (1.0 + x.norm(dim=-1))
         tiny = cost_new <= 1e-10 * tolerance ** 2
         a = accept
