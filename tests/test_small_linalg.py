@@ -1,4 +1,4 @@
-"""The vectorised small-matrix Cholesky, triangular inverse and SPD inverse of
+"""The vectorised small-matrix Cholesky and triangular inverse of
 torchsgal.estimation._small_linalg against torch.linalg (LAPACK)."""
 import pytest
 import torch
@@ -33,17 +33,7 @@ def test_cholesky_and_inverses_match_lapack(dtype, batch, n):
     Li = sl.tril_inverse_t(L_t).movedim((0, 1), (-2, -1))
     Li_ref = torch.linalg.inv(L_ref)
     assert ((Li.double() - Li_ref).abs().max() / Li_ref.abs().amax()) < 10 * _tol(dtype)
-    Si, info2 = sl.spd_inverse_t(S_t)
-    Si_ref = torch.linalg.inv(S.double())
-    Si = Si.movedim((0, 1), (-2, -1))
-    assert (info2 == 0).all()
-    assert ((Si.double() - Si_ref).abs().max() / Si_ref.abs().amax()) < 10 * _tol(dtype)
-    assert Si.dtype == dtype
-    # Both paths of the batch-first wrappers (LAPACK below MIN_BATCH, vectorised above).
-    Lw, infow = sl.cholesky_ex(S)
-    assert ((Lw.double() - L_ref).abs().max() / scale) < _tol(dtype) and (infow == 0).all()
-    Siw, _ = sl.spd_inverse(S)
-    assert ((Siw.double() - Si_ref).abs().max() / Si_ref.abs().amax()) < 10 * _tol(dtype)
+    # Both paths of inverse_cholesky_factor_t (LAPACK below MIN_BATCH, vectorised above).
     Lit, _ = sl.inverse_cholesky_factor_t(S_t)
     assert ((Lit.movedim((0, 1), (-2, -1)).double() - Li_ref).abs().max()
             / Li_ref.abs().amax()) < 10 * _tol(dtype)

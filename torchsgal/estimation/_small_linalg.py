@@ -1,10 +1,10 @@
-"""Cholesky factor, triangular inverse and SPD inverse of many small matrices at once.
+"""Cholesky factor and its inverse for many small matrices at once.
 
-torch's CPU ``linalg.cholesky`` / ``cholesky_inverse`` / ``solve_triangular`` call LAPACK once
+torch's CPU ``linalg.cholesky`` / ``solve_triangular`` call LAPACK once
 per matrix, which dominates for batches of 10^4-10^5 matrices of size ~10.  Here the loops run
 over the (few) columns and every operation is vectorised over the batch, held in the last
 dimension (``*_t`` functions: matrices (n, n, *batch), contiguous), where each operation
-reads contiguous memory.  The batch-first wrappers move the batch there and back.
+reads contiguous memory.
 
 Failure semantics follow ``torch.linalg.cholesky_ex``: ``info`` (int32, the batch shape) is 0
 where the matrix is positive definite, else the order of the first leading minor that is not
@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 
 # Batch sizes from which the vectorised routines beat LAPACK's per-matrix calls (CPU); below,
-# the wrappers call torch.linalg (the batch shape is known on the host, no sync).
+# inverse_cholesky_factor_t calls torch.linalg (the batch shape is known on the host, no sync).
 MIN_BATCH = 512
 
 
@@ -60,21 +60,6 @@ def tril_inverse_t(L_t: torch.Tensor, out: torch.Tensor | None = None) -> torch.
     return X
 
 
-def gram_t(X_t: torch.Tensor) -> torch.Tensor:
-    """X^T X for lower-triangular X (n, n, *batch): row i is sum_{k >= i} X[k, i] X[k, :]."""
-    n = X_t.shape[0]
-    G = torch.empty_like(X_t)
-    for i in range(n):
-        G[i] = (X_t[i:, i, None] * X_t[i:]).sum(0)
-    return G
-
-
-def spd_inverse_t(S_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """S^-1 = L^-T L^-1 of symmetric positive definite S (n, n, *batch); (S^-1, info)."""
-    L, info = cholesky_t(S_t)
-    return gram_t(tril_inverse_t(L)), info
-
-
 def inverse_cholesky_factor_t(S_t: torch.Tensor, work: tuple | None = None
                               ) -> tuple[torch.Tensor, torch.Tensor]:
     """L^-1 (lower) with S = L L^T for S (n, n, m); (L^-1, info).  ``work``: two buffers
@@ -89,20 +74,3 @@ def inverse_cholesky_factor_t(S_t: torch.Tensor, work: tuple | None = None
     L = torch.where((info != 0)[..., None, None], float("nan"), L)
     eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
     return _batch_last(torch.linalg.solve_triangular(L, eye, upper=False)), info
-
-
-def cholesky_ex(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batch-first (..., n, n) -> (L, info), like torch.linalg.cholesky_ex (lower)."""
-    if S.dim() < 3 or S[..., 0, 0].numel() < MIN_BATCH:
-        return torch.linalg.cholesky_ex(S)
-    L, info = cholesky_t(_batch_last(S))
-    return _batch_first(L), info
-
-
-def spd_inverse(S: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batch-first (..., n, n) -> (S^-1, info); S^-1 is garbage where info != 0."""
-    if S.dim() < 3 or S[..., 0, 0].numel() < MIN_BATCH:
-        L, info = torch.linalg.cholesky_ex(S)
-        return torch.cholesky_inverse(L), info
-    Si, info = spd_inverse_t(_batch_last(S))
-    return _batch_first(Si), info
