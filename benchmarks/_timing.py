@@ -227,3 +227,40 @@ def environment(benchmark: str, argv: list[str] | None = None, **extra) -> dict:
     }
     env.update(extra)
     return env
+
+
+def interleaved(cases: dict, *, target_s: float, min_rounds: int, max_rounds: int, warmup: int = 2):
+    """Round-robin timing of ``cases`` (name -> zero-arg callable): every round calls each case
+    once, in an order rotated by one per round, so that slow drifts of the machine hit all cases
+    alike.  Untimed warm-up calls first; GC off while timing.
+
+    Returns (per-case dict of median/min/max seconds and rounds, per-round times, foreign share)."""
+    names = list(cases)
+    for name in names:
+        for _ in range(warmup):
+            cases[name]()
+    times = {k: [] for k in names}
+    gc.collect()
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        with ForeignLoad() as load:
+            t_begin = time.perf_counter()
+            r = 0
+            while r < min_rounds or (time.perf_counter() - t_begin < target_s and r < max_rounds):
+                for name in names[r % len(names):] + names[: r % len(names)]:
+                    t0 = time.perf_counter()
+                    cases[name]()
+                    times[name].append(time.perf_counter() - t0)
+                r += 1
+    finally:
+        if gc_was:
+            gc.enable()
+    stats = {k: {"median_s": statistics.median(v), "min_s": min(v), "max_s": max(v), "rounds": len(v)}
+             for k, v in times.items()}
+    return stats, times, load.share
+
+
+def paired_ratio(times: dict, slow: str, fast: str) -> float:
+    """Median over rounds of time(slow) / time(fast)."""
+    return statistics.median(a / b for a, b in zip(times[slow], times[fast]))

@@ -38,9 +38,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import gc
 import json
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -50,7 +48,7 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import ForeignLoad, dist_version, environment, loadavg, wait_for_idle  # noqa: E402
+from _timing import dist_version, environment, interleaved, loadavg, paired_ratio, wait_for_idle  # noqa: E402
 
 from torchsgal.imu import gravity_vector, preintegrate  # noqa: E402
 from torchsgal.imu import peers  # noqa: E402
@@ -62,38 +60,6 @@ SIGMA_G, SIGMA_A = 1e-3, 1e-2  # rad/s/sqrt(Hz), m/s^2/sqrt(Hz)
 
 def log(msg: str) -> None:
     print(msg, flush=True)
-
-
-def interleaved(cases: dict, *, target_s: float, min_rounds: int, max_rounds: int, warmup: int = 2):
-    """Round-robin timing of ``cases`` (name -> zero-arg callable): (stats, per-round times, foreign share)."""
-    names = list(cases)
-    for name in names:
-        for _ in range(warmup):
-            cases[name]()
-    times = {k: [] for k in names}
-    gc.collect()
-    gc_was = gc.isenabled()
-    gc.disable()
-    try:
-        with ForeignLoad() as load:
-            t_begin = time.perf_counter()
-            r = 0
-            while r < min_rounds or (time.perf_counter() - t_begin < target_s and r < max_rounds):
-                for name in names[r % len(names):] + names[: r % len(names)]:
-                    t0 = time.perf_counter()
-                    cases[name]()
-                    times[name].append(time.perf_counter() - t0)
-                r += 1
-    finally:
-        if gc_was:
-            gc.enable()
-    stats = {k: {"median_s": statistics.median(v), "min_s": min(v), "max_s": max(v), "rounds": len(v)}
-             for k, v in times.items()}
-    return stats, times, load.share
-
-
-def paired_ratio(times: dict, slow: str, fast: str) -> float:
-    return statistics.median(a / b for a, b in zip(times[slow], times[fast]))
 
 
 def build(windows: int, samples: int, dt: float):
