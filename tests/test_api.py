@@ -297,8 +297,13 @@ def test_sgal3_packed_layout(dtype):
     I = F.packed_identity(P)
     assert I.shape == (16, 1, 1) and torch.equal(F.unpack(F.compose_packed(I.expand_as(P), P)), A)
     xi = torch.randn(4, 10, dtype=dtype, generator=g)
-    assert torch.equal(F.unpack(F.exp_packed(xi)), F.exp_impl(xi))
+    E = np64(F.unpack(F.exp_packed(xi)))
+    for k in range(4):  # against the matrix exponential of the hat matrix
+        ref = scipy.linalg.expm(np64(F.hat(xi[k].double())))
+        np.testing.assert_allclose(E[k], ref, rtol=0, atol=100 * eps * np.abs(ref).max())
     with pytest.raises(ValueError, match=r"P must have shape \(16, \.\.\.\)"):
         F.unpack(torch.zeros(15, 2, dtype=dtype))
+    with pytest.raises(ValueError, match=r"P2 must have shape \(16, \.\.\.\)"):
+        F.compose_packed(P, torch.zeros(15, 2, 3, dtype=dtype))
     with pytest.raises(ValueError, match="M must have shape"):
         F.pack(torch.zeros(2, 4, 4, dtype=dtype))

@@ -329,10 +329,14 @@ def exp_packed(xi: torch.Tensor) -> torch.Tensor:
     return torch.stack((*C, *v.unbind(0), *r.unbind(0), iota), dim=0)
 
 
+def _check_packed(P: torch.Tensor, name: str) -> None:
+    if P.dim() < 1 or P.shape[0] != 16:
+        raise ValueError(f"{name} must have shape (16, ...), got {tuple(P.shape)}")
+
+
 def unpack(P: torch.Tensor) -> torch.Tensor:
     """The packed layout (16, ...) -> group matrices (..., 5, 5)."""
-    if P.dim() < 1 or P.shape[0] != 16:
-        raise ValueError(f"P must have shape (16, ...), got {tuple(P.shape)}")
+    _check_packed(P, "P")
     return _matrix(P[0:9].unbind(0), P[9:12], P[12:15], P[15])
 
 
@@ -344,6 +348,8 @@ def packed_identity(like: torch.Tensor) -> torch.Tensor:
 
 def compose_packed(P1: torch.Tensor, P2: torch.Tensor) -> torch.Tensor:
     """Product in the packed layout: (C1 C2, C1 v2 + v1, C1 r2 + tau2 v1 + r1, tau1 + tau2)."""
+    _check_packed(P1, "P1")
+    _check_packed(P2, "P2")
     a, b = P1.unbind(0), P2.unbind(0)
     C1, v1, r1, t1 = a[0:9], a[9:12], a[12:15], a[15]
     C2, v2, r2, t2 = b[0:9], b[9:12], b[12:15], b[15]
