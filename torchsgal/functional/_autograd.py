@@ -14,22 +14,30 @@ For a group module ``mod`` (so3, se3, se23, sgal3):
   out, not differentiated through the closed form.
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev,
-torch.compile), and their backward is itself differentiable (higher derivatives).
+torch.compile), and their backward is itself differentiable (higher derivatives).  Large CPU
+batches run forward and backward in cache-sized blocks where nothing records them (_blocking).
 """
 from __future__ import annotations
 
 import torch
 
 from . import checks
+from ._blocking import run_blocked
 
 
 def make_exp_log(mod):
+    def _exp_backward(xi, M, grad_M):
+        return mod.jl_tmv(-xi, mod.exp_pullback(M, grad_M))
+
+    def _log_backward(M, xi, grad_xi):
+        return mod.log_pullback(M, mod.jl_inv_tmv(-xi, grad_xi))
+
     class Exp(torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(xi):
-            return mod.exp_impl(xi)
+            return run_blocked(mod.exp_impl, (xi,), (1,))
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -39,14 +47,14 @@ def make_exp_log(mod):
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
-            return mod.jl_tmv(-xi, mod.exp_pullback(M, grad_M))
+            return run_blocked(_exp_backward, (xi, M, grad_M), (1, 2, 2))
 
     class Log(torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(M):
-            return mod.log_impl(M)
+            return run_blocked(mod.log_impl, (M,), (2,))
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -56,7 +64,7 @@ def make_exp_log(mod):
         def backward(ctx, grad_xi):
             M, xi = ctx.saved_tensors
             # M^-T vee^T(J_r(xi)^-T grad_xi)
-            return mod.log_pullback(M, mod.jl_inv_tmv(-xi, grad_xi))
+            return run_blocked(_log_backward, (M, xi, grad_xi), (2, 1, 1))
 
     Exp.__name__ = f"{mod.NAME}Exp"
     Log.__name__ = f"{mod.NAME}Log"

@@ -18,6 +18,7 @@ import torch
 from . import blocks as B
 from . import checks, numerics
 from ._autograd import make_exp_log
+from ._blocking import blocked
 
 NAME = "SE2"
 DOF = 3
@@ -90,6 +91,7 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
     return A @ Bm
 
 
+@blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     c, s = M[..., 0, 0], M[..., 1, 0]
     x, y = M[..., 0, 2], M[..., 1, 2]
@@ -109,6 +111,7 @@ def _minus_J(x, y):
     return torch.stack((y, -x), dim=-1)
 
 
+@blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, -J r], [0, 1]]."""
     return _block(M[..., :2, :2], _minus_J(M[..., 0, 2], M[..., 1, 2]), M.shape[:-2], M)
@@ -131,6 +134,7 @@ def _jl_parts(xi: torch.Tensor):
     return c, c[1], t * c[2], _minus_J(wx, wy)
 
 
+@blocked(1)
 def jl(xi: torch.Tensor) -> torch.Tensor:
     """[[V, -J W rho], [0, 1]]."""
     checks.vector(xi, DOF, "xi")
@@ -138,6 +142,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
     return _block(_mat(a, b), q, xi.shape[:-1], xi)
 
 
+@blocked(1)
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """[[V^-1, -V^-1 q], [0, 1]] with V^-1 = (a I - b J) / (2 c_2)."""
     checks.vector(xi, DOF, "xi")
@@ -147,10 +152,12 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     return _block(_mat(ai, bi), -torch.stack((qx, qy), dim=-1), xi.shape[:-1], xi)
 
 
+@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
     return jl(-xi)
 
 
+@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 

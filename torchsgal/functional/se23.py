@@ -12,6 +12,7 @@ from . import blocks as B
 from . import checks
 from . import numerics
 from ._autograd import make_exp_log
+from ._blocking import blocked
 
 NAME = "SE23"
 DOF = 9
@@ -73,12 +74,14 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
     return A @ Bm
 
 
+@blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     Ct = B.transpose_entries(M[..., :3, :3])
     v, r = B.first(M[..., :3, 3]), B.first(M[..., :3, 4])
     return _matrix(Ct, -B.matvec_entries(Ct, v), -B.matvec_entries(Ct, r))
 
 
+@blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, 0, r^ C], [0, C, v^ C], [0, 0, C]]."""
     C, v, r = components(M)
@@ -105,6 +108,7 @@ def _jl_blocks(xi: torch.Tensor):
     return J, B.q_block(c, phi, rho, J), B.q_block(c, phi, nu, J)
 
 
+@blocked(1)
 def jl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     J, Q_rho, Q_nu = _jl_blocks(xi)
@@ -113,6 +117,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
+@blocked(1)
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     _, Q_rho, Q_nu = _jl_blocks(xi)
@@ -171,10 +176,12 @@ def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.homogeneous(rot, [B.matvec_entries(Ce, nu), B.matvec_entries(Ce, rho)], bottom)
 
 
+@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
     return jl(-xi)
 
 
+@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 

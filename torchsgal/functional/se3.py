@@ -13,6 +13,7 @@ from . import blocks as B
 from . import checks
 from . import numerics
 from ._autograd import make_exp_log
+from ._blocking import blocked
 
 NAME = "SE3"
 DOF = 6
@@ -69,11 +70,13 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
     return A @ Bm
 
 
+@blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     Ct = B.transpose_entries(M[..., :3, :3])
     return _matrix(Ct, -B.matvec_entries(Ct, B.first(M[..., :3, 3])))
 
 
+@blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, r^ C], [0, C]]."""
     C, r = components(M)
@@ -95,12 +98,14 @@ def _jl_blocks(xi: torch.Tensor):
     return J, B.q_block(c, phi, rho, J)
 
 
+@blocked(1)
 def jl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     J, Q = _jl_blocks(xi)
     return B.block_matrix([[J, Q], [None, J]], SIZES, xi.shape[:-1], xi)
 
 
+@blocked(1)
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """[[J^-1, -J^-1 Q J^-1], [0, J^-1]]."""
     checks.vector(xi, DOF, "xi")
@@ -148,10 +153,12 @@ def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.homogeneous(rot, [B.matvec_entries(B.entries(C), rho)], [[bh[0], bh[1], bh[2], B.dot(b, rho)]])
 
 
+@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
     return jl(-xi)
 
 
+@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 

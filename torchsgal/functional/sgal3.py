@@ -15,6 +15,7 @@ from . import blocks as B
 from . import checks
 from . import numerics
 from ._autograd import make_exp_log
+from ._blocking import blocked
 
 NAME = "SGal3"
 DOF = 10
@@ -91,6 +92,7 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
     return A @ Bm
 
 
+@blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -C^T v, -C^T (r - tau v)], [0, 1, -tau], [0, 0, 1]]."""
     Ct = B.transpose_entries(M[..., :3, :3])
@@ -98,6 +100,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
     return _matrix(Ct, -B.matvec_entries(Ct, v), -B.matvec_entries(Ct, r - tau * v), -tau)
 
 
+@blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """(3.16)."""
     C, v, r, tau = components(M)
@@ -153,6 +156,7 @@ def _jl_blocks(xi: torch.Tensor):
     return D, D - E, N, Enu, Mb, i3
 
 
+@blocked(1)
 def jl(xi: torch.Tensor) -> torch.Tensor:
     """Left Jacobian (3.21)-(3.23)."""
     checks.vector(xi, DOF, "xi")
@@ -170,6 +174,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
+@blocked(1)
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """Inverse of (3.23) by block back-substitution (the Jacobian is block upper-triangular)."""
     checks.vector(xi, DOF, "xi")
@@ -282,11 +287,13 @@ def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.homogeneous(rot, [B.matvec_entries(Ce, nu), B.matvec_entries(Ce, rho)], bottom)
 
 
+@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
     """J_r(xi) = J_l(-xi)."""
     return jl(-xi)
 
 
+@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 

@@ -28,6 +28,7 @@ import torch
 from . import blocks as B
 from . import checks, numerics
 from ._autograd import make_exp_log
+from ._blocking import blocked
 
 NAME = "Sim3"
 DOF = 7
@@ -98,6 +99,7 @@ def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
     return A @ Bm
 
 
+@blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -s C^T r], [0, s]]."""
     Ct = B.transpose_entries(M[..., :3, :3])
@@ -105,6 +107,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
     return _matrix(Ct, -s * B.matvec_entries(Ct, B.first(M[..., :3, 3])), s)
 
 
+@blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[s C, s r^ C, -s r], [0, C, 0], [0, 0, 1]]  (80)."""
     C, r, s = components(M)
@@ -143,6 +146,7 @@ def _jl_parts(xi: torch.Tensor):
     return m, torch.exp(lam), phi, G1, coupling, lam_col
 
 
+@blocked(1)
 def jl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     m, s, phi, G1, coupling, lam_col = _jl_parts(xi)
@@ -155,6 +159,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
+@blocked(1)
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """[[M^-1 / s, -M^-1 coupling Gamma_1^-1, -M^-1 lam_col], [0, Gamma_1^-1, 0], [0, 0, 1]]."""
     checks.vector(xi, DOF, "xi")
@@ -173,10 +178,12 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
+@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
     return jl(-xi)
 
 
+@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 

@@ -11,6 +11,7 @@ import torch
 from . import blocks as B
 from . import checks
 from ._autograd import make_exp_log
+from ._blocking import blocked
 
 NAME = "SO3"
 DOF = 3
@@ -67,6 +68,7 @@ def ad(phi: torch.Tensor) -> torch.Tensor:
     return hat(phi)
 
 
+@blocked(1)
 def jl(phi: torch.Tensor) -> torch.Tensor:
     """D(phi) = Gamma_1(phi), (3.8) (with the corrected u^u^ coefficient)."""
     checks.vector(phi, DOF, "xi")
@@ -74,6 +76,7 @@ def jl(phi: torch.Tensor) -> torch.Tensor:
     return B.gamma_mat(B.coefficients(p, 3), 1, p)
 
 
+@blocked(1)
 def jl_inv(phi: torch.Tensor) -> torch.Tensor:
     """D^-1(phi), (3.12)."""
     checks.vector(phi, DOF, "xi")
@@ -102,10 +105,12 @@ def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return torch.stack([x for row in r for x in row], dim=-1).unflatten(-1, (3, 3))
 
 
+@blocked(1)
 def jr(phi: torch.Tensor) -> torch.Tensor:
     return jl(-phi)
 
 
+@blocked(1)
 def jr_inv(phi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-phi)
 

@@ -1,0 +1,86 @@
+"""Cache blocking of large CPU batches.
+
+A closed form here is a few dozen elementwise operations, each of which allocates a batch-sized
+temporary.  On CPU a large temporary is a fresh ``mmap`` that the kernel fills page by page, and
+past a few hundred thousand elements those page faults cost more than the arithmetic (about
+0.35 ms per MB on the reference VM: at 1e6 elements, SGal3.exp spends most of its time there).
+``blocked`` runs such a function over blocks of ``BLOCK`` batch elements, whose temporaries the
+allocator recycles from block to block instead of mapping fresh pages, and writes each block into
+one output.
+
+The blocked path is taken only where it cannot be observed: CPU tensors of the plain Tensor
+type, a batch of at least ``MIN_BATCH`` elements, no autograd recording, no functorch transform
+(vmap, grad, jacrev) and no torch.compile tracing.  Everywhere else the function runs as written,
+so autograd, vmap and compile see exactly the unblocked graph.  Every operation is elementwise
+over the batch, so blocked and unblocked results agree to the rounding of the vectorised math
+kernels (tests/test_blocking.py).
+"""
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+
+# Batch elements per block.  Two of torch's parallel grains (32768 elements), so every kernel of
+# a block still runs on two threads; 16384 lost that and was slower with 2 threads, 131072 gained
+# nothing more (SGal3 exp and log at 1e6 elements, benchmarks/bench_core.py).
+BLOCK = 65536
+# Smallest batch that is blocked: at 1e5 elements fresh temporaries are still recycled by the
+# allocator and blocking gained nothing.
+MIN_BATCH = 2 * BLOCK
+
+_is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
+
+
+def _eligible(args) -> bool:
+    if _is_wrapped is None or torch.compiler.is_compiling():
+        return False
+    grad = torch.is_grad_enabled()
+    for a in args:
+        if type(a) is not torch.Tensor or a.device.type != "cpu" or _is_wrapped(a):
+            return False
+        if grad and a.requires_grad:
+            return False
+    return True
+
+
+def run_blocked(fn, args, event_dims):
+    """``fn(*args)``, over blocks of the broadcast batch where that is safe (module docstring).
+
+    ``event_dims[i]`` is the number of trailing non-batch dimensions of ``args[i]``; ``fn`` must
+    act independently on every batch element and return one tensor (..., *event).
+    """
+    if not _eligible(args) or any(a.dim() < k for a, k in zip(args, event_dims)):
+        return fn(*args)
+    try:
+        batch = torch.broadcast_shapes(*(a.shape[: a.dim() - k] for a, k in zip(args, event_dims)))
+    except RuntimeError:
+        return fn(*args)  # raises the function's own error naming the arguments
+    n = math.prod(batch)
+    if n < MIN_BATCH:
+        return fn(*args)
+    flat = [a.expand(batch + a.shape[a.dim() - k:]).reshape((n,) + a.shape[a.dim() - k:])
+            for a, k in zip(args, event_dims)]
+    try:
+        first = fn(*(f[:BLOCK] for f in flat))
+    except (ValueError, TypeError):
+        return fn(*args)  # the same error, reported with the caller's shapes
+    out = first.new_empty((n,) + first.shape[1:])
+    out[:BLOCK] = first
+    for start in range(BLOCK, n, BLOCK):
+        out[start: start + BLOCK] = fn(*(f[start: start + BLOCK] for f in flat))
+    return out.reshape(batch + first.shape[1:])
+
+
+def blocked(*event_dims: int):
+    """Decorator form of ``run_blocked`` for ``fn(a_0, ..., a_k)`` with the given event dims."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def inner(*args):
+            return run_blocked(fn, args, event_dims)
+
+        return inner
+
+    return wrap
