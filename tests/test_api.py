@@ -191,6 +191,24 @@ def test_batch_shapes_that_do_not_broadcast(G):
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_functional_layer_checks_its_matrices(G):
+    """The functional compose, inverse and adjoint name their argument like the classes do."""
+    f, n = G._f, G.matrix_dim
+    A, B = G.random((3,)).as_matrix(), G.random((4,)).as_matrix()
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: A \(3,\), B \(4,\)"):
+        f.compose(A, B)
+    with pytest.raises(ValueError, match=rf"B must have shape \(\.\.\., {n}, {n}\), got \(3, {n}, {n + 1}\)"):
+        f.compose(A, torch.zeros(3, n, n + 1))
+    with pytest.raises(TypeError, match=r"B has dtype torch.float64 but A has dtype torch.float32"):
+        f.compose(A, A.double())
+    for fn in (f.inverse, f.adjoint):
+        with pytest.raises(ValueError, match=rf"must have shape \(\.\.\., {n}, {n}\), got \(2, {n + 1}, {n}\)"):
+            fn(torch.zeros(2, n + 1, n))
+        with pytest.raises(TypeError, match=r"floating dtype"):
+            fn(torch.zeros(n, n, dtype=torch.int64))
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_integer_and_mixed_dtypes(G):
     with pytest.raises(TypeError, match=r"xi must have a floating dtype .* got torch.int64"):
         G.exp(torch.zeros(G.dof, dtype=torch.int64))

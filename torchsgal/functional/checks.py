@@ -58,3 +58,10 @@ def binary(a: torch.Tensor, a_tail: int, b: torch.Tensor, b_tail: int, a_name: s
     """Checks device, dtype and broadcastable batch shapes of two operands."""
     same_device_dtype(**{a_name: a, b_name: b})
     broadcast_batch(**{a_name: a.shape[: a.dim() - a_tail], b_name: b.shape[: b.dim() - b_tail]})
+
+
+def matrix_pair(a, b, n: int, a_name: str, b_name: str) -> None:
+    """Two (..., n, n) operands with one dtype and device and broadcastable batch shapes."""
+    matrix(a, n, a_name)
+    matrix(b, n, b_name)
+    binary(a, 2, b, 2, a_name, b_name)

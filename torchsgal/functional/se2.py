@@ -88,11 +88,13 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
     return A @ Bm
 
 
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
+    checks.matrix(M, MATRIX_DIM, "M")
     c, s = M[..., 0, 0], M[..., 1, 0]
     x, y = M[..., 0, 2], M[..., 1, 2]
     return _matrix(c, -s, -(c * x + s * y), -(-s * x + c * y))
@@ -114,6 +116,7 @@ def _minus_J(x, y):
 @blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, -J r], [0, 1]]."""
+    checks.matrix(M, MATRIX_DIM, "M")
     return _block(M[..., :2, :2], _minus_J(M[..., 0, 2], M[..., 1, 2]), M.shape[:-2], M)
 
 

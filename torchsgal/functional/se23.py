@@ -71,11 +71,13 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
     return A @ Bm
 
 
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
+    checks.matrix(M, MATRIX_DIM, "M")
     Ct = B.transpose_entries(M[..., :3, :3])
     v, r = B.first(M[..., :3, 3]), B.first(M[..., :3, 4])
     return _matrix(Ct, -B.matvec_entries(Ct, v), -B.matvec_entries(Ct, r))
@@ -84,6 +86,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 @blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, 0, r^ C], [0, C, v^ C], [0, 0, C]]."""
+    checks.matrix(M, MATRIX_DIM, "M")
     C, v, r = components(M)
     return B.block_matrix(
         [[C, None, B.skew_times(r, C)], [None, C, B.skew_times(v, C)], [None, None, C]],

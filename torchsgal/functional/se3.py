@@ -67,11 +67,13 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
     return A @ Bm
 
 
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
+    checks.matrix(M, MATRIX_DIM, "M")
     Ct = B.transpose_entries(M[..., :3, :3])
     return _matrix(Ct, -B.matvec_entries(Ct, B.first(M[..., :3, 3])))
 
@@ -79,6 +81,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 @blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, r^ C], [0, C]]."""
+    checks.matrix(M, MATRIX_DIM, "M")
     C, r = components(M)
     return B.block_matrix([[C, B.skew_times(r, C)], [None, C]], SIZES, M.shape[:-2], M)
 

@@ -89,12 +89,14 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
     return A @ Bm
 
 
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -C^T v, -C^T (r - tau v)], [0, 1, -tau], [0, 0, 1]]."""
+    checks.matrix(M, MATRIX_DIM, "M")
     Ct = B.transpose_entries(M[..., :3, :3])
     v, r, tau = B.first(M[..., :3, 3]), B.first(M[..., :3, 4]), M[..., 3, 4]
     return _matrix(Ct, -B.matvec_entries(Ct, v), -B.matvec_entries(Ct, r - tau * v), -tau)
@@ -103,6 +105,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 @blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """(3.16)."""
+    checks.matrix(M, MATRIX_DIM, "M")
     C, v, r, tau = components(M)
     t = tau.unsqueeze(-1)
     return B.block_matrix(

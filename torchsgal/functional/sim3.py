@@ -96,12 +96,14 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
     return A @ Bm
 
 
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -s C^T r], [0, s]]."""
+    checks.matrix(M, MATRIX_DIM, "M")
     Ct = B.transpose_entries(M[..., :3, :3])
     s = 1.0 / M[..., 3, 3]
     return _matrix(Ct, -s * B.matvec_entries(Ct, B.first(M[..., :3, 3])), s)
@@ -110,6 +112,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 @blocked(2)
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[s C, s r^ C, -s r], [0, C, 0], [0, 0, 1]]  (80)."""
+    checks.matrix(M, MATRIX_DIM, "M")
     C, r, s = components(M)
     sC = s[..., None, None] * C
     col = -(s[..., None] * r).unsqueeze(-1)

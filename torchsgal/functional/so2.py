@@ -58,10 +58,12 @@ def log_impl(C: torch.Tensor) -> torch.Tensor:
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
     return A @ Bm
 
 
 def inverse(C: torch.Tensor) -> torch.Tensor:
+    checks.matrix(C, MATRIX_DIM, "C")
     return C.transpose(-1, -2)
 
 
@@ -70,6 +72,7 @@ def _ones(x: torch.Tensor, batch) -> torch.Tensor:
 
 
 def adjoint(C: torch.Tensor) -> torch.Tensor:
+    checks.matrix(C, MATRIX_DIM, "C")
     return _ones(C, C.shape[:-2])
 
 
