@@ -444,3 +444,79 @@ def test_predicted_covariance_nees():
     nees = (eps1 * torch.linalg.solve(P1, eps1.T).T).sum(-1)
     lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], N * 10) / N
     assert lo < float(nees.mean()) < hi, (float(nees.mean()), lo, hi)
+
+
+# ------------------------------------------------------------------ fast CPU path
+def _plain(gyro, acc, dt, **kw):
+    """preintegrate on the plain (autograd-capable) path: an input that requires grad keeps the
+    in-place, blocked fast path out."""
+    with torch.enable_grad():
+        res = preintegrate(gyro.clone().requires_grad_(True), acc, dt, **kw)
+    detach = lambda x: None if x is None else x.detach()  # noqa: E731
+    return SGal3(res.delta.as_matrix().detach()), detach(res.covariance), detach(res.bias_jacobian)
+
+
+def _assert_same(fast, plain, tol=1e-13):
+    for a, b in zip((fast.delta.as_matrix(), fast.covariance, fast.bias_jacobian),
+                    (plain[0].as_matrix(), plain[1], plain[2])):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert a.shape == b.shape
+            assert torch.allclose(a, b, rtol=0, atol=tol * b.abs().max()), float((a - b).abs().max())
+
+
+@pytest.mark.parametrize("K", [1, 2, 7, 64])
+@pytest.mark.parametrize("per_axis", [False, True])
+@pytest.mark.parametrize("block_bytes", [None, 700])  # 700: blocks of a few windows, a ragged last one
+def test_fast_path_matches_plain_path(K, per_axis, block_bytes, monkeypatch):
+    import torchsgal.imu.preintegration as P
+
+    if block_bytes is not None:
+        monkeypatch.setattr(P, "_BLOCK_BYTES", block_bytes)
+    gyro, acc, dt = random_stream(15, K, seed=70 + K)
+    gyro, acc, dt = gyro.reshape(3, 5, K, 3), acc.reshape(3, 5, K, 3), dt[:5]  # dt broadcasts over 3
+    g = torch.Generator().manual_seed(K)
+    bg, ba = 0.01 * torch.randn(5, 3, generator=g, dtype=F64), 0.1 * torch.randn(3, 1, 3, generator=g, dtype=F64)
+    dens = dict(gyro_noise_density=1e-3, acc_noise_density=2e-2, time_noise_density=1e-4)
+    if per_axis:
+        dens["acc_noise_density"] = torch.tensor([1e-2, 2e-2, 3e-2], dtype=F64)
+    kw = dict(gyro_bias=bg, acc_bias=ba, **dens)
+    flag_sets = [{}, dict(covariance=False, bias_jacobian=False), dict(covariance=False), dict(bias_jacobian=False)]
+    with monkeypatch.context() as m, torch.no_grad():
+        m.setattr(P, "_integrate", None)  # the fast path must not fall back to the plain one
+        fast = [preintegrate(gyro, acc, dt, **kw, **flags) for flags in flag_sets]
+    assert fast[0].delta.batch_shape == (3, 5)
+    for res, flags in zip(fast, flag_sets):
+        _assert_same(res, _plain(gyro, acc, dt, **kw, **flags))
+
+
+def test_fast_path_blocks_large_float32_batches(monkeypatch):
+    # Default block size: 520 x 256 float32 samples run as two blocks of 260 windows.
+    import torchsgal.imu.preintegration as P
+
+    gyro, acc, dt = random_stream(520, 256, seed=77, dtype=torch.float32)
+    dens = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2)
+    blocks = []
+    nodes = P._nodes_fast
+    monkeypatch.setattr(P, "_nodes_fast", lambda *a: blocks.append(a[0].shape[0]) or nodes(*a))
+    fast = preintegrate(gyro, acc, dt, **dens)
+    assert blocks == [260, 260]
+    plain = _plain(gyro, acc, dt, **dens)
+    assert torch.allclose(fast.delta.as_matrix(), plain[0].as_matrix(), rtol=0, atol=1e-6)
+    for a, b in ((fast.covariance, plain[1]), (fast.bias_jacobian, plain[2])):
+        assert torch.allclose(a, b, rtol=0, atol=1e-5 * b.abs().max())
+
+
+@pytest.mark.parametrize("K", [1, 2, 5, 8, 13])
+def test_in_place_products_match_compose_packed(K):
+    import torchsgal.imu.preintegration as P
+    from torchsgal.functional import sgal3 as Fs
+
+    M = SGal3.random((K, 4), dtype=F64, generator=torch.Generator().manual_seed(K)).as_matrix()
+    E = Fs.pack(M)  # (16, K, 4)
+    out = torch.empty_like(E)
+    P._compose_into(E, E.flip(1), out)
+    assert torch.equal(out, Fs.compose_packed(E, E.flip(1)))  # same operations, same order
+    P._scan_into(E, out)
+    assert torch.equal(out, P._suffix_products(E, Fs.compose_packed, 1, Fs.packed_identity(E)))
+    assert torch.equal(P._tree_product(E), P._window_product(E, Fs.compose_packed, 1))

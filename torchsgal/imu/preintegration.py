@@ -28,6 +28,7 @@ from .. import SGal3
 from ..functional import blocks as B
 from ..functional import checks
 from ..functional import sgal3 as F
+from ..functional._blocking import _eligible
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
@@ -355,25 +356,220 @@ def preintegrate(
     stay in SGal3's packed component layout (functional.sgal3.exp_packed / compose_packed),
     where a product is elementwise: several times faster on CPU than batched 5x5 matmuls.
     """
-    xi = increment_tangents(gyro, acc, dt, gyro_bias, acc_bias)
+    batch = _check_stream(gyro, acc, dt)
+    b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch)
+    b_a = _as_vector(acc_bias, gyro, "acc_bias", batch)
+    batch = torch.broadcast_shapes(batch, b_g.shape[:-1], b_a.shape[:-1])
+    isotropic = all(not isinstance(d, torch.Tensor) or d.dim() == 0
+                    for d in (gyro_noise_density, acc_noise_density))
+    s_t = _time_density(time_noise_density, gyro)
+    if isotropic:
+        s_a = _time_density(acc_noise_density, gyro, "acc_noise_density")
+        s_g = _time_density(gyro_noise_density, gyro, "gyro_noise_density")
+    else:
+        s_a = _as_vector(acc_noise_density, gyro, "acc_noise_density", batch)
+        s_g = _as_vector(gyro_noise_density, gyro, "gyro_noise_density", batch)
+        s_a, s_g = torch.broadcast_tensors(s_a, s_g)
+    b_g, b_a = b_g.expand(*batch, 3), b_a.expand(*batch, 3)
+    args = (gyro, acc, dt, b_g, b_a, s_a, s_g)
+    if _eligible(args + (s_t,)) and math.prod(batch) > 0 and (
+            isotropic or not covariance or torch.broadcast_shapes(batch, s_a.shape[:-1]) == batch):
+        delta, cov, jac = _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian)
+    else:
+        delta, cov, jac = _integrate(*args, s_t, isotropic, covariance, bias_jacobian)
+    return Preintegration(SGal3(delta), cov, jac, b_g, b_a)
+
+
+# ------------------------------------------------------------------- fast CPU path
+# Where nothing can observe it (functional/_blocking.py: CPU, no autograd recording, no functorch
+# transform, no compile) the same arithmetic runs with its products written in place (no stack or
+# cat copies) and, for large batches, over groups of windows of about _BLOCK_BYTES per component:
+# temporaries of that size are recycled by the allocator instead of being faulted in fresh
+# (benchmarks/bench_imu.py).  Elsewhere the plain code (_integrate) runs, for autograd and vmap.
+_BLOCK_BYTES = 1 << 18  # per component: 32768 float64 or 65536 float32 samples (best of 8k-128k)
+
+
+def _compose_into(P1: torch.Tensor, P2: torch.Tensor, out: torch.Tensor) -> None:
+    """out = P1 P2 in the packed layout: F.compose_packed's arithmetic, in the same order (bitwise
+    equal), in 9 broadcast operations instead of 55 (C1 C2 = sum_k C1[:, k] C2[k, :], and the
+    same for the columns [v2, r2]), written into ``out`` (which must not overlap P1 or P2)."""
+    C1, C2, oC = (P[0:9].unflatten(0, (3, 3)) for P in (P1, P2, out))
+    vr2, ovr = P2[9:15].unflatten(0, (2, 3)), out[9:15].unflatten(0, (2, 3))
+    torch.mul(C1[:, 0, None], C2[None, 0], out=oC)
+    oC.addcmul_(C1[:, 1, None], C2[None, 1]).addcmul_(C1[:, 2, None], C2[None, 2])
+    torch.mul(C1[None, :, 0], vr2[:, 0, None], out=ovr)
+    ovr.addcmul_(C1[None, :, 1], vr2[:, 1, None]).addcmul_(C1[None, :, 2], vr2[:, 2, None]).add_(P1[9:15].unflatten(0, (2, 3)))
+    out[12:15].addcmul_(P2[15, None], P1[9:12])
+    torch.add(P1[15], P2[15], out=out[15])
+
+
+def _pairs_into(E: torch.Tensor) -> torch.Tensor:
+    """_pair_products of packed (16, m, ...) along axis 1, written into one new tensor."""
+    m = E.shape[1]
+    half = m // 2
+    P = E.new_empty((16, m - half) + E.shape[2:])
+    _compose_into(E[:, 0 : 2 * half : 2], E[:, 1 : 2 * half : 2], P[:, :half])
+    if m % 2:
+        P[:, half] = E[:, m - 1]
+    return P
+
+
+def _scan_into(E: torch.Tensor, out: torch.Tensor) -> None:
+    """_suffix_products of packed (16, m, ...) along axis 1, written into ``out`` (a view, strided
+    along axis 1 in the recursion): S_2j from the scan of the pairs, S_2j+1 = E_2j+1 S_2j+2."""
+    m = E.shape[1]
+    if m == 1:
+        out.copy_(E)
+        return
+    _scan_into(_pairs_into(E), out[:, 0::2])
+    n_odd = (m - 1) // 2  # odd k with S_{k+1} inside the chain
+    _compose_into(E[:, 1 : 2 * n_odd : 2], out[:, 2 : 2 * n_odd + 1 : 2], out[:, 1 : 2 * n_odd : 2])
+    if m % 2 == 0:
+        out[:, m - 1] = E[:, m - 1]  # S_{m-1} = E_{m-1} S_m, S_m = I
+
+
+def _exp_streams(gyro, acc, dt, b_g, b_a, scale: float) -> torch.Tensor:
+    """F.exp_packed of the tangents [0, (f - b_a) h, (omega - b_g) h, h], h = scale dt (scale 1 or
+    1/2: exact), as packed (16, K, n) straight from gyro, acc (n, K, 3), dt (n, K), biases (n, 3):
+    (3.6) with rho = 0, i.e. v = Gamma_1 nu, r = iota Gamma_2 nu (the Gamma_1 rho term is an exact
+    zero), Gamma_l nu = nu / l! + c_(l+1) phi^ nu + c_(l+2) phi^ phi^ nu sharing phi^ nu."""
+    h = (dt * scale).t()  # (K, n)
+    nu = h.new_empty((3,) + h.shape)
+    phi = h.new_empty((3,) + h.shape)
+    torch.mul((acc - b_a.unsqueeze(-2)).permute(2, 1, 0), h, out=nu)
+    torch.mul((gyro - b_g.unsqueeze(-2)).permute(2, 1, 0), h, out=phi)
+    c = B.coefficients(phi, 4)
+    px = B.cross(phi, nu)
+    ppx = B.cross(phi, px)
+    out = h.new_empty((16,) + h.shape)
+    torch.stack(B.gamma_entries(c, 0, phi), out=out[0:9])
+    torch.add(nu, c[2] * px, out=out[9:12]).add_(c[3] * ppx)
+    r = (0.5 * nu + c[3] * px).add_(c[4] * ppx)
+    torch.mul(h, r, out=out[12:15])
+    out[15] = h
+    return out
+
+
+def _weights(dt: torch.Tensor):
+    """Simpson weights (..., K + 1) of the instants and (..., K) of the midpoints."""
+    zero = torch.zeros_like(dt[..., :1])
+    return (torch.cat((dt, zero), -1) + torch.cat((zero, dt), -1)) / 6.0, 4.0 * dt / 6.0
+
+
+def _nodes_fast(gyro, acc, dt, b_g, b_a):
+    """One block of n windows: (delta packed (16, n), node suffixes X (16, n, 2K) with the node
+    axis last and their weights (n, 2K), the weight (n,) of the identity node); see _integrate."""
+    K = dt.shape[-1]
+    H = _exp_streams(gyro, acc, dt, b_g, b_a, 0.5)
+    E = torch.empty_like(H)
+    _compose_into(H, H, E)
+    S = torch.empty_like(H)
+    _scan_into(E, S)
+    X = H.new_empty((16, H.shape[2], 2 * K))  # instants 0 .. K-1, midpoints 0 .. K-1
+    X[:, :, :K] = S.movedim(1, -1)
+    if K > 1:
+        mid = torch.empty_like(H[:, 1:])
+        _compose_into(H[:, : K - 1], S[:, 1:], mid)
+        X[:, :, K : 2 * K - 1] = mid.movedim(1, -1)
+    X[:, :, 2 * K - 1] = H[:, K - 1]
+    w_instants, w_mid = _weights(dt)
+    return S[:, 0], X, torch.cat((w_instants[:, :K], w_mid), -1), w_instants[:, K]
+
+
+def _node_moments_fast(X: torch.Tensor, w: torch.Tensor, w_identity: torch.Tensor) -> dict:
+    """_node_moments of one group, X (16, n, N) (overwritten) and w (n, N): every weighted sum in
+    one batched product.  X becomes [C, vh, lh, th] (_node_moments' names), A = [w, w th, w vh,
+    w lh], and the sums over the nodes of A_a X_b are read off the (n, 8, 16) product."""
+    LV = X.new_empty((2, 3) + X.shape[1:])  # [C^T v, C^T r]
+    C, VR = X[0:9].unflatten(0, (3, 3)), X[9:15].unflatten(0, (2, 3))
+    torch.mul(C[0, None], VR[:, 0, None], out=LV)
+    LV.addcmul_(C[1, None], VR[:, 1, None]).addcmul_(C[2, None], VR[:, 2, None])
+    torch.neg(LV.flatten(0, 1), out=X[9:15])
+    X[15].neg_()
+    A = X.new_empty((8,) + X.shape[1:])
+    A[0] = w
+    torch.mul(w, X[15], out=A[1])
+    torch.mul(w, X[9:15], out=A[2:8])
+    P = A.movedim(0, -2) @ X.movedim(0, -1)  # (n, 8, 16)
+    rows = [0, 1, 5, 6, 7, 2, 3, 4]  # coefficients in _node_moments' order [w, w t, w l, w v]
+    sums = {"w": w.sum(-1) + w_identity, "wt": P[:, 0, 15], "wtt": P[:, 1, 15],
+            "wl": P[:, 0, 12:15], "wv": P[:, 0, 9:12],
+            "outer": P[:, rows[2:]][:, :, [12, 13, 14, 9, 10, 11]],
+            "Y": P[:, rows, 0:9].unflatten(-1, (3, 3)).transpose(-1, -2).clone()}
+    sums["Y"][:, 0] += w_identity[:, None, None] * torch.eye(3, dtype=X.dtype, device=X.device)
+    return sums
+
+
+def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
+    gyro, acc, dt, b_g, b_a, s_a, s_g = args
+    K = gyro.shape[-2]
+    n = math.prod(batch)
+    flat = [gyro.expand(*batch, K, 3).reshape(n, K, 3), acc.expand(*batch, K, 3).reshape(n, K, 3),
+            dt.expand(*batch, K).reshape(n, K), b_g.reshape(n, 3), b_a.reshape(n, 3)]
+    if covariance and not isotropic:
+        flat += [s.expand(*batch, 3).reshape(n, 3) for s in (s_a, s_g)]
+    per = -(-n // min(n, max(1, n * K * gyro.element_size() // _BLOCK_BYTES)))  # windows per block, balanced
+    delta = gyro.new_empty((16, n))
+    covs, moments = [], []
+    for start in range(0, n, per):
+        part = [x[start : start + per] for x in flat]
+        if not (covariance or bias_jacobian):
+            delta[:, start : start + per] = _tree_product(_exp_streams(*part[:5], 1.0))
+            continue
+        d, X, w, w_id = _nodes_fast(*part[:5])
+        delta[:, start : start + per] = d
+        if covariance and not isotropic:
+            covs.append(_general_covariance([(X, w)], w_id, part[5], part[6], s_t))
+        if (covariance and isotropic) or bias_jacobian:
+            moments.append(_node_moments_fast(X, w, w_id))  # X overwritten
+    cov = jac = None
+    if covs:
+        cov = torch.cat(covs) if len(covs) > 1 else covs[0]
+    if moments:
+        m = {k: torch.cat([x[k] for x in moments]) for k in moments[0]} if len(moments) > 1 else moments[0]
+        if covariance and isotropic:
+            cov = _isotropic_covariance(m, s_a, s_g, s_t)
+        if bias_jacobian:
+            jac = _bias_jacobian(m)
+    return (F.unpack(delta).reshape(*batch, 5, 5), None if cov is None else cov.reshape(*batch, 10, 10),
+            None if jac is None else jac.reshape(*batch, 10, 6))
+
+
+def _tree_product(E: torch.Tensor) -> torch.Tensor:
+    """_window_product of packed (16, K, ...) along axis 1, with the products written in place."""
+    while E.shape[1] > 1:
+        E = _pairs_into(E)
+    return E[:, 0]
+
+
+def _general_covariance(node_groups, w_identity, s_a, s_g, s_t) -> torch.Tensor:
+    """sum_j w_j Ad(F_j) G Q_c G^T Ad(F_j)^T for per-axis densities, from the nodes F = X^-1 of
+    ``node_groups`` (as in _node_moments) and the identity node of weight ``w_identity``."""
+    eye = torch.eye(5, dtype=w_identity.dtype, device=w_identity.device).expand(*w_identity.shape, 1, 5, 5)
+    suffixes = SGal3(torch.cat([F.unpack(X) for X, _ in node_groups] + [eye], dim=-3))
+    weights = torch.cat([w for _, w in node_groups] + [w_identity[..., None]], dim=-1)
+    W = noise_map(suffixes.inverse(), weights.sqrt())  # (..., 10, 7, 2K + 1): Ad(node) G sqrt(w)
+    dens = torch.cat((s_a, s_g, s_t.expand(*s_a.shape[:-1], 1)), dim=-1)
+    Wq = (W * dens[..., None, :, None]).reshape(*W.shape[:-3], 10, -1)  # sqrt(w_j Q_c)
+    return Wq @ Wq.transpose(-1, -2)
+
+
+def _integrate(gyro, acc, dt, b_g, b_a, s_a, s_g, s_t, isotropic, covariance, bias_jacobian):
+    """(delta matrices (..., 5, 5), covariance or None, bias Jacobian or None) of the windows;
+    biases (..., 3) broadcast to the windows' batch; densities validated by preintegrate."""
+    xi = increment_tangents(gyro, acc, dt, b_g, b_a)
     batch, K = xi.shape[:-2], xi.shape[-2]
-    b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch).expand(*batch, 3)
-    b_a = _as_vector(acc_bias, gyro, "acc_bias", batch).expand(*batch, 3)
     # Products in the packed layout (16, K, ...): chain axis first, contiguous halves for the scans.
     if not (covariance or bias_jacobian):
         E = F.exp_packed(xi.movedim(-2, 0))
-        delta = F.unpack(_window_product(E, F.compose_packed, 1))
-        return Preintegration(SGal3(delta), None, None, b_g, b_a)
+        return F.unpack(_window_product(E, F.compose_packed, 1)), None, None
 
     H = F.exp_packed(0.5 * xi.movedim(-2, 0))  # half-sample factors: E_k = H_k H_k exactly
     S = _suffix_products(F.compose_packed(H, H), F.compose_packed, 1, F.packed_identity(H))  # E_k ... E_{K-1}
     delta = F.unpack(S[:, 0])
     # Simpson nodes of the noise integral in the right perturbation: at the sample instants
     # Delta^-1 Delta(t_k) = S_k^-1 (S_K = I) and at the midpoints (H_k S_{k+1})^-1.
-    h = dt.expand(*batch, K)
-    zero = torch.zeros_like(h[..., :1])
-    w_instants = (torch.cat((h, zero), -1) + torch.cat((zero, h), -1)) / 6.0  # K + 1
-    w_mid = 4.0 * h / 6.0
+    w_instants, w_mid = _weights(dt.expand(*batch, K))  # K + 1, K
     last = lambda P: P.movedim(1, -1).contiguous()  # noqa: E731  node axis last, for the sums over nodes
     node_groups = [  # (packed suffixes X (16, ..., n), weights (..., n)): the nodes are X^-1
         (last(S), w_instants[..., :K]),  # instants 0 .. K-1
@@ -382,29 +578,16 @@ def preintegrate(
     if K > 1:
         node_groups.append((last(F.compose_packed(H[:, : K - 1], S[:, 1:])), w_mid[..., : K - 1]))
     # instant K is the identity: its node map is G itself, weight w_instants[..., K]
-    isotropic = all(not isinstance(d, torch.Tensor) or d.dim() == 0
-                    for d in (gyro_noise_density, acc_noise_density))
     cov = jac = None
     if covariance and not isotropic:
-        eye = torch.eye(5, dtype=xi.dtype, device=xi.device).expand(*batch, 1, 5, 5)
-        suffixes = SGal3(torch.cat([F.unpack(X) for X, _ in node_groups] + [eye], dim=-3))
-        weights = torch.cat([w for _, w in node_groups] + [w_instants[..., K:]], dim=-1)
-        W = noise_map(suffixes.inverse(), weights.sqrt())  # (..., 10, 7, 2K + 1): Ad(node) G sqrt(w)
-        s_a = _as_vector(acc_noise_density, gyro, "acc_noise_density", batch)
-        s_g = _as_vector(gyro_noise_density, gyro, "gyro_noise_density", batch)
-        s_a, s_g = torch.broadcast_tensors(s_a, s_g)
-        dens = torch.cat((s_a, s_g, _time_density(time_noise_density, gyro).expand(*s_a.shape[:-1], 1)), dim=-1)
-        Wq = (W * dens[..., None, :, None]).reshape(*W.shape[:-3], 10, -1)  # sqrt(w_j Q_c)
-        cov = Wq @ Wq.transpose(-1, -2)
+        cov = _general_covariance(node_groups, w_instants[..., K], s_a, s_g, s_t)
     if (covariance and isotropic) or bias_jacobian:
         moments = _node_moments(node_groups, w_instants[..., K])
         if covariance and isotropic:
-            cov = _isotropic_covariance(moments, _time_density(acc_noise_density, gyro, "acc_noise_density"),
-                                        _time_density(gyro_noise_density, gyro, "gyro_noise_density"),
-                                        _time_density(time_noise_density, gyro))
+            cov = _isotropic_covariance(moments, s_a, s_g, s_t)
         if bias_jacobian:
             jac = _bias_jacobian(moments)
-    return Preintegration(SGal3(delta), cov, jac, b_g, b_a)
+    return delta, cov, jac
 
 
 # ---------------------------------------------------------------------------- gravity
