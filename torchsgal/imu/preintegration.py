@@ -403,45 +403,60 @@ def _compose_into(P1: torch.Tensor, P2: torch.Tensor, out: torch.Tensor) -> None
     torch.add(P1[15], P2[15], out=out[15])
 
 
-def _pairs_into(E: torch.Tensor) -> torch.Tensor:
-    """_pair_products of packed (16, m, ...) along axis 1, written into one new tensor."""
+class _Scratch:
+    """Buffers reused from block to block: a fresh tensor of several MB is paid in page faults
+    each time (functional/_blocking.py), a reused one is not."""
+
+    def __init__(self, like: torch.Tensor):
+        self.like, self.bufs = like, {}
+
+    def __call__(self, key, shape) -> torch.Tensor:
+        n = math.prod(shape)
+        buf = self.bufs.get(key)
+        if buf is None or buf.numel() < n:
+            buf = self.bufs[key] = self.like.new_empty(n)
+        return buf[:n].view(shape)
+
+
+def _pairs_into(E: torch.Tensor, ws: _Scratch) -> torch.Tensor:
+    """_pair_products of packed (16, m, ...) along axis 1, written into a scratch tensor."""
     m = E.shape[1]
     half = m // 2
-    P = E.new_empty((16, m - half) + E.shape[2:])
+    P = ws(("pairs", m), (16, m - half) + E.shape[2:])
     _compose_into(E[:, 0 : 2 * half : 2], E[:, 1 : 2 * half : 2], P[:, :half])
     if m % 2:
         P[:, half] = E[:, m - 1]
     return P
 
 
-def _scan_into(E: torch.Tensor, out: torch.Tensor) -> None:
+def _scan_into(E: torch.Tensor, out: torch.Tensor, ws: _Scratch | None = None) -> None:
     """_suffix_products of packed (16, m, ...) along axis 1, written into ``out`` (a view, strided
     along axis 1 in the recursion): S_2j from the scan of the pairs, S_2j+1 = E_2j+1 S_2j+2."""
     m = E.shape[1]
     if m == 1:
         out.copy_(E)
         return
-    _scan_into(_pairs_into(E), out[:, 0::2])
+    ws = ws or _Scratch(E)
+    _scan_into(_pairs_into(E, ws), out[:, 0::2], ws)
     n_odd = (m - 1) // 2  # odd k with S_{k+1} inside the chain
     _compose_into(E[:, 1 : 2 * n_odd : 2], out[:, 2 : 2 * n_odd + 1 : 2], out[:, 1 : 2 * n_odd : 2])
     if m % 2 == 0:
         out[:, m - 1] = E[:, m - 1]  # S_{m-1} = E_{m-1} S_m, S_m = I
 
 
-def _exp_streams(gyro, acc, dt, b_g, b_a, scale: float) -> torch.Tensor:
+def _exp_streams(gyro, acc, dt, b_g, b_a, scale: float, ws: _Scratch) -> torch.Tensor:
     """F.exp_packed of the tangents [0, (f - b_a) h, (omega - b_g) h, h], h = scale dt (scale 1 or
     1/2: exact), as packed (16, K, n) straight from gyro, acc (n, K, 3), dt (n, K), biases (n, 3):
     (3.6) with rho = 0, i.e. v = Gamma_1 nu, r = iota Gamma_2 nu (the Gamma_1 rho term is an exact
     zero), Gamma_l nu = nu / l! + c_(l+1) phi^ nu + c_(l+2) phi^ phi^ nu sharing phi^ nu."""
     h = (dt * scale).t()  # (K, n)
-    nu = h.new_empty((3,) + h.shape)
-    phi = h.new_empty((3,) + h.shape)
+    nu, phi = ws("nu", (3,) + h.shape), ws("phi", (3,) + h.shape)
     torch.mul((acc - b_a.unsqueeze(-2)).permute(2, 1, 0), h, out=nu)
     torch.mul((gyro - b_g.unsqueeze(-2)).permute(2, 1, 0), h, out=phi)
     c = B.coefficients(phi, 4)
     px = B.cross(phi, nu)
     ppx = B.cross(phi, px)
-    out = h.new_empty((16,) + h.shape)
+    out = ws("H", (16,) + h.shape)
     torch.stack(B.gamma_entries(c, 0, phi), out=out[0:9])
     torch.add(nu, c[2] * px, out=out[9:12]).add_(c[3] * ppx)
     r = (0.5 * nu + c[3] * px).add_(c[4] * ppx)
@@ -456,47 +471,59 @@ def _weights(dt: torch.Tensor):
     return (torch.cat((dt, zero), -1) + torch.cat((zero, dt), -1)) / 6.0, 4.0 * dt / 6.0
 
 
-def _nodes_fast(gyro, acc, dt, b_g, b_a):
-    """One block of n windows: (delta packed (16, n), node suffixes X (16, n, 2K) with the node
-    axis last and their weights (n, 2K), the weight (n,) of the identity node); see _integrate."""
+def _node_major(P: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """Packed (16, K, n) -> ``out`` (16, n, K), node axis last for the sums over nodes (a 2-D
+    transpose per component: torch's cache-blocked transpose copy)."""
+    for c in range(16):
+        out[c].copy_(P[c].t())
+    return out
+
+
+def _nodes_fast(gyro, acc, dt, b_g, b_a, ws: _Scratch):
+    """One block of n windows: (delta packed (16, n), node groups [(X (16, n, K), weights (n, K))]
+    for the instants 0 .. K-1 and the midpoints 0 .. K-1 (node axis last), the weight (n,) of
+    the identity node); see _integrate."""
     K = dt.shape[-1]
-    H = _exp_streams(gyro, acc, dt, b_g, b_a, 0.5)
-    E = torch.empty_like(H)
+    H = _exp_streams(gyro, acc, dt, b_g, b_a, 0.5, ws)
+    E = ws("E", H.shape)
     _compose_into(H, H, E)
-    S = torch.empty_like(H)
-    _scan_into(E, S)
-    X = H.new_empty((16, H.shape[2], 2 * K))  # instants 0 .. K-1, midpoints 0 .. K-1
-    X[:, :, :K] = S.movedim(1, -1)
-    if K > 1:
-        mid = torch.empty_like(H[:, 1:])
-        _compose_into(H[:, : K - 1], S[:, 1:], mid)
-        X[:, :, K : 2 * K - 1] = mid.movedim(1, -1)
-    X[:, :, 2 * K - 1] = H[:, K - 1]
+    S = ws("S", H.shape)
+    _scan_into(E, S, ws)
+    mid = E  # E is consumed: the midpoints H_k S_{k+1}, S_K = I
+    _compose_into(H[:, : K - 1], S[:, 1:], mid[:, : K - 1])
+    mid[:, K - 1] = H[:, K - 1]
     w_instants, w_mid = _weights(dt)
-    return S[:, 0], X, torch.cat((w_instants[:, :K], w_mid), -1), w_instants[:, K]
+    n = H.shape[2]
+    groups = [(_node_major(S, ws("XS", (16, n, K))), w_instants[:, :K]),
+              (_node_major(mid, ws("XM", (16, n, K))), w_mid)]
+    return S[:, 0], groups, w_instants[:, K]
 
 
-def _node_moments_fast(X: torch.Tensor, w: torch.Tensor, w_identity: torch.Tensor) -> dict:
-    """_node_moments of one group, X (16, n, N) (overwritten) and w (n, N): every weighted sum in
-    one batched product.  X becomes [C, vh, lh, th] (_node_moments' names), A = [w, w th, w vh,
-    w lh], and the sums over the nodes of A_a X_b are read off the (n, 8, 16) product."""
-    LV = X.new_empty((2, 3) + X.shape[1:])  # [C^T v, C^T r]
-    C, VR = X[0:9].unflatten(0, (3, 3)), X[9:15].unflatten(0, (2, 3))
-    torch.mul(C[0, None], VR[:, 0, None], out=LV)
-    LV.addcmul_(C[1, None], VR[:, 1, None]).addcmul_(C[2, None], VR[:, 2, None])
-    torch.neg(LV.flatten(0, 1), out=X[9:15])
-    X[15].neg_()
-    A = X.new_empty((8,) + X.shape[1:])
-    A[0] = w
-    torch.mul(w, X[15], out=A[1])
-    torch.mul(w, X[9:15], out=A[2:8])
-    P = A.movedim(0, -2) @ X.movedim(0, -1)  # (n, 8, 16)
+def _node_moments_fast(groups, w_identity: torch.Tensor, ws: _Scratch) -> dict:
+    """_node_moments of groups of X (16, n, N) (overwritten) and w (n, N): every weighted sum in
+    one batched product per group.  X becomes [C, vh, lh, th] (_node_moments' names),
+    A = [w, w th, w vh, w lh], and the sums over the nodes of A_a X_b are read off the
+    (n, 8, 16) product."""
+    P = None
+    for X, w in groups:
+        LV = ws("LV", (2, 3) + X.shape[1:])  # [C^T v, C^T r]
+        C, VR = X[0:9].unflatten(0, (3, 3)), X[9:15].unflatten(0, (2, 3))
+        torch.mul(C[0, None], VR[:, 0, None], out=LV)
+        LV.addcmul_(C[1, None], VR[:, 1, None]).addcmul_(C[2, None], VR[:, 2, None])
+        torch.neg(LV.flatten(0, 1), out=X[9:15])
+        X[15].neg_()
+        A = ws("A", (8,) + X.shape[1:])
+        A[0] = w
+        torch.mul(w, X[15], out=A[1])
+        torch.mul(w, X[9:15], out=A[2:8])
+        a, x = A.movedim(0, -2), X.movedim(0, -1)
+        P = a @ x if P is None else torch.baddbmm(P, a, x)  # (n, 8, 16)
     rows = [0, 1, 5, 6, 7, 2, 3, 4]  # coefficients in _node_moments' order [w, w t, w l, w v]
-    sums = {"w": w.sum(-1) + w_identity, "wt": P[:, 0, 15], "wtt": P[:, 1, 15],
+    sums = {"w": sum(w.sum(-1) for _, w in groups) + w_identity, "wt": P[:, 0, 15], "wtt": P[:, 1, 15],
             "wl": P[:, 0, 12:15], "wv": P[:, 0, 9:12],
             "outer": P[:, rows[2:]][:, :, [12, 13, 14, 9, 10, 11]],
             "Y": P[:, rows, 0:9].unflatten(-1, (3, 3)).transpose(-1, -2).clone()}
-    sums["Y"][:, 0] += w_identity[:, None, None] * torch.eye(3, dtype=X.dtype, device=X.device)
+    sums["Y"][:, 0] += w_identity[:, None, None] * torch.eye(3, dtype=P.dtype, device=P.device)
     return sums
 
 
@@ -510,18 +537,18 @@ def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
         flat += [s.expand(*batch, 3).reshape(n, 3) for s in (s_a, s_g)]
     per = -(-n // min(n, max(1, n * K * gyro.element_size() // _BLOCK_BYTES)))  # windows per block, balanced
     delta = gyro.new_empty((16, n))
-    covs, moments = [], []
+    covs, moments, ws = [], [], _Scratch(gyro)
     for start in range(0, n, per):
         part = [x[start : start + per] for x in flat]
         if not (covariance or bias_jacobian):
-            delta[:, start : start + per] = _tree_product(_exp_streams(*part[:5], 1.0))
+            delta[:, start : start + per] = _tree_product(_exp_streams(*part[:5], 1.0, ws), ws)
             continue
-        d, X, w, w_id = _nodes_fast(*part[:5])
+        d, groups, w_id = _nodes_fast(*part[:5], ws)
         delta[:, start : start + per] = d
         if covariance and not isotropic:
-            covs.append(_general_covariance([(X, w)], w_id, part[5], part[6], s_t))
+            covs.append(_general_covariance(groups, w_id, part[5], part[6], s_t))
         if (covariance and isotropic) or bias_jacobian:
-            moments.append(_node_moments_fast(X, w, w_id))  # X overwritten
+            moments.append(_node_moments_fast(groups, w_id, ws))  # the groups' X overwritten
     cov = jac = None
     if covs:
         cov = torch.cat(covs) if len(covs) > 1 else covs[0]
@@ -535,10 +562,11 @@ def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
             None if jac is None else jac.reshape(*batch, 10, 6))
 
 
-def _tree_product(E: torch.Tensor) -> torch.Tensor:
+def _tree_product(E: torch.Tensor, ws: _Scratch | None = None) -> torch.Tensor:
     """_window_product of packed (16, K, ...) along axis 1, with the products written in place."""
+    ws = ws or _Scratch(E)
     while E.shape[1] > 1:
-        E = _pairs_into(E)
+        E = _pairs_into(E, ws)
     return E[:, 0]
 
 
