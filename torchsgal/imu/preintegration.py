@@ -355,6 +355,8 @@ def preintegrate(
     and a work-efficient parallel scan over K; no loop over samples or windows.  The factors
     stay in SGal3's packed component layout (functional.sgal3.exp_packed / compose_packed),
     where a product is elementwise: several times faster on CPU than batched 5x5 matmuls.
+    On CPU with nothing recording (no autograd, functorch transform or compile) the same
+    arithmetic runs in place and in blocks of windows (_integrate_fast, docs/imu.md).
     """
     batch = _check_stream(gyro, acc, dt)
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch)
@@ -393,13 +395,15 @@ def _compose_into(P1: torch.Tensor, P2: torch.Tensor, out: torch.Tensor) -> None
     """out = P1 P2 in the packed layout: F.compose_packed's arithmetic, in the same order (bitwise
     equal), in 9 broadcast operations instead of 55 (C1 C2 = sum_k C1[:, k] C2[k, :], and the
     same for the columns [v2, r2]), written into ``out`` (which must not overlap P1 or P2)."""
-    C1, C2, oC = (P[0:9].unflatten(0, (3, 3)) for P in (P1, P2, out))
-    vr2, ovr = P2[9:15].unflatten(0, (2, 3)), out[9:15].unflatten(0, (2, 3))
-    torch.mul(C1[:, 0, None], C2[None, 0], out=oC)
-    oC.addcmul_(C1[:, 1, None], C2[None, 1]).addcmul_(C1[:, 2, None], C2[None, 2])
-    torch.mul(C1[None, :, 0], vr2[:, 0, None], out=ovr)
-    ovr.addcmul_(C1[None, :, 1], vr2[:, 1, None]).addcmul_(C1[None, :, 2], vr2[:, 2, None]).add_(P1[9:15].unflatten(0, (2, 3)))
-    out[12:15].addcmul_(P2[15, None], P1[9:12])
+    C1c = P1[0:9].unflatten(0, (3, 3, 1)).unbind(1)  # columns of C1, (3, 1, ...)
+    C1r = P1[0:9].unflatten(0, (1, 3, 3)).unbind(2)  # the same as (1, 3, ...)
+    C2r = P2[0:9].unflatten(0, (1, 3, 3)).unbind(1)  # rows of C2, (1, 3, ...)
+    vr2 = P2[9:15].unflatten(0, (2, 3, 1)).unbind(1)  # components k of [v2, r2], (2, 1, ...)
+    oC, ovr = out[0:9].unflatten(0, (3, 3)), out[9:15].unflatten(0, (2, 3))
+    torch.mul(C1c[0], C2r[0], out=oC).addcmul_(C1c[1], C2r[1]).addcmul_(C1c[2], C2r[2])
+    torch.mul(C1r[0], vr2[0], out=ovr).addcmul_(C1r[1], vr2[1]).addcmul_(C1r[2], vr2[2])
+    ovr.add_(P1[9:15].unflatten(0, (2, 3)))
+    out[12:15].addcmul_(P2[15:16], P1[9:12])
     torch.add(P1[15], P2[15], out=out[15])
 
 
