@@ -93,7 +93,8 @@ def coefficients(phi: torch.Tensor, order: int = numerics.MAX_ORDER) -> list[tor
 def gamma_vec(c: list[torch.Tensor], l: int, phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Gamma_l(phi) x (3, ...) without forming the matrix; Gamma_l(-phi) x = Gamma_l^T x."""
     px = cross(phi, x)
-    return x / math.factorial(l) + c[l + 1] * px + c[l + 2] * cross(phi, px)
+    base = x if l < 2 else x / math.factorial(l)
+    return base + c[l + 1] * px + c[l + 2] * cross(phi, px)
 
 
 def sym_skew_entries(d, a, b, phi: torch.Tensor) -> tuple[torch.Tensor, ...]:

@@ -65,8 +65,11 @@ def _exp_components(xi: torch.Tensor):
     tau = iota; vectors component-first."""
     rho, nu, phi, iota = _split(xi)
     c = B.coefficients(phi, 4)
-    v = B.gamma_vec(c, 1, phi, nu)
-    r = B.gamma_vec(c, 1, phi, rho) + iota * B.gamma_vec(c, 2, phi, nu)
+    pn = B.cross(phi, nu)
+    ppn = B.cross(phi, pn)
+    v = nu + c[2] * pn + c[3] * ppn  # Gamma_1 nu
+    g2n = 0.5 * nu + c[3] * pn + c[4] * ppn  # Gamma_2 nu
+    r = B.gamma_vec(c, 1, phi, rho) + iota * g2n
     return B.gamma_entries(c, 0, phi), v, r, iota
 
 
@@ -152,10 +155,11 @@ def _jl_blocks(xi: torch.Tensor):
     E = B.gamma_mat(c, 2, phi)
     Mb = B.q_block(c, phi, nu, D)
     i3 = iota[..., None, None]
-    r = B.gamma_vec(c, 1, phi, rho) + iota * B.gamma_vec(c, 2, phi, nu)
+    g2n = B.gamma_vec(c, 2, phi, nu)
+    r = B.gamma_vec(c, 1, phi, rho) + iota * g2n
     dr = B.gamma_vec_derivative(c, 1, phi, rho) + i3 * B.gamma_vec_derivative(c, 2, phi, nu)
     N = dr + B.skew_times(r.movedim(0, -1), D) - i3 * Mb
-    Enu = B.column(B.gamma_vec(c, 2, phi, nu))
+    Enu = B.column(g2n)
     return D, D - E, N, Enu, Mb, i3
 
 
