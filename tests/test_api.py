@@ -325,3 +325,22 @@ def test_sgal3_packed_layout(dtype):
         F.compose_packed(P, torch.zeros(15, 2, 3, dtype=dtype))
     with pytest.raises(ValueError, match="M must have shape"):
         F.pack(torch.zeros(2, 4, 4, dtype=dtype))
+
+
+def test_series_constant_cache_keeps_only_plain_tensors(monkeypatch):
+    """The series constants are cached per dtype/device, but not when first created under
+    inference mode or a fake-tensor trace (those tensors would poison later calls)."""
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    from torchsgal.functional import numerics
+
+    monkeypatch.setattr(numerics, "_CONSTANTS", {})
+    with torch.inference_mode():
+        ts.SGal3.exp(torch.randn(3, 10, dtype=torch.float64))
+    with FakeTensorMode():
+        ts.SGal3.exp(torch.randn(3, 10, dtype=torch.float32))
+    assert numerics._CONSTANTS == {}
+    x = torch.randn(4, 10, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: ts.SGal3.exp(v).as_matrix(), (x,))
+    assert numerics._CONSTANTS and all(type(t) is torch.Tensor and not t.is_inference()
+                                       for consts in numerics._CONSTANTS.values() for t in consts)

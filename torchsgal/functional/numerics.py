@@ -60,7 +60,11 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
         inv_fact = [1.0 / math.factorial(m) for m in range(order + 1)]
         consts = (torch.tensor(taylor, dtype=dtype, device=device),
                   torch.tensor(inv_fact, dtype=dtype, device=device))
-        _CONSTANTS[key] = consts
+        # Cache plain tensors only: not the fake or inference tensors of a tracing or
+        # inference-mode first call.
+        if not torch.compiler.is_compiling() and all(
+                type(t) is torch.Tensor and not t.is_inference() for t in consts):
+            _CONSTANTS[key] = consts
     return consts
 
 
