@@ -204,30 +204,27 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     s = 0.5 * vec(c21 - c12, c02 - c20, c10 - c01)
     cos = 0.5 * (c00 + c11 + c22 - 1.0)
     ss = dot(s, s)
-    positive = ss > 0
-    sin = torch.where(positive, torch.sqrt(torch.where(positive, ss, torch.ones_like(ss))), 0.0)
+    one = torch.ones_like(ss)
+    sel, flt = numerics.select, (lambda m: m.to(C.dtype))  # exact 0/1 masks (numerics.select)
+    positive = flt(ss > 0)
+    sin = positive * torch.sqrt(sel(positive, ss, one))
     theta = torch.atan2(sin, cos)
 
     # Near 0 / moderate angles: theta / sin theta, Taylor when sin is tiny.
-    tiny = sin < numerics.LOG_SIN_TAYLOR
-    sin_safe = torch.where(tiny, torch.ones_like(sin), sin)
+    tiny = flt(sin < numerics.LOG_SIN_TAYLOR)
     t2 = theta * theta
-    ratio = torch.where(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0, theta / sin_safe)
+    ratio = sel(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0, theta / sel(tiny, one, sin))
 
     # Near pi: axis from the symmetric part, its largest diagonal entry's column.
     d0, d1, d2 = c00 - cos, c11 - cos, c22 - cos
     s01, s02, s12 = 0.5 * (c01 + c10), 0.5 * (c02 + c20), 0.5 * (c12 + c21)
-    pick0 = (d0 >= d1) & (d0 >= d2)
-    pick1 = d1 >= d2
-    col = vec(
-        torch.where(pick0, d0, torch.where(pick1, s01, s02)),
-        torch.where(pick0, s01, torch.where(pick1, d1, s12)),
-        torch.where(pick0, s02, torch.where(pick1, s12, d2)),
-    )
-    near_pi = cos < numerics.LOG_SYMMETRIC_COS
-    sign = torch.where(dot(col, s) < 0, -1.0, 1.0).to(C.dtype)
-    col_norm = torch.sqrt(torch.where(near_pi, dot(col, col), torch.ones_like(cos)))
-    return torch.where(near_pi, (sign * theta / col_norm) * col, ratio * s)
+    pick0 = flt((d0 >= d1) & (d0 >= d2))
+    pick1 = flt(d1 >= d2)
+    col = sel(pick0, vec(d0, s01, s02), sel(pick1, vec(s01, d1, s12), vec(s02, s12, d2)))
+    near_pi = flt(cos < numerics.LOG_SYMMETRIC_COS)
+    sign = 1.0 - 2.0 * flt(dot(col, s) < 0)
+    col_norm = torch.sqrt(sel(near_pi, dot(col, col), one))
+    return sel(near_pi, (sign * theta / col_norm) * col, ratio * s)
 
 
 # ----------------------------------------------------------------------- assembly

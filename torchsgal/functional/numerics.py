@@ -12,8 +12,8 @@ and its derivative e_m = c_m'(theta)/theta = m c_(m+2) - c_(m+1).
 
 Below ``SERIES_THRESHOLD`` the two highest coefficients come from their Taylor series and the
 lower ones from the downward recursion; above it, from sin/cos and the upward recursion.
-Both branches are evaluated on safe inputs and merged with ``torch.where``, so values and
-gradients stay finite everywhere (the "double where" trick).  Functions take theta^2, never
+Both branches are evaluated on safe inputs and merged with exact 0/1 masks (``select``), so
+values and gradients stay finite everywhere (the "double where" trick).  Functions take theta^2, never
 theta, so nothing differentiates sqrt at zero.
 """
 from __future__ import annotations
@@ -116,7 +116,7 @@ def jinv_coefficient(theta2: torch.Tensor) -> torch.Tensor:
     small = theta2 < JINV_THRESHOLD**2
     mask = small.to(theta2.dtype)
     t2s = theta2 * mask
-    t2l = torch.where(small, torch.ones_like(theta2), theta2)
+    t2l = select(mask, torch.ones_like(theta2), theta2)
     # (theta/2) cot(theta/2) = sum_n (-1)^n B_2n theta^2n / (2n)!  => d = -sum_{n>=1} ... / theta^2
     bern = [1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160, 691 / 1307674368000,
             1 / 74724249600]
@@ -211,7 +211,7 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
 
     # Large angle: K = int e^(-(1-a) lam) e^(i a theta) da = (e^(i theta) - e^(-lam)) / w,
     # K1 = int a (...) da = (e^(i theta) - K) / w, w = lam + i theta, |w| >= theta >= 1.
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t2 = select(mask, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2)
     cos, sin = torch.cos(t), torch.sin(t)
     w2 = lam * lam + t2
