@@ -532,6 +532,9 @@ def _node_moments_fast(groups, w_identity: torch.Tensor, ws: _Scratch) -> dict:
 
 
 def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
+    """_integrate's results by the fast path: the windows flattened, run in blocks of about
+    _BLOCK_BYTES per component with one set of scratch buffers, the node sums of every block
+    gathered and the (small) covariance and bias Jacobian formed once."""
     gyro, acc, dt, b_g, b_a, s_a, s_g = args
     K = gyro.shape[-2]
     n = math.prod(batch)
