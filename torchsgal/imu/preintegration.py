@@ -476,11 +476,9 @@ def _weights(dt: torch.Tensor):
 
 
 def _node_major(P: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """Packed (16, K, n) -> ``out`` (16, n, K), node axis last for the sums over nodes (a 2-D
-    transpose per component: torch's cache-blocked transpose copy)."""
-    for c in range(16):
-        out[c].copy_(P[c].t())
-    return out
+    """Packed (16, K, n) -> ``out`` (16, n, K), node axis last for the sums over nodes (one
+    copy: faster than a cache-blocked 2-D transpose per component)."""
+    return out.copy_(P.transpose(1, 2))
 
 
 def _nodes_fast(gyro, acc, dt, b_g, b_a, ws: _Scratch):
