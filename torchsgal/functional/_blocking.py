@@ -33,7 +33,10 @@ MIN_BATCH = 2 * BLOCK
 _is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
 
 
-def _eligible(args) -> bool:
+def unobserved(args) -> bool:
+    """True where a blocked or in-place evaluation of ``args`` cannot be observed: plain CPU
+    tensors, no autograd recording, no functorch transform, not compiling (the rule of this
+    module, also used by the IMU's fast path)."""
     if _is_wrapped is None or torch.compiler.is_compiling():
         return False
     grad = torch.is_grad_enabled()
@@ -51,7 +54,7 @@ def run_blocked(fn, args, event_dims):
     ``event_dims[i]`` is the number of trailing non-batch dimensions of ``args[i]``; ``fn`` must
     act independently on every batch element and return one tensor (..., *event).
     """
-    if not _eligible(args) or any(a.dim() < k for a, k in zip(args, event_dims)):
+    if not unobserved(args) or any(a.dim() < k for a, k in zip(args, event_dims)):
         return fn(*args)
     shapes = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
     if all(s == shapes[0] for s in shapes):

@@ -28,7 +28,7 @@ from .. import SGal3
 from ..functional import blocks as B
 from ..functional import checks
 from ..functional import sgal3 as F
-from ..functional._blocking import _eligible
+from ..functional import unobserved
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
@@ -374,7 +374,7 @@ def preintegrate(
         s_a, s_g = torch.broadcast_tensors(s_a, s_g)
     b_g, b_a = b_g.expand(*batch, 3), b_a.expand(*batch, 3)
     args = (gyro, acc, dt, b_g, b_a, s_a, s_g)
-    if _eligible(args + (s_t,)) and math.prod(batch) > 0 and (
+    if unobserved(args + (s_t,)) and math.prod(batch) > 0 and (
             isotropic or not covariance or torch.broadcast_shapes(batch, s_a.shape[:-1]) == batch):
         delta, cov, jac = _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian)
     else:
