@@ -15,7 +15,7 @@ For a group module ``mod`` (so3, se3, se23, sgal3):
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev,
 torch.compile), and their backward is itself differentiable (higher derivatives).  Large CPU
-batches run forward and backward in cache-sized blocks where nothing records them (_blocking).
+batches run forward and backward in blocks where nothing records them (_blocking).
 """
 from __future__ import annotations
 

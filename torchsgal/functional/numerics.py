@@ -13,8 +13,8 @@ and its derivative e_m = c_m'(theta)/theta = m c_(m+2) - c_(m+1).
 Below ``SERIES_THRESHOLD`` the two highest coefficients come from their Taylor series and the
 lower ones from the downward recursion; above it, from sin/cos and the upward recursion.
 Both branches are evaluated on safe inputs and merged with exact 0/1 masks (``select``), so
-values and gradients stay finite everywhere (the "double where" trick).  Functions take theta^2, never
-theta, so nothing differentiates sqrt at zero.
+values and gradients stay finite everywhere (the "double where" trick).  Functions take
+theta^2, never theta, so nothing differentiates sqrt at zero.
 """
 from __future__ import annotations
 
