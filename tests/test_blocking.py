@@ -115,3 +115,21 @@ def test_broadcast_arguments_are_blocked(small_blocks):
     a = torch.randn(5, 8, 3, dtype=torch.float64)
     b = torch.randn(1, 8, 4, dtype=torch.float64)
     torch.testing.assert_close(blk.run_blocked(f, (a, b), (1, 1)), f(a, b), rtol=0, atol=0)
+
+
+def test_default_blocks_on_a_large_batch(monkeypatch):
+    """The default block sizes on a batch just over MIN_BATCH (two full blocks and a partial
+    one, counted): SGal3 exp, log and jl equal the unblocked closed forms."""
+    from torchsgal import SGal3
+    from torchsgal.functional import sgal3
+
+    n = _blocking.MIN_BATCH + 3
+    xi = sample_tangent(SGal3, (n,), torch.float32, seed=8)
+    M = sgal3.exp_impl(xi)
+    calls = []
+    plain = sgal3.exp_impl
+    monkeypatch.setattr(sgal3, "exp_impl", lambda x: calls.append(x.shape[0]) or plain(x))
+    _assert_same(sgal3.exp(xi), M, torch.float32, "exp")
+    assert calls == [_blocking.BLOCK, _blocking.BLOCK, 3]
+    _assert_same(sgal3.log(M), sgal3.log_impl(M), torch.float32, "log")
+    _assert_same(sgal3.jl(xi), sgal3.jl.__wrapped__(xi), torch.float32, "jl")
