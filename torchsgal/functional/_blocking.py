@@ -18,6 +18,7 @@ kernels (tests/test_blocking.py).
 from __future__ import annotations
 
 import functools
+import importlib
 import math
 
 import torch
@@ -33,11 +34,19 @@ MIN_BATCH = 2 * BLOCK
 _is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
 
 
+def is_compiling() -> bool:
+    """torch.compiler.is_compiling (torch >= 2.3), or its torch 2.1-2.2 spelling."""
+    fn = getattr(torch.compiler, "is_compiling", None)
+    if fn is None:  # torch < 2.3
+        fn = importlib.import_module("torch._dynamo").is_compiling
+    return fn()
+
+
 def unobserved(args) -> bool:
     """True where a blocked or in-place evaluation of ``args`` cannot be observed: plain CPU
     tensors, no autograd recording, no functorch transform, not compiling (the rule of this
     module, also used by the IMU's fast path)."""
-    if _is_wrapped is None or torch.compiler.is_compiling():
+    if _is_wrapped is None or is_compiling():
         return False
     grad = torch.is_grad_enabled()
     for a in args:

@@ -22,6 +22,8 @@ import math
 
 import torch
 
+from ._blocking import is_compiling
+
 # theta below which Taylor series are used (radians).  At theta = 1 the upward recursion
 # to c_6 loses < 1e-13 relative; the Taylor series below converge to 1e-17 in TAYLOR_TERMS.
 SERIES_THRESHOLD = 1.0
@@ -62,7 +64,7 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
                   torch.tensor(inv_fact, dtype=dtype, device=device))
         # Cache plain tensors only: not the fake or inference tensors of a tracing or
         # inference-mode first call.
-        if not torch.compiler.is_compiling() and all(
+        if not is_compiling() and all(
                 type(t) is torch.Tensor and not t.is_inference() for t in consts):
             _CONSTANTS[key] = consts
     return consts
