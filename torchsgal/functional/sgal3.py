@@ -60,17 +60,24 @@ def vee(X: torch.Tensor) -> torch.Tensor:
     return B.last(B.first(X[..., :3, 4]), B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]), X[..., 3, 4][None])
 
 
-def _exp_components(xi: torch.Tensor):
-    """(3.6): C = Gamma_0(phi) (9 entries), v = Gamma_1 nu, r = Gamma_1 rho + iota Gamma_2 nu,
-    tau = iota; vectors component-first."""
-    rho, nu, phi, iota = _split(xi)
+def exp_parts(nu: torch.Tensor, phi: torch.Tensor, iota: torch.Tensor, rho: torch.Tensor | None = None):
+    """(3.6) on component-first parts nu, phi, rho (3, ...) and iota (...): the 9 entries of
+    C = Gamma_0(phi), v = Gamma_1 nu and r = Gamma_1 rho + iota Gamma_2 nu (rho None: zero,
+    its term skipped), sharing phi^ nu between Gamma_1 nu and Gamma_2 nu."""
     c = B.coefficients(phi, 4)
     pn = B.cross(phi, nu)
     ppn = B.cross(phi, pn)
     v = nu + c[2] * pn + c[3] * ppn  # Gamma_1 nu
-    g2n = 0.5 * nu + c[3] * pn + c[4] * ppn  # Gamma_2 nu
-    r = B.gamma_vec(c, 1, phi, rho) + iota * g2n
-    return B.gamma_entries(c, 0, phi), v, r, iota
+    r = iota * (0.5 * nu + c[3] * pn + c[4] * ppn)  # iota Gamma_2 nu
+    if rho is not None:
+        r = B.gamma_vec(c, 1, phi, rho) + r
+    return B.gamma_entries(c, 0, phi), v, r
+
+
+def _exp_components(xi: torch.Tensor):
+    """(3.6): C (9 entries), v, r and tau = iota of xi; vectors component-first."""
+    rho, nu, phi, iota = _split(xi)
+    return (*exp_parts(nu, phi, iota, rho), iota)
 
 
 def exp_impl(xi: torch.Tensor) -> torch.Tensor:

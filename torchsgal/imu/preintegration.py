@@ -451,20 +451,16 @@ def _scan_into(E: torch.Tensor, out: torch.Tensor, ws: _Scratch | None = None) -
 def _exp_streams(gyro, acc, dt, b_g, b_a, scale: float, ws: _Scratch) -> torch.Tensor:
     """F.exp_packed of the tangents [0, (f - b_a) h, (omega - b_g) h, h], h = scale dt (scale 1 or
     1/2: exact), as packed (16, K, n) straight from gyro, acc (n, K, 3), dt (n, K), biases (n, 3):
-    (3.6) with rho = 0, i.e. v = Gamma_1 nu, r = iota Gamma_2 nu (the Gamma_1 rho term is an exact
-    zero), Gamma_l nu = nu / l! + c_(l+1) phi^ nu + c_(l+2) phi^ phi^ nu sharing phi^ nu."""
+    (3.6) with rho = 0 (F.exp_parts; the Gamma_1 rho term is an exact zero)."""
     h = (dt * scale).t()  # (K, n)
     nu, phi = ws("nu", (3,) + h.shape), ws("phi", (3,) + h.shape)
     torch.mul((acc - b_a.unsqueeze(-2)).permute(2, 1, 0), h, out=nu)
     torch.mul((gyro - b_g.unsqueeze(-2)).permute(2, 1, 0), h, out=phi)
-    c = B.coefficients(phi, 4)
-    px = B.cross(phi, nu)
-    ppx = B.cross(phi, px)
+    C, v, r = F.exp_parts(nu, phi, h)
     out = ws("H", (16,) + h.shape)
-    torch.stack(B.gamma_entries(c, 0, phi), out=out[0:9])
-    torch.add(nu, c[2] * px, out=out[9:12]).add_(c[3] * ppx)
-    r = (0.5 * nu + c[3] * px).add_(c[4] * ppx)
-    torch.mul(h, r, out=out[12:15])
+    torch.stack(C, out=out[0:9])
+    out[9:12] = v
+    out[12:15] = r
     out[15] = h
     return out
 
