@@ -211,7 +211,7 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     theta = torch.atan2(sin, cos)
 
     # Near 0 / moderate angles: theta / sin theta, Taylor when sin is tiny.
-    tiny = flt(sin < numerics.LOG_SIN_TAYLOR)
+    tiny = flt(sin < numerics.log_sin_taylor())
     t2 = theta * theta
     ratio = sel(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0, theta / sel(tiny, one, sin))
 
@@ -221,7 +221,7 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     pick0 = flt((d0 >= d1) & (d0 >= d2))
     pick1 = flt(d1 >= d2)
     col = sel(pick0, vec(d0, s01, s02), sel(pick1, vec(s01, d1, s12), vec(s02, s12, d2)))
-    near_pi = flt(cos < numerics.LOG_SYMMETRIC_COS)
+    near_pi = flt(cos < numerics.log_symmetric_cos())
     sign = 1.0 - 2.0 * flt(dot(col, s) < 0)
     col_norm = torch.sqrt(sel(near_pi, dot(col, col), one))
     return sel(near_pi, (sign * theta / col_norm) * col, ratio * s)

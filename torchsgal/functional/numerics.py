@@ -36,6 +36,23 @@ JINV_THRESHOLD = 0.5
 LOG_SYMMETRIC_COS = 0.0
 
 
+def _constant(value: float):
+    """A getter for ``value`` that torch.compile folds into its graph as a constant.
+
+    The closed forms compare against the thresholds of this module through such getters, never
+    by reading the module-level float: under torch.compile(dynamic=True) a float global becomes
+    a symbolic value, and dynamo (torch 2.13) fails when one is shared by the graphs of two
+    custom autograd.Functions (exp's forward and log's backward).  tests/test_autograd.py
+    compiles with dynamic=True.
+    """
+    return torch.compiler.assume_constant_result(lambda: value)
+
+
+series_threshold_sq = _constant(SERIES_THRESHOLD**2)
+jinv_threshold_sq = _constant(JINV_THRESHOLD**2)
+log_symmetric_cos = _constant(LOG_SYMMETRIC_COS)
+
+
 def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``torch.where(mask, a, b)`` for a float 0/1 ``mask`` and finite a, b, as ``lerp(b, a, mask)``.
 
@@ -76,7 +93,7 @@ def series_coefficients(theta2: torch.Tensor, order: int = MAX_ORDER) -> list[to
         raise ValueError(f"order must be in [1, {MAX_ORDER}], got {order}")
     taylor, inv_fact = _series_constants(order, theta2.dtype, theta2.device)
     taylor = taylor.view((TAYLOR_TERMS, 2) + (1,) * theta2.dim())
-    mask = (theta2 < SERIES_THRESHOLD**2).to(theta2.dtype)
+    mask = (theta2 < series_threshold_sq()).to(theta2.dtype)
     t2_small = theta2 * mask  # 0 where the closed form is used
     t2_large = select(mask, torch.ones_like(theta2), theta2)
 
@@ -115,7 +132,7 @@ def jinv_coefficient(theta2: torch.Tensor) -> torch.Tensor:
     Written as 1/theta^2 - (1 + cos)/(2 theta sin) = 1/theta^2 - cot(theta/2)/(2 theta) for
     large theta (finite up to, not including, 2 pi); Bernoulli series below JINV_THRESHOLD.
     """
-    small = theta2 < JINV_THRESHOLD**2
+    small = theta2 < jinv_threshold_sq()
     mask = small.to(theta2.dtype)
     t2s = theta2 * mask
     t2l = select(mask, torch.ones_like(theta2), theta2)
@@ -131,6 +148,7 @@ def jinv_coefficient(theta2: torch.Tensor) -> torch.Tensor:
     return select(mask, taylor, closed)
 # sin(theta) below which SO(3) log uses theta/sin(theta) = 1 + theta^2/6 + 7 theta^4/360.
 LOG_SIN_TAYLOR = 1e-4
+log_sin_taylor = _constant(LOG_SIN_TAYLOR)
 
 
 # ----------------------------------------------------------------------------- Sim(3)
@@ -141,6 +159,7 @@ LOG_SIN_TAYLOR = 1e-4
 #     q_j = (q_(j-1) - 1/j!) / x  (upward, stable for |x| > j), q_0 = expm1(x)/x.
 # Index j takes the upward value where |x| > j + SCALE_UPWARD_MARGIN, else the downward one.
 SCALE_UPWARD_MARGIN = 0.5
+scale_upward_margin = _constant(SCALE_UPWARD_MARGIN)
 # The downward recursion starts this many orders above the highest moment requested, from
 # Taylor series of SCALE_TAYLOR_TERMS terms.
 SCALE_EXTRA_ORDERS = 8
@@ -148,6 +167,7 @@ SCALE_TAYLOR_TERMS = 20
 # theta below which the Sim(3) coefficients use their theta^2 series (with the moments above);
 # above it, the complex closed forms in w = lambda + i theta (|w| >= theta >= 1).
 SIM3_SERIES_THRESHOLD = 1.0
+sim3_series_threshold_sq = _constant(SIM3_SERIES_THRESHOLD**2)
 SIM3_SERIES_TERMS = 11
 
 
@@ -173,12 +193,12 @@ def scale_moments(x: torch.Tensor, order: int) -> list[torch.Tensor]:
         down.append(1.0 / math.factorial(j) + x_dn * down[-1])
     down.reverse()
     # Upward from expm1(x)/x; inputs with |x| <= SCALE_UPWARD_MARGIN never use it.
-    x_up = torch.where(ax > SCALE_UPWARD_MARGIN, x, torch.ones_like(x))
+    x_up = torch.where(ax > scale_upward_margin(), x, torch.ones_like(x))
     up = [torch.expm1(x_up) / x_up]
     for j in range(1, order + 1):
         up.append((up[-1] - 1.0 / math.factorial(j)) / x_up)
     # Order j takes the upward value where |x| > j + margin (one comparison for all orders).
-    j_plus = torch.arange(order + 1, dtype=x.dtype, device=x.device) + SCALE_UPWARD_MARGIN
+    j_plus = torch.arange(order + 1, dtype=x.dtype, device=x.device) + scale_upward_margin()
     mask = (ax.unsqueeze(-1) > j_plus).to(x.dtype)
     merged = select(mask, torch.stack(up, dim=-1), torch.stack(down, dim=-1))
     return list(merged.unbind(-1))
@@ -197,7 +217,7 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     q = scale_moments(-lam, 2 * K + 2 if derivatives else 2 * K)
     m0 = q[0]
 
-    small = theta2 < SIM3_SERIES_THRESHOLD**2
+    small = theta2 < sim3_series_threshold_sq()
     mask = small.to(theta2.dtype)
     # Small angle: series in u = -theta^2 with the moments as coefficients (Horner).
     u = -(theta2 * mask)
