@@ -214,6 +214,17 @@ def test_integer_and_mixed_dtypes(G):
         G.exp(torch.zeros(G.dof, dtype=torch.int64))
     with pytest.raises(TypeError, match=r"floating dtype"):
         G.from_matrix(torch.eye(G.matrix_dim, dtype=torch.int32))
+    # Half precision is refused, not computed with float32/float64 thresholds.
+    for half in (torch.float16, torch.bfloat16):
+        with pytest.raises(TypeError, match=rf"xi must have a floating dtype .* got {half}; convert"):
+            G.exp(torch.zeros(G.dof, dtype=half))
+        with pytest.raises(TypeError, match=rf"matrix must have a floating dtype .* got {half}"):
+            G.from_matrix(torch.eye(G.matrix_dim, dtype=half))
+        with pytest.raises(TypeError, match=rf"got {half}"):
+            G._f.log(torch.eye(G.matrix_dim, dtype=half))
+        for make in (G.identity, G.random):
+            with pytest.raises(TypeError, match=rf"dtype must be torch.float32 or torch.float64, got {half}"):
+                make((2,), dtype=half)
     with pytest.raises(TypeError, match=r"dtype torch.float32 but self has dtype torch.float64"):
         G.random((), dtype=torch.float64) @ G.random((), dtype=torch.float32)
     with pytest.raises(TypeError, match=r"must be a torch.Tensor"):

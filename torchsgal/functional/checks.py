@@ -8,14 +8,28 @@ from __future__ import annotations
 import torch
 
 
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
+
 def floating(x, name: str) -> torch.Tensor:
+    """A tensor of a supported dtype: float32 or float64.  Half precision (float16, bfloat16)
+    is refused rather than silently computed: the closed forms, their thresholds and the tests
+    are made for float32 and float64."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if not x.is_floating_point():
+    if x.dtype not in SUPPORTED_DTYPES:
+        hint = "; convert with .float() or .double()" if x.is_floating_point() else ""
         raise TypeError(
-            f"{name} must have a floating dtype (torch.float32 or torch.float64), got {x.dtype}"
+            f"{name} must have a floating dtype (torch.float32 or torch.float64), got {x.dtype}{hint}"
         )
     return x
+
+
+def dtype_arg(dtype, name: str = "dtype") -> torch.dtype:
+    """A dtype argument (identity, random, ...): float32 or float64."""
+    if dtype not in SUPPORTED_DTYPES:
+        raise TypeError(f"{name} must be torch.float32 or torch.float64, got {dtype}")
+    return dtype
 
 
 def vector(x, size: int, name: str) -> torch.Tensor:

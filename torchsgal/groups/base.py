@@ -48,7 +48,7 @@ class LieGroup:
     @classmethod
     def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
         if tol is None:
-            tol = 1e-4 if M.dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-9
+            tol = 1e-4 if M.dtype == torch.float32 else 1e-9
         k = cls.rotation_dim
         C = M[..., :k, :k]
         eye = blocks.eye(k, M)
@@ -70,7 +70,7 @@ class LieGroup:
 
     @classmethod
     def identity(cls, batch_shape: Sequence[int] = (), dtype=None, device=None):
-        dtype = dtype or torch.get_default_dtype()
+        dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
         return cls(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
 
@@ -79,7 +79,7 @@ class LieGroup:
         """Uniform rotations; translations, velocities and times standard normal."""
         if isinstance(batch_shape, int):
             batch_shape = (batch_shape,)
-        dtype = dtype or torch.get_default_dtype()
+        dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         return cls(cls._f.random(tuple(batch_shape), dtype, device, generator))
 
     # ------------------------------------------------------------------ properties
