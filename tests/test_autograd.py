@@ -1,6 +1,7 @@
 """Gradients: gradcheck (finite differences) of every operation at the delicate angles, the
 custom exp/log backward against plain autograd through the same closed form, finite
-gradients at the identity in float32, torch.func (vmap, jacrev) and torch.compile."""
+gradients at the identity in float32, forward mode (jvp, jacfwd, hessian), torch.func (vmap,
+jacrev) and torch.compile."""
 from __future__ import annotations
 
 import math
@@ -137,6 +138,37 @@ def test_vmap_and_jacrev(G):
 
     J = torch.func.vmap(local)(xi)
     np.testing.assert_allclose(J.numpy(), ref.jr_series(G.__name__, np64(xi)), atol=1e-10)
+
+
+@pytest.mark.parametrize("angle", GRAD_ANGLES, ids=ANGLE_IDS)
+@pytest.mark.parametrize("G", GROUPS, ids=IDS)
+def test_forward_mode(G, angle):
+    """The custom jvp of exp and log against finite differences (gradcheck's forward-mode
+    check), at the delicate angles."""
+    f = G._f
+    x = _xi(G, angle, seed=13)
+    assert torch.autograd.gradcheck(f.exp, (x,), check_forward_ad=True, check_backward_ad=False)
+    # log of a group-valued function of x built independently (matrix_exp + forward AD)
+    log_of = lambda v: f.log(torch.linalg.matrix_exp(f.hat(v)))  # noqa: E731
+    assert torch.autograd.gradcheck(log_of, (x,), check_forward_ad=True, check_backward_ad=False)
+
+
+@pytest.mark.parametrize("G", GROUPS, ids=IDS)
+def test_jacfwd_equals_jacrev_and_hessian(G):
+    """jacfwd (custom jvp) and jacrev (custom backward) give the same Jacobians of exp and of
+    log, the latter over all matrix entries (both project onto the group the same way); the
+    hessian of |log(exp(x))|^2 = |x|^2 is 2 I."""
+    f = G._f
+    xi = sample_tangent(G, (4,), torch.float64, seed=14)
+    jf = torch.func.vmap(torch.func.jacfwd(f.exp))(xi)
+    jr = torch.func.vmap(torch.func.jacrev(f.exp))(xi)
+    np.testing.assert_allclose(jf.numpy(), jr.numpy(), rtol=0, atol=1e-13)
+    M = f.exp(xi)
+    jf = torch.func.vmap(torch.func.jacfwd(f.log))(M)
+    jr = torch.func.vmap(torch.func.jacrev(f.log))(M)
+    np.testing.assert_allclose(jf.numpy(), jr.numpy(), rtol=0, atol=1e-12)
+    H = torch.func.hessian(lambda v: f.log(f.exp(v)).square().sum())(xi[1])
+    np.testing.assert_allclose(H.numpy(), 2.0 * np.eye(G.dof), rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("G", GROUPS, ids=IDS)

@@ -1,6 +1,6 @@
 """The differentiation rules: exp and log as torch.autograd.Functions with closed-form backward.
 
-For a group module ``mod`` (so3, se3, se23, sgal3):
+For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
 
 * exp: xi -> M = exp(xi^).  Since d exp = M (J_r(xi) dxi)^ (right Jacobian, (3.22)),
       grad_xi = J_r(xi)^T hat^T(M^T grad_M),
@@ -12,6 +12,10 @@ For a group module ``mod`` (so3, se3, se23, sgal3):
   takes the skew part of the rotation block).  The gradient is therefore taken with respect
   to the group: a component of an incoming perturbation normal to the group is projected
   out, not differentiated through the closed form.
+
+* Forward mode (``jvp``: torch.func.jacfwd, hessian, torch.autograd.forward_ad) uses the same
+  Jacobians the other way round: d exp = M (J_r(xi) dxi)^ and dxi = J_r(xi)^-1 vee(M^-1 dM),
+  the transpose of log's backward map, so jacfwd and jacrev agree.
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev,
 torch.compile), and their backward is itself differentiable (higher derivatives).  Large CPU
@@ -32,6 +36,17 @@ def make_exp_log(mod):
     def _log_backward(M, xi, grad_xi):
         return mod.log_pullback(M, mod.jl_inv_tmv(-xi, grad_xi))
 
+    def _matvec(A, x):
+        return (A @ x.unsqueeze(-1)).squeeze(-1)
+
+    def _exp_jvp(xi, M, dxi):
+        # dM = M (J_r(xi) dxi)^, J_r(xi) = J_l(-xi)
+        return M @ mod.hat(_matvec(mod.jl(-xi), dxi))
+
+    def _log_jvp(M, xi, dM):
+        # dxi = J_r(xi)^-1 vee(M^-1 dM), the transpose of the backward's map
+        return _matvec(mod.jl_inv(-xi), mod.vee(mod.inverse(M) @ dM))
+
     class Exp(torch.autograd.Function):
         generate_vmap_rule = True
 
@@ -42,12 +57,18 @@ def make_exp_log(mod):
         @staticmethod
         def setup_context(ctx, inputs, output):
             ctx.save_for_backward(inputs[0], output)
+            ctx.save_for_forward(inputs[0], output)
 
         @staticmethod
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
             return run_blocked(_exp_backward, (xi, M, grad_M), (1, 2, 2))
+
+        @staticmethod
+        def jvp(ctx, dxi):
+            xi, M = ctx.saved_tensors
+            return _exp_jvp(xi, M, dxi)
 
     class Log(torch.autograd.Function):
         generate_vmap_rule = True
@@ -59,12 +80,18 @@ def make_exp_log(mod):
         @staticmethod
         def setup_context(ctx, inputs, output):
             ctx.save_for_backward(inputs[0], output)
+            ctx.save_for_forward(inputs[0], output)
 
         @staticmethod
         def backward(ctx, grad_xi):
             M, xi = ctx.saved_tensors
             # M^-T vee^T(J_r(xi)^-T grad_xi)
             return run_blocked(_log_backward, (M, xi, grad_xi), (2, 1, 1))
+
+        @staticmethod
+        def jvp(ctx, dM):
+            M, xi = ctx.saved_tensors
+            return _log_jvp(M, xi, dM)
 
     Exp.__name__ = f"{mod.NAME}Exp"
     Log.__name__ = f"{mod.NAME}Log"
