@@ -230,14 +230,14 @@ def jr_series(group, xi, terms=80):
 
 def self_check(seed=0, verbose=False):
     """Re-verify every fact in the docstring; raises AssertionError on failure."""
-    import gtsam
+    import gtsam  # noqa: F401  (fail early without the peer)
     from scipy.linalg import expm
 
     rng = np.random.default_rng(seed)
     worst = {}
     for group in GROUPS:
         cls = gtsam_class(group)
-        d, n = DOF[group], MATRIX_DIM[group]
+        d = DOF[group]
         for angle in (1e-9, 1e-5, 1e-3, 1.0, 2.5, np.pi - 1e-4):
             xi = rng.normal(size=d)
             u = rng.normal(size=3)

@@ -15,7 +15,8 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
 
 * Forward mode (``jvp``: torch.func.jacfwd, hessian, torch.autograd.forward_ad) uses the same
   Jacobians the other way round: d exp = M (J_r(xi) dxi)^ and dxi = J_r(xi)^-1 vee(M^-1 dM),
-  the transpose of log's backward map, so jacfwd and jacrev agree.
+  the transpose of log's backward map, so jacfwd and jacrev agree.  Not inside torch.compile,
+  which cannot trace a Function with a custom jvp: compiled code gets the classes without it.
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev,
 torch.compile), and their backward is itself differentiable (higher derivatives).  Large CPU
@@ -26,7 +27,7 @@ from __future__ import annotations
 import torch
 
 from . import checks
-from ._blocking import run_blocked
+from ._blocking import is_compiling, run_blocked
 
 
 def make_exp_log(mod):
@@ -57,13 +58,18 @@ def make_exp_log(mod):
         @staticmethod
         def setup_context(ctx, inputs, output):
             ctx.save_for_backward(inputs[0], output)
-            ctx.save_for_forward(inputs[0], output)
 
         @staticmethod
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
             return run_blocked(_exp_backward, (xi, M, grad_M), (1, 2, 2))
+
+    class ExpWithJvp(Exp):
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(inputs[0], output)
+            ctx.save_for_forward(inputs[0], output)
 
         @staticmethod
         def jvp(ctx, dxi):
@@ -80,7 +86,6 @@ def make_exp_log(mod):
         @staticmethod
         def setup_context(ctx, inputs, output):
             ctx.save_for_backward(inputs[0], output)
-            ctx.save_for_forward(inputs[0], output)
 
         @staticmethod
         def backward(ctx, grad_xi):
@@ -88,23 +93,31 @@ def make_exp_log(mod):
             # M^-T vee^T(J_r(xi)^-T grad_xi)
             return run_blocked(_log_backward, (M, xi, grad_xi), (2, 1, 1))
 
+    class LogWithJvp(Log):
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(inputs[0], output)
+            ctx.save_for_forward(inputs[0], output)
+
         @staticmethod
         def jvp(ctx, dM):
             M, xi = ctx.saved_tensors
             return _log_jvp(M, xi, dM)
 
-    Exp.__name__ = f"{mod.NAME}Exp"
-    Log.__name__ = f"{mod.NAME}Log"
+    for cls, name in ((Exp, "Exp"), (ExpWithJvp, "Exp"), (Log, "Log"), (LogWithJvp, "Log")):
+        cls.__name__ = cls.__qualname__ = f"{mod.NAME}{name}"
 
+    # Dynamo (torch 2.13) refuses to trace a Function that defines jvp, so torch.compile gets
+    # the classes without it (forward mode is not available inside compiled code).
     def exp(xi: torch.Tensor) -> torch.Tensor:
         """Group exponential (..., dof) -> (..., n, n); backward through the closed-form J_r."""
         checks.vector(xi, mod.DOF, "xi")
-        return Exp.apply(xi)
+        return (Exp if is_compiling() else ExpWithJvp).apply(xi)
 
     def log(M: torch.Tensor) -> torch.Tensor:
         """Principal logarithm (..., n, n) -> (..., dof); backward through J_r^-1 (see module)."""
         checks.matrix(M, mod.MATRIX_DIM, "M")
-        return Log.apply(M)
+        return (Log if is_compiling() else LogWithJvp).apply(M)
 
     exp.__doc__ = f"{mod.NAME} exponential, custom autograd. " + (exp.__doc__ or "")
     log.__doc__ = f"{mod.NAME} logarithm, custom autograd. " + (log.__doc__ or "")

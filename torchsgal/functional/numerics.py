@@ -45,7 +45,9 @@ def _constant(value: float):
     custom autograd.Functions (exp's forward and log's backward).  tests/test_autograd.py
     compiles with dynamic=True.
     """
-    return torch.compiler.assume_constant_result(lambda: value)
+    mark = getattr(torch.compiler, "assume_constant_result", None)  # torch >= 2.1
+    getter = lambda: value  # noqa: E731
+    return mark(getter) if mark is not None else getter
 
 
 series_threshold_sq = _constant(SERIES_THRESHOLD**2)
