@@ -154,6 +154,8 @@ def test_bad_input():
         chain.forward(torch.zeros(4, 7, dtype=torch.float64), torch.zeros(3, 7, dtype=torch.float64))
     with pytest.raises(TypeError, match=r"q must have a floating dtype"):
         chain.forward(torch.zeros(7, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"q must have a floating dtype .* got torch.bfloat16"):
+        chain.forward(torch.zeros(7, dtype=torch.bfloat16))
     with pytest.raises(ValueError, match=r"qdot .* must match q"):
         chain.forward(torch.zeros(7, dtype=torch.float64), torch.zeros(7, dtype=torch.float32))
     with pytest.raises(ValueError, match=r"equal, non-zero length"):

@@ -514,6 +514,8 @@ def test_bad_input_raises_clear_errors():
         reg.fit_subgroup(Y, t[:4])
     with pytest.raises(TypeError, match="times must have a floating dtype"):
         reg.fit_subgroup(Y, torch.arange(5))
+    with pytest.raises(TypeError, match="times must have a floating dtype .* got torch.float16"):
+        reg.fit_subgroup(Y, t.half())
     with pytest.raises(TypeError, match="times has dtype torch.float32"):
         reg.fit_subgroup(Y, t.float())
     with pytest.raises(TypeError, match="samples must be a torchsgal group element"):

@@ -266,6 +266,8 @@ def test_bad_input():
         ConcentratedGaussian(ts.SE3.random((3,), dtype=torch.float64), torch.eye(6, dtype=torch.float64).expand(4, 6, 6))
     with pytest.raises(TypeError, match=r"mean must be a group element"):
         ConcentratedGaussian(torch.eye(4), torch.eye(6))
+    with pytest.raises(ValueError, match=r"covariance \(torch.float16, cpu\) must match the mean"):
+        ConcentratedGaussian(m, torch.eye(6, dtype=torch.float16))
     d = ConcentratedGaussian(m, torch.eye(6, dtype=torch.float64))
     with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SE3"):
         d.compose(ConcentratedGaussian(ts.SO3.random((), dtype=torch.float64), torch.eye(3, dtype=torch.float64)))

@@ -36,8 +36,8 @@ def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
         raise TypeError(f"{name} must be a tensor (..., {m}, {m}), got {type(S).__name__}")
     if S.dim() < 2 or S.shape[-2:] != (m, m):
         raise ValueError(f"{name} must have shape (..., {m}, {m}), got {tuple(S.shape)}")
-    if not S.is_floating_point():
-        raise TypeError(f"{name} must be floating point, got {S.dtype}")
+    if S.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must be floating point (torch.float32 or torch.float64), got {S.dtype}")
     if not bool(torch.isfinite(S).all()):
         raise ValueError(f"{name} has non-finite entries")
     asym = (S - S.transpose(-1, -2)).abs().amax()

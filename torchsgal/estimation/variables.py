@@ -49,8 +49,8 @@ def check_values(x: Values, name: str = "x0") -> Values:
         elif isinstance(b, torch.Tensor):
             if b.dim() != 2:
                 raise ValueError(f"{name}[{i}] must be a tensor of shape (B, k), got {tuple(b.shape)}")
-            if not b.is_floating_point():
-                raise TypeError(f"{name}[{i}] must be floating point, got {b.dtype}")
+            if b.dtype not in (torch.float32, torch.float64):
+                raise TypeError(f"{name}[{i}] must be floating point (torch.float32 or torch.float64), got {b.dtype}")
             shapes.append((b.shape[0],))
         else:
             raise TypeError(f"{name}[{i}] must be a LieGroup or a tensor, got {type(b).__name__}")

@@ -121,8 +121,8 @@ class GDHChain:
     def _joint_tensor(self, x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
         if not isinstance(x, torch.Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-        if not x.is_floating_point():
-            raise TypeError(f"{name} must have a floating dtype, got {x.dtype}")
+        if x.dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {x.dtype}")
         if x.dim() < 1 or x.shape[-1] != self.n_joints:
             raise ValueError(
                 f"{name} must have shape (..., {self.n_joints}) for the {self.n_joints} joints "

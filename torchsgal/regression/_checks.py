@@ -32,8 +32,8 @@ def sample_times(times, samples: LieGroup, name: str = "times") -> torch.Tensor:
     dimension (reads values: one host sync at the entry of a fit)."""
     if not isinstance(times, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape (..., N), got {type(times).__name__}")
-    if not times.is_floating_point():
-        raise TypeError(f"{name} must have a floating dtype, got {times.dtype}")
+    if times.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {times.dtype}")
     if times.dtype != samples.dtype:
         raise TypeError(f"{name} has dtype {times.dtype} but samples have dtype {samples.dtype}")
     if times.device != samples.device:
@@ -66,8 +66,8 @@ def metric_weights(weights, G, like: torch.Tensor, name: str = "weights") -> tor
         return torch.ones(G.dof, dtype=like.dtype, device=like.device)
     if not isinstance(weights, torch.Tensor):
         weights = torch.as_tensor(weights, dtype=like.dtype, device=like.device)
-    if not weights.is_floating_point():
-        raise TypeError(f"{name} must have a floating dtype, got {weights.dtype}")
+    if weights.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {weights.dtype}")
     if weights.dim() < 1 or weights.shape[-1] != G.dof:
         raise ValueError(f"{name} must have shape (..., {G.dof}) for {G.__name__}, got "
                          f"{tuple(weights.shape)}")

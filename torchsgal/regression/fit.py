@@ -112,8 +112,8 @@ def _solve(model, origin, x, method, max_iterations, tolerance):
 def _basis(basis, G, like):
     if basis is None:
         return None
-    if not isinstance(basis, torch.Tensor) or not basis.is_floating_point():
-        raise TypeError("basis must be a floating torch.Tensor of shape (dof, m)")
+    if not isinstance(basis, torch.Tensor) or basis.dtype not in (torch.float32, torch.float64):
+        raise TypeError("basis must be a float32 or float64 torch.Tensor of shape (dof, m)")
     if basis.dim() != 2 or basis.shape[0] != G.dof or not 1 <= basis.shape[1] <= G.dof:
         raise ValueError(f"basis must have shape ({G.dof}, m) with 1 <= m <= {G.dof}, got "
                          f"{tuple(basis.shape)}")

@@ -41,8 +41,9 @@ def _mv(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: float | None = None):
     """Raises ValueError unless S (..., dim, dim) is symmetric positive definite (host sync)."""
-    if not isinstance(S, torch.Tensor) or not S.is_floating_point():
-        raise TypeError(f"{name} must be a floating torch.Tensor")
+    if not isinstance(S, torch.Tensor) or S.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{name} must be a torch.Tensor of dtype torch.float32 or torch.float64, got "
+                        f"{getattr(S, 'dtype', type(S).__name__)}")
     if S.dim() < 2 or S.shape[-2:] != (dim, dim):
         raise ValueError(f"{name} must have shape (..., {dim}, {dim}), got {tuple(S.shape)}")
     if tol is None:
