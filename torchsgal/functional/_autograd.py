@@ -65,17 +65,6 @@ def make_exp_log(mod):
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
             return run_blocked(_exp_backward, (xi, M, grad_M), (1, 2, 2))
 
-    class ExpWithJvp(Exp):
-        @staticmethod
-        def setup_context(ctx, inputs, output):
-            ctx.save_for_backward(inputs[0], output)
-            ctx.save_for_forward(inputs[0], output)
-
-        @staticmethod
-        def jvp(ctx, dxi):
-            xi, M = ctx.saved_tensors
-            return _exp_jvp(xi, M, dxi)
-
     class Log(torch.autograd.Function):
         generate_vmap_rule = True
 
@@ -93,16 +82,21 @@ def make_exp_log(mod):
             # M^-T vee^T(J_r(xi)^-T grad_xi)
             return run_blocked(_log_backward, (M, xi, grad_xi), (2, 1, 1))
 
-    class LogWithJvp(Log):
-        @staticmethod
-        def setup_context(ctx, inputs, output):
-            ctx.save_for_backward(inputs[0], output)
-            ctx.save_for_forward(inputs[0], output)
+    def _with_jvp(base, tangent_map):
+        """``base`` with forward mode: jvp = tangent_map(*saved, tangent) (saved: input, output)."""
+        class WithJvp(base):
+            @staticmethod
+            def setup_context(ctx, inputs, output):
+                ctx.save_for_backward(inputs[0], output)
+                ctx.save_for_forward(inputs[0], output)
 
-        @staticmethod
-        def jvp(ctx, dM):
-            M, xi = ctx.saved_tensors
-            return _log_jvp(M, xi, dM)
+            @staticmethod
+            def jvp(ctx, tangent):
+                return tangent_map(*ctx.saved_tensors, tangent)
+
+        return WithJvp
+
+    ExpWithJvp, LogWithJvp = _with_jvp(Exp, _exp_jvp), _with_jvp(Log, _log_jvp)
 
     for cls, name in ((Exp, "Exp"), (ExpWithJvp, "Exp"), (Log, "Log"), (LogWithJvp, "Log")):
         cls.__name__ = cls.__qualname__ = f"{mod.NAME}{name}"
