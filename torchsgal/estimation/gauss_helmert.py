@@ -24,6 +24,7 @@ from typing import Callable
 
 import torch
 
+from ..functional.checks import SUPPORTED_DTYPES
 from . import variables as V
 from .solver import Linearisation, Solution, iterate
 
@@ -36,7 +37,7 @@ def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
         raise TypeError(f"{name} must be a tensor (..., {m}, {m}), got {type(S).__name__}")
     if S.dim() < 2 or S.shape[-2:] != (m, m):
         raise ValueError(f"{name} must have shape (..., {m}, {m}), got {tuple(S.shape)}")
-    if S.dtype not in (torch.float32, torch.float64):
+    if S.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must be floating point (torch.float32 or torch.float64), got {S.dtype}")
     if not bool(torch.isfinite(S).all()):
         raise ValueError(f"{name} has non-finite entries")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
 Block = LieGroup | torch.Tensor
@@ -49,7 +50,7 @@ def check_values(x: Values, name: str = "x0") -> Values:
         elif isinstance(b, torch.Tensor):
             if b.dim() != 2:
                 raise ValueError(f"{name}[{i}] must be a tensor of shape (B, k), got {tuple(b.shape)}")
-            if b.dtype not in (torch.float32, torch.float64):
+            if b.dtype not in SUPPORTED_DTYPES:
                 raise TypeError(f"{name}[{i}] must be floating point (torch.float32 or torch.float64), got {b.dtype}")
             shapes.append((b.shape[0],))
         else:

@@ -36,6 +36,7 @@ from typing import Sequence
 
 import torch
 
+from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import SE23
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
@@ -121,7 +122,7 @@ class GDHChain:
     def _joint_tensor(self, x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
         if not isinstance(x, torch.Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-        if x.dtype not in (torch.float32, torch.float64):
+        if x.dtype not in SUPPORTED_DTYPES:
             raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {x.dtype}")
         if x.dim() < 1 or x.shape[-1] != self.n_joints:
             raise ValueError(

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
 
@@ -32,7 +33,7 @@ def sample_times(times, samples: LieGroup, name: str = "times") -> torch.Tensor:
     dimension (reads values: one host sync at the entry of a fit)."""
     if not isinstance(times, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape (..., N), got {type(times).__name__}")
-    if times.dtype not in (torch.float32, torch.float64):
+    if times.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {times.dtype}")
     if times.dtype != samples.dtype:
         raise TypeError(f"{name} has dtype {times.dtype} but samples have dtype {samples.dtype}")
@@ -66,7 +67,7 @@ def metric_weights(weights, G, like: torch.Tensor, name: str = "weights") -> tor
         return torch.ones(G.dof, dtype=like.dtype, device=like.device)
     if not isinstance(weights, torch.Tensor):
         weights = torch.as_tensor(weights, dtype=like.dtype, device=like.device)
-    if weights.dtype not in (torch.float32, torch.float64):
+    if weights.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {weights.dtype}")
     if weights.dim() < 1 or weights.shape[-1] != G.dof:
         raise ValueError(f"{name} must have shape (..., {G.dof}) for {G.__name__}, got "

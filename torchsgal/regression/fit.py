@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup, SGal3
 from . import _checks
 from .models import PolynomialModel, RiemannianPolynomialModel
@@ -112,7 +113,7 @@ def _solve(model, origin, x, method, max_iterations, tolerance):
 def _basis(basis, G, like):
     if basis is None:
         return None
-    if not isinstance(basis, torch.Tensor) or basis.dtype not in (torch.float32, torch.float64):
+    if not isinstance(basis, torch.Tensor) or basis.dtype not in SUPPORTED_DTYPES:
         raise TypeError("basis must be a float32 or float64 torch.Tensor of shape (dof, m)")
     if basis.dim() != 2 or basis.shape[0] != G.dof or not 1 <= basis.shape[1] <= G.dof:
         raise ValueError(f"basis must have shape ({G.dof}, m) with 1 <= m <= {G.dof}, got "

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
 SIDES = ("right", "left")
@@ -41,7 +42,7 @@ def _mv(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: float | None = None):
     """Raises ValueError unless S (..., dim, dim) is symmetric positive definite (host sync)."""
-    if not isinstance(S, torch.Tensor) or S.dtype not in (torch.float32, torch.float64):
+    if not isinstance(S, torch.Tensor) or S.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must be a torch.Tensor of dtype torch.float32 or torch.float64, got "
                         f"{getattr(S, 'dtype', type(S).__name__)}")
     if S.dim() < 2 or S.shape[-2:] != (dim, dim):
