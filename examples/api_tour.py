@@ -51,3 +51,13 @@ x = xi[:8].clone().requires_grad_(True)
 loss = ts.SGal3.exp(x).rminus(G[:8]).square().sum()
 loss.backward()
 print("grad finite:", bool(torch.isfinite(x.grad).all()))
+
+# Forward mode too (custom jvp with the same Jacobians): jacfwd agrees with jacrev, and the
+# hessian of |log(exp(x))|^2 = |x|^2 is 2 I
+f = lambda v: ts.SGal3.exp(v).log().square().sum()  # noqa: E731
+J_fwd = torch.func.jacfwd(ts.functional.sgal3.exp)(xi[0])
+J_rev = torch.func.jacrev(ts.functional.sgal3.exp)(xi[0])
+assert torch.allclose(J_fwd, J_rev, rtol=0, atol=1e-13)
+H = torch.func.hessian(f)(torch.linspace(-0.5, 0.5, 10, dtype=torch.float64))  # angle < pi
+assert torch.allclose(H, 2 * torch.eye(10, dtype=torch.float64), rtol=0, atol=1e-12)
+print("jacfwd == jacrev, hessian = 2I: ok")
