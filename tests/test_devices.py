@@ -1,0 +1,160 @@
+"""Device-generic code, checked on the ``meta`` device (no GPU is lent to CI).
+
+A meta tensor has a shape, a dtype and a device but no data, so running the library on meta
+inputs checks two things a CUDA run would, without a GPU:
+
+* every constant is made on the input's device: an operation mixing a meta tensor with a CPU
+  tensor of one or more dimensions raises, as it would between CUDA and CPU (0-d CPU tensors are
+  allowed by both, as scalars);
+* nothing reads tensor values on the host: ``.item()``, ``bool(t)``, ``float(t)`` or a
+  data-dependent shape raise on meta, where on CUDA they would be a silent device-to-host sync.
+
+Each case also checks the output's shape, dtype and device.  The only host syncs the library
+makes on purpose (input validation such as ``from_matrix(check=True)`` and covariance checks,
+the convergence test of ``ConcentratedGaussian.fuse`` and the estimation solvers, which run on
+CPU tensors) are left out, and one test shows that such a sync is caught.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsgal as ts
+from torchsgal import imu
+from torchsgal import kinematics as kin
+from torchsgal import regression as reg
+from torchsgal.uncertainty import ConcentratedGaussian
+
+META = torch.device("meta")
+IDS = [G.__name__ for G in ts.ALL_GROUPS]
+BATCH = (4, 2)
+
+
+def _meta(*shape, dtype=torch.float32) -> torch.Tensor:
+    return torch.empty(*shape, dtype=dtype, device=META)
+
+
+def _check(out, shape, dtype=torch.float32):
+    assert isinstance(out, torch.Tensor), type(out)
+    assert out.device == META, f"output on {out.device}, not on the inputs' device"
+    assert out.dtype == dtype, f"output dtype {out.dtype}, expected {dtype}"
+    assert tuple(out.shape) == tuple(shape), f"output shape {tuple(out.shape)}, expected {shape}"
+
+
+def test_meta_catches_host_syncs_and_cpu_constants():
+    """The premise of this file: meta raises where CUDA would sync or mix devices."""
+    x = _meta(3)
+    with pytest.raises(RuntimeError):
+        x.sum().item()
+    with pytest.raises(RuntimeError):
+        bool((x > 0).all())
+    with pytest.raises(RuntimeError):
+        x + torch.ones(3)  # a CPU constant of one dimension
+    _check(x + torch.tensor(1.0), (3,))  # a 0-d CPU tensor is a scalar, allowed on CUDA too
+    with pytest.raises(RuntimeError):  # so the group membership check does sync, by design
+        ts.SO3.from_matrix(torch.eye(3, device=META), check=True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_group_api_on_device(G, dtype):
+    n, dof = G.matrix_dim, G.dof
+    xi = _meta(*BATCH, dof, dtype=dtype)
+    g, h = G.exp(xi), G.random(BATCH, dtype=dtype, device=META)
+    mat = (*BATCH, n, n)
+    for name, out, shape in [
+        ("exp", g.as_matrix(), mat),
+        ("log", g.log(), (*BATCH, dof)),
+        ("identity", G.identity(BATCH, dtype=dtype, device=META).as_matrix(), mat),
+        ("random", h.as_matrix(), mat),
+        ("compose", (g @ h).as_matrix(), mat),
+        ("inverse", g.inverse().as_matrix(), mat),
+        ("adjoint", g.adjoint(), (*BATCH, dof, dof)),
+        ("rplus", g.rplus(xi).as_matrix(), mat),
+        ("lplus", g.lplus(xi).as_matrix(), mat),
+        ("rminus", g.rminus(h), (*BATCH, dof)),
+        ("lminus", g.lminus(h), (*BATCH, dof)),
+        ("between", g.between(h).as_matrix(), mat),
+        ("interpolate", g.interpolate(h, _meta(*BATCH, dtype=dtype)).as_matrix(), mat),
+        ("rotation", g.rotation(), (*BATCH, G.rotation_dim, G.rotation_dim)),
+        ("act", g.act(_meta(*BATCH, G.point_dim, dtype=dtype)), (*BATCH, G.point_dim)),
+        ("act_direction", g.act_direction(_meta(*BATCH, G.rotation_dim, dtype=dtype)),
+         (*BATCH, G.rotation_dim)),
+        ("hat", G.hat(xi), mat),
+        ("vee", G.vee(G.hat(xi)), (*BATCH, dof)),
+        ("ad", G.ad(xi), (*BATCH, dof, dof)),
+        ("jl", G.jl(xi), (*BATCH, dof, dof)),
+        ("jr", G.jr(xi), (*BATCH, dof, dof)),
+        ("jl_inv", G.jl_inv(xi), (*BATCH, dof, dof)),
+        ("jr_inv", G.jr_inv(xi), (*BATCH, dof, dof)),
+    ]:
+        try:
+            _check(out, shape, dtype)
+        except AssertionError as err:
+            raise AssertionError(f"{G.__name__}.{name}: {err}") from None
+    if hasattr(g, "act_velocity"):
+        _check(g.act_velocity(_meta(*BATCH, 3, dtype=dtype)), (*BATCH, 3), dtype)
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_custom_autograd_on_device(G):
+    """The custom backward and forward mode of exp and log (their closed-form Jacobians)."""
+    xi = _meta(*BATCH, G.dof).requires_grad_()
+    (grad,) = torch.autograd.grad(G.exp(xi).log().sum(), xi)
+    _check(grad, (*BATCH, G.dof))
+    _, tangent = torch.func.jvp(lambda x: G.exp(x).log(), (xi.detach(),), (_meta(*BATCH, G.dof),))
+    _check(tangent, (*BATCH, G.dof))
+
+
+@pytest.mark.parametrize("per_axis", [False, True], ids=["isotropic", "per_axis"])
+def test_imu_preintegration_on_device(per_axis):
+    windows, samples = 3, 7
+    gyro, acc = _meta(windows, samples, 3), _meta(windows, samples, 3)
+    dt = _meta(windows, samples)
+    density = _meta(3) if per_axis else 1e-3
+    pre = imu.preintegrate(gyro, acc, dt, gyro_bias=_meta(windows, 3),
+                           gyro_noise_density=density, acc_noise_density=1e-2)
+    _check(pre.delta.as_matrix(), (windows, 5, 5))
+    _check(pre.covariance, (windows, 10, 10))
+    _check(pre.bias_jacobian, (windows, 10, 6))
+    start = ts.SGal3.identity((windows,), device=META)
+    gravity = imu.gravity_vector(device=META)
+    earth = imu.earth_rate_vector(0.8, device=META)
+    _check(pre.predict(start, gravity, earth, gyro_bias=_meta(3)).as_matrix(), (windows, 5, 5))
+    _check(pre.predict_covariance(start, _meta(windows, 10, 10), gravity, earth), (windows, 10, 10))
+    _check(imu.preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False).delta.as_matrix(),
+           (windows, 5, 5))
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_concentrated_gaussian_on_device(G):
+    dof = G.dof
+    d = ConcentratedGaussian(G.random(BATCH, device=META), _meta(*BATCH, dof, dof), validate=False)
+    _check(d.sample((5,)).as_matrix(), (5, *BATCH, G.matrix_dim, G.matrix_dim))
+    _check(d.mahalanobis(d.mean), BATCH)
+    _check(d.log_prob(d.mean), BATCH)
+    for moved in (d.to_side("left"), d.inverse(), d.compose(d), d.between(d)):
+        _check(moved.covariance, (*BATCH, dof, dof))
+    acted = d.act_direction(_meta(*BATCH, G.rotation_dim))
+    _check(acted.mean, (*BATCH, G.rotation_dim))
+    _check(acted.covariance, (*BATCH, G.rotation_dim, G.rotation_dim))
+
+
+@pytest.mark.parametrize("robot", [kin.ur5, kin.iiwa7, kin.scara], ids=["ur5", "iiwa7", "scara"])
+def test_gdh_chain_on_device(robot):
+    chain = robot(dtype=torch.float32, device=META)
+    q = _meta(*BATCH, chain.n_joints)
+    state = chain.forward(q, q)
+    _check(state.pose, (*BATCH, 4, 4))
+    _check(chain.link_transforms(q, q).as_matrix(), (*BATCH, chain.n_joints, 5, 5))
+    for out in (state.linear_velocity, state.angular_velocity, *chain.acceleration(q, q, q)):
+        _check(out, (*BATCH, 3))
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_regression_flows_on_device(G):
+    tau = _meta(6)
+    Phi, X = reg.geodesic_flow(G, _meta(*BATCH, G.dof), tau, _meta(G.dof))
+    _check(Phi, (*BATCH, 6, G.matrix_dim, G.matrix_dim))
+    _check(X, (*BATCH, 6, G.dof))
+    _check(reg.log_distance(G.random(BATCH, device=META), G.random(BATCH, device=META)), BATCH)
