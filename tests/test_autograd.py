@@ -140,6 +140,45 @@ def test_vmap_and_jacrev(G):
     np.testing.assert_allclose(J.numpy(), ref.jr_series(G.__name__, np64(xi)), atol=1e-10)
 
 
+@pytest.mark.parametrize("G", GROUPS, ids=IDS)
+def test_vmap_whole_api(G):
+    """Every batched operation of the class API under torch.func.vmap equals the batched call
+    (the angles cycle through the small-angle branches and near pi)."""
+    x, y = (sample_tangent(G, (12,), torch.float64, seed=s) for s in (5, 6))
+    alpha = torch.linspace(-0.5, 1.5, 12, dtype=torch.float64)
+    p = torch.randn(12, G.point_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+    d = p[..., : G.rotation_dim]
+    ops = {
+        "compose": lambda a, b: (G.exp(a) @ G.exp(b)).as_matrix(),
+        "inverse": lambda a, b: G.exp(a).inverse().as_matrix(),
+        "adjoint": lambda a, b: G.exp(a).adjoint(),
+        "rplus": lambda a, b: G.exp(a).rplus(b).as_matrix(),
+        "lplus": lambda a, b: G.exp(a).lplus(b).as_matrix(),
+        "rminus": lambda a, b: G.exp(a).rminus(G.exp(b)),
+        "lminus": lambda a, b: G.exp(a).lminus(G.exp(b)),
+        "between": lambda a, b: G.exp(a).between(G.exp(b)).as_matrix(),
+        "from_matrix": lambda a, b: G.from_matrix(G.exp(a).as_matrix()).log(),
+        "rotation": lambda a, b: G.exp(a).rotation(),
+        "hat_vee": lambda a, b: G.vee(G.hat(a)),
+        "ad": lambda a, b: G.ad(a),
+        "jl": lambda a, b: G.jl(a),
+        "jr": lambda a, b: G.jr(a),
+        "jl_inv": lambda a, b: G.jl_inv(a),
+        "jr_inv": lambda a, b: G.jr_inv(a),
+        "interpolate": lambda a, b, t: G.exp(a).interpolate(G.exp(b), t).as_matrix(),
+        "act": lambda a, q: G.exp(a).act(q),
+        "act_direction": lambda a, q: G.exp(a).act_direction(q),
+    }
+    args = {"interpolate": (x, y, alpha), "act": (x, p), "act_direction": (x, d)}
+    if hasattr(G, "act_velocity"):
+        ops["act_velocity"] = lambda a, q: G.exp(a).act_velocity(q)
+        args["act_velocity"] = (x, p[..., :3])
+    for name, fn in ops.items():
+        a = args.get(name, (x, y))
+        np.testing.assert_allclose(torch.func.vmap(fn)(*a).numpy(), fn(*a).numpy(), rtol=0,
+                                   atol=1e-13, err_msg=name)
+
+
 @pytest.mark.parametrize("angle", GRAD_ANGLES, ids=ANGLE_IDS)
 @pytest.mark.parametrize("G", GROUPS, ids=IDS)
 def test_forward_mode(G, angle):
