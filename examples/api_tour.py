@@ -45,6 +45,7 @@ print(F[3], F[:10].reshape(2, 5).batch_shape, (ts.SGal3.random((4, 1)) @ ts.SGal
 # stacking and concatenation (dims count batch axes only)
 assert ts.SGal3.stack([F, F], dim=-1).batch_shape == (1024, 2)
 assert ts.SGal3.cat([F, F[:2]]).batch_shape == (1026,) and F.unsqueeze(0).batch_shape == (1, 1024)
+assert F.unsqueeze(0).squeeze().batch_shape == (1024,) and F.float().double().dtype == torch.float64
 
 # Gradients flow through exp/log (custom backward with the closed-form Jacobians)
 x = xi[:8].clone().requires_grad_(True)

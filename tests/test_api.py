@@ -123,7 +123,16 @@ def test_batch_broadcasting_indexing_reshaping(G):
     assert G.cat([gh, gh], dim=-1).batch_shape == (2, 10)
     assert g.unsqueeze(-1).batch_shape == (5, 1)
     assert g.to(torch.float32).dtype == torch.float32
+    assert g.float().dtype == torch.float32 and g.float().double().dtype == torch.float64
+    assert g.cpu().device.type == "cpu"
     assert g.detach().as_matrix().requires_grad is False
+    col = g.unsqueeze(0).unsqueeze(-1)  # (1, 5, 1)
+    assert col.squeeze().batch_shape == (5,) and col.squeeze(-1).batch_shape == (1, 5)
+    assert col.squeeze(1).batch_shape == (1, 5, 1)  # size 5: unchanged, as torch.squeeze
+    assert G.identity().unsqueeze(0).squeeze().batch_shape == ()
+    assert torch.equal(gh.flatten().as_matrix(), gh.as_matrix().reshape(10, G.matrix_dim, G.matrix_dim))
+    assert G.identity().flatten().batch_shape == (1,)
+    assert [x.batch_shape for x in h] == [(1,), (1,)]  # iteration over the first batch axis
     i = G.identity((3,), dtype=torch.float32)
     assert i.batch_shape == (3,) and i.dtype == torch.float32
     assert torch.equal(i.as_matrix()[0], torch.eye(G.matrix_dim))
@@ -302,6 +311,12 @@ def test_stack_cat_unsqueeze_errors(G):
         G.cat([g, g], dim=1)
     with pytest.raises(IndexError, match="dim must be in"):
         g.unsqueeze(2)
+    with pytest.raises(IndexError, match="dim must be in"):
+        g.squeeze(1)
+    with pytest.raises(IndexError, match=r"does not fit the batch shape \(5,\)"):
+        g[0, 0]  # would otherwise index a matrix row
+    with pytest.raises(ValueError, match=r"cannot reshape the batch shape \(5,\) .* to \(2, 2\)"):
+        g.reshape(2, 2)
     with pytest.raises(ValueError, match="needs at least one element"):
         G.stack([])
     with pytest.raises(ValueError, match="use stack"):

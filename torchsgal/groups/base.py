@@ -195,9 +195,14 @@ class LieGroup:
 
     # ---------------------------------------------------------------- batch handling
     def __getitem__(self, index):
+        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors)."""
         if not isinstance(index, tuple):
             index = (index,)
-        return type(self)(self._matrix[index + (slice(None), slice(None))])
+        try:
+            return type(self)(self._matrix[index + (slice(None), slice(None))])
+        except IndexError as err:
+            raise IndexError(f"index {index!r} does not fit the batch shape "
+                             f"{tuple(self.batch_shape)} of this {type(self).__name__}: {err}") from None
 
     def __len__(self) -> int:
         if not self.batch_shape:
@@ -205,10 +210,26 @@ class LieGroup:
         return self.batch_shape[0]
 
     def reshape(self, *shape):
+        """A new batch shape (one -1 allowed), as torch.reshape on the batch axes."""
         if len(shape) == 1 and not isinstance(shape[0], int):
             shape = tuple(shape[0])
         n = self.matrix_dim
-        return type(self)(self._matrix.reshape(*shape, n, n))
+        try:
+            return type(self)(self._matrix.reshape(*shape, n, n))
+        except RuntimeError as err:
+            raise ValueError(f"cannot reshape the batch shape {tuple(self.batch_shape)} of this "
+                             f"{type(self).__name__} to {tuple(shape)}: {err}") from None
+
+    def flatten(self):
+        """The batch axes flattened into one (an unbatched element gets batch shape (1,))."""
+        return self.reshape(-1)
+
+    def squeeze(self, dim: int | None = None):
+        """Removes batch axes of size 1: all of them, or only ``dim`` (counted over the batch
+        axes) if it has size 1."""
+        if dim is None:
+            return self.reshape(tuple(s for s in self.batch_shape if s != 1))
+        return type(self)(self._matrix.squeeze(_batch_axis(dim, len(self.batch_shape), "dim")))
 
     def expand(self, *shape):
         if len(shape) == 1 and not isinstance(shape[0], int):
@@ -246,7 +267,20 @@ class LieGroup:
         return [e._matrix for e in elements]
 
     def to(self, *args, **kwargs):
+        """As torch.Tensor.to on the matrix (dtype and/or device)."""
         return type(self)(self._matrix.to(*args, **kwargs))
+
+    def float(self):
+        return self.to(torch.float32)
+
+    def double(self):
+        return self.to(torch.float64)
+
+    def cpu(self):
+        return type(self)(self._matrix.cpu())
+
+    def cuda(self, device=None):
+        return type(self)(self._matrix.cuda(device))
 
     def detach(self):
         return type(self)(self._matrix.detach())
