@@ -267,3 +267,23 @@ def test_torch_compile_dynamic_shapes(G):
         (comp_grad,) = torch.autograd.grad(comp_val, x)
         np.testing.assert_allclose(comp_val.item(), eager_val.item(), rtol=1e-12)
         np.testing.assert_allclose(comp_grad.numpy(), eager_grad.numpy(), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("G", GROUPS, ids=IDS)
+def test_torch_compile_class_methods(G):
+    """The class API traces in one graph: group objects as inputs and outputs, and the methods
+    built on composition (rplus, lplus, rminus, lminus, between, interpolate), which call
+    ``compose`` because dynamo (torch 2.13) cannot trace ``@`` between non-tensor objects.
+    backend="eager": only dynamo's tracing is under test."""
+
+    def methods(g, h, x, alpha):
+        return (g.compose(h).as_matrix(), g.rplus(x).as_matrix(), g.lplus(x).as_matrix(),
+                g.rminus(h), g.lminus(h), g.between(h).as_matrix(),
+                g.interpolate(h, alpha).as_matrix(), g.inverse().adjoint())
+
+    compiled = torch.compile(methods, fullgraph=True, backend="eager")
+    x = sample_tangent(G, (6,), torch.float64, seed=13)
+    g, h = G.exp(sample_tangent(G, (6,), torch.float64, seed=14)), G.exp(x)
+    alpha = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    for got, want in zip(compiled(g, h, x, alpha), methods(g, h, x, alpha)):
+        np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=0, atol=1e-14)

@@ -115,6 +115,9 @@ class LieGroup:
         return self._f.log(self._matrix)
 
     def compose(self, other):
+        """g h, the same as ``g @ h``.  Inside torch.compile(fullgraph=True) write
+        ``g.compose(h)``: dynamo (torch 2.13) cannot trace ``@`` between objects that are not
+        tensors (without fullgraph, ``@`` only breaks the graph).  The methods below use it."""
         self._same_type(other, "other")
         return type(self)(self._f.compose(self._matrix, other._matrix))
 
@@ -132,11 +135,11 @@ class LieGroup:
 
     def rplus(self, delta: torch.Tensor):
         """g exp(delta)."""
-        return self @ type(self).exp(delta)
+        return self.compose(type(self).exp(delta))
 
     def lplus(self, delta: torch.Tensor):
         """exp(delta) g."""
-        return type(self).exp(delta) @ self
+        return type(self).exp(delta).compose(self)
 
     def rminus(self, other) -> torch.Tensor:
         """log(other^-1 g)."""
@@ -144,11 +147,11 @@ class LieGroup:
 
     def lminus(self, other) -> torch.Tensor:
         """log(g other^-1)."""
-        return (self @ self._same_type(other, "other").inverse()).log()
+        return self.compose(self._same_type(other, "other").inverse()).log()
 
     def between(self, other):
         """g^-1 other."""
-        return self.inverse() @ self._same_type(other, "other")
+        return self.inverse().compose(self._same_type(other, "other"))
 
     def interpolate(self, other, alpha):
         """Geodesic g exp(alpha log(g^-1 h)); alpha a scalar or a tensor broadcasting with the
