@@ -22,7 +22,7 @@ import torchsgal as ts
 
 GROUPS = ts.ALL_GROUPS
 IDS = [G.__name__ for G in GROUPS]
-SETTINGS = settings(max_examples=60, deadline=None, derandomize=True,
+SETTINGS = settings(max_examples=60, deadline=None, derandomize=True, database=None,
                     suppress_health_check=[HealthCheck.too_slow])
 EPS = 1e-12  # relative error bound, float64
 
