@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import mpmath
 import numpy as np
 import pytest
 import torch
@@ -16,6 +17,7 @@ import torch
 import reference as ref
 import torchsgal as ts
 from conftest import sample_tangent
+from torchsgal.functional import numerics
 
 ANGLES = [1e-12, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 0.1, 0.5, 1.0, 2.0, 3.0, math.pi - 1e-6]
 FUNCTIONS = ["jl", "jr", "jl_inv", "jr_inv", "exp"]
@@ -245,3 +247,67 @@ def test_sim3_float32_at_large_scales(lam):
         back = ts.Sim3.exp(t).log().double().numpy()
         assert np.isfinite(back).all()
         assert np.abs(back - xi).max() <= 1e-5 * max(1.0, np.abs(xi).max()), f"log float32 at angle {angle}"
+
+
+def test_jinv_coefficient_against_mpmath():
+    """d(theta) = (1 - (theta/2) cot(theta/2)) / theta^2 on both branches: the Bernoulli series
+    to 2e-15 relative below JINV_THRESHOLD, the closed form to 5e-14 above (its cancellation
+    1/theta^2 - cot/(2 theta) costs ~50x at theta = 0.5)."""
+    th = np.concatenate([np.linspace(1e-4, numerics.JINV_THRESHOLD, 400, endpoint=False),
+                         np.linspace(numerics.JINV_THRESHOLD, 3.1, 400)])
+    got = numerics.jinv_coefficient(torch.tensor(th * th, dtype=torch.float64)).numpy()
+    with mpmath.workdps(40):
+        want = np.array([float((1 - (mpmath.mpf(t) / 2) * mpmath.cot(mpmath.mpf(t) / 2)) / mpmath.mpf(t) ** 2)
+                         for t in th])
+    rel = np.abs(got - want) / np.abs(want)
+    small = th < numerics.JINV_THRESHOLD
+    assert rel[small].max() <= 2e-15, rel[small].max()
+    assert rel[~small].max() <= 5e-14, rel[~small].max()
+
+
+# Just below the series/closed-form switches (SERIES_THRESHOLD = SIM3_SERIES_THRESHOLD = 1): the
+# end of each Taylor branch, where its truncation error is largest.  A tolerance of 1e-13 (the
+# code holds ~1e-15 there) catches a series cut a few terms short, which 1e-12 did not.
+NEAR_SWITCH = [0.9, 0.99, 0.999]
+
+
+@pytest.mark.parametrize("fn", ["jl", "jl_inv", "exp"])
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda g: g.__name__)
+def test_series_branch_end_against_mpmath(G, fn):
+    """exp, J_l and J_l^-1 at the end of the Taylor branches, to 1e-13 relative."""
+    for i, angle in enumerate(NEAR_SWITCH):
+        xi = sample_tangent(G, (), torch.float64, seed=400 + i, angles=[angle]).numpy()
+        t = torch.tensor(xi)
+        got = (G.exp(t).as_matrix() if fn == "exp" else getattr(G, fn)(t)).numpy()
+        want = getattr(ref, fn + "_mp")(G.__name__, xi)
+        err = ref.rel_err(got, want) if fn == "exp" else ref.blockwise_rel_err(got, want, G.__name__).rel
+        assert err <= 1e-13, f"{G.__name__}.{fn} at {angle}: {err:.3g}"
+
+
+@pytest.mark.parametrize("fn", ["jl", "jl_inv"])
+def test_sim3_series_branch_end(fn):
+    """Sim(3): the (theta^2, moments) series at its upper end, over the scales."""
+    for i, angle in enumerate(NEAR_SWITCH):
+        for j, lam in enumerate([0.0, 1e-6, 2.0, -3.0, 5.0, -5.0]):
+            xi = sample_tangent(ts.Sim3, (), torch.float64, seed=600 + 7 * i + j, angles=[angle])
+            xi[6] = lam
+            x = xi.numpy()
+            e = ref.blockwise_rel_err(getattr(ts.Sim3, fn)(xi).numpy(), getattr(ref, fn + "_mp")("Sim3", x), "Sim3").rel
+            assert e <= 1e-13, f"Sim3.{fn} at angle {angle}, lambda {lam}: {e:.3g}"
+
+
+@pytest.mark.parametrize("G", [ts.SO3, ts.SE3, ts.SE23, ts.SGal3, ts.Sim3], ids=lambda g: g.__name__)
+@pytest.mark.parametrize("axis", [0, 1, 2])
+@pytest.mark.parametrize("angle", [2.0, math.pi - 1e-6, math.pi])
+def test_log_about_coordinate_axes(G, axis, angle):
+    """Rotations about e_x, e_y, e_z (two of the symmetric part's diagonal entries tie at 0):
+    log is finite, has angle `angle`, and exp(log) reproduces the matrix."""
+    xi = sample_tangent(G, (), torch.float64, seed=11, angles=[1.0])
+    phi = torch.zeros(3, dtype=torch.float64)
+    phi[axis] = angle
+    xi[G._f.PHI] = phi
+    M = G.exp(xi).as_matrix()
+    back = G.from_matrix(M).log()
+    assert torch.isfinite(back).all()
+    assert abs(back[G._f.PHI].norm().item() - angle) <= 1e-12
+    np.testing.assert_allclose(G.exp(back).as_matrix().numpy(), M.numpy(), atol=1e-12)
