@@ -84,7 +84,6 @@ def np64(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().double().numpy()
 
 
-
 def _no_skips() -> bool:
     return os.environ.get("TORCHSGAL_NO_SKIPS") == "1"
 
