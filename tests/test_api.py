@@ -151,6 +151,11 @@ def test_components_round_trip():
     )
     p = ts.SE3.random((4,), dtype=torch.float64)
     assert torch.equal(ts.SE3.from_components(p.rotation(), p.position()).as_matrix(), p.as_matrix())
+    for G in (ts.SO3, ts.SO2):
+        r = G.random((4,), dtype=torch.float64)
+        assert torch.equal(G.from_components(rotation=r.rotation()).as_matrix(), r.as_matrix())
+        with pytest.raises(ValueError, match=rf"rotation must have shape \(\.\.\., {G.matrix_dim}, {G.matrix_dim}\)"):
+            G.from_components(torch.eye(G.matrix_dim + 1, dtype=torch.float64))
     # components broadcast: one rotation, a batch of positions
     q = ts.SE3.from_components(torch.eye(3), torch.zeros(7, 3))
     assert q.batch_shape == (7,)
@@ -240,6 +245,16 @@ def test_integer_and_mixed_dtypes(G):
         G.exp([0.0] * G.dof)
     with pytest.raises(TypeError, match=r"other must be a"):
         G.random(()).between(ts.SO3.random(()) if G is not ts.SO3 else ts.SE3.random(()))
+    g, h = G.random((3,), dtype=torch.float64), G.random((3,), dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: batch \(3,\), alpha \(2,\)"):
+        g.interpolate(h, torch.rand(2, dtype=torch.float64))
+    with pytest.raises(TypeError, match=r"alpha has dtype torch.float32 but self has dtype torch.float64"):
+        g.interpolate(h, torch.rand(3))
+    with pytest.raises(TypeError, match=r"alpha must have a floating dtype"):
+        g.interpolate(h, torch.ones(3, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"alpha must be a number or a torch.Tensor, got list"):
+        g.interpolate(h, [0.5, 0.5, 0.5])
+    assert g.interpolate(h, torch.rand(4, 1, dtype=torch.float64)).batch_shape == (4, 3)
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)

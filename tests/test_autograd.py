@@ -5,6 +5,8 @@ jacrev) and torch.compile."""
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -267,6 +269,24 @@ def test_torch_compile_dynamic_shapes(G):
         (comp_grad,) = torch.autograd.grad(comp_val, x)
         np.testing.assert_allclose(comp_val.item(), eager_val.item(), rtol=1e-12)
         np.testing.assert_allclose(comp_grad.numpy(), eager_grad.numpy(), rtol=1e-10, atol=1e-12)
+
+
+def test_threshold_getters_carry_dynamo_constant_mark():
+    """numerics marks its threshold getters as torch.compiler.assume_constant_result does (without
+    importing torch._dynamo at import time); the mark must be the one that function sets."""
+    from torchsgal.functional import numerics
+
+    marked = torch.compiler.assume_constant_result(lambda: 0.0)
+    marks = {k: v for k, v in vars(marked).items()}
+    assert marks, "assume_constant_result no longer marks by an attribute"
+    for getter in (numerics.series_threshold_sq, numerics.jinv_threshold_sq, numerics.log_symmetric_cos):
+        assert {k: getattr(getter, k, None) for k in marks} == marks
+
+
+def test_import_does_not_load_dynamo():
+    """import torchsgal stays light: torch._dynamo (about 1.3 s) is not imported by it."""
+    code = "import sys, torchsgal; sys.exit(int('torch._dynamo' in sys.modules))"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
 @pytest.mark.parametrize("G", GROUPS, ids=IDS)

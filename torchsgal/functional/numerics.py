@@ -44,10 +44,14 @@ def _constant(value: float):
     a symbolic value, and dynamo (torch 2.13) fails when one is shared by the graphs of two
     custom autograd.Functions (exp's forward and log's backward).  tests/test_autograd.py
     compiles with dynamic=True.
+
+    The mark is the attribute that ``torch.compiler.assume_constant_result`` sets (torch 2.1 to
+    2.13), set here directly: calling that function imports torch._dynamo, which would add
+    about 1.3 s to ``import torchsgal``.  tests/test_autograd.py checks that both agree.
     """
-    mark = getattr(torch.compiler, "assume_constant_result", None)  # torch >= 2.1
     getter = lambda: value  # noqa: E731
-    return mark(getter) if mark is not None else getter
+    getter._dynamo_marked_constant = True
+    return getter
 
 
 series_threshold_sq = _constant(SERIES_THRESHOLD**2)

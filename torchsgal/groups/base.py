@@ -156,8 +156,14 @@ class LieGroup:
     def interpolate(self, other, alpha):
         """Geodesic g exp(alpha log(g^-1 h)); alpha a scalar or a tensor broadcasting with the
         batch (0 gives g, 1 gives h)."""
+        if isinstance(alpha, torch.Tensor):
+            checks.floating(alpha, "alpha")
+            checks.same_device_dtype(self=self._matrix, alpha=alpha)
+        elif not isinstance(alpha, (int, float)) or isinstance(alpha, bool):
+            raise TypeError(f"alpha must be a number or a torch.Tensor, got {type(alpha).__name__}")
         delta = self.between(other).log()
         alpha = torch.as_tensor(alpha, dtype=delta.dtype, device=delta.device)
+        checks.broadcast_batch(batch=delta.shape[:-1], alpha=alpha.shape)
         return self.rplus(alpha.unsqueeze(-1) * delta)
 
     def act_direction(self, d: torch.Tensor) -> torch.Tensor:

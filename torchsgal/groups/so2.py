@@ -3,6 +3,7 @@ from __future__ import annotations
 import torch
 
 from ..functional import so2 as _so2
+from ._components import prepare
 from .base import LieGroup
 
 
@@ -15,6 +16,12 @@ class SO2(LieGroup):
     rotation_dim = 2
     _f = _so2
     __slots__ = ()
+
+    @classmethod
+    def from_components(cls, rotation: torch.Tensor):
+        """The rotation matrix (2, 2) itself (the one component; the same API as the other groups)."""
+        (C,) = prepare(rotation=(rotation, (2, 2)))
+        return cls(C)
 
     def angle(self) -> torch.Tensor:
         """theta in (-pi, pi] (...)."""

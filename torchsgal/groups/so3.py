@@ -3,6 +3,7 @@ from __future__ import annotations
 import torch
 
 from ..functional import so3 as _so3
+from ._components import prepare
 from .base import LieGroup
 
 
@@ -18,6 +19,12 @@ class SO3(LieGroup):
     @classmethod
     def from_rotation(cls, rotation: torch.Tensor, check: bool = False):
         return cls.from_matrix(rotation, check=check)
+
+    @classmethod
+    def from_components(cls, rotation: torch.Tensor):
+        """The rotation matrix (3, 3) itself (the one component; the same API as the other groups)."""
+        (C,) = prepare(rotation=(rotation, (3, 3)))
+        return cls(C)
 
     def act(self, p: torch.Tensor) -> torch.Tensor:
         """Points (..., 3): C p."""
