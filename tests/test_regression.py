@@ -544,3 +544,145 @@ def test_bad_input_raises_clear_errors():
         reg.simulate_maneuver(G, torch.ones(5, dtype=F64), 10, 0.1)
     with pytest.raises(TypeError, match="fitted must be a SE3"):
         reg.r_squared(Y, ts.SE23.exp(torch.randn(5, 9, dtype=F64)))
+
+
+# ------------------------------------------------------------------ edge cases
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=ids)
+def test_log_distance_gradient_is_zero_at_equal_elements_and_matches_finite_differences(G):
+    a = G.random((3,), dtype=F64)
+    xi = torch.zeros(3, G.dof, dtype=F64, requires_grad=True)
+    d = reg.log_distance(a.rplus(xi), a)
+    d.sum().backward()
+    assert bool(torch.isfinite(xi.grad).all())  # was NaN
+    # zero where the distance is exactly zero; else (a rounding-level distance, a^-1 a not
+    # exactly I) the unit gradient of a norm
+    exact = d == 0
+    assert bool((xi.grad[exact] == 0).all()) and bool((xi.grad.norm(dim=-1) <= 1 + 1e-12).all())
+    e = G.identity((3,), dtype=F64)
+    xi.grad = None
+    d = reg.log_distance(e.rplus(xi), e)
+    d.sum().backward()
+    assert float(d.detach().abs().max()) == 0.0
+    torch.testing.assert_close(xi.grad, torch.zeros_like(xi), atol=0, rtol=0)
+    # away from zero: the gradient of the distance, against central differences
+    w = 0.5 + torch.rand(G.dof, dtype=F64)
+    x0 = 0.3 * torch.randn(3, G.dof, dtype=F64)
+    x = x0.clone().requires_grad_(True)
+    reg.log_distance(a.rplus(x), a, w).sum().backward()
+    fd = torch.zeros_like(x0)
+    for j in range(G.dof):
+        e = torch.zeros(G.dof, dtype=F64)
+        e[j] = 1e-6
+        fd[:, j] = (reg.log_distance(a.rplus(x0 + e), a, w) - reg.log_distance(a.rplus(x0 - e), a, w)) / 2e-6
+    torch.testing.assert_close(x.grad, fd, atol=1e-7, rtol=1e-6)
+
+
+def test_r_squared_is_finite_where_the_samples_do_not_vary():
+    y = ts.SE3.identity((2, 10), dtype=F64)
+    torch.testing.assert_close(reg.r_squared(y, y), torch.ones(2, dtype=F64))  # was NaN
+    s = ts.SE3.random((2, 1), dtype=F64)
+    torch.testing.assert_close(reg.r_squared(s, s), torch.ones(2, dtype=F64))  # N = 1
+    off = s.rplus(torch.full((2, 1, 6), 0.1, dtype=F64))
+    torch.testing.assert_close(reg.r_squared(s, off), torch.zeros(2, dtype=F64))  # imperfect fit
+    # a varying batch element next to a constant one keeps its ordinary R^2
+    Y = ts.SE3.exp(torch.cat([torch.zeros(1, 5, 6, dtype=F64), torch.randn(1, 5, 6, dtype=F64)]))
+    fitted = Y.rplus(0.01 * torch.randn(2, 5, 6, dtype=F64))
+    r2 = reg.r_squared(Y, fitted)
+    mean = reg.frechet_mean(Y[1]).mean
+    sse = (reg.log_distance(fitted[1], Y[1]) ** 2).sum()
+    sst = (reg.log_distance(mean.unsqueeze(-1), Y[1]) ** 2).sum()
+    assert float(r2[0]) == 0.0
+    assert abs(float(r2[1]) - float(1 - sse / sst)) < 1e-12
+
+
+def test_max_iterations_and_tolerance_are_validated():
+    G = ts.SE3
+    t = torch.linspace(0, 1, 6, dtype=F64)
+    Y = G.exp(torch.randn(6, 6, dtype=F64))
+    start = reg.fit_subgroup(Y, t, max_iterations=0)
+    assert start.iterations == 0 and not bool(start.converged)  # was the default 50
+    assert reg.fit_subgroup(Y, t, method="lbfgs", max_iterations=0).iterations == 0
+    assert float(reg.fit_subgroup(Y, t).cost) < float(start.cost)
+    for method in ("gauss_newton", "lbfgs"):
+        with pytest.raises(ValueError, match="max_iterations must be >= 0, got -1"):
+            reg.fit_subgroup(Y, t, method=method, max_iterations=-1)
+        with pytest.raises(TypeError, match="max_iterations must be an int"):
+            reg.fit_subgroup(Y, t, method=method, max_iterations=2.5)
+        with pytest.raises(ValueError, match="tolerance must be a finite float >= 0, got -0.001"):
+            reg.fit_subgroup(Y, t, method=method, tolerance=-1e-3)
+    with pytest.raises(ValueError, match="max_iterations must be >= 0"):
+        reg.fit_riemannian_geodesic(Y, t, max_iterations=-1)
+    with pytest.raises(TypeError, match="tolerance must be a float"):
+        reg.frechet_mean(Y, tolerance="1e-8")
+
+
+def test_fitted_curve_validates_times():
+    Y = ts.SE3.exp(torch.randn(2, 6, 6, dtype=F64))
+    t = torch.linspace(0, 1, 6, dtype=F64)
+    fit = reg.fit_subgroup(Y, t)
+    assert fit(torch.zeros(1, 4, dtype=F64)).batch_shape == (2, 4)
+    with pytest.raises(ValueError, match=r"times must have shape \(\.\.\., M\).*\(2,\), got \(3, 4\)"):
+        fit(torch.zeros(3, 4, dtype=F64))
+    with pytest.raises(ValueError, match="times is on meta but the fit is on cpu"):
+        fit(torch.zeros(4, dtype=F64, device="meta"))
+
+
+def test_lbfgs_on_an_empty_batch_returns_an_empty_fit_like_gauss_newton():
+    Y = ts.SE3.exp(torch.randn(2, 6, 6, dtype=F64))[:0]
+    t = torch.linspace(0, 1, 6, dtype=F64)
+    gn, lb = reg.fit_subgroup(Y, t), reg.fit_subgroup(Y, t, method="lbfgs")  # lbfgs raised
+    for a, b in ((gn.origin.as_matrix(), lb.origin.as_matrix()), (gn.coefficients, lb.coefficients),
+                 (gn.cost, lb.cost), (gn.converged, lb.converged)):
+        assert a.shape == b.shape and a.dtype == b.dtype and b.numel() == 0
+
+
+def test_flows_validate_their_arguments():
+    G = ts.SE3
+    v, w = torch.randn(6, dtype=F64), torch.ones(6, dtype=F64)
+    tau = torch.tensor([0.5, 1.0], dtype=F64)
+    for steps in (0, -1):  # returned the identity
+        with pytest.raises(ValueError, match=f"steps must be a positive int, got {steps}"):
+            reg.geodesic_flow(G, v, tau, w, steps=steps)
+        with pytest.raises(ValueError, match=f"steps must be a positive int, got {steps}"):
+            reg.polynomial_flow(G, v[None], tau, w, steps=steps)
+    with pytest.raises(ValueError, match=r"X must have shape \(\.\.\., 6\), got \(5,\)"):
+        reg.euler_arnold_rhs(G, v[:5], w)
+    with pytest.raises(ValueError, match=r"weights must have shape \(\.\.\., 6\), got \(5,\)"):
+        reg.euler_arnold_rhs(G, v, w[:5])
+    with pytest.raises(ValueError, match=r"Y must have shape \(\.\.\., 6\)"):
+        reg.levi_civita(G, v, v[:3], w)
+    with pytest.raises(ValueError, match="batch shapes do not broadcast: X .*Y"):
+        reg.levi_civita(G, torch.randn(2, 6, dtype=F64), torch.randn(3, 6, dtype=F64), w)
+    with pytest.raises(ValueError, match=r"V must have shape \(\.\.\., K, 6\).*got \(6,\)"):
+        reg.polynomial_rhs(G, v, w)
+    with pytest.raises(ValueError, match=r"initial must have shape \(\.\.\., K, 6\).*got \(6,\)"):
+        reg.polynomial_flow(G, v, tau, w)
+    with pytest.raises(ValueError, match=r"velocity must have shape \(\.\.\., 6\)"):
+        reg.geodesic_flow(G, v[None, :5], tau, w)
+    with pytest.raises(TypeError, match="tau must be a torch.Tensor, got float"):
+        reg.geodesic_flow(G, v, 0.5, w)
+    with pytest.raises(TypeError, match="tau must have a floating dtype"):
+        reg.geodesic_flow(G, v, torch.arange(3), w)
+    with pytest.raises(TypeError, match="tau has dtype torch.float32 but velocity has dtype torch.float64"):
+        reg.geodesic_flow(G, v, tau.float(), w)
+    with pytest.raises(ValueError, match=r"tau must have shape \(\.\.\., M\)"):
+        reg.geodesic_flow(G, v, tau[0], w)
+    with pytest.raises(ValueError, match="batch shapes do not broadcast: velocity .*tau"):
+        reg.geodesic_flow(G, torch.randn(2, 6, dtype=F64), torch.rand(3, 4, dtype=F64), w)
+    with pytest.raises(TypeError, match="G must be a torchsgal group class"):
+        reg.geodesic_flow("SE3", v, tau, w)
+
+
+def test_log_distance_and_r_squared_name_their_arguments():
+    Y = ts.SE3.exp(torch.randn(5, 6, dtype=F64))
+    Y32 = ts.SE3.exp(torch.randn(5, 6))
+    with pytest.raises(TypeError, match="b has dtype torch.float32 but a has dtype torch.float64"):
+        reg.log_distance(Y, Y32)
+    with pytest.raises(TypeError, match="b must be a SE3 like a, got SE23"):
+        reg.log_distance(Y, ts.SE23.identity((5,), dtype=F64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: a \(5,\), b \(4,\)"):
+        reg.log_distance(Y, Y[:4])
+    with pytest.raises(TypeError, match="fitted has dtype torch.float32 but samples has dtype torch.float64"):
+        reg.r_squared(Y, Y32)
+    with pytest.raises(TypeError, match="mean has dtype torch.float32 but samples has dtype torch.float64"):
+        reg.r_squared(Y, Y, mean=Y32[0])

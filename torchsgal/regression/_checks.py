@@ -90,3 +90,23 @@ def degree(value, n_samples: int, name: str = "degree") -> int:
             f"{value + 1} samples, got N = {n_samples}"
         )
     return value
+
+
+def count(value, name: str) -> int:
+    """A non-negative int (an iteration count); bool is refused."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name} must be an int >= 0 (or None for the default), got "
+                        f"{type(value).__name__}")
+    if value < 0:
+        raise ValueError(f"{name} must be >= 0, got {value}")
+    return value
+
+
+def tolerance(value, name: str = "tolerance") -> float:
+    """A finite real number >= 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a float >= 0 (or None for the default), got "
+                        f"{type(value).__name__}")
+    if not 0 <= value < float("inf"):
+        raise ValueError(f"{name} must be a finite float >= 0, got {value!r}")
+    return float(value)

@@ -47,9 +47,19 @@ class CurveFit:
     _x: torch.Tensor
 
     def __call__(self, times: torch.Tensor) -> LieGroup:
+        """gamma at times (..., M), the leading dimensions broadcasting with the fit's batch."""
+        if isinstance(times, torch.Tensor) and times.device != self.origin.device:
+            raise ValueError(f"times is on {times.device} but the fit is on "
+                             f"{self.origin.device}; move them to one device")
         times = torch.as_tensor(times, dtype=self.origin.dtype, device=self.origin.device)
         if times.dim() < 1:
             raise ValueError(f"times must have shape (..., M), got {tuple(times.shape)}")
+        try:
+            torch.broadcast_shapes(times.shape[:-1], self.time_origin.shape)
+        except RuntimeError:
+            raise ValueError(f"times must have shape (..., M) with (...) broadcasting with the "
+                             f"fit's batch shape {tuple(self.time_origin.shape)}, got "
+                             f"{tuple(times.shape)}") from None
         tau = times - self.time_origin.unsqueeze(-1)
         with torch.no_grad():
             return self.group(self._model.curve(self.origin.as_matrix(), self._x, tau))
@@ -100,14 +110,25 @@ def _initial_subgroup(G, Y, t, t0):
     return p, v
 
 
-def _solve(model, origin, x, method, max_iterations, tolerance):
+def _options(method, max_iterations, tolerance) -> None:
+    """Validates the solver options at the entry of a fit, before any work."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if max_iterations is not None:
+        _checks.count(max_iterations, "max_iterations")
+    if tolerance is not None:
+        _checks.tolerance(tolerance, "tolerance")
+
+
+def _solve(model, origin, x, method, max_iterations, tolerance):
+    _options(method, max_iterations, tolerance)
     if tolerance is None:  # relative step length; float32 resolves ~1e-6 at best
         tolerance = 1e-10 if x.dtype == torch.float64 else 1e-5
+    if max_iterations is None:
+        max_iterations = 50 if method == "gauss_newton" else 500
     if method == "gauss_newton":
-        return gauss_newton(model, origin, x, max_iterations or 50, tolerance)
-    return lbfgs(model, origin, x, max_iterations or 500, tolerance)
+        return gauss_newton(model, origin, x, max_iterations, tolerance)
+    return lbfgs(model, origin, x, max_iterations, tolerance)
 
 
 def _basis(basis, G, like):
@@ -135,9 +156,11 @@ def fit_polynomial(samples: LieGroup, times: torch.Tensor, degree: int = 1, *, w
     (batched Levenberg-Marquardt with closed-form Jacobians; max_iterations default 50) or
     "lbfgs" (``torch.optim.LBFGS`` on the tangent perturbation; default 500 per round).
     tolerance: relative step length for convergence (default 1e-10 in float64, 1e-5 in
-    float32)."""
+    float32).  max_iterations and tolerance: None for the defaults; 0 iterations return the
+    starting point."""
     _checks.group_samples(samples, "samples")
     _checks.degree(degree, samples.batch_shape[-1])
+    _options(method, max_iterations, tolerance)
     G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, max(1, degree + 1))
     B = _basis(basis, G, Y)
     with torch.no_grad():
@@ -173,6 +196,7 @@ def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: in
         raise ValueError(f"steps must be a positive int, got {steps!r}")
     _checks.group_samples(samples, "samples")
     _checks.degree(degree, samples.batch_shape[-1])
+    _options(method, max_iterations, tolerance)
     if degree < 1:
         raise ValueError(f"degree must be >= 1 for a Riemannian polynomial, got {degree}")
     G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, degree + 1)

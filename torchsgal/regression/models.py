@@ -23,6 +23,36 @@ from __future__ import annotations
 
 import torch
 
+from ..functional import checks
+from ..groups import LieGroup
+
+
+def _group_class(G) -> None:
+    if not (isinstance(G, type) and issubclass(G, LieGroup)):
+        raise TypeError(f"G must be a torchsgal group class (e.g. torchsgal.SE3), got {G!r}")
+
+
+def _check_flow_args(G, first, first_name: str, first_tail: int, tau, weights, steps) -> None:
+    """Metadata checks of the public flows (no host sync): ``first`` (..., [K,] dof), tau
+    (..., M), weights (..., dof), one dtype and device, broadcastable batches, steps >= 1."""
+    checks.floating(tau, "tau")
+    checks.vector(weights, G.dof, "weights")
+    checks.same_device_dtype(**{first_name: first, "tau": tau, "weights": weights})
+    if tau.dim() < 1:
+        raise ValueError(f"tau must have shape (..., M), got {tuple(tau.shape)}")
+    checks.broadcast_batch(**{first_name: first.shape[: first.dim() - first_tail],
+                              "tau": tau.shape[:-1], "weights": weights.shape[:-1]})
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be a positive int, got {steps!r}")
+
+
+def _coordinates(G, V, name: str) -> None:
+    """V (..., K, dof), K >= 1."""
+    checks.floating(V, name)
+    if V.dim() < 2 or V.shape[-1] != G.dof or V.shape[-2] < 1:
+        raise ValueError(f"{name} must have shape (..., K, {G.dof}) with K >= 1 for "
+                         f"{G.__name__}, got {tuple(V.shape)}")
+
 
 def _weighted(r: torch.Tensor, sqrt_w: torch.Tensor) -> torch.Tensor:
     return r * sqrt_w.unsqueeze(-2)
@@ -95,7 +125,12 @@ def euler_arnold_rhs(G, X: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """dX/dt = W^-1 ad(X)^T W X, the Euler-Arnold (Euler-Poincare) equation (24) of the
     left-invariant metric <a, b> = a^T diag(w) b, for the body velocity X = gamma^-1 dgamma/dt.
     The transpose in (24) is the metric one: W^-1 ad(X)^T W.  Sign: for SO(3) this is
-    Euler's I dw/dt = (I w) x w."""
+    Euler's I dw/dt = (I w) x w.  X (..., dof), weights (..., dof): positive (not checked,
+    that would read values; a zero weight divides by zero)."""
+    _group_class(G)
+    checks.vector(X, G.dof, "X")
+    checks.vector(weights, G.dof, "weights")
+    checks.binary(X, 1, weights, 1, "X", "weights")
     return (G.ad(X).transpose(-1, -2) @ (weights * X).unsqueeze(-1)).squeeze(-1) / weights
 
 
@@ -116,7 +151,17 @@ def levi_civita(G, X: torch.Tensor, Y: torch.Tensor, weights: torch.Tensor) -> t
     """The Levi-Civita connection of the left-invariant metric diag(w) on left-invariant
     fields, (29) in vector form: nabla_X Y = 1/2 ([X, Y] - ad*_X Y - ad*_Y X), with the metric
     adjoint ad*_X = W^-1 ad(X)^T W.  Along a curve with body velocity X, a field with body
-    components Y(t) has covariant derivative dY/dt + nabla_X Y."""
+    components Y(t) has covariant derivative dY/dt + nabla_X Y.  X, Y, weights (..., dof),
+    broadcast; weights positive (not checked: a zero weight divides by zero)."""
+    _group_class(G)
+    for name, v in (("X", X), ("Y", Y), ("weights", weights)):
+        checks.vector(v, G.dof, name)
+    checks.same_device_dtype(X=X, Y=Y, weights=weights)
+    checks.broadcast_batch(X=X.shape[:-1], Y=Y.shape[:-1], weights=weights.shape[:-1])
+    return _levi_civita(G, X, Y, weights)
+
+
+def _levi_civita(G, X, Y, weights):
     adj = lambda A, B: (G.ad(A).transpose(-1, -2) @ (weights * B).unsqueeze(-1)).squeeze(-1)  # noqa: E731
     bracket = (G.ad(X) @ Y.unsqueeze(-1)).squeeze(-1)
     return 0.5 * (bracket - (adj(X, Y) + adj(Y, X)) / weights)
@@ -138,9 +183,17 @@ def polynomial_rhs(G, V: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """The forward equations (30)/(33) of a Riemannian polynomial of degree K in body
     coordinates, V = (v_1, ..., v_K) (..., K, dof), v_1 the body velocity and
     v_(i+1) = nabla_(gamma') v_i:  dv_i/dt = v_(i+1) - nabla_(v_1) v_i, v_(K+1) = 0.
-    K = 1 is the Euler-Arnold equation (24)."""
+    K = 1 is the Euler-Arnold equation (24).  weights (..., dof), positive (not checked)."""
+    _group_class(G)
+    _coordinates(G, V, "V")
+    checks.vector(weights, G.dof, "weights")
+    checks.binary(V, 2, weights, 1, "V", "weights")
+    return _polynomial_rhs(G, V, weights)
+
+
+def _polynomial_rhs(G, V, weights):
     w = weights.unsqueeze(-2)
-    nab = levi_civita(G, V[..., :1, :].expand(V.shape), V, w)
+    nab = _levi_civita(G, V[..., :1, :].expand(V.shape), V, w)
     return torch.cat([V[..., 1:, :], torch.zeros_like(V[..., :1, :])], dim=-2) - nab
 
 
@@ -169,8 +222,12 @@ def geodesic_flow(G, velocity: torch.Tensor, tau: torch.Tensor, weights: torch.T
 
     Returns Phi (..., M, n, n), X(tau) (..., M, dof) and, with ``sensitivity=True``, eta
     (..., M, dof, dof) such that Phi(X0 + d) = Phi(X0) exp(eta d) to first order.
-    ``polynomial_flow`` with degree 1 (the Euler-Arnold equation (24))."""
-    out = polynomial_flow(G, velocity.unsqueeze(-2), tau, weights, steps, sensitivity)
+    ``polynomial_flow`` with degree 1 (the Euler-Arnold equation (24)); its notes on the
+    step size and the weights apply."""
+    _group_class(G)
+    checks.vector(velocity, G.dof, "velocity")
+    _check_flow_args(G, velocity, "velocity", 1, tau, weights, steps)
+    out = _polynomial_flow(G, velocity.unsqueeze(-2), tau, weights, steps, sensitivity)
     return (out[0], out[1][..., 0, :]) + tuple(out[2:])
 
 
@@ -189,7 +246,20 @@ def polynomial_flow(G, initial: torch.Tensor, tau: torch.Tensor, weights: torch.
     points from the cubic Hermite interpolant of the RK4 step.  ((26), gamma = exp(int X),
     holds only when the X(t) commute; it is not used.)  The sensitivity is the exact
     derivative of this discrete map (tangent-linear RK4 for S = dV/dV0 and
-    eta_(n+1) = Ad(e^-b) (Ad(e^-a) eta_n + J_r(a) da) + J_r(b) db)."""
+    eta_(n+1) = Ad(e^-b) (Ad(e^-a) eta_n + J_r(a) da) + J_r(b) db).
+
+    The steps are fixed, not adaptive: the step h = tau / steps must resolve the dynamics
+    (h |V| well below 1).  Beyond that (a large velocity or offset for the number of steps)
+    the result is inaccurate and can overflow to inf or NaN without an error; raise
+    ``steps``.  The weights (..., dof) must be positive (not checked, that would read values:
+    a zero weight divides by zero)."""
+    _group_class(G)
+    _coordinates(G, initial, "initial")
+    _check_flow_args(G, initial, "initial", 2, tau, weights, steps)
+    return _polynomial_flow(G, initial, tau, weights, steps, sensitivity)
+
+
+def _polynomial_flow(G, initial, tau, weights, steps, sensitivity):
     K, dof = initial.shape[-2], G.dof
     V, w = initial.unsqueeze(-3), weights.unsqueeze(-2)
     batch = torch.broadcast_shapes(V.shape[:-2], tau.shape, w.shape[:-1])
@@ -198,7 +268,7 @@ def polynomial_flow(G, initial: torch.Tensor, tau: torch.Tensor, weights: torch.
     h = (tau / steps)[..., None, None]
     n = G.matrix_dim
     Phi = torch.eye(n, dtype=V.dtype, device=V.device).expand(batch + (n, n))
-    f = lambda Z: polynomial_rhs(G, Z, w)  # noqa: E731
+    f = lambda Z: _polynomial_rhs(G, Z, w)  # noqa: E731
     if sensitivity:
         C = G.ad(torch.eye(dof, dtype=V.dtype, device=V.device))
         Df = lambda Z: _polynomial_rhs_jacobian(G, Z, w, C)  # noqa: E731
@@ -265,7 +335,7 @@ class RiemannianPolynomialModel:
         return x.unflatten(-1, (self.degree, self.G.dof))
 
     def curve(self, origin, x, tau):
-        Phi, _ = polynomial_flow(self.G, self.initial(x), tau, self.weights, self.steps)
+        Phi, _ = _polynomial_flow(self.G, self.initial(x), tau, self.weights, self.steps, False)
         return origin.unsqueeze(-3) @ Phi
 
     def residuals(self, origin, x):
@@ -276,8 +346,8 @@ class RiemannianPolynomialModel:
 
     def linearize(self, origin, x):
         G = self.G
-        Phi, _, eta = polynomial_flow(G, self.initial(x), self.tau, self.weights, self.steps,
-                                      sensitivity=True)
+        Phi, _, eta = _polynomial_flow(G, self.initial(x), self.tau, self.weights, self.steps,
+                                       sensitivity=True)
         r = G(origin.unsqueeze(-3) @ Phi).between(G(self.samples)).log()
         jl_inv = G.jl_inv(r)
         blocks = []

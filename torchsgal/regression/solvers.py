@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import torch
 
+from . import _checks
+
 
 @dataclass
 class SolverState:
@@ -39,6 +41,8 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
     cost falls below ``tolerance**2 * 1e-10``; the loop stops when all have, or when the
     damping of the rest exceeds 1e16 (stalled, reported as not converged).
     """
+    _checks.count(max_iterations, "max_iterations")
+    _checks.tolerance(tolerance, "tolerance")
     r, J = model.linearize(origin, x)
     cost = (r * r).sum(-1)
     lam = torch.full_like(cost, damping)
@@ -85,9 +89,15 @@ def lbfgs(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: int = 50
     origin and on x, the cost summed over the batch (the problems stay independent: the
     gradient of the sum is each problem's gradient), with the gradient 2 J^T r from the
     model's Jacobian.  After each round the origin is
-    re-anchored, p <- p exp(dp), and dp reset to zero."""
+    re-anchored, p <- p exp(dp), and dp reset to zero.  An empty batch returns at once (as
+    from ``gauss_newton``)."""
+    _checks.count(max_iterations, "max_iterations")
+    _checks.tolerance(tolerance, "tolerance")
+    _checks.count(rounds, "rounds")
     dof = model.G.dof
     it = 0
+    if origin.shape[:-2].numel() == 0 or max_iterations == 0:
+        rounds = 0  # torch.optim.LBFGS fails on empty parameters; 0 iterations: the start
     for _ in range(rounds):
         delta = torch.zeros(origin.shape[:-2] + (dof,), dtype=x.dtype, device=x.device,
                             requires_grad=not model.fix_origin)

@@ -7,18 +7,40 @@ from dataclasses import dataclass
 
 import torch
 
+from ..functional import checks
 from ..groups import LieGroup
 from . import _checks
 from .fit import fit_polynomial
 
 
+def _group_pair(a, b, a_name: str, b_name: str) -> None:
+    """a, b: elements of one group with one dtype and device and broadcastable batch shapes."""
+    if not isinstance(a, LieGroup):
+        raise TypeError(f"{a_name} must be a torchsgal group element (e.g. torchsgal.SE3), got "
+                        f"{type(a).__name__}")
+    if not isinstance(b, type(a)):
+        raise TypeError(f"{b_name} must be a {type(a).__name__} like {a_name}, got {type(b).__name__}")
+    checks.same_device_dtype(**{a_name: a.as_matrix(), b_name: b.as_matrix()})
+    checks.broadcast_batch(**{a_name: a.batch_shape, b_name: b.batch_shape})
+
+
+def _squared_log_distance(a: LieGroup, b: LieGroup, weights) -> torch.Tensor:
+    r = a.between(b).log()
+    w = _checks.metric_weights(weights, type(a), r)
+    return (w * r * r).sum(-1)
+
+
 def log_distance(a: LieGroup, b: LieGroup, weights=None) -> torch.Tensor:
     """d(a, b) = |log(a^-1 b)|_w, batch broadcast (...).  Left-invariant; equal to the
     Riemannian distance of diag(w) near the diagonal to second order only (and exactly for a
-    bi-invariant metric, e.g. SO(3) with equal weights)."""
-    r = a.between(b).log()
-    w = _checks.metric_weights(weights, type(a), r)
-    return (w * r * r).sum(-1).sqrt()
+    bi-invariant metric, e.g. SO(3) with equal weights).  Its gradient at a = b is zero (the
+    subgradient convention of ``torch.linalg.norm``), not NaN."""
+    _group_pair(a, b, "a", "b")
+    sq = _squared_log_distance(a, b, weights)
+    # sqrt on a safe input: d sqrt(s)/ds is infinite at s = 0, and 0 * inf is NaN.
+    positive = sq > 0
+    safe = torch.where(positive, sq, torch.ones_like(sq))
+    return torch.where(positive, safe.sqrt(), torch.zeros_like(sq))
 
 
 @dataclass
@@ -45,15 +67,29 @@ def r_squared(samples: LieGroup, fitted: LieGroup, weights=None, mean: LieGroup 
               ) -> torch.Tensor:
     """R^2 = 1 - sum_j d(gamma(t_j), y_j)^2 / min_y sum_j d(y, y_j)^2, (50); with the true
     samples in place of the noisy ones it is (51).  samples, fitted: batch (..., N);
-    mean: the Frechet mean of samples (computed when not given)."""
+    mean: the Frechet mean of samples (computed when not given), batch (...).
+
+    Where the total variation min_y sum_j d(y, y_j)^2 is zero (all samples equal, e.g. N = 1)
+    R^2 is undefined; as scikit-learn's ``r2_score(force_finite=True)`` it is then 1.0 if the
+    fit is perfect (zero residual) and 0.0 otherwise, never NaN."""
     _checks.group_samples(samples, "samples", 1)
     if not isinstance(fitted, type(samples)):
         raise TypeError(f"fitted must be a {type(samples).__name__}, got {type(fitted).__name__}")
     if fitted.batch_shape[-1:] != samples.batch_shape[-1:]:
         raise ValueError(f"fitted must have one element per sample: batch (..., "
                          f"{samples.batch_shape[-1]}), got {tuple(fitted.batch_shape)}")
-    sse = (log_distance(fitted, samples, weights) ** 2).sum(-1)
+    _group_pair(samples, fitted, "samples", "fitted")
+    if mean is not None:
+        if not isinstance(mean, type(samples)):
+            raise TypeError(f"mean must be a {type(samples).__name__}, got {type(mean).__name__}")
+        checks.same_device_dtype(samples=samples.as_matrix(), mean=mean.as_matrix())
+        checks.broadcast_batch(samples=samples.batch_shape[:-1], mean=mean.batch_shape)
+    sse = _squared_log_distance(fitted, samples, weights).sum(-1)
     if mean is None:
         mean = frechet_mean(samples, weights).mean
-    sst = (log_distance(mean.unsqueeze(-1), samples, weights) ** 2).sum(-1)
-    return 1.0 - sse / sst
+    sst = _squared_log_distance(mean.unsqueeze(-1), samples, weights).sum(-1)
+    # No NaN where sst = 0: both branches on safe inputs, selected without a host sync.
+    varies = sst > 0
+    r2 = 1.0 - sse / torch.where(varies, sst, torch.ones_like(sst))
+    degenerate = torch.where(sse == 0, torch.ones_like(sse), torch.zeros_like(sse))
+    return torch.where(varies, r2, degenerate)
