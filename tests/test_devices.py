@@ -10,9 +10,11 @@ inputs checks two things a CUDA run would, without a GPU:
   data-dependent shape raise on meta, where on CUDA they would be a silent device-to-host sync.
 
 Each case also checks the output's shape, dtype and device.  The only host syncs the library
-makes on purpose (input validation such as ``from_matrix(check=True)`` and covariance checks,
-the convergence test of ``ConcentratedGaussian.fuse`` and the estimation solvers, which run on
-CPU tensors) are left out, and one test shows that such a sync is caught.
+makes on purpose (input validation such as ``from_matrix(check=True)`` and the estimation
+solvers, which run on CPU tensors) are left out, and one test shows that such a sync is caught.
+The uncertainty package's covariance checks and the convergence test of
+``ConcentratedGaussian.fuse`` are skipped on 'meta' (there is no data to read), so they run here
+with their defaults.
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ import torchsgal as ts
 from torchsgal import imu
 from torchsgal import kinematics as kin
 from torchsgal import regression as reg
-from torchsgal.uncertainty import ConcentratedGaussian
+from torchsgal.uncertainty import ConcentratedGaussian, fuse_event
 
 META = torch.device("meta")
 IDS = [G.__name__ for G in ts.ALL_GROUPS]
@@ -129,15 +131,22 @@ def test_imu_preintegration_on_device(per_axis):
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_concentrated_gaussian_on_device(G):
     dof = G.dof
-    d = ConcentratedGaussian(G.random(BATCH, device=META), _meta(*BATCH, dof, dof), validate=False)
+    d = ConcentratedGaussian(G.random(BATCH, device=META), _meta(*BATCH, dof, dof))
     _check(d.sample((5,)).as_matrix(), (5, *BATCH, G.matrix_dim, G.matrix_dim))
     _check(d.mahalanobis(d.mean), BATCH)
     _check(d.log_prob(d.mean), BATCH)
     for moved in (d.to_side("left"), d.inverse(), d.compose(d), d.between(d)):
         _check(moved.covariance, (*BATCH, dof, dof))
-    acted = d.act_direction(_meta(*BATCH, G.rotation_dim))
-    _check(acted.mean, (*BATCH, G.rotation_dim))
-    _check(acted.covariance, (*BATCH, G.rotation_dim, G.rotation_dim))
+    _check(d.compose(d, cross_covariance=_meta(*BATCH, dof, dof)).covariance, (*BATCH, dof, dof))
+    k = G.rotation_dim
+    acted = d.act_direction(_meta(*BATCH, k), _meta(*BATCH, k, k))
+    _check(acted.mean, (*BATCH, k))
+    _check(acted.covariance, (*BATCH, k, k))
+    if G is ts.SGal3:  # fusion: one group (meta dispatch is slow; the code is generic)
+        _check(d.fuse(d, iterations=1).covariance, (*BATCH, dof, dof))
+        post = fuse_event(d, _meta(*BATCH, 4), _meta(*BATCH, 4, 4))
+        _check(post.covariance, (*BATCH, dof, dof))
+        _check(post.mean.as_matrix(), (*BATCH, 5, 5))
 
 
 @pytest.mark.parametrize("robot", [kin.ur5, kin.iiwa7, kin.scara], ids=["ur5", "iiwa7", "scara"])

@@ -273,6 +273,88 @@ def test_bad_input():
         d.compose(ConcentratedGaussian(ts.SO3.random((), dtype=torch.float64), torch.eye(3, dtype=torch.float64)))
 
 
+def test_empty_batch():
+    """A batch of 0: validation, propagation and fusion return empty results."""
+    from torchsgal.uncertainty import check_covariance
+
+    D = torch.float64
+    check_covariance(torch.zeros(0, 3, 3, dtype=D), 3)
+    d = ConcentratedGaussian(ts.SGal3.identity((0,), dtype=D), 0.01 * torch.eye(10, dtype=D).expand(0, 10, 10))
+    assert d.fuse(d).covariance.shape == (0, 10, 10)
+    assert d.compose(d, cross_covariance=torch.zeros(0, 10, 10, dtype=D)).covariance.shape == (0, 10, 10)
+    a = d.act(torch.zeros(0, 4, dtype=D), torch.zeros(0, 4, 4, dtype=D))
+    assert a.mean.shape == (0, 4) and a.covariance.shape == (0, 4, 4)
+
+
+def test_propagation_covariance_arguments_validated():
+    """x_covariance (act) and cross_covariance (compose, between): shape, dtype, device, batch
+    named; x_covariance is a covariance (symmetric positive semi-definite: zero is an exact
+    point); a cross-covariance need not be symmetric."""
+    D = torch.float64
+    d = ConcentratedGaussian(ts.SE3.random((3,), dtype=D), 0.01 * torch.eye(6, dtype=D))
+    x = torch.randn(3, dtype=D)
+    with pytest.raises(ValueError, match=r"x_covariance is not positive semi-definite"):
+        d.act(x, x_covariance=-torch.eye(3, dtype=D))
+    with pytest.raises(ValueError, match=r"x_covariance is not symmetric"):
+        d.act(x, x_covariance=torch.eye(3, dtype=D) + torch.triu(torch.ones(3, 3, dtype=D), 1))
+    with pytest.raises(ValueError, match=r"x_covariance must have shape \(\.\.\., 3, 3\), got \(4, 4\)"):
+        d.act(x, x_covariance=torch.eye(4, dtype=D))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: gaussian \(3,\), x \(\), x_covariance \(4,\)"):
+        d.act(x, x_covariance=torch.eye(3, dtype=D).expand(4, 3, 3))
+    with pytest.raises(ValueError, match=r"x_covariance is on meta but x is on cpu"):
+        d.act(x, x_covariance=torch.eye(3, dtype=D, device="meta"))
+    with pytest.raises(TypeError, match=r"x_covariance has dtype torch.float32 but x has dtype torch.float64"):
+        d.act(x, x_covariance=torch.eye(3))
+    with pytest.raises(ValueError, match=r"d_covariance is not positive semi-definite"):
+        d.act_direction(x, d_covariance=-torch.eye(3, dtype=D))
+    # validate=False skips the data check (not the metadata ones); an exact point is allowed
+    d.act(x, x_covariance=-torch.eye(3, dtype=D), validate=False)
+    exact = d.act(x, x_covariance=torch.zeros(3, 3, dtype=D))
+    torch.testing.assert_close(exact.covariance, d.act(x).covariance)
+    for op in (d.compose, d.between):
+        with pytest.raises(ValueError, match=r"cross_covariance must have shape \(\.\.\., 6, 6\), got \(9, 9\)"):
+            op(d, cross_covariance=torch.eye(9, dtype=D))
+        with pytest.raises(ValueError, match=r"batch shapes do not broadcast: .*cross_covariance \(4,\)"):
+            op(d, cross_covariance=torch.eye(6, dtype=D).expand(4, 6, 6))
+        with pytest.raises(ValueError, match=r"cross_covariance is on meta but self is on cpu"):
+            op(d, cross_covariance=torch.eye(6, dtype=D, device="meta"))
+        with pytest.raises(TypeError, match=r"other has dtype torch.float32 but self has dtype torch.float64"):
+            op(ConcentratedGaussian(ts.SE3.random((), dtype=torch.float32), 0.01 * torch.eye(6)))
+        with pytest.raises(ValueError, match=r"batch shapes do not broadcast: self \(3,\), other \(4,\)"):
+            op(ConcentratedGaussian(ts.SE3.random((4,), dtype=D), 0.01 * torch.eye(6, dtype=D)))
+    # a cross-covariance is not symmetric: accepted as is
+    C = 1e-3 * torch.triu(torch.ones(6, 6, dtype=D))
+    assert torch.isfinite(d.compose(d, cross_covariance=C).covariance).all()
+
+
+def test_element_arguments_named():
+    """mahalanobis, log_prob and perturbation name their argument g and the Gaussian's group."""
+    d = _dist(ts.SGal3)
+    for fn in (d.mahalanobis, d.log_prob, d.perturbation):
+        with pytest.raises(TypeError, match=r"g must be a SGal3 \(the group of this Gaussian\), got SE3"):
+            fn(ts.SE3.random((), dtype=torch.float64))
+        with pytest.raises(TypeError, match=r"g has dtype torch.float32 but mean has dtype torch.float64"):
+            fn(ts.SGal3.random(()))
+    d3 = ConcentratedGaussian(ts.SGal3.random((3,), dtype=torch.float64), torch.eye(10, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: gaussian \(3,\), g \(4,\)"):
+        d3.mahalanobis(ts.SGal3.random((4,), dtype=torch.float64))
+
+
+def test_validation_skipped_under_vmap():
+    """The covariance checks read values; under torch.func.vmap they are skipped (bool of a
+    batched tensor raises), so a validating constructor and act work there."""
+    D = torch.float64
+    m = ts.SE3.random((5,), dtype=D, generator=torch.Generator().manual_seed(0))
+    S = 0.01 * torch.eye(6, dtype=D).expand(5, 6, 6)
+    x = torch.randn(5, 3, dtype=D, generator=torch.Generator().manual_seed(1))
+
+    def f(M, S, x):
+        return ConcentratedGaussian(ts.SE3.from_matrix(M), S).act(x, 0.1 * S[:3, :3]).covariance
+
+    out = torch.vmap(f)(m.as_matrix(), S, x)
+    torch.testing.assert_close(out, ConcentratedGaussian(m, S).act(x, 0.1 * S[..., :3, :3]).covariance)
+
+
 # ------------------------------------------------------------- event fusion (mahony Sec. 6)
 def _event_problem(seed=20):
     gen = torch.Generator().manual_seed(seed)
@@ -392,3 +474,47 @@ def test_event_fusion_trades_time_against_position():
         fuse_event(ConcentratedGaussian(ts.SE3.random((), dtype=torch.float64), torch.eye(6, dtype=torch.float64)), event, Sigma)
     with pytest.raises(ValueError, match=r"event must have shape \(\.\.\., 4\)"):
         fuse_event(ConcentratedGaussian(F_hat, Q), event[:3], Sigma)
+
+
+def test_event_fusion_bad_input():
+    """fuse_event validates its arguments, naming them: event_covariance as a covariance (its
+    position block positive definite), relative_frame's group, dtypes, devices and batches."""
+    from torchsgal.uncertainty import fuse_event, near_inertial_relative_frame
+
+    D = torch.float64
+    prior, event, Sigma = _event_problem()
+    with pytest.raises(ValueError, match=r"event_covariance is not positive semi-definite"):
+        fuse_event(prior, event, -torch.eye(4, dtype=D))
+    with pytest.raises(ValueError, match=r"event_covariance is not symmetric"):
+        fuse_event(prior, event, Sigma + 0.01 * torch.triu(torch.ones(4, 4, dtype=D), 1))
+    with pytest.raises(ValueError, match=r"position block event_covariance\[\.\.\., :3, :3\] is not positive definite"):
+        fuse_event(prior, event, torch.diag(torch.tensor([0.0, 0.0, 0.0, 0.1], dtype=D)))
+    with pytest.raises(TypeError, match=r"relative_frame must be an SGal3"):
+        fuse_event(prior, event, Sigma, relative_frame=ts.SE23.identity(dtype=D))
+    with pytest.raises(TypeError, match=r"relative_frame has dtype torch.float32 but prior has dtype torch.float64"):
+        fuse_event(prior, event, Sigma, relative_frame=ts.SGal3.identity())
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: .*relative_frame \(4,\)"):
+        fuse_event(prior, event.expand(3, 4), Sigma, relative_frame=ts.SGal3.identity((4,), dtype=D))
+    with pytest.raises(ValueError, match=r"event_covariance is on meta but prior is on cpu"):
+        fuse_event(prior, event, torch.eye(4, dtype=D, device="meta"))
+    with pytest.raises(TypeError, match=r"event_covariance has dtype torch.float32 but prior has dtype torch.float64"):
+        fuse_event(prior, event, Sigma.float())
+    with pytest.raises(TypeError, match=r"event has dtype torch.float32 but prior has dtype torch.float64"):
+        fuse_event(prior, event.float(), Sigma)
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: prior \(\), event \(3,\), event_covariance \(4,\)"):
+        fuse_event(prior, event.expand(3, 4), Sigma.expand(4, 4, 4))
+    with pytest.raises(TypeError, match=r"event must be a torch.Tensor, got list"):
+        fuse_event(prior, event.tolist(), Sigma)
+    with pytest.raises(TypeError, match=r"prior must be a ConcentratedGaussian on SGal3, got SGal3"):
+        fuse_event(prior.mean, event, Sigma)
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: tau \(3,\), t_hat \(4,\)"):
+        near_inertial_relative_frame(torch.zeros(3, dtype=D), torch.zeros(4, dtype=D))
+    # validate=False skips the data checks; an exact timestamp (zero time variance) is allowed
+    # and is the limit of a tiny one
+    fuse_event(prior, event, Sigma + 0.01 * torch.triu(torch.ones(4, 4, dtype=D), 1), validate=False)
+    exact_t = Sigma.clone()
+    exact_t[3, 3] = 0.0
+    tiny_t = Sigma.clone()
+    tiny_t[3, 3] = 1e-14
+    a, b = fuse_event(prior, event, exact_t), fuse_event(prior, event, tiny_t)
+    torch.testing.assert_close(a.covariance, b.covariance, rtol=1e-8, atol=1e-12)

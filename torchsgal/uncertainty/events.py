@@ -33,12 +33,20 @@ from __future__ import annotations
 
 import torch
 
+from ..functional import checks
 from ..groups import SGal3
-from .gaussian import ConcentratedGaussian, _mv, _sym
+from .gaussian import ConcentratedGaussian, _mv, _sym, check_covariance
 
 
 def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal3:
-    """(58): kF_i = identity but for the time offset tau - t_hat (shape of tau)."""
+    """(58): kF_i = identity but for the time offset tau - t_hat (batch: tau's and t_hat's
+    broadcast; t_hat may be a number)."""
+    checks.floating(tau, "tau")
+    if not isinstance(t_hat, torch.Tensor):
+        t_hat = torch.as_tensor(t_hat, dtype=tau.dtype, device=tau.device)
+    checks.floating(t_hat, "t_hat")
+    checks.same_device_dtype(tau=tau, t_hat=t_hat)
+    checks.broadcast_batch(tau=tau.shape, t_hat=t_hat.shape)
     dt = tau - t_hat
     eye = torch.eye(3, dtype=dt.dtype, device=dt.device).expand(*dt.shape, 3, 3)
     z = torch.zeros(*dt.shape, 3, dtype=dt.dtype, device=dt.device)
@@ -53,16 +61,39 @@ def _event_columns(x: torch.Tensor) -> torch.Tensor:
 
 def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covariance: torch.Tensor,
                relative_frame: SGal3 | None = None, iterations: int = 1,
-               time_row: bool = False) -> ConcentratedGaussian:
+               time_row: bool = False, validate: bool = True) -> ConcentratedGaussian:
     """Posterior concentrated Gaussian (right perturbation) after fusing the event
     (..., 4) = (y, tau) with covariance (..., 4, 4) into ``prior`` on SGal3.  ``time_row``:
-    also fuse the (uninformative) time row as the paper prints it (see the module doc)."""
+    also fuse the (uninformative) time row as the paper prints it (see the module doc).
+
+    ``event_covariance`` must be symmetric positive semi-definite with a positive definite
+    position block (an exact timestamp, variance 0, is allowed; an exact position is not: its
+    noise would be singular).  ``validate`` checks this as the ConcentratedGaussian constructor
+    checks its covariance (one host sync; skipped on 'meta', under torch.func transforms and
+    torch.compile)."""
+    if not isinstance(prior, ConcentratedGaussian):
+        raise TypeError(f"prior must be a ConcentratedGaussian on SGal3, got {type(prior).__name__}")
     if prior.group is not SGal3:
         raise TypeError(f"fuse_event needs a prior on SGal3, got {prior.group.__name__}")
-    if event.shape[-1:] != (4,):
+    checks.floating(event, "event")
+    if event.dim() < 1 or event.shape[-1] != 4:
         raise ValueError(f"event must have shape (..., 4) = (y, tau), got {tuple(event.shape)}")
-    if event_covariance.shape[-2:] != (4, 4):
-        raise ValueError(f"event_covariance must have shape (..., 4, 4), got {tuple(event_covariance.shape)}")
+    checks.matrix(event_covariance, 4, "event_covariance")
+    tensors = {"prior": prior.covariance, "event": event, "event_covariance": event_covariance}
+    batches = {"prior": prior.batch_shape, "event": event.shape[:-1],
+               "event_covariance": event_covariance.shape[:-2]}
+    if relative_frame is not None:
+        if not isinstance(relative_frame, SGal3):
+            raise TypeError(f"relative_frame must be an SGal3 (kF_i = F_k^-1 F_i), got "
+                            f"{type(relative_frame).__name__}")
+        tensors["relative_frame"] = relative_frame.as_matrix()
+        batches["relative_frame"] = relative_frame.batch_shape
+    checks.same_device_dtype(**tensors)
+    checks.broadcast_batch(**batches)
+    if validate:
+        check_covariance(event_covariance, 4, "event_covariance", definite=False)
+        check_covariance(event_covariance[..., :3, :3], 3, "the position block "
+                         "event_covariance[..., :3, :3]")
     prior = prior.to_side("right")
     F_hat, Q = prior.mean, prior.covariance
     if relative_frame is None:

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..functional import checks
+from ..functional._blocking import _is_wrapped, is_compiling
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
@@ -40,24 +42,45 @@ def _mv(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (M @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: float | None = None):
-    """Raises ValueError unless S (..., dim, dim) is symmetric positive definite (host sync)."""
+def _has_data(S: torch.Tensor) -> bool:
+    """Whether S's values can be read for a data check: not on 'meta' (no data), not inside a
+    torch.func transform (vmap, grad, jacrev: ``bool`` of a batched tensor raises) and not while
+    torch.compile traces.  Elsewhere the checks cost one host sync."""
+    if S.device.type == "meta" or is_compiling():
+        return False
+    return _is_wrapped is None or not _is_wrapped(S)
+
+
+def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: float | None = None,
+                     definite: bool = True):
+    """Raises unless S (..., dim, dim) is symmetric positive definite (``definite=False``:
+    positive semi-definite, within ``tol`` of the largest entry).  Shape and dtype are always
+    checked; the values (one host sync) only where they can be read: not on 'meta', under a
+    torch.func transform or torch.compile.  An empty batch passes."""
     if not isinstance(S, torch.Tensor) or S.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must be a torch.Tensor of dtype torch.float32 or torch.float64, got "
                         f"{getattr(S, 'dtype', type(S).__name__)}")
     if S.dim() < 2 or S.shape[-2:] != (dim, dim):
         raise ValueError(f"{name} must have shape (..., {dim}, {dim}), got {tuple(S.shape)}")
+    if S.numel() == 0 or not _has_data(S):
+        return
     if tol is None:
         tol = 1e-5 if S.dtype == torch.float32 else 1e-10
-    scale = S.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(S.dtype).tiny)
-    asym = ((S - S.transpose(-1, -2)).abs().amax(dim=(-1, -2)) / scale).max()
     if not bool(torch.isfinite(S).all()):
         raise ValueError(f"{name} has non-finite entries")
+    scale = S.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(S.dtype).tiny)
+    asym = ((S - S.transpose(-1, -2)).abs().amax(dim=(-1, -2)) / scale).max()
     if bool(asym > tol):
         raise ValueError(f"{name} is not symmetric (max relative asymmetry {float(asym):.3g})")
-    _, info = torch.linalg.cholesky_ex(_sym(S))
-    if bool((info != 0).any()):
-        raise ValueError(f"{name} is not positive definite ({int((info != 0).sum())} of the batch)")
+    if definite:
+        _, info = torch.linalg.cholesky_ex(_sym(S))
+        if bool((info != 0).any()):
+            raise ValueError(f"{name} is not positive definite ({int((info != 0).sum())} of the batch)")
+    else:
+        low = torch.linalg.eigvalsh(_sym(S))[..., 0] / scale
+        if bool((low < -tol).any()):
+            raise ValueError(f"{name} is not positive semi-definite (min relative eigenvalue "
+                             f"{float(low.min()):.3g})")
 
 
 class ConcentratedGaussian:
@@ -113,8 +136,23 @@ class ConcentratedGaussian:
     def _apply(self, xi: torch.Tensor) -> LieGroup:
         return self.mean.rplus(xi) if self.side == "right" else self.mean.lplus(xi)
 
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The broadcast batch shape of the mean and the covariance."""
+        return torch.broadcast_shapes(self.mean.batch_shape, self.covariance.shape[:-2])
+
+    def _check_element(self, g, name: str = "g") -> LieGroup:
+        """g: an element of this Gaussian's group, its dtype and device, broadcasting batch."""
+        if not isinstance(g, self.group):
+            raise TypeError(f"{name} must be a {self.group.__name__} (the group of this Gaussian), "
+                            f"got {type(g).__name__}")
+        checks.same_device_dtype(mean=self.mean.as_matrix(), **{name: g.as_matrix()})
+        checks.broadcast_batch(gaussian=self.batch_shape, **{name: g.batch_shape})
+        return g
+
     def perturbation(self, g: LieGroup) -> torch.Tensor:
         """xi with g = mean exp(xi) (right) or exp(xi) mean (left), (4.5)."""
+        self._check_element(g)
         return g.rminus(self.mean) if self.side == "right" else g.lminus(self.mean)
 
     def sample(self, sample_shape=(), generator=None) -> LieGroup:
@@ -123,7 +161,7 @@ class ConcentratedGaussian:
         if isinstance(sample_shape, int):
             sample_shape = (sample_shape,)
         L = torch.linalg.cholesky(_sym(self.covariance))
-        batch = torch.broadcast_shapes(self.mean.batch_shape, self.covariance.shape[:-2])
+        batch = self.batch_shape
         eps = torch.randn(*sample_shape, *batch, self.dof, dtype=L.dtype, device=L.device,
                           generator=generator)
         return self._apply(_mv(L, eps))
@@ -178,6 +216,7 @@ class ConcentratedGaussian:
         ``cross_covariance`` is E[xi1 xi2^T] of the right perturbations (first order only);
         ``second_order`` adds the Barfoot-Furgale fourth-order terms (independent operands)."""
         self._same_group(other)
+        self._check_cross(other, cross_covariance)
         r1, r2 = self._right(), other._right()
         A = r2.mean.inverse().adjoint()
         Sa = A @ r1.covariance @ A.transpose(-1, -2)
@@ -197,6 +236,7 @@ class ConcentratedGaussian:
                 ) -> "ConcentratedGaussian":
         """F1^-1 F2 = B exp(-Ad(B^-1) xi1 + xi2), B = mean1^-1 mean2 (first order, right side)."""
         self._same_group(other)
+        self._check_cross(other, cross_covariance)
         r1, r2 = self._right(), other._right()
         Bm = r1.mean.between(r2.mean)
         A = -Bm.inverse().adjoint()
@@ -216,11 +256,24 @@ class ConcentratedGaussian:
         return 0.25 * Bt + (T + T.transpose(-1, -2)) / 12.0
 
     def _same_group(self, other):
+        """other: a ConcentratedGaussian on the same group, dtype and device, broadcasting batch."""
         if not isinstance(other, ConcentratedGaussian) or other.group is not self.group:
             raise TypeError(f"other must be a ConcentratedGaussian on {self.group.__name__}")
+        checks.same_device_dtype(self=self.covariance, other=other.covariance)
+        checks.broadcast_batch(self=self.batch_shape, other=other.batch_shape)
+
+    def _check_cross(self, other, cross_covariance):
+        """E[xi1 xi2^T] (..., dof, dof): not symmetric, so shape, dtype, device and batch only."""
+        if cross_covariance is None:
+            return
+        checks.matrix(cross_covariance, self.dof, "cross_covariance")
+        checks.same_device_dtype(self=self.covariance, cross_covariance=cross_covariance)
+        checks.broadcast_batch(self=self.batch_shape, other=other.batch_shape,
+                               cross_covariance=cross_covariance.shape[:-2])
 
     # ------------------------------------------------------------------ actions
-    def _act(self, fn_name: str, x: torch.Tensor, x_cov: torch.Tensor | None) -> Gaussian:
+    def _act(self, fn_name: str, x: torch.Tensor, x_cov: torch.Tensor | None, x_name: str,
+             validate: bool) -> Gaussian:
         """y = F x in homogeneous coordinates x_h (x in its first k slots), first order:
         right perturbation z ~ M (I + xi^) x_h, so dz/dxi_j = (M hat(e_j) x_h) and dz/dx =
         M[:, :k].  Points are z[:k] / z[n-1] (projective: Sim3's last row is [0, 1/s]; for the
@@ -230,6 +283,14 @@ class ConcentratedGaussian:
         y = getattr(r.mean, fn_name)(x)  # validates x
         M = r.mean.as_matrix()
         n, k = M.shape[-1], x.shape[-1]
+        if x_cov is not None:
+            cov_name = f"{x_name}_covariance"
+            checks.matrix(x_cov, k, cov_name)
+            checks.same_device_dtype(**{x_name: x, cov_name: x_cov})
+            checks.broadcast_batch(gaussian=self.batch_shape, **{x_name: x.shape[:-1],
+                                                                  cov_name: x_cov.shape[:-2]})
+            if validate:  # a zero covariance (an exact point) is allowed: semi-definite
+                check_covariance(x_cov, k, cov_name, definite=False)
         # x_h = [x, pad]: points [p, (0,) 1], events [x, t, 1], velocities [u, 1, 0], directions [d, 0, ...]
         pads = {"act": [0.0] * (n - k - 1) + [1.0] if n > k else [],
                 "act_velocity": [1.0] + [0.0] * (n - k - 1), "act_direction": [0.0] * (n - k)}[fn_name]
@@ -248,15 +309,23 @@ class ConcentratedGaussian:
             S = S + Jx @ x_cov @ Jx.transpose(-1, -2)
         return Gaussian(y, _sym(S))
 
-    def act(self, x: torch.Tensor, x_covariance: torch.Tensor | None = None) -> Gaussian:
-        """Points (SO3/SE3/SE23) or events (SGal3, (..., 4)) through F, as a Gaussian on R^n."""
-        return self._act("act", x, x_covariance)
+    def act(self, x: torch.Tensor, x_covariance: torch.Tensor | None = None,
+            validate: bool = True) -> Gaussian:
+        """Points (SO3/SE3/SE23) or events (SGal3, (..., 4)) through F, as a Gaussian on R^n.
+        ``x_covariance`` (..., k, k): the point's own covariance, independent of F; with
+        ``validate`` it is checked symmetric positive semi-definite (one host sync, as the
+        constructor's check; skipped on 'meta', under torch.func transforms and torch.compile)."""
+        return self._act("act", x, x_covariance, "x", validate)
 
-    def act_velocity(self, u: torch.Tensor, u_covariance: torch.Tensor | None = None) -> Gaussian:
-        return self._act("act_velocity", u, u_covariance)
+    def act_velocity(self, u: torch.Tensor, u_covariance: torch.Tensor | None = None,
+                     validate: bool = True) -> Gaussian:
+        """Velocities (..., 3) through F; ``u_covariance`` as ``x_covariance`` of ``act``."""
+        return self._act("act_velocity", u, u_covariance, "u", validate)
 
-    def act_direction(self, d: torch.Tensor, d_covariance: torch.Tensor | None = None) -> Gaussian:
-        return self._act("act_direction", d, d_covariance)
+    def act_direction(self, d: torch.Tensor, d_covariance: torch.Tensor | None = None,
+                      validate: bool = True) -> Gaussian:
+        """Directions through F; ``d_covariance`` as ``x_covariance`` of ``act``."""
+        return self._act("act_direction", d, d_covariance, "d", validate)
 
     # --------------------------------------------------------------------- fusion
     def fuse(self, other: "ConcentratedGaussian", iterations: int = 10, tol: float = 1e-12
@@ -282,7 +351,12 @@ class ConcentratedGaussian:
                 g = g + _mv(JtW, r)
             step = -torch.linalg.solve(H, g)
             F = F.rplus(step)
-            if float(step.abs().max()) < tol:  # host sync: one per iteration, not per element
+            # host sync: one per iteration, not per element.  An empty batch has nothing to do;
+            # where the step cannot be read ('meta', torch.func transforms, torch.compile) all
+            # the iterations run.
+            if step.numel() == 0:
+                break
+            if _has_data(step) and float(step.abs().max()) < tol:
                 break
         H = 0
         for p, W in zip(parts, infos):
