@@ -203,6 +203,66 @@ def test_gauss_helmert_covariance_checks():
         gauss_helmert(cond, x0, torch.eye(3, dtype=f64))
 
 
+def test_gauss_helmert_checks_its_inputs_and_the_condition():
+    x, y = _line_data()
+    cond = _line_condition(x, y)
+    x0 = torch.zeros(3, 2, dtype=f64)
+    cov = torch.eye(2, dtype=f64)
+    with pytest.raises(ValueError, match=r"observation_covariance must have shape .* m >= 1"):
+        gauss_helmert(cond, x0, torch.zeros(0, 0, dtype=f64))
+    with pytest.raises(ValueError, match=r"do not broadcast: conditions \(3, 40\), "
+                                         r"observation_covariance \(2, 1\)"):
+        gauss_helmert(cond, x0, cov.expand(2, 1, 2, 2))
+    with pytest.raises(TypeError, match="observation_covariance has dtype torch.float32"):
+        gauss_helmert(cond, x0, cov.float())
+    with pytest.raises(ValueError, match=r"e0 must have shape \(B, N, m\)"):
+        gauss_helmert(cond, x0, cov, e0=torch.zeros(3, 40, 5, dtype=f64))
+    with pytest.raises(TypeError, match="e0 has dtype torch.float32"):
+        gauss_helmert(cond, x0, cov, e0=torch.zeros(3, 40, 2))
+
+    def flat(p, e):
+        c, A, Bm = cond(p, e)
+        return c[..., 0], A, Bm
+    with pytest.raises(ValueError, match=r"condition must return c of shape \(B, N, k\)"):
+        gauss_helmert(flat, x0, cov)
+
+    def float32(p, e):
+        c, A, Bm = cond(p, e)
+        return c.float(), A, Bm
+    with pytest.raises(TypeError, match="c has dtype torch.float32"):
+        gauss_helmert(float32, x0, cov)
+
+
+def test_solver_options_are_checked():
+    residual, (g_true, s_true) = _time_flow_problem(B=2)
+    x0 = (g_true, s_true)
+    for option, value in (("max_iterations", -1), ("max_iterations", 2.5), ("damping", -1.0),
+                          ("damping", math.nan), ("step_tol", -1e-6), ("cost_tol", -1.0),
+                          ("accept_tol", -0.1), ("always_accept_below", -1.0),
+                          ("max_damping", 0.0), ("stop_below_fraction", 1.5)):
+        with pytest.raises(ValueError, match=f"{option} must be"):
+            gauss_newton(residual, x0, **{option: value})
+    # The edge values are legitimate: no iteration, undamped, zero tolerances.
+    sol = gauss_newton(residual, x0, max_iterations=0, damping=0.0, step_tol=0.0, cost_tol=0.0)
+    assert (sol.report.iterations == 0).all()
+    assert gauss_newton(residual, x0, damping=None).report.converged.all()
+
+
+def test_residual_and_jacobian_must_match_the_unknowns():
+    x0 = torch.zeros(2, 3, dtype=f64)
+    eye = torch.eye(3, dtype=f64).expand(2, 3, 3)
+    with pytest.raises(TypeError, match=r"residual\(x\) has dtype torch.float32 but x0 has "
+                                        r"dtype torch.float64"):
+        gauss_newton(lambda x: (x[0] - 1).float(), x0, jacobian=lambda x: eye)
+    with pytest.raises(TypeError, match=r"jacobian\(x\) has dtype torch.float32"):
+        gauss_newton(lambda x: x[0] - 1, x0, jacobian=lambda x: eye.float())
+    with pytest.raises(ValueError, match=r"jacobian\(x\) is on meta"):
+        gauss_newton(lambda x: x[0] - 1, x0, jacobian=lambda x: eye.to("meta"))
+    # An empty batch is solved trivially.
+    sol = gauss_newton(lambda x: x[0] - 1, x0[:0], jacobian=lambda x: eye[:0])
+    assert sol.covariance.shape == (0, 3, 3) and sol.report.status.shape == (0,)
+
+
 def test_lbfgs_matches_gauss_newton_on_a_group_problem():
     residual, (g_true, s_true) = _time_flow_problem(B=3, noise=0.05)
     x0 = (g_true.rplus(0.2 * torch.ones(3, 10, dtype=f64)), s_true + 0.1)

@@ -187,6 +187,76 @@ def test_bad_input_gets_clear_errors():
         tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=torch.arange(4))
 
 
+def test_problem_and_unknowns_are_checked():
+    P, _ = _problem(B=4)
+    S = study.paper_covariance()
+    with pytest.raises(TypeError, match="F_ga must be SGal3"):
+        tls.TLSProblem(P.F_ga.as_matrix(), P.F_gb, S, S)
+    with pytest.raises(TypeError, match="indices must be a tensor"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=range(5))
+    with pytest.raises(ValueError, match="indices is on meta but F_ga is on cpu"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=torch.arange(5.0, device="meta"))
+    with pytest.raises(TypeError, match="cov_a has dtype torch.float32"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S.float(), S)
+    # A list of indices is taken as a tensor.
+    listed = tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[0, 1, 2, 3, 4])
+    assert torch.equal(listed.indices, P.indices)
+
+    F0, dt = P.initial_guess(-1.0)
+    X0, t0 = tls.split_clock(F0)
+    with pytest.raises(ValueError, match=r"x0\[0\] must be SGal3 of batch shape \(B,\) = \(4,\)"):
+        tls.solve_sgal3(P, x0=(X0, dt))
+    with pytest.raises(TypeError, match=r"x0 must be a tuple \(F SGal3 \(B,\), dtau \(B, 1\)\)"):
+        tls.solve_sgal3(P, x0=F0)
+    with pytest.raises(ValueError, match=r"x0 must be a tuple .* got 3 block"):
+        tls.solve_sgal3(P, x0=(F0, dt, dt))
+    with pytest.raises(ValueError, match=r"x0\[1\] must be a tensor of shape \(B, 1\) = \(4, 1\)"):
+        tls.solve_sgal3(P, x0=(F0, torch.cat([dt, dt], 1)))
+    with pytest.raises(ValueError, match=r"x0\[0\] must be SE23"):
+        tls.solve_baseline(P, x0=(F0, t0[:, None], dt))
+    with pytest.raises(ValueError, match=r"x0 must be a tuple \(X' SE23 .* got 1 block"):
+        tls.solve_baseline(P, x0=(X0,))
+    with pytest.raises(TypeError, match="x0 has dtype torch.float32"):
+        tls.solve_sgal3(P, x0=(ts.SGal3(F0.as_matrix().float()), dt.float()))
+    with pytest.raises(ValueError, match=r"dtau0 must be a scalar or have shape \(B,\) = \(4,\)"):
+        tls.solve_sgal3(P, dtau0=torch.ones(3, dtype=f64))
+    with pytest.raises(ValueError, match=r"dtau0 must be a scalar or have shape \(B,\)"):
+        tls.solve_baseline(P, dtau0=torch.ones(4, 1, dtype=f64))
+    with pytest.raises(ValueError, match="damping must be None .* or a finite number >= 0"):
+        tls.solve_sgal3(P, damping=-1.0)
+    with pytest.raises(ValueError, match="max_iterations must be an integer >= 0"):
+        tls.solve_baseline(P, max_iterations=-1)
+    with pytest.raises(ValueError, match="variant must be one of"):
+        tls.solve_sgal3(tls.subset(P, slice(0, 0)), variant="exact")
+
+
+@pytest.mark.parametrize("solver", ["sgal3", "baseline", "lbfgs"])
+def test_empty_batch_gives_an_empty_solution(solver):
+    P, _ = _problem(B=2)
+    empty = tls.subset(P, slice(0, 0))
+    assert empty.batch_size == 0
+    solve = {"sgal3": tls.solve_sgal3, "baseline": tls.solve_baseline,
+             "lbfgs": tls.solve_sgal3_lbfgs}[solver]
+    sol = solve(empty)
+    assert sol.covariance.shape == (0, 11, 11) and sol.covariance.dtype == f64
+    assert sol.x[0].batch_shape == (0,) and all(b.shape == (0, 1) for b in sol.x[1:])
+    assert len(sol.x) == (3 if solver == "baseline" else 2)
+    for name in ("status", "iterations", "initial_cost", "cost", "step_norm", "gradient_norm"):
+        assert getattr(sol.report, name).shape == (0,)
+    assert sol.report.counts() == {}
+
+
+def test_command_line_refuses_no_trials_and_float32(capsys):
+    from torchsgal.__main__ import main
+    for argv, message in ((["--trials", "0"], "--trials: must be at least 1, got 0"),
+                          (["--chunk", "-3"], "--chunk: must be at least 1"),
+                          (["--dtype", "float32"], "the TLS study needs float64")):
+        with pytest.raises(SystemExit) as exc:
+            main(["tls", *argv, "--quiet", "--no-plot"])
+        assert exc.value.code == 2
+        assert message in capsys.readouterr().err
+
+
 def test_gtsam_factor_graph_agrees():
     pytest.importorskip("gtsam")
     from torchsgal.estimation import gtsam_peer

@@ -24,6 +24,7 @@ from typing import Callable
 
 import torch
 
+from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from . import variables as V
 from .solver import Linearisation, Solution, iterate
@@ -39,6 +40,10 @@ def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
         raise ValueError(f"{name} must have shape (..., {m}, {m}), got {tuple(S.shape)}")
     if S.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must be floating point (torch.float32 or torch.float64), got {S.dtype}")
+    if m < 1:
+        raise ValueError(f"{name} must have shape (..., m, m) with m >= 1, got {tuple(S.shape)}")
+    if S.numel() == 0:  # an empty batch: nothing to check
+        return S
     if not bool(torch.isfinite(S).all()):
         raise ValueError(f"{name} has non-finite entries")
     asym = (S - S.transpose(-1, -2)).abs().amax()
@@ -59,15 +64,19 @@ class _CovarianceBlocks:
 
     def __init__(self, covariance):
         blocks = covariance if isinstance(covariance, (tuple, list)) else (covariance,)
+        if not blocks:
+            raise ValueError("observation_covariance must hold at least one block, got none")
         self.sizes, self.factors, self.diagonal = [], [], []
+        self.blocks, self.names = blocks, []
         for i, S in enumerate(blocks):
             name = "observation_covariance" + (f"[{i}]" if len(blocks) > 1 else "")
+            self.names.append(name)
             if not isinstance(S, torch.Tensor) or S.dim() < 2:
                 raise ValueError(f"{name} must be a tensor (..., m, m), got "
                                  f"{tuple(getattr(S, 'shape', ()))}")
             check_covariance(S, S.shape[-1], name)
             d = S.diagonal(dim1=-2, dim2=-1)
-            diagonal = bool((S - torch.diag_embed(d)).abs().amax() == 0)
+            diagonal = S.numel() == 0 or bool((S - torch.diag_embed(d)).abs().amax() == 0)
             self.sizes.append(S.shape[-1])
             self.diagonal.append(diagonal)
             self.factors.append(d.sqrt() if diagonal else torch.linalg.cholesky(S))
@@ -158,12 +167,47 @@ def gauss_helmert(
     iterated = variant_options(variant, options)
     x0 = V.check_values(x0)
     cov = _CovarianceBlocks(observation_covariance)
+    ref = x0[0].as_matrix() if hasattr(x0[0], "as_matrix") else x0[0]
+    Bn, d = V.batch_size(x0), V.tangent_dim(x0)
+    for i, S in enumerate(cov.blocks):
+        checks.same_device_dtype(x0=ref, **{cov.names[i]: S})
+    if e0 is not None:
+        checks.floating(e0, "e0")
+        checks.same_device_dtype(x0=ref, e0=e0)
+        if e0.dim() != 3 or e0.shape[0] != Bn or e0.shape[-1] != cov.dim:
+            raise ValueError(f"e0 must have shape (B, N, m) = ({Bn}, N, {cov.dim}), got "
+                             f"{tuple(e0.shape)}")
+    checked = [False]
+
+    def check_condition(c, A, Bm, e):
+        """The condition's outputs against x0 and the covariance, once (metadata only)."""
+        for name, t in (("c", c), ("A", A), ("Bm", Bm)):
+            if not isinstance(t, torch.Tensor):
+                raise TypeError(f"condition must return tensors (c, A, Bm), got {name} of type "
+                                f"{type(t).__name__}")
+        if c.dim() != 3 or c.shape[0] != Bn:
+            raise ValueError(f"condition must return c of shape (B, N, k) with B = {Bn}, got "
+                             f"{tuple(c.shape)}")
+        N, k = c.shape[1:]
+        if tuple(A.shape) != (Bn, N, k, d):
+            raise ValueError(f"condition must return A of shape (B, N, k, d) = "
+                             f"{(Bn, N, k, d)}, got {tuple(A.shape)}")
+        if tuple(Bm.shape) != (Bn, N, k, cov.dim):
+            raise ValueError(f"condition returned Bm of shape {tuple(Bm.shape)}, expected "
+                             f"(B, N, k, m) = {(Bn, N, k, cov.dim)}: the observation covariance "
+                             f"has size {cov.dim}")
+        checks.same_device_dtype(x0=ref, c=c, A=A, Bm=Bm)
+        for i, S in enumerate(cov.blocks):
+            checks.broadcast_batch(conditions=c.shape[:2], **{cov.names[i]: S.shape[:-2]})
+        if e is not None and e.shape[1] != N:
+            raise ValueError(f"e0 must have shape (B, N, m) = {(Bn, N, cov.dim)}, got "
+                             f"{tuple(e.shape)}")
+        checked[0] = True
 
     def linearise(x, e):
         c, A, Bm = condition(x, e if iterated else None)
-        if Bm.shape[-1] != cov.dim:
-            raise ValueError(f"condition returned Bm with {Bm.shape[-1]} columns, but the "
-                             f"observation covariance has size {cov.dim}")
+        if not checked[0]:
+            check_condition(c, A, Bm, e)
         w = c - (Bm @ e[..., None])[..., 0] if (iterated and e is not None) else c
         Bw = cov.whiten(Bm)
         L, _ = torch.linalg.cholesky_ex(cov.effective(Bw))

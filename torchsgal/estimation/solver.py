@@ -13,11 +13,14 @@ respect to right perturbations of the unknowns (``variables.retract``):
 from __future__ import annotations
 
 import enum
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Callable
 
 import torch
 
+from ..functional import checks
 from . import variables as V
 
 
@@ -125,6 +128,26 @@ def covariance_from_information(H: torch.Tensor, singular: torch.Tensor) -> torc
     return torch.where(singular[..., None, None], torch.full_like(P, float("nan")), P)
 
 
+def _check_options(max_iterations, damping, max_damping, stop_below_fraction, **tolerances) -> None:
+    """The solver options of ``iterate``: raise naming the option (host-side numbers only)."""
+    if (isinstance(max_iterations, bool) or not isinstance(max_iterations, numbers.Integral)
+            or max_iterations < 0):
+        raise ValueError(f"max_iterations must be an integer >= 0, got {max_iterations!r}")
+
+    def number(name, value, ok, expected):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or math.isnan(value) \
+                or not ok(value):
+            raise ValueError(f"{name} must be {expected}, got {value!r}")
+
+    if damping is not None:
+        number("damping", damping, lambda v: 0 <= v < math.inf, "None (plain Gauss-Newton) or a "
+               "finite number >= 0 (the initial Levenberg-Marquardt damping)")
+    number("max_damping", max_damping, lambda v: v > 0, "a number > 0")
+    number("stop_below_fraction", stop_below_fraction, lambda v: 0 <= v <= 1, "in [0, 1]")
+    for name, value in tolerances.items():
+        number(name, value, lambda v: v >= 0, "a number >= 0")
+
+
 def iterate(
     linearise: Callable,
     x0,
@@ -154,7 +177,10 @@ def iterate(
     an accepted step is shorter than ``step_tol`` in the metric of the information,
     sqrt(delta^T J^T J delta) (that is, in standard deviations of the Laplace posterior, a
     dimensionless test), or when the cost falls by less than ``cost_tol`` relative.
+    Raises ValueError for a negative ``max_iterations``, ``damping`` or tolerance.
     """
+    _check_options(max_iterations, damping, max_damping, stop_below_fraction, step_tol=step_tol,
+                   cost_tol=cost_tol, accept_tol=accept_tol, always_accept_below=always_accept_below)
     x = V.check_values(x0)
     aux = aux0
     lin = linearise(x, aux)
@@ -288,17 +314,24 @@ def gauss_newton(
     Returns a ``Solution`` with the unknowns, the Laplace covariance and the per-problem report.
     """
     x0 = V.check_values(x0)
+    ref = x0[0].as_matrix() if hasattr(x0[0], "as_matrix") else x0[0]
 
     def linearise(x, _aux):
         with torch.no_grad():
             r = residual(x)
+        if not isinstance(r, torch.Tensor):
+            raise TypeError(f"residual(x) must return a tensor (B, m), got {type(r).__name__}")
         if r.dim() != 2 or r.shape[0] != V.batch_size(x):
             raise ValueError(f"residual(x) must return (B, m) with B = {V.batch_size(x)}, "
                              f"got {tuple(r.shape)}")
+        checks.same_device_dtype(x0=ref, **{"residual(x)": r})
         J = jacobian(x) if jacobian is not None else autograd_jacobian(residual, x)
+        if not isinstance(J, torch.Tensor):
+            raise TypeError(f"jacobian(x) must return a tensor (B, m, d), got {type(J).__name__}")
         expected = (r.shape[0], r.shape[1], V.tangent_dim(x))
         if tuple(J.shape) != expected:
             raise ValueError(f"jacobian(x) must return {expected}, got {tuple(J.shape)}")
+        checks.same_device_dtype(x0=ref, **{"jacobian(x)": J})
         return Linearisation(r, J)
 
     return iterate(linearise, x0, **options)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..functional import checks
 from ..groups import SE23, SGal3
 from . import _small_linalg
 from . import variables as V
@@ -43,13 +44,17 @@ from .solver import Linearisation, Solution, SolverReport, SolverStatus, iterate
 E10 = 9  # index of iota, the time component of the SGal(3) tangent
 
 
-def _check_observations(F_ga, F_gb, cov_a, cov_b, indices, group=SGal3):
+def _check_frames(F_ga, F_gb, group=SGal3):
     for name, F in (("F_ga", F_ga), ("F_gb", F_gb)):
         if not isinstance(F, group):
             raise TypeError(f"{name} must be {group.__name__} of batch shape (B, N+1), got "
                             f"{type(F).__name__}")
         if len(F.batch_shape) != 2:
             raise ValueError(f"{name} must have batch shape (B, N+1), got {tuple(F.batch_shape)}")
+
+
+def _check_observations(F_ga, F_gb, cov_a, cov_b, indices, group=SGal3):
+    _check_frames(F_ga, F_gb, group)
     if F_ga.batch_shape != F_gb.batch_shape:
         raise ValueError(f"F_ga and F_gb must have the same batch shape, got "
                          f"{tuple(F_ga.batch_shape)} and {tuple(F_gb.batch_shape)}")
@@ -59,9 +64,13 @@ def _check_observations(F_ga, F_gb, cov_a, cov_b, indices, group=SGal3):
                          f"dtau needs two sample indices besides 0), got {N1}")
     for name, S in (("cov_a", cov_a), ("cov_b", cov_b)):
         check_covariance(S, 10, name)
+        checks.same_device_dtype(F_ga=F_ga.as_matrix(), **{name: S})
         if S.dim() > 4 or any(s not in (1, t) for s, t in zip(S.shape[:-2][::-1], (N1, Bn))):
             raise ValueError(f"{name} must broadcast to (B, N+1, 10, 10) = ({Bn}, {N1}, 10, 10), "
                              f"got {tuple(S.shape)}")
+    if indices.device != F_ga.device:
+        raise ValueError(f"indices is on {indices.device} but F_ga is on {F_ga.device}; move "
+                         f"them to one device")
     if indices.shape != (N1,):
         raise ValueError(f"indices must have shape (N+1,) = ({N1},), got {tuple(indices.shape)}")
     return Bn, N1
@@ -80,9 +89,20 @@ class TLSProblem:
     indices: torch.Tensor | None = None
 
     def __post_init__(self):
+        _check_frames(self.F_ga, self.F_gb)
+        checks.same_device_dtype(F_ga=self.F_ga.as_matrix(), F_gb=self.F_gb.as_matrix())
         if self.indices is None:
             self.indices = torch.arange(self.F_ga.batch_shape[-1], dtype=self.F_ga.dtype,
                                         device=self.F_ga.device)
+        elif isinstance(self.indices, (list, tuple)):
+            self.indices = torch.as_tensor(self.indices, dtype=self.F_ga.dtype,
+                                           device=self.F_ga.device)
+        elif not isinstance(self.indices, torch.Tensor):
+            raise TypeError(f"indices must be a tensor (N+1,) (or a list), got "
+                            f"{type(self.indices).__name__}")
+        elif self.indices.device != self.F_ga.device:
+            raise ValueError(f"indices is on {self.indices.device} but F_ga is on "
+                             f"{self.F_ga.device}; move them to one device")
         self.indices = self.indices.to(self.F_ga.dtype)
         _check_observations(self.F_ga, self.F_gb, self.cov_a, self.cov_b, self.indices)
         self.M = self.F_gb.inverse() @ self.F_ga  # (B, N+1)
@@ -92,10 +112,16 @@ class TLSProblem:
     def batch_size(self) -> int:
         return self.F_ga.batch_shape[0]
 
-    def initial_guess(self, dtau: torch.Tensor | float) -> tuple:
+    def initial_guess(self, dtau: torch.Tensor | float, name: str = "dtau") -> tuple:
         """F from the first pair (F~_ga0^-1 F~_gb0) and the given dtau (B,) or scalar."""
+        if isinstance(dtau, torch.Tensor) and dtau.device != self.F_ga.device:
+            raise ValueError(f"{name} is on {dtau.device} but the problem is on "
+                             f"{self.F_ga.device}; move them to one device")
         F0 = self.F_ga[:, 0].inverse() @ self.F_gb[:, 0]
         dt = torch.as_tensor(dtau, dtype=self.F_ga.dtype, device=self.F_ga.device)
+        if dt.dim() > 1 or (dt.dim() == 1 and dt.shape[0] != self.batch_size):
+            raise ValueError(f"{name} must be a scalar or have shape (B,) = ({self.batch_size},), "
+                             f"got {tuple(dt.shape)}")
         return F0, dt.expand(self.batch_size).reshape(-1, 1).clone()
 
 
@@ -544,10 +570,54 @@ def subset(problem: TLSProblem, index) -> TLSProblem:
                       pick(problem.cov_b), indices=problem.indices)
 
 
+def _check_unknowns(problem: TLSProblem, x0, baseline: bool, name: str = "x0") -> tuple:
+    """x0 of ``solve_sgal3`` (F SGal3 (B,), dtau (B, 1)) or of ``solve_baseline``
+    (X' SE23 (B,), tau0 (B, 1), dtau (B, 1)), on the problem's dtype and device."""
+    if baseline:
+        layout, expected = (SE23, 1, 1), "(X' SE23 (B,), tau0 (B, 1), dtau (B, 1))"
+    else:
+        layout, expected = (SGal3, 1), "(F SGal3 (B,), dtau (B, 1))"
+    if not isinstance(x0, (tuple, list)):
+        raise TypeError(f"{name} must be a tuple {expected}, got {type(x0).__name__}")
+    if len(x0) != len(layout):
+        raise ValueError(f"{name} must be a tuple {expected}, got {len(x0)} block(s)")
+    x0 = V.check_values(x0, name)
+    Bn = problem.batch_size
+    for i, (b, kind) in enumerate(zip(x0, layout)):
+        if isinstance(kind, type):
+            if not isinstance(b, kind) or tuple(b.batch_shape) != (Bn,):
+                got = (f"{type(b).__name__} of batch shape {tuple(b.batch_shape)}"
+                       if hasattr(b, "batch_shape") else f"a tensor of shape {tuple(b.shape)}")
+                raise ValueError(f"{name}[{i}] must be {kind.__name__} of batch shape (B,) = "
+                                 f"({Bn},) ({name} = {expected}), got {got}")
+        elif not isinstance(b, torch.Tensor) or tuple(b.shape) != (Bn, kind):
+            got = (f"a tensor of shape {tuple(b.shape)}" if isinstance(b, torch.Tensor)
+                   else type(b).__name__)
+            raise ValueError(f"{name}[{i}] must be a tensor of shape (B, 1) = ({Bn}, 1) "
+                             f"({name} = {expected}), got {got}")
+    ref = x0[0].as_matrix()
+    checks.same_device_dtype(problem=problem.F_ga.as_matrix(), **{name: ref})
+    return x0
+
+
+def _empty_solution(problem: TLSProblem, x0: tuple) -> Solution:
+    """The solution of a problem without trials (B = 0): x0 itself, empty report."""
+    like = problem.F_ga.as_matrix()
+    empty = like.new_zeros(0)
+    status = torch.zeros(0, dtype=torch.int64, device=like.device)
+    report = SolverReport(status=status, iterations=status.clone(), initial_cost=empty,
+                          cost=empty.clone(), step_norm=empty.clone(),
+                          gradient_norm=empty.clone())
+    return Solution(x=x0, covariance=like.new_zeros(0, 11, 11), report=report,
+                    aux=like.new_zeros(0, problem.F_ga.batch_shape[1], 20))
+
+
 def _in_rounds(solve, problem, x0, options) -> Solution:
     """Gauss-Helmert with the stragglers compacted: once at most ``straggler_fraction``
     (default 5%) of the trials are still running, they are solved again on their own, from
     where they stopped, so the whole batch does not iterate for its slowest members."""
+    if problem.batch_size == 0:
+        return _empty_solution(problem, x0)
     max_it = options.pop("max_iterations", 50)
     fraction = options.pop("straggler_fraction", 0.05)
     sol = solve(problem, x0, None, max_iterations=max_it, stop_below_fraction=fraction, **options)
@@ -580,9 +650,18 @@ def _in_rounds(solve, problem, x0, options) -> Solution:
 def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
                 **options) -> Solution:
     """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau].
-    options: see ``gauss_helmert`` and ``solver.iterate``; ``straggler_fraction`` (0.05): the
-    running fraction below which the stragglers are finished in a batch of their own."""
-    x0 = problem.initial_guess(dtau0) if x0 is None else x0
+    x0: (F SGal3 (B,), dtau (B, 1)); by default F from the first pair and ``dtau0`` (a scalar
+    or (B,)).  options: see ``gauss_helmert`` and ``solver.iterate``; ``straggler_fraction``
+    (0.05): the running fraction below which the stragglers are finished in a batch of their
+    own.  A problem without trials (B = 0) gives an empty solution.
+
+    Use float64.  The information of this problem is badly scaled (its diagonal spans about
+    six decades, Jacobi-scaled reciprocal condition about 1e-3), below the SINGULAR test's
+    threshold in float32 (1e3 eps = 1.2e-4 relative), so float32 problems may be reported
+    SINGULAR (with NaN covariances) even where the estimate is fine."""
+    variant_options(variant, {})
+    x0 = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
+    x0 = _check_unknowns(problem, x0, baseline=False)
     _default_options(variant, options)
     return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(p, x, variant, e0, **kw),
                       problem, x0, options)
@@ -591,11 +670,15 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
 def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
                    **options) -> Solution:
     """Estimates (X' in SE_2(3), tau0, dtau) on SE_2(3) x R; covariance (B, 11, 11) over
-    [dxi' (9), dtau0, ddtau]."""
+    [dxi' (9), dtau0, ddtau].  x0: (X' SE23 (B,), tau0 (B, 1), dtau (B, 1)); by default from
+    the first pair and ``dtau0``.  Options, B = 0 and float32 (which may be reported SINGULAR
+    for the reason given there): as ``solve_sgal3``."""
+    variant_options(variant, {})
     if x0 is None:
-        F0, dt = problem.initial_guess(dtau0)
+        F0, dt = problem.initial_guess(dtau0, "dtau0")
         X0, t0 = split_clock(F0)
         x0 = (X0, t0[:, None], dt)
+    x0 = _check_unknowns(problem, x0, baseline=True)
     _default_options(variant, options)
     return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(
         p, x, variant, e0, baseline=True, **kw), problem, x0, options)
@@ -674,7 +757,10 @@ def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = 
     over the batch); ``batched=True`` sums them into one LBFGS problem instead, which couples
     them.  The covariance is the inverse Gauss-Newton information at the solution."""
     from .lbfgs import lbfgs
-    x = problem.initial_guess(dtau0) if x0 is None else x0
+    x = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
+    x = _check_unknowns(problem, x, baseline=False)
+    if problem.batch_size == 0:
+        return _empty_solution(problem, x)
     cond = sgal3_condition(problem)
     options.setdefault("max_iterations", 200)
 
