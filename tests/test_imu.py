@@ -381,6 +381,58 @@ def test_bad_input_raises_with_names():
         preintegrate(gyro, acc, dt, bias_jacobian=False).corrected(torch.zeros(3, dtype=F64))
 
 
+def test_bad_dtypes_values_and_devices_raise_with_names():
+    gyro, acc, dt = random_stream(2, 5, seed=1)
+    neg = dt.clone()
+    neg[1, 2] = -neg[1, 2]
+    for kw in ({}, dict(gyro_noise_density=1e-3), dict(covariance=False, bias_jacobian=False)):
+        with pytest.raises(ValueError, match="dt must be >= 0 everywhere, got 1 negative"):
+            preintegrate(gyro, acc, neg, **kw)
+    # Zero intervals are legitimate: a zero-length sample changes nothing.
+    zero = torch.cat([dt, torch.zeros(2, 1, dtype=F64)], 1)
+    longer = preintegrate(torch.cat([gyro, gyro[:, :1]], 1), torch.cat([acc, acc[:, :1]], 1), zero,
+                          gyro_noise_density=1e-3, acc_noise_density=1e-2)
+    plain = preintegrate(gyro, acc, dt, gyro_noise_density=1e-3, acc_noise_density=1e-2)
+    assert torch.allclose(longer.delta.as_matrix(), plain.delta.as_matrix(), rtol=0, atol=1e-14)
+    assert torch.allclose(longer.covariance, plain.covariance, rtol=0, atol=1e-14)
+    with pytest.raises(TypeError, match="gyro_bias must be None, a float or a tensor"):
+        preintegrate(gyro, acc, dt, gyro_bias=[0.0, 0.0, 0.0])
+    with pytest.raises(TypeError, match="dtype must be torch.float32 or torch.float64, got torch.int64"):
+        gravity_vector(dtype=torch.int64)
+    with pytest.raises(TypeError, match="dtype must be torch.float32 or torch.float64, got torch.float16"):
+        earth_rate_vector(0.5, dtype=torch.float16)
+    pre = preintegrate(gyro, acc, dt, gyro_noise_density=1e-3, acc_noise_density=1e-2)
+    with pytest.raises(TypeError, match=r"gyro_bias has dtype torch.float32 but the preintegration"):
+        pre.corrected(gyro_bias=torch.zeros(3))
+    with pytest.raises(ValueError, match=r"acc_bias is on meta but the preintegration"):
+        pre.corrected(acc_bias=torch.zeros(3, dtype=F64, device="meta"))
+    start, g = SGal3.identity((2,), dtype=F64), gravity_vector(dtype=F64)
+    eye = torch.eye(10, dtype=F64)
+    with pytest.raises(TypeError, match="start_covariance has dtype torch.float32"):
+        pre.predict_covariance(start, eye.float(), g)
+    with pytest.raises(ValueError, match="start_covariance is on meta but delta is on cpu"):
+        pre.predict_covariance(start, eye.to("meta"), g)
+    with pytest.raises(ValueError, match=r"do not broadcast: prediction \(2,\), start_covariance \(5,\)"):
+        pre.predict_covariance(start, eye.expand(5, 10, 10), g)
+    with pytest.raises(TypeError, match="start has dtype torch.float32"):
+        pre.predict(SGal3.identity((2,)), g)
+
+
+def test_empty_and_non_floating_chains():
+    E = torch.linalg.matrix_exp(0.3 * torch.randn(3, 4, 5, 5, dtype=F64))
+    empty = E[:, :0]
+    assert torch.equal(window_product(empty), torch.eye(5, dtype=F64).expand(3, 5, 5))
+    assert suffix_products(empty).shape == (3, 0, 5, 5)
+    # The identity of the empty chain is the neutral element: E_0 .. E_3 times it.
+    assert torch.allclose(window_product(E) @ window_product(empty), window_product(E), atol=0)
+    for bad in (E.to(torch.int64), E.half()):
+        for f in (window_product, suffix_products):
+            with pytest.raises(TypeError, match="E must have a floating dtype"):
+                f(bad)
+    with pytest.raises(ValueError, match=r"E must have shape \(\.\.\., K, n, n\)"):
+        window_product(E[0, 0])
+
+
 @pytest.mark.parametrize("K", [1, 2, 3])
 def test_splitting_samples_changes_nothing(K):
     # A sample split into two halves with the same inputs is the same piecewise-constant

@@ -20,6 +20,7 @@ and Delta(b + db) ~ Delta(b) exp(bias_jacobian db).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -29,6 +30,7 @@ from ..functional import blocks as B
 from ..functional import checks
 from ..functional import sgal3 as F
 from ..functional import unobserved
+from ..functional._blocking import _is_wrapped, is_compiling
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
@@ -59,16 +61,36 @@ def _check_stream(gyro, acc, dt):
     return batch
 
 
-def _as_vector(x, like: torch.Tensor, name: str, batch) -> torch.Tensor:
-    """A bias or noise density: None (zero), a float, or a tensor (..., 3) broadcasting to batch."""
+def _as_vector(x, like: torch.Tensor, name: str, batch, like_name: str = "gyro") -> torch.Tensor:
+    """A bias or noise density: None (zero), a float, or a tensor (..., 3) broadcasting to batch;
+    ``like_name`` names the tensor ``like`` whose dtype and device it must have."""
     if x is None:
         x = 0.0
     if not isinstance(x, torch.Tensor):
+        if isinstance(x, bool) or not isinstance(x, numbers.Real):
+            raise TypeError(f"{name} must be None, a float or a tensor (..., 3), got "
+                            f"{type(x).__name__}")
         return torch.full((3,), float(x), dtype=like.dtype, device=like.device)
     checks.vector(x, 3, name)
-    checks.same_device_dtype(gyro=like, **{name: x})
+    checks.same_device_dtype(**{like_name: like, name: x})
     checks.broadcast_batch(stream=batch, **{name: x.shape[:-1]})
     return x
+
+
+def _readable(t: torch.Tensor) -> bool:
+    """Whether a data check may read ``t``: a plain CPU tensor (no host sync), outside
+    functorch transforms and compilation (the rule of functional/_blocking.unobserved, with
+    autograd allowed: reading values does not disturb it)."""
+    return (type(t) is torch.Tensor and t.device.type == "cpu" and not is_compiling()
+            and not (_is_wrapped is not None and _is_wrapped(t)))
+
+
+def _check_non_negative(t: torch.Tensor, name: str) -> None:
+    """Raise if a readable tensor has negative (or NaN) entries; see ``_readable``."""
+    if _readable(t) and t.numel() and not bool((t >= 0).all()):
+        bad = t[~(t >= 0)]
+        raise ValueError(f"{name} must be >= 0 everywhere, got {bad.numel()} negative or NaN "
+                         f"entries (first {float(bad[0]):.3g})")
 
 
 def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Tensor:
@@ -124,14 +146,30 @@ def _suffix_products(E: torch.Tensor, mul, axis: int, identity: torch.Tensor) ->
     return torch.cat((inter, _along(S_pairs, axis, slice(n_odd, None))), dim=axis) if K % 2 else inter
 
 
+def _check_chain(E, name: str = "E") -> None:
+    checks.floating(E, name)
+    if E.dim() < 3 or E.shape[-1] != E.shape[-2]:
+        raise ValueError(f"{name} must have shape (..., K, n, n) (K square matrices), got "
+                         f"{tuple(E.shape)}")
+
+
 def window_product(E: torch.Tensor) -> torch.Tensor:
-    """E_0 E_1 ... E_{K-1} of (..., K, n, n) by a log-depth tree of batched products."""
+    """E_0 E_1 ... E_{K-1} of (..., K, n, n) by a log-depth tree of batched products; the
+    identity (..., n, n) for an empty chain (K = 0)."""
+    _check_chain(E)
+    if E.shape[-3] == 0:
+        eye = torch.eye(E.shape[-1], dtype=E.dtype, device=E.device)
+        return eye.expand(*E.shape[:-3], *eye.shape).clone()
     return _window_product(E, torch.matmul, E.dim() - 3)
 
 
 def suffix_products(E: torch.Tensor) -> torch.Tensor:
     """S_k = E_k E_{k+1} ... E_{K-1} for k = 0..K-1 of (..., K, n, n) (a work-efficient parallel
-    scan: 2 log2 K levels of batched products, about 2K products in all)."""
+    scan: 2 log2 K levels of batched products, about 2K products in all); empty (..., 0, n, n)
+    for an empty chain (K = 0)."""
+    _check_chain(E)
+    if E.shape[-3] == 0:
+        return E.clone()
     eye = torch.eye(E.shape[-1], dtype=E.dtype, device=E.device)
     return _suffix_products(E, torch.matmul, E.dim() - 3, eye)
 
@@ -290,8 +328,9 @@ class Preintegration:
         if self.bias_jacobian is None:
             raise ValueError("bias_jacobian is None: preintegrate with bias_jacobian=True")
         batch = self.delta.batch_shape
-        g = self.gyro_bias if gyro_bias is None else _as_vector(gyro_bias, self.gyro_bias, "gyro_bias", batch)
-        a = self.acc_bias if acc_bias is None else _as_vector(acc_bias, self.acc_bias, "acc_bias", batch)
+        like = "the preintegration (its delta)"
+        g = self.gyro_bias if gyro_bias is None else _as_vector(gyro_bias, self.gyro_bias, "gyro_bias", batch, like)
+        a = self.acc_bias if acc_bias is None else _as_vector(acc_bias, self.acc_bias, "acc_bias", batch, like)
         db = torch.cat(torch.broadcast_tensors(g - self.gyro_bias, a - self.acc_bias), dim=-1)
         return self.delta.rplus((self.bias_jacobian @ db.unsqueeze(-1)).squeeze(-1))
 
@@ -303,7 +342,10 @@ class Preintegration:
         if self.covariance is None:
             raise ValueError("covariance is None: preintegrate with covariance=True")
         checks.matrix(start_covariance, 10, "start_covariance")
+        checks.same_device_dtype(delta=self.delta.as_matrix(), start_covariance=start_covariance)
         J_start, J_delta = predict_jacobians(start, self.delta, gravity, earth_rate)
+        checks.broadcast_batch(prediction=J_start.shape[:-2],
+                               start_covariance=start_covariance.shape[:-2])
         return (J_start @ start_covariance @ J_start.transpose(-1, -2)
                 + J_delta @ self.covariance @ J_delta.transpose(-1, -2))
 
@@ -331,7 +373,9 @@ def preintegrate(
     """Batched Galilean preintegration of windows of K samples.
 
     gyro (..., K, 3) [rad/s] and acc (..., K, 3) [m/s^2, specific force] in the body frame,
-    constant over sample k's interval dt (..., K) [s] (dt may vary).  Biases (..., 3) or None.
+    constant over sample k's interval dt (..., K) [s] (dt may vary; dt >= 0, zero allowed: a
+    negative dt raises ValueError, checked where reading it costs no host sync, that is on CPU
+    outside torch.func transforms and compilation).  Biases (..., 3) or None.
 
     Noise densities (continuous time): gyro [rad/s/sqrt(Hz)] and accelerometer [m/s^2/sqrt(Hz)]
     as floats (isotropic: the covariance is then summed in closed form, since C C^T = I) or
@@ -359,6 +403,7 @@ def preintegrate(
     arithmetic runs in place and in blocks of windows (_integrate_fast, docs/imu.md).
     """
     batch = _check_stream(gyro, acc, dt)
+    _check_non_negative(dt, "dt")
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch)
     batch = torch.broadcast_shapes(batch, b_g.shape[:-1], b_a.shape[:-1])
@@ -624,8 +669,9 @@ def gravity_vector(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY, dty
     """Gravity in the navigation frame: z-up (ENU) (0, 0, -g) or NED (0, 0, +g)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     sign = -1.0 if frame == "z_up" else 1.0
-    return torch.tensor([0.0, 0.0, sign * magnitude], dtype=dtype or torch.get_default_dtype(), device=device)
+    return torch.tensor([0.0, 0.0, sign * magnitude], dtype=dtype, device=device)
 
 
 def earth_rate_vector(latitude: float, frame: str = "z_up", rate: float = EARTH_RATE, dtype=None, device=None):
@@ -633,9 +679,10 @@ def earth_rate_vector(latitude: float, frame: str = "z_up", rate: float = EARTH_
     z up) (0, W cos L, W sin L); NED (W cos L, 0, -W sin L)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     c, s = rate * math.cos(latitude), rate * math.sin(latitude)
     vec = [0.0, c, s] if frame == "z_up" else [c, 0.0, -s]
-    return torch.tensor(vec, dtype=dtype or torch.get_default_dtype(), device=device)
+    return torch.tensor(vec, dtype=dtype, device=device)
 
 
 def _time_shift(t: torch.Tensor) -> SGal3:
@@ -673,6 +720,7 @@ def _prediction_factors(start, delta, gravity, earth_rate):
     if not isinstance(delta, SGal3):
         raise TypeError(f"delta must be a SGal3, got {type(delta).__name__}")
     ref = delta.as_matrix()
+    checks.same_device_dtype(delta=ref, start=start.as_matrix())
     checks.vector(gravity, 3, "gravity")
     checks.same_device_dtype(delta=ref, gravity=gravity)
     if earth_rate is None:
