@@ -164,6 +164,24 @@ def test_bad_input():
         GDHChain([0.1, 0.2], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], ["R", "spherical"])
 
 
+def test_chain_dtype_and_device_are_checked():
+    # An integer table would truncate the link lengths (a = [0.4, 0.3] -> [0, 0]).
+    for dtype in (torch.int64, torch.int32, torch.float16):
+        with pytest.raises(TypeError, match=f"dtype must be torch.float32 or torch.float64, got {dtype}"):
+            GDHChain([0.4, 0.3], [0, 0], [0, 0], [0, 0], "RR", dtype=dtype)
+    for robot in (ur5, scara, iiwa7):
+        with pytest.raises(TypeError, match="dtype must be torch.float32 or torch.float64"):
+            robot(dtype=torch.int32)
+    chain = GDHChain([0.4, 0.3], [0, 0], [0, 0], [0, 0], "RR", dtype=None)
+    assert torch.equal(chain.a, torch.tensor([0.4, 0.3], dtype=torch.float64))
+    meta = ur5(device="meta")
+    q = torch.zeros(6, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"q is on cpu but the chain 'ur5' was built on meta"):
+        meta.forward(q)
+    with pytest.raises(ValueError, match=r"q is on cpu but the chain 'ur5' was built on meta"):
+        meta.acceleration(q, q, q)
+
+
 def test_float32_matches_float64():
     c64, c32 = iiwa7(), iiwa7(dtype=torch.float32)
     q, qd, qdd = _sample(c64)

@@ -36,6 +36,7 @@ from typing import Sequence
 
 import torch
 
+from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import SE23
 
@@ -106,6 +107,7 @@ class GDHChain:
         n = lengths["a"]
         if n < 1 or any(v != n for v in lengths.values()):
             raise ValueError(f"DH table columns must have one equal, non-zero length; got {lengths}")
+        dtype = checks.dtype_arg(torch.float64 if dtype is None else dtype)
         types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
         self.name = name
         self.n_joints = n
@@ -144,6 +146,12 @@ class GDHChain:
         return x
 
     def _table(self, like: torch.Tensor):
+        """The DH table in q's dtype and on q's device (a chain built on the meta device has no
+        values to move: it only works with meta inputs)."""
+        if self.a.device != like.device and self.a.device.type == "meta":
+            raise ValueError(f"q is on {like.device} but the chain {self.name!r} was built on "
+                             f"{self.a.device}, where its DH table has no values; build the "
+                             f"chain with device={str(like.device)!r}")
         t = [x.to(dtype=like.dtype, device=like.device) for x in (self.a, self.alpha, self.d, self.theta_offset)]
         return (*t, self._revolute.to(like.device))
 
