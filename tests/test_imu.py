@@ -542,6 +542,31 @@ def test_fast_path_matches_plain_path(K, per_axis, block_bytes, monkeypatch):
         _assert_same(res, _plain(gyro, acc, dt, **kw, **flags))
 
 
+def test_forward_ad_takes_the_plain_path():
+    """Dual tensors of torch.autograd.forward_ad are observed: preintegrate runs the plain code
+    (the fast path's out= kernels have no forward derivative) and its tangents equal the
+    reverse-mode Jacobian times the direction, and central finite differences."""
+    import torch.autograd.forward_ad as fwAD
+
+    gyro, acc, dt = random_stream(2, 6, seed=81)
+    v = torch.randn(gyro.shape, dtype=F64, generator=torch.Generator().manual_seed(82))
+    dens = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2)
+
+    def outputs(g):
+        r = preintegrate(g, acc, dt, **dens)
+        return torch.cat([r.delta.as_matrix().flatten(), r.covariance.flatten(), r.bias_jacobian.flatten()])
+
+    with fwAD.dual_level():
+        tangent = fwAD.unpack_dual(outputs(fwAD.make_dual(gyro, v))).tangent
+    J = torch.autograd.functional.jacobian(outputs, gyro)  # reverse mode, (370, 2, 6, 3)
+    jv = (J.flatten(1) @ v.flatten())
+    np.testing.assert_allclose(tangent.numpy(), jv.numpy(), rtol=1e-10, atol=1e-14 * float(jv.abs().max()))
+    h = 1e-6  # central differences: rounding ~ eps |output| / h ~ 2e-10
+    with torch.no_grad():
+        fd = (outputs(gyro + h * v) - outputs(gyro - h * v)) / (2 * h)
+    np.testing.assert_allclose(tangent.numpy(), fd.numpy(), rtol=1e-6, atol=1e-9)
+
+
 def test_fast_path_blocks_large_float32_batches(monkeypatch):
     # Default block size: 520 x 256 float32 samples run as two blocks of 260 windows.
     import torchsgal.imu.preintegration as P
@@ -572,3 +597,17 @@ def test_in_place_products_match_compose_packed(K):
     P._scan_into(E, out)
     assert torch.equal(out, P._suffix_products(E, Fs.compose_packed, 1, Fs.packed_identity(E)))
     assert torch.equal(P._tree_product(E), P._window_product(E, Fs.compose_packed, 1))
+
+
+def test_predict_compiles_in_one_graph():
+    """predict traces under torch.compile(fullgraph=True) (no `@` between group objects, which
+    dynamo cannot trace) and matches eager, with the Earth's rotation."""
+    g = torch.Generator().manual_seed(91)
+    start, delta = SGal3.random((3,), dtype=F64, generator=g), SGal3.random((3,), dtype=F64, generator=g)
+    grav, rate = gravity_vector(dtype=F64), earth_rate_vector(0.7, dtype=F64)
+
+    def f(a, b):
+        return predict(a, b, grav, rate).as_matrix()
+
+    compiled = torch.compile(f, backend="eager", fullgraph=True)
+    assert torch.equal(compiled(start, delta), f(start, delta))

@@ -709,7 +709,7 @@ def predict(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None) 
     v_j = v_i + g T + R_i dv, p_j = p_i + v_i T + g T^2 / 2 + R_i dp, t_j = t_i + T.
     """
     A, t_i, start0 = _prediction_factors(start, delta, gravity, earth_rate)
-    return _time_shift(t_i) @ A @ start0 @ delta
+    return _time_shift(t_i).compose(A).compose(start0).compose(delta)  # compose: traceable by dynamo
 
 
 def _prediction_factors(start, delta, gravity, earth_rate):
@@ -732,9 +732,9 @@ def _prediction_factors(start, delta, gravity, earth_rate):
                                    gravity=gravity.shape[:-1], earth_rate=earth_rate.shape[:-1])
     g, w = torch.broadcast_tensors(gravity.expand(*batch, 3), earth_rate.expand(*batch, 3))
     T = delta.time().unsqueeze(-1).expand(*batch, 1)
-    A = _time_shift(T[..., 0]) @ SGal3.exp(torch.cat((torch.zeros_like(g), g * T, -w * T, -T), dim=-1))
+    A = _time_shift(T[..., 0]).compose(SGal3.exp(torch.cat((torch.zeros_like(g), g * T, -w * T, -T), dim=-1)))
     t_i = start.time().expand(batch)
-    return A, t_i, _time_shift(-t_i) @ start
+    return A, t_i, _time_shift(-t_i).compose(start)
 
 
 def predict_jacobians(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None):
@@ -747,7 +747,7 @@ def predict_jacobians(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_r
     u = Ad(A^-1) e_iota - e_iota (start) and u + [0, g, -Omega, 0] (increment)."""
     A, _, start0 = _prediction_factors(start, delta, gravity, earth_rate)
     batch = A.batch_shape
-    back = (start0 @ delta).inverse().adjoint()  # Ad((X_i0 Delta)^-1)
+    back = start0.compose(delta).inverse().adjoint()  # Ad((X_i0 Delta)^-1)
     u = A.inverse().adjoint()[..., :, 9].clone()
     u[..., 9] -= 1.0
     J_start = delta.inverse().adjoint().expand(*batch, 10, 10).clone()

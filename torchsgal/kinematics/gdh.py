@@ -196,7 +196,7 @@ class GDHChain:
         """Prefix products 0K_1 .. 0K_n (45)."""
         prefix, acc = [], None
         for i in range(self.n_joints):
-            acc = links[..., i] if acc is None else acc @ links[..., i]
+            acc = links[..., i] if acc is None else acc.compose(links[..., i])
             prefix.append(acc)
         return prefix
 

@@ -229,7 +229,7 @@ class ConcentratedGaussian:
             S = S + C + C.transpose(-1, -2)
         if second_order:
             S = S + self._fourth_order(Sa, Sb)
-        out = ConcentratedGaussian(r1.mean @ r2.mean, _sym(S), "right", validate=False)
+        out = ConcentratedGaussian(r1.mean.compose(r2.mean), _sym(S), "right", validate=False)
         return out.to_side(self.side)
 
     def between(self, other: "ConcentratedGaussian", cross_covariance: torch.Tensor | None = None
@@ -356,7 +356,7 @@ class ConcentratedGaussian:
             # the iterations run.
             if step.numel() == 0:
                 break
-            if _has_data(step) and float(step.abs().max()) < tol:
+            if _has_data(step) and float(step.detach().abs().max()) < tol:
                 break
         H = 0
         for p, W in zip(parts, infos):
