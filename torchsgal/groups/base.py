@@ -70,6 +70,7 @@ class LieGroup:
 
     @classmethod
     def identity(cls, batch_shape: Sequence[int] = (), dtype=None, device=None):
+        """The identity element, repeated over ``batch_shape`` (default dtype: torch's default)."""
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
         return cls(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
@@ -96,6 +97,7 @@ class LieGroup:
         return self._matrix.device
 
     def as_matrix(self) -> torch.Tensor:
+        """The homogeneous matrices (..., matrix_dim, matrix_dim) (the wrapped tensor, not a copy)."""
         return self._matrix
 
     def rotation(self) -> torch.Tensor:
@@ -127,6 +129,7 @@ class LieGroup:
         return self.compose(other)
 
     def inverse(self):
+        """g^-1, in closed form (no general matrix inverse)."""
         return type(self)(self._f.inverse(self._matrix))
 
     def adjoint(self) -> torch.Tensor:
@@ -173,10 +176,12 @@ class LieGroup:
     # ----------------------------------------------------------- static algebra maps
     @classmethod
     def hat(cls, xi: torch.Tensor) -> torch.Tensor:
+        """The Lie algebra matrix (..., matrix_dim, matrix_dim) of tangent vectors xi (..., dof)."""
         return cls._f.hat(xi)
 
     @classmethod
     def vee(cls, X: torch.Tensor) -> torch.Tensor:
+        """The tangent vectors (..., dof) of Lie algebra matrices X: the inverse of hat."""
         return cls._f.vee(X)
 
     @classmethod
@@ -196,10 +201,12 @@ class LieGroup:
 
     @classmethod
     def jl_inv(cls, xi: torch.Tensor) -> torch.Tensor:
+        """J_l(xi)^-1 (..., dof, dof), in closed form (block back-substitution, no general inverse)."""
         return cls._f.jl_inv(xi)
 
     @classmethod
     def jr_inv(cls, xi: torch.Tensor) -> torch.Tensor:
+        """J_r(xi)^-1 = J_l(-xi)^-1 (..., dof, dof)."""
         return cls._f.jr_inv(xi)
 
     # ---------------------------------------------------------------- batch handling
@@ -241,6 +248,7 @@ class LieGroup:
         return type(self)(self._matrix.squeeze(_batch_axis(dim, len(self.batch_shape), "dim")))
 
     def expand(self, *shape):
+        """The elements broadcast to the batch shape ``shape`` (a view, as Tensor.expand)."""
         if len(shape) == 1 and not isinstance(shape[0], int):
             shape = tuple(shape[0])
         n = self.matrix_dim
@@ -280,21 +288,27 @@ class LieGroup:
         return type(self)(self._matrix.to(*args, **kwargs))
 
     def float(self):
+        """The same elements in float32."""
         return self.to(torch.float32)
 
     def double(self):
+        """The same elements in float64."""
         return self.to(torch.float64)
 
     def cpu(self):
+        """The same elements on the CPU."""
         return type(self)(self._matrix.cpu())
 
     def cuda(self, device=None):
+        """The same elements on a CUDA device."""
         return type(self)(self._matrix.cuda(device))
 
     def detach(self):
+        """The same elements, detached from the autograd graph."""
         return type(self)(self._matrix.detach())
 
     def clone(self):
+        """A copy with its own storage."""
         return type(self)(self._matrix.clone())
 
     def __repr__(self) -> str:

@@ -19,10 +19,12 @@ class SE2(LieGroup):
 
     @classmethod
     def from_components(cls, rotation: torch.Tensor, position: torch.Tensor):
+        """rotation (..., 2, 2), position (..., 2), broadcast to one batch."""
         C, r = prepare(rotation=(rotation, (2, 2)), position=(position, (2,)))
         return cls(_se2.from_components(C, r))
 
     def position(self) -> torch.Tensor:
+        """The position r (..., 2) (a view of the matrix)."""
         return self._matrix[..., :2, 2]
 
     def act(self, p: torch.Tensor) -> torch.Tensor:

@@ -18,15 +18,18 @@ class SE23(LieGroup):
 
     @classmethod
     def from_components(cls, rotation: torch.Tensor, velocity: torch.Tensor, position: torch.Tensor):
+        """rotation (..., 3, 3), velocity (..., 3), position (..., 3), broadcast to one batch."""
         C, v, r = prepare(
             rotation=(rotation, (3, 3)), velocity=(velocity, (3,)), position=(position, (3,))
         )
         return cls(_se23.from_components(C, v, r))
 
     def velocity(self) -> torch.Tensor:
+        """The velocity v (..., 3) (a view of the matrix)."""
         return self._matrix[..., :3, 3]
 
     def position(self) -> torch.Tensor:
+        """The position r (..., 3) (a view of the matrix)."""
         return self._matrix[..., :3, 4]
 
     def act(self, p: torch.Tensor) -> torch.Tensor:

@@ -18,10 +18,12 @@ class SE3(LieGroup):
 
     @classmethod
     def from_components(cls, rotation: torch.Tensor, position: torch.Tensor):
+        """rotation (..., 3, 3), position (..., 3), broadcast to one batch."""
         C, r = prepare(rotation=(rotation, (3, 3)), position=(position, (3,)))
         return cls(_se3.from_components(C, r))
 
     def position(self) -> torch.Tensor:
+        """The position r (..., 3) (a view of the matrix)."""
         return self._matrix[..., :3, 3]
 
     def act(self, p: torch.Tensor) -> torch.Tensor:

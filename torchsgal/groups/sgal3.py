@@ -35,9 +35,11 @@ class SGal3(LieGroup):
         return cls(_sgal3.from_components(C, v, r, tau))
 
     def velocity(self) -> torch.Tensor:
+        """The velocity v (..., 3) (a view of the matrix)."""
         return self._matrix[..., :3, 3]
 
     def position(self) -> torch.Tensor:
+        """The position r (..., 3) (a view of the matrix)."""
         return self._matrix[..., :3, 4]
 
     def time(self) -> torch.Tensor:

@@ -18,6 +18,7 @@ class SO3(LieGroup):
 
     @classmethod
     def from_rotation(cls, rotation: torch.Tensor, check: bool = False):
+        """The same as ``from_matrix(rotation, check)``."""
         return cls.from_matrix(rotation, check=check)
 
     @classmethod
