@@ -71,6 +71,8 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     noise would be singular).  ``validate`` checks this as the ConcentratedGaussian constructor
     checks its covariance (one host sync; skipped on 'meta', under torch.func transforms and
     torch.compile)."""
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
     if not isinstance(prior, ConcentratedGaussian):
         raise TypeError(f"prior must be a ConcentratedGaussian on SGal3, got {type(prior).__name__}")
     if prior.group is not SGal3:
@@ -114,7 +116,7 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     y0[..., 4] = 1.0
     x = (relative_frame.as_matrix() @ y0.unsqueeze(-1)).squeeze(-1)  # kF_i y0
     eps = torch.zeros(*event.shape[:-1], 10, dtype=event.dtype, device=event.device)
-    for _ in range(max(1, iterations)):
+    for _ in range(iterations):
         Ex = (SGal3.exp(eps).as_matrix() @ x.unsqueeze(-1)).squeeze(-1)
         r = (d - Ex[..., :4])[..., :rows]  # residual at the current eps
         # d/d(delta) I4^T exp(eps + delta) x = C(exp(eps) x) J_l(eps)
