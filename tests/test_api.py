@@ -179,6 +179,11 @@ def test_sim3_scale_must_be_positive():
         ts.Sim3.from_components(torch.eye(3), torch.zeros(3), torch.ones((), dtype=torch.int64))
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: rotation \(\), position \(3,\), scale \(4,\)"):
         ts.Sim3.from_components(torch.eye(3), torch.zeros(3, 3), torch.ones(4))
+    # one unbatched element: a 0-dim scale (the expand of an empty shape used to crash)
+    D = torch.float64
+    one = ts.Sim3.from_components(torch.eye(3, dtype=D), torch.zeros(3, dtype=D), torch.tensor(2.0, dtype=D))
+    assert one.batch_shape == () and one.scale().item() == 2.0
+    assert torch.equal(one.as_matrix(), torch.diag(torch.tensor([1.0, 1.0, 1.0, 0.5], dtype=D)))
 
 
 # ------------------------------------------------------------------------------ bad input

@@ -18,4 +18,5 @@ def prepare(**parts):
     batch = checks.broadcast_batch(
         **{n: t.shape[: t.dim() - len(parts[n][1])] for n, t in tensors.items()}
     )
-    return [t.expand(*batch, *parts[n][1]) for n, t in tensors.items()]
+    # one tuple argument: expand(*()) (an unbatched scalar part) would be a call without size
+    return [t.expand(tuple(batch) + tuple(parts[n][1])) for n, t in tensors.items()]

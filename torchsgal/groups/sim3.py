@@ -22,7 +22,9 @@ class Sim3(LieGroup):
 
     @classmethod
     def from_components(cls, rotation: torch.Tensor, position: torch.Tensor, scale: torch.Tensor):
-        """rotation (..., 3, 3), position r (..., 3), scale s (...) (positive; not checked)."""
+        """rotation (..., 3, 3), position r (..., 3), scale s (...) (0-dim for one element).
+        Only shapes, dtypes and devices are checked, not values: s must be positive, and C a
+        rotation (``from_matrix(M, check=True)`` checks the values of a matrix)."""
         C, r, s = prepare(rotation=(rotation, (3, 3)), position=(position, (3,)), scale=(scale, ()))
         return cls(_sim3.from_components(C, r, s))
 
