@@ -248,6 +248,9 @@ def test_integer_and_mixed_dtypes(G):
         G.random((), dtype=torch.float64) @ G.random((), dtype=torch.float32)
     with pytest.raises(TypeError, match=r"must be a torch.Tensor"):
         G.exp([0.0] * G.dof)
+    for fn in (G.jl, G.jr, G.jl_inv, G.jr_inv):  # jr negated a list before checking it
+        with pytest.raises(TypeError, match=r"xi must be a torch.Tensor, got list"):
+            fn([0.0] * G.dof)
     with pytest.raises(TypeError, match=r"other must be a"):
         G.random(()).between(ts.SO3.random(()) if G is not ts.SO3 else ts.SE3.random(()))
     g, h = G.random((3,), dtype=torch.float64), G.random((3,), dtype=torch.float64)
@@ -260,6 +263,43 @@ def test_integer_and_mixed_dtypes(G):
     with pytest.raises(TypeError, match=r"alpha must be a number or a torch.Tensor, got list"):
         g.interpolate(h, [0.5, 0.5, 0.5])
     assert g.interpolate(h, torch.rand(4, 1, dtype=torch.float64)).batch_shape == (4, 3)
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_plus_names_delta(G):
+    """rplus/lplus check delta against self before exp, naming both the right way round."""
+    g = G.random((4,), dtype=torch.float64)
+    for fn in (g.rplus, g.lplus):
+        with pytest.raises(TypeError, match=r"delta has dtype torch.float32 but self has dtype torch.float64"):
+            fn(torch.zeros(4, G.dof))
+        with pytest.raises(ValueError, match=r"batch shapes do not broadcast: self \(4,\), delta \(3,\)"):
+            fn(torch.zeros(3, G.dof, dtype=torch.float64))
+        with pytest.raises(ValueError, match=rf"delta must have shape \(\.\.\., {G.dof}\), got \(4, {G.dof + 1}\)"):
+            fn(torch.zeros(4, G.dof + 1, dtype=torch.float64))
+        with pytest.raises(ValueError, match=r"delta is on meta but self is on cpu"):
+            fn(torch.zeros(4, G.dof, dtype=torch.float64, device="meta"))
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_batch_shape_arguments(G):
+    """identity and random take an int or a sequence of sizes >= 0; expand names both shapes."""
+    assert G.identity(3).batch_shape == (3,) and G.random(3).batch_shape == (3,)
+    assert G.identity((0,)).batch_shape == (0,)
+    for make in (G.identity, G.random):
+        with pytest.raises(ValueError, match=r"batch_shape must have sizes >= 0, got \(-1,\)"):
+            make((-1,))
+        with pytest.raises(TypeError, match=r"batch_shape must be an int or a sequence of ints"):
+            make(2.5)
+        with pytest.raises(TypeError, match=r"batch_shape must be an int or a sequence of ints"):
+            make((2, None))
+    with pytest.raises(TypeError, match=r"generator must be None or a torch.Generator, got int"):
+        G.random(generator=5)
+    g = G.random((4,), dtype=torch.float64)
+    assert g.expand(2, 4).batch_shape == (2, 4) and g[:1].expand(3).batch_shape == (3,)
+    with pytest.raises(ValueError, match=r"cannot expand the batch shape \(4,\) .* to \(3,\)"):
+        g.expand(3)
+    with pytest.raises(ValueError, match=r"cannot expand the batch shape \(4,\) .* to \(\)"):
+        g.expand(())
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
@@ -296,6 +336,21 @@ def test_from_matrix_check(G):
     with pytest.raises(ValueError, match=r"non-finite"):
         G.from_matrix(nan, check=True)
     G.from_matrix(bad, check=False)  # unchecked wrapping is allowed
+    # tol: None or a finite number > 0 (nan and inf used to accept anything, -1 to reject all)
+    for tol in (float("nan"), float("inf"), -1, 0):
+        with pytest.raises(ValueError, match=r"tol must be a finite number > 0, got"):
+            G.from_matrix(bad, check=True, tol=tol)
+    with pytest.raises(TypeError, match=r"tol must be None or a number, got str"):
+        G.from_matrix(M, check=True, tol="1e-9")
+    G.from_matrix(bad, check=True, tol=1e-2)  # a looser valid tol accepts it
+    # values are checked only where they can be read (as in the uncertainty module): not on
+    # 'meta' and not under a torch.func transform; shapes always are
+    meta = G.from_matrix(torch.empty(2, G.matrix_dim, G.matrix_dim, device="meta"), check=True)
+    assert meta.device.type == "meta" and meta.batch_shape == (2,)
+    out = torch.func.vmap(lambda m: G.from_matrix(m, check=True).as_matrix())(M)
+    assert torch.equal(out, M)
+    with pytest.raises(ValueError, match=r"matrix must have shape"):
+        G.from_matrix(torch.empty(2, 1, 1, device="meta"), check=True)
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
@@ -344,6 +399,18 @@ def test_stack_cat_unsqueeze_errors(G):
     other = next(H for H in ts.ALL_GROUPS if H is not G)
     with pytest.raises(TypeError, match=f"elements\\[1\\] must be a {G.__name__}"):
         G.stack([g, other.random((5,), dtype=torch.float64)])
+    # one dtype and device, as compose (no silent promotion to float64)
+    for op in (G.stack, G.cat):
+        with pytest.raises(TypeError, match=r"elements\[1\] has dtype torch.float32 but elements\[0\] has dtype torch.float64"):
+            op([g, g.float()])
+        with pytest.raises(ValueError, match=r"elements\[2\] is on meta but elements\[0\] is on cpu"):
+            op([g, g, g.to("meta")])
+    with pytest.raises(ValueError, match=r"stack needs elements of equal batch shape: elements\[0\] has \(5,\), elements\[1\] has \(2,\)"):
+        G.stack([g, g[:2]])
+    with pytest.raises(ValueError, match=r"cat needs elements whose batch shapes differ only along dim 0: elements\[0\] has \(5,\), elements\[1\] has \(1, 5\)"):
+        G.cat([g, g.unsqueeze(0)])
+    with pytest.raises(ValueError, match=r"differ only along dim -1: elements\[0\] has \(1, 5\), elements\[1\] has \(2, 5\)"):
+        G.cat([g.unsqueeze(0), G.random((2, 5), dtype=torch.float64)], dim=-1)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])

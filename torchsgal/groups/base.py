@@ -6,11 +6,14 @@ group's functional module (``_f``), the one place its maths lives.
 """
 from __future__ import annotations
 
+import math
+from numbers import Integral, Real
 from typing import Sequence
 
 import torch
 
 from ..functional import blocks, checks
+from ..functional._blocking import _is_wrapped, is_compiling
 
 
 class LieGroup:
@@ -39,9 +42,13 @@ class LieGroup:
     def from_matrix(cls, matrix: torch.Tensor, check: bool = False, tol: float | None = None):
         """From homogeneous matrices (..., n, n).  With ``check=True`` raises ValueError if any
         matrix is not in the group (orthonormal rotation with det +1, fixed rows), within
-        ``tol`` (default 1e-4 for float32, 1e-9 for float64).  Checking syncs with the host."""
+        ``tol`` (None or a finite number > 0; default 1e-4 for float32, 1e-9 for float64).
+        Checking reads the values (one host sync), so, as everywhere in the library, it is
+        skipped where they cannot be read: on 'meta', inside a torch.func transform (vmap, grad,
+        jacrev) and while torch.compile traces; shape and dtype are always checked."""
         checks.matrix(matrix, cls.matrix_dim, "matrix")
-        if check:
+        tol = _tol_arg(tol)
+        if check and matrix.numel() and _has_data(matrix):
             cls._check_membership(matrix, tol)
         return cls(matrix)
 
@@ -69,19 +76,23 @@ class LieGroup:
             )
 
     @classmethod
-    def identity(cls, batch_shape: Sequence[int] = (), dtype=None, device=None):
-        """The identity element, repeated over ``batch_shape`` (default dtype: torch's default)."""
+    def identity(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None):
+        """The identity element, repeated over ``batch_shape`` (an int n means (n,); default
+        dtype: torch's default)."""
+        batch_shape = _batch_shape_arg(batch_shape)
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
         return cls(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
 
     @classmethod
-    def random(cls, batch_shape: Sequence[int] = (), dtype=None, device=None, generator=None):
-        """Uniform rotations; translations, velocities and times standard normal."""
-        if isinstance(batch_shape, int):
-            batch_shape = (batch_shape,)
+    def random(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None, generator=None):
+        """Uniform rotations; translations, velocities and times standard normal.  ``batch_shape``
+        as in ``identity``; ``generator`` None or a torch.Generator."""
+        batch_shape = _batch_shape_arg(batch_shape)
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
-        return cls(cls._f.random(tuple(batch_shape), dtype, device, generator))
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
+        return cls(cls._f.random(batch_shape, dtype, device, generator))
 
     # ------------------------------------------------------------------ properties
     @property
@@ -136,13 +147,19 @@ class LieGroup:
         """Ad(g) (..., dof, dof): Ad(g) xi = vee(g hat(xi) g^-1)."""
         return self._f.adjoint(self._matrix)
 
+    def _delta(self, delta):
+        """Checks a tangent-vector argument (..., dof) against self before exp is applied."""
+        checks.vector(delta, self.dof, "delta")
+        checks.binary(self._matrix, 2, delta, 1, "self", "delta")
+        return delta
+
     def rplus(self, delta: torch.Tensor):
         """g exp(delta)."""
-        return self.compose(type(self).exp(delta))
+        return self.compose(type(self).exp(self._delta(delta)))
 
     def lplus(self, delta: torch.Tensor):
         """exp(delta) g."""
-        return type(self).exp(delta).compose(self)
+        return type(self).exp(self._delta(delta)).compose(self)
 
     def rminus(self, other) -> torch.Tensor:
         """log(other^-1 g)."""
@@ -197,7 +214,7 @@ class LieGroup:
     @classmethod
     def jr(cls, xi: torch.Tensor) -> torch.Tensor:
         """Right Jacobian J_l(-xi): exp(xi + d) ~ exp(xi) exp(J_r d)."""
-        return cls._f.jr(xi)
+        return cls._f.jr(checks.vector(xi, cls.dof, "xi"))
 
     @classmethod
     def jl_inv(cls, xi: torch.Tensor) -> torch.Tensor:
@@ -207,7 +224,7 @@ class LieGroup:
     @classmethod
     def jr_inv(cls, xi: torch.Tensor) -> torch.Tensor:
         """J_r(xi)^-1 = J_l(-xi)^-1 (..., dof, dof)."""
-        return cls._f.jr_inv(xi)
+        return cls._f.jr_inv(checks.vector(xi, cls.dof, "xi"))
 
     # ---------------------------------------------------------------- batch handling
     def __getitem__(self, index):
@@ -252,7 +269,13 @@ class LieGroup:
         if len(shape) == 1 and not isinstance(shape[0], int):
             shape = tuple(shape[0])
         n = self.matrix_dim
-        return type(self)(self._matrix.expand(*shape, n, n))
+        why = f"cannot expand the batch shape {tuple(self.batch_shape)} of this {type(self).__name__} to {tuple(shape)}"
+        if len(shape) < len(self.batch_shape):
+            raise ValueError(f"{why}: the target has fewer batch axes")
+        try:
+            return type(self)(self._matrix.expand(*shape, n, n))
+        except RuntimeError as err:
+            raise ValueError(f"{why}: {err}") from None
 
     def unsqueeze(self, dim: int):
         """A new batch axis of size 1 at ``dim`` (counted over the batch axes only)."""
@@ -262,7 +285,13 @@ class LieGroup:
     def stack(cls, elements: Sequence["LieGroup"], dim: int = 0):
         """Stack elements of equal batch shape along a new batch axis ``dim``."""
         mats = cls._matrices(elements, "stack")
-        return cls(torch.stack(mats, dim=_batch_axis(dim, mats[0].dim() - 1, "dim")))
+        axis = _batch_axis(dim, mats[0].dim() - 1, "dim")
+        for i, m in enumerate(mats[1:], 1):
+            if m.shape != mats[0].shape:
+                raise ValueError(f"{cls.__name__}.stack needs elements of equal batch shape: "
+                                 f"elements[0] has {tuple(mats[0].shape[:-2])}, "
+                                 f"elements[{i}] has {tuple(m.shape[:-2])}")
+        return cls(torch.stack(mats, dim=axis))
 
     @classmethod
     def cat(cls, elements: Sequence["LieGroup"], dim: int = 0):
@@ -270,7 +299,14 @@ class LieGroup:
         mats = cls._matrices(elements, "cat")
         if mats[0].dim() == 2:
             raise ValueError(f"{cls.__name__}.cat needs elements with a batch axis; use stack")
-        return cls(torch.cat(mats, dim=_batch_axis(dim, mats[0].dim() - 2, "dim")))
+        axis = _batch_axis(dim, mats[0].dim() - 2, "dim")
+        b0 = mats[0].shape[:-2]
+        for i, m in enumerate(mats[1:], 1):
+            b = m.shape[:-2]
+            if len(b) != len(b0) or any(x != y for k, (x, y) in enumerate(zip(b, b0)) if k != axis):
+                raise ValueError(f"{cls.__name__}.cat needs elements whose batch shapes differ only "
+                                 f"along dim {dim}: elements[0] has {tuple(b0)}, elements[{i}] has {tuple(b)}")
+        return cls(torch.cat(mats, dim=axis))
 
     @classmethod
     def _matrices(cls, elements, op: str) -> list[torch.Tensor]:
@@ -281,6 +317,8 @@ class LieGroup:
             if not isinstance(e, cls):
                 raise TypeError(f"{cls.__name__}.{op}: elements[{i}] must be a {cls.__name__}, "
                                 f"got {type(e).__name__}")
+        # one dtype and device, as compose (no silent promotion)
+        checks.same_device_dtype(**{f"elements[{i}]": e._matrix for i, e in enumerate(elements)})
         return [e._matrix for e in elements]
 
     def to(self, *args, **kwargs):
@@ -316,6 +354,47 @@ class LieGroup:
             f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
             f"device={self.device})"
         )
+
+
+def _has_data(t: torch.Tensor) -> bool:
+    """Whether t's values can be read for a data check: not on 'meta', not inside a torch.func
+    transform and not while torch.compile traces (the convention of the uncertainty module)."""
+    if t.device.type == "meta" or is_compiling():
+        return False
+    return _is_wrapped is None or not _is_wrapped(t)
+
+
+def _tol_arg(tol) -> float | None:
+    """``tol``: None or a finite number > 0."""
+    if tol is None:
+        return None
+    if isinstance(tol, bool) or not isinstance(tol, Real):
+        raise TypeError(f"tol must be None or a number, got {type(tol).__name__}")
+    if not (math.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a finite number > 0, got {tol}")
+    return float(tol)
+
+
+def _batch_shape_arg(batch_shape, name: str = "batch_shape") -> tuple[int, ...]:
+    """A batch shape: an int n (meaning (n,)) or a sequence of ints >= 0."""
+    if isinstance(batch_shape, (int, torch.SymInt)) and not isinstance(batch_shape, bool):
+        batch_shape = (batch_shape,)
+    try:
+        shape = tuple(batch_shape)
+    except TypeError:
+        raise TypeError(f"{name} must be an int or a sequence of ints, "
+                        f"got {type(batch_shape).__name__}") from None
+    sizes = []
+    for s in shape:
+        if isinstance(s, torch.SymInt):  # a traced size (torch.compile, dynamic shapes)
+            sizes.append(s)
+            continue
+        if isinstance(s, bool) or not isinstance(s, Integral):  # numpy integers are Integral
+            raise TypeError(f"{name} must be an int or a sequence of ints, got {batch_shape!r}")
+        sizes.append(int(s))
+        if sizes[-1] < 0:
+            raise ValueError(f"{name} must have sizes >= 0, got {shape}")
+    return tuple(sizes)
 
 
 def _batch_axis(dim: int, n_axes: int, name: str) -> int:
