@@ -250,11 +250,63 @@ def test_command_line_refuses_no_trials_and_float32(capsys):
     from torchsgal.__main__ import main
     for argv, message in ((["--trials", "0"], "--trials: must be at least 1, got 0"),
                           (["--chunk", "-3"], "--chunk: must be at least 1"),
-                          (["--dtype", "float32"], "the TLS study needs float64")):
+                          (["--dtype", "float32"], "the TLS study needs float64"),
+                          (["--samples", "1"], "--samples: must be at least 3, got 1"),
+                          (["--samples", "-3"], "--samples: must be at least 3, got -3"),
+                          (["--threads", "-2"], "--threads: must be at least 1, got -2"),
+                          (["--speed", "nan"], "--speed: must be a finite number >= 0, got nan"),
+                          (["--separation", "inf"], "--separation: must be a finite number >= 0"),
+                          (["--clock-offset", "-1"], "--clock-offset: must be a finite number >= 0"),
+                          (["--dtau-sigma", "x"], "--dtau-sigma: expected a finite number >= 0")):
         with pytest.raises(SystemExit) as exc:
             main(["tls", *argv, "--quiet", "--no-plot"])
         assert exc.value.code == 2
         assert message in capsys.readouterr().err
+
+
+def test_study_config_and_run_check_their_arguments():
+    with pytest.raises(ValueError, match="trials must be an integer >= 1, got 0"):
+        study.StudyConfig(trials=0)
+    with pytest.raises(ValueError, match="trials must be an integer >= 1, got -2"):
+        study.StudyConfig(trials=-2)
+    with pytest.raises(ValueError, match="trials must be an integer >= 1, got 2.5"):
+        study.StudyConfig(trials=2.5)
+    with pytest.raises(ValueError, match="samples must be an integer >= 3, got 2"):
+        study.StudyConfig(samples=2)
+    with pytest.raises(ValueError, match="max_iterations must be an integer >= 1, got 0"):
+        study.StudyConfig(max_iterations=0)
+    for name in ("noise_scale", "dtau_sigma", "speed", "separation", "clock_offset"):
+        with pytest.raises(ValueError, match=f"{name} must be a finite number >= 0, got -0.5"):
+            study.StudyConfig(**{name: -0.5})
+        with pytest.raises(ValueError, match=f"{name} must be a finite number >= 0, got nan"):
+            study.StudyConfig(**{name: float("nan")})
+    with pytest.raises(ValueError, match="nominal_dtau must be a finite number, got inf"):
+        study.StudyConfig(nominal_dtau=math.inf)
+    for bad in ("int64", "bogus", torch.int64, torch.float16):
+        with pytest.raises(ValueError, match="dtype must be 'float64' or 'float32'"):
+            study.StudyConfig(dtype=bad)
+    assert study.StudyConfig(dtype=torch.float64).dtype == "float64"
+    assert study.StudyConfig(dtype=torch.float32).dtype == "float32"
+    for bad in (("p",), (), ("paper", "exact"), 3):
+        with pytest.raises(ValueError, match="variants must be a .*tuple of"):
+            study.StudyConfig(variants=bad)
+    assert study.StudyConfig(variants="paper").variants == ("paper",)
+    assert study.StudyConfig().variants == ("iterated", "paper")
+    with pytest.raises(TypeError, match="dtype must be torch.float32 or torch.float64, got torch.int64"):
+        study.paper_covariance(torch.int64)
+    cfg = study.StudyConfig(trials=3, samples=11)
+    for chunk in (0, -1, 1.5):  # chunk=0 used to loop forever
+        with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
+            study.run(cfg, chunk=chunk, progress=False)
+    cfg.trials = 0  # changed after construction: checked again by run
+    with pytest.raises(ValueError, match="trials must be an integer >= 1, got 0"):
+        study.run(cfg, progress=False)
+    with pytest.raises(ValueError, match="trials must be an integer >= 0, got -1"):
+        study.simulate(study.StudyConfig(trials=3, samples=11), trials=-1)
+    out = study.run(study.StudyConfig(trials=2, samples=11, variants="paper"), chunk=1,
+                    progress=False)
+    assert set(out["results"]["SGal(3)"]) == {"paper"}
+    assert out["results"]["SGal(3)"]["paper"]["trials"] == 2
 
 
 def test_gtsam_factor_graph_agrees():

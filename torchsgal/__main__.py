@@ -77,7 +77,8 @@ def tls(args) -> int:
     """Monte Carlo study of kelly-giamou Section 5(c): SGal(3) versus SE_2(3) x R."""
     from torchsgal.estimation import study
 
-    torch.set_num_threads(args.threads) if args.threads else None
+    if args.threads:
+        torch.set_num_threads(args.threads)
     cfg = study.StudyConfig(trials=args.trials, samples=args.samples, speed=args.speed,
                             separation=args.separation, clock_offset=args.clock_offset,
                             dtau_sigma=args.dtau_sigma, seed=args.seed,
@@ -93,13 +94,28 @@ def tls(args) -> int:
     return 0
 
 
-def _positive_int(text: str) -> int:
+def _positive_int(text: str, minimum: int = 1) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+    return value
+
+
+def _samples(text: str) -> int:
+    """At least 3 observation pairs: 11 unknowns, 10 conditions per pair (TLSProblem's check)."""
+    return _positive_int(text, minimum=3)
+
+
+def _nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}") from None
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
     return value
 
 
@@ -128,14 +144,14 @@ def main(argv=None) -> int:
                        description=tls.__doc__)
     d = __import__("torchsgal.estimation.study", fromlist=["StudyConfig"]).StudyConfig()
     t.add_argument("--trials", type=_positive_int, default=d.trials, help=f"Monte Carlo trials ({d.trials})")
-    t.add_argument("--samples", type=int, default=d.samples, help=f"observations per frame ({d.samples})")
-    t.add_argument("--speed", type=float, default=d.speed,
+    t.add_argument("--samples", type=_samples, default=d.samples, help=f"observations per frame, at least 3 ({d.samples})")
+    t.add_argument("--speed", type=_nonnegative_float, default=d.speed,
                    help=f"relative speed of the frames, m/s ({d.speed})")
-    t.add_argument("--separation", type=float, default=d.separation,
+    t.add_argument("--separation", type=_nonnegative_float, default=d.separation,
                    help=f"std of the initial positions, m ({d.separation})")
-    t.add_argument("--clock-offset", type=float, default=d.clock_offset,
+    t.add_argument("--clock-offset", type=_nonnegative_float, default=d.clock_offset,
                    help=f"std of the clock offsets, s ({d.clock_offset})")
-    t.add_argument("--dtau-sigma", type=float, default=d.dtau_sigma,
+    t.add_argument("--dtau-sigma", type=_nonnegative_float, default=d.dtau_sigma,
                    help=f"std of the true interval around its nominal value, s ({d.dtau_sigma})")
     t.add_argument("--variants", nargs="+", default=list(d.variants), choices=["iterated", "paper"],
                    help="Gauss-Helmert variants to run (both)")
@@ -144,7 +160,7 @@ def main(argv=None) -> int:
                    help="float64 (the only precision the study supports: in float32 the "
                         "information is too badly conditioned and every trial is reported SINGULAR)")
     t.add_argument("--chunk", type=_positive_int, default=400, help="trials solved per batch (400)")
-    t.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's)")
+    t.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: torch's)")
     t.add_argument("--out", default="tls_output", help="output folder (tls_output)")
     t.add_argument("--no-plot", action="store_true", help="skip the NEES plot")
     t.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -17,14 +17,17 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import sys
 import time
 from dataclasses import asdict, dataclass
 
 import torch
 
+from ..functional import checks
 from ..groups import SE23, SO3, SGal3
 from . import metrics
+from .gauss_helmert import VARIANTS
 from .solver import SolverStatus
 from .tls import TLSProblem, solve_baseline, solve_sgal3
 
@@ -39,12 +42,39 @@ PAPER_ANEES_BAND = (10.74, 11.27)
 
 def paper_covariance(dtype=torch.float64, device=None) -> torch.Tensor:
     """(5.27): diag(0.2^2 (rho, nu), (pi/60)^2 (phi), 0.2^2 (iota))."""
+    checks.dtype_arg(dtype)
     d = [0.2 ** 2] * 6 + [(math.pi / 60) ** 2] * 3 + [0.2 ** 2]
     return torch.diag(torch.tensor(d, dtype=dtype, device=device))
 
 
+_STUDY_DTYPES = {"float64": "float64", "float32": "float32",
+                 torch.float64: "float64", torch.float32: "float32"}
+
+
+def _integer(name: str, value, minimum: int | None) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) \
+            or (minimum is not None and value < minimum):
+        bound = "" if minimum is None else f" >= {minimum}"
+        raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
+    return int(value)
+
+
+def _real(name: str, value, nonnegative: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+            or not math.isfinite(value) or (nonnegative and value < 0):
+        raise ValueError(f"{name} must be a finite number{' >= 0' if nonnegative else ''}, "
+                         f"got {value!r}")
+    return float(value)
+
+
 @dataclass
 class StudyConfig:
+    """The study's settings; checked on construction (every error names the field).
+
+    ``variants`` is a tuple of Gauss-Helmert variants ("iterated", "paper"; a single string is
+    taken as one variant); ``dtype`` is "float64" or "float32" (torch.float64 / torch.float32
+    are accepted and stored as their names; in float32 every trial is reported SINGULAR, see
+    ``python -m torchsgal tls --help``)."""
     trials: int = 1200
     samples: int = 101  # N + 1 observations per frame
     nominal_dtau: float = -1.0  # s; sample n + 1 one second after sample n, see tls.py
@@ -58,6 +88,30 @@ class StudyConfig:
     max_iterations: int = 50
     dtype: str = "float64"
 
+    def __post_init__(self):
+        self.trials = _integer("trials", self.trials, 1)
+        self.samples = _integer("samples", self.samples, 3)  # TLSProblem needs 3 pairs
+        self.seed = _integer("seed", self.seed, None)
+        self.max_iterations = _integer("max_iterations", self.max_iterations, 1)
+        self.nominal_dtau = _real("nominal_dtau", self.nominal_dtau, False)
+        for name in ("dtau_sigma", "speed", "separation", "clock_offset", "noise_scale"):
+            setattr(self, name, _real(name, getattr(self, name), True))
+        variants = (self.variants,) if isinstance(self.variants, str) else self.variants
+        try:
+            variants = tuple(variants)
+        except TypeError:
+            raise ValueError(f"variants must be a tuple of {VARIANTS} (or one of them), got "
+                             f"{self.variants!r}") from None
+        if not variants or any(not isinstance(v, str) or v not in VARIANTS for v in variants):
+            raise ValueError(f"variants must be a non-empty tuple of {VARIANTS} (or one of them), "
+                             f"got {self.variants!r}")
+        self.variants = variants
+        try:
+            self.dtype = _STUDY_DTYPES[self.dtype]
+        except (KeyError, TypeError):
+            raise ValueError(f"dtype must be 'float64' or 'float32' (or torch.float64 / "
+                             f"torch.float32), got {self.dtype!r}") from None
+
 
 @dataclass
 class TrialSet:
@@ -69,8 +123,11 @@ class TrialSet:
 
 def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Generator | None = None
              ) -> TrialSet:
+    if not isinstance(cfg, StudyConfig):
+        raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
+    cfg.__post_init__()  # fields may have been changed since construction
     dtype = getattr(torch, cfg.dtype)
-    K = cfg.trials if trials is None else trials
+    K = cfg.trials if trials is None else _integer("trials", trials, 0)
     g = generator or torch.Generator().manual_seed(cfg.seed)
 
     def normal(*shape):
@@ -150,7 +207,12 @@ def summarise(err: torch.Tensor, cov: torch.Tensor, status: torch.Tensor) -> dic
 
 
 def run(cfg: StudyConfig, chunk: int = 300, progress: bool = True) -> dict:
-    """Runs the study; returns a dict with the config, per-estimator results and timings."""
+    """Runs the study; returns a dict with the config, per-estimator results and timings.
+    ``chunk``: trials simulated and solved per batch (a positive int)."""
+    if not isinstance(cfg, StudyConfig):
+        raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
+    cfg.__post_init__()  # fields may have been changed since construction
+    _integer("chunk", chunk, 1)
     g = torch.Generator().manual_seed(cfg.seed)
     estimators = {("SGal(3)", v): (solve_sgal3, errors_sgal3) for v in cfg.variants}
     estimators.update({("SE_2(3) x R", v): (solve_baseline, errors_baseline) for v in cfg.variants})
