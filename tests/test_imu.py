@@ -248,6 +248,32 @@ def test_sinusoid_midpoint_samples_converge_at_second_order():
     assert errs[0] / errs[1] > 3.5 and errs[1] / errs[2] > 3.5, errs
 
 
+
+def test_trajectory_checks_its_arguments():
+    traj = SinusoidalTrajectory()
+    g = gravity_vector("z_up", dtype=F64)
+    t0 = torch.tensor(0.0, dtype=F64)
+    for duration, dt in ((-1.0, -0.1), (1.0, -0.1), (1.0, 0.0), (1.0, math.nan), (math.inf, 0.1)):
+        bad = "duration" if not 0 < duration < math.inf else "dt"
+        with pytest.raises(ValueError, match=f"{bad} must be a finite number > 0"):
+            traj.stream(t0, duration, dt, g)
+    with pytest.raises(TypeError, match="t0 must be a torch.Tensor, got float"):
+        traj.stream(0.0, 1.0, 0.1, g)
+    with pytest.raises(TypeError, match="gravity has dtype torch.float64 but t0 has dtype torch.float32"):
+        traj.stream(t0.float(), 1.0, 0.1, g)
+    with pytest.raises(ValueError, match=r"gravity must have shape \(\.\.\., 3\), got \(2,\)"):
+        traj.imu(t0, g[:2])
+    with pytest.raises(TypeError, match="gravity has dtype torch.float32 but t has dtype torch.float64"):
+        traj.imu(t0, g.float())  # used to be promoted silently
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: t \(3,\), gravity \(2,\)"):
+        traj.imu(torch.zeros(3, dtype=F64), g.expand(2, 3))
+    with pytest.raises(TypeError, match="t must have a floating dtype"):
+        traj.state(torch.tensor(1))
+    with pytest.raises(ValueError, match=r"rot_amplitude must be a 3-vector .* got shape \(2,\)"):
+        SinusoidalTrajectory(rot_amplitude=(1.0, 2.0)).state(t0)
+    gyro, acc, dt = traj.stream(t0, 1.0, 0.25, g)
+    assert gyro.shape == acc.shape == (4, 3) and torch.equal(dt, torch.full((4,), 0.25, dtype=F64))
+
 # -------------------------------------------------------------------------- covariance
 def _sequential_covariance(gyro, acc, dt, s_g, s_a, s_t):
     """The brief's recursion, Sigma <- Ad(E^-1) Sigma Ad(E^-1)^T + J_r Q J_r^T (noise held

@@ -1,11 +1,17 @@
 """Smooth trajectories with analytic ground truth, and the IMU streams they produce."""
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 
 import torch
 
 from .. import SGal3, SO3
+from ..functional import checks
+
+_PARAMS = ("rot_amplitude", "rot_frequency", "rot_phase", "pos_amplitude", "pos_frequency",
+           "pos_phase")
 
 
 @dataclass
@@ -24,10 +30,16 @@ class SinusoidalTrajectory:
     pos_frequency: tuple = (0.8, 1.3, 2.1)
     pos_phase: tuple = (0.0, 0.5, -0.3)
 
-    def _params(self, t: torch.Tensor):
-        f = lambda x: torch.as_tensor(x, dtype=t.dtype, device=t.device)
-        return [f(x) for x in (self.rot_amplitude, self.rot_frequency, self.rot_phase,
-                                self.pos_amplitude, self.pos_frequency, self.pos_phase)]
+    def _params(self, t: torch.Tensor, name: str = "t"):
+        checks.floating(t, name)
+        out = []
+        for field in _PARAMS:
+            x = torch.as_tensor(getattr(self, field), dtype=t.dtype, device=t.device)
+            if x.dim() < 1 or x.shape[-1] != 3:
+                raise ValueError(f"{field} must be a 3-vector (shape (..., 3)), got shape "
+                                 f"{tuple(x.shape)}")
+            out.append(x)
+        return out
 
     def state(self, t: torch.Tensor) -> SGal3:
         """Galilean frames (R, v, p, t) at times t (...)."""
@@ -39,8 +51,12 @@ class SinusoidalTrajectory:
         return SGal3.from_components(rotation=R, velocity=v, position=p, time=t)
 
     def imu(self, t: torch.Tensor, gravity: torch.Tensor):
-        """(gyro, acc) (..., 3) at times t: body rate and specific force R^T (a - g)."""
+        """(gyro, acc) (..., 3) at times t: body rate and specific force R^T (a - g).
+        ``gravity`` (..., 3) has the dtype and device of ``t`` and a batch broadcasting with it."""
         A, w, c, Bp, u, d = self._params(t)
+        checks.vector(gravity, 3, "gravity")
+        checks.same_device_dtype(t=t, gravity=gravity)
+        checks.broadcast_batch(t=t.shape, gravity=gravity.shape[:-1])
         tt = t.unsqueeze(-1)
         phi = A * torch.sin(w * tt + c)
         phi_dot = A * w * torch.cos(w * tt + c)
@@ -54,9 +70,19 @@ class SinusoidalTrajectory:
                sample: str = "midpoint"):
         """Samples over [t0, t0 + duration] every dt: (gyro, acc, dt) of shapes (..., K, 3),
         (..., K, 3), (..., K).  ``sample``: 'midpoint' (each sample taken at the middle of its
-        interval) or 'left' (at its start, as a sensor latching at the tick)."""
+        interval) or 'left' (at its start, as a sensor latching at the tick).  ``t0`` is a
+        floating tensor (...); ``duration`` and ``dt`` finite numbers > 0, ``duration`` a
+        multiple of ``dt``; ``gravity`` (3,), or (..., 3) broadcasting with the sample times
+        (..., K), of the dtype and device of ``t0``."""
         if sample not in ("midpoint", "left"):
             raise ValueError(f"sample must be 'midpoint' or 'left', got {sample!r}")
+        checks.floating(t0, "t0")
+        checks.vector(gravity, 3, "gravity")
+        checks.same_device_dtype(t0=t0, gravity=gravity)
+        for name, value in (("duration", duration), ("dt", dt)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
+                    or not 0 < value < math.inf:
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         K = int(round(duration / dt))
         if K < 1 or abs(K * dt - duration) > 1e-9 * max(1.0, duration):
             raise ValueError(f"duration ({duration}) must be a positive multiple of dt ({dt})")
