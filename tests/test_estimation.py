@@ -286,3 +286,48 @@ def test_chi2_band_and_expected_mmd_against_scipy():
     e = torch.tensor([[2.0, 3.0]], dtype=f64)
     assert metrics.nees(e, P).item() == pytest.approx(2.0)
     assert math.isclose(metrics.rmse(torch.tensor([[3.0, 4.0], [0.0, 0.0]])).item(), math.sqrt(12.5))
+
+
+def test_metrics_check_their_arguments():
+    with pytest.raises(ValueError, match="dof must be a finite number > 0, got 0"):
+        metrics.chi2_quantile(1.96, 0)
+    with pytest.raises(ValueError, match="p_z must be a finite number, got nan"):
+        metrics.chi2_quantile(math.nan, 11)
+    with pytest.raises(ValueError, match="trials must be an integer >= 1, got 0"):
+        metrics.anees_band(0, 11)
+    with pytest.raises(ValueError, match="dof must be an integer >= 1, got -1"):
+        metrics.anees_band(10, -1)
+    with pytest.raises(ValueError, match="dof must be a finite number > 0, got 0"):
+        metrics.expected_mmd(0)
+    e = torch.zeros(3, 2, dtype=f64)
+    with pytest.raises(ValueError, match=r"covariance must have shape \(\.\.\., 2, 2\), got \(3, 3, 3\)"):
+        metrics.nees(e, torch.eye(3, dtype=f64).expand(3, 3, 3))
+    with pytest.raises(TypeError, match="covariance has dtype torch.float32 but error has dtype torch.float64"):
+        metrics.nees(e, torch.eye(2).expand(3, 2, 2))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: error \(3,\), covariance \(4,\)"):
+        metrics.nees(e, torch.eye(2, dtype=f64).expand(4, 2, 2))
+    with pytest.raises(TypeError, match="error must have a floating dtype"):
+        metrics.rmse(torch.zeros(3, 2, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"error must have shape \(K, k\), got \(3,\)"):
+        metrics.rmse(torch.zeros(3, dtype=f64))
+    assert math.isnan(metrics.rmse(torch.zeros(0, 3, dtype=f64)).item())  # no trials: undefined
+
+
+def test_variables_check_blocks_and_shapes():
+    F, E = ts.SGal3.identity((4,), dtype=f64), torch.zeros(4, 1, dtype=f64)
+    with pytest.raises(ValueError, match=r"delta must have shape \(B, 11\) .* got \(4, 12\)"):
+        V.retract((F, E), torch.zeros(4, 12, dtype=f64))  # the extra column was ignored
+    with pytest.raises(ValueError, match="x and y must have the same number of blocks, got 2 and 1"):
+        V.local((F, E), (F,))  # was truncated by zip
+    with pytest.raises(TypeError, match=r"y\[0\] must be of the kind of x\[0\] \(SGal3\), got Tensor"):
+        V.local((F, E), (E, F))
+    with pytest.raises(ValueError, match=r"mask must be a bool tensor of shape \(B,\) = \(4,\)"):
+        V.select(torch.ones(3, dtype=torch.bool), (F, E), (F, E))
+    with pytest.raises(ValueError, match="new and old must have the same number of blocks"):
+        V.select(torch.ones(4, dtype=torch.bool), (F, E), (F,))
+    with pytest.raises(ValueError, match="x must hold at least one block, got none"):
+        V.batch_size(())
+    d = 0.1 * torch.arange(44, dtype=f64).reshape(4, 11) / 44
+    assert torch.allclose(V.local((F, E), V.retract((F, E), d)), d, atol=1e-12)
+    sel = V.select(torch.tensor([True, False, True, False]), (F, E + 1), (F, E))
+    assert torch.equal(sel[1][:, 0], torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=f64))

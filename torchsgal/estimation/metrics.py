@@ -2,32 +2,62 @@
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
+
+from ..functional import checks
 
 Z975 = 1.959963984540054  # standard normal 97.5% quantile
 
 
+def _number(name: str, value, positive: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
+            or (positive and value <= 0):
+        raise ValueError(f"{name} must be a finite number{' > 0' if positive else ''}, "
+                         f"got {value!r}")
+    return float(value)
+
+
+def _count(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
 def chi2_quantile(p_z: float, dof: float) -> float:
     """Wilson-Hilferty approximation of the chi-square quantile for the normal quantile p_z;
-    relative error below 1e-4 for dof >= 100 (checked against scipy in the tests)."""
+    relative error below 1e-4 for dof >= 100 (checked against scipy in the tests).  ``dof`` a
+    finite number > 0."""
+    _number("p_z", p_z, False)
+    _number("dof", dof, True)
     a = 2.0 / (9.0 * dof)
     return dof * (1.0 - a + p_z * math.sqrt(a)) ** 3
 
 
 def anees_band(trials: int, dof: int) -> tuple[float, float]:
-    """95% band of the ANEES of a consistent estimator: chi2_{trials dof} quantiles / trials."""
-    k = trials * dof
+    """95% band of the ANEES of a consistent estimator: chi2_{trials dof} quantiles / trials;
+    ``trials`` and ``dof`` integers >= 1."""
+    k = _count("trials", trials) * _count("dof", dof)
     return chi2_quantile(-Z975, k) / trials, chi2_quantile(Z975, k) / trials
 
 
 def expected_mmd(dof: int) -> float:
-    """E[sqrt(chi2_dof)] = sqrt(2) Gamma((dof + 1)/2) / Gamma(dof/2) (3.24 for dof 11)."""
+    """E[sqrt(chi2_dof)] = sqrt(2) Gamma((dof + 1)/2) / Gamma(dof/2) (3.24 for dof 11);
+    ``dof`` a finite number > 0."""
+    _number("dof", dof, True)
     return math.sqrt(2.0) * math.exp(math.lgamma((dof + 1) / 2) - math.lgamma(dof / 2))
 
 
 def nees(error: torch.Tensor, covariance: torch.Tensor) -> torch.Tensor:
-    """(5.31): e^T P^-1 e per trial; error (K, d), covariance (K, d, d)."""
+    """(5.31): e^T P^-1 e per trial; error (K, d), covariance (K, d, d) (any broadcasting
+    batch; one dtype and device).  NaN for a trial whose covariance is not positive definite
+    (a solver reports those as SINGULAR, with a NaN covariance)."""
+    checks.floating(error, "error")
+    if error.dim() < 1:
+        raise ValueError(f"error must have shape (..., d), got {tuple(error.shape)}")
+    checks.matrix(covariance, error.shape[-1], "covariance")
+    checks.binary(error, 1, covariance, 2, "error", "covariance")
     L, info = torch.linalg.cholesky_ex(covariance)
     y = torch.linalg.solve_triangular(L, error[..., None], upper=False)[..., 0]
     out = y.square().sum(-1)
@@ -35,5 +65,9 @@ def nees(error: torch.Tensor, covariance: torch.Tensor) -> torch.Tensor:
 
 
 def rmse(error: torch.Tensor) -> torch.Tensor:
-    """(5.29) over the trials (dim 0) of error blocks (K, k): sqrt(mean |e_k|^2)."""
+    """(5.29) over the trials (dim 0) of error blocks (K, k): sqrt(mean |e_k|^2).  NaN for an
+    empty batch (K = 0: no trial, no estimate of the error), as torch's mean of nothing."""
+    checks.floating(error, "error")
+    if error.dim() != 2:
+        raise ValueError(f"error must have shape (K, k), got {tuple(error.shape)}")
     return error.square().sum(-1).mean().sqrt()

@@ -32,6 +32,8 @@ def tangent_dim(x: Values) -> int:
 
 
 def batch_size(x: Values) -> int:
+    if not x:
+        raise ValueError("x must hold at least one block, got none")
     return x[0].batch_shape[0] if isinstance(x[0], LieGroup) else x[0].shape[0]
 
 
@@ -65,10 +67,27 @@ def check_values(x: Values, name: str = "x0") -> Values:
     return x
 
 
+def _same_blocks(x: Values, y: Values, x_name: str, y_name: str) -> None:
+    """The same number of blocks, of the same kinds (metadata only: cheap in solver loops)."""
+    if len(x) != len(y):
+        raise ValueError(f"{x_name} and {y_name} must have the same number of blocks, got "
+                         f"{len(x)} and {len(y)}")
+    for i, (a, b) in enumerate(zip(x, y)):
+        if isinstance(a, LieGroup) != isinstance(b, LieGroup) or \
+                (isinstance(a, LieGroup) and type(a) is not type(b)):
+            raise TypeError(f"{y_name}[{i}] must be of the kind of {x_name}[{i}] "
+                            f"({type(a).__name__}), got {type(b).__name__}")
+
+
 def retract(x: Values, delta: torch.Tensor) -> Values:
     """x boxplus delta: group blocks g exp(d), Euclidean blocks x + d; delta (B, dim)."""
+    dims = block_dims(x)
+    if not isinstance(delta, torch.Tensor) or delta.dim() < 1 or delta.shape[-1] != sum(dims):
+        got = tuple(delta.shape) if isinstance(delta, torch.Tensor) else type(delta).__name__
+        raise ValueError(f"delta must have shape (B, {sum(dims)}) (the tangent dimension of x, "
+                         f"blocks {dims}), got {got}")
     out, i = [], 0
-    for b, k in zip(x, block_dims(x)):
+    for b, k in zip(x, dims):
         d = delta[..., i:i + k]
         out.append(b.rplus(d) if isinstance(b, LieGroup) else b + d)
         i += k
@@ -77,12 +96,19 @@ def retract(x: Values, delta: torch.Tensor) -> Values:
 
 def local(x: Values, y: Values) -> torch.Tensor:
     """y boxminus x: the tangent d with retract(x, d) = y (group blocks log(x^-1 y))."""
+    _same_blocks(x, y, "x", "y")
     parts = [yb.rminus(xb) if isinstance(xb, LieGroup) else yb - xb for xb, yb in zip(x, y)]
     return torch.cat(parts, dim=-1)
 
 
 def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
     """Blockwise torch.where over the batch: new where mask (B,) else old."""
+    _same_blocks(new, old, "new", "old")
+    B = batch_size(new)
+    if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != (B,):
+        got = (f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, torch.Tensor)
+               else type(mask).__name__)
+        raise ValueError(f"mask must be a bool tensor of shape (B,) = ({B},), got {got}")
     out = []
     for a, b in zip(new, old):
         if isinstance(a, LieGroup):
