@@ -215,6 +215,34 @@ def test_from_transform3d_velocity_broadcast_and_tensor_input():
         to_transform3d(torchsgal.SO3.identity(dtype=DT))
 
 
+
+def test_from_transform3d_and_build_pk_chain_check_their_arguments():
+    gen = torch.Generator().manual_seed(6)
+    x = torchsgal.SE3.random((6,), dtype=DT, generator=gen)
+    t = to_transform3d(x)
+    not_rigid = torch.randn(3, 4, 4, dtype=DT, generator=gen)
+    assert isinstance(from_transform3d(not_rigid), torchsgal.SE3)  # taken as it is by default
+    with pytest.raises(ValueError, match=r"t \(check=True\): matrix is not in SE3"):
+        from_transform3d(not_rigid, check=True)
+    with pytest.raises(ValueError, match=r"t \(check=True\): matrix is not in SE3"):
+        from_transform3d(not_rigid, velocity=torch.zeros(3, dtype=DT), check=True)
+    checked = from_transform3d(t, batch_shape=(2, 3), check=True)
+    torch.testing.assert_close(checked.as_matrix(), x.as_matrix().reshape(2, 3, 4, 4), atol=0, rtol=0)
+    with pytest.raises(ValueError, match=r"batch_shape \(4,\) does not fit the 6 poses of t"):
+        from_transform3d(t, batch_shape=(4,))
+    with pytest.raises(TypeError, match="batch_shape must be a tuple of ints"):
+        from_transform3d(t, batch_shape="ab")
+    assert from_transform3d(t, batch_shape=6).batch_shape == (6,)  # an int is a 1-D shape
+    with pytest.raises(TypeError, match="t must have a floating dtype"):
+        from_transform3d(x.as_matrix().int())
+    with pytest.raises(ValueError, match=r"t must have shape \(\.\.\., 4, 4\), got \(6, 3, 3\)"):
+        from_transform3d(x.rotation())
+    with pytest.raises(TypeError, match="t must be a pytorch_kinematics Transform3d or"):
+        from_transform3d(3)
+    for dtype in (torch.int64, torch.float16):
+        with pytest.raises(TypeError, match=f"dtype must be torch.float32 or torch.float64, got {dtype}"):
+            build_pk_chain(*ROBOTS["scara"][:5], dtype=dtype)
+
 # ----------------------------------------------------------------------------- GDHChain
 def _kin():
     from torchsgal import kinematics  # an import failure fails these tests, never skips them

@@ -44,6 +44,7 @@ from typing import Optional, Sequence, Union
 
 import torch
 
+from ..functional import checks
 from .gdh import normalize_joint_type
 
 
@@ -105,8 +106,9 @@ def build_pk_chain(
         a, alpha, d, theta_offset: sequences (or 1-D tensors) of length n.  For a prismatic
             joint ``d`` is the offset ``d_offset_i``; for a revolute one ``theta_offset`` is.
         joint_types: n entries, each ``"revolute"`` or ``"prismatic"`` (``"R"``/``"P"`` too).
-        dtype, device: of the chain (default float64, built directly in that precision: the
-            URDF loader is not used since it parses angles in float32).
+        dtype, device: of the chain (torch.float64, the default, or torch.float32; built
+            directly in that precision: the URDF loader is not used since it parses angles in
+            float32).
 
     Returns:
         ``SerialChain`` whose ``forward_kinematics(q)`` (q of shape (B, n) or (n,)) is the
@@ -116,6 +118,7 @@ def build_pk_chain(
         ``forward_kinematics(q, end_only=False)`` also gives ``"frame_i"`` for every i and the
         on-axis joint frames ``"joint_i"``.  Joint names are ``"q1" .. "qn"``.
     """
+    checks.dtype_arg(dtype)
     pk, pk_frame, pk_tf = _import_pk()
     a_, al_, d_, th_ = (_as_list(v, n) for v, n in
                         ((a, "a"), (alpha, "alpha"), (d, "d"), (theta_offset, "theta_offset")))
@@ -194,25 +197,47 @@ def to_transform3d(x):
     return pk_tf.Transform3d(matrix=m, dtype=m.dtype, device=m.device)
 
 
-def from_transform3d(t, velocity: Optional[torch.Tensor] = None, batch_shape=None):
+def from_transform3d(t, velocity: Optional[torch.Tensor] = None, batch_shape=None,
+                     check: bool = False, tol: Optional[float] = None):
     """A ``pytorch_kinematics.Transform3d`` (or a (..., 4, 4) pose tensor) as torchsgal.
 
     Returns ``SE3`` of batch (N,) where N = len(t), or, when ``velocity`` (..., 3) is given,
     the ``SE23`` element with that velocity (broadcast against the batch of ``t``).  With
-    ``batch_shape`` the batch is reshaped to it (inverse of the flattening in
-    :func:`to_transform3d`; applied before the velocity is broadcast).
+    ``batch_shape`` (a tuple of ints, or an int) the batch is reshaped to it (inverse of the
+    flattening in :func:`to_transform3d`; applied before the velocity is broadcast).
+
+    The rotation block and the translation column are taken as they are: a matrix that is not
+    a rigid transform (a non-orthonormal rotation, a scaled or sheared Transform3d) gives an
+    element outside the group, unless ``check=True``, which raises ValueError for such
+    matrices (``SE3.from_matrix(check=True, tol=tol)``: one host sync).
     """
     from ..groups import SE23, SE3
 
     if torch.is_tensor(t):
         m = t
-    else:
+    elif hasattr(t, "get_matrix"):
         _import_pk()
         m = t.get_matrix()
-    if m.shape[-2:] != (4, 4):
-        raise ValueError(f"expected (..., 4, 4) poses, got {tuple(m.shape)}")
+    else:
+        raise TypeError(f"t must be a pytorch_kinematics Transform3d or a (..., 4, 4) tensor, "
+                        f"got {type(t).__name__}")
+    checks.matrix(m, 4, "t")
     if batch_shape is not None:
-        m = m.reshape(*tuple(batch_shape), 4, 4)
+        shape = (batch_shape,) if isinstance(batch_shape, int) else batch_shape
+        try:
+            shape = tuple(int(n) for n in shape)
+        except (TypeError, ValueError):
+            raise TypeError(f"batch_shape must be a tuple of ints (or an int), got "
+                            f"{batch_shape!r}") from None
+        if any(n < 0 for n in shape) or math.prod(shape) != math.prod(m.shape[:-2]):
+            raise ValueError(f"batch_shape {shape} does not fit the {math.prod(m.shape[:-2])} "
+                             f"poses of t (batch {tuple(m.shape[:-2])})")
+        m = m.reshape(*shape, 4, 4)
+    if check:
+        try:
+            SE3.from_matrix(m, check=True, tol=tol)
+        except ValueError as exc:
+            raise ValueError(f"t (check=True): {exc}") from None
     C, r = m[..., :3, :3], m[..., :3, 3]
     if velocity is None:
         return SE3.from_components(C, r)
