@@ -47,6 +47,25 @@ def test_navstate_and_pypose_conversions_round_trip():
     assert torch.allclose(st["pos"][:, 0], X.position()) and torch.allclose(st["vel"][:, 0], X.velocity())
 
 
+
+def test_peer_helpers_check_their_arguments():
+    from torchsgal import SE3
+    gyro, acc, dt, _, _ = _constant_stream(0.1)
+    empty_g, empty_dt = gyro[:, :0], dt[:, :0]
+    X = SGal3.identity((1,), dtype=F64)
+    with pytest.raises(ValueError, match=r"gyro must have shape \(\.\.\., K, 3\) with at least one sample"):
+        peers.gtsam_preintegrate(empty_g, empty_g, empty_dt, peers.gtsam_params())
+    with pytest.raises(ValueError, match=r"gyro must have shape \(\.\.\., K, 3\) with at least one sample"):
+        peers.pypose_predict(empty_g, empty_g, empty_dt, X)
+    with pytest.raises(ValueError, match=r"dt must have shape \(\.\.\., K\) with K = 10"):
+        peers.gtsam_preintegrate(gyro, acc, dt[:, :4], peers.gtsam_params())
+    with pytest.raises(TypeError, match="frames must be SGal3, got SE3"):
+        peers.to_gtsam_navstate(SE3.identity(dtype=F64))
+    with pytest.raises(TypeError, match="frames must be SGal3, got SE3"):
+        peers.to_pypose_state(SE3.identity(dtype=F64))
+    with pytest.raises(TypeError, match="start must be SGal3, got SE3"):
+        peers.pypose_predict(gyro, acc, dt, SE3.identity((1,), dtype=F64))
+
 def test_constant_inputs_exact_for_us_first_order_for_peers():
     errs = {"ours": [], "gtsam": [], "pypose": []}
     params = peers.gtsam_params("z_up", G)

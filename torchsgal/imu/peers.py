@@ -14,7 +14,28 @@ import numpy as np
 import torch
 
 from .. import SGal3
+from ..functional import checks
 from .preintegration import STANDARD_GRAVITY
+
+
+def _frames(x, name: str) -> SGal3:
+    if not isinstance(x, SGal3):
+        raise TypeError(f"{name} must be SGal3, got {type(x).__name__}")
+    return x
+
+
+def _stream(gyro, acc, dt) -> None:
+    """gyro, acc (..., K, 3) of one shape with K >= 1, dt (..., K)."""
+    checks.vector(gyro, 3, "gyro")
+    checks.vector(acc, 3, "acc")
+    checks.floating(dt, "dt")
+    if gyro.dim() < 2 or gyro.shape[-2] < 1:
+        raise ValueError(f"gyro must have shape (..., K, 3) with at least one sample (K >= 1), "
+                         f"got {tuple(gyro.shape)}")
+    if acc.shape != gyro.shape:
+        raise ValueError(f"acc must have the shape of gyro {tuple(gyro.shape)}, got {tuple(acc.shape)}")
+    if dt.dim() < 1 or dt.shape[-1] != gyro.shape[-2]:
+        raise ValueError(f"dt must have shape (..., K) with K = {gyro.shape[-2]}, got {tuple(dt.shape)}")
 
 
 def _np(x: torch.Tensor) -> np.ndarray:
@@ -25,6 +46,7 @@ def to_gtsam_navstate(frames: SGal3) -> list:
     """A flat list of ``gtsam.NavState`` (row-major over the batch; time dropped)."""
     import gtsam
 
+    _frames(frames, "frames")
     R = _np(frames.rotation()).reshape(-1, 3, 3)
     v = _np(frames.velocity()).reshape(-1, 3)
     p = _np(frames.position()).reshape(-1, 3)
@@ -54,6 +76,7 @@ def to_pypose_state(frames: SGal3) -> dict:
     (..., 1, 3), in the frames' dtype."""
     import pypose as pp
 
+    _frames(frames, "frames")
     return {
         "rot": pp.mat2SO3(frames.rotation().unsqueeze(-3), check=False),
         "vel": frames.velocity().unsqueeze(-2),
@@ -84,6 +107,7 @@ def gtsam_preintegrate(gyro, acc, dt, params, gyro_bias=None, acc_bias=None) -> 
     gyro, acc (..., K, 3), dt (..., K); biases (3,) or None (one bias for all windows)."""
     import gtsam
 
+    _stream(gyro, acc, dt)
     g, a, h = _np(gyro).reshape(-1, gyro.shape[-2], 3), _np(acc).reshape(-1, gyro.shape[-2], 3), _np(dt)
     h = np.broadcast_to(h, gyro.shape[:-1]).reshape(-1, gyro.shape[-2])
     bias = gtsam.imuBias.ConstantBias(
@@ -101,6 +125,7 @@ def gtsam_preintegrate(gyro, acc, dt, params, gyro_bias=None, acc_bias=None) -> 
 
 def gtsam_predict(pims: list, start: SGal3) -> SGal3:
     """GTSAM's prediction from ``start`` (batch (B,) or broadcast), with each window's bias."""
+    _frames(start, "start")
     starts = to_gtsam_navstate(start.expand(len(pims)) if start.batch_shape != (len(pims),) else start)
     out = [pim.predict(s, pim.biasHat()) for pim, s in zip(pims, starts)]
     T = torch.tensor([pim.deltaTij() for pim in pims], dtype=start.dtype, device=start.device)
@@ -134,6 +159,8 @@ def pypose_predict(gyro, acc, dt, start: SGal3, frame: str = "z_up",
 
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    _stream(gyro, acc, dt)
+    _frames(start, "start")
     gravity = magnitude if frame == "z_up" else -magnitude  # pypose subtracts R^T [0, 0, gravity]
     integrator = pp.module.IMUPreintegrator(gravity=gravity, prop_cov=False, reset=True).to(gyro.dtype)
     out = integrator(dt.unsqueeze(-1), gyro, acc, init_state=to_pypose_state(start))
