@@ -289,9 +289,11 @@ def rotation_skew_rows(C: torch.Tensor, p: torch.Tensor) -> list[torch.Tensor]:
     return [cross(r, p) for r in rows(C)]
 
 
-def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, tail: tuple = (), rows: int = 3):
-    """The first ``rows`` entries of M [x, *tail] for x (..., rows): points, events, velocities
-    and directions in homogeneous coordinates (CONVENTIONS.md), with the input checks."""
+def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: tuple = (), rows: int = 3):
+    """The first ``rows`` entries of M [x, *tail] for M (..., n, n) and x (..., rows): points,
+    events, velocities and directions in homogeneous coordinates (CONVENTIONS.md), with the
+    input checks (the matrix is named ``g``, as in the group classes' ``g.act(p)``)."""
+    checks.matrix(M, n, "g")
     checks.vector(x, rows, name)
     checks.binary(M, 2, x, 1, "g", name)
     if tail:  # constants built on x's device without a host-to-device copy

@@ -193,12 +193,12 @@ def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points [p, 1] -> C p + r."""
-    return B.act_homogeneous(M, p, "p", (1.0,), rows=2)
+    return B.act_homogeneous(M, p, "p", MATRIX_DIM, (1.0,), rows=2)
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0] -> C d."""
-    return B.act_homogeneous(M, d, "d", rows=2)
+    return B.act_homogeneous(M, d, "d", MATRIX_DIM, rows=2)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

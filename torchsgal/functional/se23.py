@@ -191,17 +191,17 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
 
 def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points [p, 0, 1] -> C p + r."""
-    return B.act_homogeneous(M, p, "p", (0.0, 1.0))
+    return B.act_homogeneous(M, p, "p", MATRIX_DIM, (0.0, 1.0))
 
 
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Velocities [u, 1, 0] -> C u + v."""
-    return B.act_homogeneous(M, u, "u", (1.0,))
+    return B.act_homogeneous(M, u, "u", MATRIX_DIM, (1.0,))
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0, 0] -> C d."""
-    return B.act_homogeneous(M, d, "d")
+    return B.act_homogeneous(M, d, "d", MATRIX_DIM)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

@@ -314,17 +314,17 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
 
 def act(M: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
     """Events [x, t, 1] -> (C x + v t + r, t + tau), (3.31)."""
-    return B.act_homogeneous(M, e, "e", (1.0,), rows=4)
+    return B.act_homogeneous(M, e, "e", MATRIX_DIM, (1.0,), rows=4)
 
 
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Inertial velocities [u, 1, 0] -> C u + v."""
-    return B.act_homogeneous(M, u, "u", (1.0,))
+    return B.act_homogeneous(M, u, "u", MATRIX_DIM, (1.0,))
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0, 0] -> C d."""
-    return B.act_homogeneous(M, d, "d")
+    return B.act_homogeneous(M, d, "d", MATRIX_DIM)
 
 
 # ------------------------------------------------------------ packed layout for long chains
@@ -351,6 +351,7 @@ def exp_packed(xi: torch.Tensor) -> torch.Tensor:
 
 
 def _check_packed(P: torch.Tensor, name: str) -> None:
+    checks.floating(P, name)
     if P.dim() < 1 or P.shape[0] != 16:
         raise ValueError(f"{name} must have shape (16, ...), got {tuple(P.shape)}")
 
@@ -363,6 +364,7 @@ def unpack(P: torch.Tensor) -> torch.Tensor:
 
 def packed_identity(like: torch.Tensor) -> torch.Tensor:
     """The identity in the packed layout, (16,) + (1,) * (like.dim() - 1), dtype/device of ``like``."""
+    checks.floating(like, "like")
     e = torch.tensor(_PACKED_IDENTITY, dtype=like.dtype, device=like.device)
     return e.reshape((16,) + (1,) * (like.dim() - 1))
 
@@ -371,6 +373,8 @@ def compose_packed(P1: torch.Tensor, P2: torch.Tensor) -> torch.Tensor:
     """Product in the packed layout: (C1 C2, C1 v2 + v1, C1 r2 + tau2 v1 + r1, tau1 + tau2)."""
     _check_packed(P1, "P1")
     _check_packed(P2, "P2")
+    checks.same_device_dtype(P1=P1, P2=P2)
+    checks.broadcast_batch(P1=P1.shape[1:], P2=P2.shape[1:])  # the batch follows the 16 rows
     a, b = P1.unbind(0), P2.unbind(0)
     C1, v1, r1, t1 = a[0:9], a[9:12], a[12:15], a[15]
     C2, v2, r2, t2 = b[0:9], b[9:12], b[12:15], b[15]

@@ -255,12 +255,12 @@ def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points [p, 1] -> s (C p + r) = (C p + r) / M[3, 3]."""
-    return B.act_homogeneous(M, p, "p", (1.0,)) / M[..., 3, 3].unsqueeze(-1)
+    return B.act_homogeneous(M, p, "p", MATRIX_DIM, (1.0,)) / M[..., 3, 3].unsqueeze(-1)
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0] -> C d (rotated, not scaled)."""
-    return B.act_homogeneous(M, d, "d")
+    return B.act_homogeneous(M, d, "d", MATRIX_DIM)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

@@ -109,11 +109,11 @@ def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points (..., 2) -> C p."""
-    return B.act_homogeneous(C, p, "p", rows=2)
+    return B.act_homogeneous(C, p, "p", MATRIX_DIM, rows=2)
 
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    return B.act_homogeneous(C, d, "d", rows=2)
+    return B.act_homogeneous(C, d, "d", MATRIX_DIM, rows=2)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

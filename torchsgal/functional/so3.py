@@ -120,11 +120,11 @@ def jr_inv(phi: torch.Tensor) -> torch.Tensor:
 
 def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Points (..., 3) -> C p."""
-    return B.act_homogeneous(C, p, "p")
+    return B.act_homogeneous(C, p, "p", MATRIX_DIM)
 
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    return B.act_homogeneous(C, d, "d")
+    return B.act_homogeneous(C, d, "d", MATRIX_DIM)
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
