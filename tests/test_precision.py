@@ -311,3 +311,46 @@ def test_log_about_coordinate_axes(G, axis, angle):
     assert torch.isfinite(back).all()
     assert abs(back[G._f.PHI].norm().item() - angle) <= 1e-12
     np.testing.assert_allclose(G.exp(back).as_matrix().numpy(), M.numpy(), atol=1e-12)
+
+
+def _sim3_exp_quad(xi, dps=30):
+    """Sim(3) exp from its integral definition M(phi, lambda) = int_0^1 e^(-(1-a) lambda)
+    C(a phi) da, the three scalar integrals by mpmath quadrature (no series, no closed form
+    of the code) -> float64 (4, 4)."""
+    with mpmath.workdps(dps):
+        x = [mpmath.mpf(float(v)) for v in xi]
+        rho, lam = mpmath.matrix(x[0:3]), x[6]
+        t = mpmath.sqrt(x[3] ** 2 + x[4] ** 2 + x[5] ** 2)
+        P = mpmath.matrix([[0, -x[5], x[4]], [x[5], 0, -x[3]], [-x[4], x[3], 0]])
+        w = lambda a: mpmath.exp(-(1 - a) * lam)  # noqa: E731
+        m0 = mpmath.quad(w, [0, 1])
+        s = mpmath.quad(lambda a: w(a) * mpmath.sin(a * t), [0, 1])
+        c = mpmath.quad(lambda a: w(a) * mpmath.cos(a * t), [0, 1])
+        I3 = mpmath.eye(3)
+        C = I3 + (mpmath.sin(t) / t) * P + ((1 - mpmath.cos(t)) / t**2) * P * P
+        r = (m0 * I3 + (s / t) * P + ((m0 - c) / t**2) * P * P) * rho
+        out = np.zeros((4, 4))
+        for i in range(3):
+            out[i, :3] = [float(C[i, j]) for j in range(3)]
+            out[i, 3] = float(r[i])
+        out[3, 3] = float(mpmath.exp(-lam))
+        return out
+
+
+@pytest.mark.parametrize("dtype, lam", [(torch.float32, -85.0), (torch.float64, -700.0), (torch.float64, -705.0)])
+def test_sim3_exp_near_the_overflow_limit(dtype, lam):
+    """At lambda near the dtype's exp limit the matrix (1/s = e^-lambda ~ 1e36 in float32,
+    1e306 in float64) is finite and so must the translation be (it was NaN: an intermediate
+    e^-lambda * lambda overflowed in the unused large-angle branch); exp and its gradient
+    against the quadrature of the integral definition, column by column."""
+    eps = torch.finfo(dtype).eps
+    for angle in [1e-3, 0.3, 2.0, 3.1]:  # both branches of sim3_coefficients
+        xi = torch.tensor([0.1, 0.2, 0.3, 0.1, 0.2, 0.3, lam], dtype=torch.float64)
+        xi[3:6] *= angle / xi[3:6].norm()
+        want = _sim3_exp_quad(xi.numpy())
+        x = xi.to(dtype).requires_grad_()
+        M = ts.functional.sim3.exp(x)
+        err = np.abs(M.detach().double().numpy() - want).max(axis=0) / np.abs(want).max(axis=0)
+        assert err.max() <= 50 * eps, f"angle {angle}, lambda {lam}: {err}"
+        M[:3, 3].sum().backward()
+        assert torch.isfinite(x.grad).all(), f"angle {angle}, lambda {lam}: {x.grad}"

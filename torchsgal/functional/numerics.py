@@ -242,10 +242,13 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     t2 = select(mask, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2)
     cos, sin = torch.cos(t), torch.sin(t)
+    # Divided by |w|^2 before the products: a_re ~ e^-lam, and a_re * lam overflows for
+    # lam near the dtype's exp limit (-85 float32, -705 float64) where K itself is finite.
     w2 = lam * lam + t2
+    lw, tw = lam / w2, t / w2
     a_re = cos - torch.exp(-lam)
-    k_re = (a_re * lam + sin * t) / w2
-    k_im = (sin * lam - a_re * t) / w2
+    k_re = a_re * lw + sin * tw
+    k_im = sin * lw - a_re * tw
     l_m1 = k_im / t
     l_m2 = (m0 - k_re) / t2
     out = {"m0": m0, "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2)}
@@ -258,8 +261,8 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     s_p1 = -horner(lambda k: q[2 * k + 1] - (2 * k + 2) * q[2 * k + 2])
     s_p2 = -horner(lambda k: q[2 * k + 2] - (2 * k + 3) * q[2 * k + 3])
     b_re, b_im = cos - k_re, sin - k_im
-    k1_re = (b_re * lam + b_im * t) / w2
-    k1_im = (b_im * lam - b_re * t) / w2
+    k1_re = b_re * lw + b_im * tw
+    k1_im = b_im * lw - b_re * tw
     l_e1 = (k1_re - l_m1) / t2
     l_e2 = (k1_im / t - 2.0 * l_m2) / t2
     l_p1 = (k1_im - k_im) / t
