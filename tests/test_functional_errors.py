@@ -67,3 +67,78 @@ def test_sgal3_packed_checks():
         F.unpack(P.tolist())
     # broadcasting batches still work: (16, 3) with (16, 1)
     assert F.compose_packed(P, P[:, :1]).shape == (16, 3)
+
+
+def _parts(mod):
+    """(names, trailing shapes) of from_components' arguments."""
+    k = 2 if mod in (TF.so2, TF.se2) else 3
+    return {
+        TF.so2: ("C",), TF.so3: ("C",), TF.se2: ("C", "r"), TF.se3: ("C", "r"), TF.se23: ("C", "v", "r"),
+        TF.sgal3: ("C", "v", "r", "tau"), TF.sim3: ("C", "r", "s"),
+    }[mod], k
+
+
+@pytest.mark.parametrize("mod", MODS, ids=IDS)
+def test_components_and_from_components_check(mod):
+    n = mod.MATRIX_DIM
+    M = mod.random((4,), D, "cpu")
+    parts = mod.components(M)
+    assert torch.equal(mod.from_components(*parts), M)
+    with pytest.raises(ValueError, match=rf"M must have shape \(\.\.\., {n}, {n}\), got \(3,\)"):
+        mod.components(torch.randn(3, dtype=D))
+    with pytest.raises(TypeError, match=r"M must have a floating dtype"):
+        mod.components(M.long())
+    names, k = _parts(mod)
+    with pytest.raises(ValueError, match=rf"C must have shape \(\.\.\., {k}, {k}\), got \({k + 1}, {k + 1}\)"):
+        mod.from_components(torch.eye(k + 1, dtype=D), *parts[1:])
+    with pytest.raises(TypeError, match=r"C must have a floating dtype .* got torch.int64"):
+        mod.from_components(parts[0].long(), *parts[1:])
+    if len(parts) == 1:
+        return
+    with pytest.raises(ValueError, match=rf"{names[1]} must have shape \(\.\.\., {k}\), got \(4, {k + 1}\)"):
+        mod.from_components(parts[0], torch.zeros(4, k + 1, dtype=D), *parts[2:])
+    with pytest.raises(TypeError, match=rf"{names[1]} has dtype torch.float32 but C has dtype torch.float64"):
+        mod.from_components(parts[0], parts[1].float(), *parts[2:])
+    with pytest.raises(ValueError, match=rf"{names[-1]} is on meta but C is on cpu"):
+        mod.from_components(*parts[:-1], parts[-1].to("meta"))
+    with pytest.raises(ValueError, match=rf"batch shapes do not broadcast: C \(4,\), {names[1]} \(3,\)"):
+        mod.from_components(parts[0], parts[1][:3], *parts[2:])
+    # batches broadcast: one rotation for four of everything else
+    assert torch.equal(mod.from_components(parts[0][:1], *parts[1:])[1:], mod.from_components(parts[0][0].expand(3, k, k), *(p[1:] for p in parts[1:])))
+
+
+@pytest.mark.parametrize("mod", MODS, ids=IDS)
+def test_backward_parts_check(mod):
+    """The public jl_tmv, jl_inv_tmv, exp_pullback and log_pullback check their input; they
+    agree with the unchecked versions the backward passes use, and with J_l^T w."""
+    n, dof = mod.MATRIX_DIM, mod.DOF
+    xi = 0.5 * torch.randn(4, dof, dtype=D)
+    w = torch.randn(4, dof, dtype=D)
+    M = mod.exp(xi)
+    G = torch.randn(4, n, n, dtype=D)
+    want = (mod.jl(xi).transpose(-1, -2) @ w.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(mod.jl_tmv(xi, w), want)
+    torch.testing.assert_close(mod.jl_inv_tmv(xi, want), w)
+    assert torch.equal(mod.exp_pullback(M, G), mod._exp_pullback(M, G))
+    assert torch.equal(mod.log_pullback(M, w), mod._log_pullback(M, w))
+    for f, a, an, b, bn in ((mod.jl_tmv, xi, "xi", w, "w"), (mod.jl_inv_tmv, xi, "xi", w, "g"),
+                            (mod.exp_pullback, M, "M", G, "G"), (mod.log_pullback, M, "M", w, "w")):
+        tail = "" if a.dim() == 2 else f", {n}"
+        with pytest.raises(ValueError, match=rf"{an} must have shape \(\.\.\., {a.shape[-1]}{tail}\)"):
+            f(a[..., :-1], b)
+        with pytest.raises(ValueError, match=rf"{bn} must have shape"):
+            f(a, b[..., :-1])
+        with pytest.raises(TypeError, match=rf"{bn} has dtype torch.float32 but {an} has dtype torch.float64"):
+            f(a, b.float())
+        with pytest.raises(TypeError, match=rf"{an} must have a floating dtype .* got torch.int64"):
+            f(a.long(), b.long())
+        with pytest.raises(ValueError, match=rf"batch shapes do not broadcast: {an} \(4,\), {bn} \(3,\)"):
+            f(a, b[:3])
+
+
+@pytest.mark.parametrize("mod", MODS, ids=IDS)
+def test_random_checks_dtype(mod):
+    assert mod.random((2,), torch.float32, "cpu").dtype == torch.float32
+    for bad in (torch.float16, torch.int64):
+        with pytest.raises(TypeError, match=rf"dtype must be torch.float32 or torch.float64, got {bad}"):
+            mod.random((2,), bad, "cpu")

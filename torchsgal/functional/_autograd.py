@@ -32,10 +32,10 @@ from ._blocking import is_compiling, run_blocked
 
 def make_exp_log(mod):
     def _exp_backward(xi, M, grad_M):
-        return mod.jl_tmv(-xi, mod.exp_pullback(M, grad_M))
+        return mod._jl_tmv(-xi, mod._exp_pullback(M, grad_M))
 
     def _log_backward(M, xi, grad_xi):
-        return mod.log_pullback(M, mod.jl_inv_tmv(-xi, grad_xi))
+        return mod._log_pullback(M, mod._jl_inv_tmv(-xi, grad_xi))
 
     def _matvec(A, x):
         return (A @ x.unsqueeze(-1)).squeeze(-1)
@@ -116,3 +116,38 @@ def make_exp_log(mod):
     exp.__doc__ = f"{mod.NAME} exponential, custom autograd. " + (exp.__doc__ or "")
     log.__doc__ = f"{mod.NAME} logarithm, custom autograd. " + (log.__doc__ or "")
     return exp, log
+
+
+def checked_backward_parts(mod):
+    """The public, checked ``jl_tmv``, ``jl_inv_tmv``, ``exp_pullback`` and ``log_pullback`` of
+    ``mod``: the input checks, then the module's unchecked ``_jl_tmv`` etc., which the backward
+    passes above call directly (no checks per backward call)."""
+    n, dof = mod.MATRIX_DIM, mod.DOF
+
+    def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        checks.vector(xi, dof, "xi")
+        checks.vector(w, dof, "w")
+        checks.binary(xi, 1, w, 1, "xi", "w")
+        return mod._jl_tmv(xi, w)
+
+    def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        checks.vector(xi, dof, "xi")
+        checks.vector(g, dof, "g")
+        checks.binary(xi, 1, g, 1, "xi", "g")
+        return mod._jl_inv_tmv(xi, g)
+
+    def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+        checks.matrix_pair(M, G, n, "M", "G")
+        return mod._exp_pullback(M, G)
+
+    def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        checks.matrix(M, n, "M")
+        checks.vector(w, dof, "w")
+        checks.binary(M, 2, w, 1, "M", "w")
+        return mod._log_pullback(M, w)
+
+    out = (jl_tmv, jl_inv_tmv, exp_pullback, log_pullback)
+    for f in out:
+        f.__module__ = mod.__name__
+        f.__doc__ = (getattr(mod, "_" + f.__name__).__doc__ or "").strip() + " Checks its input."
+    return out

@@ -79,3 +79,17 @@ def matrix_pair(a, b, n: int, a_name: str, b_name: str) -> None:
     matrix(a, n, a_name)
     matrix(b, n, b_name)
     binary(a, 2, b, 2, a_name, b_name)
+
+
+def components(**parts):
+    """from_components' arguments: name -> (tensor, trailing shape).  Each a supported float
+    with that trailing shape, one dtype and device, batches broadcast; returns the tensors
+    expanded to the common batch (views)."""
+    for name, (t, tail) in parts.items():
+        floating(t, name)
+        if t.dim() < len(tail) or tuple(t.shape[t.dim() - len(tail):]) != tail:
+            want = ", ".join(["..."] + [str(k) for k in tail])
+            raise ValueError(f"{name} must have shape ({want}), got {tuple(t.shape)}")
+    same_device_dtype(**{n: t for n, (t, _) in parts.items()})
+    batch = broadcast_batch(**{n: t.shape[: t.dim() - len(tail)] for n, (t, tail) in parts.items()})
+    return [t.expand(*batch, *tail) for t, tail in parts.values()]

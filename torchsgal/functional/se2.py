@@ -17,7 +17,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 
 NAME = "SE2"
@@ -52,10 +52,13 @@ def _matrix(c, s, x, y) -> torch.Tensor:
 
 def components(M: torch.Tensor):
     """(C, r)."""
+    checks.matrix(M, MATRIX_DIM, "M")
     return M[..., :2, :2], M[..., :2, 2]
 
 
 def from_components(C, r) -> torch.Tensor:
+    """C (..., 2, 2), r (..., 2), batches broadcast -> (..., 3, 3)."""
+    C, r = checks.components(C=(C, (2, 2)), r=(r, (2,)))
     return _matrix(C[..., 0, 0], C[..., 1, 0], r[..., 0], r[..., 1])
 
 
@@ -165,27 +168,27 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
     return jl_inv(-xi)
 
 
-def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l^T w = (V^T w_rho, q . w_rho + w_theta)."""
     _, a, b, q = _jl_parts(xi)
     x, y = _apply(a, -b, w[..., 0], w[..., 1])
     return torch.stack((x, y, q[..., 0] * w[..., 0] + q[..., 1] * w[..., 1] + w[..., 2]), dim=-1)
 
 
-def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """Solves J_l^T y = g: y_rho = V^-T g_rho, y_theta = g_theta - q . y_rho."""
     c, a, b, q = _jl_parts(xi)
     x, y = _apply(a / (2 * c[2]), b / (2 * c[2]), g[..., 0], g[..., 1])
     return torch.stack((x, y, g[..., 2] - q[..., 0] * x - q[..., 1] * y), dim=-1)
 
 
-def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(M^T G)."""
     A = M.transpose(-1, -2) @ G
     return torch.stack((A[..., 0, 2], A[..., 1, 2], A[..., 1, 0] - A[..., 0, 1]), dim=-1)
 
 
-def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """M^-T vee^T(w) = M^-T hat(w_rho, w_theta / 2)."""
     half = torch.cat((w[..., :2], 0.5 * w[..., 2:]), dim=-1)
     return inverse(M).transpose(-1, -2) @ hat(half)
@@ -202,9 +205,11 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    checks.dtype_arg(dtype)
     t = (torch.rand(tuple(batch_shape), dtype=dtype, device=device, generator=generator) * 2 - 1) * torch.pi
     r = torch.randn(*batch_shape, 2, dtype=dtype, device=device, generator=generator)
     return _matrix(torch.cos(t), torch.sin(t), r[..., 0], r[..., 1])
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

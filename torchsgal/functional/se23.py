@@ -11,7 +11,7 @@ import torch
 from . import blocks as B
 from . import checks
 from . import numerics
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 
 NAME = "SE23"
@@ -26,9 +26,14 @@ def _split(xi: torch.Tensor):
     return X[0:3], X[3:6], X[6:9]
 
 
+def _components(M: torch.Tensor):
+    return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4]
+
+
 def components(M: torch.Tensor):
     """(C, v, r) in the public layout."""
-    return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4]
+    checks.matrix(M, MATRIX_DIM, "M")
+    return _components(M)
 
 
 def _matrix(rot, v, r) -> torch.Tensor:
@@ -38,6 +43,8 @@ def _matrix(rot, v, r) -> torch.Tensor:
 
 
 def from_components(C, v, r) -> torch.Tensor:
+    """C (..., 3, 3), v, r (..., 3), batches broadcast -> (..., 5, 5)."""
+    C, v, r = checks.components(C=(C, (3, 3)), v=(v, (3,)), r=(r, (3,)))
     return _matrix(B.entries(C), B.first(v), B.first(r))
 
 
@@ -87,7 +94,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, 0, r^ C], [0, C, v^ C], [0, 0, C]]."""
     checks.matrix(M, MATRIX_DIM, "M")
-    C, v, r = components(M)
+    C, v, r = _components(M)
     return B.block_matrix(
         [[C, None, B.skew_times(r, C)], [None, C, B.skew_times(v, C)], [None, None, C]],
         SIZES, M.shape[:-2], M,
@@ -131,7 +138,7 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
-def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only: Q^T a = gvdt(1, x, a) + J^T (a x Gamma_1 x)."""
     rho, nu, phi = _split(xi)
     w_rho, w_nu, w_phi = _split(w)
@@ -142,7 +149,7 @@ def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.last(B.gamma_vec(c, 1, -phi, w_rho), B.gamma_vec(c, 1, -phi, w_nu), o_phi)
 
 
-def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks."""
     rho, nu, phi = _split(xi)
     g_rho, g_nu, g_phi = _split(g)
@@ -155,7 +162,7 @@ def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return B.last(y_rho, y_nu, B.jac_inv_vec(-phi, g_phi - S, d) - z)
 
 
-def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(M^T G) (exp's backward)."""
     Ct = B.transpose_entries(M[..., :3, :3])
     return B.last(B.matvec_entries(Ct, B.first(G[..., :3, 4])),
@@ -163,7 +170,7 @@ def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
                   B.rotation_pullback(M[..., :3, :3], G))
 
 
-def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """M^-T vee^T(w) (log's backward); M^-T = [[C, 0, 0], [a^T, 1, 0], [b^T, 0, 1]] with
     a = -C^T v, b = -C^T r."""
     rho, nu, phi = _split(w)
@@ -205,9 +212,11 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     v, r = torch.randn(2, 3, *batch_shape, dtype=dtype, device=device, generator=generator)
     return _matrix(B.entries(C), v, r)
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

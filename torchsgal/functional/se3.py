@@ -12,7 +12,7 @@ import torch
 from . import blocks as B
 from . import checks
 from . import numerics
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 
 NAME = "SE3"
@@ -27,9 +27,14 @@ def _split(xi: torch.Tensor):
     return X[0:3], X[3:6]
 
 
+def _components(M: torch.Tensor):
+    return M[..., :3, :3], M[..., :3, 3]
+
+
 def components(M: torch.Tensor):
     """(C, r) in the public layout."""
-    return M[..., :3, :3], M[..., :3, 3]
+    checks.matrix(M, MATRIX_DIM, "M")
+    return _components(M)
 
 
 def _matrix(rot, r) -> torch.Tensor:
@@ -38,6 +43,8 @@ def _matrix(rot, r) -> torch.Tensor:
 
 
 def from_components(C, r) -> torch.Tensor:
+    """C (..., 3, 3), r (..., 3), batches broadcast -> (..., 4, 4)."""
+    C, r = checks.components(C=(C, (3, 3)), r=(r, (3,)))
     return _matrix(B.entries(C), B.first(r))
 
 
@@ -82,7 +89,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[C, r^ C], [0, C]]."""
     checks.matrix(M, MATRIX_DIM, "M")
-    C, r = components(M)
+    C, r = _components(M)
     return B.block_matrix([[C, B.skew_times(r, C)], [None, C]], SIZES, M.shape[:-2], M)
 
 
@@ -117,7 +124,7 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     return B.block_matrix([[Ji, -Ji @ Q @ Ji], [None, Ji]], SIZES, xi.shape[:-1], xi)
 
 
-def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only: (J^T w_rho, Q^T w_rho + J^T w_phi)."""
     rho, phi = _split(xi)
     w_rho, w_phi = _split(w)
@@ -127,7 +134,7 @@ def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.last(B.gamma_vec(c, 1, -phi, w_rho), o_phi)
 
 
-def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks."""
     rho, phi = _split(xi)
     g_rho, g_phi = _split(g)
@@ -139,13 +146,13 @@ def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return B.last(y_rho, B.jac_inv_vec(-phi, g_phi - S, d) - z)
 
 
-def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(M^T G) (exp's backward)."""
     Ct = B.transpose_entries(M[..., :3, :3])
     return B.last(B.matvec_entries(Ct, B.first(G[..., :3, 3])), B.rotation_pullback(M[..., :3, :3], G))
 
 
-def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """M^-T vee^T(w) (log's backward); M^-T = [[C, 0], [b^T, 1]] with b = -C^T r."""
     rho, phi = _split(w)
     half = 0.5 * phi
@@ -177,9 +184,11 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)
     return _matrix(B.entries(C), r)
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

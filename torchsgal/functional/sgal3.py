@@ -14,7 +14,7 @@ import torch
 from . import blocks as B
 from . import checks
 from . import numerics
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 
 NAME = "SGal3"
@@ -30,9 +30,14 @@ def _split(xi: torch.Tensor):
     return X[0:3], X[3:6], X[6:9], X[9]
 
 
+def _components(M: torch.Tensor):
+    return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4], M[..., 3, 4:5]
+
+
 def components(M: torch.Tensor):
     """(C, v, r, tau) of a group matrix in the public layout; tau has shape (..., 1)."""
-    return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4], M[..., 3, 4:5]
+    checks.matrix(M, MATRIX_DIM, "M")
+    return _components(M)
 
 
 def _matrix(rot, v, r, tau) -> torch.Tensor:
@@ -41,7 +46,8 @@ def _matrix(rot, v, r, tau) -> torch.Tensor:
 
 
 def from_components(C, v, r, tau) -> torch.Tensor:
-    """C (..., 3, 3), v, r (..., 3), tau (..., 1) -> (..., 5, 5)."""
+    """C (..., 3, 3), v, r (..., 3), tau (..., 1), batches broadcast -> (..., 5, 5)."""
+    C, v, r, tau = checks.components(C=(C, (3, 3)), v=(v, (3,)), r=(r, (3,)), tau=(tau, (1,)))
     return _matrix(B.entries(C), B.first(v), B.first(r), tau[..., 0])
 
 
@@ -116,7 +122,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """(3.16)."""
     checks.matrix(M, MATRIX_DIM, "M")
-    C, v, r, tau = components(M)
+    C, v, r, tau = _components(M)
     t = tau.unsqueeze(-1)
     return B.block_matrix(
         [
@@ -243,7 +249,7 @@ def _coupling_t(parts, a, b):
     return S, B.cross(a, r) + B.cross(bp, g1n)
 
 
-def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only (the transposed blocks of (3.23))."""
     parts = _transpose_parts(xi)
     phi, iota, c, g2n = parts[2], parts[3], parts[4], parts[10]
@@ -259,7 +265,7 @@ def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.last(DT_w_rho, o_nu, o_phi, o_iota[None])
 
 
-def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks of (3.23)."""
     parts = _transpose_parts(xi)
     phi, iota, c, g2n = parts[2], parts[3], parts[4], parts[10]
@@ -275,7 +281,7 @@ def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return B.last(y_rho, y_nu, y_phi, y_iota[None])
 
 
-def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(M^T G), the tangent vector paired with a matrix cotangent G (exp's backward)."""
     Ct = B.transpose_entries(M[..., :3, :3])
     g5 = B.first(G[..., :3, 4])
@@ -284,7 +290,7 @@ def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
                   B.rotation_pullback(M[..., :3, :3], G), w_iota[None])
 
 
-def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """M^-T vee^T(w) (log's backward): with M^-T = [[C, 0, 0], [a^T, 1, 0], [b^T, -tau, 1]],
     a = -C^T v, b = -C^T (r - tau v), and vee^T(w) = hat(w with phi halved)."""
     rho, nu, phi, iota = _split(w)
@@ -390,6 +396,7 @@ def compose_packed(P1: torch.Tensor, P2: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     v, r = torch.randn(2, 3, *batch_shape, dtype=dtype, device=device, generator=generator)
     tau = torch.randn(batch_shape, dtype=dtype, device=device, generator=generator)
@@ -397,3 +404,4 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

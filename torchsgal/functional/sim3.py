@@ -27,7 +27,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 
 NAME = "Sim3"
@@ -43,9 +43,14 @@ def _split(xi: torch.Tensor):
     return X[0:3], X[3:6], X[6]
 
 
+def _components(M: torch.Tensor):
+    return M[..., :3, :3], M[..., :3, 3], 1.0 / M[..., 3, 3]
+
+
 def components(M: torch.Tensor):
     """(C, r, s) in the public layout; s = 1 / M[3, 3]."""
-    return M[..., :3, :3], M[..., :3, 3], 1.0 / M[..., 3, 3]
+    checks.matrix(M, MATRIX_DIM, "M")
+    return _components(M)
 
 
 def _matrix(rot, r, inv_s) -> torch.Tensor:
@@ -54,6 +59,9 @@ def _matrix(rot, r, inv_s) -> torch.Tensor:
 
 
 def from_components(C, r, s) -> torch.Tensor:
+    """C (..., 3, 3), r (..., 3), scale s (...) (positive; not checked), batches broadcast
+    -> (..., 4, 4)."""
+    C, r, s = checks.components(C=(C, (3, 3)), r=(r, (3,)), s=(s, ()))
     return _matrix(B.entries(C), B.first(r), 1.0 / s)
 
 
@@ -113,7 +121,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 def adjoint(M: torch.Tensor) -> torch.Tensor:
     """[[s C, s r^ C, -s r], [0, C, 0], [0, 0, 1]]  (80)."""
     checks.matrix(M, MATRIX_DIM, "M")
-    C, r, s = components(M)
+    C, r, s = _components(M)
     sC = s[..., None, None] * C
     col = -(s[..., None] * r).unsqueeze(-1)
     one = torch.ones_like(s)[..., None, None]
@@ -207,7 +215,7 @@ def _coupling_t(c, m, phi, rho, r, w):
     )
 
 
-def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only:
     (s M^T w_rho, s coupling^T w_rho + Gamma_1^T w_phi, s lam_col . w_rho + w_lambda)."""
     rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
@@ -218,7 +226,7 @@ def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.last(out_rho, out_phi, (s * B.dot(lam_col, w_rho) + w_lam)[None])
 
 
-def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by substitution on the transposed blocks: with y = M^-T g_rho,
     (y / s, Gamma_1^-T (g_phi - coupling^T y), g_lambda - lam_col . y)."""
     rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
@@ -229,7 +237,7 @@ def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return B.last(y * torch.exp(-lam), out_phi, (g_lam - B.dot(lam_col, y))[None])
 
 
-def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(M^T G) (exp's backward).  With A = M^T G: (A[:3, 3], 2 unskew(A[:3, :3]), -A[3, 3]),
     A[:3, :] = C^T G[:3, :] and A[3, 3] = r . G[:3, 3] + M[3, 3] G[3, 3]."""
     C = M[..., :3, :3]
@@ -238,7 +246,7 @@ def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     return B.last(B.matvec_entries(B.transpose_entries(C), g), B.rotation_pullback(C, G), lam[None])
 
 
-def log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """M^-T vee^T(w) = M^-T hat(w_rho, w_phi / 2, w_lambda); M^-T = [[C, 0], [b^T, s]] with
     b = -s C^T r, so the product is [[C h^, C w_rho], [(b x h)^T, b . w_rho - s w_lambda]], h = w_phi/2."""
     rho, phi, lam = _split(w)
@@ -265,6 +273,7 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     """Uniform rotation, standard normal translation, log-scale lambda standard normal."""
+    checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)
     lam = torch.randn(tuple(batch_shape), dtype=dtype, device=device, generator=generator)
@@ -272,3 +281,4 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

@@ -11,7 +11,7 @@ import torch
 
 from . import blocks as B
 from . import checks
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 
 NAME = "SO2"
 DOF = 1
@@ -21,10 +21,12 @@ PHI = slice(0, 1)
 
 
 def components(M: torch.Tensor):
+    checks.matrix(M, MATRIX_DIM, "M")
     return (M,)
 
 
 def from_components(C: torch.Tensor) -> torch.Tensor:
+    checks.matrix(C, MATRIX_DIM, "C")
     return C
 
 
@@ -89,20 +91,20 @@ def jl(theta: torch.Tensor) -> torch.Tensor:
 jr = jl_inv = jr_inv = jl
 
 
-def jl_tmv(theta: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(theta: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return w
 
 
-jl_inv_tmv = jl_tmv
+_jl_inv_tmv = _jl_tmv
 
 
-def exp_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(C^T G) = (C^T G)_10 - (C^T G)_01."""
     A = C.transpose(-1, -2) @ G
     return (A[..., 1, 0] - A[..., 0, 1]).unsqueeze(-1)
 
 
-def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """C^-T vee^T(w) = C hat(w / 2)."""
     return C @ hat(0.5 * w)
 
@@ -117,8 +119,10 @@ def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    checks.dtype_arg(dtype)
     t = (torch.rand(tuple(batch_shape), dtype=dtype, device=device, generator=generator) * 2 - 1) * torch.pi
     return _rot(torch.cos(t), torch.sin(t))
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

@@ -10,7 +10,7 @@ import torch
 
 from . import blocks as B
 from . import checks
-from ._autograd import make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 
 NAME = "SO3"
@@ -21,10 +21,12 @@ PHI = slice(0, 3)
 
 
 def components(M: torch.Tensor):
+    checks.matrix(M, MATRIX_DIM, "M")
     return (M,)
 
 
 def from_components(C: torch.Tensor) -> torch.Tensor:
+    checks.matrix(C, MATRIX_DIM, "C")
     return C
 
 
@@ -86,23 +88,23 @@ def jl_inv(phi: torch.Tensor) -> torch.Tensor:
     return B.jac_inv_mat(B.first(phi))
 
 
-def jl_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(phi)^T w = Gamma_1(-phi) w."""
     p = B.first(phi)
     return B.last(B.gamma_vec(B.coefficients(p, 3), 1, -p, B.first(w)))
 
 
-def jl_inv_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _jl_inv_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(phi)^-T w = D^-1(-phi) w."""
     return B.last(B.jac_inv_vec(-B.first(phi), B.first(w)))
 
 
-def exp_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+def _exp_pullback(C: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(C^T G) (exp's backward)."""
     return B.last(B.rotation_pullback(C, G))
 
 
-def log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+def _log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """C^-T vee^T(w) = C (w/2)^ (log's backward)."""
     r = B.rotation_skew_rows(C, 0.5 * B.first(w))
     return torch.stack([x for row in r for x in row], dim=-1).unflatten(-1, (3, 3))
@@ -128,7 +130,9 @@ def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    checks.dtype_arg(dtype)
     return B.random_rotation(batch_shape, dtype, device, generator)
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])
