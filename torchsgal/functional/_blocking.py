@@ -43,6 +43,15 @@ def is_compiling() -> bool:
     return fn()
 
 
+def values_readable(t: torch.Tensor) -> bool:
+    """Whether a value check may read ``t`` (one host sync): not on 'meta' (no data), not inside a
+    torch.func transform (``bool`` of a batched tensor raises) and not while torch.compile
+    traces.  The shape, dtype and device checks do not depend on it."""
+    if t.device.type == "meta" or is_compiling():
+        return False
+    return _is_wrapped is None or not _is_wrapped(t)
+
+
 def unobserved(args) -> bool:
     """True where a blocked or in-place evaluation of ``args`` cannot be observed: plain CPU
     tensors, no autograd recording (reverse or forward mode), no functorch transform, not

@@ -92,4 +92,5 @@ def components(**parts):
             raise ValueError(f"{name} must have shape ({want}), got {tuple(t.shape)}")
     same_device_dtype(**{n: t for n, (t, _) in parts.items()})
     batch = broadcast_batch(**{n: t.shape[: t.dim() - len(tail)] for n, (t, tail) in parts.items()})
-    return [t.expand(*batch, *tail) for t, tail in parts.values()]
+    # one tuple argument: expand(*()) (an unbatched scalar part) would be a call without size
+    return [t.expand(tuple(batch) + tuple(tail)) for t, tail in parts.values()]

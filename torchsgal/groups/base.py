@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 
 from ..functional import blocks, checks
-from ..functional._blocking import _is_wrapped, is_compiling
+from ..functional._blocking import values_readable
 
 
 class LieGroup:
@@ -48,7 +48,7 @@ class LieGroup:
         jacrev) and while torch.compile traces; shape and dtype are always checked."""
         checks.matrix(matrix, cls.matrix_dim, "matrix")
         tol = _tol_arg(tol)
-        if check and matrix.numel() and _has_data(matrix):
+        if check and matrix.numel() and values_readable(matrix):
             cls._check_membership(matrix, tol)
         return cls(matrix)
 
@@ -354,14 +354,6 @@ class LieGroup:
             f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
             f"device={self.device})"
         )
-
-
-def _has_data(t: torch.Tensor) -> bool:
-    """Whether t's values can be read for a data check: not on 'meta', not inside a torch.func
-    transform and not while torch.compile traces (the convention of the uncertainty module)."""
-    if t.device.type == "meta" or is_compiling():
-        return False
-    return _is_wrapped is None or not _is_wrapped(t)
 
 
 def _tol_arg(tol) -> float | None:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from ..functional import checks
-from ..functional._blocking import _is_wrapped, is_compiling
+from ..functional._blocking import values_readable
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
@@ -42,15 +42,6 @@ def _mv(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (M @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def _has_data(S: torch.Tensor) -> bool:
-    """Whether S's values can be read for a data check: not on 'meta' (no data), not inside a
-    torch.func transform (vmap, grad, jacrev: ``bool`` of a batched tensor raises) and not while
-    torch.compile traces.  Elsewhere the checks cost one host sync."""
-    if S.device.type == "meta" or is_compiling():
-        return False
-    return _is_wrapped is None or not _is_wrapped(S)
-
-
 def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: float | None = None,
                      definite: bool = True):
     """Raises unless S (..., dim, dim) is symmetric positive definite (``definite=False``:
@@ -62,7 +53,7 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
                         f"{getattr(S, 'dtype', type(S).__name__)}")
     if S.dim() < 2 or S.shape[-2:] != (dim, dim):
         raise ValueError(f"{name} must have shape (..., {dim}, {dim}), got {tuple(S.shape)}")
-    if S.numel() == 0 or not _has_data(S):
+    if S.numel() == 0 or not values_readable(S):
         return
     if tol is None:
         tol = 1e-5 if S.dtype == torch.float32 else 1e-10
@@ -356,7 +347,7 @@ class ConcentratedGaussian:
             # the iterations run.
             if step.numel() == 0:
                 break
-            if _has_data(step) and float(step.detach().abs().max()) < tol:
+            if values_readable(step) and float(step.detach().abs().max()) < tol:
                 break
         H = 0
         for p, W in zip(parts, infos):
