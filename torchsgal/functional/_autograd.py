@@ -124,16 +124,17 @@ def checked_backward_parts(mod):
     passes above call directly (no checks per backward call)."""
     n, dof = mod.MATRIX_DIM, mod.DOF
 
-    def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    def tangent_pair(xi, w, w_name):
         checks.vector(xi, dof, "xi")
-        checks.vector(w, dof, "w")
-        checks.binary(xi, 1, w, 1, "xi", "w")
+        checks.vector(w, dof, w_name)
+        checks.binary(xi, 1, w, 1, "xi", w_name)
+
+    def jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        tangent_pair(xi, w, "w")
         return mod._jl_tmv(xi, w)
 
     def jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-        checks.vector(xi, dof, "xi")
-        checks.vector(g, dof, "g")
-        checks.binary(xi, 1, g, 1, "xi", "g")
+        tangent_pair(xi, g, "g")
         return mod._jl_inv_tmv(xi, g)
 
     def exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
