@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 
@@ -11,26 +10,13 @@ from ..functional import checks
 Z975 = 1.959963984540054  # standard normal 97.5% quantile
 
 
-def _number(name: str, value, positive: bool) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
-            or (positive and value <= 0):
-        raise ValueError(f"{name} must be a finite number{' > 0' if positive else ''}, "
-                         f"got {value!r}")
-    return float(value)
-
-
-def _count(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return int(value)
-
 
 def chi2_quantile(p_z: float, dof: float) -> float:
     """Wilson-Hilferty approximation of the chi-square quantile for the normal quantile p_z;
     relative error below 1e-4 for dof >= 100 (checked against scipy in the tests).  ``dof`` a
     finite number > 0."""
-    _number("p_z", p_z, False)
-    _number("dof", dof, True)
+    checks.finite_number(p_z, "p_z")
+    checks.finite_number(dof, "dof", "> 0")
     a = 2.0 / (9.0 * dof)
     return dof * (1.0 - a + p_z * math.sqrt(a)) ** 3
 
@@ -38,14 +24,14 @@ def chi2_quantile(p_z: float, dof: float) -> float:
 def anees_band(trials: int, dof: int) -> tuple[float, float]:
     """95% band of the ANEES of a consistent estimator: chi2_{trials dof} quantiles / trials;
     ``trials`` and ``dof`` integers >= 1."""
-    k = _count("trials", trials) * _count("dof", dof)
+    k = checks.integer(trials, "trials", 1) * checks.integer(dof, "dof", 1)
     return chi2_quantile(-Z975, k) / trials, chi2_quantile(Z975, k) / trials
 
 
 def expected_mmd(dof: int) -> float:
     """E[sqrt(chi2_dof)] = sqrt(2) Gamma((dof + 1)/2) / Gamma(dof/2) (3.24 for dof 11);
     ``dof`` a finite number > 0."""
-    _number("dof", dof, True)
+    checks.finite_number(dof, "dof", "> 0")
     return math.sqrt(2.0) * math.exp(math.lgamma((dof + 1) / 2) - math.lgamma(dof / 2))
 
 

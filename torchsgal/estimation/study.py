@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import numbers
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -51,21 +50,6 @@ _STUDY_DTYPES = {"float64": "float64", "float32": "float32",
                  torch.float64: "float64", torch.float32: "float32"}
 
 
-def _integer(name: str, value, minimum: int | None) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) \
-            or (minimum is not None and value < minimum):
-        bound = "" if minimum is None else f" >= {minimum}"
-        raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
-    return int(value)
-
-
-def _real(name: str, value, nonnegative: bool) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) \
-            or not math.isfinite(value) or (nonnegative and value < 0):
-        raise ValueError(f"{name} must be a finite number{' >= 0' if nonnegative else ''}, "
-                         f"got {value!r}")
-    return float(value)
-
 
 @dataclass
 class StudyConfig:
@@ -89,13 +73,13 @@ class StudyConfig:
     dtype: str = "float64"
 
     def __post_init__(self):
-        self.trials = _integer("trials", self.trials, 1)
-        self.samples = _integer("samples", self.samples, 3)  # TLSProblem needs 3 pairs
-        self.seed = _integer("seed", self.seed, None)
-        self.max_iterations = _integer("max_iterations", self.max_iterations, 1)
-        self.nominal_dtau = _real("nominal_dtau", self.nominal_dtau, False)
+        self.trials = checks.integer(self.trials, "trials", 1)
+        self.samples = checks.integer(self.samples, "samples", 3)  # TLSProblem needs 3 pairs
+        self.seed = checks.integer(self.seed, "seed")
+        self.max_iterations = checks.integer(self.max_iterations, "max_iterations", 1)
+        self.nominal_dtau = checks.finite_number(self.nominal_dtau, "nominal_dtau")
         for name in ("dtau_sigma", "speed", "separation", "clock_offset", "noise_scale"):
-            setattr(self, name, _real(name, getattr(self, name), True))
+            setattr(self, name, checks.finite_number(getattr(self, name), name, ">= 0"))
         variants = (self.variants,) if isinstance(self.variants, str) else self.variants
         try:
             variants = tuple(variants)
@@ -127,7 +111,7 @@ def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Gener
         raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
     cfg.__post_init__()  # fields may have been changed since construction
     dtype = getattr(torch, cfg.dtype)
-    K = cfg.trials if trials is None else _integer("trials", trials, 0)
+    K = cfg.trials if trials is None else checks.integer(trials, "trials", 0)
     g = generator or torch.Generator().manual_seed(cfg.seed)
 
     def normal(*shape):
@@ -212,7 +196,7 @@ def run(cfg: StudyConfig, chunk: int = 300, progress: bool = True) -> dict:
     if not isinstance(cfg, StudyConfig):
         raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
     cfg.__post_init__()  # fields may have been changed since construction
-    _integer("chunk", chunk, 1)
+    checks.integer(chunk, "chunk", 1)
     g = torch.Generator().manual_seed(cfg.seed)
     estimators = {("SGal(3)", v): (solve_sgal3, errors_sgal3) for v in cfg.variants}
     estimators.update({("SE_2(3) x R", v): (solve_baseline, errors_baseline) for v in cfg.variants})

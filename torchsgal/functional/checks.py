@@ -5,6 +5,9 @@ are transparent to torch.func.vmap and torch.compile.
 """
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 
 
@@ -94,3 +97,21 @@ def components(**parts):
     batch = broadcast_batch(**{n: t.shape[: t.dim() - len(tail)] for n, (t, tail) in parts.items()})
     # one tuple argument: expand(*()) (an unbatched scalar part) would be a call without size
     return [t.expand(tuple(batch) + tuple(tail)) for t, tail in parts.values()]
+
+
+def integer(value, name: str, minimum: int | None = None) -> int:
+    """A Python/numpy integer (bool refused), at least ``minimum``: for counts and sizes."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) \
+            or (minimum is not None and value < minimum):
+        bound = "" if minimum is None else f" >= {minimum}"
+        raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
+    return int(value)
+
+
+def finite_number(value, name: str, bound: str = "") -> float:
+    """A finite real number (bool refused); ``bound`` "", ">= 0" or "> 0"."""
+    ok = {"": lambda v: True, ">= 0": lambda v: v >= 0, "> 0": lambda v: v > 0}[bound]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
+            or not ok(value):
+        raise ValueError(f"{name} must be a finite number{' ' + bound if bound else ''}, got {value!r}")
+    return float(value)
