@@ -340,7 +340,7 @@ def test_from_matrix_check(G):
     for tol in (float("nan"), float("inf"), -1, 0):
         with pytest.raises(ValueError, match=r"tol must be a finite number > 0, got"):
             G.from_matrix(bad, check=True, tol=tol)
-    with pytest.raises(TypeError, match=r"tol must be None or a number, got str"):
+    with pytest.raises(TypeError, match=r"tol must be a finite number > 0, got '1e-9'"):
         G.from_matrix(M, check=True, tol="1e-9")
     G.from_matrix(bad, check=True, tol=1e-2)  # a looser valid tol accepts it
     # values are checked only where they can be read (as in the uncertainty module): not on

@@ -236,11 +236,16 @@ def test_gauss_helmert_checks_its_inputs_and_the_condition():
 def test_solver_options_are_checked():
     residual, (g_true, s_true) = _time_flow_problem(B=2)
     x0 = (g_true, s_true)
-    for option, value in (("max_iterations", -1), ("max_iterations", 2.5), ("damping", -1.0),
-                          ("damping", math.nan), ("step_tol", -1e-6), ("cost_tol", -1.0),
+    for option, value in (("max_iterations", -1), ("damping", -1.0), ("damping", math.nan),
+                          ("step_tol", -1e-6), ("step_tol", math.inf), ("cost_tol", -1.0),
                           ("accept_tol", -0.1), ("always_accept_below", -1.0),
-                          ("max_damping", 0.0), ("stop_below_fraction", 1.5)):
-        with pytest.raises(ValueError, match=f"{option} must be"):
+                          ("max_damping", 0.0), ("stop_below_fraction", 1.5),
+                          ("stop_below_fraction", -0.5)):
+        with pytest.raises(ValueError, match=f"{option} must be .*, got {value!r}"):
+            gauss_newton(residual, x0, **{option: value})
+    for option, value in (("max_iterations", 2.5), ("max_iterations", True), ("damping", "1e-4"),
+                          ("cost_tol", None), ("stop_below_fraction", False)):
+        with pytest.raises(TypeError, match=f"{option} must be .*, got {value!r}"):
             gauss_newton(residual, x0, **{option: value})
     # The edge values are legitimate: no iteration, undamped, zero tolerances.
     sol = gauss_newton(residual, x0, max_iterations=0, damping=0.0, step_tol=0.0, cost_tol=0.0)

@@ -3,6 +3,7 @@ Jacobians against autograd and finite differences, the Euler-Arnold integrator a
 closed forms and an independent ODE solver, R^2 as the noise vanishes, and bad input."""
 from __future__ import annotations
 
+import math
 
 import numpy as np
 import pytest
@@ -538,10 +539,20 @@ def test_bad_input_raises_clear_errors():
         reg.fit_riemannian_geodesic(Y[:1], t[:1])
     with pytest.raises(ValueError, match="too few samples for degree 5"):
         reg.fit_riemannian_polynomial(Y, t, 5)
-    with pytest.raises(ValueError, match="steps must be a positive int"):
+    with pytest.raises(ValueError, match="steps must be an integer >= 1, got 0"):
         reg.fit_riemannian_geodesic(Y, t, steps=0)
     with pytest.raises(ValueError, match=r"velocity must have shape \(\.\.\., 6\)"):
         reg.simulate_maneuver(G, torch.ones(5, dtype=F64), 10, 0.1)
+    zeta = torch.ones(6, dtype=F64)
+    with pytest.raises(ValueError, match="n_samples must be an integer >= 1, got 0"):
+        reg.simulate_maneuver(G, zeta, 0, 0.1)
+    with pytest.raises(TypeError, match="n_samples must be an integer >= 1, got 10.0"):
+        reg.simulate_maneuver(G, zeta, 10.0, 0.1)
+    for noise in (-0.1, math.inf, math.nan):  # inf and nan gave all-NaN samples
+        with pytest.raises(ValueError, match="noise_std must be a finite number >= 0"):
+            reg.simulate_maneuver(G, zeta, 10, noise)
+    with pytest.raises(TypeError, match="noise_std must be a finite number >= 0, got '0.1'"):
+        reg.simulate_maneuver(G, zeta, 10, "0.1")
     with pytest.raises(TypeError, match="fitted must be a SE3"):
         reg.r_squared(Y, ts.SE23.exp(torch.randn(5, 9, dtype=F64)))
 
@@ -604,16 +615,23 @@ def test_max_iterations_and_tolerance_are_validated():
     assert reg.fit_subgroup(Y, t, method="lbfgs", max_iterations=0).iterations == 0
     assert float(reg.fit_subgroup(Y, t).cost) < float(start.cost)
     for method in ("gauss_newton", "lbfgs"):
-        with pytest.raises(ValueError, match="max_iterations must be >= 0, got -1"):
+        with pytest.raises(ValueError, match="max_iterations must be an integer >= 0, got -1"):
             reg.fit_subgroup(Y, t, method=method, max_iterations=-1)
-        with pytest.raises(TypeError, match="max_iterations must be an int"):
+        with pytest.raises(TypeError, match="max_iterations must be an integer >= 0, got 2.5"):
             reg.fit_subgroup(Y, t, method=method, max_iterations=2.5)
-        with pytest.raises(ValueError, match="tolerance must be a finite float >= 0, got -0.001"):
+        with pytest.raises(ValueError, match="tolerance must be a finite number >= 0, got -0.001"):
             reg.fit_subgroup(Y, t, method=method, tolerance=-1e-3)
-    with pytest.raises(ValueError, match="max_iterations must be >= 0"):
+    with pytest.raises(ValueError, match="max_iterations must be an integer >= 0"):
         reg.fit_riemannian_geodesic(Y, t, max_iterations=-1)
-    with pytest.raises(TypeError, match="tolerance must be a float"):
+    with pytest.raises(TypeError, match="tolerance must be a finite number >= 0, got '1e-8'"):
         reg.frechet_mean(Y, tolerance="1e-8")
+    # The solvers check their options before touching the model.
+    o, x = Y.as_matrix()[None], torch.zeros(1, 6, dtype=F64)
+    for damping in (0.0, -1.0, math.inf):  # 0 never grew on rejection: a stalled loop
+        with pytest.raises(ValueError, match="damping must be a finite number > 0"):
+            reg.gauss_newton(None, o, x, damping=damping)
+    with pytest.raises(ValueError, match="rounds must be an integer >= 0, got -1"):
+        reg.lbfgs(None, o, x, rounds=-1)
 
 
 def test_fitted_curve_validates_times():
@@ -641,10 +659,12 @@ def test_flows_validate_their_arguments():
     v, w = torch.randn(6, dtype=F64), torch.ones(6, dtype=F64)
     tau = torch.tensor([0.5, 1.0], dtype=F64)
     for steps in (0, -1):  # returned the identity
-        with pytest.raises(ValueError, match=f"steps must be a positive int, got {steps}"):
+        with pytest.raises(ValueError, match=f"steps must be an integer >= 1, got {steps}"):
             reg.geodesic_flow(G, v, tau, w, steps=steps)
-        with pytest.raises(ValueError, match=f"steps must be a positive int, got {steps}"):
+        with pytest.raises(ValueError, match=f"steps must be an integer >= 1, got {steps}"):
             reg.polynomial_flow(G, v[None], tau, w, steps=steps)
+    with pytest.raises(TypeError, match="steps must be an integer >= 1, got 2.0"):
+        reg.geodesic_flow(G, v, tau, w, steps=2.0)
     with pytest.raises(ValueError, match=r"X must have shape \(\.\.\., 6\), got \(5,\)"):
         reg.euler_arnold_rhs(G, v[:5], w)
     with pytest.raises(ValueError, match=r"weights must have shape \(\.\.\., 6\), got \(5,\)"):

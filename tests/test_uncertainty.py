@@ -485,8 +485,11 @@ def test_event_fusion_bad_input():
     prior, event, Sigma = _event_problem()
     with pytest.raises(ValueError, match=r"event_covariance is not positive semi-definite"):
         fuse_event(prior, event, -torch.eye(4, dtype=D))
-    for bad in (0, -1, 1.5, True):
+    for bad in (0, -1):
         with pytest.raises(ValueError, match=r"iterations must be an integer >= 1"):
+            fuse_event(prior, event, Sigma, iterations=bad)
+    for bad in (1.5, True):
+        with pytest.raises(TypeError, match=r"iterations must be an integer >= 1"):
             fuse_event(prior, event, Sigma, iterations=bad)
     with pytest.raises(ValueError, match=r"event_covariance is not symmetric"):
         fuse_event(prior, event, Sigma + 0.01 * torch.triu(torch.ones(4, 4, dtype=D), 1))

@@ -13,8 +13,6 @@ respect to right perturbations of the unknowns (``variables.retract``):
 from __future__ import annotations
 
 import enum
-import math
-import numbers
 from dataclasses import dataclass
 from typing import Callable
 
@@ -130,22 +128,13 @@ def covariance_from_information(H: torch.Tensor, singular: torch.Tensor) -> torc
 
 def _check_options(max_iterations, damping, max_damping, stop_below_fraction, **tolerances) -> None:
     """The solver options of ``iterate``: raise naming the option (host-side numbers only)."""
-    if (isinstance(max_iterations, bool) or not isinstance(max_iterations, numbers.Integral)
-            or max_iterations < 0):
-        raise ValueError(f"max_iterations must be an integer >= 0, got {max_iterations!r}")
-
-    def number(name, value, ok, expected):
-        if isinstance(value, bool) or not isinstance(value, numbers.Real) or math.isnan(value) \
-                or not ok(value):
-            raise ValueError(f"{name} must be {expected}, got {value!r}")
-
-    if damping is not None:
-        number("damping", damping, lambda v: 0 <= v < math.inf, "None (plain Gauss-Newton) or a "
-               "finite number >= 0 (the initial Levenberg-Marquardt damping)")
-    number("max_damping", max_damping, lambda v: v > 0, "a number > 0")
-    number("stop_below_fraction", stop_below_fraction, lambda v: 0 <= v <= 1, "in [0, 1]")
+    checks.integer(max_iterations, "max_iterations", 0)
+    if damping is not None:  # None: plain Gauss-Newton
+        checks.finite_number(damping, "damping", ">= 0")
+    checks.finite_number(max_damping, "max_damping", "> 0")
+    checks.finite_number(stop_below_fraction, "stop_below_fraction", "in [0, 1]")
     for name, value in tolerances.items():
-        number(name, value, lambda v: v >= 0, "a number >= 0")
+        checks.finite_number(value, name, ">= 0")
 
 
 def iterate(

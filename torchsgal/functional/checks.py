@@ -100,18 +100,28 @@ def components(**parts):
 
 
 def integer(value, name: str, minimum: int | None = None) -> int:
-    """A Python/numpy integer (bool refused), at least ``minimum``: for counts and sizes."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) \
-            or (minimum is not None and value < minimum):
-        bound = "" if minimum is None else f" >= {minimum}"
-        raise ValueError(f"{name} must be an integer{bound}, got {value!r}")
+    """A Python/numpy integer (bool refused), at least ``minimum``: for counts and sizes.
+    TypeError for another type, ValueError below ``minimum``; one message for both."""
+    bound = "" if minimum is None else f" >= {minimum}"
+    message = f"{name} must be an integer{bound}, got {value!r}"
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(message)
+    if minimum is not None and value < minimum:
+        raise ValueError(message)
     return int(value)
 
 
+_BOUNDS = {"": lambda v: True, ">= 0": lambda v: v >= 0, "> 0": lambda v: v > 0,
+           "in [0, 1]": lambda v: 0 <= v <= 1}
+
+
 def finite_number(value, name: str, bound: str = "") -> float:
-    """A finite real number (bool refused); ``bound`` "", ">= 0" or "> 0"."""
-    ok = {"": lambda v: True, ">= 0": lambda v: v >= 0, "> 0": lambda v: v > 0}[bound]
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
-            or not ok(value):
-        raise ValueError(f"{name} must be a finite number{' ' + bound if bound else ''}, got {value!r}")
+    """A finite real number (bool refused); ``bound`` one of "", ">= 0", "> 0", "in [0, 1]".
+    TypeError for another type, ValueError for a non-finite or out-of-bound value."""
+    ok = _BOUNDS[bound]
+    message = f"{name} must be a finite number{' ' + bound if bound else ''}, got {value!r}"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(message)
+    if not math.isfinite(value) or not ok(value):
+        raise ValueError(message)
     return float(value)

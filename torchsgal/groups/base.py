@@ -6,8 +6,7 @@ group's functional module (``_f``), the one place its maths lives.
 """
 from __future__ import annotations
 
-import math
-from numbers import Integral, Real
+from numbers import Integral
 from typing import Sequence
 
 import torch
@@ -358,13 +357,7 @@ class LieGroup:
 
 def _tol_arg(tol) -> float | None:
     """``tol``: None or a finite number > 0."""
-    if tol is None:
-        return None
-    if isinstance(tol, bool) or not isinstance(tol, Real):
-        raise TypeError(f"tol must be None or a number, got {type(tol).__name__}")
-    if not (math.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be a finite number > 0, got {tol}")
-    return float(tol)
+    return None if tol is None else checks.finite_number(tol, "tol", "> 0")
 
 
 def _batch_shape_arg(batch_shape, name: str = "batch_shape") -> tuple[int, ...]:

@@ -1,8 +1,6 @@
 """Smooth trajectories with analytic ground truth, and the IMU streams they produce."""
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass
 
 import torch
@@ -79,10 +77,8 @@ class SinusoidalTrajectory:
         checks.floating(t0, "t0")
         checks.vector(gravity, 3, "gravity")
         checks.same_device_dtype(t0=t0, gravity=gravity)
-        for name, value in (("duration", duration), ("dt", dt)):
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) \
-                    or not 0 < value < math.inf:
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        duration = checks.finite_number(duration, "duration", "> 0")
+        dt = checks.finite_number(dt, "dt", "> 0")
         K = int(round(duration / dt))
         if K < 1 or abs(K * dt - duration) > 1e-9 * max(1.0, duration):
             raise ValueError(f"duration ({duration}) must be a positive multiple of dt ({dt})")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
@@ -80,33 +81,11 @@ def metric_weights(weights, G, like: torch.Tensor, name: str = "weights") -> tor
 
 
 def degree(value, n_samples: int, name: str = "degree") -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
-    if value < 0:
-        raise ValueError(f"{name} must be >= 0, got {value}")
+    """A polynomial degree >= 0 that the N samples can determine (N >= degree + 1)."""
+    checks.integer(value, name, 0)
     if n_samples < value + 1:
         raise ValueError(
             f"too few samples for {name} {value}: a polynomial of degree {value} needs at least "
             f"{value + 1} samples, got N = {n_samples}"
         )
-    return value
-
-
-def count(value, name: str) -> int:
-    """A non-negative int (an iteration count); bool is refused."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name} must be an int >= 0 (or None for the default), got "
-                        f"{type(value).__name__}")
-    if value < 0:
-        raise ValueError(f"{name} must be >= 0, got {value}")
-    return value
-
-
-def tolerance(value, name: str = "tolerance") -> float:
-    """A finite real number >= 0."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise TypeError(f"{name} must be a float >= 0 (or None for the default), got "
-                        f"{type(value).__name__}")
-    if not 0 <= value < float("inf"):
-        raise ValueError(f"{name} must be a finite float >= 0, got {value!r}")
-    return float(value)
+    return int(value)

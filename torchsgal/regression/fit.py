@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup, SGal3
 from . import _checks
@@ -115,9 +116,9 @@ def _options(method, max_iterations, tolerance) -> None:
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if max_iterations is not None:
-        _checks.count(max_iterations, "max_iterations")
+        checks.integer(max_iterations, "max_iterations", 0)
     if tolerance is not None:
-        _checks.tolerance(tolerance, "tolerance")
+        checks.finite_number(tolerance, "tolerance", ">= 0")
 
 
 def _solve(model, origin, x, method, max_iterations, tolerance):
@@ -192,8 +193,7 @@ def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: in
     Algorithm 3, but by Gauss-Newton (or LBFGS) instead of gradient descent; each sample's
     curve is integrated with ``steps`` steps.  Started from ``fit_polynomial`` of the same
     degree (v_k(0) ~ k! times its coefficients).  ``coefficients`` is V0 (..., K, dof)."""
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be a positive int, got {steps!r}")
+    checks.integer(steps, "steps", 1)
     _checks.group_samples(samples, "samples")
     _checks.degree(degree, samples.batch_shape[-1])
     _options(method, max_iterations, tolerance)

@@ -42,8 +42,7 @@ def _check_flow_args(G, first, first_name: str, first_tail: int, tau, weights, s
         raise ValueError(f"tau must have shape (..., M), got {tuple(tau.shape)}")
     checks.broadcast_batch(**{first_name: first.shape[: first.dim() - first_tail],
                               "tau": tau.shape[:-1], "weights": weights.shape[:-1]})
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be a positive int, got {steps!r}")
+    checks.integer(steps, "steps", 1)
 
 
 def _coordinates(G, V, name: str) -> None:

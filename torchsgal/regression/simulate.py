@@ -24,10 +24,8 @@ def simulate_maneuver(G, velocity: torch.Tensor, n_samples: int, noise_std: floa
     ``noise_std`` to every algebra component before the exponential (line 6).  ``start``
     (default identity) multiplies on the left, as x_0 does in lines 5 and 7."""
     checks.vector(velocity, G.dof, "velocity")
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 1:
-        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
-    if not noise_std >= 0:
-        raise ValueError(f"noise_std must be >= 0, got {noise_std!r}")
+    n_samples = checks.integer(n_samples, "n_samples", 1)
+    noise_std = checks.finite_number(noise_std, "noise_std", ">= 0")
     dtype, device = velocity.dtype, velocity.device
     t = torch.arange(1, n_samples + 1, dtype=dtype, device=device) / n_samples
     t = t.expand(velocity.shape[:-1] + (n_samples,))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from . import _checks
+from ..functional import checks
 
 
 @dataclass
@@ -41,8 +41,9 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
     cost falls below ``tolerance**2 * 1e-10``; the loop stops when all have, or when the
     damping of the rest exceeds 1e16 (stalled, reported as not converged).
     """
-    _checks.count(max_iterations, "max_iterations")
-    _checks.tolerance(tolerance, "tolerance")
+    checks.integer(max_iterations, "max_iterations", 0)
+    checks.finite_number(tolerance, "tolerance", ">= 0")
+    checks.finite_number(damping, "damping", "> 0")
     r, J = model.linearize(origin, x)
     cost = (r * r).sum(-1)
     lam = torch.full_like(cost, damping)
@@ -91,9 +92,9 @@ def lbfgs(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: int = 50
     model's Jacobian.  After each round the origin is
     re-anchored, p <- p exp(dp), and dp reset to zero.  An empty batch returns at once (as
     from ``gauss_newton``)."""
-    _checks.count(max_iterations, "max_iterations")
-    _checks.tolerance(tolerance, "tolerance")
-    _checks.count(rounds, "rounds")
+    checks.integer(max_iterations, "max_iterations", 0)
+    checks.finite_number(tolerance, "tolerance", ">= 0")
+    checks.integer(rounds, "rounds", 0)
     dof = model.G.dof
     it = 0
     if origin.shape[:-2].numel() == 0 or max_iterations == 0:

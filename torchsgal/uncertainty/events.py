@@ -71,8 +71,7 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     noise would be singular).  ``validate`` checks this as the ConcentratedGaussian constructor
     checks its covariance (one host sync; skipped on 'meta', under torch.func transforms and
     torch.compile)."""
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
+    checks.integer(iterations, "iterations", 1)
     if not isinstance(prior, ConcentratedGaussian):
         raise TypeError(f"prior must be a ConcentratedGaussian on SGal3, got {type(prior).__name__}")
     if prior.group is not SGal3:
