@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchsgal as ts
-from torchsgal.estimation import gauss_newton
+from torchsgal.estimation import gauss_helmert, gauss_newton
 from torchsgal.estimation.lbfgs import lbfgs
 
 F64 = torch.float64
@@ -47,3 +47,55 @@ def test_lbfgs_recovers_an_element_of_every_group_and_reports_it(G):
     assert bool(report.converged.all())
     # |gradient| = 2 |r| <= 1e-6 at convergence (gradient_tol), so |r| is at most ~5e-7.
     assert x[0].rminus(target).abs().max() < 1e-6
+
+
+@pytest.mark.parametrize("variant", ["iterated", "paper"])
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_gauss_helmert_recovers_an_element_of_every_group(G, variant):
+    """N noise-free observations y_n = t of one unknown, condition log((y_n exp(e_n))^-1 x) = 0
+    with observation covariance s^2 I: x = t, e = 0 and the Laplace covariance s^2 I / N."""
+    B, N, s2 = 3, 5, 0.04
+    target, start, _ = _problem(G, B)
+    obs = target.unsqueeze(-1).expand(B, N)
+
+    def condition(x, e):
+        g = x[0].unsqueeze(-1)
+        y = obs if e is None else obs.rplus(e)
+        z = g.rminus(y)  # log(y^-1 x)
+        A = G.jr_inv(z)
+        Bm = -G.jl_inv(z) if e is None else -G.jl_inv(z) @ G.jr(e)
+        return z, A, Bm
+
+    cov = s2 * torch.eye(G.dof, dtype=F64).expand(1, 1, -1, -1)
+    sol = gauss_helmert(condition, (start,), cov, variant=variant)
+    assert bool(sol.report.converged.all())
+    assert sol.x[0].rminus(target).abs().max() < 1e-10
+    assert (sol.covariance - s2 / N * torch.eye(G.dof, dtype=F64)).abs().max() < 1e-10
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_iterated_gauss_helmert_equals_gauss_newton_on_noisy_observations(G):
+    """With noisy y_n the iterated variant's MAP minimises sum_n |log(y_n^-1 x)|^2 / s^2, the
+    cost gauss_newton minimises directly: the two solutions and covariances agree (this
+    exercises the condition's Jacobian in e at non-zero residuals)."""
+    B, N, s2 = 3, 5, 0.04
+    target, start, _ = _problem(G, B)
+    gen = torch.Generator().manual_seed(1)
+    obs = target.unsqueeze(-1).rplus(0.2 * torch.randn(B, N, G.dof, generator=gen, dtype=F64))
+
+    def condition(x, e):
+        g = x[0].unsqueeze(-1)
+        y = obs if e is None else obs.rplus(e)
+        z = g.rminus(y)
+        return z, G.jr_inv(z), -G.jl_inv(z) if e is None else -G.jl_inv(z) @ G.jr(e)
+
+    cov = s2 * torch.eye(G.dof, dtype=F64).expand(1, 1, -1, -1)
+    gh = gauss_helmert(condition, (start,), cov, variant="iterated", step_tol=1e-12)
+    # cost_tol=0: stop on the step only (a relative cost change of 1e-12, the default, stops
+    # GN with a gradient of ~1e-7, ~1e-8 from the optimum)
+    gn = gauss_newton(lambda x: x[0].unsqueeze(-1).rminus(obs).flatten(1) / s2 ** 0.5, (start,),
+                      step_tol=1e-12, cost_tol=0.0)
+    assert bool(gh.report.converged.all()) and bool(gn.report.converged.all())
+    assert gh.x[0].rminus(gn.x[0]).abs().max() < 1e-9
+    assert gh.x[0].rminus(target).abs().max() > 1e-3  # the noise moved the solution
+    assert (gh.covariance - gn.covariance).abs().max() < 1e-9
