@@ -1,5 +1,6 @@
 """Shared test machinery: one decorator runs a property over every group, several batch
-shapes and both float dtypes; samples always include the small-angle and near-pi bands."""
+shapes and both float dtypes; every batched sample covers the small-angle, closed-form and
+near-pi bands (see ANGLES)."""
 from __future__ import annotations
 
 import math
@@ -18,22 +19,28 @@ GROUP_CLASSES = list(ts.ALL_GROUPS)
 BATCH_SHAPES = [(), (5,), (2, 3, 1)]
 DTYPES = [torch.float64, torch.float32]
 
-# Rotation angles cycled over a batch: the Taylor branches, the closed form, and near pi.
-ANGLES = [0.0, 1e-9, 1e-5, 1e-3, 0.7, 1e-12, 1e-6, 0.3, 2.0, math.pi - 1e-6, 1.0, 3.0]
-UNBATCHED_ANGLE = 1e-6
+# Rotation angles cycled over a batch.  Interleaved so that every batch of >= 5 elements
+# (BATCH_SHAPES has (5,) and (2, 3, 1)) covers the identity, the Taylor branches (an angle
+# below numerics.JINV_THRESHOLD = 0.5 and one between it and SERIES_THRESHOLD = 1), the sin/cos
+# closed form past pi/2 (where log takes the axis from the symmetric part) and near pi; from 6
+# elements on also theta = 1 (closed form, cos > 0), then the other small and moderate angles.
+ANGLES = [0.0, 2.0, 1e-5, math.pi - 1e-6, 0.7, 1.0, 1e-9, 3.0, 1e-3, 0.3, 1e-12, 1e-6]
+# The single angle of an unbatched sample, chosen by the seed (seed 0: 1e-6), so that the
+# unbatched cases of different tests do not all sit in one branch.
+UNBATCHED_ANGLES = [1e-6, 1.0, 1e-9, 2.5, 1e-3, math.pi - 1e-6, 0.7, 3.0]
 
 
-def angles_for(batch_shape) -> np.ndarray:
-    n = int(np.prod(batch_shape)) if batch_shape else 1
+def angles_for(batch_shape, seed=0) -> np.ndarray:
     if not batch_shape:
-        return np.array([UNBATCHED_ANGLE])
+        return np.array([UNBATCHED_ANGLES[seed % len(UNBATCHED_ANGLES)]])
+    n = int(np.prod(batch_shape))
     return np.array([ANGLES[i % len(ANGLES)] for i in range(n)])
 
 
 def sample_tangent(G, batch_shape, dtype, seed=0, scale=1.0, angles=None) -> torch.Tensor:
     """Tangent vectors whose rotation angles are ``angles`` (default: the cycle above)."""
     rng = np.random.default_rng(seed)
-    ang = angles_for(batch_shape) if angles is None else np.asarray(angles, dtype=float)
+    ang = angles_for(batch_shape, seed) if angles is None else np.asarray(angles, dtype=float)
     n = ang.size
     xi = scale * rng.standard_normal((n, G.dof))
     phi_slice = G._f.PHI
