@@ -5,11 +5,14 @@ partial last block; every blocked result must equal the unblocked function's.
 """
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
+from torch.autograd import forward_ad as fwAD
 
 from conftest import GROUP_CLASSES, all_groups, gname, sample_group, sample_tangent
-from torchsgal.functional import _blocking
+from torchsgal.functional import _autograd, _blocking
 
 BATCH = (4, 9)  # 36 elements: five blocks of 7 and a last one of 1
 
@@ -23,6 +26,26 @@ def small_blocks(monkeypatch):
 def _blocked_names(G):
     return [n for n in ("jl", "jl_inv", "jr", "jr_inv", "adjoint", "inverse")
             if hasattr(getattr(G._f, n, None), "__wrapped__")]
+
+
+def _record_calls(monkeypatch):
+    """Every function that run_blocked runs (the blocked decorator and the custom Functions of
+    _autograd) appends (name, batch elements of its first argument, whether that argument
+    carries a forward-mode tangent) to the returned list, once per block."""
+    calls = []
+    real = _blocking.run_blocked
+
+    def recording(fn, args, event_dims):
+        def counted(*a):
+            n = math.prod(a[0].shape[: a[0].dim() - event_dims[0]])
+            calls.append((fn.__name__, n, fwAD.unpack_dual(a[0]).tangent is not None))
+            return fn(*a)
+
+        return real(counted, args, event_dims)
+
+    monkeypatch.setattr(_blocking, "run_blocked", recording)
+    monkeypatch.setattr(_autograd, "run_blocked", recording)
+    return calls
 
 
 def _eps(dtype):
@@ -63,7 +86,7 @@ def test_blocked_backward_matches(G, batch_shape, dtype, small_blocks, monkeypat
     """The custom Functions' forward and backward run blocked (no autograd recording inside);
     their gradients equal the unblocked ones."""
     xi = sample_tangent(G, batch_shape, dtype, seed=5)
-    W = torch.randn(batch_shape + (G.matrix_dim, G.matrix_dim), dtype=dtype)
+    W = torch.randn(batch_shape + (G.matrix_dim, G.matrix_dim), dtype=dtype, generator=torch.Generator().manual_seed(5))
 
     def grads():
         x = xi.clone().requires_grad_(True)
@@ -80,39 +103,60 @@ def test_blocked_backward_matches(G, batch_shape, dtype, small_blocks, monkeypat
 
 
 @pytest.mark.parametrize("G", GROUP_CLASSES, ids=gname)
-def test_blocking_stays_out_of_transforms(G, small_blocks):
-    """Under vmap, recording autograd and torch.func.grad the unblocked function runs (no writes
-    into a fresh output); results equal the blocked ones."""
+def test_blocking_stays_out_of_transforms(G, small_blocks, monkeypatch):
+    """Under vmap, recording autograd and torch.func.grad the unblocked function runs, in one
+    call over the whole batch (no writes into a fresh output); results equal the blocked ones.
+    (Inside a custom Function's forward nothing is recorded, so exp's forward may block.)"""
     xi = sample_tangent(G, (3, 20), torch.float64, seed=6)
     ref = G._f.exp(xi)
+    calls = _record_calls(monkeypatch)
     torch.testing.assert_close(torch.func.vmap(G._f.exp)(xi), ref, rtol=0, atol=8 * _eps(xi.dtype) * 10)
+    assert calls == [("exp_impl", 20, False)]  # one call on the logical batch of vmap
     x = xi.clone().requires_grad_(True)
+    calls.clear()
     out = G.jl(x)  # records autograd: plain path
     if "jl" in _blocked_names(G):
+        assert calls == [("jl", 60, False)]
         assert out.grad_fn is not None
         _assert_same(out.detach(), G._f.jl.__wrapped__(xi), xi.dtype, "jl")
+    calls.clear()
     g = torch.func.grad(lambda v: G._f.exp(v).sum())(xi)
-    assert torch.isfinite(g).all()
-    assert g.shape == xi.shape
+    assert [c for c in calls if c[0] == "_exp_backward"] == [("_exp_backward", 60, False)]
+    # against the ordinary backward, which runs blocked (nothing records it)
+    calls.clear()
+    (want,) = torch.autograd.grad(G._f.exp(x).sum(), x)
+    assert [c[1] for c in calls if c[0] == "_exp_backward"] == [7] * 8 + [4]
+    _assert_same(g, want, xi.dtype, "func.grad")
 
 
 @pytest.mark.parametrize("G", GROUP_CLASSES, ids=gname)
-def test_forward_mode_tangents_survive_blocking(G, small_blocks):
-    """Dual tensors (torch.autograd.forward_ad) through the blocked functions: the tangent of
-    every block reaches the output, equal to the tangent computed on each element alone."""
-    import torch.autograd.forward_ad as fwAD
-
+def test_forward_mode_tangents_survive_blocking(G, small_blocks, monkeypatch):
+    """Dual tensors (torch.autograd.forward_ad): a function given a dual tensor runs unblocked
+    in one call, and the whole tangent equals the one computed with blocking switched off
+    (exp's custom Function gets the primal alone and its forward and jvp block)."""
     xi = sample_tangent(G, BATCH, torch.float64, seed=8)
     t = torch.randn(xi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(8))
-    for name in ["exp"] + _blocked_names(G):
-        fn = (lambda v: G._f.inverse(G._f.exp(v))) if name == "inverse" else (
-            (lambda v: G._f.adjoint(G._f.exp(v))) if name == "adjoint" else getattr(G._f, name))
-        with fwAD.dual_level():
-            tangent = fwAD.unpack_dual(fn(fwAD.make_dual(xi, t))).tangent
+
+    def tangents():
+        out = {}
+        for name in ["exp"] + _blocked_names(G):
+            fn = (lambda v: G._f.inverse(G._f.exp(v))) if name == "inverse" else (
+                (lambda v: G._f.adjoint(G._f.exp(v))) if name == "adjoint" else getattr(G._f, name))
+            with fwAD.dual_level():
+                out[name] = fwAD.unpack_dual(fn(fwAD.make_dual(xi, t))).tangent
+        return out
+
+    calls = _record_calls(monkeypatch)
+    blocked = tangents()
+    assert any(n < 36 for _, n, _ in calls)  # the blocked path did run (exp's primal forward)
+    assert all(n == 36 for _, n, dual in calls if dual)
+    assert {name for name, _, dual in calls if dual} >= set(_blocked_names(G))
+    monkeypatch.setattr(_blocking, "MIN_BATCH", 10**9)
+    plain = tangents()
+    for name, tangent in blocked.items():
         assert tangent is not None, name
-        with fwAD.dual_level():
-            last = fwAD.unpack_dual(fn(fwAD.make_dual(xi[-1, -1:], t[-1, -1:]))).tangent
-        _assert_same(tangent[-1, -1:], last, xi.dtype, f"{name} tangent")
+        assert tangent.shape == plain[name].shape, name
+        _assert_same(tangent, plain[name], xi.dtype, f"{name} tangent")
 
 
 def test_blocked_errors_name_the_callers_shapes(small_blocks):

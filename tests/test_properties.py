@@ -121,6 +121,9 @@ def test_between_and_interpolate(G, xi, eta):
     assert _rel(g.rplus(d).rminus(g), d, 1.0) < 1e2 * EPS * _size(xi), (xi, eta)
     ends = g.interpolate(h, torch.tensor([0.0, 1.0], dtype=torch.float64)).as_matrix()
     assert _rel(ends[0], g.as_matrix()) < 1e2 * EPS * _size(xi)
+    # g exp(log(g^-1 h)) = h: measured worst 1.3e-14 * size(xi) size(eta) (Sim3; <= 1.7e-15
+    # for the others) over these examples
+    assert _rel(ends[1], h.as_matrix()) < EPS * _size(xi) * _size(eta), (xi, eta)
 
 
 @_group_test
