@@ -57,12 +57,13 @@ def test_actions_match_homogeneous_products(G, batch_shape, dtype):
     g = sample_group(G, batch_shape, dtype, seed=11)
     M = np64(g.as_matrix())
     dim, k = G.point_dim, G.rotation_dim
-    p = torch.randn(*batch_shape, dim, dtype=dtype)
+    gen = torch.Generator().manual_seed(31)
+    p = torch.randn(*batch_shape, dim, dtype=dtype, generator=gen)
     hom = np.einsum("...ij,...j->...i", M, _homogeneous(G, np64(p), "point"))
     if G.matrix_dim > dim:  # back from homogeneous coordinates (Sim3's last entry is 1/s)
         hom = hom / hom[..., -1:]
     assert_close(g.act(p), hom[..., :dim], dtype)
-    d = torch.randn(*batch_shape, k, dtype=dtype)
+    d = torch.randn(*batch_shape, k, dtype=dtype, generator=gen)
     want = np.einsum("...ij,...j->...i", M, _homogeneous(G, np64(d), "direction"))[..., :k]
     assert_close(g.act_direction(d), want, dtype)
     if hasattr(g, "act_velocity"):
@@ -89,16 +90,17 @@ def test_interpolate_is_the_geodesic(G, batch_shape, dtype):
     g = sample_group(G, batch_shape, dtype, seed=15)
     h = sample_group(G, batch_shape, dtype, seed=16)
     assert_close(g.interpolate(h, 0.0).as_matrix(), np64(g.as_matrix()), dtype)
-    assert_close(g.interpolate(h, 1.0).as_matrix(), np64(h.as_matrix()), dtype, factor=100)
-    # alpha as a batched tensor: g expm(alpha logm(g^-1 h)) from scipy
-    alpha = torch.rand(batch_shape, dtype=dtype)
+    # g exp(log(g^-1 h)) = h: measured worst 9.2e-16 relative (Sim3) on these samples
+    assert_close(g.interpolate(h, 1.0).as_matrix(), np64(h.as_matrix()), dtype, factor=1e-3)
+    # alpha as a batched tensor: g expm(alpha logm(g^-1 h)) from scipy (measured worst 7.2e-15)
+    alpha = torch.rand(batch_shape, dtype=dtype, generator=torch.Generator().manual_seed(32))
     got = np64(g.interpolate(h, alpha).as_matrix()).reshape(-1, G.matrix_dim, G.matrix_dim)
     Mg = np64(g.as_matrix()).reshape(-1, G.matrix_dim, G.matrix_dim)
     Mh = np64(h.as_matrix()).reshape(-1, G.matrix_dim, G.matrix_dim)
     a = np64(alpha).reshape(-1)
     for k in range(Mg.shape[0]):
         rel = np.real(scipy.linalg.logm(np.linalg.inv(Mg[k]) @ Mh[k]))
-        np.testing.assert_allclose(got[k], Mg[k] @ scipy.linalg.expm(a[k] * rel), atol=1e-9)
+        np.testing.assert_allclose(got[k], Mg[k] @ scipy.linalg.expm(a[k] * rel), rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)

@@ -76,27 +76,27 @@ def test_custom_backward_equals_plain_autograd(G, angle):
     """The plain implementation (autograd through the closed form) is the oracle."""
     f = G._f
     xi = _xi(G, angle, n=4)
-    W = torch.randn(4, G.matrix_dim, G.matrix_dim, dtype=torch.float64)
-    w = torch.randn(4, G.dof, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(21)
+    W = torch.randn(4, G.matrix_dim, G.matrix_dim, dtype=torch.float64, generator=gen)
+    w = torch.randn(4, G.dof, dtype=torch.float64, generator=gen)
     (g1,) = torch.autograd.grad((f.exp(xi) * W).sum(), xi)
     (g2,) = torch.autograd.grad((f.exp_impl(xi) * W).sum(), xi)
     np.testing.assert_allclose(g1.numpy(), g2.numpy(), atol=1e-11, rtol=1e-10)
-    # log: the incoming perturbations are tangent to the group (they come from exp_impl)
+    # log: the incoming perturbations are tangent to the group (they come from exp_impl), and
+    # log(exp(x)) = x below pi, so both gradients of <w, log(exp(x))> are exactly w (measured
+    # worst 3.7e-15 over these angles, every group, 5 seeds of w)
     (h1,) = torch.autograd.grad((f.log(f.exp_impl(xi)) * w).sum(), xi)
     (h2,) = torch.autograd.grad((f.log_impl(f.exp_impl(xi)) * w).sum(), xi)
-    if angle is not None and 0 < angle < 1e-4:
-        # plain autograd through log's small-angle branch is only first-order accurate in
-        # theta there; the custom backward is exact: compare both to finite differences
-        np.testing.assert_allclose(h1.numpy(), w.numpy(), atol=1e-9)
-    else:
-        np.testing.assert_allclose(h1.numpy(), h2.numpy(), atol=1e-9, rtol=1e-8)
+    np.testing.assert_allclose(h1.numpy(), w.numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(h2.numpy(), w.numpy(), rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("G", GROUPS, ids=IDS)
 def test_float32_gradients_at_identity(G):
     """Finite and correct at xi = 0 in float32: d<W, exp(xi)>/dxi = hat^T(W) there."""
     f = G._f
-    W = torch.randn(G.matrix_dim, G.matrix_dim)
+    gen = torch.Generator().manual_seed(22)
+    W = torch.randn(G.matrix_dim, G.matrix_dim, generator=gen)
     basis = ref.basis(G.__name__)  # hat(e_j)
     expected = np.einsum("jab,ab->j", basis, W.numpy().astype(float))
     for fn in (f.exp, f.exp_impl):
@@ -105,7 +105,7 @@ def test_float32_gradients_at_identity(G):
         assert torch.isfinite(g).all()
         np.testing.assert_allclose(g.numpy(), expected, atol=1e-5)
     # log at the identity: gradient of <w, log(exp(x))> is w
-    w = torch.randn(G.dof)
+    w = torch.randn(G.dof, generator=gen)
     for fn in (f.log, f.log_impl):
         xi = torch.zeros(G.dof, requires_grad=True)
         (g,) = torch.autograd.grad((fn(f.exp(xi)) * w).sum(), xi)
@@ -217,10 +217,11 @@ def test_second_derivatives(G):
     """The custom backward is itself differentiable (hessian against finite differences)."""
     f = G._f
     x0 = sample_tangent(G, (), torch.float64, seed=5, angles=[0.8])
-    W = torch.randn(G.matrix_dim, G.matrix_dim, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(23)
+    W = torch.randn(G.matrix_dim, G.matrix_dim, dtype=torch.float64, generator=gen)
     loss = lambda x: (f.exp(x) * W).sum()  # noqa: E731
     assert torch.autograd.gradgradcheck(loss, (x0.clone().requires_grad_(True),))
-    w = torch.randn(G.dof, dtype=torch.float64)
+    w = torch.randn(G.dof, dtype=torch.float64, generator=gen)
     loss2 = lambda x: (f.log(torch.linalg.matrix_exp(f.hat(x))) * w).sum()  # noqa: E731
     assert torch.autograd.gradgradcheck(loss2, (x0.clone().requires_grad_(True),))
 

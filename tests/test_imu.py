@@ -139,7 +139,7 @@ def test_noise_map_is_adjoint_columns():
     F = SGal3.random((4, 3), dtype=F64, generator=torch.Generator().manual_seed(2))
     ref = F.adjoint()[..., 3:10].movedim(-3, -1)  # nodes along the last axis
     assert torch.allclose(noise_map(F), ref, atol=1e-13)
-    scale = torch.rand(4, 3, dtype=F64)
+    scale = torch.rand(4, 3, dtype=F64, generator=torch.Generator().manual_seed(3))
     assert torch.allclose(noise_map(F, scale), ref * scale[:, None, None, :], atol=1e-13)
 
 
@@ -445,12 +445,11 @@ def test_bad_dtypes_values_and_devices_raise_with_names():
 
 
 def test_empty_and_non_floating_chains():
-    E = torch.linalg.matrix_exp(0.3 * torch.randn(3, 4, 5, 5, dtype=F64))
+    gen = torch.Generator().manual_seed(4)
+    E = torch.linalg.matrix_exp(0.3 * torch.randn(3, 4, 5, 5, dtype=F64, generator=gen))
     empty = E[:, :0]
     assert torch.equal(window_product(empty), torch.eye(5, dtype=F64).expand(3, 5, 5))
     assert suffix_products(empty).shape == (3, 0, 5, 5)
-    # The identity of the empty chain is the neutral element: E_0 .. E_3 times it.
-    assert torch.allclose(window_product(E) @ window_product(empty), window_product(E), atol=0)
     for bad in (E.to(torch.int64), E.half()):
         for f in (window_product, suffix_products):
             with pytest.raises(TypeError, match="E must have a floating dtype"):
