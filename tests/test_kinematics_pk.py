@@ -146,9 +146,9 @@ def test_pk_chain_unbatched_and_errors():
     chain = build_pk_chain(*ROBOTS["scara"])
     q = random_q(4, B=1, seed=3)
     torch.testing.assert_close(pk_fk(chain, q[0]), dh_fk(ROBOTS["scara"], q), atol=1e-12, rtol=0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"joint_types\[0\] must be 'revolute'/'R' or 'prismatic'/'P', got 'spherical'"):
         build_pk_chain([0.0], [0.0], [0.0], [0.0], ["spherical"])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"DH table lengths differ: a 2, alpha 1, d 1, theta_offset 1, joint_types 1"):
         build_pk_chain([0.0, 1.0], [0.0], [0.0], [0.0], ["revolute"])
 
 
@@ -211,7 +211,7 @@ def test_from_transform3d_velocity_broadcast_and_tensor_input():
     torch.testing.assert_close(y.position(), t.get_matrix()[:, :3, 3])
     z = from_transform3d(t.get_matrix())
     torch.testing.assert_close(z.as_matrix(), t.get_matrix())
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match="x must be a torchsgal SE3 or SE23, got SO3"):
         to_transform3d(torchsgal.SO3.identity(dtype=DT))
 
 
