@@ -31,11 +31,12 @@ def _split(xi: torch.Tensor):
 
 
 def _components(M: torch.Tensor):
-    return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4], M[..., 3, 4:5]
+    return M[..., :3, :3], M[..., :3, 3], M[..., :3, 4], M[..., 3, 4]
 
 
 def components(M: torch.Tensor):
-    """(C, v, r, tau) of a group matrix in the public layout; tau has shape (..., 1)."""
+    """(C, v, r, tau) of a group matrix in the public layout: C (..., 3, 3), v, r (..., 3) and
+    tau (...), as ``SGal3.time()`` and Sim3's scale (``from_components`` takes the same)."""
     checks.matrix(M, MATRIX_DIM, "M")
     return _components(M)
 
@@ -46,9 +47,9 @@ def _matrix(rot, v, r, tau) -> torch.Tensor:
 
 
 def from_components(C, v, r, tau) -> torch.Tensor:
-    """C (..., 3, 3), v, r (..., 3), tau (..., 1), batches broadcast -> (..., 5, 5)."""
-    C, v, r, tau = checks.components(C=(C, (3, 3)), v=(v, (3,)), r=(r, (3,)), tau=(tau, (1,)))
-    return _matrix(B.entries(C), B.first(v), B.first(r), tau[..., 0])
+    """C (..., 3, 3), v, r (..., 3), tau (...), batches broadcast -> (..., 5, 5)."""
+    C, v, r, tau = checks.components(C=(C, (3, 3)), v=(v, (3,)), r=(r, (3,)), tau=(tau, ()))
+    return _matrix(B.entries(C), B.first(v), B.first(r), tau)
 
 
 def hat(xi: torch.Tensor) -> torch.Tensor:
@@ -123,10 +124,10 @@ def adjoint(M: torch.Tensor) -> torch.Tensor:
     """(3.16)."""
     checks.matrix(M, MATRIX_DIM, "M")
     C, v, r, tau = _components(M)
-    t = tau.unsqueeze(-1)
+    t = tau[..., None, None]
     return B.block_matrix(
         [
-            [C, -t * C, B.skew_times(r - tau * v, C), v.unsqueeze(-1)],
+            [C, -t * C, B.skew_times(r - tau[..., None] * v, C), v.unsqueeze(-1)],
             [None, C, B.skew_times(v, C), None],
             [None, None, C, None],
             [None, None, None, torch.ones_like(t)],

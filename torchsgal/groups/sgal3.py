@@ -30,7 +30,7 @@ class SGal3(LieGroup):
             rotation=(rotation, (3, 3)),
             velocity=(velocity, (3,)),
             position=(position, (3,)),
-            time=(time.unsqueeze(-1) if isinstance(time, torch.Tensor) else time, (1,)),
+            time=(time, ()),
         )
         return cls(_sgal3.from_components(C, v, r, tau))
 
