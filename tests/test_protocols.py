@@ -31,3 +31,25 @@ def test_sgal3_components_time_shape():
     g = SGal3.random((4, 2), dtype=F64)
     C, v, r, tau = g._f.components(g.as_matrix())
     assert tau.shape == (4, 2) and torch.equal(tau, g.time())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64], ids=str)
+def test_sim3_from_matrix_check_accepts_small_and_large_scales(dtype):
+    """M[3, 3] = 1/s is a free entry: a valid element with a tiny or huge scale passes the
+    check; a non-zero in the bottom row's fixed zeros, or 1/s <= 0, does not."""
+    from torchsgal import Sim3
+    for inv_s in (28199.158203125, 1.2345678901e13, 3.5e-9):
+        M = torch.eye(4, dtype=dtype)
+        M[3, 3] = inv_s
+        Sim3.from_matrix(M, check=True)
+    xi = 3 * torch.randn(2000, 7, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    xi[:, 6] *= 3  # scales from about e^-27 to e^27
+    Sim3.from_matrix(Sim3.exp(xi).as_matrix(), check=True)
+    M = torch.eye(4, dtype=dtype)
+    M[3, 3] = 1e6
+    M[3, 1] = 1e-3
+    with pytest.raises(ValueError, match=r"not in Sim3 .* fixed rows = 0.001"):
+        Sim3.from_matrix(M, check=True)
+    M[3, 1], M[3, 3] = 0.0, -2.0
+    with pytest.raises(ValueError, match=r"M\[3, 3\] = 1/s must be positive, got -2"):
+        Sim3.from_matrix(M, check=True)

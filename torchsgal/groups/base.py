@@ -60,9 +60,7 @@ class LieGroup:
         eye = blocks.eye(k, M)
         orth = (C.transpose(-1, -2) @ C - eye).abs().amax(dim=(-1, -2))
         det = (torch.linalg.det(C) - 1).abs()
-        # The fixed rows: rebuild the matrix from its free entries and compare.
-        rebuilt = cls._f.from_components(*cls._f.components(M))
-        rows = (M - rebuilt).abs().amax(dim=(-1, -2))
+        rows = cls._fixed_deviation(M)
         finite = torch.isfinite(M).all()
         worst = torch.stack((orth.max(), det.max(), rows.max())) if M.numel() else None
         if not bool(finite):
@@ -73,6 +71,13 @@ class LieGroup:
                 f"matrix is not in {cls.__name__} (tol {tol:g}): max |C^T C - I| = {o:.3g}, "
                 f"max |det C - 1| = {d:.3g}, max deviation of the fixed rows = {r:.3g}"
             )
+
+    @classmethod
+    def _fixed_deviation(cls, M: torch.Tensor) -> torch.Tensor:
+        """The largest deviation (...) of the fixed entries of M from their values: the matrix
+        rebuilt from its free entries, compared with M."""
+        rebuilt = cls._f.from_components(*cls._f.components(M))
+        return (M - rebuilt).abs().amax(dim=(-1, -2))
 
     @classmethod
     def identity(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None):

@@ -29,6 +29,13 @@ class Sim3(LieGroup):
         return cls(_sim3.from_components(C, r, s))
 
     @classmethod
+    def _fixed_deviation(cls, M: torch.Tensor) -> torch.Tensor:
+        """Only the zeros of the bottom row are fixed: M[3, 3] = 1/s is free (any positive value,
+        checked below), and rebuilding it as 1/(1/M[3, 3]) would compare a rounding error of the
+        size of M[3, 3] with an absolute tolerance."""
+        return M[..., 3, :3].abs().amax(dim=-1)
+
+    @classmethod
     def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
         super()._check_membership(M, tol)
         if M.numel() and bool((M[..., 3, 3] <= 0).any()):
