@@ -53,3 +53,23 @@ def test_sim3_from_matrix_check_accepts_small_and_large_scales(dtype):
     M[3, 1], M[3, 3] = 0.0, -2.0
     with pytest.raises(ValueError, match=r"M\[3, 3\] = 1/s must be positive, got -2"):
         Sim3.from_matrix(M, check=True)
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_iteration_and_truth_value(G):
+    """Iteration runs over the first batch axis, as for a tensor; an unbatched element cannot
+    be iterated (it used to iterate to nothing) and no element has a truth value."""
+    g = G.random((3, 2), dtype=F64)
+    parts = list(g)
+    assert len(parts) == 3 and all(type(p) is G and p.batch_shape == (2,) for p in parts)
+    assert all(torch.equal(p.as_matrix(), g.as_matrix()[i]) for i, p in enumerate(parts))
+    assert [p.batch_shape for p in G.identity(0)] == []
+    one = G.identity()
+    with pytest.raises(TypeError, match=rf"iteration over an unbatched {G.__name__}"):
+        list(one)
+    for x in (one, g, G.identity(0)):
+        with pytest.raises(TypeError, match=rf"truth value of a {G.__name__} is ambiguous"):
+            bool(x)
+    with pytest.raises(TypeError, match=r"truth value"):
+        if one:
+            pass

@@ -246,6 +246,19 @@ class LieGroup:
             raise TypeError(f"len() of an unbatched {type(self).__name__}")
         return self.batch_shape[0]
 
+    def __iter__(self):
+        """The elements along the first batch axis (as iterating a tensor); TypeError for an
+        unbatched element, as for a 0-d tensor."""
+        if not self.batch_shape:
+            raise TypeError(f"iteration over an unbatched {type(self).__name__}")
+        return (self[i] for i in range(self.batch_shape[0]))
+
+    def __bool__(self):
+        raise TypeError(
+            f"the truth value of a {type(self).__name__} is ambiguous: test `g is not None`, or "
+            f"the batch size with g.batch_shape.numel()"
+        )
+
     def reshape(self, *shape):
         """A new batch shape (one -1 allowed), as torch.reshape on the batch axes."""
         if len(shape) == 1 and not isinstance(shape[0], int):
