@@ -73,3 +73,27 @@ def test_iteration_and_truth_value(G):
     with pytest.raises(TypeError, match=r"truth value"):
         if one:
             pass
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_equality_is_identity_and_allclose_compares_values(G):
+    g = G.random((4,), dtype=F64, generator=torch.Generator().manual_seed(2))
+    c = g.clone()
+    assert g == g and g != c and not (g == c)  # identity, documented
+    assert {g: 1}[g] == 1 and c not in {g: 1}
+    assert g.allclose(c) and c.allclose(g)
+    assert g[:1].allclose(G.identity(3, dtype=F64)) is False
+    assert g[1:2].allclose(G.stack([g[1]] * 3))  # broadcasts like torch.allclose
+    nudged = G(g.as_matrix() + 1e-7)
+    assert not g.allclose(nudged, rtol=0, atol=1e-8) and g.allclose(nudged, rtol=0, atol=1e-6)
+    assert isinstance(g.allclose(c), bool)
+    with pytest.raises(TypeError, match=rf"other must be a {G.__name__}, got Tensor"):
+        g.allclose(g.as_matrix())
+    with pytest.raises(TypeError, match=r"other has dtype torch.float32 but self has dtype torch.float64"):
+        g.allclose(g.float())
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: self \(4,\), other \(3,\)"):
+        g.allclose(g[:3])
+    with pytest.raises(ValueError, match=r"rtol must be a finite number >= 0, got -1"):
+        g.allclose(c, rtol=-1)
+    with pytest.raises(TypeError, match=r"atol must be a finite number >= 0, got None"):
+        g.allclose(c, atol=None)

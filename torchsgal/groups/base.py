@@ -16,7 +16,13 @@ from ..functional._blocking import values_readable
 
 
 class LieGroup:
-    """Base of SO3, SE3, SE23 and SGal3; subclasses set ``dof``, ``matrix_dim`` and ``_f``."""
+    """Base of the group classes (SO2, SE2, SO3, SE3, SE23, SGal3, Sim3); subclasses set
+    ``dof``, ``matrix_dim`` and ``_f``.
+
+    ``==``, ``!=`` and ``hash`` are Python's identity comparison (``g == g.clone()`` is False),
+    so that elements can be dictionary keys; compare values with ``g.allclose(h)`` or on the
+    matrices (``torch.equal(g.as_matrix(), h.as_matrix())``).
+    """
 
     dof: int
     matrix_dim: int
@@ -189,6 +195,16 @@ class LieGroup:
         alpha = torch.as_tensor(alpha, dtype=delta.dtype, device=delta.device)
         checks.broadcast_batch(batch=delta.shape[:-1], alpha=alpha.shape)
         return self.rplus(alpha.unsqueeze(-1) * delta)
+
+    def allclose(self, other, rtol: float = 1e-5, atol: float = 1e-8) -> bool:
+        """True if every matrix of g is close to the matching (broadcast) matrix of ``other``, as
+        torch.allclose on the homogeneous matrices: |g - h| <= atol + rtol |h| entrywise.  A
+        Python bool (one host sync); ``other`` of the same group, dtype and device."""
+        self._same_type(other, "other")
+        rtol = checks.finite_number(rtol, "rtol", ">= 0")
+        atol = checks.finite_number(atol, "atol", ">= 0")
+        a, b = torch.broadcast_tensors(self._matrix, other._matrix)
+        return bool(torch.allclose(a, b, rtol=rtol, atol=atol))
 
     def act_direction(self, d: torch.Tensor) -> torch.Tensor:
         """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d."""
