@@ -3,6 +3,10 @@ trips, membership checks, iteration and truth value, equality, serialisation, py
 transforms taking and returning group objects) and scalar arguments."""
 from __future__ import annotations
 
+import copy
+import io
+import pickle
+
 import pytest
 import torch
 
@@ -97,3 +101,26 @@ def test_equality_is_identity_and_allclose_compares_values(G):
         g.allclose(c, rtol=-1)
     with pytest.raises(TypeError, match=r"atol must be a finite number >= 0, got None"):
         g.allclose(c, atol=None)
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_pickle_deepcopy_and_torch_save_round_trip(G):
+    """torch.save then torch.load with its default (weights_only=True since torch 2.6) used to
+    raise UnpicklingError; loading rebuilds the element through its constructor."""
+    g = G.random((2, 3), dtype=F64)
+    buf = io.BytesIO()
+    torch.save({"pose": g, "list": [g[0], g.float()]}, buf)
+    buf.seek(0)
+    out = torch.load(buf)
+    for got, want in ((out["pose"], g), (out["list"][0], g[0]), (out["list"][1], g.float())):
+        assert type(got) is G and got.dtype == want.dtype
+        assert torch.equal(got.as_matrix(), want.as_matrix())
+    buf.seek(0)
+    assert torch.equal(torch.load(buf, weights_only=True)["pose"].as_matrix(), g.as_matrix())
+    for h in (pickle.loads(pickle.dumps(g)), copy.deepcopy(g)):
+        assert type(h) is G and torch.equal(h.as_matrix(), g.as_matrix())
+        assert h.as_matrix().data_ptr() != g.as_matrix().data_ptr()
+    # loading goes through the constructor's checks
+    func, args = g.__reduce__()
+    with pytest.raises(ValueError, match=r"matrix must have shape"):
+        func(args[0][..., :-1])

@@ -1,3 +1,5 @@
+import torch
+
 from .base import LieGroup
 from .se2 import SE2
 from .se3 import SE3
@@ -6,5 +8,11 @@ from .sgal3 import SGal3
 from .sim3 import Sim3
 from .so2 import SO2
 from .so3 import SO3
+
+# torch.load(weights_only=True), the default since torch 2.6, rebuilds only allowlisted classes;
+# a group element pickles as cls(matrix) (LieGroup.__reduce__), whose constructor checks the
+# matrix, so allowing the classes lets a checkpoint hold group elements and nothing more.
+if hasattr(torch.serialization, "add_safe_globals"):  # torch >= 2.4
+    torch.serialization.add_safe_globals([SO2, SE2, SO3, SE3, SE23, SGal3, Sim3])
 
 __all__ = ["LieGroup", "SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3"]

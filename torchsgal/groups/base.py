@@ -22,6 +22,9 @@ class LieGroup:
     ``==``, ``!=`` and ``hash`` are Python's identity comparison (``g == g.clone()`` is False),
     so that elements can be dictionary keys; compare values with ``g.allclose(h)`` or on the
     matrices (``torch.equal(g.as_matrix(), h.as_matrix())``).
+
+    Elements pickle, deepcopy and ``torch.save`` as their matrix; ``torch.load`` reads them with
+    its default ``weights_only=True`` (the classes are registered as safe globals).
     """
 
     dof: int
@@ -381,6 +384,12 @@ class LieGroup:
     def clone(self):
         """A copy with its own storage."""
         return type(self)(self._matrix.clone())
+
+    def __reduce__(self):
+        """Pickles (and torch.save's) as ``cls(matrix)``: loading goes through the constructor's
+        checks, and torch.load's default weights_only unpickler accepts it (the group classes
+        are registered with torch.serialization.add_safe_globals)."""
+        return type(self), (self._matrix,)
 
     def __repr__(self) -> str:
         return (
