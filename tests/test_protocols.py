@@ -124,3 +124,44 @@ def test_pickle_deepcopy_and_torch_save_round_trip(G):
     func, args = g.__reduce__()
     with pytest.raises(ValueError, match=r"matrix must have shape"):
         func(args[0][..., :-1])
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_torch_func_takes_and_returns_group_objects(G):
+    """Group classes are pytree nodes (one leaf, the matrix): vmap maps over and returns group
+    objects (it used to refuse them: "must only return Tensors", "cannot vmap over non-Tensor
+    arguments"), and derivatives with respect to a group argument come back in its structure."""
+    from torch.func import grad, jacrev, vmap
+    from torch.utils import _pytree as pytree
+
+    xi = 0.5 * torch.randn(8, G.dof, dtype=F64, generator=torch.Generator().manual_seed(4))
+    g = vmap(G.exp)(xi)  # returns a group object
+    assert type(g) is G and g.batch_shape == (8,)
+    assert torch.equal(g.as_matrix(), G.exp(xi).as_matrix())
+    # takes group objects, mapping over their first batch axis, with None for a shared one
+    h = G.exp(xi.flip(0))
+    torch.testing.assert_close(vmap(lambda a, b: a.rminus(b))(g, h), g.rminus(h), rtol=0, atol=1e-13)
+    out = vmap(lambda a, b: a.compose(b), in_dims=(0, None))(g, h[0])
+    assert type(out) is G and torch.equal(out.as_matrix(), g.compose(h[0]).as_matrix())
+    nested = vmap(vmap(lambda a: a.inverse()))(G.exp(xi.reshape(2, 4, G.dof)))
+    assert type(nested) is G and nested.batch_shape == (2, 4)
+    # reverse mode: a function returning a group (its Jacobian is matrix-shaped), and the
+    # gradient with respect to a group argument (the Euclidean gradient of its matrix)
+    J = jacrev(lambda x: G.exp(x))(xi[0])
+    Jm = jacrev(lambda x: G.exp(x).as_matrix())(xi[0])
+    assert type(J) is G and torch.equal(J.as_matrix(), Jm)
+    gr = grad(lambda a: a.log().square().sum())(g[0])
+    grm = grad(lambda m: G(m).log().square().sum())(g[0].as_matrix())
+    assert type(gr) is G and torch.equal(gr.as_matrix(), grm)
+    leaves, spec = pytree.tree_flatten({"g": g, "x": xi})
+    assert len(leaves) == 2 and type(pytree.tree_unflatten(leaves, spec)["g"]) is G
+
+
+def test_torch_compile_takes_and_returns_group_objects():
+    """The pytree registration keeps torch.compile(fullgraph=True) of functions taking and
+    returning group objects in one graph (backend="eager": dynamo's tracing is under test)."""
+    G = SGal3
+    g, h = G.random(5, dtype=F64), G.random(5, dtype=F64)
+    f = torch.compile(lambda a, b: a.between(b), fullgraph=True, backend="eager")
+    out = f(g, h)
+    assert type(out) is G and torch.equal(out.as_matrix(), g.between(h).as_matrix())

@@ -23,6 +23,12 @@ class LieGroup:
     so that elements can be dictionary keys; compare values with ``g.allclose(h)`` or on the
     matrices (``torch.equal(g.as_matrix(), h.as_matrix())``).
 
+    Each class is a pytree node whose one leaf is the matrix: torch.func transforms (vmap, grad,
+    jacrev, ...) take and return group objects, vmap mapping over batch axes.  A derivative
+    with respect to a group argument (or of a group-valued function) comes back in the same
+    structure: a wrapper of the matrix's Euclidean gradient (or Jacobian), not a group element;
+    read it with ``as_matrix()``.
+
     Elements pickle, deepcopy and ``torch.save`` as their matrix; ``torch.load`` reads them with
     its default ``weights_only=True`` (the classes are registered as safe globals).
     """
@@ -39,6 +45,19 @@ class LieGroup:
         """Wraps a group matrix without checking it; prefer ``from_matrix``."""
         checks.matrix(matrix, self.matrix_dim, "matrix")
         self._matrix = matrix
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        _register_pytree(cls)
+
+    @classmethod
+    def _from_leaf(cls, leaf):
+        """The pytree unflatten: wraps ``leaf`` unchecked, since torch.func and torch.utils._pytree
+        rebuild the structure around whatever leaves they computed (Jacobians of other shapes,
+        in_dims, sizes)."""
+        g = object.__new__(cls)
+        g._matrix = leaf
+        return g
 
     # ---------------------------------------------------------------- constructors
     @classmethod
@@ -396,6 +415,22 @@ class LieGroup:
             f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
             f"device={self.device})"
         )
+
+
+def _register_pytree(cls) -> None:
+    """Registers a group class as a pytree node with one leaf, its matrix, so that torch.func
+    transforms (vmap, grad, jacrev, ...) take and return group objects."""
+    pytree = torch.utils._pytree
+    flatten = lambda g: ([g._matrix], None)  # noqa: E731
+    unflatten = lambda leaves, context: cls._from_leaf(leaves[0])  # noqa: E731
+    if hasattr(pytree, "register_pytree_node"):  # torch >= 2.2
+        pytree.register_pytree_node(
+            cls, flatten, unflatten,
+            serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
+            flatten_with_keys_fn=lambda g: ([(pytree.GetAttrKey("_matrix"), g._matrix)], None),
+        )
+    else:  # torch 2.1
+        pytree._register_pytree_node(cls, flatten, unflatten)
 
 
 def _tol_arg(tol) -> float | None:
