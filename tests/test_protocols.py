@@ -7,6 +7,7 @@ import copy
 import io
 import pickle
 
+import numpy as np
 import pytest
 import torch
 
@@ -165,3 +166,34 @@ def test_torch_compile_takes_and_returns_group_objects():
     f = torch.compile(lambda a, b: a.between(b), fullgraph=True, backend="eager")
     out = f(g, h)
     assert type(out) is G and torch.equal(out.as_matrix(), g.between(h).as_matrix())
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_scalar_arguments(G):
+    """interpolate's alpha: any real number (numpy's float32 was refused, float64 accepted),
+    not a bool; from_matrix's check: a bool (check="no" used to run the check)."""
+    g = G.random(3, dtype=F64, generator=torch.Generator().manual_seed(5))
+    h = G.random(3, dtype=F64, generator=torch.Generator().manual_seed(6))
+    want = g.interpolate(h, 0.5).as_matrix()
+    for alpha in (np.float32(0.5), np.float64(0.5), 0.5):
+        torch.testing.assert_close(g.interpolate(h, alpha).as_matrix(), want, rtol=0, atol=1e-15)
+    assert torch.equal(g.interpolate(h, np.int64(1)).as_matrix(), g.interpolate(h, 1).as_matrix())
+    for bad in (True, "0.5", None):
+        with pytest.raises(TypeError, match=rf"alpha must be a number or a torch.Tensor, got {type(bad).__name__}"):
+            g.interpolate(h, bad)
+    M = g.as_matrix().clone()
+    M[0, 0, 0] += 0.1  # not in the group
+    G.from_matrix(M, check=False)
+    with pytest.raises(ValueError, match=rf"not in {G.__name__}"):
+        G.from_matrix(M, check=True)
+    for bad in ("no", 0, None, torch.tensor(False)):
+        with pytest.raises(TypeError, match=r"check must be True or False, got"):
+            G.from_matrix(M, check=bad)
+
+
+def test_from_transform3d_check_flag():
+    from torchsgal.kinematics import pk_interop
+    M = torch.eye(4, dtype=F64).expand(2, 4, 4)
+    assert pk_interop.from_transform3d(M, check=True).batch_shape == (2,)
+    with pytest.raises(TypeError, match=r"check must be True or False, got 'no'"):
+        pk_interop.from_transform3d(M, check="no")

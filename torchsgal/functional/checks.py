@@ -111,6 +111,14 @@ def integer(value, name: str, minimum: int | None = None) -> int:
     return int(value)
 
 
+def boolean(value, name: str) -> bool:
+    """A flag (``check=...``): a Python bool only, so that a string such as "no" or a tensor is
+    refused rather than read by its truth value.  TypeError otherwise."""
+    if not isinstance(value, bool):
+        raise TypeError(f"{name} must be True or False, got {value!r}")
+    return value
+
+
 _BOUNDS = {"": lambda v: True, ">= 0": lambda v: v >= 0, "> 0": lambda v: v > 0,
            "in [0, 1]": lambda v: 0 <= v <= 1}
 

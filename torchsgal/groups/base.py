@@ -6,7 +6,7 @@ group's functional module (``_f``), the one place its maths lives.
 """
 from __future__ import annotations
 
-from numbers import Integral
+from numbers import Integral, Real
 from typing import Sequence
 
 import torch
@@ -74,6 +74,7 @@ class LieGroup:
         skipped where they cannot be read: on 'meta', inside a torch.func transform (vmap, grad,
         jacrev) and while torch.compile traces; shape and dtype are always checked."""
         checks.matrix(matrix, cls.matrix_dim, "matrix")
+        check = checks.boolean(check, "check")
         tol = _tol_arg(tol)
         if check and matrix.numel() and values_readable(matrix):
             cls._check_membership(matrix, tol)
@@ -211,7 +212,7 @@ class LieGroup:
         if isinstance(alpha, torch.Tensor):
             checks.floating(alpha, "alpha")
             checks.same_device_dtype(self=self._matrix, alpha=alpha)
-        elif not isinstance(alpha, (int, float)) or isinstance(alpha, bool):
+        elif not isinstance(alpha, Real) or isinstance(alpha, bool):  # numpy scalars are Real
             raise TypeError(f"alpha must be a number or a torch.Tensor, got {type(alpha).__name__}")
         delta = self.between(other).log()
         alpha = torch.as_tensor(alpha, dtype=delta.dtype, device=delta.device)

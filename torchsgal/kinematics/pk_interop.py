@@ -222,6 +222,7 @@ def from_transform3d(t, velocity: Optional[torch.Tensor] = None, batch_shape=Non
         raise TypeError(f"t must be a pytorch_kinematics Transform3d or a (..., 4, 4) tensor, "
                         f"got {type(t).__name__}")
     checks.matrix(m, 4, "t")
+    checks.boolean(check, "check")
     if batch_shape is not None:
         shape = (batch_shape,) if isinstance(batch_shape, int) else batch_shape
         try:
