@@ -66,7 +66,7 @@ def test_linear_least_squares_solution_and_covariance_match_lstsq():
     B, m, d = 5, 12, 3
     A = torch.randn(B, m, d, generator=gen, dtype=f64)
     y = torch.randn(B, m, generator=gen, dtype=f64)
-    sol = gauss_newton(lambda x: (A @ x[0][..., None])[..., 0] - y, torch.zeros(B, d, dtype=f64),
+    sol = gauss_newton(lambda x: (A @ x[0][..., None])[..., 0] - y, (torch.zeros(B, d, dtype=f64),),
                        jacobian=lambda x: A)
     ref = torch.linalg.lstsq(A, y[..., None]).solution[..., 0]
     assert (sol.x[0] - ref).abs().max() < 1e-12
@@ -95,7 +95,7 @@ def test_unobservable_direction_is_reported_singular():
     A = torch.randn(3, 6, 2, generator=gen, dtype=f64)
     A[1, :, 1] = 2 * A[1, :, 0]  # problem 1: rank deficient
     y = torch.randn(3, 6, generator=gen, dtype=f64)
-    sol = gauss_newton(lambda x: (A @ x[0][..., None])[..., 0] - y, torch.zeros(3, 2, dtype=f64),
+    sol = gauss_newton(lambda x: (A @ x[0][..., None])[..., 0] - y, (torch.zeros(3, 2, dtype=f64),),
                        jacobian=lambda x: A)
     assert sol.report.status.tolist() == [SolverStatus.CONVERGED, SolverStatus.SINGULAR,
                                           SolverStatus.CONVERGED]
@@ -119,7 +119,7 @@ def test_errors_name_the_argument():
     with pytest.raises(ValueError, match=r"residual\(x\) must return \(B, m\)"):
         gauss_newton(lambda x: x[0].sum(-1), torch.zeros(3, 2, dtype=f64))
     with pytest.raises(ValueError, match=r"jacobian\(x\) must return"):
-        gauss_newton(r, torch.zeros(3, 2, dtype=f64), jacobian=lambda x: torch.zeros(3, 2, 5))
+        gauss_newton(r, (torch.zeros(3, 2, dtype=f64),), jacobian=lambda x: torch.zeros(3, 2, 5))
 
 
 # ------------------------------------------------------------------ errors in variables
@@ -160,7 +160,7 @@ def test_gauss_helmert_iterated_line_fit_is_orthogonal_regression():
     x, y = _line_data()
     cov = 0.09 * torch.eye(2, dtype=f64)
     # It converges linearly here: ask for a step below 1e-10 standard deviations.
-    sol = gauss_helmert(_line_condition(x, y), torch.zeros(3, 2, dtype=f64), cov,
+    sol = gauss_helmert(_line_condition(x, y), (torch.zeros(3, 2, dtype=f64),), cov,
                         step_tol=1e-10, max_iterations=100)
     assert sol.report.converged.all()
     for k in range(3):
@@ -178,7 +178,7 @@ def test_gauss_helmert_paper_variant_reaches_its_own_fixed_point():
     x, y = _line_data()
     cov = 0.09 * torch.eye(2, dtype=f64)
     cond = _line_condition(x, y)
-    sol = gauss_helmert(cond, torch.zeros(3, 2, dtype=f64), cov, variant="paper")
+    sol = gauss_helmert(cond, (torch.zeros(3, 2, dtype=f64),), cov, variant="paper")
     assert sol.report.converged.all()
     c, A, Bm = cond(sol.x, None)
     S = Bm @ cov @ Bm.transpose(-1, -2)
@@ -191,7 +191,7 @@ def test_gauss_helmert_paper_variant_reaches_its_own_fixed_point():
 def test_gauss_helmert_covariance_checks():
     x, y = _line_data()
     cond = _line_condition(x, y)
-    x0 = torch.zeros(3, 2, dtype=f64)
+    x0 = (torch.zeros(3, 2, dtype=f64),)
     with pytest.raises(ValueError, match="not symmetric"):
         gauss_helmert(cond, x0, torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=f64))
     with pytest.raises(ValueError, match="not positive definite"):
@@ -207,7 +207,7 @@ def test_gauss_helmert_covariance_checks():
 def test_gauss_helmert_checks_its_inputs_and_the_condition():
     x, y = _line_data()
     cond = _line_condition(x, y)
-    x0 = torch.zeros(3, 2, dtype=f64)
+    x0 = (torch.zeros(3, 2, dtype=f64),)
     cov = torch.eye(2, dtype=f64)
     with pytest.raises(ValueError, match=r"observation_covariance must have shape .* m >= 1"):
         gauss_helmert(cond, x0, torch.zeros(0, 0, dtype=f64))
@@ -259,13 +259,13 @@ def test_residual_and_jacobian_must_match_the_unknowns():
     eye = torch.eye(3, dtype=f64).expand(2, 3, 3)
     with pytest.raises(TypeError, match=r"residual\(x\) has dtype torch.float32 but x0 has "
                                         r"dtype torch.float64"):
-        gauss_newton(lambda x: (x[0] - 1).float(), x0, jacobian=lambda x: eye)
+        gauss_newton(lambda x: (x - 1).float(), x0, jacobian=lambda x: eye)
     with pytest.raises(TypeError, match=r"jacobian\(x\) has dtype torch.float32"):
-        gauss_newton(lambda x: x[0] - 1, x0, jacobian=lambda x: eye.float())
+        gauss_newton(lambda x: x - 1, x0, jacobian=lambda x: eye.float())
     with pytest.raises(ValueError, match=r"jacobian\(x\) is on meta"):
-        gauss_newton(lambda x: x[0] - 1, x0, jacobian=lambda x: eye.to("meta"))
+        gauss_newton(lambda x: x - 1, x0, jacobian=lambda x: eye.to("meta"))
     # An empty batch is solved trivially.
-    sol = gauss_newton(lambda x: x[0] - 1, x0[:0], jacobian=lambda x: eye[:0])
+    sol = gauss_newton(lambda x: x - 1, x0[:0], jacobian=lambda x: eye[:0])
     assert sol.covariance.shape == (0, 3, 3) and sol.report.status.shape == (0,)
 
 
@@ -337,3 +337,45 @@ def test_variables_check_blocks_and_shapes():
     assert torch.allclose(V.local((F, E), V.retract((F, E), d)), d, atol=1e-12)
     sel = V.select(torch.tensor([True, False, True, False]), (F, E + 1), (F, E))
     assert torch.equal(sel[1][:, 0], torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=f64))
+
+
+def test_single_unknown_reaches_the_residual_and_the_solution_unwrapped():
+    """x0 given as one block alone (a group element or a tensor): residual, jacobian and
+    condition receive it alone and Solution.x is that block (they used to receive a 1-tuple,
+    so that ``lambda x: x.rminus(t)`` raised AttributeError on a tuple)."""
+    gen = torch.Generator().manual_seed(7)
+    target = ts.SE3(ts.functional.se3.random((4,), f64, None, gen))
+    start = target.rplus(0.3 * torch.randn(4, 6, generator=gen, dtype=f64))
+    seen = []
+
+    def residual(x):
+        seen.append(type(x))
+        return x.rminus(target)
+    sol = gauss_newton(residual, start)
+    assert set(seen) == {ts.SE3} and type(sol.x) is ts.SE3 and sol.report.converged.all()
+    assert target.rminus(sol.x).abs().max() < 1e-12
+    assert sol.covariance.shape == (4, 6, 6)
+    # the same problem as a 1-tuple: the tuple convention is unchanged
+    sol1 = gauss_newton(lambda x: x[0].rminus(target), (start,))
+    assert type(sol1.x) is tuple and torch.equal(sol1.x[0].as_matrix(), sol.x.as_matrix())
+    # autograd_jacobian takes either form; at the solution J = J_r^-1(0) = I
+    J = autograd_jacobian(lambda x: x.rminus(target), target)
+    assert torch.equal(J, autograd_jacobian(lambda x: x[0].rminus(target), (target,)))
+    assert (J - torch.eye(6, dtype=f64)).abs().max() < 1e-12
+    # a tensor alone, with a given Jacobian that also receives it alone
+    A = torch.randn(4, 9, 3, generator=gen, dtype=f64)
+    y = torch.randn(4, 9, generator=gen, dtype=f64)
+    lin = gauss_newton(lambda x: (A @ x[..., None])[..., 0] - y, torch.zeros(4, 3, dtype=f64),
+                       jacobian=lambda x: A.expand(x.shape[0], 9, 3))
+    assert type(lin.x) is torch.Tensor and lin.x.shape == (4, 3)
+    assert (lin.x - torch.linalg.lstsq(A, y[..., None]).solution[..., 0]).abs().max() < 1e-12
+    # lbfgs and gauss_helmert follow the same rule
+    x, _, rep = lbfgs(lambda x, _: 0.5 * x.rminus(target).square().sum(-1), start)
+    assert type(x) is ts.SE3 and rep.converged.all() and target.rminus(x).abs().max() < 1e-6
+    xs, ys = _line_data()
+    line = _line_condition(xs, ys)
+    gh = gauss_helmert(lambda p, e: line((p,), e), torch.zeros(3, 2, dtype=f64),
+                       0.09 * torch.eye(2, dtype=f64), step_tol=1e-10, max_iterations=100)
+    ref = gauss_helmert(line, (torch.zeros(3, 2, dtype=f64),), 0.09 * torch.eye(2, dtype=f64),
+                        step_tol=1e-10, max_iterations=100)
+    assert type(gh.x) is torch.Tensor and torch.equal(gh.x, ref.x[0])

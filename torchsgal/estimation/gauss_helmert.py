@@ -27,7 +27,7 @@ import torch
 from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from . import variables as V
-from .solver import Linearisation, Solution, iterate
+from .solver import Linearisation, Solution, _as_given, iterate
 
 VARIANTS = ("iterated", "paper")
 
@@ -153,7 +153,9 @@ def gauss_helmert(
         None for e = 0 (the condition may take a cheaper path then).  Any invertible factor
         per condition may multiply c's linearisation (A, Bm and the linear part of c) without
         changing the solution.
-    x0: the unknowns (see ``variables``).
+    x0: the unknowns, as in ``gauss_newton``: a group element (B,), a tensor (B, k) or a tuple
+        of them; ``condition`` receives x, and ``Solution.x`` comes back, in the same form
+        (a block given alone arrives alone).
     observation_covariance: (B or 1, N or 1, m, m) symmetric positive definite, or a tuple of
         such blocks along the diagonal (sizes adding up to m); diagonal blocks are detected and
         handled elementwise.
@@ -165,6 +167,8 @@ def gauss_helmert(
     Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.
     """
     iterated = variant_options(variant, options)
+    single = V.is_single(x0)
+    condition = V.unwrapped(condition, single)
     x0 = V.check_values(x0)
     cov = _CovarianceBlocks(observation_covariance)
     ref = x0[0].as_matrix() if hasattr(x0[0], "as_matrix") else x0[0]
@@ -226,4 +230,4 @@ def gauss_helmert(
         return -cov.apply_transposed(Bw, y)
 
     # The observation residual estimate starts at e0; None is zero (the condition's cheap path).
-    return iterate(linearise, x0, e0, post_step, **options)
+    return _as_given(iterate(linearise, x0, e0, post_step, **options), single)

@@ -30,7 +30,9 @@ def lbfgs(
 ):
     """Minimises cost(x, extra) -> (B,) for every problem of a batch.
 
-    x0: the unknowns (see ``variables``); scale: the preconditioner of their tangent
+    x0: the unknowns, as in ``gauss_newton``: a group element (B,), a tensor (B, k) or a tuple
+    of them; ``cost`` receives x, and the returned x comes back, in the same form (a block
+    given alone arrives alone); scale: the preconditioner of their tangent
     perturbation, delta = scale z: (B, d) or (d,) per coordinate, or (B, d, d) a matrix
     (default 1); extra: optional additional Euclidean variables (B, ..., k) that the cost also
     takes (for example nuisance parameters), moved as extra + extra_scale @ z_e with
@@ -40,6 +42,8 @@ def lbfgs(
     (1 + its cost), the test LBFGS itself stops on (max-abs, over the summed cost);
     ``report.gradient_norm`` is that gradient's Euclidean norm.
     """
+    single = V.is_single(x0)
+    cost = V.unwrapped(cost, single)
     x0 = V.detach(V.check_values(x0))
     Bn, d = V.batch_size(x0), V.tangent_dim(x0)
     ref = x0[0].as_matrix() if hasattr(x0[0], "as_matrix") else x0[0]
@@ -89,4 +93,4 @@ def lbfgs(
     report = SolverReport(status=status, iterations=torch.full((Bn,), it, dtype=torch.int64),
                           initial_cost=initial.detach(), cost=c, step_norm=torch.zeros_like(c),
                           gradient_norm=gnorm.detach())
-    return x, (extra_at(ee).detach() if ee is not None else None), report
+    return x[0] if single else x, (extra_at(ee).detach() if ee is not None else None), report

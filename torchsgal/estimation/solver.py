@@ -54,7 +54,7 @@ class SolverReport:
 
 @dataclass
 class Solution:
-    x: tuple  # the unknowns, same blocks as x0
+    x: object  # the unknowns, as x0 was given: one block alone, or a tuple of the same blocks
     covariance: torch.Tensor  # (B, d, d) Laplace covariance (J^T J)^-1, right perturbations
     report: SolverReport
     aux: object = None  # solver-specific state (the observation residuals for Gauss-Helmert)
@@ -275,11 +275,13 @@ def _select_aux(mask, new, old):
 
 
 def autograd_jacobian(residual: Callable, x) -> torch.Tensor:
-    """J (B, m, d) of residual(retract(x, delta)) at delta = 0 by reverse-mode autodiff.
+    """J (B, m, d) of residual(retract(x, delta)) at delta = 0 by reverse-mode autodiff; ``x``
+    and what ``residual`` receives as in ``gauss_newton`` (one block alone, or a tuple).
 
     The problems are independent, so the Jacobian of the batch-summed residual with respect
     to the batched perturbation holds every problem's Jacobian; one ``jacrev`` call."""
-    x = V.detach(x)
+    residual = V.unwrapped(residual, V.is_single(x))
+    x = V.detach(V.as_values(x))
     Bn, d = V.batch_size(x), V.tangent_dim(x)
     ref = x[0].as_matrix() if hasattr(x[0], "as_matrix") else x[0]
     zero = torch.zeros(Bn, d, dtype=ref.dtype, device=ref.device)
@@ -296,12 +298,18 @@ def gauss_newton(
     """Minimises 1/2 |residual(x)|^2 for every problem of a batch.
 
     residual: x -> (B, m), whitened (divide by the noise's square root yourself).
-    x0: a group element of batch shape (B,), a tensor (B, k), or a tuple of them.
-    jacobian: x -> (B, m, d) with respect to right perturbations (``variables.retract``); by
-        default autodiff through ``residual`` (``autograd_jacobian``).
+    x0: the unknowns: a group element of batch shape (B,), a tensor (B, k), or a tuple of them
+        (one batch axis, the problems; B shared by the blocks).  ``residual`` and ``jacobian``
+        receive x as x0 was given: a block given alone arrives alone (``x.rminus(target)``), a
+        tuple as a tuple of the same blocks (``g, s = x``); ``Solution.x`` likewise.
+    jacobian: x -> (B, m, d) with respect to right perturbations (``variables.retract``; d the
+        sum of the blocks' tangent sizes, in order); by default autodiff through ``residual``
+        (``autograd_jacobian``).
     options: see ``iterate`` (max_iterations, damping, step_tol, cost_tol, ...).
     Returns a ``Solution`` with the unknowns, the Laplace covariance and the per-problem report.
     """
+    single = V.is_single(x0)
+    residual, jacobian = V.unwrapped(residual, single), V.unwrapped(jacobian, single)
     x0 = V.check_values(x0)
     ref = x0[0].as_matrix() if hasattr(x0[0], "as_matrix") else x0[0]
 
@@ -323,4 +331,11 @@ def gauss_newton(
         checks.same_device_dtype(x0=ref, **{"jacobian(x)": J})
         return Linearisation(r, J)
 
-    return iterate(linearise, x0, **options)
+    return _as_given(iterate(linearise, x0, **options), single)
+
+
+def _as_given(solution: Solution, single: bool) -> Solution:
+    """The solution's unknowns unwrapped when x0 was one block alone."""
+    if single:
+        solution.x = solution.x[0]
+    return solution

@@ -1,5 +1,8 @@
 """Unknowns of a batched least-squares problem: a tuple of blocks, each a group element
-(a ``LieGroup`` of batch shape (B,)) or a Euclidean tensor (B, k).
+(a ``LieGroup`` of batch shape (B,)) or a Euclidean tensor (B, k), or one such block alone.
+The solvers work on the tuple; unknowns given as one block alone reach the user's functions
+(residual, Jacobian, condition, cost) and come back in the solution alone, unwrapped
+(``is_single``, ``unwrapped``).
 
 The tangent vector of the tuple is the concatenation of the blocks' tangents, in order.
 Group blocks move by right perturbation, ``g.rplus(d) = g exp(d)`` (CONVENTIONS.md); Euclidean
@@ -14,6 +17,19 @@ from ..groups import LieGroup
 
 Block = LieGroup | torch.Tensor
 Values = tuple
+
+
+def is_single(x) -> bool:
+    """True for unknowns given as one block alone (a group element or a tensor), not in a tuple."""
+    return isinstance(x, (LieGroup, torch.Tensor))
+
+
+def unwrapped(f, single: bool):
+    """``f`` called with the one block itself instead of the 1-tuple when ``single`` (further
+    arguments passed on)."""
+    if f is None or not single:
+        return f
+    return lambda x, *args: f(x[0], *args)
 
 
 def as_values(x) -> Values:
