@@ -265,13 +265,13 @@ def test_bad_input():
         ConcentratedGaussian(m, -torch.eye(6, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"side must be 'right' or 'left'"):
         ConcentratedGaussian(m, torch.eye(6, dtype=torch.float64), side="up")
-    with pytest.raises(ValueError, match=r"must match the mean"):
+    with pytest.raises(TypeError, match=r"must match the mean"):
         ConcentratedGaussian(m, torch.eye(6, dtype=torch.float32))
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast"):
         ConcentratedGaussian(ts.SE3.random((3,), dtype=torch.float64), torch.eye(6, dtype=torch.float64).expand(4, 6, 6))
     with pytest.raises(TypeError, match=r"mean must be a group element"):
         ConcentratedGaussian(torch.eye(4), torch.eye(6))
-    with pytest.raises(ValueError, match=r"covariance \(torch.float16, cpu\) must match the mean"):
+    with pytest.raises(TypeError, match=r"covariance \(torch.float16, cpu\) must match the mean"):
         ConcentratedGaussian(m, torch.eye(6, dtype=torch.float16))
     d = ConcentratedGaussian(m, torch.eye(6, dtype=torch.float64))
     with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SE3"):
@@ -529,3 +529,26 @@ def test_event_fusion_bad_input():
     tiny_t[3, 3] = 1e-14
     a, b = fuse_event(prior, event, exact_t), fuse_event(prior, event, tiny_t)
     torch.testing.assert_close(a.covariance, b.covariance, rtol=1e-8, atol=1e-12)
+
+
+def test_gaussian_errors_name_the_groups_and_follow_the_error_policy():
+    """act_velocity on a group without velocities names the groups that have them (it raised
+    AttributeError from the mean); a dtype mismatch is a TypeError like everywhere else (a
+    device mismatch stays a ValueError); the mean's message lists all seven groups."""
+    f64 = torch.float64
+    for G in ts.ALL_GROUPS:
+        g = ConcentratedGaussian(G.identity(dtype=f64), 1e-2 * torch.eye(G.dof, dtype=f64))
+        if G in (ts.SE23, ts.SGal3):
+            assert g.act_velocity(torch.ones(3, dtype=f64)).covariance.shape == (3, 3)
+        else:
+            with pytest.raises(TypeError, match=rf"act_velocity is not available for a Gaussian "
+                                                rf"on {G.__name__}: only SE23, SGal3 have act_velocity"):
+                g.act_velocity(torch.ones(3, dtype=f64))
+        with pytest.raises(TypeError, match=rf"covariance \(torch.float32, cpu\) must match the mean "
+                                            rf"\(torch.float64, cpu\)"):
+            ConcentratedGaussian(G.identity(dtype=f64), torch.eye(G.dof))
+        with pytest.raises(ValueError, match=r"covariance \(torch.float64, meta\) must match the mean"):
+            ConcentratedGaussian(G.identity(dtype=f64), torch.eye(G.dof, dtype=f64, device="meta"))
+    with pytest.raises(TypeError, match=r"mean must be a group element \(SO2, SE2, SO3, SE3, SE23, "
+                                        r"SGal3, Sim3\), got Tensor"):
+        ConcentratedGaussian(torch.eye(3), torch.eye(3))

@@ -74,6 +74,12 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
                              f"{float(low.min()):.3g})")
 
 
+def _group_names(method: str | None = None) -> list[str]:
+    """The group classes (those with ``method``), for error messages."""
+    from .. import ALL_GROUPS  # the package is imported by the time a Gaussian is made
+    return [G.__name__ for G in ALL_GROUPS if method is None or hasattr(G, method)]
+
+
 class ConcentratedGaussian:
     """A concentrated Gaussian on a group: ``mean`` (a group element, any batch shape),
     ``covariance`` (..., dof, dof) of the tangent perturbation, ``side`` 'right' (F = mean
@@ -82,7 +88,8 @@ class ConcentratedGaussian:
     def __init__(self, mean: LieGroup, covariance: torch.Tensor, side: str = "right",
                  validate: bool = True):
         if not isinstance(mean, LieGroup):
-            raise TypeError(f"mean must be a group element (SO3, SE3, SE23, SGal3), got {type(mean).__name__}")
+            raise TypeError(f"mean must be a group element ({', '.join(_group_names())}), "
+                            f"got {type(mean).__name__}")
         if side not in SIDES:
             raise ValueError(f"side must be 'right' or 'left', got {side!r}")
         dof = mean.dof
@@ -94,7 +101,9 @@ class ConcentratedGaussian:
                 f"got {tuple(covariance.shape)}"
             )
         if covariance.dtype != mean.dtype or covariance.device != mean.device:
-            raise ValueError(
+            # a dtype mismatch is a TypeError, a device mismatch a ValueError (as checks.same_device_dtype)
+            error = ValueError if covariance.device != mean.device else TypeError
+            raise error(
                 f"covariance ({covariance.dtype}, {covariance.device}) must match the mean "
                 f"({mean.dtype}, {mean.device})"
             )
@@ -270,6 +279,9 @@ class ConcentratedGaussian:
         M[:, :k].  Points are z[:k] / z[n-1] (projective: Sim3's last row is [0, 1/s]; for the
         other groups z[n-1] = 1 and the division changes nothing), so
         dy = (dz[:k] - y dz[n-1]) / z[n-1].  Velocities and directions are z[:k]."""
+        if not hasattr(self.group, fn_name):
+            raise TypeError(f"{fn_name} is not available for a Gaussian on {self.group.__name__}: "
+                            f"only {', '.join(_group_names(fn_name))} have {fn_name}")
         r = self._right()
         y = getattr(r.mean, fn_name)(x)  # validates x
         M = r.mean.as_matrix()
@@ -302,7 +314,7 @@ class ConcentratedGaussian:
 
     def act(self, x: torch.Tensor, x_covariance: torch.Tensor | None = None,
             validate: bool = True) -> Gaussian:
-        """Points (SO3/SE3/SE23) or events (SGal3, (..., 4)) through F, as a Gaussian on R^n.
+        """Points (..., point_dim) (events (..., 4) for SGal3) through F, as a Gaussian on R^n.
         ``x_covariance`` (..., k, k): the point's own covariance, independent of F; with
         ``validate`` it is checked symmetric positive semi-definite (one host sync, as the
         constructor's check; skipped on 'meta', under torch.func transforms and torch.compile)."""
@@ -310,7 +322,8 @@ class ConcentratedGaussian:
 
     def act_velocity(self, u: torch.Tensor, u_covariance: torch.Tensor | None = None,
                      validate: bool = True) -> Gaussian:
-        """Velocities (..., 3) through F; ``u_covariance`` as ``x_covariance`` of ``act``."""
+        """Velocities (..., 3) through F (SE23 and SGal3, the groups with a velocity; TypeError
+        for the others); ``u_covariance`` as ``x_covariance`` of ``act``."""
         return self._act("act_velocity", u, u_covariance, "u", validate)
 
     def act_direction(self, d: torch.Tensor, d_covariance: torch.Tensor | None = None,
