@@ -544,7 +544,7 @@ def test_gaussian_errors_name_the_groups_and_follow_the_error_policy():
             with pytest.raises(TypeError, match=rf"act_velocity is not available for a Gaussian "
                                                 rf"on {G.__name__}: only SE23, SGal3 have act_velocity"):
                 g.act_velocity(torch.ones(3, dtype=f64))
-        with pytest.raises(TypeError, match=rf"covariance \(torch.float32, cpu\) must match the mean "
+        with pytest.raises(TypeError, match=r"covariance \(torch.float32, cpu\) must match the mean "
                                             r"\(torch.float64, cpu\)"):
             ConcentratedGaussian(G.identity(dtype=f64), torch.eye(G.dof))
         with pytest.raises(ValueError, match=r"covariance \(torch.float64, meta\) must match the mean"):
