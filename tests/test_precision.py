@@ -400,3 +400,49 @@ def test_sim3_exp_near_the_overflow_limit(dtype, lam):
                                  ("lambda", slice(6, 7), 50 * eps)):
             e = np.abs(g[b] - want_grad[b]).max() / np.abs(want_grad[b]).max()
             assert e <= allowed, f"d/d{name} at angle {angle}, lambda {lam}: {e:.3g} > {allowed:.3g}"
+
+
+# ------------------------------------------------------------------ Sim(3) at theta = 2 pi k
+# At theta = 2 pi k with lambda = 0, M(phi, lambda) is singular (like Gamma_1): at the float value of
+# 2 pi k the exact J_l^-1 is huge but finite.  M^-1 needs the real part of M's eigenvalue on the
+# rotation plane; 1 - c theta^2 from the rounded c = m2/m0 cancelled to exactly 0 there (n2 = 0 * inf,
+# NaN), and cos - e^-lambda cost eps/|lambda| nearby (2.4e-4 at lambda = 1e-12).  About a
+# coordinate axis theta is exact, so the mpmath reference of the same float input is exact as well.
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_sim3_inverse_jacobians_at_multiples_of_two_pi(k):
+    """J_l^-1 and J_r^-1 at the float value of 2 pi k, lambda 0 and near 0, against mpmath (1e-13
+    blockwise; ~2e-15 measured); J_l^-T g (the backward part) and the gradient of J_l^-1 finite."""
+    f = ts.functional.sim3
+    weights = torch.arange(49.0, dtype=torch.float64).reshape(7, 7)
+    for axis in (0, 2):
+        for lam in (0.0, 1e-12, -1e-4):
+            xi = torch.tensor([0.7, -1.1, 0.4, 0.0, 0.0, 0.0, lam], dtype=torch.float64)
+            xi[3 + axis] = 2 * math.pi * k
+            for fn in ("jl_inv", "jr_inv"):
+                want = getattr(ref, fn + "_mp")("Sim3", xi.numpy())
+                e = ref.blockwise_rel_err(getattr(ts.Sim3, fn)(xi).numpy(), want, "Sim3").rel
+                assert e <= 1e-13, f"Sim3.{fn} at 2 pi {k} about axis {axis}, lambda {lam}: {e:.3g}"
+            assert torch.isfinite(f.jl_inv_tmv(xi, torch.arange(7.0, dtype=torch.float64))).all()
+            x = xi.clone().requires_grad_()
+            (f.jl_inv(x) * weights).sum().backward()
+            assert torch.isfinite(x.grad).all(), f"gradient at 2 pi {k}, lambda {lam}: {x.grad}"
+
+
+def test_sim3_inverse_jacobians_float32_near_two_pi():
+    """float32 within 3 ulps of 2 pi, lambda 0 and 1e-12 (e^-1e-12 rounds to 1, so both are the
+    singular case): J_l^-1 and J_r^-1 to 1e-5 blockwise against mpmath of the same input (they were
+    NaN, or off by up to 0.2)."""
+    two_pi = torch.tensor(2 * math.pi, dtype=torch.float32)
+    for ulps in (-3, 0, 2):
+        theta = two_pi
+        for _ in range(abs(ulps)):
+            theta = torch.nextafter(theta, torch.tensor(10.0 if ulps > 0 else 0.0))
+        for lam in (0.0, 1e-12):
+            xi = torch.tensor([0.7, -1.1, 0.4, 0.0, 0.0, 0.0, lam], dtype=torch.float32)
+            xi[4] = theta
+            for fn in ("jl_inv", "jr_inv"):
+                want = getattr(ref, fn + "_mp")("Sim3", xi.double().numpy())
+                e = ref.blockwise_rel_err(getattr(ts.Sim3, fn)(xi).double().numpy(), want, "Sim3").rel
+                assert e <= 1e-5, f"float32 Sim3.{fn} at 2 pi {ulps:+d} ulps, lambda {lam}: {e:.3g}"

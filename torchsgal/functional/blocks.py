@@ -341,18 +341,21 @@ def poly_vec_derivative(m1, m2, e1, e2, phi: torch.Tensor, x: torch.Tensor) -> t
     )
 
 
-def poly_inverse(m0, m1, m2, theta2):
+def poly_inverse(m0, m1, m2, theta2, m_re):
     """Coefficients (n0, n1, n2) of (m0 I + m1 phi^ + m2 phi^ phi^)^-1 = n0 I + n1 phi^ + n2 phi^ phi^.
 
     On the eigenvalues 0, +-i theta of phi^, with b = m1/m0, c = m2/m0 (normalised so that no
-    square of m0 overflows) and mu = (1 - c theta^2) + i b theta:
-    n0 = 1/m0, n1 = -b/(m0 |mu|^2), n2 = (b^2 - c + c^2 theta^2)/(m0 |mu|^2) (no division by theta).
+    square of m0 overflows) and mu = re + i b theta, re = m_re/m0 = 1 - c theta^2:
+    n0 = 1/m0, n1 = -b/(m0 |mu|^2), n2 = (b^2 - c re)/(m0 |mu|^2) (no division by theta).
+    ``m_re`` = m0 - theta^2 m2 is the caller's, free of that cancellation: near a singular M
+    (Sim(3) at theta = 2 pi k, lambda = 0) re is the small difference, and 1 - c theta^2 from
+    the rounded c can be exactly 0 there (n1, n2 = 0 * inf).
     """
     n0 = 1.0 / m0
     b, c = m1 * n0, m2 * n0
-    re = 1.0 - c * theta2
+    re = m_re * n0
     scale = n0 / (re * re + b * b * theta2)
-    return n0, -b * scale, (b * b - c + c * c * theta2) * scale
+    return n0, -b * scale, (b * b - c * re) * scale
 
 
 def poly_vec_derivative_t(m1, m2, e1, e2, phi: torch.Tensor, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:

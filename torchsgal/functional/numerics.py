@@ -177,13 +177,16 @@ sim3_series_threshold_sq = _constant(SIM3_SERIES_THRESHOLD**2)
 SIM3_SERIES_TERMS = 11
 
 
-def scale_moments(x: torch.Tensor, order: int) -> list[torch.Tensor]:
+def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None
+                  ) -> list[torch.Tensor]:
     """[q_0, ..., q_order](x) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)).
 
     Relative error ~1e-16 at every order for |x| <= 6, and at the orders Sim(3) weighs most
     up to |x| = 40 (tests/test_precision.py).  Both recursions run on safe inputs; each order
     takes the stable one (see the constants above), merged with exact 0/1 masks, so values
     and gradients stay finite.
+
+    ``em1`` (optional, x's shape) is expm1(x), when the caller has it.
     """
     top = order + SCALE_EXTRA_ORDERS
     ax = x.abs()
@@ -200,7 +203,7 @@ def scale_moments(x: torch.Tensor, order: int) -> list[torch.Tensor]:
     down.reverse()
     # Upward from expm1(x)/x; inputs with |x| <= SCALE_UPWARD_MARGIN never use it.
     x_up = torch.where(ax > scale_upward_margin(), x, torch.ones_like(x))
-    up = [torch.expm1(x_up) / x_up]
+    up = [(torch.expm1(x_up) if em1 is None else em1) / x_up]  # em1 is finite where unused
     for j in range(1, order + 1):
         up.append((up[-1] - 1.0 / math.factorial(j)) / x_up)
     # Order j takes the upward value where |x| > j + margin (one comparison for all orders).
@@ -216,11 +219,14 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
 
     M(phi, lambda) = int_0^1 e^(-(1-a) lambda) C(a phi) da = m0 I + m1 phi^ + m2 phi^ phi^,
     e_k = (dm_k/dtheta)/theta, p_k = dm_k/dlambda (docs/sim3_jacobian.md).  Inputs broadcast.
-    Returns a dict with keys m0, m1, m2 and, with ``derivatives``, e1, e2, p0, p1, p2.
+    Returns a dict with keys m0, m1, m2, m_re = m0 - theta^2 m2 (computed without that
+    cancellation) and, with ``derivatives``, e1, e2, p0, p1, p2.
     """
     theta2, lam = torch.broadcast_tensors(theta2, lam)
     K = SIM3_SERIES_TERMS
-    q = scale_moments(-lam, 2 * K + 2 if derivatives else 2 * K)
+    x = -lam
+    em1 = torch.expm1(x)
+    q = scale_moments(x, 2 * K + 2 if derivatives else 2 * K, em1)
     m0 = q[0]
 
     small = theta2 < sim3_series_threshold_sq()
@@ -241,17 +247,28 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     # K1 = int a (...) da = (e^(i theta) - K) / w, w = lam + i theta, |w| >= theta >= 1.
     t2 = select(mask, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2)
-    cos, sin = torch.cos(t), torch.sin(t)
-    # Divided by |w|^2 before the products: a_re ~ e^-lam, and a_re * lam overflows for
+    sin = torch.sin(t)
+    hs = torch.sin(0.5 * t)
+    h2 = hs * hs  # (1 - cos) / 2 without cancellation
+    # Divided by |w|^2 before the products: na ~ e^-lam, and na * lam overflows for
     # lam near the dtype's exp limit (-85 float32, -705 float64) where K itself is finite.
     w2 = lam * lam + t2
     lw, tw = lam / w2, t / w2
-    a_re = cos - torch.exp(-lam)
-    k_re = a_re * lw + sin * tw
-    k_im = sin * lw - a_re * tw
+    # e^-lam - cos as (e^-lam - 1) + (1 - cos): both terms to full relative accuracy, so the
+    # sum keeps it where they nearly cancel (theta near 2 pi k with lambda near 0, M nearly
+    # singular); cos - exp(-lam) lost ~eps/|lambda| there.
+    na = torch.add(em1, h2, alpha=2.0)  # -Re(numerator of K)
+    k_re = sin * tw - na * lw
+    k_im = sin * lw + na * tw
     l_m1 = k_im / t
     l_m2 = (m0 - k_re) / t2
-    out = {"m0": m0, "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2)}
+    # m_re = m0 - theta^2 m2, the real part of M's eigenvalue m_re + i theta m1 on the rotation
+    # plane.  Re K itself on the large-angle branch: m0 - theta^2 m2 from the rounded m2 cancels
+    # to 0 at theta = 2 pi k, lambda = 0 (cos = 1), where M^-1 needs it most (poly_inverse).
+    # Below theta = 1, theta^2 m2 <= (1 - cos 1) m0 and nothing cancels.
+    s_re = torch.addcmul(m0, u, s_m2)
+    out = {"m0": m0, "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2),
+           "m_re": select(mask, s_re, k_re)}
     if not derivatives:
         return out
 
@@ -260,7 +277,8 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     s_e2 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 4])
     s_p1 = -horner(lambda k: q[2 * k + 1] - (2 * k + 2) * q[2 * k + 2])
     s_p2 = -horner(lambda k: q[2 * k + 2] - (2 * k + 3) * q[2 * k + 3])
-    b_re, b_im = cos - k_re, sin - k_im
+    b_re = torch.rsub(h2, 1.0, alpha=2.0) - k_re  # cos - Re K
+    b_im = sin - k_im
     k1_re = b_re * lw + b_im * tw
     k1_im = b_im * lw - b_re * tw
     l_e1 = (k1_re - l_m1) / t2

@@ -90,9 +90,14 @@ def exp_impl(xi: torch.Tensor) -> torch.Tensor:
     return _matrix(B.gamma_entries(c, 0, phi), r, torch.exp(-lam))
 
 
+def _m_inverse(m, phi):
+    """(n0, n1, n2): M(phi, lambda)^-1 = n0 I + n1 phi^ + n2 phi^ phi^."""
+    return B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi), m["m_re"])
+
+
 def _m_inverse_vec(m, phi, x):
     """M(phi, lambda)^-1 x."""
-    return B.poly_vec(*B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi)), phi, x)
+    return B.poly_vec(*_m_inverse(m, phi), phi, x)
 
 
 def log_impl(M: torch.Tensor) -> torch.Tensor:
@@ -175,7 +180,7 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """[[M^-1 / s, -M^-1 coupling Gamma_1^-1, -M^-1 lam_col], [0, Gamma_1^-1, 0], [0, 0, 1]]."""
     checks.vector(xi, DOF, "xi")
     m, s, phi, _, coupling, lam_col = _jl_parts(xi)
-    n0, n1, n2 = B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi))
+    n0, n1, n2 = _m_inverse(m, phi)
     Minv = B.poly_mat(n0, n1, n2, phi)
     G1inv = B.jac_inv_mat(phi)
     one = torch.ones_like(s)[..., None, None]
@@ -231,7 +236,7 @@ def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     (y / s, Gamma_1^-T (g_phi - coupling^T y), g_lambda - lam_col . y)."""
     rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
     g_rho, g_phi, g_lam = _split(g)
-    n = B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi))
+    n = _m_inverse(m, phi)
     y = B.poly_vec(*n, -phi, g_rho)
     out_phi = B.jac_inv_vec(-phi, g_phi - _coupling_t(c, m, phi, rho, r, y))
     return B.last(y * torch.exp(-lam), out_phi, (g_lam - B.dot(lam_col, y))[None])
