@@ -402,7 +402,7 @@ def test_sim3_exp_near_the_overflow_limit(dtype, lam):
             assert e <= allowed, f"d/d{name} at angle {angle}, lambda {lam}: {e:.3g} > {allowed:.3g}"
 
 
-# ------------------------------------------------------------------ Sim(3) at theta = 2 pi k
+# --------------------------------------------------- Sim(3) at theta = 2 pi k, and extreme lambda
 # At theta = 2 pi k with lambda = 0, M(phi, lambda) is singular (like Gamma_1): at the float value of
 # 2 pi k the exact J_l^-1 is huge but finite.  M^-1 needs the real part of M's eigenvalue on the
 # rotation plane; 1 - c theta^2 from the rounded c = m2/m0 cancelled to exactly 0 there (n2 = 0 * inf,
@@ -446,3 +446,50 @@ def test_sim3_inverse_jacobians_float32_near_two_pi():
                 want = getattr(ref, fn + "_mp")("Sim3", xi.double().numpy())
                 e = ref.blockwise_rel_err(getattr(ts.Sim3, fn)(xi).double().numpy(), want, "Sim3").rel
                 assert e <= 1e-5, f"float32 Sim3.{fn} at 2 pi {ulps:+d} ulps, lambda {lam}: {e:.3g}"
+
+
+def _sim3_jl_expm_mp(xi, dps=30):
+    """(J_l, J_l^-1) float64 (7, 7) with J_l = sum_n ad^n/(n+1)! the top-right block of
+    expm([[ad, I], [0, 0]]) in mpmath: scaling and squaring, so |lambda| in the thousands costs no
+    more than lambda = 1, and its e^(+-lambda) neither overflow nor underflow."""
+    A = ref.ad("Sim3", np.asarray(xi, dtype=np.float64))
+    with mpmath.workdps(dps):
+        Z = mpmath.zeros(14, 14)
+        for i in range(7):
+            for j in range(7):
+                Z[i, j] = mpmath.mpf(float(A[i, j]))
+            Z[i, 7 + i] = 1
+        E = mpmath.expm(Z)
+        J = mpmath.matrix([[E[i, 7 + j] for j in range(7)] for i in range(7)])
+        Ji = J**-1
+        return (np.array([[float(J[i, j]) for j in range(7)] for i in range(7)]),
+                np.array([[float(Ji[i, j]) for j in range(7)] for i in range(7)]))
+
+
+@pytest.mark.parametrize("dtype, lam", [(torch.float64, -40.0), (torch.float64, -750.0),
+                                        (torch.float64, -1e4), (torch.float32, -100.0)])
+def test_sim3_jacobians_at_extreme_scales(dtype, lam):
+    """For lambda -> -inf, s = e^lambda underflows and M ~ e^-lambda/|lambda| overflows (float64
+    beyond 709, float32 88) while s M ~ 1/|lambda| is finite: J_l and J_l^-1 at lambda, J_r and
+    J_r^-1 at -lambda (the same matrices) against the mpmath expm of ad; they were NaN.  The
+    gradients of J_l^-1 at +-lambda (1/s overflowed in its backward at +lambda) and of J_r at
+    -lambda are finite, and gradcheck in float64."""
+    f = ts.functional.sim3
+    tol = 1e-13 if dtype == torch.float64 else 1e-5
+    for angle in (1e-3, 2.0):
+        xi = torch.tensor([0.7, -1.1, 0.4, 0.3, 0.2, 0.5, lam], dtype=torch.float64)
+        xi[3:6] *= angle / xi[3:6].norm()
+        x = xi.to(dtype)
+        J, J_inv = _sim3_jl_expm_mp(x.double().numpy())
+        for fn, arg, want in [("jl", x, J), ("jl_inv", x, J_inv), ("jr", -x, J), ("jr_inv", -x, J_inv)]:
+            got = getattr(ts.Sim3, fn)(arg).double().numpy()
+            e = ref.blockwise_rel_err(got, want, "Sim3").rel
+            assert e <= tol, f"{fn} at angle {angle}, lambda {float(arg[6]):g}: {e:.3g}"
+        for fn, arg in [(f.jl_inv, x), (f.jl_inv, -x), (f.jr, -x), (f.jr_inv, x)]:
+            a = arg.clone().requires_grad_()
+            fn(a).sum().backward()
+            assert torch.isfinite(a.grad).all(), f"gradient at angle {angle}, lambda {float(arg[6]):g}"
+        if dtype == torch.float64:
+            for fn, arg in [(f.jl_inv, x), (f.jr, -x)]:
+                assert torch.autograd.gradcheck(fn, (arg[None].clone().requires_grad_(),), eps=1e-6,
+                                                atol=1e-6, rtol=1e-5, fast_mode=True)

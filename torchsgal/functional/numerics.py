@@ -175,10 +175,19 @@ SCALE_TAYLOR_TERMS = 20
 SIM3_SERIES_THRESHOLD = 1.0
 sim3_series_threshold_sq = _constant(SIM3_SERIES_THRESHOLD**2)
 SIM3_SERIES_TERMS = 11
+# The Jacobians need s M = e^lambda M(phi, lambda).  As lambda -> -inf, M ~ e^|lambda|/|lambda|
+# overflows and s underflows (float64 beyond |lambda| ~ 709, float32 ~ 88) while s M ~ 1/|lambda|
+# stays finite.  So with ``normalise``, sim3_coefficients returns below lambda = -SIM3_NORMALISE the
+# coefficients times sigma = e^lambda: those of s M = int_0^1 e^(a lambda) C(a phi) da, whose weight
+# is <= 1.  The threshold is above every moment's switch to the upward recursion (2 K + 2 + 1/2),
+# so normalised moments come from that recursion alone, and far below overflow (e^30 ~ 1e13).
+SIM3_NORMALISE = 30.0
+sim3_normalise = _constant(SIM3_NORMALISE)
+assert SIM3_NORMALISE > 2 * SIM3_SERIES_TERMS + 2 + SCALE_UPWARD_MARGIN
 
 
-def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None
-                  ) -> list[torch.Tensor]:
+def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
+                  sigma: torch.Tensor | None = None) -> list[torch.Tensor]:
     """[q_0, ..., q_order](x) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)).
 
     Relative error ~1e-16 at every order for |x| <= 6, and at the orders Sim(3) weighs most
@@ -186,7 +195,10 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None
     takes the stable one (see the constants above), merged with exact 0/1 masks, so values
     and gradients stay finite.
 
-    ``em1`` (optional, x's shape) is expm1(x), when the caller has it.
+    ``em1`` (optional, x's shape) is expm1(x), when the caller has it.  With ``sigma`` as well:
+    sigma q_j(x), where sigma is 1 or e^-x per entry and em1 = sigma expm1(x).  Entries with
+    sigma = e^-x must have x > order + SCALE_UPWARD_MARGIN, so they take the upward recursion
+    alone, which then runs on the moments of the weight e^(-a x) <= 1 and does not overflow.
     """
     top = order + SCALE_EXTRA_ORDERS
     ax = x.abs()
@@ -205,7 +217,10 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None
     x_up = torch.where(ax > scale_upward_margin(), x, torch.ones_like(x))
     up = [(torch.expm1(x_up) if em1 is None else em1) / x_up]  # em1 is finite where unused
     for j in range(1, order + 1):
-        up.append((up[-1] - 1.0 / math.factorial(j)) / x_up)
+        if sigma is None:
+            up.append((up[-1] - 1.0 / math.factorial(j)) / x_up)
+        else:
+            up.append(torch.sub(up[-1], sigma, alpha=1.0 / math.factorial(j)) / x_up)
     # Order j takes the upward value where |x| > j + margin (one comparison for all orders).
     j_plus = torch.arange(order + 1, dtype=x.dtype, device=x.device) + scale_upward_margin()
     mask = (ax.unsqueeze(-1) > j_plus).to(x.dtype)
@@ -213,20 +228,30 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None
     return list(merged.unbind(-1))
 
 
-def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool = True
-                      ) -> dict[str, torch.Tensor]:
+def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool = True,
+                      normalise: bool = False) -> dict[str, torch.Tensor]:
     """The scalar coefficients of the Sim(3) translation block and its derivatives.
 
     M(phi, lambda) = int_0^1 e^(-(1-a) lambda) C(a phi) da = m0 I + m1 phi^ + m2 phi^ phi^,
     e_k = (dm_k/dtheta)/theta, p_k = dm_k/dlambda (docs/sim3_jacobian.md).  Inputs broadcast.
     Returns a dict with keys m0, m1, m2, m_re = m0 - theta^2 m2 (computed without that
-    cancellation) and, with ``derivatives``, e1, e2, p0, p1, p2.
+    cancellation) and, with ``derivatives``, e1, e2, p0, p1, p2.  With ``normalise`` every one
+    of them is e^shift times its value, and the dict has the key shift: lambda where
+    lambda < -SIM3_NORMALISE (there they are those of s M, which stay finite), else 0.
     """
     theta2, lam = torch.broadcast_tensors(theta2, lam)
     K = SIM3_SERIES_TERMS
     x = -lam
-    em1 = torch.expm1(x)
-    q = scale_moments(x, 2 * K + 2 if derivatives else 2 * K, em1)
+    if normalise:
+        nm = (x > sim3_normalise()).to(lam.dtype)
+        shift = lam * nm
+        sigma = torch.exp(shift)
+        # sigma expm1(x): -expm1(-x) where normalised (x -> -x and back, as x - 2 x nm).
+        em1 = torch.expm1(torch.addcmul(x, x, nm, value=-2.0))
+        em1 = torch.addcmul(em1, em1, nm, value=-2.0)
+    else:
+        sigma, em1 = None, torch.expm1(x)
+    q = scale_moments(x, 2 * K + 2 if derivatives else 2 * K, em1, sigma)
     m0 = q[0]
 
     small = theta2 < sim3_series_threshold_sq()
@@ -245,11 +270,14 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
 
     # Large angle: K = int e^(-(1-a) lam) e^(i a theta) da = (e^(i theta) - e^(-lam)) / w,
     # K1 = int a (...) da = (e^(i theta) - K) / w, w = lam + i theta, |w| >= theta >= 1.
+    # Normalised, e^(i theta) (the weight at a = 1) and e^-lam (at a = 0) are times sigma.
     t2 = select(mask, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2)
     sin = torch.sin(t)
     hs = torch.sin(0.5 * t)
     h2 = hs * hs  # (1 - cos) / 2 without cancellation
+    if sigma is not None:
+        sin, h2 = sigma * sin, sigma * h2
     # Divided by |w|^2 before the products: na ~ e^-lam, and na * lam overflows for
     # lam near the dtype's exp limit (-85 float32, -705 float64) where K itself is finite.
     w2 = lam * lam + t2
@@ -269,6 +297,8 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     s_re = torch.addcmul(m0, u, s_m2)
     out = {"m0": m0, "m1": select(mask, s_m1, l_m1), "m2": select(mask, s_m2, l_m2),
            "m_re": select(mask, s_re, k_re)}
+    if normalise:
+        out["shift"] = shift
     if not derivatives:
         return out
 
@@ -277,7 +307,8 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     s_e2 = -horner(lambda k: 2 * (k + 1) * q[2 * k + 4])
     s_p1 = -horner(lambda k: q[2 * k + 1] - (2 * k + 2) * q[2 * k + 2])
     s_p2 = -horner(lambda k: q[2 * k + 2] - (2 * k + 3) * q[2 * k + 3])
-    b_re = torch.rsub(h2, 1.0, alpha=2.0) - k_re  # cos - Re K
+    cos = torch.rsub(h2, 1.0, alpha=2.0) if sigma is None else torch.sub(sigma, h2, alpha=2.0)
+    b_re = cos - k_re
     b_im = sin - k_im
     k1_re = b_re * lw + b_im * tw
     k1_im = b_im * lw - b_re * tw

@@ -18,6 +18,8 @@ direction [d, 0] is rotated only: d -> C d.
 
 (docs/sim3_jacobian.md derives J_l from exp(J_l d) exp(xi) = exp(xi + d); the scalar
 coefficients m_k, their theta- and lambda-derivatives come from ``numerics.sim3_coefficients``).
+The Jacobians take them normalised, so that s M stays finite where s underflows and M overflows
+(lambda -> -inf); the range of lambda each function covers is in ``torchsgal.Sim3``'s docstring.
 """
 from __future__ import annotations
 
@@ -77,8 +79,8 @@ def vee(X: torch.Tensor) -> torch.Tensor:
     return B.last(B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]), -X[..., 3, 3][None])
 
 
-def _coefficients(phi: torch.Tensor, lam: torch.Tensor, derivatives: bool = True):
-    return numerics.sim3_coefficients(B.theta_squared(phi), lam, derivatives)
+def _coefficients(phi: torch.Tensor, lam: torch.Tensor, derivatives: bool = True, normalise: bool = False):
+    return numerics.sim3_coefficients(B.theta_squared(phi), lam, derivatives, normalise)
 
 
 def exp_impl(xi: torch.Tensor) -> torch.Tensor:
@@ -148,24 +150,34 @@ def ad(xi: torch.Tensor) -> torch.Tensor:
     )
 
 
+def _scale(lam, m, power: float = 1.0):
+    """(s e^-shift)^power.  With the normalised coefficients m (e^shift times M's, from
+    numerics.sim3_coefficients) s M = _scale M^ stays finite where s underflows and M overflows
+    (lambda -> -inf).  power = -1 for 1/s: as exp, not 1/exp, whose gradient is 0 * inf where s
+    overflows (lambda -> +inf)."""
+    return torch.exp(power * (lam - m["shift"]))
+
+
 def _jl_parts(xi: torch.Tensor):
-    """(m, s, phi, Gamma_1, coupling, lam_col): J_l = [[s M, s coupling, s lam_col],
+    """(m, lambda, phi, Gamma_1, coupling, lam_col): J_l = [[s M, s coupling, s lam_col],
     [0, Gamma_1, 0], [0, 0, 1]] with coupling = d(M rho)/dphi + r^ Gamma_1, r = M rho, and
-    lam_col = dM/dlambda rho (docs/sim3_jacobian.md)."""
+    lam_col = dM/dlambda rho (docs/sim3_jacobian.md).  m, coupling and lam_col are normalised,
+    so s is ``_scale(lambda, m)`` (the products are the same)."""
     rho, phi, lam = _split(xi)
     c = B.coefficients(phi, 3)
-    m = _coefficients(phi, lam)
+    m = _coefficients(phi, lam, normalise=True)
     G1 = B.gamma_mat(c, 1, phi)
     r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
     coupling = B.poly_vec_derivative(m["m1"], m["m2"], m["e1"], m["e2"], phi, rho) + B.skew_times(r.movedim(0, -1), G1)
     lam_col = B.poly_vec(m["p0"], m["p1"], m["p2"], phi, rho)
-    return m, torch.exp(lam), phi, G1, coupling, lam_col
+    return m, lam, phi, G1, coupling, lam_col
 
 
 @blocked(1)
 def jl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
-    m, s, phi, G1, coupling, lam_col = _jl_parts(xi)
+    m, lam, phi, G1, coupling, lam_col = _jl_parts(xi)
+    s = _scale(lam, m)
     s2 = s[..., None, None]
     one = torch.ones_like(s)[..., None, None]
     Mmat = B.poly_mat(m["m0"], m["m1"], m["m2"], phi)
@@ -179,14 +191,15 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
 def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     """[[M^-1 / s, -M^-1 coupling Gamma_1^-1, -M^-1 lam_col], [0, Gamma_1^-1, 0], [0, 0, 1]]."""
     checks.vector(xi, DOF, "xi")
-    m, s, phi, _, coupling, lam_col = _jl_parts(xi)
+    m, lam, phi, _, coupling, lam_col = _jl_parts(xi)
+    inv_s = _scale(lam, m, -1.0)
     n0, n1, n2 = _m_inverse(m, phi)
     Minv = B.poly_mat(n0, n1, n2, phi)
     G1inv = B.jac_inv_mat(phi)
-    one = torch.ones_like(s)[..., None, None]
+    one = torch.ones_like(inv_s)[..., None, None]
     return B.block_matrix(
         [
-            [Minv / s[..., None, None], -Minv @ coupling @ G1inv, -B.column(B.poly_vec(n0, n1, n2, phi, lam_col))],
+            [Minv * inv_s[..., None, None], -Minv @ coupling @ G1inv, -B.column(B.poly_vec(n0, n1, n2, phi, lam_col))],
             [None, G1inv, None],
             [None, None, one],
         ],
@@ -207,7 +220,7 @@ def jr_inv(xi: torch.Tensor) -> torch.Tensor:
 def _tmv_parts(xi: torch.Tensor):
     rho, phi, lam = _split(xi)
     c = B.coefficients(phi, 3)
-    m = _coefficients(phi, lam)
+    m = _coefficients(phi, lam, normalise=True)
     r = B.poly_vec(m["m0"], m["m1"], m["m2"], phi, rho)
     lam_col = B.poly_vec(m["p0"], m["p1"], m["p2"], phi, rho)
     return rho, phi, lam, c, m, r, lam_col
@@ -224,7 +237,7 @@ def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only:
     (s M^T w_rho, s coupling^T w_rho + Gamma_1^T w_phi, s lam_col . w_rho + w_lambda)."""
     rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
-    s = torch.exp(lam)
+    s = _scale(lam, m)
     w_rho, w_phi, w_lam = _split(w)
     out_rho = s * B.poly_vec(m["m0"], m["m1"], m["m2"], -phi, w_rho)
     out_phi = s * _coupling_t(c, m, phi, rho, r, w_rho) + B.gamma_vec(c, 1, -phi, w_phi)
@@ -239,7 +252,7 @@ def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     n = _m_inverse(m, phi)
     y = B.poly_vec(*n, -phi, g_rho)
     out_phi = B.jac_inv_vec(-phi, g_phi - _coupling_t(c, m, phi, rho, r, y))
-    return B.last(y * torch.exp(-lam), out_phi, (g_lam - B.dot(lam_col, y))[None])
+    return B.last(y * _scale(lam, m, -1.0), out_phi, (g_lam - B.dot(lam_col, y))[None])
 
 
 def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:

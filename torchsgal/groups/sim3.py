@@ -11,7 +11,15 @@ class Sim3(LieGroup):
     """Similarity transformations [[C, r], [0, 1/s]] (..., 4, 4), scale s = exp(lambda) > 0;
     tangent [rho, phi, lambda] (..., 7) (Barfoot's (78); GTSAM's Similarity3 matrix).
 
-    ``act`` maps points p -> s (C p + r); ``act_direction`` rotates directions, d -> C d."""
+    ``act`` maps points p -> s (C p + r); ``act_direction`` rotates directions, d -> C d.
+
+    Range of lambda: L = log(finfo.max) (709.78 float64, 88.72 float32).  The matrix stores
+    1/s = e^-lambda, so ``exp`` needs lambda >= -L (below, M[3, 3] is inf and the element is not
+    representable; its translation is inf or NaN).  Above lambda = -log(finfo.tiny) (708.4, 87.3)
+    1/s is subnormal and loses digits, and so does ``log``'s lambda; beyond 745.1 (103.3) it is
+    0, not an element either.  ``jl_inv`` and ``jr_inv`` are finite for every finite lambda,
+    ``jl`` for lambda < L and ``jr`` for lambda > -L; beyond, their block s M ~ e^|lambda|/|lambda|
+    overflows (inf, NaN where inf meets a zero), and their gradients do within a few units of L."""
 
     dof = 7
     matrix_dim = 4
