@@ -55,13 +55,47 @@ def normalize_joint_type(t, index: int | None = None) -> str:
 
 @dataclass
 class GDHState:
-    """Forward kinematics of a GDH chain; all quantities in the base frame {0}."""
+    """Forward kinematics of a GDH chain (``GDHChain.forward(q, qdot)``).
+
+    ``...`` is the batch shape of q and qdot broadcast together; n the number of joints.
+    Positions and velocities are in the base frame {0} unless stated otherwise.
+
+    frames            SE23, batch (..., n): 0K_1 .. 0K_n, the prefix products of the link
+                      matrices (43).  Frame i's rotation and position (``rotation()``,
+                      ``position()``) are those of DH frame i in {0}; its velocity column is
+                      the product's (45), not the velocity of frame i's origin (see below).
+    end_effector      SE23, batch (...): 0K_n = ``frames[..., -1]``, the end-effector
+                      extended pose (45).  ``end_effector.rotation()`` (..., 3, 3) and
+                      ``end_effector.position()`` (..., 3) are the end-effector orientation
+                      and position in {0}.
+    chain_input       (..., 9) or None (no qdot): 0U_n of (50), tangent [rho, nu, phi] in the
+                      end-effector frame.  phi is the end-effector angular velocity in its own
+                      frame (51); rho = R^T (dp/dt - v) with (R, v) the rotation and velocity
+                      column of ``end_effector``; nu is evaluated at zero joint
+                      accelerations (use :meth:`GDHChain.acceleration` for accelerations).
+    linear_velocity   (..., 3) or None (no qdot): dp/dt, the velocity of the end-effector
+                      origin in {0}, dp/dt = v + R rho.
+    angular_velocity  (..., 3) or None (no qdot): the end-effector angular velocity in {0}
+                      (dR/dt = [w]x R).
+    pose              property, (..., 4, 4): the end-effector SE(3) matrix [[R, p], [0, 1]].
+
+    .. warning::
+       ``end_effector.velocity()`` is **not** the end-effector velocity.  It is the velocity
+       column of the product (45), sum_i R_(0,i-1) v_i, each link's own coordinate velocity,
+       which lacks the transport of the outer links by the inner joints' rotation (the
+       erratum in the module docstring); it differs from dp/dt whenever an inner revolute
+       joint moves.  Use ``linear_velocity`` (and ``angular_velocity``); the same holds for
+       ``frames.velocity()``.  Accelerations are not part of the state:
+       ``GDHChain.acceleration(q, qdot, qddot)`` returns the end-effector (linear, angular)
+       acceleration (..., 3) each in {0}, the time derivatives of ``linear_velocity`` and
+       ``angular_velocity``.
+    """
 
     frames: SE23  # 0K_1 .. 0K_n, batch (..., n)
-    end_effector: SE23  # 0K_n (45)
+    end_effector: SE23  # 0K_n (45); its velocity() is NOT dp/dt: use linear_velocity
     chain_input: torch.Tensor | None  # 0U_n (50), (..., 9), in the end-effector frame
-    linear_velocity: torch.Tensor | None  # dp_n/dt (..., 3)
-    angular_velocity: torch.Tensor | None  # (..., 3)
+    linear_velocity: torch.Tensor | None  # dp_n/dt (..., 3), base frame
+    angular_velocity: torch.Tensor | None  # (..., 3), base frame
 
     @property
     def pose(self) -> torch.Tensor:
@@ -221,7 +255,9 @@ class GDHChain:
                 _matvec(Ct, nu - _cross(K.velocity(), phi)), _matvec(Ct, phi))
 
     def forward(self, q: torch.Tensor, qdot: torch.Tensor | None = None) -> GDHState:
-        """Frames (45) and, with qdot, the end-effector velocities in the base frame.
+        """Frames (45) and, with qdot, the end-effector velocities in the base frame: a
+        :class:`GDHState` (its fields are documented there; the end-effector velocity is
+        ``linear_velocity``, not ``end_effector.velocity()``).
 
         ``chain_input`` is 0U_n of (50) at zero joint accelerations (its rho and phi parts,
         which give the velocities, do not depend on them).
