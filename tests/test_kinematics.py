@@ -182,6 +182,24 @@ def test_chain_dtype_and_device_are_checked():
         meta.acceleration(q, q, q)
 
 
+def test_joint_dtype_and_device_must_match_the_chain():
+    """q is not cast to the chain's dtype (nor the table to q's): a mismatch raises, as mixed
+    dtypes do everywhere else (it used to return results in q's dtype, ignoring the chain's)."""
+    c64, c32 = ur5(), ur5(dtype=torch.float32)
+    assert (c64.dtype, c32.dtype, c64.device) == (torch.float64, torch.float32, torch.device("cpu"))
+    q64 = torch.zeros(2, 6, dtype=torch.float64)
+    for chain, q in ((c64, q64.float()), (c32, q64)):
+        for call in (lambda: chain.forward(q), lambda: chain.forward(q, q),
+                     lambda: chain.link_transforms(q), lambda: chain.link_inputs(q, q, q),
+                     lambda: chain.acceleration(q, q, q)):
+            with pytest.raises(TypeError, match=f"q has dtype {q.dtype} but the chain 'ur5' has "
+                                                f"dtype {chain.dtype}"):
+                call()
+    with pytest.raises(ValueError, match=r"q is on meta but the chain 'ur5' is on cpu; move them"):
+        c64.forward(torch.zeros(6, dtype=torch.float64, device="meta"))
+    assert c32.forward(q64.float()).pose.dtype == torch.float32
+
+
 def test_float32_matches_float64():
     c64, c32 = iiwa7(), iiwa7(dtype=torch.float32)
     q, qd, qdd = _sample(c64)

@@ -121,6 +121,12 @@ class GDHChain:
     Joint variable q_i: theta_i = theta_offset_i + q_i (revolute) or d_i = d_offset_i + q_i
     (prismatic).  Only standard DH (as in the paper) is supported, not modified (Craig) DH.
     Every method broadcasts over leading batch dimensions of q, qdot, qddot (..., n).
+
+    ``dtype`` (float64 by default, or float32) and ``device`` are those of the DH table, and
+    the joint tensors must match them (as everywhere in the library, nothing is cast): q of
+    another dtype or device raises TypeError or ValueError naming q and the chain.  Build the
+    chain in the dtype and on the device of your data (``ur5(dtype=torch.float32,
+    device="cuda")``).
     """
 
     def __init__(
@@ -150,6 +156,16 @@ class GDHChain:
         self.a, self.alpha, self.d, self.theta_offset = (as_t(cols[k]) for k in cols)
         self._revolute = torch.tensor([t == REVOLUTE for t in types], device=device)
 
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the DH table, which q, qdot and qddot must have."""
+        return self.a.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """The device of the DH table, where q, qdot and qddot must be."""
+        return self.a.device
+
     def __repr__(self) -> str:
         kinds = "".join("R" if t == REVOLUTE else "P" for t in self.joint_types)
         return f"GDHChain({self.name!r}, {self.n_joints} joints {kinds}, dtype={self.a.dtype})"
@@ -165,7 +181,9 @@ class GDHChain:
                 f"{name} must have shape (..., {self.n_joints}) for the {self.n_joints} joints "
                 f"of {self.name!r}, got {tuple(x.shape)}"
             )
-        if like is not None:
+        if like is None:
+            self._check_like_chain(x, name)
+        else:
             if x.device != like.device or x.dtype != like.dtype:
                 raise ValueError(
                     f"{name} ({x.dtype}, {x.device}) must match q ({like.dtype}, {like.device})"
@@ -179,15 +197,24 @@ class GDHChain:
                 ) from None
         return x
 
-    def _table(self, like: torch.Tensor):
-        """The DH table in q's dtype and on q's device (a chain built on the meta device has no
-        values to move: it only works with meta inputs)."""
-        if self.a.device != like.device and self.a.device.type == "meta":
-            raise ValueError(f"q is on {like.device} but the chain {self.name!r} was built on "
+    def _check_like_chain(self, q: torch.Tensor, name: str = "q") -> None:
+        """q on the chain's device and in its dtype: the DH table is not cast to q's (metadata
+        only).  A chain built on the meta device has no values to move: it only works with
+        meta inputs."""
+        if self.a.device != q.device and self.a.device.type == "meta":
+            raise ValueError(f"{name} is on {q.device} but the chain {self.name!r} was built on "
                              f"{self.a.device}, where its DH table has no values; build the "
-                             f"chain with device={str(like.device)!r}")
-        t = [x.to(dtype=like.dtype, device=like.device) for x in (self.a, self.alpha, self.d, self.theta_offset)]
-        return (*t, self._revolute.to(like.device))
+                             f"chain with device={str(q.device)!r}")
+        try:
+            checks.same_device_dtype(**{f"the chain {self.name!r}": self.a, name: q})
+        except (TypeError, ValueError) as err:
+            raise type(err)(f"{err} (a chain's dtype and device are set when it is built: "
+                            f"GDHChain(..., dtype=, device=), ur5(dtype=, device=))") from None
+
+    def _table(self, like: torch.Tensor):
+        """The DH table (a, alpha, d, theta_offset, revolute mask); ``like`` (q) has been
+        checked to share its dtype and device (``_check_like_chain``)."""
+        return self.a, self.alpha, self.d, self.theta_offset, self._revolute
 
     # --------------------------------------------------------------------- links
     def link_transforms(self, q: torch.Tensor, qdot: torch.Tensor | None = None) -> SE23:

@@ -1,4 +1,7 @@
-"""Standard-DH tables of example manipulators (joint variables add to theta or d)."""
+"""Standard-DH tables of example manipulators (joint variables add to theta or d).
+
+Each factory builds a :class:`GDHChain` in ``dtype`` (float64 by default) on ``device``; the
+joint tensors given to its methods must have that dtype and device (nothing is cast)."""
 from __future__ import annotations
 
 import math
