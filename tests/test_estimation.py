@@ -110,12 +110,23 @@ def test_max_iterations_status():
 
 def test_errors_name_the_argument():
     r = lambda x: x[0]
-    with pytest.raises(ValueError, match=r"x0\[0\].*\(B, k\)"):
+    # a block given alone is named x0 (it was named x0[0], as if a tuple had been passed)
+    with pytest.raises(ValueError, match=r"x0 must be a tensor of shape \(B, k\) or \(B, K, k\)"):
         gauss_newton(r, torch.zeros(3, dtype=f64))
     with pytest.raises(ValueError, match="batch size"):
         gauss_newton(r, (torch.zeros(3, 2, dtype=f64), torch.zeros(4, 1, dtype=f64)))
-    with pytest.raises(TypeError, match=r"x0\[0\] must be floating point"):
+    with pytest.raises(TypeError, match=r"x0 must be floating point"):
         gauss_newton(r, torch.zeros(3, 2, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"x0\[1\] must be floating point"):
+        gauss_newton(r, (torch.zeros(3, 2, dtype=f64), torch.zeros(3, 2, dtype=torch.int64)))
+    g = ts.SE3.identity((3, 2, 4), dtype=f64)
+    for solve in (lambda x: gauss_newton(r, x), lambda x: lbfgs(lambda x, _: r(x), x),
+                  lambda x: gauss_helmert(lambda x, e: r(x), x, torch.eye(2, dtype=f64))):
+        with pytest.raises(ValueError, match=r"x0 \(SE3\) must have batch shape \(B,\) .* or "
+                                             r"\(B, K\) .*, got \(3, 2, 4\)"):
+            solve(g)
+        with pytest.raises(ValueError, match=r"x0\[1\] \(SE3\) must have batch shape"):
+            solve((torch.zeros(3, 1, dtype=f64), g))
     with pytest.raises(ValueError, match=r"residual\(x\) must return \(B, m\)"):
         gauss_newton(lambda x: x[0].sum(-1), torch.zeros(3, 2, dtype=f64))
     with pytest.raises(ValueError, match=r"jacobian\(x\) must return"):
@@ -379,3 +390,100 @@ def test_single_unknown_reaches_the_residual_and_the_solution_unwrapped():
     ref = gauss_helmert(line, (torch.zeros(3, 2, dtype=f64),), 0.09 * torch.eye(2, dtype=f64),
                         step_tol=1e-10, max_iterations=100)
     assert type(gh.x) is torch.Tensor and torch.equal(gh.x, ref.x[0])
+
+
+def _pose_chain(B=3, N=5, seed=11):
+    """A batch of SE3 pose chains: prior on pose 0, odometry i -> i+1, a loop closure 0 -> N-1.
+    Returns (residual(pose), x0 poses): ``pose(i)`` gives pose i (B,) of the unknowns."""
+    gen = torch.Generator().manual_seed(seed)
+    rnd = lambda *shape: torch.randn(*shape, generator=gen, dtype=f64)  # noqa: E731
+    X = [ts.SE3.exp(rnd(B, 6))]
+    for _ in range(N - 1):
+        X.append(X[-1] @ ts.SE3.exp(rnd(B, 6)))
+    s, sp = 0.05, 0.1
+    prior = X[0].rplus(sp * rnd(B, 6))
+    edges = [(i, i + 1) for i in range(N - 1)] + [(0, N - 1)]
+    Z = [X[i].between(X[j]).rplus(s * rnd(B, 6)) for i, j in edges]
+
+    def residual(pose):
+        r = [pose(0).rminus(prior) / sp]
+        r += [pose(i).between(pose(j)).rminus(z) / s for (i, j), z in zip(edges, Z)]
+        return torch.cat(r, dim=-1)
+
+    x0 = [prior]
+    for z in Z[:N - 1]:
+        x0.append(x0[-1] @ z)
+    return residual, x0
+
+
+def test_group_block_of_k_variables_solves_as_the_tuple_of_its_variables():
+    """A (B, K) SE3 block (the K poses of each problem's pose graph): tangent K * 6 ordered
+    variable-major, each pose moved by its own right perturbation; the same solution and
+    covariance as the tuple of the K (B,) blocks, in gauss_newton, autograd_jacobian and lbfgs."""
+    residual, x0 = _pose_chain()
+    B, N = x0[0].batch_shape[0], len(x0)
+    stacked = ts.SE3.stack(x0, dim=1)
+    assert stacked.batch_shape == (B, N)
+    r_tuple = lambda x: residual(lambda i: x[i])  # noqa: E731
+    r_block = lambda x: residual(lambda i: x[:, i])  # noqa: E731
+    J_t, J_b = autograd_jacobian(r_tuple, tuple(x0)), autograd_jacobian(r_block, stacked)
+    assert J_b.shape == (B, 6 * (1 + N), 6 * N)  # prior + N edges
+    torch.testing.assert_close(J_b, J_t, rtol=0, atol=1e-12)
+    tup, blk = (gauss_newton(r_tuple, tuple(x0), step_tol=1e-3),
+                gauss_newton(r_block, stacked, step_tol=1e-3))
+    assert torch.equal(blk.report.iterations, tup.report.iterations)
+    assert blk.report.converged.all() and tup.report.converged.all()
+    assert type(blk.x) is ts.SE3 and blk.x.batch_shape == (B, N)
+    assert blk.covariance.shape == (B, 6 * N, 6 * N)
+    for i in range(N):
+        torch.testing.assert_close(blk.x[:, i].as_matrix(), tup.x[i].as_matrix(), rtol=0, atol=1e-10)
+    torch.testing.assert_close(blk.covariance, tup.covariance, rtol=1e-8, atol=1e-12)
+    torch.testing.assert_close(blk.report.cost, tup.report.cost, rtol=1e-10, atol=0)
+    # the covariance is over the stacked right perturbation, variable-major: the solution's
+    # Hessian J^T J inverted (J by finite differences of the retraction, independent of the ordering)
+    h, d = 1e-6, 6 * N
+    J_fd = torch.stack([(r_block(V.retract((blk.x,), h * e)[0]) - r_block(V.retract((blk.x,), -h * e)[0]))
+                        / (2 * h) for e in torch.eye(d, dtype=f64).expand(B, d, d).unbind(-1)], -1)
+    P_fd = torch.linalg.inv(J_fd.mT @ J_fd)
+    torch.testing.assert_close(blk.covariance, P_fd, rtol=1e-5, atol=1e-10)
+    # lbfgs: the same iterates (a few steps; this problem is too ill-conditioned for it to converge fast)
+    xb, _, rb = lbfgs(lambda x, _: 0.5 * r_block(x).square().sum(-1), stacked, max_iterations=5)
+    xt, _, rt = lbfgs(lambda x, _: 0.5 * r_tuple(x).square().sum(-1), tuple(x0), max_iterations=5)
+    assert type(xb) is ts.SE3 and xb.batch_shape == (B, N)
+    assert (rb.cost < 0.5 * rb.initial_cost).all()
+    torch.testing.assert_close(rb.cost, rt.cost, rtol=1e-8, atol=0)
+    for i in range(N):
+        torch.testing.assert_close(xb[:, i].as_matrix(), xt[i].as_matrix(), rtol=0, atol=1e-8)
+
+
+def test_blocks_of_k_variables_in_variables_and_gauss_helmert():
+    """(B, K) group and (B, K, k) tensor blocks through retract/local/select/finite, and a
+    (B, 1, 2) tensor block in gauss_helmert (the line fit) equal to the (B, 2) one."""
+    gen = torch.Generator().manual_seed(3)
+    G = ts.SGal3(ts.functional.sgal3.random((4, 3), f64, None, gen))
+    E = torch.randn(4, 2, 5, generator=gen, dtype=f64)
+    x = (G, E)
+    assert V.block_dims(x) == [30, 10] and V.tangent_dim(x) == 40 and V.batch_size(x) == 4
+    d = 0.1 * torch.randn(4, 40, generator=gen, dtype=f64)
+    y = V.retract(x, d)
+    for k in range(3):  # variable k moves by d[:, 10 k : 10 k + 10]
+        torch.testing.assert_close(y[0][:, k].as_matrix(), G[:, k].rplus(d[:, 10 * k:10 * k + 10]).as_matrix(),
+                                   rtol=0, atol=1e-14)
+    torch.testing.assert_close(y[1], E + d[:, 30:].reshape(4, 2, 5), rtol=0, atol=0)
+    torch.testing.assert_close(V.local(x, y), d, rtol=0, atol=1e-12)
+    mask = torch.tensor([True, False, True, False])
+    sel = V.select(mask, y, x)
+    assert torch.equal(sel[0].as_matrix()[1], G.as_matrix()[1]) and torch.equal(sel[1][2], y[1][2])
+    E_bad = E.clone()
+    E_bad[1, 1, 4] = float("nan")
+    assert V.finite((G, E_bad)).tolist() == [True, False, True, True]
+    xs, ys = _line_data()
+    line = _line_condition(xs, ys)
+    cov = 0.09 * torch.eye(2, dtype=f64)
+    gh = gauss_helmert(lambda p, e: line((p[:, 0],), e), torch.zeros(3, 1, 2, dtype=f64), cov,
+                       step_tol=1e-10, max_iterations=100)
+    ref = gauss_helmert(line, (torch.zeros(3, 2, dtype=f64),), cov, step_tol=1e-10,
+                        max_iterations=100)
+    assert gh.x.shape == (3, 1, 2)
+    torch.testing.assert_close(gh.x[:, 0], ref.x[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(gh.covariance, ref.covariance, rtol=0, atol=1e-12)

@@ -153,9 +153,11 @@ def gauss_helmert(
         None for e = 0 (the condition may take a cheaper path then).  Any invertible factor
         per condition may multiply c's linearisation (A, Bm and the linear part of c) without
         changing the solution.
-    x0: the unknowns, as in ``gauss_newton``: a group element (B,), a tensor (B, k) or a tuple
-        of them; ``condition`` receives x, and ``Solution.x`` comes back, in the same form
-        (a block given alone arrives alone).
+    x0: the unknowns, as in ``gauss_newton``: a group element (B,) or (B, K), a tensor (B, k)
+        or (B, K, k), or a tuple of them; ``condition`` receives x, and ``Solution.x`` comes
+        back, in the same form (a block given alone arrives alone).  d, the size of A's last
+        axis, is the sum of the blocks' tangent sizes (K dof for a (B, K) group block,
+        variable-major).
     observation_covariance: (B or 1, N or 1, m, m) symmetric positive definite, or a tuple of
         such blocks along the diagonal (sizes adding up to m); diagonal blocks are detected and
         handled elementwise.

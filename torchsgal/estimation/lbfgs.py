@@ -30,9 +30,9 @@ def lbfgs(
 ):
     """Minimises cost(x, extra) -> (B,) for every problem of a batch.
 
-    x0: the unknowns, as in ``gauss_newton``: a group element (B,), a tensor (B, k) or a tuple
-    of them; ``cost`` receives x, and the returned x comes back, in the same form (a block
-    given alone arrives alone); scale: the preconditioner of their tangent
+    x0: the unknowns, as in ``gauss_newton``: a group element (B,) or (B, K), a tensor (B, k)
+    or (B, K, k), or a tuple of them; ``cost`` receives x, and the returned x comes back, in
+    the same form (a block given alone arrives alone); scale: the preconditioner of their tangent
     perturbation, delta = scale z: (B, d) or (d,) per coordinate, or (B, d, d) a matrix
     (default 1); extra: optional additional Euclidean variables (B, ..., k) that the cost also
     takes (for example nuisance parameters), moved as extra + extra_scale @ z_e with

@@ -276,7 +276,8 @@ def _select_aux(mask, new, old):
 
 def autograd_jacobian(residual: Callable, x) -> torch.Tensor:
     """J (B, m, d) of residual(retract(x, delta)) at delta = 0 by reverse-mode autodiff; ``x``
-    and what ``residual`` receives as in ``gauss_newton`` (one block alone, or a tuple).
+    and what ``residual`` receives as in ``gauss_newton`` (one block alone, or a tuple; (B, K)
+    blocks variable-major).
 
     The problems are independent, so the Jacobian of the batch-summed residual with respect
     to the batched perturbation holds every problem's Jacobian; one ``jacrev`` call."""
@@ -299,9 +300,13 @@ def gauss_newton(
 
     residual: x -> (B, m), whitened (divide by the noise's square root yourself).
     x0: the unknowns: a group element of batch shape (B,), a tensor (B, k), or a tuple of them
-        (one batch axis, the problems; B shared by the blocks).  ``residual`` and ``jacobian``
-        receive x as x0 was given: a block given alone arrives alone (``x.rminus(target)``), a
-        tuple as a tuple of the same blocks (``g, s = x``); ``Solution.x`` likewise.
+        (the first axis is the problems; B shared by the blocks).  A group element of batch
+        shape (B, K) (or a tensor (B, K, k)) is one block of K variables per problem, e.g. the
+        poses of a pose graph: its tangent is K dof coordinates, variable-major, and it solves
+        as the tuple of its K (B,) blocks would (``variables``).  ``residual`` and ``jacobian``
+        receive x as x0 was given: a block given alone arrives alone (``x.rminus(target)``,
+        ``x[:, i]`` for variable i of a (B, K) block), a tuple as a tuple of the same blocks
+        (``g, s = x``); ``Solution.x`` likewise.
     jacobian: x -> (B, m, d) with respect to right perturbations (``variables.retract``; d the
         sum of the blocks' tangent sizes, in order); by default autodiff through ``residual``
         (``autograd_jacobian``).

@@ -1,14 +1,21 @@
-"""Unknowns of a batched least-squares problem: a tuple of blocks, each a group element
-(a ``LieGroup`` of batch shape (B,)) or a Euclidean tensor (B, k), or one such block alone.
-The solvers work on the tuple; unknowns given as one block alone reach the user's functions
-(residual, Jacobian, condition, cost) and come back in the solution alone, unwrapped
-(``is_single``, ``unwrapped``).
+"""Unknowns of a batched least-squares problem: a tuple of blocks, or one block alone.
 
-The tangent vector of the tuple is the concatenation of the blocks' tangents, in order.
-Group blocks move by right perturbation, ``g.rplus(d) = g exp(d)`` (CONVENTIONS.md); Euclidean
-blocks by addition.
+A block is a group element (a ``LieGroup``) of batch shape (B,) (one variable per problem) or
+(B, K) (K variables of that group per problem, e.g. the poses of a pose graph), or a
+Euclidean tensor (B, k) or (B, K, k).  The solvers work on the tuple; unknowns given as one
+block alone reach the user's functions (residual, Jacobian, condition, cost) and come back in
+the solution alone, unwrapped (``is_single``, ``unwrapped``).
+
+The tangent vector of the tuple is the concatenation of the blocks' tangents, in order; a
+(B, K) block contributes K * dof coordinates ordered variable-major (variable 0's dof, then
+variable 1's, ...), so a (B, K) block has the same tangent, covariance layout and solution as
+the tuple of its K (B,) blocks.  Group blocks move by right perturbation,
+``g.rplus(d) = g exp(d)`` (CONVENTIONS.md), each variable of a (B, K) block by its own
+tangent; Euclidean blocks by addition.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -40,7 +47,10 @@ def as_values(x) -> Values:
 
 
 def block_dims(x: Values) -> list[int]:
-    return [b.dof if isinstance(b, LieGroup) else b.shape[-1] for b in x]
+    """The tangent size of each block: dof (group, batch (B,)), K dof (group, batch (B, K)),
+    k or K k (tensor (B, k) or (B, K, k))."""
+    return [b.dof * math.prod(b.batch_shape[1:]) if isinstance(b, LieGroup)
+            else math.prod(b.shape[1:]) for b in x]
 
 
 def tangent_dim(x: Values) -> int:
@@ -53,26 +63,37 @@ def batch_size(x: Values) -> int:
     return x[0].batch_shape[0] if isinstance(x[0], LieGroup) else x[0].shape[0]
 
 
+def _block_name(name: str, i: int, single: bool) -> str:
+    """``x0`` for unknowns given as one block alone, ``x0[i]`` for the blocks of a tuple."""
+    return name if single else f"{name}[{i}]"
+
+
 def check_values(x: Values, name: str = "x0") -> Values:
-    """Checks that every block has the same single batch dimension, dtype and device."""
+    """Checks that every block has the same batch size B (a group element of batch shape (B,)
+    or (B, K), a tensor (B, k) or (B, K, k)), dtype and device; errors name ``name`` for a
+    block given alone and ``name[i]`` for the blocks of a tuple."""
+    single = is_single(x)
     x = as_values(x)
     if not x:
         raise ValueError(f"{name} must hold at least one block, got none")
     shapes, dtypes, devices = [], set(), set()
     for i, b in enumerate(x):
+        bname = _block_name(name, i, single)
         if isinstance(b, LieGroup):
             shapes.append(tuple(b.batch_shape))
-            if len(b.batch_shape) != 1:
-                raise ValueError(f"{name}[{i}] ({type(b).__name__}) must have batch shape (B,), "
+            if len(b.batch_shape) not in (1, 2):
+                raise ValueError(f"{bname} ({type(b).__name__}) must have batch shape (B,) (one "
+                                 f"variable per problem) or (B, K) (K variables per problem), "
                                  f"got {tuple(b.batch_shape)}")
         elif isinstance(b, torch.Tensor):
-            if b.dim() != 2:
-                raise ValueError(f"{name}[{i}] must be a tensor of shape (B, k), got {tuple(b.shape)}")
+            if b.dim() not in (2, 3):
+                raise ValueError(f"{bname} must be a tensor of shape (B, k) or (B, K, k) (K "
+                                 f"variables per problem), got {tuple(b.shape)}")
             if b.dtype not in SUPPORTED_DTYPES:
-                raise TypeError(f"{name}[{i}] must be floating point (torch.float32 or torch.float64), got {b.dtype}")
-            shapes.append((b.shape[0],))
+                raise TypeError(f"{bname} must be floating point (torch.float32 or torch.float64), got {b.dtype}")
+            shapes.append(tuple(b.shape[:-1]))
         else:
-            raise TypeError(f"{name}[{i}] must be a LieGroup or a tensor, got {type(b).__name__}")
+            raise TypeError(f"{bname} must be a LieGroup or a tensor, got {type(b).__name__}")
         dtypes.add(b.dtype)
         devices.add(b.device)
     if len({s[0] for s in shapes}) != 1:
@@ -105,7 +126,12 @@ def retract(x: Values, delta: torch.Tensor) -> Values:
     out, i = [], 0
     for b, k in zip(x, dims):
         d = delta[..., i:i + k]
-        out.append(b.rplus(d) if isinstance(b, LieGroup) else b + d)
+        if isinstance(b, LieGroup):
+            if len(b.batch_shape) == 2:  # (B, K): variable-major, one tangent per variable
+                d = d.unflatten(-1, (b.batch_shape[1], b.dof))
+            out.append(b.rplus(d))
+        else:
+            out.append(b + (d.unflatten(-1, tuple(b.shape[1:])) if b.dim() == 3 else d))
         i += k
     return tuple(out)
 
@@ -113,7 +139,13 @@ def retract(x: Values, delta: torch.Tensor) -> Values:
 def local(x: Values, y: Values) -> torch.Tensor:
     """y boxminus x: the tangent d with retract(x, d) = y (group blocks log(x^-1 y))."""
     _same_blocks(x, y, "x", "y")
-    parts = [yb.rminus(xb) if isinstance(xb, LieGroup) else yb - xb for xb, yb in zip(x, y)]
+    parts = []
+    for xb, yb in zip(x, y):
+        if isinstance(xb, LieGroup):
+            part = yb.rminus(xb)
+            parts.append(part.flatten(-2) if len(xb.batch_shape) == 2 else part)
+        else:
+            parts.append((yb - xb).flatten(-2) if xb.dim() == 3 else yb - xb)
     return torch.cat(parts, dim=-1)
 
 
@@ -128,10 +160,11 @@ def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
     out = []
     for a, b in zip(new, old):
         if isinstance(a, LieGroup):
-            m = mask[:, None, None]
-            out.append(type(a)(torch.where(m, a.as_matrix(), b.as_matrix())))
+            A = a.as_matrix()
+            m = mask.reshape((B,) + (1,) * (A.dim() - 1))
+            out.append(type(a)(torch.where(m, A, b.as_matrix())))
         else:
-            out.append(torch.where(mask[:, None], a, b))
+            out.append(torch.where(mask.reshape((B,) + (1,) * (a.dim() - 1)), a, b))
     return tuple(out)
 
 
@@ -143,7 +176,7 @@ def finite(x: Values) -> torch.Tensor:
     """(B,) True where every entry of every block is finite."""
     ok = None
     for b in x:
-        t = b.as_matrix().flatten(1) if isinstance(b, LieGroup) else b
+        t = (b.as_matrix() if isinstance(b, LieGroup) else b).flatten(1)
         f = torch.isfinite(t).all(dim=-1)
         ok = f if ok is None else ok & f
     return ok
