@@ -23,17 +23,47 @@ from . import variables as V
 
 
 class SolverStatus(enum.IntEnum):
-    RUNNING = -1
+    """Per-problem outcome codes of ``SolverReport.status`` (int64 tensors; compare with
+    ``report.status == SolverStatus.CONVERGED`` or use ``report.converged``)."""
+
+    RUNNING = -1  # only while iterating: never in a returned report
     CONVERGED = 0
     MAX_ITERATIONS = 1
-    DIVERGED = 2  # the damping grew past its limit without an acceptable step
+    DIVERGED = 2  # the damping grew past its limit without an acceptable step (plain
+    # Gauss-Newton: an unsolvable or non-finite step)
     NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start
-    SINGULAR = 4  # the information J^T J is singular at the solution (unobservable directions)
+    SINGULAR = 4  # the information J^T J is singular at the solution (unobservable directions);
+    # takes precedence over CONVERGED / MAX_ITERATIONS / DIVERGED, and the covariance is NaN
 
 
 @dataclass
 class SolverReport:
-    """Per-problem outcome; every tensor has the batch shape (B,)."""
+    """Per-problem outcome of a solver; every field is a tensor of shape (B,), one entry per
+    problem of the batch, on the unknowns' device.
+
+    status         int64 ``SolverStatus`` codes: CONVERGED (0), MAX_ITERATIONS (1), DIVERGED
+                   (2: the damping grew past ``max_damping`` without an acceptable step; with
+                   ``damping=None``, a step that could not be solved or gave non-finite
+                   values), NON_FINITE (3: non-finite unknowns, residuals or Jacobians at x0;
+                   ``lbfgs``: at the end), SINGULAR
+                   (4: the information J^T J is singular at the solution; it replaces the
+                   other codes, the problem may have converged, its covariance is NaN).
+    iterations     int64, the steps taken by that problem, accepted and rejected (``lbfgs``:
+                   LBFGS's iteration count, shared by the batch).
+    initial_cost   the cost at x0; cost = 1/2 |r|^2 of the whitened residual r, so that
+                   2 cost is the chi-square of the fit (``gauss_helmert``: the linearised
+                   errors-in-variables cost 1/2 w^T S^-1 w; ``lbfgs``: cost(x0)).
+    cost           the same at the solution.
+    step_norm      sqrt(delta^T J^T J delta) of the last step tried, in standard deviations
+                   of the Laplace posterior (the quantity tested against ``step_tol``);
+                   ``lbfgs``: zeros.
+    gradient_norm  |J^T r|, the Euclidean norm of the cost's gradient at the solution with
+                   respect to the right perturbation (``lbfgs``: with respect to its scaled
+                   variables).
+
+    ``converged`` (property) is the bool mask status == CONVERGED; ``counts()`` the number of
+    problems per status (host syncs).
+    """
 
     status: torch.Tensor  # SolverStatus codes (int64)
     iterations: torch.Tensor  # accepted + rejected steps taken
@@ -44,6 +74,7 @@ class SolverReport:
 
     @property
     def converged(self) -> torch.Tensor:
+        """(B,) bool: True where status is CONVERGED."""
         return self.status == SolverStatus.CONVERGED
 
     def counts(self) -> dict[str, int]:
@@ -54,6 +85,24 @@ class SolverReport:
 
 @dataclass
 class Solution:
+    """The result of ``gauss_newton`` and ``gauss_helmert`` (and ``tls.solve_sgal3`` /
+    ``solve_baseline``) for a batch of B problems.
+
+    x           the unknowns at the solution, in the form x0 was given: one block alone (a
+                group element of batch (B,) or (B, K), a tensor (B, k) or (B, K, k)), or a tuple
+                of the same blocks.  Problems that did not converge hold their last accepted
+                point (see ``report.status``).
+    covariance  (B, d, d), d the tangent size of the unknowns (the blocks' tangents
+                concatenated in order, a (B, K) block variable-major): the Laplace
+                covariance (J^T J)^-1 at the solution, over the right perturbations
+                x_true = x exp(eps) of group blocks (additive for tensor blocks), in the units
+                of the unknowns (the residual is whitened).  NaN where the status is SINGULAR
+                or NON_FINITE.
+    report      ``SolverReport``: per-problem status, iterations, costs and norms.
+    aux         solver-specific state: ``gauss_helmert``, the estimated observation residuals
+                e (B, N, m); None for ``gauss_newton``.
+    """
+
     x: object  # the unknowns, as x0 was given: one block alone, or a tuple of the same blocks
     covariance: torch.Tensor  # (B, d, d) Laplace covariance (J^T J)^-1, right perturbations
     report: SolverReport
@@ -64,7 +113,15 @@ class Solution:
 class Linearisation:
     """The whitened residual and its Jacobian, or (when ``H`` is given) the normal equations
     themselves: a linearisation that can sum J^T J over its residuals more cheaply than forming
-    J (``tls``) gives H, g and cost and may leave r and J None."""
+    J (``tls``) gives H, g and cost and may leave r and J None.  What ``iterate``'s
+    ``linearise(x, aux)`` returns (internal to the solvers; d the tangent size of x).
+
+    r      (B, m) whitened residual, or None when H is given.
+    J      (B, m, d) its Jacobian with respect to the right perturbation, or None.
+    extra  anything the ``post_step`` hook needs (Gauss-Helmert: the factors of S).
+    H      (B, d, d) J^T J;  g  (B, d) J^T r;  cost  (B,) 1/2 |r|^2 (``normal_equations``
+           fills them from r and J).
+    """
 
     r: torch.Tensor | None  # (B, m) whitened residual
     J: torch.Tensor | None  # (B, m, d)
