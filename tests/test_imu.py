@@ -20,6 +20,7 @@ import torch
 
 from torchsgal import SGal3
 from torchsgal.imu import (
+    Preintegration,
     earth_rate_vector,
     gravity_vector,
     increment_tangents,
@@ -521,6 +522,55 @@ def test_predicted_covariance_nees():
     nees = (eps1 * torch.linalg.solve(P1, eps1.T).T).sum(-1)
     lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], N * 10) / N
     assert lo < float(nees.mean()) < hi, (float(nees.mean()), lo, hi)
+
+
+def test_preintegration_indexes_its_windows():
+    """pre[index] indexes the batch axes of every field alike: each window equals the
+    preintegration of that window alone, and the docstring's window-by-window dead reckoning
+    equals the prediction over the whole stream at once (the increments and their noise
+    integrals compose exactly)."""
+    R, W, K = 2, 3, 20
+    gyro, acc, dt = random_stream(R * W, K, seed=5)
+    gyro, acc, dt = gyro.reshape(R, W, K, 3), acc.reshape(R, W, K, 3), dt.reshape(R, W, K)
+    b_g = 0.01 * torch.randn(R, W, 3, dtype=F64, generator=torch.Generator().manual_seed(2))
+    kw = dict(gyro_noise_density=0.01, acc_noise_density=0.1, time_noise_density=1e-3)
+    pre = preintegrate(gyro, acc, dt, gyro_bias=b_g, **kw)
+    assert pre.batch_shape == (R, W)
+    for index, shape in ((1, (W,)), ((slice(None), 2), (R,)), ((..., 0), (R,)), (slice(0, 1), (1, W)),
+                         (torch.tensor([False, True]), (1, W)), ((1, torch.tensor([2, 0])), (2,))):
+        part = pre[index]
+        assert part.batch_shape == shape
+        assert part.covariance.shape == (*shape, 10, 10) and part.bias_jacobian.shape == (*shape, 10, 6)
+        assert part.gyro_bias.shape == part.acc_bias.shape == (*shape, 3)
+        at = lambda t, tail: t[(index if isinstance(index, tuple) else (index,))  # noqa: E731
+                               + (slice(None),) * tail]
+        alone = preintegrate(at(gyro, 2), at(acc, 2), at(dt, 1), gyro_bias=at(b_g, 1), **kw)
+        for got, want in ((part.delta.as_matrix(), alone.delta.as_matrix()),
+                          (part.covariance, alone.covariance), (part.bias_jacobian, alone.bias_jacobian),
+                          (part.gyro_bias, alone.gyro_bias), (part.acc_bias, alone.acc_bias)):
+            torch.testing.assert_close(got, want, rtol=0, atol=1e-13 * want.abs().max())
+    assert preintegrate(gyro, acc, dt, covariance=False)[0, 1].covariance is None
+    with pytest.raises(IndexError, match=r"does not fit the batch shape \(2, 3\)"):
+        pre[0, 0, 0]
+    built = Preintegration(pre.delta, None, None, pre.gyro_bias[0, 0], pre.acc_bias)
+    torch.testing.assert_close(built[1, 0].gyro_bias, pre.gyro_bias[0, 0], rtol=0, atol=0)  # broadcast
+    built.covariance = pre.covariance[0, :2]
+    with pytest.raises(ValueError, match=r"covariance of shape \(2, 10, 10\) does not broadcast to "
+                                         r"the batch shape \(2, 3\) of delta"):
+        built[0]
+    # dead reckoning window by window (the class docstring) = one window of all samples
+    whole = preintegrate(gyro.reshape(R, W * K, 3), acc.reshape(R, W * K, 3), dt.reshape(R, W * K), **kw)
+    g = gravity_vector(dtype=F64)
+    X0 = SGal3.random((R,), dtype=F64, generator=torch.Generator().manual_seed(1))
+    L = 1e-2 * torch.randn(R, 10, 10, dtype=F64, generator=torch.Generator().manual_seed(3))
+    P0 = L @ L.mT + 1e-6 * torch.eye(10, dtype=F64)
+    pre = preintegrate(gyro, acc, dt, **kw)
+    X, P = X0, P0
+    for w in range(W):
+        X, P = pre[:, w].predict(X, g), pre[:, w].predict_covariance(X, P, g)
+    torch.testing.assert_close(X.as_matrix(), whole.predict(X0, g).as_matrix(), rtol=0, atol=1e-12)
+    P_whole = whole.predict_covariance(X0, P0, g)
+    torch.testing.assert_close(P, P_whole, rtol=0, atol=1e-12 * P_whole.abs().max())
 
 
 # ------------------------------------------------------------------ fast CPU path

@@ -309,6 +309,17 @@ class Preintegration:
     bias_jacobian  (..., 10, 6) or None: Delta(b + db) ~ delta exp(bias_jacobian db) with
                    db = [db_g, db_a] (gyro bias first).
     gyro_bias, acc_bias (..., 3): the biases the window was integrated with.
+
+    ``...`` is the batch shape of the windows (``batch_shape``).  Indexing (``pre[w]``,
+    ``pre[:, w]``, ``pre[..., 0]``, a slice, an index or mask tensor) indexes those batch axes
+    of every field alike and returns a Preintegration.  Window-by-window dead reckoning from
+    windows of batch (R, W) (R runs of W consecutive windows), each predicted from the last:
+
+        pre = preintegrate(gyro, acc, dt, gyro_noise_density=s_g, acc_noise_density=s_a,
+                           time_noise_density=s_t)       # gyro, acc (R, W, K, 3), dt (R, W, K)
+        X, P = start, start_covariance                   # SGal3 (R,), (R, 10, 10)
+        for w in range(W):
+            X, P = pre[:, w].predict(X, g), pre[:, w].predict_covariance(X, P, g)
     """
 
     delta: SGal3
@@ -316,6 +327,35 @@ class Preintegration:
     bias_jacobian: torch.Tensor | None
     gyro_bias: torch.Tensor
     acc_bias: torch.Tensor
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The batch shape of the windows, that of ``delta``."""
+        return self.delta.batch_shape
+
+    def __getitem__(self, index) -> "Preintegration":
+        """The windows ``index`` of the batch (ints, slices, None, Ellipsis, index or mask
+        tensors over the batch axes, as for ``SGal3``), every field indexed alike: delta
+        (...'), covariance (...', 10, 10), bias_jacobian (...', 10, 6), the biases (...', 3),
+        with ...' the indexed batch shape."""
+        delta = self.delta[index]  # raises IndexError naming the batch shape if it does not fit
+        batch = self.delta.batch_shape
+        idx = index if isinstance(index, tuple) else (index,)
+
+        def pick(t, tail, name):
+            if t is None:
+                return None
+            try:
+                t = t.expand(*batch, *tail)
+            except RuntimeError:
+                raise ValueError(f"{name} of shape {tuple(t.shape)} does not broadcast to the "
+                                 f"batch shape {tuple(batch)} of delta (expected (..., "
+                                 f"{', '.join(map(str, tail))}))") from None
+            return t[idx + (slice(None),) * len(tail)]
+        return Preintegration(delta, pick(self.covariance, (10, 10), "covariance"),
+                              pick(self.bias_jacobian, (10, 6), "bias_jacobian"),
+                              pick(self.gyro_bias, (3,), "gyro_bias"),
+                              pick(self.acc_bias, (3,), "acc_bias"))
 
     def duration(self) -> torch.Tensor:
         """Window length (...), the time part of the increment."""
