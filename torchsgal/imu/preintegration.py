@@ -305,7 +305,11 @@ class Preintegration:
     delta          SGal3 (...): the increment (frame at the window's end seen from its start,
                    gravity-free; its time is the window length).
     covariance     (..., 10, 10) or None: right perturbation, Delta_true = delta exp(eps),
-                   tangent [rho, nu, phi, iota].
+                   tangent [rho, nu, phi, iota].  With the default time_noise_density=0
+                   (exact timestamps) its iota row and column are zero: it is singular
+                   (rank 9).  For a NEES or a log-likelihood use the 9-dof block
+                   ``covariance[..., :9, :9]`` with eps[..., :9], or integrate with a
+                   time_noise_density > 0.
     bias_jacobian  (..., 10, 6) or None: Delta(b + db) ~ delta exp(bias_jacobian db) with
                    db = [db_g, db_a] (gyro bias first).
     gyro_bias, acc_bias (..., 3): the biases the window was integrated with.
@@ -378,7 +382,9 @@ class Preintegration:
                            earth_rate=None) -> torch.Tensor:
         """Covariance (..., 10, 10) of the predicted state (right perturbation), from the start's
         (right perturbation) and the increment's, taken independent:
-        J_s Sigma_i J_s^T + J_d Sigma_Delta J_d^T with (J_s, J_d) = :func:`predict_jacobians`."""
+        J_s Sigma_i J_s^T + J_d Sigma_Delta J_d^T with (J_s, J_d) = :func:`predict_jacobians`.
+        It is singular in the time component when both the start's time variance and the
+        increment's (time_noise_density=0) are zero; see :class:`Preintegration`."""
         if self.covariance is None:
             raise ValueError("covariance is None: preintegrate with covariance=True")
         checks.matrix(start_covariance, 10, "start_covariance")
@@ -422,6 +428,10 @@ def preintegrate(
     per-axis tensors (..., 3) (general path, about 2.5x slower); the clock [s/s/sqrt(Hz)] (a float:
     white noise on the rate of time, entering iota; 0 = exact timestamps).  Sample k's tangent noise
     [0, -n_a dt, -n_g dt, n_t dt] has covariance diag(0, s_a^2 dt, s_g^2 dt, s_t^2 dt).
+    With time_noise_density=0 (the default) the window length is exact, so the covariance's
+    iota row and column are zero and the 10 x 10 covariance is singular (rank 9): invert or
+    Cholesky-factor only its 9-dof block ``covariance[..., :9, :9]`` (and use eps[..., :9] in a
+    NEES), or give a time_noise_density > 0.
 
     Covariance (right perturbation, Delta_true = Delta exp(eps), tangent [rho, nu, phi, iota]):
     the first-order error obeys eps(t) = Ad(E^-1) eps + noise, i.e. the recursion
