@@ -99,3 +99,29 @@ def test_iterated_gauss_helmert_equals_gauss_newton_on_noisy_observations(G):
     assert gh.x[0].rminus(gn.x[0]).abs().max() < 1e-9
     assert gh.x[0].rminus(target).abs().max() > 1e-3  # the noise moved the solution
     assert (gh.covariance - gn.covariance).abs().max() < 1e-9
+
+
+def test_variable_helpers_take_one_block_alone_as_the_solvers_do():
+    """The public helpers of estimation.variables take one block alone (what residual/jacobian
+    now receive) and return the same form; a group element used to be iterated over its batch
+    (local (24,) instead of (4, 6)) or to hit its truth value."""
+    from torchsgal.estimation import autograd_jacobian
+    from torchsgal.estimation import variables as V
+    g = ts.SE3.exp(torch.randn(4, 6, generator=torch.Generator().manual_seed(0), dtype=F64))
+    d = 0.1 * torch.ones(4, 6, dtype=F64)
+    assert V.tangent_dim(g) == 6 and V.batch_size(g) == 4 and V.block_dims(g) == [6]
+    moved = V.retract(g, d)
+    assert isinstance(moved, ts.SE3) and moved.allclose(g.rplus(d), rtol=0, atol=1e-15)
+    torch.testing.assert_close(V.local(g, moved), d, rtol=0, atol=1e-13)
+    mask = torch.tensor([True, False, True, False])
+    picked = V.select(mask, moved, g)
+    assert isinstance(picked, ts.SE3)
+    torch.testing.assert_close(picked.as_matrix()[1], g.as_matrix()[1], rtol=0, atol=0)
+    torch.testing.assert_close(picked.as_matrix()[0], moved.as_matrix()[0], rtol=0, atol=0)
+    assert isinstance(V.detach(g), ts.SE3) and bool(V.finite(g).all())
+    assert isinstance(V.retract((g,), d), tuple)  # tuples stay tuples
+    assert autograd_jacobian(lambda x: x.log(), g).shape == (4, 6, 6)
+    with pytest.raises(TypeError, match="x must be a group element, a tensor or a tuple of them, got str"):
+        autograd_jacobian(lambda x: x, "abc")
+    with pytest.raises(ValueError, match=r"x \(SE3\) must have batch shape \(B,\)"):
+        autograd_jacobian(lambda x: x.log(), ts.SE3.identity(dtype=F64))

@@ -339,7 +339,7 @@ def autograd_jacobian(residual: Callable, x) -> torch.Tensor:
     The problems are independent, so the Jacobian of the batch-summed residual with respect
     to the batched perturbation holds every problem's Jacobian; one ``jacrev`` call."""
     residual = V.unwrapped(residual, V.is_single(x))
-    x = V.detach(V.as_values(x))
+    x = V.detach(V.check_values(x, "x"))
     Bn, d = V.batch_size(x), V.tangent_dim(x)
     ref = x[0].as_matrix() if hasattr(x[0], "as_matrix") else x[0]
     zero = torch.zeros(Bn, d, dtype=ref.dtype, device=ref.device)

@@ -16,6 +16,7 @@ tangent; Euclidean blocks by addition.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import torch
 
@@ -39,16 +40,20 @@ def unwrapped(f, single: bool):
     return lambda x, *args: f(x[0], *args)
 
 
-def as_values(x) -> Values:
+def as_values(x, name: str = "x") -> Values:
     """Normalises a single block or a sequence of blocks to a tuple."""
     if isinstance(x, (LieGroup, torch.Tensor)):
         return (x,)
+    if isinstance(x, (str, bytes)) or not isinstance(x, Iterable):
+        raise TypeError(f"{name} must be a group element, a tensor or a tuple of them, got "
+                        f"{type(x).__name__}")
     return tuple(x)
 
 
 def block_dims(x: Values) -> list[int]:
     """The tangent size of each block: dof (group, batch (B,)), K dof (group, batch (B, K)),
     k or K k (tensor (B, k) or (B, K, k))."""
+    x = as_values(x)
     return [b.dof * math.prod(b.batch_shape[1:]) if isinstance(b, LieGroup)
             else math.prod(b.shape[1:]) for b in x]
 
@@ -58,6 +63,7 @@ def tangent_dim(x: Values) -> int:
 
 
 def batch_size(x: Values) -> int:
+    x = as_values(x)
     if not x:
         raise ValueError("x must hold at least one block, got none")
     return x[0].batch_shape[0] if isinstance(x[0], LieGroup) else x[0].shape[0]
@@ -73,7 +79,7 @@ def check_values(x: Values, name: str = "x0") -> Values:
     or (B, K), a tensor (B, k) or (B, K, k)), dtype and device; errors name ``name`` for a
     block given alone and ``name[i]`` for the blocks of a tuple."""
     single = is_single(x)
-    x = as_values(x)
+    x = as_values(x, name)
     if not x:
         raise ValueError(f"{name} must hold at least one block, got none")
     shapes, dtypes, devices = [], set(), set()
@@ -117,7 +123,9 @@ def _same_blocks(x: Values, y: Values, x_name: str, y_name: str) -> None:
 
 
 def retract(x: Values, delta: torch.Tensor) -> Values:
-    """x boxplus delta: group blocks g exp(d), Euclidean blocks x + d; delta (B, dim)."""
+    """x boxplus delta: group blocks g exp(d), Euclidean blocks x + d; delta (B, dim).  Like
+    every helper here, it takes one block alone or a tuple, and returns the same form."""
+    single, x = is_single(x), as_values(x)
     dims = block_dims(x)
     if not isinstance(delta, torch.Tensor) or delta.dim() < 1 or delta.shape[-1] != sum(dims):
         got = tuple(delta.shape) if isinstance(delta, torch.Tensor) else type(delta).__name__
@@ -133,11 +141,12 @@ def retract(x: Values, delta: torch.Tensor) -> Values:
         else:
             out.append(b + (d.unflatten(-1, tuple(b.shape[1:])) if b.dim() == 3 else d))
         i += k
-    return tuple(out)
+    return out[0] if single else tuple(out)
 
 
 def local(x: Values, y: Values) -> torch.Tensor:
     """y boxminus x: the tangent d with retract(x, d) = y (group blocks log(x^-1 y))."""
+    x, y = as_values(x), as_values(y)
     _same_blocks(x, y, "x", "y")
     parts = []
     for xb, yb in zip(x, y):
@@ -151,6 +160,7 @@ def local(x: Values, y: Values) -> torch.Tensor:
 
 def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
     """Blockwise torch.where over the batch: new where mask (B,) else old."""
+    single, new, old = is_single(new), as_values(new), as_values(old)
     _same_blocks(new, old, "new", "old")
     B = batch_size(new)
     if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != (B,):
@@ -165,15 +175,18 @@ def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
             out.append(type(a)(torch.where(m, A, b.as_matrix())))
         else:
             out.append(torch.where(mask.reshape((B,) + (1,) * (a.dim() - 1)), a, b))
-    return tuple(out)
+    return out[0] if single else tuple(out)
 
 
 def detach(x: Values) -> Values:
+    if is_single(x):
+        return x.detach()
     return tuple(b.detach() for b in x)
 
 
 def finite(x: Values) -> torch.Tensor:
     """(B,) True where every entry of every block is finite."""
+    x = as_values(x)
     ok = None
     for b in x:
         t = (b.as_matrix() if isinstance(b, LieGroup) else b).flatten(1)
