@@ -52,12 +52,37 @@ def test_sim3_from_matrix_check_accepts_small_and_large_scales(dtype):
     Sim3.from_matrix(Sim3.exp(xi).as_matrix(), check=True)
     M = torch.eye(4, dtype=dtype)
     M[3, 3] = 1e6
-    M[3, 1] = 1e-3
-    with pytest.raises(ValueError, match=r"not in Sim3 .* fixed rows = 0.001"):
+    M[3, 1] = 1e3  # 1e-3 relative to 1/s
+    with pytest.raises(ValueError, match=r"not in Sim3 .* fixed rows = 0.001 \(\|M\[3, :3\]\| relative"):
         Sim3.from_matrix(M, check=True)
     M[3, 1], M[3, 3] = 0.0, -2.0
     with pytest.raises(ValueError, match=r"M\[3, 3\] = 1/s must be positive, got -2"):
         Sim3.from_matrix(M, check=True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64], ids=str)
+def test_sim3_from_matrix_check_measures_the_bottom_row_relative_to_inverse_scale(dtype):
+    """The bottom row's zeros are measured relative to M[3, 3] = 1/s.  Compared absolutely, a
+    row entry far larger than a tiny 1/s passed (composing with it gave a scale of 2e9 instead of
+    1e13 in float64), and a rounding-sized entry beside a huge 1/s failed."""
+    from torchsgal import Sim3
+    tiny, off = (1e-13, 5e-10) if dtype == F64 else (1e-4, 9e-5)  # both under the absolute tol
+    M = torch.eye(4, dtype=dtype)
+    M[3, 3], M[3, 0] = tiny, off
+    with pytest.raises(ValueError, match=r"not in Sim3 .* fixed rows = [0-9.e+]+ \(\|M\[3, :3\]\| relative"):
+        Sim3.from_matrix(M, check=True)
+    M[3, 0] = 0.0
+    g = Sim3.from_matrix(M, check=True)
+    h = Sim3.from_components(torch.eye(3, dtype=dtype), torch.ones(3, dtype=dtype), torch.tensor(1.0, dtype=dtype))
+    torch.testing.assert_close(g.compose(h).scale(), torch.tensor(1 / tiny, dtype=dtype), rtol=1e-6, atol=0)
+    huge = 1e13 if dtype == F64 else 1e6
+    M = torch.eye(4, dtype=dtype)
+    M[3, 3], M[3, 0] = huge, huge * 1e-3 * (1e-9 if dtype == F64 else 1e-4)  # 1e-3 of the tol
+    Sim3.from_matrix(M, check=True)  # the absolute comparison refused 1e-5 beside 1e13
+    for inv_s in (0.0, float("-inf")):
+        M[3, 3] = inv_s
+        with pytest.raises(ValueError, match=r"not in Sim3"):
+            Sim3.from_matrix(M, check=True)
 
 
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)

@@ -38,6 +38,7 @@ class LieGroup:
     point_dim: int  # size of the points (events for SGal3) that act() takes
     rotation_dim: int = 3  # 2 for the planar groups
     _f = None  # functional module of the group
+    _fixed_note = ""  # how _fixed_deviation measures, for the membership error
 
     __slots__ = ("_matrix",)
 
@@ -98,7 +99,7 @@ class LieGroup:
             o, d, r = worst.tolist()
             raise ValueError(
                 f"matrix is not in {cls.__name__} (tol {tol:g}): max |C^T C - I| = {o:.3g}, "
-                f"max |det C - 1| = {d:.3g}, max deviation of the fixed rows = {r:.3g}"
+                f"max |det C - 1| = {d:.3g}, max deviation of the fixed rows = {r:.3g}{cls._fixed_note}"
             )
 
     @classmethod

@@ -36,12 +36,17 @@ class Sim3(LieGroup):
         C, r, s = prepare(rotation=(rotation, (3, 3)), position=(position, (3,)), scale=(scale, ()))
         return cls(_sim3.from_components(C, r, s))
 
+    _fixed_note = " (|M[3, :3]| relative to |M[3, 3]|)"
+
     @classmethod
     def _fixed_deviation(cls, M: torch.Tensor) -> torch.Tensor:
-        """Only the zeros of the bottom row are fixed: M[3, 3] = 1/s is free (any positive value,
-        checked below), and rebuilding it as 1/(1/M[3, 3]) would compare a rounding error of the
-        size of M[3, 3] with an absolute tolerance."""
-        return M[..., 3, :3].abs().amax(dim=-1)
+        """Only the zeros of the bottom row [0, 0, 0, 1/s] are fixed, and they are measured
+        relative to M[3, 3] = 1/s (free, any positive value, checked below): max |M[3, :3]| /
+        |M[3, 3]|.  That ratio is what a composition sees (the product's M[3, 3] gains M[3, :3]
+        times the other's translation), and compared absolutely, row entries far larger than a
+        tiny 1/s passed and a rounding error beside a huge 1/s failed.  1/s = 0 gives inf or NaN
+        here and is refused by the positivity check."""
+        return M[..., 3, :3].abs().amax(dim=-1) / M[..., 3, 3].abs()
 
     @classmethod
     def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
