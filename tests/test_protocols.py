@@ -211,9 +211,27 @@ def test_scalar_arguments(G):
     G.from_matrix(M, check=False)
     with pytest.raises(ValueError, match=rf"not in {G.__name__}"):
         G.from_matrix(M, check=True)
-    for bad in ("no", 0, None, torch.tensor(False)):
+    for bad in ("no", 0, None, torch.tensor(False), np.int64(1)):
         with pytest.raises(TypeError, match=r"check must be True or False, got"):
             G.from_matrix(M, check=bad)
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_numpy_bools_and_huge_integers(G):
+    """A numpy bool is a flag, as numpy scalars are numbers for tol, rtol and alpha (it was
+    refused); an integer beyond the float range is a bad value (ValueError naming the argument;
+    math.isfinite raised OverflowError)."""
+    M = G.random(2, dtype=F64, generator=torch.Generator().manual_seed(7)).as_matrix().clone()
+    assert torch.equal(G.from_matrix(M, check=np.bool_(True)).as_matrix(), M)
+    M[0, 0, 0] += 0.1
+    with pytest.raises(ValueError, match=rf"not in {G.__name__}"):
+        G.from_matrix(M, check=np.bool_(True))
+    G.from_matrix(M, check=np.bool_(False))
+    for name in ("rtol", "atol"):
+        with pytest.raises(ValueError, match=rf"{name} must be a finite number >= 0, got 1000000000"):
+            G.identity().allclose(G.identity(), **{name: 10**400})
+    with pytest.raises(ValueError, match=r"tol must be a finite number > 0, got 1000000000"):
+        G.from_matrix(M, check=True, tol=10**400)
 
 
 def test_from_transform3d_check_flag():

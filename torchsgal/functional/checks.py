@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
 
 import torch
 
@@ -112,11 +113,14 @@ def integer(value, name: str, minimum: int | None = None) -> int:
 
 
 def boolean(value, name: str) -> bool:
-    """A flag (``check=...``): a Python bool only, so that a string such as "no" or a tensor is
-    refused rather than read by its truth value.  TypeError otherwise."""
-    if not isinstance(value, bool):
-        raise TypeError(f"{name} must be True or False, got {value!r}")
-    return value
+    """A flag (``check=...``): a Python or numpy bool only, so that a string such as "no", an
+    integer or a tensor is refused rather than read by its truth value.  TypeError otherwise."""
+    if isinstance(value, bool):
+        return value
+    np = sys.modules.get("numpy")  # a numpy bool can only come from an imported numpy
+    if np is not None and isinstance(value, np.bool_):
+        return bool(value)
+    raise TypeError(f"{name} must be True or False, got {value!r}")
 
 
 _BOUNDS = {"": lambda v: True, ">= 0": lambda v: v >= 0, "> 0": lambda v: v > 0,
@@ -130,6 +134,10 @@ def finite_number(value, name: str, bound: str = "") -> float:
     message = f"{name} must be a finite number{' ' + bound if bound else ''}, got {value!r}"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise TypeError(message)
-    if not math.isfinite(value) or not ok(value):
+    try:
+        finite = math.isfinite(value)  # an int beyond the float range overflows
+    except OverflowError:
+        finite = False
+    if not finite or not ok(value):
         raise ValueError(message)
     return float(value)
