@@ -552,3 +552,29 @@ def test_gaussian_errors_name_the_groups_and_follow_the_error_policy():
     with pytest.raises(TypeError, match=r"mean must be a group element \(SO2, SE2, SO3, SE3, SE23, "
                                         r"SGal3, Sim3\), got Tensor"):
         ConcentratedGaussian(torch.eye(3), torch.eye(3))
+
+
+def test_fuse_checks_iterations_and_tol():
+    """fuse's iterations and tol follow the conventions of fuse_event (checks.integer and
+    checks.finite_number, naming the argument); they were not checked: iterations=-5, True or a
+    tensor ran one step, tol=nan or -1 never stopped early."""
+    f64 = torch.float64
+    d = ConcentratedGaussian(ts.SE3.random(2, dtype=f64, generator=torch.Generator().manual_seed(3)),
+                             0.1 * torch.eye(6, dtype=f64))
+    e = ConcentratedGaussian(ts.SE3.random(2, dtype=f64, generator=torch.Generator().manual_seed(4)),
+                             0.2 * torch.eye(6, dtype=f64))
+    want = d.fuse(e, iterations=3)
+    for it in (np.int64(3), 3):
+        assert torch.equal(d.fuse(e, iterations=it).covariance, want.covariance)
+    assert torch.equal(d.fuse(e, iterations=3, tol=0).covariance, want.covariance)
+    for bad in (0, -5):
+        with pytest.raises(ValueError, match=r"iterations must be an integer >= 1, got"):
+            d.fuse(e, iterations=bad)
+    for bad in (True, torch.tensor(3), 2.0):
+        with pytest.raises(TypeError, match=r"iterations must be an integer >= 1, got"):
+            d.fuse(e, iterations=bad)
+    for bad in (float("nan"), -1, float("inf")):
+        with pytest.raises(ValueError, match=r"tol must be a finite number >= 0, got"):
+            d.fuse(e, tol=bad)
+    with pytest.raises(TypeError, match=r"tol must be a finite number >= 0, got tensor"):
+        d.fuse(e, tol=torch.tensor(1e-9))

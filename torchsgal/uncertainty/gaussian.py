@@ -339,12 +339,17 @@ class ConcentratedGaussian:
         Residuals r_k = log(mean_k^-1 F) linearised at F_op exp(d): r_k + J_r^-1(r_k) d.  The
         posterior covariance is re-expressed about the final estimate (the Jacobian reset of
         the mahony paper, Section 6.4): Sigma = (sum J_k^T Sigma_k^-1 J_k)^-1 at F_op.
+
+        ``iterations``: an integer >= 1, the most Gauss-Newton steps; ``tol``: a finite number
+        >= 0, the largest step entry at which they stop early (0: they never do).
         """
         self._same_group(other)
+        iterations = checks.integer(iterations, "iterations", 1)
+        tol = checks.finite_number(tol, "tol", ">= 0")
         parts = [self._right(), other._right()]
         infos = [torch.linalg.inv(p.covariance) for p in parts]
         F = parts[0].mean
-        for _ in range(max(1, iterations)):
+        for _ in range(iterations):
             H = 0
             g = 0
             for p, W in zip(parts, infos):
