@@ -152,6 +152,74 @@ def test_pickle_deepcopy_and_torch_save_round_trip(G):
         func(args[0][..., :-1])
 
 
+class _Tagged(SGal3):
+    """A user subclass with instance attributes."""
+
+
+class _NeedsArgument(SGal3):
+    """A user subclass whose constructor takes a required extra argument."""
+
+    def __init__(self, matrix, extra):
+        super().__init__(matrix)
+        self.extra = extra
+
+
+class _Slotted(SGal3):
+    __slots__ = ("tag",)
+
+
+def test_subclass_attributes_survive_pickle_deepcopy_torch_save_and_vmap():
+    """Pickling as cls(matrix) dropped a subclass's attributes (deepcopy(s).tag raised
+    AttributeError) and could not rebuild a subclass whose __init__ takes another argument; the
+    pytree unflatten dropped them too (vmap(lambda x: x.tag)).  The built-in classes still
+    pickle as cls(matrix), which torch.load's weights_only=True reads."""
+    from torch.func import vmap
+
+    M = SGal3.random(3, dtype=F64, generator=torch.Generator().manual_seed(8)).as_matrix()
+    tagged = _Tagged(M)
+    tagged.tag = {"name": "x", "weights": torch.arange(3.0)}
+    slotted = _Slotted(M)
+    slotted.tag = "y"
+    cases = [(tagged, "tag"), (_NeedsArgument(M, 7), "extra"), (slotted, "tag")]
+    for g, attr in cases:
+        want = getattr(g, attr)
+        copies = [pickle.loads(pickle.dumps(g)), copy.deepcopy(g)]
+        buf = io.BytesIO()
+        torch.save([g], buf)
+        buf.seek(0)
+        copies.append(torch.load(buf, weights_only=False)[0])
+        buf.seek(0)
+        with pytest.raises(pickle.UnpicklingError):  # a user class must be allowlisted
+            torch.load(buf, weights_only=True)
+        for h in copies:
+            assert type(h) is type(g) and torch.equal(h.as_matrix(), M)
+            assert h.as_matrix().data_ptr() != M.data_ptr()
+            if attr == "tag" and isinstance(want, dict):
+                assert h.tag["name"] == "x" and torch.equal(h.tag["weights"], want["weights"])
+                assert h.tag is not want  # a copy, not shared
+            else:
+                assert getattr(h, attr) == want
+        seen = []
+        out = vmap(lambda a: (seen.append(getattr(a, attr)), a)[1])(g)
+        assert len(seen) == 1 and seen[0] is want
+        assert type(out) is type(g) and getattr(out, attr) is want and torch.equal(out.as_matrix(), M)
+    # allowlisted, a subclass loads with the default weights_only=True (through _rebuild)
+    with torch.serialization.safe_globals([_Slotted]):
+        buf = io.BytesIO()
+        torch.save(slotted, buf)
+        buf.seek(0)
+        assert torch.load(buf, weights_only=True).tag == "y"
+    # the built-in classes: cls(matrix), no state; _rebuild checks what it is given
+    assert SGal3(M).__reduce__() == (SGal3, (M,))
+    from torchsgal.groups.base import _rebuild
+    with pytest.raises(ValueError, match=r"matrix must have shape \(\.\.\., 5, 5\), got \(3, 4, 4\)"):
+        _rebuild(_Tagged, M[..., :4, :4], None)
+    with pytest.raises(TypeError, match=r"cls must be a LieGroup subclass"):
+        _rebuild(torch.Tensor, M, None)
+    with pytest.raises(TypeError, match=r"state must be None or a dict of attributes other than _matrix"):
+        _rebuild(_Tagged, M, {"_matrix": "x"})
+
+
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_torch_func_takes_and_returns_group_objects(G):
     """Group classes are pytree nodes (one leaf, the matrix): vmap maps over and returns group

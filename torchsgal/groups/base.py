@@ -6,6 +6,7 @@ group's functional module (``_f``), the one place its maths lives.
 """
 from __future__ import annotations
 
+import copyreg
 from numbers import Integral, Real
 from typing import Sequence
 
@@ -29,8 +30,16 @@ class LieGroup:
     structure: a wrapper of the matrix's Euclidean gradient (or Jacobian), not a group element;
     read it with ``as_matrix()``.
 
-    Elements pickle, deepcopy and ``torch.save`` as their matrix; ``torch.load`` reads them with
-    its default ``weights_only=True`` (the classes are registered as safe globals).
+    Elements pickle, deepcopy and ``torch.save`` as ``cls(matrix)``; ``torch.load`` reads the
+    seven classes with its default ``weights_only=True`` (they are registered as safe globals).
+    The attributes of a subclass's instances (its ``__dict__`` and extra ``__slots__``) travel
+    with them through pickle, deepcopy and torch.save, and as the pytree context (torch.func
+    transforms keep them on the elements they pass through; the group operations return new
+    elements without them).  Such an element, or one of a subclass that defines its own
+    ``__init__``, is rebuilt by ``_rebuild``: the constructor's shape and dtype checks, then the
+    attributes, without calling ``__init__`` (as pickle does for other objects).  torch.load
+    reads it with ``weights_only=False``, or with the default after
+    ``torch.serialization.add_safe_globals([YourSubclass])``.
     """
 
     dof: int
@@ -49,15 +58,34 @@ class LieGroup:
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        # a subclass's instance attributes besides the matrix: its __dict__ (if its instances
+        # have one) and slots; the seven built-in classes have neither (__slots__ = ())
+        cls._state_slots = tuple(n for n in copyreg._slotnames(cls) if n != "_matrix")
+        cls._has_state = bool(cls._state_slots) or bool(cls.__dictoffset__)
         _register_pytree(cls)
 
+    def _state(self) -> dict | None:
+        """The instance's attributes besides the matrix (a subclass's), or None if it has none:
+        what pickle, deepcopy and the pytree context carry."""
+        if not self._has_state:
+            return None
+        state = dict(getattr(self, "__dict__", ()))
+        for name in self._state_slots:
+            if hasattr(self, name):
+                state[name] = getattr(self, name)
+        return state or None
+
     @classmethod
-    def _from_leaf(cls, leaf):
+    def _from_leaf(cls, leaf, state: dict | None = None):
         """The pytree unflatten: wraps ``leaf`` unchecked, since torch.func and torch.utils._pytree
         rebuild the structure around whatever leaves they computed (Jacobians of other shapes,
-        in_dims, sizes)."""
+        in_dims, sizes), then sets the attributes ``state`` (the context) without calling
+        ``__init__``."""
         g = object.__new__(cls)
         g._matrix = leaf
+        if state:
+            for name, value in state.items():
+                object.__setattr__(g, name, value)
         return g
 
     # ---------------------------------------------------------------- constructors
@@ -407,10 +435,17 @@ class LieGroup:
         return type(self)(self._matrix.clone())
 
     def __reduce__(self):
-        """Pickles (and torch.save's) as ``cls(matrix)``: loading goes through the constructor's
-        checks, and torch.load's default weights_only unpickler accepts it (the group classes
-        are registered with torch.serialization.add_safe_globals)."""
-        return type(self), (self._matrix,)
+        """Pickles (and torch.save's, deepcopies) as ``cls(matrix)``: loading goes through the
+        constructor's shape and dtype checks (not a membership check), and torch.load's default
+        weights_only unpickler accepts it (the group classes are registered with
+        torch.serialization.add_safe_globals).  An element with attributes besides the matrix,
+        or of a subclass with its own ``__init__``, pickles as ``_rebuild(cls, matrix, state)``
+        (see the class docstring)."""
+        cls = type(self)
+        state = self._state()
+        if state is None and cls.__init__ is LieGroup.__init__:
+            return cls, (self._matrix,)
+        return _rebuild, (cls, self._matrix, state)
 
     def __repr__(self) -> str:
         return (
@@ -419,17 +454,31 @@ class LieGroup:
         )
 
 
+def _rebuild(cls, matrix, state=None):
+    """Unpickles an element with attributes besides its matrix, or of a subclass with its own
+    ``__init__`` (LieGroup.__reduce__): checks the matrix's shape and dtype as the constructor
+    does, then sets the attributes without calling ``__init__`` (as pickle does for other
+    objects).  Registered as a torch.load safe global, with the classes."""
+    if not (isinstance(cls, type) and issubclass(cls, LieGroup)):
+        raise TypeError(f"cls must be a LieGroup subclass, got {cls!r}")
+    checks.matrix(matrix, cls.matrix_dim, "matrix")
+    if state is not None and (not isinstance(state, dict) or "_matrix" in state):
+        raise TypeError(f"state must be None or a dict of attributes other than _matrix, got {type(state).__name__}")
+    return cls._from_leaf(matrix, state)
+
+
 def _register_pytree(cls) -> None:
     """Registers a group class as a pytree node with one leaf, its matrix, so that torch.func
-    transforms (vmap, grad, jacrev, ...) take and return group objects."""
+    transforms (vmap, grad, jacrev, ...) take and return group objects; the context is the
+    instance's other attributes (None for the built-in classes)."""
     pytree = torch.utils._pytree
-    flatten = lambda g: ([g._matrix], None)  # noqa: E731
-    unflatten = lambda leaves, context: cls._from_leaf(leaves[0])  # noqa: E731
+    flatten = lambda g: ([g._matrix], g._state())  # noqa: E731
+    unflatten = lambda leaves, context: cls._from_leaf(leaves[0], context)  # noqa: E731
     if hasattr(pytree, "register_pytree_node"):  # torch >= 2.2
         pytree.register_pytree_node(
             cls, flatten, unflatten,
             serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
-            flatten_with_keys_fn=lambda g: ([(pytree.GetAttrKey("_matrix"), g._matrix)], None),
+            flatten_with_keys_fn=lambda g: ([(pytree.GetAttrKey("_matrix"), g._matrix)], g._state()),
         )
     else:  # torch 2.1
         pytree._register_pytree_node(cls, flatten, unflatten)
