@@ -251,6 +251,49 @@ def test_torch_func_takes_and_returns_group_objects(G):
     assert len(leaves) == 2 and type(pytree.tree_unflatten(leaves, spec)["g"]) is G
 
 
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_torch_func_derivative_wrappers_and_vmap_axes(G):
+    """Derivatives of group-valued functions with respect to a group are nested wrappers, read
+    with as_matrix().as_matrix() (their repr raised AttributeError: no attribute 'shape'); a
+    wrapper whose leaf is not a tensor of trailing shape (n, n) reprs as such, and its
+    batch_shape raises TypeError (it gave (4,) for a (4, 4, 6) Jacobian).  vmap's in_dims count
+    the matrix tensor's axes: -3 is the last batch axis."""
+    from torch.func import hessian, jacrev, vmap
+
+    n = G.matrix_dim
+    gen = torch.Generator().manual_seed(9)
+    g, h = G.random((), dtype=F64, generator=gen), G.random((), dtype=F64, generator=gen)
+    J = jacrev(lambda a: a.compose(h))(g)
+    want = jacrev(lambda m: G(m).compose(h).as_matrix())(g.as_matrix())
+    assert type(J) is G and type(J.as_matrix()) is G and torch.equal(J.as_matrix().as_matrix(), want)
+    assert repr(J).startswith(f"{G.__name__}(<pytree leaf: {G.__name__}(")
+    with pytest.raises(TypeError, match=rf"this {G.__name__} wraps <pytree leaf: .*not matrices \(\.\.\., {n}, {n}\).*as_matrix\(\)"):
+        J.batch_shape
+    p = torch.ones(G.point_dim, dtype=F64)
+    H = hessian(lambda a: a.act(p).sum())(g)
+    want = hessian(lambda m: G(m).act(p).sum())(g.as_matrix())
+    assert type(H.as_matrix()) is G and torch.equal(H.as_matrix().as_matrix(), want)
+    assert want.shape == (n, n, n, n) and repr(H).startswith(f"{G.__name__}(<pytree leaf: ")
+    xi = torch.zeros(G.dof, dtype=F64)
+    Jx = jacrev(G.exp)(xi)
+    assert Jx.as_matrix().shape == (n, n, G.dof)
+    if G.dof != n:  # else the Jacobian is indistinguishable from a batch of n matrices
+        assert repr(Jx) == f"{G.__name__}(<pytree leaf of shape ({n}, {n}, {G.dof}), dtype=torch.float64, device=cpu>)"
+        with pytest.raises(TypeError, match=rf"wraps <pytree leaf of shape \({n}, {n}, {G.dof}\)"):
+            Jx.batch_shape
+    # in_dims / out_dims index the matrix tensor: -3 is the last batch axis, never -1
+    gb = G.random((3, 7), dtype=F64, generator=gen)
+    torch.testing.assert_close(vmap(lambda a: a.log(), in_dims=-3)(gb), gb.log().transpose(0, 1), rtol=0, atol=0)
+    torch.testing.assert_close(vmap(lambda a: a.log(), in_dims=1)(gb), gb.log().transpose(0, 1), rtol=0, atol=0)
+    out = vmap(lambda a: a.inverse(), out_dims=1)(gb)
+    assert out.batch_shape == (7, 3) and torch.equal(out.as_matrix(), gb.inverse().as_matrix().transpose(0, 1))
+    bad = vmap(lambda a: a.inverse(), out_dims=1)(gb[0])  # the mapped axis among the matrix axes
+    assert bad.as_matrix().shape == (n, 7, n)
+    assert repr(bad).startswith(f"{G.__name__}(<pytree leaf of shape ({n}, 7, {n})")
+    # a normal element's repr is unchanged
+    assert repr(gb) == f"{G.__name__}(batch_shape=(3, 7), dtype=torch.float64, device=cpu)"
+
+
 def test_torch_compile_takes_and_returns_group_objects():
     """The pytree registration keeps torch.compile(fullgraph=True) of functions taking and
     returning group objects in one graph (backend="eager": dynamo's tracing is under test)."""

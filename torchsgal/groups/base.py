@@ -24,11 +24,34 @@ class LieGroup:
     so that elements can be dictionary keys; compare values with ``g.allclose(h)`` or on the
     matrices (``torch.equal(g.as_matrix(), h.as_matrix())``).
 
-    Each class is a pytree node whose one leaf is the matrix: torch.func transforms (vmap, grad,
-    jacrev, ...) take and return group objects, vmap mapping over batch axes.  A derivative
-    with respect to a group argument (or of a group-valued function) comes back in the same
-    structure: a wrapper of the matrix's Euclidean gradient (or Jacobian), not a group element;
-    read it with ``as_matrix()``.
+    Each class is a pytree node whose one leaf is the matrix (..., n, n), so torch.func
+    transforms (vmap, grad, jacrev, jacfwd, hessian) take and return group objects.
+
+    - vmap's ``in_dims`` and ``out_dims`` count the axes of that matrix tensor, batch axes first
+      and the two matrix axes last: for batch shape (B1, B2), 0 or -4 maps over B1 and 1 or -3
+      over B2 (-3 is always the last batch axis); -1 and -2 map over the matrix's columns or
+      rows and give nonsense.  An ``out_dims`` must leave the matrix axes last (0 up to the
+      number of batch axes of one result); otherwise the wrapped tensor is not a batch of
+      matrices, which nothing can detect when the sizes coincide (a batch of 4 SE3).
+    - A derivative comes back in the pytree structure of the argument, each leaf replaced by the
+      derivative of the output: a wrapper of the class around a Euclidean derivative of the
+      matrix, never a group element.  With M the argument's matrix:
+
+      * ``grad(f)(g)``, f scalar-valued: ``G(dF/dM)``, of M's shape;
+      * ``jacrev(f)(g)`` (or jacfwd), f tensor-valued: ``G(J)``, J of shape
+        ``f(g).shape + M.shape``;
+      * ``jacrev(f)(x)``, x a tensor, f group-valued: ``G(J)``, J of shape ``(*shape of f(x)'s
+        matrix, *x.shape)``, e.g. (4, 4, 6) for ``SE3.exp`` of a (6,) vector;
+      * ``jacrev(f)(g)``, f group-valued: nested, the output's class around the input's,
+        ``G_out(G_in(J))``, J of shape ``(*shape of f(g)'s matrix, *M.shape)``; read it with
+        ``J.as_matrix().as_matrix()``;
+      * ``hessian(f)(g)``, f scalar-valued: nested, ``G(G(H))``, H of shape ``M.shape + M.shape``.
+
+      ``as_matrix()`` returns the leaf.  The repr of a wrapper whose leaf is not a tensor of
+      trailing shape (n, n) says so (``SE3(<pytree leaf: SE3(...)>)``, ``SE3(<pytree leaf of
+      shape (4, 4, 6), ...>)``) and its ``batch_shape`` raises TypeError; a derivative of
+      matrix shape (from grad, or where the sizes coincide) looks like an element, and the
+      group methods compute meaningless values from it.
 
     Elements pickle, deepcopy and ``torch.save`` as ``cls(matrix)``; ``torch.load`` reads the
     seven classes with its default ``weights_only=True`` (they are registered as safe globals).
@@ -159,15 +182,45 @@ class LieGroup:
     # ------------------------------------------------------------------ properties
     @property
     def batch_shape(self) -> torch.Size:
-        return self._matrix.shape[:-2]
+        """The leading axes of the matrix (TypeError for a torch.func wrapper whose leaf is not
+        a tensor of trailing shape (n, n), see the class docstring)."""
+        try:
+            shape = self._matrix.shape
+            n = self.matrix_dim
+            if shape[-1] != n or shape[-2] != n:
+                raise IndexError
+        except (AttributeError, IndexError):
+            raise TypeError(self._not_matrices()) from None
+        return shape[:-2]
 
     @property
     def dtype(self) -> torch.dtype:
-        return self._matrix.dtype
+        try:
+            return self._matrix.dtype
+        except AttributeError:
+            raise TypeError(self._not_matrices()) from None
 
     @property
     def device(self) -> torch.device:
-        return self._matrix.device
+        try:
+            return self._matrix.device
+        except AttributeError:
+            raise TypeError(self._not_matrices()) from None
+
+    def _leaf_description(self) -> str | None:
+        """None for a tensor of trailing shape (n, n), else what the pytree leaf is."""
+        m = self._matrix
+        if not isinstance(m, torch.Tensor):
+            return f"<pytree leaf: {m!r}>"
+        if m.dim() < 2 or m.shape[-2:] != (self.matrix_dim, self.matrix_dim):
+            return f"<pytree leaf of shape {tuple(m.shape)}, dtype={m.dtype}, device={m.device}>"
+        return None
+
+    def _not_matrices(self) -> str:
+        n = self.matrix_dim
+        return (f"this {type(self).__name__} wraps {self._leaf_description()}, not matrices "
+                f"(..., {n}, {n}): a torch.func result (a derivative, or vmap with out_dims), not a "
+                f"group element; read it with as_matrix()")
 
     def as_matrix(self) -> torch.Tensor:
         """The homogeneous matrices (..., matrix_dim, matrix_dim) (the wrapped tensor, not a copy)."""
@@ -448,6 +501,9 @@ class LieGroup:
         return _rebuild, (cls, self._matrix, state)
 
     def __repr__(self) -> str:
+        leaf = self._leaf_description()
+        if leaf is not None:  # a torch.func wrapper, see the class docstring
+            return f"{type(self).__name__}({leaf})"
         return (
             f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
             f"device={self.device})"
