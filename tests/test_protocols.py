@@ -351,3 +351,14 @@ def test_from_transform3d_check_flag():
     assert pk_interop.from_transform3d(M, check=True).batch_shape == (2,)
     with pytest.raises(TypeError, match=r"check must be True or False, got 'no'"):
         pk_interop.from_transform3d(M, check="no")
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_interpolate_refuses_a_non_finite_number(G):
+    """A Python or numpy alpha of nan or inf gave a NaN element silently; a number is read (no
+    host sync), a tensor alpha stays checked by metadata only."""
+    g, h = G.identity(2, dtype=F64), G.random(2, dtype=F64, generator=torch.Generator().manual_seed(10))
+    for bad in (float("nan"), float("inf"), -np.inf, np.float32("nan"), 10**400):
+        with pytest.raises(ValueError, match=r"alpha must be a finite number, got"):
+            g.interpolate(h, bad)
+    torch.testing.assert_close(g.interpolate(h, np.float64(1.0)).as_matrix(), h.as_matrix(), rtol=0, atol=1e-12)

@@ -289,13 +289,15 @@ class LieGroup:
         return self.inverse().compose(self._same_type(other, "other"))
 
     def interpolate(self, other, alpha):
-        """Geodesic g exp(alpha log(g^-1 h)); alpha a scalar or a tensor broadcasting with the
-        batch (0 gives g, 1 gives h)."""
+        """Geodesic g exp(alpha log(g^-1 h)); alpha a finite number or a tensor broadcasting with
+        the batch (0 gives g, 1 gives h; a tensor's values are not checked)."""
         if isinstance(alpha, torch.Tensor):
             checks.floating(alpha, "alpha")
             checks.same_device_dtype(self=self._matrix, alpha=alpha)
         elif not isinstance(alpha, Real) or isinstance(alpha, bool):  # numpy scalars are Real
             raise TypeError(f"alpha must be a number or a torch.Tensor, got {type(alpha).__name__}")
+        else:  # a number is read here; a tensor's values are not (no host sync)
+            alpha = checks.finite_number(alpha, "alpha")
         delta = self.between(other).log()
         alpha = torch.as_tensor(alpha, dtype=delta.dtype, device=delta.device)
         checks.broadcast_batch(batch=delta.shape[:-1], alpha=alpha.shape)
