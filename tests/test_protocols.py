@@ -362,3 +362,16 @@ def test_interpolate_refuses_a_non_finite_number(G):
         with pytest.raises(ValueError, match=r"alpha must be a finite number, got"):
             g.interpolate(h, bad)
     torch.testing.assert_close(g.interpolate(h, np.float64(1.0)).as_matrix(), h.as_matrix(), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_stack_and_cat_refuse_one_element_for_the_sequence(G):
+    """G.cat(g) iterated g's first batch axis (batch (3, 2) became (6,)) and G.stack(g)
+    returned a copy, silently."""
+    g = G.identity((3, 2), dtype=F64)
+    for op in ("stack", "cat"):
+        with pytest.raises(TypeError, match=rf"{G.__name__}\.{op}: elements must be a sequence of elements "
+                                            rf"\(a list or tuple\), got one {G.__name__}"):
+            getattr(G, op)(g)
+    assert G.cat([g]).batch_shape == (3, 2) and G.stack((g, g)).batch_shape == (2, 3, 2)
+    assert G.stack(list(g)).batch_shape == (3, 2)

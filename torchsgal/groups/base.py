@@ -450,6 +450,10 @@ class LieGroup:
 
     @classmethod
     def _matrices(cls, elements, op: str) -> list[torch.Tensor]:
+        if isinstance(elements, LieGroup):  # iterating it would stack or cat its first batch axis
+            raise TypeError(f"{cls.__name__}.{op}: elements must be a sequence of elements (a list "
+                            f"or tuple), got one {type(elements).__name__}; write "
+                            f"{cls.__name__}.{op}([g, ...])")
         elements = list(elements)
         if not elements:
             raise ValueError(f"{cls.__name__}.{op} needs at least one element")
