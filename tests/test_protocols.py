@@ -375,3 +375,30 @@ def test_stack_and_cat_refuse_one_element_for_the_sequence(G):
             getattr(G, op)(g)
     assert G.cat([g]).batch_shape == (3, 2) and G.stack((g, g)).batch_shape == (2, 3, 2)
     assert G.stack(list(g)).batch_shape == (3, 2)
+
+
+@pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
+def test_allclose_equal_nan_and_subclasses_in_either_order(G):
+    """allclose takes equal_nan as torch.allclose does; the binary operations take a subclass
+    element in either order (g.allclose(sub) was True and sub.allclose(g) a TypeError, and so
+    for compose), and still refuse another group."""
+    Sub = type("Sub", (G,), {})
+    g = G.random(3, dtype=F64, generator=torch.Generator().manual_seed(11))
+    sub = Sub(g.as_matrix().clone())
+    assert g.allclose(sub) and sub.allclose(g)
+    assert type(sub.compose(g)) is Sub and type(g.compose(sub)) is G
+    torch.testing.assert_close(sub.compose(g).as_matrix(), g.compose(g).as_matrix(), rtol=0, atol=0)
+    torch.testing.assert_close(sub.rminus(g), g.rminus(sub), rtol=0, atol=1e-12)
+    assert type(Sub.stack([g, sub])) is Sub and type(G.cat([sub, g])) is G
+    other = next(H for H in ALL_GROUPS if H is not G)
+    with pytest.raises(TypeError, match=rf"other must be a {G.__name__}, got {other.__name__}"):
+        sub.allclose(other.identity(dtype=F64))
+    with pytest.raises(TypeError, match=rf"Sub.stack: elements\[1\] must be a {G.__name__}, got {other.__name__}"):
+        Sub.stack([g, other.identity(3, dtype=F64)])
+    M = g.as_matrix().clone()
+    M[1, 0, 0] = float("nan")
+    n = G(M)
+    assert not n.allclose(n) and n.allclose(n, equal_nan=True) and n.allclose(G(M.clone()), equal_nan=np.bool_(True))
+    assert not n.allclose(g, equal_nan=True)
+    with pytest.raises(TypeError, match=r"equal_nan must be True or False, got 1"):
+        n.allclose(n, equal_nan=1)

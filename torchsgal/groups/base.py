@@ -24,6 +24,11 @@ class LieGroup:
     so that elements can be dictionary keys; compare values with ``g.allclose(h)`` or on the
     matrices (``torch.equal(g.as_matrix(), h.as_matrix())``).
 
+    The binary operations (compose, between, rminus, lminus, interpolate, allclose) and
+    stack/cat take elements of one group: instances of its class or of subclasses of it, in
+    either order (a subclass of SE3 composes with an SE3 and an SE3 with it); the result has
+    the class of ``self`` (of ``cls`` for stack/cat).
+
     Each class is a pytree node whose one leaf is the matrix (..., n, n), so torch.func
     transforms (vmap, grad, jacrev, jacfwd, hessian) take and return group objects.
 
@@ -81,6 +86,9 @@ class LieGroup:
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        # the group: the nearest class that sets _f (SE3 for a user subclass of SE3); binary
+        # operations and stack/cat take any instance of it, so they are symmetric in subclasses
+        cls._group = cls if "_f" in cls.__dict__ else getattr(cls, "_group", cls)
         # a subclass's instance attributes besides the matrix: its __dict__ (if its instances
         # have one) and slots; the seven built-in classes have neither (__slots__ = ())
         cls._state_slots = tuple(n for n in copyreg._slotnames(cls) if n != "_matrix")
@@ -233,8 +241,10 @@ class LieGroup:
 
     # ------------------------------------------------------------------ operations
     def _same_type(self, other, name: str):
-        if not isinstance(other, type(self)):
-            raise TypeError(f"{name} must be a {type(self).__name__}, got {type(other).__name__}")
+        """other: an element of the same group (an instance of its class or of a subclass, in
+        either order), dtype and device, with a broadcasting batch."""
+        if not isinstance(other, self._group):
+            raise TypeError(f"{name} must be a {self._group.__name__}, got {type(other).__name__}")
         checks.binary(self._matrix, 2, other._matrix, 2, "self", name)
         return other
 
@@ -303,15 +313,17 @@ class LieGroup:
         checks.broadcast_batch(batch=delta.shape[:-1], alpha=alpha.shape)
         return self.rplus(alpha.unsqueeze(-1) * delta)
 
-    def allclose(self, other, rtol: float = 1e-5, atol: float = 1e-8) -> bool:
+    def allclose(self, other, rtol: float = 1e-5, atol: float = 1e-8, equal_nan: bool = False) -> bool:
         """True if every matrix of g is close to the matching (broadcast) matrix of ``other``, as
-        torch.allclose on the homogeneous matrices: |g - h| <= atol + rtol |h| entrywise.  A
-        Python bool (one host sync); ``other`` of the same group, dtype and device."""
+        torch.allclose on the homogeneous matrices: |g - h| <= atol + rtol |h| entrywise, NaNs
+        equal only with ``equal_nan=True``.  A Python bool (one host sync); ``other`` of the
+        same group (either may be a subclass), dtype and device."""
         self._same_type(other, "other")
         rtol = checks.finite_number(rtol, "rtol", ">= 0")
         atol = checks.finite_number(atol, "atol", ">= 0")
+        equal_nan = checks.boolean(equal_nan, "equal_nan")
         a, b = torch.broadcast_tensors(self._matrix, other._matrix)
-        return bool(torch.allclose(a, b, rtol=rtol, atol=atol))
+        return bool(torch.allclose(a, b, rtol=rtol, atol=atol, equal_nan=equal_nan))
 
     def act_direction(self, d: torch.Tensor) -> torch.Tensor:
         """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d."""
@@ -458,8 +470,8 @@ class LieGroup:
         if not elements:
             raise ValueError(f"{cls.__name__}.{op} needs at least one element")
         for i, e in enumerate(elements):
-            if not isinstance(e, cls):
-                raise TypeError(f"{cls.__name__}.{op}: elements[{i}] must be a {cls.__name__}, "
+            if not isinstance(e, cls._group):
+                raise TypeError(f"{cls.__name__}.{op}: elements[{i}] must be a {cls._group.__name__}, "
                                 f"got {type(e).__name__}")
         # one dtype and device, as compose (no silent promotion)
         checks.same_device_dtype(**{f"elements[{i}]": e._matrix for i, e in enumerate(elements)})
