@@ -402,3 +402,16 @@ def test_allclose_equal_nan_and_subclasses_in_either_order(G):
     assert not n.allclose(g, equal_nan=True)
     with pytest.raises(TypeError, match=r"equal_nan must be True or False, got 1"):
         n.allclose(n, equal_nan=1)
+
+
+def test_torch_load_checks_shape_and_dtype_not_membership():
+    """As documented: loading runs the constructor's checks only; membership is the caller's
+    from_matrix(check=True)."""
+    from torchsgal import SE3
+    buf = io.BytesIO()
+    torch.save(SE3(torch.ones(4, 4, dtype=F64)), buf)
+    buf.seek(0)
+    g = torch.load(buf, weights_only=True)
+    assert type(g) is SE3 and torch.equal(g.as_matrix(), torch.ones(4, 4, dtype=F64))
+    with pytest.raises(ValueError, match=r"not in SE3"):
+        SE3.from_matrix(g.as_matrix(), check=True)

@@ -60,6 +60,9 @@ class LieGroup:
 
     Elements pickle, deepcopy and ``torch.save`` as ``cls(matrix)``; ``torch.load`` reads the
     seven classes with its default ``weights_only=True`` (they are registered as safe globals).
+    Loading runs only the constructor's checks, the matrix's shape and dtype, not membership:
+    a saved matrix that is not in the group (an "SE3" of ``torch.ones(4, 4)``) loads as it is;
+    check what you load with ``G.from_matrix(g.as_matrix(), check=True)``.
     The attributes of a subclass's instances (its ``__dict__`` and extra ``__slots__``) travel
     with them through pickle, deepcopy and torch.save, and as the pytree context (torch.func
     transforms keep them on the elements they pass through; the group operations return new
