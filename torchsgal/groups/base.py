@@ -38,9 +38,10 @@ class LieGroup:
       rows and give nonsense.  An ``out_dims`` must leave the matrix axes last (0 up to the
       number of batch axes of one result); otherwise the wrapped tensor is not a batch of
       matrices, which nothing can detect when the sizes coincide (a batch of 4 SE3).
-    - A derivative comes back in the pytree structure of the argument, each leaf replaced by the
-      derivative of the output: a wrapper of the class around a Euclidean derivative of the
-      matrix, never a group element.  With M the argument's matrix:
+    - A derivative comes back in torch.func's pytree structure: the class of a group argument
+      wraps the derivative with respect to its matrix, the class of a group-valued output wraps
+      the derivative of its matrix, and both nest when both are groups.  The leaf is a
+      Euclidean derivative, never a group element.  With M the argument's matrix:
 
       * ``grad(f)(g)``, f scalar-valued: ``G(dF/dM)``, of M's shape;
       * ``jacrev(f)(g)`` (or jacfwd), f tensor-valued: ``G(J)``, J of shape
