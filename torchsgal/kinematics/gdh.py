@@ -211,9 +211,9 @@ class GDHChain:
             raise type(err)(f"{err} (a chain's dtype and device are set when it is built: "
                             f"GDHChain(..., dtype=, device=), ur5(dtype=, device=))") from None
 
-    def _table(self, like: torch.Tensor):
-        """The DH table (a, alpha, d, theta_offset, revolute mask); ``like`` (q) has been
-        checked to share its dtype and device (``_check_like_chain``)."""
+    def _table(self):
+        """The DH table (a, alpha, d, theta_offset, revolute mask); callers have checked that
+        the joint tensors share its dtype and device (``_check_like_chain``)."""
         return self.a, self.alpha, self.d, self.theta_offset, self._revolute
 
     # --------------------------------------------------------------------- links
@@ -224,7 +224,7 @@ class GDHChain:
             qdot = torch.zeros_like(q)
         qdot = self._joint_tensor(qdot, "qdot", like=q)
         q, qdot = torch.broadcast_tensors(q, qdot)
-        a, alpha, d, offset, rev = self._table(q)
+        a, alpha, d, offset, rev = self._table()
         theta = offset + torch.where(rev, q, 0.0)
         dd = d + torch.where(rev, 0.0, q)
         qv = torch.where(rev, qdot, 0.0)  # q_i = dtheta_i/dt
@@ -244,7 +244,7 @@ class GDHChain:
         qdot = self._joint_tensor(qdot, "qdot", like=q)
         qddot = self._joint_tensor(qddot, "qddot", like=q)
         q, qdot, qddot = torch.broadcast_tensors(q, qdot, qddot)
-        a, alpha, _, _, rev = self._table(q)
+        a, alpha, _, _, rev = self._table()
         qv, qa = torch.where(rev, qdot, 0.0), torch.where(rev, qddot, 0.0)
         wa = torch.where(rev, 0.0, qddot)
         ca, sa = torch.cos(alpha), torch.sin(alpha)
@@ -315,7 +315,7 @@ class GDHChain:
         prefix = self._prefix(links)
         ee = prefix[-1]
         S = self._base_inputs(prefix, U_links)
-        omega_rate = _omega_rate(self, qddot, q)
+        omega_rate = _omega_rate(self, qddot)
         D_rho = torch.zeros_like(S[0][0])
         D_phi = torch.zeros_like(D_rho)
         T_rho, T_phi = torch.zeros_like(D_rho), torch.zeros_like(D_rho)  # sum_{j > i} S_j
@@ -335,8 +335,8 @@ class GDHChain:
         return lin, _matvec(R, dU_phi)
 
 
-def _omega_rate(chain: GDHChain, qddot: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+def _omega_rate(chain: GDHChain, qddot: torch.Tensor) -> torch.Tensor:
     """d/dt of (46): (0, qddot sin alpha, qddot cos alpha) for revolute joints."""
-    _, alpha, _, _, rev = chain._table(like)
+    _, alpha, _, _, rev = chain._table()
     qa = torch.where(rev, qddot, 0.0)
     return torch.stack((torch.zeros_like(qa), qa * torch.sin(alpha), qa * torch.cos(alpha)), dim=-1)
