@@ -415,3 +415,45 @@ def test_torch_load_checks_shape_and_dtype_not_membership():
     assert type(g) is SE3 and torch.equal(g.as_matrix(), torch.ones(4, 4, dtype=F64))
     with pytest.raises(ValueError, match=r"not in SE3"):
         SE3.from_matrix(g.as_matrix(), check=True)
+
+
+def test_subclass_with_required_init_argument_goes_through_operations():
+    """Results were built as type(self)(matrix), so every operation of a subclass whose
+    __init__ takes another argument raised TypeError (missing 'extra'), as did its classmethod
+    constructors and the solvers and regression given such elements.  They are now built
+    without calling __init__, after the same shape and dtype checks."""
+    from torchsgal.estimation import gauss_newton
+    from torchsgal.regression import fit_polynomial
+
+    gen = torch.Generator().manual_seed(12)
+    g = _NeedsArgument(SGal3.random(4, dtype=F64, generator=gen).as_matrix(), 1)
+    h = _NeedsArgument(SGal3.random(4, dtype=F64, generator=gen).as_matrix(), 2)
+    plain_g, plain_h = SGal3(g.as_matrix()), SGal3(h.as_matrix())
+    xi = torch.randn(4, 10, dtype=F64, generator=gen) * 0.3
+    results = {
+        "compose": (g @ h, plain_g @ plain_h), "inverse": (g.inverse(), plain_g.inverse()),
+        "rplus": (g.rplus(xi), plain_g.rplus(xi)), "lplus": (g.lplus(xi), plain_g.lplus(xi)),
+        "interpolate": (g.interpolate(h, 0.3), plain_g.interpolate(plain_h, 0.3)),
+        "index": (g[1:3], plain_g[1:3]), "reshape": (g.reshape(2, 2), plain_g.reshape(2, 2)),
+        "to": (g.to(torch.float32), plain_g.to(torch.float32)), "clone": (g.clone(), plain_g.clone()),
+        "exp": (_NeedsArgument.exp(xi), SGal3.exp(xi)),
+        "identity": (_NeedsArgument.identity(3, dtype=F64), SGal3.identity(3, dtype=F64)),
+        "from_matrix": (_NeedsArgument.from_matrix(h.as_matrix(), check=True), plain_h),
+        "stack": (_NeedsArgument.stack([g, h]), SGal3.stack([plain_g, plain_h])),
+    }
+    for name, (got, want) in results.items():
+        assert type(got) is _NeedsArgument, name
+        assert not hasattr(got, "extra"), name  # operations return elements without attributes
+        torch.testing.assert_close(got.as_matrix(), want.as_matrix(), rtol=0, atol=0, msg=name)
+    with pytest.raises(ValueError, match=r"matrix must have shape \(\.\.\., 5, 5\), got \(4, 4\)"):
+        _NeedsArgument.from_matrix(torch.eye(4, dtype=F64))
+
+    # the solvers and regression rebuild the caller's class through from_matrix
+    target = plain_h
+    sol = gauss_newton(lambda x: x.rminus(target), g, max_iterations=20)
+    assert type(sol.x) is _NeedsArgument
+    torch.testing.assert_close(sol.x.as_matrix(), target.as_matrix(), rtol=0, atol=1e-10)
+    t = torch.linspace(0.0, 1.0, 5, dtype=F64)
+    truth = SGal3.exp(t[:, None] * xi[0] * 0.5)
+    fit = fit_polynomial(_NeedsArgument(truth.as_matrix(), 0), t, degree=1)
+    torch.testing.assert_close(fit(t).as_matrix(), truth.as_matrix(), rtol=0, atol=1e-9)

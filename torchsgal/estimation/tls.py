@@ -635,7 +635,7 @@ def _in_rounds(solve, problem, x0, options) -> Solution:
         if isinstance(full, torch.Tensor):
             x.append(full.index_copy(0, idx, part))
         else:
-            x.append(type(full)(full.as_matrix().index_copy(0, idx, part.as_matrix())))
+            x.append(type(full).from_matrix(full.as_matrix().index_copy(0, idx, part.as_matrix())))
     report = sol.report
     fields = {}
     for name in ("status", "initial_cost", "cost", "step_norm", "gradient_norm"):

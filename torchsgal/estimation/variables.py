@@ -172,7 +172,7 @@ def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
         if isinstance(a, LieGroup):
             A = a.as_matrix()
             m = mask.reshape((B,) + (1,) * (A.dim() - 1))
-            out.append(type(a)(torch.where(m, A, b.as_matrix())))
+            out.append(type(a).from_matrix(torch.where(m, A, b.as_matrix())))
         else:
             out.append(torch.where(mask.reshape((B,) + (1,) * (a.dim() - 1)), a, b))
     return out[0] if single else tuple(out)

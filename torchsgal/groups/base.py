@@ -66,8 +66,9 @@ class LieGroup:
     check what you load with ``G.from_matrix(g.as_matrix(), check=True)``.
     The attributes of a subclass's instances (its ``__dict__`` and extra ``__slots__``) travel
     with them through pickle, deepcopy and torch.save, and as the pytree context (torch.func
-    transforms keep them on the elements they pass through; the group operations return new
-    elements without them).  Such an element, or one of a subclass that defines its own
+    transforms keep them on the elements they pass through; the group operations and the
+    constructors return new elements of the subclass without them, and without calling its
+    ``__init__``, which may take other arguments).  Such an element, or one of a subclass that defines its own
     ``__init__``, is rebuilt by ``_rebuild``: the constructor's shape and dtype checks, then the
     attributes, without calling ``__init__`` (as pickle does for other objects).  torch.load
     reads it with ``weights_only=False``, or with the default after
@@ -111,6 +112,16 @@ class LieGroup:
         return state or None
 
     @classmethod
+    def _new(cls, matrix: torch.Tensor):
+        """How every operation and constructor builds its result: the constructor's shape and
+        dtype checks, then an element of ``cls`` without calling ``__init__``, so that a
+        subclass whose ``__init__`` takes other arguments still composes, inverts, indexes..."""
+        checks.matrix(matrix, cls.matrix_dim, "matrix")
+        g = object.__new__(cls)
+        g._matrix = matrix
+        return g
+
+    @classmethod
     def _from_leaf(cls, leaf, state: dict | None = None):
         """The pytree unflatten: wraps ``leaf`` unchecked, since torch.func and torch.utils._pytree
         rebuild the structure around whatever leaves they computed (Jacobians of other shapes,
@@ -127,7 +138,7 @@ class LieGroup:
     @classmethod
     def exp(cls, xi: torch.Tensor):
         """exp(xi^) for tangent vectors (..., dof); differentiable w.r.t. xi (custom backward)."""
-        return cls(cls._f.exp(xi))
+        return cls._new(cls._f.exp(xi))
 
     @classmethod
     def from_matrix(cls, matrix: torch.Tensor, check: bool = False, tol: float | None = None):
@@ -142,7 +153,7 @@ class LieGroup:
         tol = _tol_arg(tol)
         if check and matrix.numel() and values_readable(matrix):
             cls._check_membership(matrix, tol)
-        return cls(matrix)
+        return cls._new(matrix)
 
     @classmethod
     def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
@@ -179,7 +190,7 @@ class LieGroup:
         batch_shape = _batch_shape_arg(batch_shape)
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
-        return cls(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
+        return cls._new(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
 
     @classmethod
     def random(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None, generator=None):
@@ -189,7 +200,7 @@ class LieGroup:
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         if generator is not None and not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
-        return cls(cls._f.random(batch_shape, dtype, device, generator))
+        return cls._new(cls._f.random(batch_shape, dtype, device, generator))
 
     # ------------------------------------------------------------------ properties
     @property
@@ -261,7 +272,7 @@ class LieGroup:
         ``g.compose(h)``: dynamo (torch 2.13) cannot trace ``@`` between objects that are not
         tensors (without fullgraph, ``@`` only breaks the graph).  The methods below use it."""
         self._same_type(other, "other")
-        return type(self)(self._f.compose(self._matrix, other._matrix))
+        return type(self)._new(self._f.compose(self._matrix, other._matrix))
 
     def __matmul__(self, other):
         if not isinstance(other, LieGroup):
@@ -270,7 +281,7 @@ class LieGroup:
 
     def inverse(self):
         """g^-1, in closed form (no general matrix inverse)."""
-        return type(self)(self._f.inverse(self._matrix))
+        return type(self)._new(self._f.inverse(self._matrix))
 
     def adjoint(self) -> torch.Tensor:
         """Ad(g) (..., dof, dof): Ad(g) xi = vee(g hat(xi) g^-1)."""
@@ -375,7 +386,7 @@ class LieGroup:
         if not isinstance(index, tuple):
             index = (index,)
         try:
-            return type(self)(self._matrix[index + (slice(None), slice(None))])
+            return type(self)._new(self._matrix[index + (slice(None), slice(None))])
         except IndexError as err:
             raise IndexError(f"index {index!r} does not fit the batch shape "
                              f"{tuple(self.batch_shape)} of this {type(self).__name__}: {err}") from None
@@ -404,7 +415,7 @@ class LieGroup:
             shape = tuple(shape[0])
         n = self.matrix_dim
         try:
-            return type(self)(self._matrix.reshape(*shape, n, n))
+            return type(self)._new(self._matrix.reshape(*shape, n, n))
         except RuntimeError as err:
             raise ValueError(f"cannot reshape the batch shape {tuple(self.batch_shape)} of this "
                              f"{type(self).__name__} to {tuple(shape)}: {err}") from None
@@ -418,7 +429,7 @@ class LieGroup:
         axes) if it has size 1."""
         if dim is None:
             return self.reshape(tuple(s for s in self.batch_shape if s != 1))
-        return type(self)(self._matrix.squeeze(_batch_axis(dim, len(self.batch_shape), "dim")))
+        return type(self)._new(self._matrix.squeeze(_batch_axis(dim, len(self.batch_shape), "dim")))
 
     def expand(self, *shape):
         """The elements broadcast to the batch shape ``shape`` (a view, as Tensor.expand)."""
@@ -429,13 +440,13 @@ class LieGroup:
         if len(shape) < len(self.batch_shape):
             raise ValueError(f"{why}: the target has fewer batch axes")
         try:
-            return type(self)(self._matrix.expand(*shape, n, n))
+            return type(self)._new(self._matrix.expand(*shape, n, n))
         except RuntimeError as err:
             raise ValueError(f"{why}: {err}") from None
 
     def unsqueeze(self, dim: int):
         """A new batch axis of size 1 at ``dim`` (counted over the batch axes only)."""
-        return type(self)(self._matrix.unsqueeze(_batch_axis(dim, len(self.batch_shape) + 1, "dim")))
+        return type(self)._new(self._matrix.unsqueeze(_batch_axis(dim, len(self.batch_shape) + 1, "dim")))
 
     @classmethod
     def stack(cls, elements: Sequence["LieGroup"], dim: int = 0):
@@ -447,7 +458,7 @@ class LieGroup:
                 raise ValueError(f"{cls.__name__}.stack needs elements of equal batch shape: "
                                  f"elements[0] has {tuple(mats[0].shape[:-2])}, "
                                  f"elements[{i}] has {tuple(m.shape[:-2])}")
-        return cls(torch.stack(mats, dim=axis))
+        return cls._new(torch.stack(mats, dim=axis))
 
     @classmethod
     def cat(cls, elements: Sequence["LieGroup"], dim: int = 0):
@@ -462,7 +473,7 @@ class LieGroup:
             if len(b) != len(b0) or any(x != y for k, (x, y) in enumerate(zip(b, b0)) if k != axis):
                 raise ValueError(f"{cls.__name__}.cat needs elements whose batch shapes differ only "
                                  f"along dim {dim}: elements[0] has {tuple(b0)}, elements[{i}] has {tuple(b)}")
-        return cls(torch.cat(mats, dim=axis))
+        return cls._new(torch.cat(mats, dim=axis))
 
     @classmethod
     def _matrices(cls, elements, op: str) -> list[torch.Tensor]:
@@ -483,7 +494,7 @@ class LieGroup:
 
     def to(self, *args, **kwargs):
         """As torch.Tensor.to on the matrix (dtype and/or device)."""
-        return type(self)(self._matrix.to(*args, **kwargs))
+        return type(self)._new(self._matrix.to(*args, **kwargs))
 
     def float(self):
         """The same elements in float32."""
@@ -495,19 +506,19 @@ class LieGroup:
 
     def cpu(self):
         """The same elements on the CPU."""
-        return type(self)(self._matrix.cpu())
+        return type(self)._new(self._matrix.cpu())
 
     def cuda(self, device=None):
         """The same elements on a CUDA device."""
-        return type(self)(self._matrix.cuda(device))
+        return type(self)._new(self._matrix.cuda(device))
 
     def detach(self):
         """The same elements, detached from the autograd graph."""
-        return type(self)(self._matrix.detach())
+        return type(self)._new(self._matrix.detach())
 
     def clone(self):
         """A copy with its own storage."""
-        return type(self)(self._matrix.clone())
+        return type(self)._new(self._matrix.clone())
 
     def __reduce__(self):
         """Pickles (and torch.save's, deepcopies) as ``cls(matrix)``: loading goes through the

@@ -21,7 +21,7 @@ class SE2(LieGroup):
     def from_components(cls, rotation: torch.Tensor, position: torch.Tensor):
         """rotation (..., 2, 2), position (..., 2), broadcast to one batch."""
         C, r = prepare(rotation=(rotation, (2, 2)), position=(position, (2,)))
-        return cls(_se2.from_components(C, r))
+        return cls._new(_se2.from_components(C, r))
 
     def position(self) -> torch.Tensor:
         """The position r (..., 2) (a view of the matrix)."""

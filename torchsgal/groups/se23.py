@@ -22,7 +22,7 @@ class SE23(LieGroup):
         C, v, r = prepare(
             rotation=(rotation, (3, 3)), velocity=(velocity, (3,)), position=(position, (3,))
         )
-        return cls(_se23.from_components(C, v, r))
+        return cls._new(_se23.from_components(C, v, r))
 
     def velocity(self) -> torch.Tensor:
         """The velocity v (..., 3) (a view of the matrix)."""

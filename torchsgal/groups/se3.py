@@ -20,7 +20,7 @@ class SE3(LieGroup):
     def from_components(cls, rotation: torch.Tensor, position: torch.Tensor):
         """rotation (..., 3, 3), position (..., 3), broadcast to one batch."""
         C, r = prepare(rotation=(rotation, (3, 3)), position=(position, (3,)))
-        return cls(_se3.from_components(C, r))
+        return cls._new(_se3.from_components(C, r))
 
     def position(self) -> torch.Tensor:
         """The position r (..., 3) (a view of the matrix)."""

@@ -32,7 +32,7 @@ class SGal3(LieGroup):
             position=(position, (3,)),
             time=(time, ()),
         )
-        return cls(_sgal3.from_components(C, v, r, tau))
+        return cls._new(_sgal3.from_components(C, v, r, tau))
 
     def velocity(self) -> torch.Tensor:
         """The velocity v (..., 3) (a view of the matrix)."""

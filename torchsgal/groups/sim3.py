@@ -34,7 +34,7 @@ class Sim3(LieGroup):
         Only shapes, dtypes and devices are checked, not values: s must be positive, and C a
         rotation (``from_matrix(M, check=True)`` checks the values of a matrix)."""
         C, r, s = prepare(rotation=(rotation, (3, 3)), position=(position, (3,)), scale=(scale, ()))
-        return cls(_sim3.from_components(C, r, s))
+        return cls._new(_sim3.from_components(C, r, s))
 
     _fixed_note = " (|M[3, :3]| relative to |M[3, 3]|)"
 

@@ -21,7 +21,7 @@ class SO2(LieGroup):
     def from_components(cls, rotation: torch.Tensor):
         """The rotation matrix (2, 2) itself (the one component; the same API as the other groups)."""
         (C,) = prepare(rotation=(rotation, (2, 2)))
-        return cls(C)
+        return cls._new(C)
 
     def angle(self) -> torch.Tensor:
         """theta in (-pi, pi] (...)."""

@@ -25,7 +25,7 @@ class SO3(LieGroup):
     def from_components(cls, rotation: torch.Tensor):
         """The rotation matrix (3, 3) itself (the one component; the same API as the other groups)."""
         (C,) = prepare(rotation=(rotation, (3, 3)))
-        return cls(C)
+        return cls._new(C)
 
     def act(self, p: torch.Tensor) -> torch.Tensor:
         """Points (..., 3): C p."""

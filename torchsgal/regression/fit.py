@@ -63,7 +63,7 @@ class CurveFit:
                              f"{tuple(times.shape)}") from None
         tau = times - self.time_origin.unsqueeze(-1)
         with torch.no_grad():
-            return self.group(self._model.curve(self.origin.as_matrix(), self._x, tau))
+            return self.group.from_matrix(self._model.curve(self.origin.as_matrix(), self._x, tau))
 
     def residuals(self) -> torch.Tensor:
         """Unweighted r_i = log(gamma(t_i)^-1 y_i) at the fitted parameters, (..., N, dof)."""
@@ -102,7 +102,7 @@ def _prepare(samples, times, weights, time_origin, min_samples):
 def _initial_subgroup(G, Y, t, t0):
     """p, v from consecutive samples: v = mean_i log(y_i^-1 y_(i+1)) / (t_(i+1) - t_i),
     p = y_0 exp(-(t_0 - t0) v) (robust to a total rotation beyond pi)."""
-    Yg = G(Y)
+    Yg = G.from_matrix(Y)
     if Y.shape[-3] < 2:
         return Y[..., 0, :, :], torch.zeros(Y.shape[:-3] + (G.dof,), dtype=Y.dtype, device=Y.device)
     steps = Yg[..., :-1].between(Yg[..., 1:]).log() / torch.diff(t, dim=-1).unsqueeze(-1)
@@ -172,7 +172,7 @@ def fit_polynomial(samples: LieGroup, times: torch.Tensor, degree: int = 1, *, w
         if degree >= 1:
             x[..., :m] = v if B is None else v @ torch.linalg.pinv(B).transpose(-1, -2)
         state = _solve(model, p, x, method, max_iterations, tolerance)
-    return CurveFit(G, "polynomial", G(state.origin), model.coefficients(state.coefficients), t0,
+    return CurveFit(G, "polynomial", G.from_matrix(state.origin), model.coefficients(state.coefficients), t0,
                     state.cost, state.converged, state.iterations, method, model, state.coefficients)
 
 
@@ -201,13 +201,13 @@ def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: in
         raise ValueError(f"degree must be >= 1 for a Riemannian polynomial, got {degree}")
     G, Y, t, t0, w = _prepare(samples, times, weights, time_origin, degree + 1)
     with torch.no_grad():
-        start = fit_polynomial(G(Y), t, degree, weights=w, time_origin=t0, max_iterations=20)
+        start = fit_polynomial(G.from_matrix(Y), t, degree, weights=w, time_origin=t0, max_iterations=20)
         factorials = torch.tensor([math.factorial(k) for k in range(1, degree + 1)],
                                   dtype=Y.dtype, device=Y.device)
         model = RiemannianPolynomialModel(G, Y, t - t0.unsqueeze(-1), w.sqrt(), w, degree, steps)
         x = (start.coefficients * factorials[:, None]).flatten(-2)
         state = _solve(model, start.origin.as_matrix(), x, method, max_iterations, tolerance)
-    return CurveFit(G, "riemannian_polynomial", G(state.origin), model.initial(state.coefficients),
+    return CurveFit(G, "riemannian_polynomial", G.from_matrix(state.origin), model.initial(state.coefficients),
                     t0, state.cost, state.converged, state.iterations, method, model,
                     state.coefficients)
 

@@ -95,8 +95,8 @@ class PolynomialModel:
 
     def raw_residuals(self, origin, x):
         s = self.algebra_curve(x, self.tau)
-        gamma = self.G(origin.unsqueeze(-3) @ self.G.exp(s).as_matrix())
-        return gamma.between(self.G(self.samples)).log(), s
+        gamma = self.G.from_matrix(origin.unsqueeze(-3) @ self.G.exp(s).as_matrix())
+        return gamma.between(self.G.from_matrix(self.samples)).log(), s
 
     def residuals(self, origin: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         r, _ = self.raw_residuals(origin, x)
@@ -340,18 +340,18 @@ class RiemannianPolynomialModel:
     def residuals(self, origin, x):
         G = self.G
         gamma = self.curve(origin, x, self.tau)
-        r = G(gamma).between(G(self.samples)).log()
+        r = G.from_matrix(gamma).between(G.from_matrix(self.samples)).log()
         return _weighted(r, self.sqrt_w).flatten(-2)
 
     def linearize(self, origin, x):
         G = self.G
         Phi, _, eta = _polynomial_flow(G, self.initial(x), self.tau, self.weights, self.steps,
                                        sensitivity=True)
-        r = G(origin.unsqueeze(-3) @ Phi).between(G(self.samples)).log()
+        r = G.from_matrix(origin.unsqueeze(-3) @ Phi).between(G.from_matrix(self.samples)).log()
         jl_inv = G.jl_inv(r)
         blocks = []
         if not self.fix_origin:
-            blocks.append(-jl_inv @ G(Phi).inverse().adjoint())
+            blocks.append(-jl_inv @ G.from_matrix(Phi).inverse().adjoint())
         blocks.append(-jl_inv @ eta)
         J = torch.cat(blocks, dim=-1) * self.sqrt_w[..., None, :, None]
         return _weighted(r, self.sqrt_w).flatten(-2), J.flatten(-3, -2)
