@@ -457,3 +457,12 @@ def test_subclass_with_required_init_argument_goes_through_operations():
     truth = SGal3.exp(t[:, None] * xi[0] * 0.5)
     fit = fit_polynomial(_NeedsArgument(truth.as_matrix(), 0), t, degree=1)
     torch.testing.assert_close(fit(t).as_matrix(), truth.as_matrix(), rtol=0, atol=1e-9)
+
+
+def test_allclose_on_meta_says_why_it_cannot():
+    """allclose on 'meta' elements raised torch's 'Tensor.item() cannot be called on meta
+    tensors', which did not say which call or why."""
+    from torchsgal import SE3
+    g = SE3.identity(2, dtype=F64, device="meta")
+    with pytest.raises(RuntimeError, match=r"allclose reads the matrices' values .* device 'meta' have none"):
+        g.allclose(g)

@@ -331,13 +331,17 @@ class LieGroup:
     def allclose(self, other, rtol: float = 1e-5, atol: float = 1e-8, equal_nan: bool = False) -> bool:
         """True if every matrix of g is close to the matching (broadcast) matrix of ``other``, as
         torch.allclose on the homogeneous matrices: |g - h| <= atol + rtol |h| entrywise, NaNs
-        equal only with ``equal_nan=True``.  A Python bool (one host sync); ``other`` of the
-        same group (either may be a subclass), dtype and device."""
+        equal only with ``equal_nan=True``.  A Python bool (one host sync; RuntimeError on
+        'meta', which has no values); ``other`` of the same group (either may be a subclass),
+        dtype and device."""
         self._same_type(other, "other")
         rtol = checks.finite_number(rtol, "rtol", ">= 0")
         atol = checks.finite_number(atol, "atol", ">= 0")
         equal_nan = checks.boolean(equal_nan, "equal_nan")
         a, b = torch.broadcast_tensors(self._matrix, other._matrix)
+        if a.device.type == "meta":
+            raise RuntimeError("allclose reads the matrices' values to return a Python bool, and "
+                               "tensors on device 'meta' have none")
         return bool(torch.allclose(a, b, rtol=rtol, atol=atol, equal_nan=equal_nan))
 
     def act_direction(self, d: torch.Tensor) -> torch.Tensor:
