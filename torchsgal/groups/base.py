@@ -165,16 +165,28 @@ class LieGroup:
         orth = (C.transpose(-1, -2) @ C - eye).abs().amax(dim=(-1, -2))
         det = (torch.linalg.det(C) - 1).abs()
         rows = cls._fixed_deviation(M)
-        finite = torch.isfinite(M).all()
-        worst = torch.stack((orth.max(), det.max(), rows.max())) if M.numel() else None
-        if not bool(finite):
+        finite = torch.isfinite(M).all().to(M.dtype)
+        # every measure in one read (the check's one host sync)
+        finite, o, d, r, *extra = torch.stack(
+            (finite, orth.max(), det.max(), rows.max(), *cls._extra_measures(M))).tolist()
+        if not finite:
             raise ValueError(f"matrix is not in {cls.__name__}: it has non-finite entries")
-        if worst is not None and bool((worst > tol).any()):
-            o, d, r = worst.tolist()
+        if max(o, d, r) > tol:
             raise ValueError(
                 f"matrix is not in {cls.__name__} (tol {tol:g}): max |C^T C - I| = {o:.3g}, "
                 f"max |det C - 1| = {d:.3g}, max deviation of the fixed rows = {r:.3g}{cls._fixed_note}"
             )
+        cls._check_extra_measures(extra)
+
+    @classmethod
+    def _extra_measures(cls, M: torch.Tensor) -> tuple:
+        """Scalars besides orthonormality, det and the fixed rows that a group's membership
+        check reads (in the same host sync); see Sim3."""
+        return ()
+
+    @classmethod
+    def _check_extra_measures(cls, values: list) -> None:
+        """Raises ValueError if the values of ``_extra_measures`` (Python floats) are out of the group."""
 
     @classmethod
     def _fixed_deviation(cls, M: torch.Tensor) -> torch.Tensor:
@@ -324,7 +336,8 @@ class LieGroup:
         else:  # a number is read here; a tensor's values are not (no host sync)
             alpha = checks.finite_number(alpha, "alpha")
         delta = self.between(other).log()
-        alpha = torch.as_tensor(alpha, dtype=delta.dtype, device=delta.device)
+        if not isinstance(alpha, torch.Tensor):  # a number scales delta as it is (no host copy)
+            return self.rplus(delta * alpha)
         checks.broadcast_batch(batch=delta.shape[:-1], alpha=alpha.shape)
         return self.rplus(alpha.unsqueeze(-1) * delta)
 

@@ -49,11 +49,13 @@ class Sim3(LieGroup):
         return M[..., 3, :3].abs().amax(dim=-1) / M[..., 3, 3].abs()
 
     @classmethod
-    def _check_membership(cls, M: torch.Tensor, tol: float | None) -> None:
-        super()._check_membership(M, tol)
-        if M.numel() and bool((M[..., 3, 3] <= 0).any()):
-            worst = float(M[..., 3, 3].min())
-            raise ValueError(f"matrix is not in Sim3: M[3, 3] = 1/s must be positive, got {worst:.3g}")
+    def _extra_measures(cls, M: torch.Tensor) -> tuple:
+        return (M[..., 3, 3].min(),)
+
+    @classmethod
+    def _check_extra_measures(cls, values: list) -> None:
+        if values[0] <= 0:
+            raise ValueError(f"matrix is not in Sim3: M[3, 3] = 1/s must be positive, got {values[0]:.3g}")
 
     def position(self) -> torch.Tensor:
         """r (..., 3), the translation column of the matrix."""
