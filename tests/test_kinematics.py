@@ -156,7 +156,7 @@ def test_bad_input():
         chain.forward(torch.zeros(7, dtype=torch.int64))
     with pytest.raises(TypeError, match=r"q must have a floating dtype .* got torch.bfloat16"):
         chain.forward(torch.zeros(7, dtype=torch.bfloat16))
-    with pytest.raises(ValueError, match=r"qdot .* must match q"):
+    with pytest.raises(TypeError, match=r"qdot .* must match q"):
         chain.forward(torch.zeros(7, dtype=torch.float64), torch.zeros(7, dtype=torch.float32))
     with pytest.raises(ValueError, match=r"equal, non-zero length"):
         GDHChain([0.1, 0.2], [0.0], [0.0, 0.0], [0.0, 0.0], "RR")
@@ -223,3 +223,76 @@ def test_forward_compiles_in_one_graph():
     (g_eager,), (g_comp,) = torch.autograd.grad(f(q), q), torch.autograd.grad(compiled(q), q)
     assert torch.equal(compiled(q), f(q))
     np.testing.assert_allclose(g_comp.numpy(), g_eager.numpy(), rtol=1e-13, atol=1e-13)
+
+
+def test_table_device_follows_its_tensor_columns():
+    """With device=None the table goes where its tensor columns are (it used to leave a tensor
+    column there and put the list columns and the joint-type mask on the CPU, and forward
+    failed with torch's 'not on the expected device')."""
+    a = torch.tensor([0.3, 0.2], dtype=torch.float64, device="meta")
+    chain = GDHChain(a, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    assert chain.device == torch.device("meta")
+    for t in (chain.a, chain.alpha, chain.d, chain.theta_offset, chain._revolute):
+        assert t.device == torch.device("meta")
+    q = torch.zeros(3, 2, dtype=torch.float64, device="meta")
+    state = chain.forward(q, q)
+    assert state.pose.shape == (3, 4, 4) and state.pose.device == torch.device("meta")
+    assert chain.acceleration(q, q, q)[0].device == torch.device("meta")
+    # the dtype is not taken from the columns: float64 unless given (unchanged rule)
+    a32 = torch.tensor([0.3, 0.2], dtype=torch.float32)
+    assert GDHChain(a32, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR").dtype == torch.float64
+    # an explicit device wins over the columns'
+    moved = GDHChain(a32, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR", device="meta")
+    assert moved.a.device.type == moved._revolute.device.type == "meta"
+    with pytest.raises(ValueError, match=r"tensor columns are on different devices \(a on meta, "
+                                         r"d on cpu\)"):
+        GDHChain(a, [0.0, 0.0], torch.zeros(2), [0.0, 0.0], "RR")
+
+
+def test_table_must_be_finite():
+    """A non-finite DH parameter used to give NaN poses silently."""
+    good = [0.1, 0.2]
+    for i, name in enumerate(("a", "alpha", "d", "theta_offset")):
+        for bad in (math.nan, math.inf, -math.inf):
+            cols = [good, good, good, good]
+            cols[i] = [0.1, bad]
+            with pytest.raises(ValueError, match=rf"{name} \(a DH table column\) must be finite"):
+                GDHChain(*cols, "RP")
+    # finite in float64, infinite once built in float32
+    with pytest.raises(ValueError, match=r"a \(a DH table column\) must be finite, got \[inf\] "
+                                         r"\(as torch.float32\)"):
+        GDHChain([1e300], [0.0], [0.0], [0.0], "R", dtype=torch.float32)
+    with pytest.raises(ValueError, match=r"alpha \(a DH table column\) must be finite"):
+        GDHChain(good, torch.tensor([0.0, math.nan]), good, good, "RR")
+    # no values to read on 'meta': not checked there
+    GDHChain(torch.full((1,), math.nan, device="meta"), [0.0], [0.0], [0.0], "R")
+
+
+def test_joint_tensor_mismatch_is_typeerror_for_dtype_valueerror_for_device():
+    """qdot/qddot against q: a dtype mismatch is TypeError and a device mismatch ValueError, as
+    for q against the chain (checks.same_device_dtype); both used to be ValueError."""
+    chain = ur5()
+    q = torch.zeros(6, dtype=torch.float64)
+    with pytest.raises(TypeError, match=r"qdot has dtype torch.float32 but q has dtype "
+                                        r"torch.float64 \(qdot must match q"):
+        chain.forward(q, q.float())
+    with pytest.raises(TypeError, match=r"qddot has dtype torch.float32 but q has dtype"):
+        chain.acceleration(q, q, q.float())
+    with pytest.raises(ValueError, match=r"qdot is on meta but q is on cpu; move them to one "
+                                         r"device \(qdot must match q"):
+        chain.forward(q, q.to("meta"))
+    with pytest.raises(ValueError, match=r"qddot is on meta but q is on cpu"):
+        chain.link_inputs(q, q, q.to("meta"))
+
+
+def test_joint_types_string_is_read_letter_by_letter():
+    hint = (r"joint_types 'revolute' is read letter by letter, one 'R' or 'P' per joint, "
+            r"e\.g\. 'RRP'")
+    with pytest.raises(ValueError, match=r"'joint_types': 8\} \(" + hint):
+        GDHChain([0.1], [0.0], [0.0], [0.0], "revolute")
+    with pytest.raises(ValueError, match=r"joint_types\[1\] must be .* got 'e' \(" + hint):
+        GDHChain(*([[0.1] * 8] * 4), "revolute")
+    assert GDHChain([0.1], [0.0], [0.0], [0.0], ["revolute"]).joint_types == ("revolute",)
+    with pytest.raises(ValueError, match=r"joint_types\[0\] must be") as info:
+        GDHChain([0.1], [0.0], [0.0], [0.0], ["spherical"])
+    assert "letter by letter" not in str(info.value)  # the hint is for strings only

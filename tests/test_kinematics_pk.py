@@ -362,3 +362,21 @@ def test_gdh_acceleration_matches_pk_jacobian_derivative(name):
     lin, ang = gdh.acceleration(q, qd, qdd)
     torch.testing.assert_close(lin, acc[:, :3], atol=1e-9, rtol=0)
     torch.testing.assert_close(ang, acc[:, 3:], atol=1e-9, rtol=0)
+
+
+def test_build_pk_chain_table_must_be_finite_and_joint_types_hint():
+    scara = ROBOTS["scara"]
+    for i, name in enumerate(("a", "alpha", "d", "theta_offset")):
+        for bad in (math.nan, math.inf):
+            table = list(scara)
+            table[i] = [bad] + list(table[i][1:])
+            with pytest.raises(ValueError, match=rf"{name} \(a DH table column\) must be finite"):
+                build_pk_chain(*table)
+    with pytest.raises(ValueError, match=r"d \(a DH table column\) must be finite"):
+        build_pk_chain([0.0], [0.0], torch.tensor([math.nan], dtype=DT), [0.0], "R")
+    hint = (r"joint_types 'revolute' is read letter by letter, one 'R' or 'P' per joint, "
+            r"e\.g\. 'RRP'")
+    with pytest.raises(ValueError, match=r"joint_types 8 \(" + hint):
+        build_pk_chain([0.0], [0.0], [0.0], [0.0], "revolute")
+    with pytest.raises(ValueError, match=r"joint_types\[1\] must be .* got 'e' \(" + hint):
+        build_pk_chain(*([[0.0] * 8] * 4), "revolute")

@@ -37,6 +37,7 @@ from typing import Sequence
 import torch
 
 from ..functional import checks
+from ..functional._blocking import values_readable
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import SE23
 
@@ -107,6 +108,25 @@ class GDHState:
         return torch.cat((top, bottom), dim=-2)
 
 
+def _letters_hint(joint_types) -> str:
+    """The hint added to a joint_types error when it is a string (read letter by letter)."""
+    if not isinstance(joint_types, str):
+        return ""
+    return (f" (joint_types {joint_types!r} is read letter by letter, one 'R' or 'P' per joint, "
+            f"e.g. 'RRP')")
+
+
+def _columns_device(cols: dict) -> torch.device | None:
+    """The device of the tensor columns of a DH table (None when no column is a tensor);
+    ValueError naming the columns when they are on different devices."""
+    devices = {k: v.device for k, v in cols.items() if isinstance(v, torch.Tensor)}
+    if len(set(devices.values())) > 1:
+        desc = ", ".join(f"{k} on {dev}" for k, dev in devices.items())
+        raise ValueError(f"the DH table's tensor columns are on different devices ({desc}); "
+                         f"move them to one device or pass device=")
+    return next(iter(devices.values()), None)
+
+
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-1)
 
@@ -127,6 +147,14 @@ class GDHChain:
     another dtype or device raises TypeError or ValueError naming q and the chain.  Build the
     chain in the dtype and on the device of your data (``ur5(dtype=torch.float32,
     device="cuda")``).
+
+    The columns may be sequences or tensors.  With ``device=None`` the table goes where its
+    tensor columns are (all of them on one device, else ValueError naming the columns), or
+    to torch's default device when no column is a tensor; ``dtype`` is not taken from the
+    columns (float64 unless given: tensor columns are converted).  The table must be finite
+    (ValueError naming the column; not checked on 'meta' or under torch.func transforms).
+    ``joint_types`` is a sequence of "revolute"/"R" and "prismatic"/"P", or a string read
+    letter by letter ("RRP").
     """
 
     def __init__(
@@ -146,15 +174,28 @@ class GDHChain:
         lengths["joint_types"] = len(joint_types)
         n = lengths["a"]
         if n < 1 or any(v != n for v in lengths.values()):
-            raise ValueError(f"DH table columns must have one equal, non-zero length; got {lengths}")
+            raise ValueError(f"DH table columns must have one equal, non-zero length; got "
+                             f"{lengths}{_letters_hint(joint_types)}")
         dtype = checks.dtype_arg(torch.float64 if dtype is None else dtype)
-        types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
+        try:
+            types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
+        except ValueError as err:
+            raise ValueError(f"{err}{_letters_hint(joint_types)}") from None
+        if device is None:
+            device = _columns_device(cols)
         self.name = name
         self.n_joints = n
         self.joint_types = tuple(types)
         as_t = lambda v: torch.as_tensor(v, dtype=dtype, device=device).reshape(n)  # noqa: E731
         self.a, self.alpha, self.d, self.theta_offset = (as_t(cols[k]) for k in cols)
-        self._revolute = torch.tensor([t == REVOLUTE for t in types], device=device)
+        table = dict(zip(cols, (self.a, self.alpha, self.d, self.theta_offset)))
+        if all(values_readable(t) for t in table.values()):  # one host sync, at construction
+            finite = torch.stack([torch.isfinite(t).all() for t in table.values()]).tolist()
+            for (k, t), ok in zip(table.items(), finite):
+                if not ok:
+                    raise ValueError(f"{k} (a DH table column) must be finite, got "
+                                     f"{t.tolist()} (as {dtype})")
+        self._revolute = torch.tensor([t == REVOLUTE for t in types], device=self.a.device)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -184,10 +225,10 @@ class GDHChain:
         if like is None:
             self._check_like_chain(x, name)
         else:
-            if x.device != like.device or x.dtype != like.dtype:
-                raise ValueError(
-                    f"{name} ({x.dtype}, {x.device}) must match q ({like.dtype}, {like.device})"
-                )
+            try:  # a device mismatch is ValueError, a dtype mismatch TypeError, as everywhere
+                checks.same_device_dtype(q=like, **{name: x})
+            except (TypeError, ValueError) as err:
+                raise type(err)(f"{err} ({name} must match q: nothing is cast)") from None
             try:
                 torch.broadcast_shapes(x.shape, like.shape)
             except RuntimeError:

@@ -45,7 +45,7 @@ from typing import Optional, Sequence, Union
 import torch
 
 from ..functional import checks
-from .gdh import normalize_joint_type
+from .gdh import _letters_hint, normalize_joint_type
 
 
 def _import_pk():
@@ -62,11 +62,16 @@ def _import_pk():
 
 
 def _as_list(x, name: str) -> list:
+    """A DH column as a list of finite floats (ValueError naming the column otherwise)."""
     if torch.is_tensor(x):
         if x.dim() != 1:
             raise ValueError(f"{name} must be one-dimensional, got shape {tuple(x.shape)}")
-        return [float(v) for v in x.detach().cpu().tolist()]
-    return [float(v) for v in x]
+        values = [float(v) for v in x.detach().cpu().tolist()]
+    else:
+        values = [float(v) for v in x]
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{name} (a DH table column) must be finite, got {values}")
+    return values
 
 
 def _rz(theta: float, dtype, device) -> torch.Tensor:
@@ -103,9 +108,11 @@ def build_pk_chain(
     """A ``pytorch_kinematics.SerialChain`` equivalent to a standard-DH table.
 
     Args:
-        a, alpha, d, theta_offset: sequences (or 1-D tensors) of length n.  For a prismatic
-            joint ``d`` is the offset ``d_offset_i``; for a revolute one ``theta_offset`` is.
-        joint_types: n entries, each ``"revolute"`` or ``"prismatic"`` (``"R"``/``"P"`` too).
+        a, alpha, d, theta_offset: sequences (or 1-D tensors) of length n, finite (ValueError
+            naming the column otherwise).  For a prismatic joint ``d`` is the offset
+            ``d_offset_i``; for a revolute one ``theta_offset`` is.
+        joint_types: n entries, each ``"revolute"`` or ``"prismatic"`` (``"R"``/``"P"`` too);
+            a string is read letter by letter (``"RRPR"``).
         dtype, device: of the chain (torch.float64, the default, or torch.float32; built
             directly in that precision: the URDF loader is not used since it parses angles in
             float32).
@@ -122,13 +129,16 @@ def build_pk_chain(
     pk, pk_frame, pk_tf = _import_pk()
     a_, al_, d_, th_ = (_as_list(v, n) for v, n in
                         ((a, "a"), (alpha, "alpha"), (d, "d"), (theta_offset, "theta_offset")))
-    types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
-    n = len(types)
+    n = len(joint_types)
     if not (len(a_) == len(al_) == len(d_) == len(th_) == n):
         raise ValueError(
             f"DH table lengths differ: a {len(a_)}, alpha {len(al_)}, d {len(d_)}, "
-            f"theta_offset {len(th_)}, joint_types {n}"
+            f"theta_offset {len(th_)}, joint_types {n}{_letters_hint(joint_types)}"
         )
+    try:
+        types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
+    except ValueError as err:
+        raise ValueError(f"{err}{_letters_hint(joint_types)}") from None
     if n == 0:
         raise ValueError("a chain needs at least one joint")
 
