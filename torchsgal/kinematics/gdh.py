@@ -6,9 +6,12 @@ link is the extended pose (43)
     K_i = [[R_i, v_i, p_i], [0, 1, 0], [0, 0, 1]],   R_i = Rz(theta_i) Rx(alpha_i),
     p_i = (a cos theta, a sin theta, d),             v_i = dp_i/dt (44),
 
-and its motion is dK_i/dt = K_i N - N K_i + K_i U_i with the link input U_i = (0, a_i, w_i)
-(tangent order [rho, nu, phi]) of (46)-(47).  The chain K = K_1 ... K_n (45) moves with the
-input U = sum_i Ad(iK_n^-1) U_i (50).
+and its motion is dK_i/dt = K_i N - N K_i + K_i U_i with the link input
+U_i = (0, acc_i, omega_i) (tangent order [rho, nu, phi]) of (46)-(47): omega_i (46) is the link's
+relative angular velocity and acc_i (47) its relative acceleration (the paper's U(omega, a-dot),
+written with both subscripts there; acc_i is not the DH length a_i, and omega_i is not the
+paper's w_i = dd_i/dt, the prismatic joint rate).  The chain K = K_1 ... K_n (45) moves with
+the input U = sum_i Ad(iK_n^-1) U_i (50).
 
 Two departures from the paper, both checked against pytorch-kinematics in the tests:
 
@@ -24,8 +27,8 @@ gives (the N terms reduce to a translation by -v(X_i^-1))
 
     dU/dt = sum_i Ad(X_i^-1) dU_i/dt + ad(W_i) (V_i + (-v(X_i^-1), 0, 0)),
 
-and d2p/dt2 = R (U_nu + U_phi x U_rho + dU_rho/dt), dw/dt = R dU_phi/dt (base frame).  Only the
-rho and phi parts of dU/dt are needed, so no joint jerk enters.
+and d2p/dt2 = R (U_nu + U_phi x U_rho + dU_rho/dt), domega/dt = R dU_phi/dt (base frame).  Only
+the rho and phi parts of dU/dt are needed, so no joint jerk enters.
 
 Only the public group API (SE23) is used.
 """
@@ -269,7 +272,7 @@ class GDHChain:
         theta = offset + torch.where(rev, q, 0.0)
         dd = d + torch.where(rev, 0.0, q)
         qv = torch.where(rev, qdot, 0.0)  # q_i = dtheta_i/dt
-        wv = torch.where(rev, 0.0, qdot)  # w_i = dd_i/dt
+        wv = torch.where(rev, 0.0, qdot)  # w_i = dd_i/dt, the prismatic joint rate (44)
         ct, st, ca, sa = torch.cos(theta), torch.sin(theta), torch.cos(alpha), torch.sin(alpha)
         zero, one = torch.zeros_like(ct), torch.ones_like(ct)
         R = torch.stack(
@@ -280,7 +283,8 @@ class GDHChain:
         return SE23.from_components(R, v, p)
 
     def link_inputs(self, q: torch.Tensor, qdot: torch.Tensor, qddot: torch.Tensor) -> torch.Tensor:
-        """U_i = (0, a_i, w_i) (..., n, 9) from (46)-(47) (first component -a q^2, see module)."""
+        """U_i = (0, acc_i, omega_i) (..., n, 9) from (46)-(47): acc_i (47) in the nu slot,
+        omega_i (46) in the phi slot (first component of acc_i -a q^2, see module)."""
         q = self._joint_tensor(q, "q")
         qdot = self._joint_tensor(qdot, "qdot", like=q)
         qddot = self._joint_tensor(qddot, "qddot", like=q)
@@ -363,7 +367,7 @@ class GDHChain:
         for i in range(self.n_joints - 1, -1, -1):
             K = prefix[i]
             s_rho, _, s_phi = S[i]
-            dphi = _matvec(K.rotation(), omega_rate[..., i, :])  # Ad(0K_i) (0, 0, dw_i)
+            dphi = _matvec(K.rotation(), omega_rate[..., i, :])  # Ad(0K_i) (0, 0, domega_i/dt)
             y_rho = T_rho + ee.velocity() - K.velocity()
             D_rho = D_rho + _cross(K.position(), dphi) + _cross(s_phi, y_rho) + _cross(s_rho, T_phi)
             D_phi = D_phi + dphi + _cross(s_phi, T_phi)

@@ -34,7 +34,13 @@ def ur5(dtype=torch.float64, device=None) -> GDHChain:
 
 
 def iiwa7(dtype=torch.float64, device=None) -> GDHChain:
-    """KUKA LBR iiwa 14 R820, a 7-DoF arm, standard DH."""
+    """KUKA LBR iiwa **14 R820** (not the iiwa 7 R800, despite the name), a 7-DoF arm,
+    standard DH.
+
+    The name is kept for compatibility (read its "7" as the seven joints); the table is the
+    14 R820's, (d1, d3, d5, d7) = (0.36, 0.42, 0.40, 0.126) m (the 7 R800's d1, d3, d5 are
+    0.34, 0.40, 0.40 m).
+    """
     return GDHChain(
         a=[0.0] * 7,
         alpha=[-PI / 2, PI / 2, PI / 2, -PI / 2, -PI / 2, PI / 2, 0.0],
