@@ -163,8 +163,9 @@ def test_pk_jacobian_is_base_frame_v_omega(name):
     assert J.shape == (q.shape[0], 6, n) and J.dtype == DT
     twist = (J @ qd.unsqueeze(-1)).squeeze(-1)
     v, w = fd_twist(lambda x: dh_fk(table, x), q, qd)
-    torch.testing.assert_close(twist[:, :3], v, atol=1e-9, rtol=0)
-    torch.testing.assert_close(twist[:, 3:], w, atol=1e-9, rtol=0)
+    # fourth-order difference, h = 1e-4: measured 7.1e-12 (40 seeds: 7.8e-12)
+    torch.testing.assert_close(twist[:, :3], v, atol=1e-10, rtol=0)
+    torch.testing.assert_close(twist[:, 3:], w, atol=1e-10, rtol=0)
     # the angular part is the spatial (base-frame) angular velocity, not the body one
     R = dh_fk(table, q)[:, :3, :3]
     w_body = (R.transpose(-1, -2) @ w.unsqueeze(-1)).squeeze(-1)
@@ -250,7 +251,9 @@ def _kin():
     return kinematics
 
 
-def _check_against_pk(gdh, pkc, q, qd, tol=1e-10):
+def _check_against_pk(gdh, pkc, q, qd, tol=3e-14):
+    # Both sides are float64 products of the same DH matrices: measured worst 2.7e-15 over the
+    # inputs of the tests below (7.1e-15 over 40 other seeds).
     n = q.shape[-1]
     state = gdh.forward(q, qd)
     qf, qdf = q.reshape(-1, n), qd.reshape(-1, n)
@@ -360,8 +363,9 @@ def test_gdh_acceleration_matches_pk_jacobian_derivative(name):
     Jdot = fd(pkc.jacobian, q, qd)
     acc = (pkc.jacobian(q) @ qdd.unsqueeze(-1) + Jdot @ qd.unsqueeze(-1)).squeeze(-1)
     lin, ang = gdh.acceleration(q, qd, qdd)
-    torch.testing.assert_close(lin, acc[:, :3], atol=1e-9, rtol=0)
-    torch.testing.assert_close(ang, acc[:, 3:], atol=1e-9, rtol=0)
+    # dJ/dt by a fourth-order difference: measured worst 1.7e-11 (40 seeds: 2.8e-11)
+    torch.testing.assert_close(lin, acc[:, :3], atol=2e-10, rtol=0)
+    torch.testing.assert_close(ang, acc[:, 3:], atol=2e-10, rtol=0)
 
 
 def test_build_pk_chain_table_must_be_finite_and_joint_types_hint():
