@@ -487,3 +487,20 @@ def test_blocks_of_k_variables_in_variables_and_gauss_helmert():
     assert gh.x.shape == (3, 1, 2)
     torch.testing.assert_close(gh.x[:, 0], ref.x[0], rtol=0, atol=1e-12)
     torch.testing.assert_close(gh.covariance, ref.covariance, rtol=0, atol=1e-12)
+
+
+def test_lbfgs_report_is_on_the_unknowns_device():
+    """report.iterations was made on the CPU whatever the unknowns' device (SolverReport says
+    every field is on it), so report.iterations + report.status failed on another device.
+    torch.optim.LBFGS reads values, so its step is stubbed to run on 'meta'."""
+    from unittest import mock
+
+    import torchsgal as ts
+    from torchsgal.estimation.lbfgs import lbfgs
+
+    x0 = ts.SE3.identity(5, dtype=torch.float64, device="meta")
+    target = ts.SE3.identity(5, dtype=torch.float64, device="meta")
+    with mock.patch.object(torch.optim.LBFGS, "step", lambda self, closure: None):
+        _, _, report = lbfgs(lambda x, e: x.rminus(target).square().sum(-1), x0)
+    for name in ("status", "iterations", "initial_cost", "cost", "step_norm", "gradient_norm"):
+        assert getattr(report, name).device.type == "meta", name

@@ -90,7 +90,7 @@ def lbfgs(
                          SolverStatus.MAX_ITERATIONS)
     status = torch.where(finite, status, SolverStatus.NON_FINITE).to(torch.int64)
     it = opt.state[z].get("n_iter", 0)
-    report = SolverReport(status=status, iterations=torch.full((Bn,), it, dtype=torch.int64),
+    report = SolverReport(status=status, iterations=torch.full((Bn,), it, dtype=torch.int64, device=c.device),
                           initial_cost=initial.detach(), cost=c, step_norm=torch.zeros_like(c),
                           gradient_norm=gnorm.detach())
     return x[0] if single else x, (extra_at(ee).detach() if ee is not None else None), report

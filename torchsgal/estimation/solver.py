@@ -2,7 +2,9 @@
 
 Every problem of the batch has its own damping, step, cost and status, kept with
 ``torch.where``, so one bad problem never spoils the others.  The loop stops when no problem
-is still running (one host sync per iteration, outside the group ops).
+is still running.  Host syncs, outside the group ops: two per iteration (the stop test, and
+whether every problem accepted its step, which spares the selection copies), and one after
+the loop (the singularity test of the covariance, an eigvalsh).
 
 The normal equations use the whitened residual r (B, m) and its Jacobian J (B, m, d) with
 respect to right perturbations of the unknowns (``variables.retract``):

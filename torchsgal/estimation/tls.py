@@ -767,7 +767,7 @@ def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = 
     def run(prob, x_start, scale):
         return lbfgs(condition_cost(prob, weights_at=x_start), x_start, scale=scale, **options)
 
-    iterations = torch.zeros(problem.batch_size, dtype=torch.int64)
+    iterations = torch.zeros(problem.batch_size, dtype=torch.int64, device=problem.F_ga.device)
     for _ in range(max(1, reweightings)):
         info = gauss_helmert(cond, x, problem.covariance, variant="paper", max_iterations=0)
         scale = torch.linalg.cholesky(info.covariance)
