@@ -338,15 +338,14 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 # P (16, ...) = [C row-major (9), v (3), r (3), tau], component-first.  A product in this
 # layout is ~90 elementwise operations: 4-6x faster on CPU than a batched 5x5 matmul at
 # large batches (the IMU scans), slower for a single small product.
-_PACK_INDEX = (0, 1, 2, 5, 6, 7, 10, 11, 12, 3, 8, 13, 4, 9, 14, 19)
-_PACKED_IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def pack(M: torch.Tensor) -> torch.Tensor:
-    """Group matrices (..., 5, 5) -> the packed layout (16, ...)."""
+    """Group matrices (..., 5, 5) -> the packed layout (16, ...).  Sliced, not gathered with an
+    index tensor (which would be copied from the host to the device on every call)."""
     checks.matrix(M, MATRIX_DIM, "M")
-    idx = torch.tensor(_PACK_INDEX, device=M.device)
-    return B.first(M.flatten(-2).index_select(-1, idx))
+    parts = (M[..., :3, :3].flatten(-2), M[..., :3, 3], M[..., :3, 4], M[..., 3, 4:])
+    return B.first(torch.cat(parts, dim=-1))
 
 
 def exp_packed(xi: torch.Tensor) -> torch.Tensor:
@@ -370,9 +369,11 @@ def unpack(P: torch.Tensor) -> torch.Tensor:
 
 
 def packed_identity(like: torch.Tensor) -> torch.Tensor:
-    """The identity in the packed layout, (16,) + (1,) * (like.dim() - 1), dtype/device of ``like``."""
+    """The identity in the packed layout, (16,) + (1,) * (like.dim() - 1), dtype/device of ``like``
+    (filled on the device: no host data copied)."""
     checks.floating(like, "like")
-    e = torch.tensor(_PACKED_IDENTITY, dtype=like.dtype, device=like.device)
+    e = like.new_zeros(16)
+    e[0:9:4] = 1.0  # the diagonal of C, entries 0, 4, 8
     return e.reshape((16,) + (1,) * (like.dim() - 1))
 
 
