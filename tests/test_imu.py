@@ -686,3 +686,76 @@ def test_predict_compiles_in_one_graph():
 
     compiled = torch.compile(f, backend="eager", fullgraph=True)
     assert torch.equal(compiled(start, delta), f(start, delta))
+
+
+# ------------------------------------------------------------------ noise densities
+@pytest.mark.parametrize("plain", [False, True], ids=["fast", "plain"])
+def test_per_axis_density_batch_widens_the_windows(plain):
+    """A per-axis density whose batch broadcasts with the stream's, but is wider, widens the
+    result's batch like a bias (it used to be folded into the node axis: wrong covariance, batch
+    of the stream); each window equals its own computation, on both paths."""
+    gyro, acc, dt = random_stream(2, 5, seed=90)
+    g = torch.Generator().manual_seed(91)
+    s_g = 1e-3 * (1 + torch.rand(3, 2, 3, dtype=F64, generator=g))  # batch (3, 2) vs the stream's (2,)
+    s_a = 1e-2 * (1 + torch.rand(3, 1, 3, dtype=F64, generator=g))
+    kw = dict(gyro_noise_density=s_g, acc_noise_density=s_a, time_noise_density=1e-4)
+    with torch.enable_grad():
+        res = preintegrate(gyro.clone().requires_grad_(plain), acc, dt, **kw)
+    assert res.batch_shape == (3, 2) and res.covariance.shape == (3, 2, 10, 10)
+    assert res.bias_jacobian.shape == (3, 2, 10, 6) and res.gyro_bias.shape == (3, 2, 3)
+    for i in range(3):
+        for j in range(2):
+            one = preintegrate(gyro[j], acc[j], dt[j], gyro_noise_density=s_g[i, j],
+                               acc_noise_density=s_a[i, 0], time_noise_density=1e-4)
+            for got, want in ((res.delta.as_matrix()[i, j], one.delta.as_matrix()),
+                              (res.covariance[i, j], one.covariance),
+                              (res.bias_jacobian[i, j], one.bias_jacobian)):
+                torch.testing.assert_close(got.detach(), want, rtol=0, atol=1e-13 * want.abs().max())
+    with pytest.raises(ValueError, match=r"do not broadcast: stream \(2,\), acc_noise_density \(3,\)"):
+        preintegrate(gyro, acc, dt, acc_noise_density=torch.ones(3, 3, dtype=F64))
+
+
+def test_empty_batches_with_every_density():
+    """Empty batches return empty results, per-axis densities included (the general covariance
+    used to reshape a tensor of 0 elements with a -1)."""
+    gyro, acc, dt = random_stream(2, 5, seed=92)
+    axes = torch.full((3,), 1e-3, dtype=F64)
+    for kw, batch in ((dict(gyro_noise_density=axes), (0,)), (dict(gyro_noise_density=1e-3), (0,)),
+                      (dict(acc_noise_density=axes.expand(4, 1, 3)), (4, 0))):
+        res = preintegrate(gyro[:0], acc[:0], dt[:0], **kw)
+        assert res.batch_shape == batch
+        assert res.covariance.shape == (*batch, 10, 10) and res.bias_jacobian.shape == (*batch, 10, 6)
+
+
+def test_noise_densities_are_checked_with_names():
+    gyro, acc, dt = random_stream(2, 5, seed=93)
+    ref = preintegrate(gyro, acc, dt, gyro_noise_density=1e-3, acc_noise_density=1e-2, time_noise_density=1e-4)
+    # 0-d tensors of the stream's dtype and device are scalars; mixed with a per-axis one
+    zero_d = preintegrate(gyro, acc, dt, gyro_noise_density=torch.tensor(1e-3, dtype=F64),
+                          acc_noise_density=torch.tensor(1e-2, dtype=F64),
+                          time_noise_density=torch.tensor(1e-4, dtype=F64))
+    mixed = preintegrate(gyro, acc, dt, gyro_noise_density=torch.full((3,), 1e-3, dtype=F64),
+                         acc_noise_density=torch.tensor(1e-2, dtype=F64), time_noise_density=1e-4)
+    for res in (zero_d, mixed):
+        torch.testing.assert_close(res.covariance, ref.covariance, rtol=0,
+                                   atol=1e-14 * ref.covariance.abs().max())
+    for name in ("gyro_noise_density", "acc_noise_density", "time_noise_density"):
+        # a 0-d float32 tensor was cast silently to the float64 stream, a per-axis one refused
+        with pytest.raises(TypeError, match=f"{name} has dtype torch.float32 but gyro has dtype torch.float64"):
+            preintegrate(gyro, acc, dt, **{name: torch.tensor(1e-3)})
+        with pytest.raises(ValueError, match=f"{name} is on meta but gyro is on cpu"):
+            preintegrate(gyro, acc, dt, **{name: torch.tensor(1e-3, dtype=F64, device="meta")})
+        for bad in ("x", True, [1e-3, 1e-3, 1e-3]):
+            with pytest.raises(TypeError, match=f"{name} must be a finite number >= 0 or a tensor"):
+                preintegrate(gyro, acc, dt, **{name: bad})
+        for bad in (-1e-3, math.nan, math.inf):
+            with pytest.raises(ValueError, match=f"{name} must be a finite number >= 0, got"):
+                preintegrate(gyro, acc, dt, **{name: bad})
+        with pytest.raises(ValueError, match=f"{name} must be >= 0 everywhere, got 1 negative"):
+            preintegrate(gyro, acc, dt, **{name: torch.tensor(-1e-3, dtype=F64)})
+    with pytest.raises(ValueError, match=r"gyro_noise_density must be >= 0 everywhere, got 1 negative"):
+        preintegrate(gyro, acc, dt, gyro_noise_density=torch.tensor([1e-3, -1e-3, 0.0], dtype=F64))
+    with pytest.raises(ValueError, match=r"time_noise_density must be a float or a 0-d tensor, got shape \(3,\)"):
+        preintegrate(gyro, acc, dt, time_noise_density=torch.ones(3, dtype=F64))
+    with pytest.raises(ValueError, match=r"acc_noise_density must have shape \(\.\.\., 3\), got \(2,\)"):
+        preintegrate(gyro, acc, dt, acc_noise_density=torch.ones(2, dtype=F64))
