@@ -467,6 +467,16 @@ def preintegrate(
     itself off.)  The bias Jacobian is the same integral of Ad(Delta^-1 Delta(s)) G (minus the
     gyro and accelerometer columns), on the same nodes.
 
+    Accuracy: the increment is exact for piecewise-constant inputs, for any dt.  The covariance
+    and the bias Jacobian are not: Simpson's error on a sample grows with its rotation angle
+    |omega - b_g| dt, as its fourth power where it exceeds the rotation-free O(dt^4) terms.
+    Measured on 4-sample windows (dt = 0.05 s, specific force ~5 m/s^2) against a fine
+    quadrature of the integral and central differences of re-integration, for an angle per
+    sample of 0.1 / 1 / pi / 2 pi rad: covariance error 5e-7 / 6e-6 / 2e-4 / 1.3e-3 (entries
+    over the product of the standard deviations), bias Jacobian error 9e-8 / 2.5e-4 /
+    2e-2 to 5e-2 / 0.6 (relative to its largest entry).  Keep the angle per sample well below
+    1 rad where these matter.
+
     Products: one batched SGal3 exp over all samples, then a log-depth tree product (increment
     only) or, with covariance or bias Jacobians, the exps of the half-sample tangents, squared,
     and a work-efficient parallel scan over K; no loop over samples or windows.  The factors
