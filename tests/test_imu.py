@@ -68,7 +68,7 @@ def test_constant_inputs_match_expm_for_any_dt(dt):
         for i, (w, a) in enumerate(zip(omegas, accs)):
             ref = scipy.linalg.expm(algebra(w, a) * K * dt)
             scale = max(1.0, np.abs(ref).max())
-            np.testing.assert_allclose(delta[i], ref, rtol=0, atol=1e-10 * scale)
+            np.testing.assert_allclose(delta[i], ref, rtol=0, atol=1e-14 * scale)  # measured 1.6e-15
 
 
 def test_constant_inputs_closed_form_and_varying_dt():
@@ -100,9 +100,9 @@ def test_float32_matches_float64():
     assert torch.allclose(r32.delta.as_matrix().double(), ref, rtol=0, atol=2e-5 * ref.abs().max())
     sd = r64.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
     rel = (r32.covariance.double() - r64.covariance).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)
-    assert float(rel.max()) < 1e-5
+    assert float(rel.max()) < 2e-6  # measured 1.8e-7
     J = r64.bias_jacobian
-    assert torch.allclose(r32.bias_jacobian.double(), J, rtol=0, atol=2e-5 * J.abs().max())
+    assert torch.allclose(r32.bias_jacobian.double(), J, rtol=0, atol=1e-5 * J.abs().max())  # 1.1e-6
 
 
 @pytest.mark.parametrize("K", [1, 2, 3, 8, 13, 64])
@@ -196,7 +196,7 @@ def test_predict_with_earth_rotation_matches_ode():
         y = _ode_reference(X0[b], gyro[b], acc[b], dt[b], g.numpy(), Omega.numpy())
         got = np.concatenate([X1[b].rotation().numpy().ravel(), X1[b].velocity().numpy(),
                               X1[b].position().numpy(), [float(X1[b].time())]])
-        np.testing.assert_allclose(got, y, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got, y, rtol=0, atol=1e-13)  # measured 1.2e-14 (entries up to 7)
 
 
 @pytest.mark.parametrize("frame", ["z_up", "ned"])
@@ -300,7 +300,8 @@ def test_covariance_converges_to_the_sequential_recursion(per_axis):
     # Both discretise the same continuous-time integral.  The brief's recursion on a stream
     # subdivided m-fold (the same piecewise-constant inputs) converges to it as O((dt/m)^2):
     # Richardson over m = 8, 16 gives the limit.  Ours (Simpson) converges as O(dt^4): its error
-    # drops about 16-fold when our own stream is subdivided 2-fold.  Isotropic densities (floats)
+    # drops about 16-fold when our own stream is subdivided 2-fold (measured 15.8 and 16.0; a
+    # third-order error would drop 8-fold).  Isotropic densities (floats)
     # take the closed-form path, per-axis ones the general path.
     gyro, acc, dt = random_stream(1, 6, seed=21, dt_range=(0.01, 0.03), rate=2.0, acc=5.0)
     if per_axis:
@@ -318,7 +319,7 @@ def test_covariance_converges_to_the_sequential_recursion(per_axis):
         errs.append(float(((cov - limit).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max()))
     seq_err = float(((refs[1] - limit).abs() / sd.unsqueeze(-1) / sd.unsqueeze(-2)).max())
     assert errs[0] < seq_err, (errs, seq_err)  # ours at dt beats the recursion at dt / 16
-    assert errs[1] < errs[0] / 8, errs  # fourth order
+    assert errs[1] < errs[0] / 12, errs  # fourth order
 
 
 def test_isotropic_and_per_axis_paths_agree():
