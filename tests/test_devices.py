@@ -9,7 +9,10 @@ inputs checks two things a CUDA run would, without a GPU:
 * nothing reads tensor values on the host: ``.item()``, ``bool(t)``, ``float(t)`` or a
   data-dependent shape raise on meta, where on CUDA they would be a silent device-to-host sync.
 
-Each case also checks the output's shape, dtype and device.  The only host syncs the library
+Each case also checks the output's shape, dtype and device.  What meta lets pass, a
+host-to-device copy (``torch.tensor(list, device=d)``, a CPU constant moved with ``.to(d)``) or
+a linalg error check, the host-sync sniffer at the end of this file sees at torch's dispatch
+level: the group operations and ``imu.preintegrate`` must make none.  The only host syncs the library
 makes on purpose (input validation such as ``from_matrix(check=True)`` and the estimation
 solvers, which run on CPU tensors) are left out, and one test shows that such a sync is caught.
 The uncertainty package's covariance checks and the convergence test of
@@ -170,3 +173,172 @@ def test_regression_flows_on_device(G):
     _check(Phi, (*BATCH, 6, G.matrix_dim, G.matrix_dim))
     _check(X, (*BATCH, 6, G.dof))
     _check(reg.log_distance(G.random(BATCH, device=META), G.random(BATCH, device=META)), BATCH)
+
+
+# ------------------------------------------------------------------------ host-sync sniffer
+# Meta raises on value reads, but a host-to-device copy (torch.tensor(list, device=d), a CPU
+# constant moved with .to(d)) or a linalg error check passes on meta silently, where on CUDA it
+# stalls the host.  This sniffer sees them at torch's dispatch level and fails the hot paths.
+_ATEN = torch.ops.aten
+_SYNC_OPS = {
+    _ATEN._local_scalar_dense.default: "value read (item/bool/float)",
+    _ATEN._linalg_check_errors.default: "linalg error check (cholesky/inv/solve)",
+    _ATEN._linalg_eigh.default: "eigh",
+    _ATEN.nonzero.default: "data-dependent shape (nonzero, mask indexing)",
+    _ATEN.masked_select.default: "data-dependent shape (masked_select)",
+    _ATEN.equal.default: "torch.equal",
+}
+
+
+def _caller() -> str:
+    """The innermost torchsgal frame of the current stack, as 'path:line'."""
+    import traceback
+
+    frames = [f for f in traceback.extract_stack() if "torchsgal" in f.filename.replace("\\", "/")
+              and "/tests/" not in f.filename.replace("\\", "/")]
+    return f"{frames[-1].filename}:{frames[-1].lineno}" if frames else "?"
+
+
+class _HostSyncs:
+    """Context manager: ``events`` lists (what, where) for every operation that synchronises the
+    host on CUDA: value reads, linalg error checks, eigh, data-dependent shapes, host-to-device
+    copies (aten _to_copy/copy_ from a CPU tensor to another device, of any dimension), and
+    torch.tensor/as_tensor/asarray of host data (lists, numbers, arrays) onto another device."""
+
+    def __enter__(self):
+        from torch.overrides import TorchFunctionMode
+        from torch.utils._python_dispatch import TorchDispatchMode
+
+        events = self.events = []
+
+        class Dispatch(TorchDispatchMode):
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                kwargs = kwargs or {}
+                why = _SYNC_OPS.get(func)
+                if func is _ATEN._to_copy.default:
+                    dst = kwargs.get("device")
+                    if dst is not None and torch.device(dst).type != "cpu" and args[0].device.type == "cpu":
+                        why = "host-to-device copy (.to)"
+                elif func is _ATEN.copy_.default and args[0].device.type != "cpu" and args[1].device.type == "cpu":
+                    why = "host-to-device copy (copy_)"
+                if why:
+                    events.append((why, _caller()))
+                return func(*args, **kwargs)
+
+        class Factories(TorchFunctionMode):
+            def __torch_function__(self, func, types, args=(), kwargs=None):
+                kwargs = kwargs or {}
+                device = data = None
+                if func in (torch.tensor, torch.as_tensor, torch.asarray):
+                    device, data = kwargs.get("device"), args[0] if args else kwargs.get("data")
+                elif func is torch.Tensor.new_tensor:  # self's device unless given
+                    device, data = kwargs.get("device", args[0].device), args[1] if len(args) > 1 else kwargs.get("data")
+                if (device is not None and torch.device(device).type != "cpu"
+                        and not isinstance(data, torch.Tensor)):
+                    events.append((f"host-to-device copy ({func.__name__} of host data)", _caller()))
+                return func(*args, **kwargs)
+
+        self._modes = [Factories(), Dispatch()]
+        for mode in self._modes:
+            mode.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        for mode in reversed(self._modes):
+            mode.__exit__(*exc)
+        return False
+
+
+def _assert_no_host_sync(cases, dtype=torch.float32) -> None:
+    """Each ``(label, fn)`` of ``cases`` makes no host sync.  The one constant cache of the
+    library, functional.numerics' series coefficients per (order, dtype, device), is filled
+    first: it copies its constants to the device on their first use only, as designed."""
+    from torchsgal.functional import numerics
+
+    for order in range(1, numerics.MAX_ORDER + 1):
+        numerics.series_coefficients(_meta(1, dtype=dtype), order)
+    for label, fn in cases:
+        with _HostSyncs() as sniffer:
+            fn()
+        assert not sniffer.events, f"{label}: host syncs {sniffer.events}"
+
+
+def test_host_sync_sniffer_catches_syncs():
+    """The sniffer's premise: each kind of sync it looks for is seen, on meta too."""
+    cases = [
+        ("value read", lambda: _meta(3).sum().item()),  # raises on meta after being seen
+        ("linalg error check", lambda: torch.linalg.cholesky(_meta(3, 3))),
+        ("host-to-device copy (tensor", lambda: torch.tensor([1.0, 2.0], device=META)),
+        ("host-to-device copy (as_tensor", lambda: torch.as_tensor(2.0, device=META)),
+        ("host-to-device copy (new_tensor", lambda: _meta(2).new_tensor([1.0, 2.0])),
+        ("host-to-device copy (.to)", lambda: torch.ones(3).to(META)),
+        ("host-to-device copy (copy_)", lambda: _meta(3).copy_(torch.ones(3))),
+        ("host-to-device copy (copy_)", lambda: _meta(3).__setitem__(0, torch.tensor(1.0))),
+    ]
+    for what, fn in cases:
+        with _HostSyncs() as sniffer:
+            try:
+                fn()
+            except (RuntimeError, NotImplementedError):
+                pass
+        assert any(w.startswith(what) for w, _ in sniffer.events), (what, sniffer.events)
+    with _HostSyncs() as sniffer:  # what is not a sync: fills, scalars, factories on the device
+        x = torch.zeros(3, device=META)
+        x[0:2] = 1.0
+        _check(x * 2.0 + torch.tensor(1.0) + torch.full((3,), 0.5, device=META), (3,))
+    assert not sniffer.events, sniffer.events
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_group_hot_paths_make_no_host_sync(G, dtype):
+    """The group operations, their Jacobians, interpolation and exp/log's custom backward (which
+    runs on meta) make no host sync.  Left out on purpose: from_matrix(check=True), a documented
+    entry check that reads its measures in one sync (and skips it on meta)."""
+    xi = _meta(*BATCH, G.dof, dtype=dtype)
+    g, h = G.exp(xi), G.random(BATCH, dtype=dtype, device=META)
+
+    def backward():
+        x = xi.clone().requires_grad_()
+        (grad,) = torch.autograd.grad(G.exp(x).log().sum(), x)
+        _check(grad, (*BATCH, G.dof), dtype)
+
+    _assert_no_host_sync([(f"{G.__name__}.{name} ({dtype})", fn) for name, fn in [
+        ("exp", lambda: G.exp(xi)), ("log", g.log), ("compose", lambda: g @ h),
+        ("inverse", g.inverse), ("act", lambda: g.act(_meta(*BATCH, G.point_dim, dtype=dtype))),
+        ("adjoint", g.adjoint), ("jl", lambda: G.jl(xi)), ("jr", lambda: G.jr(xi)),
+        ("jl_inv", lambda: G.jl_inv(xi)), ("jr_inv", lambda: G.jr_inv(xi)),
+        ("interpolate(number)", lambda: g.interpolate(h, 0.3)),
+        ("interpolate(tensor)", lambda: g.interpolate(h, _meta(*BATCH, dtype=dtype))),
+        ("exp/log backward", backward),
+    ]], dtype)
+
+
+@pytest.mark.parametrize("per_axis", [False, True], ids=["isotropic", "per_axis"])
+def test_imu_preintegration_makes_no_host_sync(per_axis):
+    """preintegrate with covariance and bias Jacobians (number densities are used as Python
+    floats, constants are filled on the device), and the prediction built on it.  CUDA takes
+    this plain path too (the fast path is CPU only)."""
+    windows, samples = 3, 7
+    gyro, acc, dt = _meta(windows, samples, 3), _meta(windows, samples, 3), _meta(windows, samples)
+    density = _meta(2, 1, 3) if per_axis else 1e-3
+    kw = dict(gyro_bias=_meta(windows, 3), acc_bias=0.1, gyro_noise_density=density,
+              acc_noise_density=1e-2, time_noise_density=1e-4)
+    batch = (2, windows) if per_axis else (windows,)
+
+    def run():
+        pre = imu.preintegrate(gyro, acc, dt, **kw)
+        _check(pre.covariance, (*batch, 10, 10))
+        _check(pre.bias_jacobian, (*batch, 10, 6))
+        return pre
+
+    pre = run()
+    start, gravity, earth = ts.SGal3.identity((windows,), device=META), _meta(3), _meta(3)
+    _assert_no_host_sync([
+        ("imu.preintegrate", run),
+        ("imu.preintegrate (increment only)",
+         lambda: imu.preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False)),
+        ("Preintegration.predict", lambda: pre.predict(start, gravity, earth, gyro_bias=_meta(3))),
+        ("Preintegration.predict_covariance",
+         lambda: pre.predict_covariance(start, _meta(windows, 10, 10), gravity, earth)),
+    ])
