@@ -38,6 +38,14 @@ def _mc_cov(x):
     return torch.cov(x.reshape(-1, x.shape[-1]).T)
 
 
+def _mc_rel_tol(model, n=N_MC):
+    """3 root-mean-square relative Frobenius errors of an n-sample covariance of ``model``
+    (Wishart: E|S_hat - S|_F^2 = (tr(S)^2 + |S|_F^2) / n), capped at the former 5%: measured
+    errors were 0.3 to 2.3 of it (the rest is the first-order models' own bias)."""
+    rms = math.sqrt((float(model.trace()) ** 2 + float(model.norm()) ** 2) / n) / float(model.norm())
+    return min(3.0 * rms, 0.05)
+
+
 @pytest.mark.parametrize("side", ["right", "left"])
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_sample_statistics_match_parameters(G, side):
@@ -54,8 +62,9 @@ def test_sample_statistics_match_parameters(G, side):
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_propagation_matches_monte_carlo(G):
-    """compose (independent and correlated), inverse, between, act: small noise, within a
-    few percent (relative Frobenius error of the covariance)."""
+    """compose and between (independent and correlated), inverse, act: small noise, within 3
+    root-mean-square Monte Carlo errors (relative Frobenius error of the covariance, at most
+    5%)."""
     gen = torch.Generator().manual_seed(3)
     d1, d2 = _dist(G, 0.05, seed=4), _dist(G, 0.05, seed=5)
     s1, s2 = d1.sample(N_MC, generator=gen), d2.sample(N_MC, generator=gen)
@@ -64,25 +73,34 @@ def test_propagation_matches_monte_carlo(G):
         return float((emp - model).norm() / model.norm())
 
     c = d1.compose(d2)
-    assert rel(_mc_cov(c.perturbation(s1 @ s2)), c.covariance) < 0.05
+    assert rel(_mc_cov(c.perturbation(s1 @ s2)), c.covariance) < _mc_rel_tol(c.covariance)
     inv = d1.inverse()
-    assert rel(_mc_cov(inv.perturbation(s1.inverse())), inv.covariance) < 0.05
+    assert rel(_mc_cov(inv.perturbation(s1.inverse())), inv.covariance) < _mc_rel_tol(inv.covariance)
     b = d1.between(d2)
-    assert rel(_mc_cov(b.perturbation(s1.between(s2))), b.covariance) < 0.05
+    assert rel(_mc_cov(b.perturbation(s1.between(s2))), b.covariance) < _mc_rel_tol(b.covariance)
     # correlated operands: xi2 = xi1 (the same draw), cross covariance Sigma
     joint = ConcentratedGaussian(d2.mean, d1.covariance)
     xi = d1.perturbation(s1)
     s2c = joint.mean.rplus(xi)
     cc = d1.compose(joint, cross_covariance=d1.covariance)
-    assert rel(_mc_cov(cc.perturbation(s1 @ s2c)), cc.covariance) < 0.05
+    assert rel(_mc_cov(cc.perturbation(s1 @ s2c)), cc.covariance) < _mc_rel_tol(cc.covariance)
+    # between with correlated operands: xi2 = -xi1, cross covariance -Sigma (xi2 = xi1 would
+    # cancel exactly on the abelian SO2); a sign error of the cross term is far off
+    s2n = joint.mean.rplus(-xi)
+    bc = d1.between(joint, cross_covariance=-d1.covariance)
+    emp = _mc_cov(bc.perturbation(s1.between(s2n)))
+    assert rel(emp, bc.covariance) < _mc_rel_tol(bc.covariance)
+    A = -bc.mean.inverse().adjoint()  # the cross term with the other sign
+    flipped = bc.covariance - 2 * (A @ -d1.covariance + (A @ -d1.covariance).T)
+    assert float((emp - flipped).norm()) > 10 * float((emp - bc.covariance).norm())
     # actions on directions and velocities: Gaussians on R^n (linear in the group element)
     dim, k = G.point_dim, G.rotation_dim
     x = torch.randn(dim, dtype=torch.float64, generator=gen)
     gd = d1.act_direction(x[:k])
-    assert rel(_mc_cov(s1.act_direction(x[:k])), gd.covariance) < 0.05
+    assert rel(_mc_cov(s1.act_direction(x[:k])), gd.covariance) < _mc_rel_tol(gd.covariance)
     if hasattr(s1, "act_velocity"):
         gv = d1.act_velocity(x[:3])
-        assert rel(_mc_cov(s1.act_velocity(x[:3])), gv.covariance) < 0.05
+        assert rel(_mc_cov(s1.act_velocity(x[:3])), gv.covariance) < _mc_rel_tol(gv.covariance)
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
@@ -99,7 +117,7 @@ def test_point_action_propagation_matches_monte_carlo(G):
     dim = G.point_dim
     x = torch.randn(dim, dtype=torch.float64, generator=gen)
     ga = d1.act(x)
-    assert rel(_mc_cov(s1.act(x)), ga.covariance) < 0.05
+    assert rel(_mc_cov(s1.act(x)), ga.covariance) < _mc_rel_tol(ga.covariance)
     # the first-order mean plus its known second-order bias (M/2) E[xi^ xi^] x_h, within 4 SE
     ys = s1.act(x)
     hats = G.hat(torch.eye(G.dof, dtype=torch.float64))
@@ -127,7 +145,8 @@ def test_point_action_propagation_matches_monte_carlo(G):
     # with an uncertain point: exact linear term
     Sx = 0.01 * torch.eye(dim, dtype=torch.float64)
     xs = x + torch.randn(N_MC, dim, dtype=torch.float64, generator=gen) @ torch.linalg.cholesky(Sx).T
-    assert rel(_mc_cov(s1.act(xs)), d1.act(x, Sx).covariance) < 0.05
+    gx = d1.act(x, Sx)
+    assert rel(_mc_cov(s1.act(xs)), gx.covariance) < _mc_rel_tol(gx.covariance)
 
 
 @pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=IDS)
@@ -392,6 +411,29 @@ def _event_cost(prior, event, Sigma, eps, time_row=False):
     return eps @ torch.linalg.solve(Q, eps) + r @ torch.linalg.solve(S[:n, :n], r)
 
 
+def _event_gn_covariance(prior, event, Sigma, eps, time_row=False):
+    """The Gauss-Newton posterior covariance at eps, re-expressed about F_hat exp(eps):
+    J_r (Q^-1 + Jm^T S^-1 Jm)^-1 J_r^T, with Jm the Jacobian of I4^T exp(eps) kF_i y0 and J_r
+    that of log(exp(eps)^-1 exp(eps + d)), both by plain autograd through the forward closed
+    forms exp_impl and log_impl (not the library's J_l, J_r)."""
+    from torchsgal.uncertainty import near_inertial_relative_frame
+
+    F_hat, Q = prior.mean, prior.covariance
+    N_mu = F_hat.inverse().as_matrix()[:4, :4].clone()
+    N_mu[3, 3] -= 1.0
+    S = N_mu @ Sigma @ N_mu.T
+    S[3, 3] += Q[9, 9]
+    n = 4 if time_row else 3
+    x = near_inertial_relative_frame(event[3], F_hat.time()).as_matrix() @ torch.tensor(
+        [0, 0, 0, 0, 1.0], dtype=torch.float64)
+    f = ts.SGal3._f
+    Jm = torch.func.jacrev(lambda e: (f.exp_impl(e) @ x)[:n])(eps)
+    P = torch.linalg.inv(torch.linalg.inv(Q) + Jm.T @ torch.linalg.solve(S[:n, :n], Jm))
+    E_inv = torch.linalg.inv(f.exp_impl(eps))
+    Jr = torch.func.jacrev(lambda d: f.log_impl(E_inv @ f.exp_impl(eps + d)))(torch.zeros_like(eps))
+    return Jr @ P @ Jr.T
+
+
 @pytest.mark.parametrize("time_row", [False, True], ids=["default", "paper-time-row"])
 def test_event_fusion_matches_brute_force_posterior(time_row):
     from torchsgal.uncertainty import fuse_event
@@ -429,14 +471,13 @@ def test_event_fusion_matches_brute_force_posterior(time_row):
     # the printed sign of (68) (E ~ I - eps^) moves the estimate the wrong way
     assert float(cost_fn(prior, event, Sigma, -eps_one)) > c0
     # the posterior covariance: J_r P J_r^T with P the inverse Gauss-Newton information, the
-    # Jacobian of the measurement taken by autograd
+    # Jacobians of the measurement and J_r taken by autograd (_event_gn_covariance)
     eps_b = eps.detach()
     W = torch.autograd.functional.hessian(lambda e: cost_fn(prior, event, Sigma, e), eps_b)
     assert torch.linalg.eigvalsh(W).min() > 0  # a minimum
-    Jr = ts.SGal3.jr(eps_b)
     assert torch.allclose(iterated.covariance, iterated.covariance.T)
-    rel = (iterated.covariance - Jr @ torch.linalg.inv(0.5 * W) @ Jr.T).norm() / iterated.covariance.norm()
-    assert rel < 0.05  # GN vs the full Hessian differ only by residual-curvature terms
+    expected = _event_gn_covariance(prior, event, Sigma, iterated.mean.rminus(prior.mean), time_row)
+    torch.testing.assert_close(iterated.covariance, expected, rtol=0, atol=1e-10)
 
 
 def test_event_time_row_is_uninformative():
@@ -578,3 +619,49 @@ def test_fuse_checks_iterations_and_tol():
             d.fuse(e, tol=bad)
     with pytest.raises(TypeError, match=r"tol must be a finite number >= 0, got tensor"):
         d.fuse(e, tol=torch.tensor(1e-9))
+
+
+@pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=IDS)
+def test_second_order_compounding_matches_monte_carlo(G):
+    """Operands of very different covariances (the first of scale 0.2 with 0.2 rad more on the
+    rotation, the second of scale 0.05 with 0.4 rad more): the second-order covariance is within
+    3 root-mean-square Monte Carlo errors (0.7 and 0.8 measured), the first-order one is not
+    (8.7, 6.9).  Swapping the operands of the Barfoot-Furgale terms (A_a Sa + A_b Sb), dropping
+    B / 4 or taking 1/6 for 1/12 was 4.5 to 9.4 of them off."""
+    phi = G._f.PHI
+    gen = torch.Generator().manual_seed(34)
+    S1 = _cov(G.dof, 0.2, 8, rot_scale=0.2, rot_slice=phi)
+    S2 = _cov(G.dof, 0.05, 7, rot_scale=0.4, rot_slice=phi)
+    m1 = G.exp(torch.randn(G.dof, dtype=torch.float64, generator=gen))
+    m2 = G.exp(torch.randn(G.dof, dtype=torch.float64, generator=gen))
+    d1, d2 = ConcentratedGaussian(m1, S1), ConcentratedGaussian(m2, S2)
+    n = 200000
+    c1, c2 = d1.compose(d2), d1.compose(d2, second_order=True)
+    emp = _mc_cov(c1.perturbation(d1.sample(n, generator=gen) @ d2.sample(n, generator=gen)))
+    rms = math.sqrt((float(emp.trace()) ** 2 + float(emp.norm()) ** 2) / n)
+    e1, e2 = float((emp - c1.covariance).norm()) / rms, float((emp - c2.covariance).norm()) / rms
+    assert e2 < 3.0, f"second order {e2:.2f} rms errors off"
+    assert e1 > 5.0, f"first order only {e1:.2f} rms errors off: the case does not discriminate"
+
+
+@pytest.mark.parametrize("time_row", [False, True], ids=["default", "paper-time-row"])
+def test_event_fusion_covariance_large_innovation(time_row):
+    """An event far from the prediction (|eps| ~ 1, J_r(eps) far from I): the iterated posterior
+    is a stationary point of the cost (autograd gradient) and its covariance is the Gauss-Newton
+    oracle J_r (Q^-1 + Jm^T S^-1 Jm)^-1 J_r^T to 1e-10.  Without the reset (J = I) or with J_l
+    for J_r, the covariance is 0.05 or 0.13 off."""
+    from torchsgal.uncertainty import fuse_event
+
+    D = torch.float64
+    prior, _, _ = _event_problem()
+    Q = torch.diag(torch.tensor([0.5, 0.5, 0.5, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3, 0.2], dtype=D) ** 2)
+    prior = ConcentratedGaussian(prior.mean, Q)
+    event = torch.tensor([1.0, -0.7, 0.5, 2.4], dtype=D)
+    Sigma = torch.diag(torch.tensor([0.1, 0.1, 0.1, 0.2], dtype=D) ** 2)
+    post = fuse_event(prior, event, Sigma, iterations=20, time_row=time_row)
+    eps = post.mean.rminus(prior.mean)
+    assert float((ts.SGal3.jr(eps) - torch.eye(10, dtype=D)).norm()) > 0.3
+    grad = torch.func.grad(lambda e: _event_cost(prior, event, Sigma, e, time_row))(eps)
+    assert float(grad.norm()) < 1e-9
+    expected = _event_gn_covariance(prior, event, Sigma, eps, time_row)
+    torch.testing.assert_close(post.covariance, expected, rtol=0, atol=1e-10)
