@@ -170,7 +170,10 @@ def test_second_order_compounding_beats_first_order(G):
 def _haar_integral(p, n, gen, std=0.4, volume_factor=True):
     """E_q[p(F) / q(F)] with F sampled from the Haar measure dF = dR dv dr dtau of these
     semi-direct products: R uniform on SO(3) (volume 8 pi^2 in the |det J_r| dxi measure) and
-    the Euclidean parts (the matrix's v, r, tau) Gaussian around the mean's."""
+    the Euclidean parts (the matrix's v, r, tau) Gaussian around the mean's.  Sim3 (matrix
+    [[R, r], [0, 1/s]], not unimodular): its left-invariant measure is dR dr dlambda,
+    lambda = log s (left translation by (R1, r1, s1) maps r to R1 r + r1 / s, lambda to
+    lambda1 + lambda: Jacobian determinant 1), the Euclidean parts (r, lambda)."""
     G = p.group
     R = ts.SO3.random((n,), dtype=torch.float64, generator=gen).as_matrix()
     logq = torch.full((n,), -math.log(8 * math.pi**2), dtype=torch.float64)
@@ -178,13 +181,16 @@ def _haar_integral(p, n, gen, std=0.4, volume_factor=True):
         F = ts.SO3.from_matrix(R)
     else:
         M0 = p.mean.as_matrix()
-        cols = [3] if G is ts.SE3 else [3, 4]
-        e0 = torch.cat([M0[:3, c] for c in cols] + ([M0[3, 4:5]] if G is ts.SGal3 else []))
+        cols = [3] if G in (ts.SE3, ts.Sim3) else [3, 4]
+        e0 = torch.cat([M0[:3, c] for c in cols] + ([M0[3, 4:5]] if G is ts.SGal3 else [])
+                       + ([-torch.log(M0[3, 3:4])] if G is ts.Sim3 else []))
         k = e0.numel()
         e = e0 + std * torch.randn(n, k, dtype=torch.float64, generator=gen)
         logq = logq - 0.5 * ((e - e0) ** 2).sum(-1) / std**2 - k * math.log(std * math.sqrt(2 * math.pi))
         if G is ts.SE3:
             F = ts.SE3.from_components(R, e[:, :3])
+        elif G is ts.Sim3:
+            F = ts.Sim3.from_components(R, e[:, :3], torch.exp(e[:, 3]))
         elif G is ts.SE23:
             F = ts.SE23.from_components(R, e[:, :3], e[:, 3:6])
         else:
@@ -619,6 +625,36 @@ def test_fuse_checks_iterations_and_tol():
             d.fuse(e, tol=bad)
     with pytest.raises(TypeError, match=r"tol must be a finite number >= 0, got tensor"):
         d.fuse(e, tol=torch.tensor(1e-9))
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_log_prob_does_not_depend_on_the_side(G):
+    """to_side is the same distribution, so it has the same density.  log_prob evaluated a left
+    Gaussian with J_l: against the right-invariant measure, which on Sim3 (not unimodular)
+    differs from the right side's by |det Ad(F)| = s^3 (values apart by 3 log s)."""
+    D = torch.float64
+    gen = torch.Generator().manual_seed(30)
+    mean = G.random((), dtype=D, generator=gen)
+    if G is ts.Sim3:  # a scale far from 1
+        mean = mean.rplus(torch.tensor([0, 0, 0, 0, 0, 0, 0.8], dtype=D))
+    for side in ("right", "left"):
+        d = ConcentratedGaussian(mean, _cov(G.dof, 0.2, 31), side)
+        other = d.to_side("left" if side == "right" else "right")
+        x = d.sample(16, generator=gen)
+        torch.testing.assert_close(other.log_prob(x), d.log_prob(x), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_sim3_log_prob_integrates_to_one(side):
+    """Sim3 is not unimodular: log_prob is a density against its left-invariant Haar measure
+    (|det J_r(xi)| dxi about the mean, dR dr dlambda in the matrix's parts) on either side; a
+    left Gaussian integrated to E[s^-3] (about 0.1 here) before."""
+    gen = torch.Generator().manual_seed(32)
+    S = _cov(7, 0.2, 33, rot_scale=0.8, rot_slice=ts.Sim3._f.PHI)
+    mean = ts.Sim3.exp(torch.tensor([0.1, -0.2, 0.05, 0.1, 0.2, -0.1, 0.7], dtype=torch.float64))
+    p = ConcentratedGaussian(mean, S, side)
+    est, se = _haar_integral(p, 100000, gen)
+    assert abs(est - 1.0) < 4 * se, f"integral {est:.4f} +- {se:.4f}"
 
 
 @pytest.mark.parametrize("G", [ts.SE3, ts.SGal3], ids=IDS)

@@ -174,27 +174,40 @@ class ConcentratedGaussian:
         return torch.linalg.vector_norm(z, dim=-1)
 
     def log_prob(self, g: LieGroup) -> torch.Tensor:
-        """Log density with respect to the group's measure dF = |det J(xi)| dxi, (4.3)-(4.11):
-        log eta - xi^T Sigma^-1 xi / 2 - log |det J(xi)|, J = J_r (right) or J_l (left)."""
-        xi = self.perturbation(g)
-        L = torch.linalg.cholesky(_sym(self.covariance))
+        """Log density with respect to the left-invariant Haar measure, normalised to be the
+        Lebesgue measure dxi of the tangent coordinates at the identity: about any element M,
+        F = M exp(xi) gives dF = |det J_r(xi)| dxi (F^-1 dF = J_r(xi) dxi), (4.3)-(4.11):
+
+            log_prob = -xi^T Sigma^-1 xi / 2 - log((2 pi)^dof det Sigma) / 2 - log |det J_r(xi)|
+
+        with xi and Sigma the right perturbation and its covariance.  A left Gaussian is
+        evaluated as the same distribution on the right side (``to_side``, exact), so the value
+        does not depend on the side.  All the groups here but Sim3 are unimodular: the left- and
+        right-invariant Haar measures agree (and |det J_l| = |det J_r|).  Sim3 is not: its
+        right-invariant measure (|det J_l(xi)| dxi about F = exp(xi) M) is |det Ad(F)| = s^3
+        times this one, so a density against it is this log_prob - 3 log s(F).  One host sync on
+        CUDA: the Cholesky factorisation's positive-definiteness check."""
+        self._check_element(g)
+        r = self._right()
+        xi = g.rminus(r.mean)
+        L = torch.linalg.cholesky(_sym(r.covariance))
         z = torch.linalg.solve_triangular(L, xi.unsqueeze(-1), upper=False).squeeze(-1)
         log_det_sigma = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-        J = self.group.jr(xi) if self.side == "right" else self.group.jl(xi)
-        log_det_j = torch.linalg.slogdet(J)[1]
+        log_det_j = torch.linalg.slogdet(self.group.jr(xi))[1]
         return (-0.5 * (z * z).sum(-1) - 0.5 * (self.dof * math.log(2 * math.pi) + log_det_sigma)
                 - log_det_j)
 
     # ------------------------------------------------------------------ conversions
     def to_side(self, side: str) -> "ConcentratedGaussian":
-        """The same distribution (to first order) with the other perturbation side:
-        mean exp(xi) = exp(Ad(mean) xi) mean."""
+        """The same distribution with the other perturbation side, exactly: mean exp(xi) =
+        exp(Ad(mean) xi) mean, a linear map of the Gaussian perturbation (Ad(mean) Sigma
+        Ad(mean)^T to the left, Ad(mean^-1) Sigma Ad(mean^-1)^T to the right)."""
         if side not in SIDES:
             raise ValueError(f"side must be 'right' or 'left', got {side!r}")
         if side == self.side:
             return self
-        Ad = self.mean.adjoint()
-        A = Ad if self.side == "right" else torch.linalg.inv(Ad)
+        # Ad(mean)^-1 = Ad(mean^-1): closed form, no matrix inversion (nor its host sync on CUDA)
+        A = self.mean.adjoint() if self.side == "right" else self.mean.inverse().adjoint()
         return ConcentratedGaussian(self.mean, _sym(A @ self.covariance @ A.transpose(-1, -2)),
                                     side, validate=False)
 
