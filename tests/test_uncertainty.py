@@ -701,3 +701,26 @@ def test_event_fusion_covariance_large_innovation(time_row):
     assert float(grad.norm()) < 1e-9
     expected = _event_gn_covariance(prior, event, Sigma, eps, time_row)
     torch.testing.assert_close(post.covariance, expected, rtol=0, atol=1e-10)
+
+
+def test_gaussian_of_a_subclass_element():
+    """A Gaussian whose mean is a user subclass of a group combines with one of the built-in
+    class and evaluates its elements (the group is compared through the built-in class, as the
+    group operations do); fuse_event takes a prior on a subclass of SGal3."""
+    from torchsgal.uncertainty import fuse_event
+
+    class MySGal3(ts.SGal3):
+        pass
+
+    D = torch.float64
+    prior, event, Sigma = _event_problem()
+    sub = ConcentratedGaussian(MySGal3(prior.mean.as_matrix()), prior.covariance)
+    for a, b in ((sub, prior), (prior, sub)):
+        torch.testing.assert_close(a.compose(b).covariance, prior.compose(prior).covariance)
+        torch.testing.assert_close(a.fuse(b).covariance, prior.fuse(prior).covariance)
+    torch.testing.assert_close(sub.log_prob(prior.mean), prior.log_prob(prior.mean))
+    torch.testing.assert_close(prior.mahalanobis(sub.mean), torch.zeros((), dtype=D))
+    torch.testing.assert_close(fuse_event(sub, event, Sigma).covariance,
+                               fuse_event(prior, event, Sigma).covariance)
+    with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SGal3"):
+        sub.compose(ConcentratedGaussian(ts.SE23.identity(dtype=D), torch.eye(9, dtype=D)))

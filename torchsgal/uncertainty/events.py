@@ -74,7 +74,7 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     checks.integer(iterations, "iterations", 1)
     if not isinstance(prior, ConcentratedGaussian):
         raise TypeError(f"prior must be a ConcentratedGaussian on SGal3, got {type(prior).__name__}")
-    if prior.group is not SGal3:
+    if not isinstance(prior.mean, SGal3):
         raise TypeError(f"fuse_event needs a prior on SGal3, got {prior.group.__name__}")
     checks.floating(event, "event")
     if event.dim() < 1 or event.shape[-1] != 4:

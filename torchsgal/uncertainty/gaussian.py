@@ -141,10 +141,16 @@ class ConcentratedGaussian:
         """The broadcast batch shape of the mean and the covariance."""
         return torch.broadcast_shapes(self.mean.batch_shape, self.covariance.shape[:-2])
 
+    @property
+    def _group(self) -> type:
+        """The built-in group class of the mean (that of a user subclass's base)."""
+        return self.mean._group
+
     def _check_element(self, g, name: str = "g") -> LieGroup:
-        """g: an element of this Gaussian's group, its dtype and device, broadcasting batch."""
-        if not isinstance(g, self.group):
-            raise TypeError(f"{name} must be a {self.group.__name__} (the group of this Gaussian), "
+        """g: an element of this Gaussian's group (any subclass of its built-in class), its
+        dtype and device, broadcasting batch."""
+        if not isinstance(g, self._group):
+            raise TypeError(f"{name} must be a {self._group.__name__} (the group of this Gaussian), "
                             f"got {type(g).__name__}")
         checks.same_device_dtype(mean=self.mean.as_matrix(), **{name: g.as_matrix()})
         checks.broadcast_batch(gaussian=self.batch_shape, **{name: g.batch_shape})
@@ -270,8 +276,8 @@ class ConcentratedGaussian:
 
     def _same_group(self, other):
         """other: a ConcentratedGaussian on the same group, dtype and device, broadcasting batch."""
-        if not isinstance(other, ConcentratedGaussian) or other.group is not self.group:
-            raise TypeError(f"other must be a ConcentratedGaussian on {self.group.__name__}")
+        if not isinstance(other, ConcentratedGaussian) or other._group is not self._group:
+            raise TypeError(f"other must be a ConcentratedGaussian on {self._group.__name__}")
         checks.same_device_dtype(self=self.covariance, other=other.covariance)
         checks.broadcast_batch(self=self.batch_shape, other=other.batch_shape)
 
