@@ -703,6 +703,93 @@ def test_event_fusion_covariance_large_innovation(time_row):
     torch.testing.assert_close(post.covariance, expected, rtol=0, atol=1e-10)
 
 
+class _HostReads:
+    """Counts the reads that are device-to-host syncs on CUDA, on CPU: linalg error checks
+    (torch.linalg.inv/solve/cholesky), eigensolvers, .item() and Tensor.tolist/item/bool/float."""
+
+    def __enter__(self):
+        from torch.overrides import TorchFunctionMode
+        from torch.utils._python_dispatch import TorchDispatchMode
+
+        aten = torch.ops.aten
+        ops = {aten._linalg_check_errors.default, aten._local_scalar_dense.default,
+               aten._linalg_eigh.default}
+        methods = ("tolist", "item", "__bool__", "__float__", "__int__")
+        counter = self
+
+        class Ops(TorchDispatchMode):
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                counter.n += func in ops
+                return func(*args, **(kwargs or {}))
+
+        class Methods(TorchFunctionMode):
+            def __torch_function__(self, func, types, args=(), kwargs=None):
+                counter.n += getattr(func, "__name__", "") in methods
+                return func(*args, **(kwargs or {}))
+
+        self.n = 0
+        self.modes = [Ops(), Methods()]
+        for m in self.modes:
+            m.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        for m in reversed(self.modes):
+            m.__exit__(*exc)
+
+
+def test_host_reads():
+    """The validation reads its measures once (it read three or four times); propagation of a
+    left Gaussian reads nothing (it inverted Ad with linalg.inv, an error check per call); fuse
+    with tol=0 and fuse_event read their status once at the end (they read at every inversion
+    and solve); sample, mahalanobis and log_prob once (the Cholesky factorisation's check)."""
+    from torchsgal.uncertainty import fuse_event
+
+    D = torch.float64
+    g = ts.SGal3.random((8,), dtype=D, generator=torch.Generator().manual_seed(35))
+    P = 0.01 * torch.eye(10, dtype=D).expand(8, 10, 10)
+    prior, event, Sigma = _event_problem()
+    left = ConcentratedGaussian(g, P, side="left", validate=False)
+    other = ConcentratedGaussian(g.rplus(0.1 * torch.ones(10, dtype=D)), P, validate=False)
+    cases = {
+        "ConcentratedGaussian(validate=True)": (lambda: ConcentratedGaussian(g, P), 1),
+        "left compose, between, inverse": (lambda: left.compose(left).between(left).inverse(), 0),
+        "act with a covariance": (lambda: left.act(torch.zeros(4, dtype=D), 0.1 * P[0, :4, :4]), 1),
+        "fuse, tol=0": (lambda: left.fuse(other, iterations=3, tol=0), 1),
+        "fuse_event": (lambda: fuse_event(prior, event, Sigma, iterations=3), 1),
+        "fuse_event, validate=False": (lambda: fuse_event(prior, event, Sigma, validate=False), 1),
+        "sample": (lambda: left.sample(2), 1),
+        "log_prob": (lambda: left.log_prob(g), 1),
+    }
+    for name, (fn, expected) in cases.items():
+        with _HostReads() as reads:
+            fn()
+        assert reads.n == expected, f"{name}: {reads.n} host reads, expected {expected}"
+    # fuse with tol > 0: one read per iteration (the step test) and one at the end
+    with _HostReads() as reads:
+        left.fuse(other, iterations=3, tol=1e-300)
+    assert reads.n == 4
+
+
+def test_singular_covariances_raise_in_fusion():
+    """The unchecked inversions of fuse and fuse_event (torch.linalg.*_ex) still raise, by name,
+    for a singular covariance (validate=False let it in), instead of returning inf or NaN."""
+    from torchsgal.uncertainty import fuse_event
+
+    D = torch.float64
+    prior, event, Sigma = _event_problem()
+    singular = ConcentratedGaussian(prior.mean, torch.zeros(10, 10, dtype=D), validate=False)
+    with pytest.raises(ValueError, match=r"fuse: self.covariance is singular"):
+        singular.fuse(prior)
+    for tol in (0, 1e-12):
+        with pytest.raises(ValueError, match=r"fuse: other.covariance is singular"):
+            prior.fuse(singular, tol=tol)
+    with pytest.raises(ValueError, match=r"fuse_event: the prior's covariance is singular"):
+        fuse_event(singular, event, Sigma)
+    with pytest.raises(ValueError, match=r"event_covariance has non-finite entries"):
+        fuse_event(prior, event, Sigma * float("nan"))
+
+
 def test_gaussian_of_a_subclass_element():
     """A Gaussian whose mean is a user subclass of a group combines with one of the built-in
     class and evaluates its elements (the group is compared through the built-in class, as the

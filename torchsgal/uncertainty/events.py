@@ -34,8 +34,10 @@ from __future__ import annotations
 import torch
 
 from ..functional import checks
+from ..functional._blocking import values_readable
 from ..groups import SGal3
-from .gaussian import ConcentratedGaussian, _mv, _sym, check_covariance
+from .gaussian import (ConcentratedGaussian, _covariance_measures, _default_tol, _mv,
+                       _raise_for_measures, _read, _sym)
 
 
 def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal3:
@@ -69,8 +71,13 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     ``event_covariance`` must be symmetric positive semi-definite with a positive definite
     position block (an exact timestamp, variance 0, is allowed; an exact position is not: its
     noise would be singular).  ``validate`` checks this as the ConcentratedGaussian constructor
-    checks its covariance (one host sync; skipped on 'meta', under torch.func transforms and
-    torch.compile)."""
+    checks its covariance (skipped on 'meta', under torch.func transforms and torch.compile).
+
+    One host sync, at the end: it reads the validation's measures and whether a matrix that
+    was inverted (the prior's covariance, the measurement noise, a Gauss-Newton system) was
+    singular, and raises ValueError for the first of these that fails (the validation's in the
+    order above).  The computation runs before, unchecked (``torch.linalg.*_ex``), whatever
+    ``iterations``; with ``validate=False`` the read stays (a singular matrix still raises)."""
     checks.integer(iterations, "iterations", 1)
     if not isinstance(prior, ConcentratedGaussian):
         raise TypeError(f"prior must be a ConcentratedGaussian on SGal3, got {type(prior).__name__}")
@@ -91,10 +98,16 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
         batches["relative_frame"] = relative_frame.batch_shape
     checks.same_device_dtype(**tensors)
     checks.broadcast_batch(**batches)
-    if validate:
-        check_covariance(event_covariance, 4, "event_covariance", definite=False)
-        check_covariance(event_covariance[..., :3, :3], 3, "the position block "
-                         "event_covariance[..., :3, :3]")
+    # the data checks: measured now, read with the status of the linear algebra at the end
+    readable = (event_covariance.numel() > 0 and values_readable(event_covariance)
+                and values_readable(prior.covariance) and values_readable(event))
+    tol = _default_tol(event_covariance, None)
+    checked = []
+    if validate and readable:
+        checked = [(event_covariance, "event_covariance", False),
+                   (event_covariance[..., :3, :3],
+                    "the position block event_covariance[..., :3, :3]", True)]
+    measures = [_covariance_measures(S, definite, tol) for S, _, definite in checked]
     prior = prior.to_side("right")
     F_hat, Q = prior.mean, prior.covariance
     if relative_frame is None:
@@ -109,8 +122,10 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     if time_row:
         S = S.clone()
         S[..., 3, 3] = S[..., 3, 3] + Q[..., 9, 9]
-    S_inv = torch.linalg.inv(_sym(S[..., :rows, :rows]))
-    Q_inv = torch.linalg.inv(_sym(Q))
+    S_inv, s_status = torch.linalg.inv_ex(_sym(S[..., :rows, :rows]))
+    Q_inv, q_status = torch.linalg.inv_ex(_sym(Q))
+    singular = [(q_status != 0).any(), (s_status != 0).any()]
+    h_status = torch.zeros((), dtype=torch.bool, device=Q.device)
     y0 = torch.zeros(*event.shape[:-1], 5, dtype=event.dtype, device=event.device)
     y0[..., 4] = 1.0
     x = (relative_frame.as_matrix() @ y0.unsqueeze(-1)).squeeze(-1)  # kF_i y0
@@ -122,10 +137,23 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
         C = (_event_columns(Ex) @ SGal3.jl(eps))[..., :rows, :]
         H = Q_inv + C.transpose(-1, -2) @ S_inv @ C
         g = _mv(C.transpose(-1, -2) @ S_inv, r) - _mv(Q_inv, eps)
-        eps = eps + torch.linalg.solve(H, g)
+        delta, status = torch.linalg.solve_ex(H, g)
+        h_status = h_status | (status != 0).any()
+        eps = eps + delta
     Ex = (SGal3.exp(eps).as_matrix() @ x.unsqueeze(-1)).squeeze(-1)
     C = (_event_columns(Ex) @ SGal3.jl(eps))[..., :rows, :]
-    P = torch.linalg.inv(Q_inv + C.transpose(-1, -2) @ S_inv @ C)
+    P, status = torch.linalg.inv_ex(Q_inv + C.transpose(-1, -2) @ S_inv @ C)
+    singular.append(h_status | (status != 0).any())
+    if readable:  # the one host sync
+        values = _read(*measures, *singular)
+        for k, (S_k, name, definite) in enumerate(checked):
+            _raise_for_measures(values[3 * k: 3 * k + 3], S_k, name, definite, tol)
+        for flag, what in zip(values[3 * len(checked):], (
+                "the prior's covariance is singular",
+                "the measurement noise N_mu event_covariance N_mu^T is singular",
+                "the information matrix Q^-1 + C^T S^-1 C is singular")):
+            if flag:
+                raise ValueError(f"fuse_event: {what}")
     J = SGal3.jr(eps)
     return ConcentratedGaussian(F_hat.rplus(eps), _sym(J @ P @ J.transpose(-1, -2)), "right",
                                 validate=False)

@@ -46,32 +46,68 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
                      definite: bool = True):
     """Raises unless S (..., dim, dim) is symmetric positive definite (``definite=False``:
     positive semi-definite, within ``tol`` of the largest entry).  Shape and dtype are always
-    checked; the values (one host sync) only where they can be read: not on 'meta', under a
-    torch.func transform or torch.compile.  An empty batch passes."""
+    checked; the values (one host sync: all the measures are read together) only where they can
+    be read: not on 'meta', under a torch.func transform or torch.compile.  An empty batch
+    passes."""
+    _covariance_shape(S, dim, name)
+    if S.numel() == 0 or not values_readable(S):
+        return
+    tol = _default_tol(S, tol)
+    _raise_for_measures(_read(_covariance_measures(S, definite, tol)), S, name, definite, tol)
+
+
+def _covariance_shape(S, dim: int, name: str) -> None:
     if not isinstance(S, torch.Tensor) or S.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must be a torch.Tensor of dtype torch.float32 or torch.float64, got "
                         f"{getattr(S, 'dtype', type(S).__name__)}")
     if S.dim() < 2 or S.shape[-2:] != (dim, dim):
         raise ValueError(f"{name} must have shape (..., {dim}, {dim}), got {tuple(S.shape)}")
-    if S.numel() == 0 or not values_readable(S):
-        return
-    if tol is None:
-        tol = 1e-5 if S.dtype == torch.float32 else 1e-10
-    if not bool(torch.isfinite(S).all()):
+
+
+def _default_tol(S: torch.Tensor, tol: float | None) -> float:
+    return (1e-5 if S.dtype == torch.float32 else 1e-10) if tol is None else tol
+
+
+def _covariance_measures(S: torch.Tensor, definite: bool, tol: float) -> torch.Tensor:
+    """The measures that check_covariance reads, as one tensor (3,) of S's dtype, not read here
+    (no host sync): all entries finite (1 or 0), the largest relative asymmetry, and how many of
+    the batch fail the (semi-)definiteness test.  Semi-definite within ``tol``: the smallest
+    eigenvalue of S / max|S| is > -tol, tested as a Cholesky factorisation of S / max|S| + tol I
+    (not with an eigensolver, which checks its own convergence: a host sync of its own on CUDA).
+    S non-empty."""
+    finite = torch.isfinite(S)
+    S0 = torch.where(finite, S, torch.zeros((), dtype=S.dtype, device=S.device))
+    scale = S0.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(S.dtype).tiny)
+    asym = ((S0 - S0.transpose(-1, -2)).abs().amax(dim=(-1, -2)) / scale).max()
+    sym = _sym(S0)
+    if not definite:
+        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+        sym = sym / scale[..., None, None] + tol * eye
+    _, info = torch.linalg.cholesky_ex(sym)
+    return torch.stack((finite.all().to(S.dtype), asym, (info != 0).sum().to(S.dtype)))
+
+
+def _raise_for_measures(values, S: torch.Tensor, name: str, definite: bool, tol: float) -> None:
+    """Raises ValueError naming ``name`` if the measures of ``_covariance_measures`` (Python
+    floats, already read) say that S is not a covariance."""
+    finite, asym, bad = values
+    if not finite:
         raise ValueError(f"{name} has non-finite entries")
-    scale = S.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(S.dtype).tiny)
-    asym = ((S - S.transpose(-1, -2)).abs().amax(dim=(-1, -2)) / scale).max()
-    if bool(asym > tol):
-        raise ValueError(f"{name} is not symmetric (max relative asymmetry {float(asym):.3g})")
-    if definite:
-        _, info = torch.linalg.cholesky_ex(_sym(S))
-        if bool((info != 0).any()):
-            raise ValueError(f"{name} is not positive definite ({int((info != 0).sum())} of the batch)")
-    else:
-        low = torch.linalg.eigvalsh(_sym(S))[..., 0] / scale
-        if bool((low < -tol).any()):
-            raise ValueError(f"{name} is not positive semi-definite (min relative eigenvalue "
-                             f"{float(low.min()):.3g})")
+    if asym > tol:
+        raise ValueError(f"{name} is not symmetric (max relative asymmetry {asym:.3g})")
+    if bad and definite:
+        raise ValueError(f"{name} is not positive definite ({int(bad)} of the batch)")
+    if bad:  # only on the way to the error: the smallest relative eigenvalue for the message
+        scale = S.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(S.dtype).tiny)
+        low = (torch.linalg.eigvalsh(_sym(S))[..., 0] / scale).min()
+        raise ValueError(f"{name} is not positive semi-definite (min relative eigenvalue "
+                         f"{float(low):.3g})")
+
+
+def _read(*tensors: torch.Tensor) -> list[float]:
+    """The values of the given tensors (flattened, in order) as Python floats, in one host sync."""
+    dtype = next((t.dtype for t in tensors if t.is_floating_point()), torch.float32)
+    return torch.cat([t.detach().reshape(-1).to(dtype) for t in tensors]).tolist()
 
 
 def _group_names(method: str | None = None) -> list[str]:
@@ -83,7 +119,16 @@ def _group_names(method: str | None = None) -> list[str]:
 class ConcentratedGaussian:
     """A concentrated Gaussian on a group: ``mean`` (a group element, any batch shape),
     ``covariance`` (..., dof, dof) of the tangent perturbation, ``side`` 'right' (F = mean
-    exp(xi)) or 'left' (F = exp(xi) mean)."""
+    exp(xi)) or 'left' (F = exp(xi) mean).
+
+    ``validate`` checks that the covariance is symmetric positive definite (one host sync: its
+    measures are read together; skipped on 'meta', under torch.func transforms and
+    torch.compile).  Host syncs elsewhere: ``sample``, ``mahalanobis`` and ``log_prob`` factorise
+    the covariance with ``torch.linalg.cholesky``, whose positive-definiteness check reads a
+    value on CUDA (one sync per call; a covariance that is not positive definite raises there);
+    ``fuse`` and ``fuse_event`` read their status once at the end (see their docstrings);
+    propagation (``to_side``, ``inverse``, ``compose``, ``between``, the actions without
+    ``validate``) reads nothing."""
 
     def __init__(self, mean: LieGroup, covariance: torch.Tensor, side: str = "right",
                  validate: bool = True):
@@ -361,12 +406,23 @@ class ConcentratedGaussian:
 
         ``iterations``: an integer >= 1, the most Gauss-Newton steps; ``tol``: a finite number
         >= 0, the largest step entry at which they stop early (0: they never do).
+
+        Host syncs: with ``tol`` > 0, one per iteration (the step test, which also reads whether
+        a matrix so far was singular); then one at the end, which raises ValueError if a
+        covariance or the final information matrix is singular.  With ``tol=0`` only the one at
+        the end.  None where values cannot be read ('meta', torch.func transforms,
+        torch.compile), where all the iterations run.
         """
         self._same_group(other)
         iterations = checks.integer(iterations, "iterations", 1)
         tol = checks.finite_number(tol, "tol", ">= 0")
         parts = [self._right(), other._right()]
-        infos = [torch.linalg.inv(p.covariance) for p in parts]
+        # the *_ex variants do not check (no host sync); their status is read at the end
+        inverted = [torch.linalg.inv_ex(p.covariance) for p in parts]
+        infos = [W for W, _ in inverted]
+        failed = [(status != 0).any() for _, status in inverted]
+        step_failed = torch.zeros((), dtype=torch.bool, device=self.covariance.device)
+        readable = values_readable(self.covariance) and values_readable(other.covariance)
         F = parts[0].mean
         for _ in range(iterations):
             H = 0
@@ -377,17 +433,34 @@ class ConcentratedGaussian:
                 JtW = J.transpose(-1, -2) @ W
                 H = H + JtW @ J
                 g = g + _mv(JtW, r)
-            step = -torch.linalg.solve(H, g)
+            step, status = torch.linalg.solve_ex(H, -g)
+            step_failed = step_failed | (status != 0).any()
             F = F.rplus(step)
-            # host sync: one per iteration, not per element.  An empty batch has nothing to do;
-            # where the step cannot be read ('meta', torch.func transforms, torch.compile) all
-            # the iterations run.
+            # An empty batch has nothing to do; where the step cannot be read ('meta', torch.func
+            # transforms, torch.compile) all the iterations run.
             if step.numel() == 0:
                 break
-            if values_readable(step) and float(step.detach().abs().max()) < tol:
-                break
+            if tol > 0 and readable and values_readable(step):
+                # one host sync per iteration: the step and the status so far
+                big, *bad = _read(step.abs().max(), *failed, step_failed)
+                _raise_fuse(bad)
+                if big < tol:
+                    break
         H = 0
         for p, W in zip(parts, infos):
             J = self.group.jr_inv(F.rminus(p.mean))
             H = H + J.transpose(-1, -2) @ W @ J
-        return ConcentratedGaussian(F, _sym(torch.linalg.inv(H)), "right", validate=False).to_side(self.side)
+        P, status = torch.linalg.inv_ex(H)
+        if readable and P.numel() > 0:
+            _raise_fuse(_read(*failed, step_failed | (status != 0).any()))
+        return ConcentratedGaussian(F, _sym(P), "right", validate=False).to_side(self.side)
+
+
+def _raise_fuse(bad) -> None:
+    """The status flags of fuse (Python floats, read): self's, other's covariance, then a
+    Gauss-Newton system (a step's or the final information matrix)."""
+    for flag, what in zip(bad, ("self.covariance is singular", "other.covariance is singular",
+                                "the fused information matrix (sum_k J_k^T Sigma_k^-1 J_k) is "
+                                "singular")):
+        if flag:
+            raise ValueError(f"fuse: {what}")
