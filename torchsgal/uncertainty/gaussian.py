@@ -398,11 +398,26 @@ class ConcentratedGaussian:
     # --------------------------------------------------------------------- fusion
     def fuse(self, other: "ConcentratedGaussian", iterations: int = 10, tol: float = 1e-12
              ) -> "ConcentratedGaussian":
-        """Bayesian fusion p(F) ~ p1(F) p2(F) by Gauss-Newton on the group (right side).
+        """Fusion of two concentrated Gaussians on the same group by Gauss-Newton on the group
+        (right side): the mean minimises r_1^T Sigma_1^-1 r_1 + r_2^T Sigma_2^-1 r_2, r_k =
+        log(mean_k^-1 F), i.e. it maximises the product of the two tangent-space Gaussians.
 
-        Residuals r_k = log(mean_k^-1 F) linearised at F_op exp(d): r_k + J_r^-1(r_k) d.  The
-        posterior covariance is re-expressed about the final estimate (the Jacobian reset of
-        the mahony paper, Section 6.4): Sigma = (sum J_k^T Sigma_k^-1 J_k)^-1 at F_op.
+        This is the standard practice (Barfoot and Furgale's pose fusion; the mahony paper,
+        Section 6), not the exact maximiser of p1(F) p2(F) for the densities of ``log_prob``:
+        those also hold the volume factor 1/|det J_r(r_k)|, and the maximiser of log_prob1 +
+        log_prob2 differs from this mean by a small fraction of the fused standard deviation
+        (5e-4 to 7e-3 against about 0.13 in the tests' cases).
+
+        Residuals r_k linearised at F_op exp(d): r_k + J_r^-1(r_k) d.  The posterior covariance
+        is re-expressed about the final estimate (the Jacobian reset of the mahony paper,
+        Section 6.4): Sigma = (sum J_k^T Sigma_k^-1 J_k)^-1 at F_op.
+
+        Only two operands are fused.  Chaining, d1.fuse(d2).fuse(d3), re-linearises the first
+        fusion's Gaussian about the second estimate: an approximation of the joint fusion of the
+        three (in a probe with tangent residual entries of about 0.3, the means differed by up
+        to about 1e-2 on SGal3, the covariances by about 1% relative).  The joint fusion is the
+        least-squares problem of the stacked whitened residuals L_k^-1 r_k (Sigma_k = L_k L_k^T),
+        which ``torchsgal.estimation.gauss_newton`` solves.
 
         ``iterations``: an integer >= 1, the most Gauss-Newton steps; ``tol``: a finite number
         >= 0, the largest step entry at which they stop early (0: they never do).
