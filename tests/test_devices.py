@@ -342,3 +342,35 @@ def test_imu_preintegration_makes_no_host_sync(per_axis):
         ("Preintegration.predict_covariance",
          lambda: pre.predict_covariance(start, _meta(windows, 10, 10), gravity, earth)),
     ])
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_gaussian_propagation_makes_no_host_sync(G):
+    """Propagation of concentrated Gaussians, on either side (the side change inverts Ad in
+    closed form; it used linalg.inv, a linalg error check).  Left out on purpose: the covariance
+    checks (one documented read, skipped on meta anyway) and sample/log_prob/mahalanobis, whose
+    Cholesky factorisation raises for a covariance that is not positive definite."""
+    dof = G.dof
+    d = ConcentratedGaussian(G.random(BATCH, device=META), _meta(*BATCH, dof, dof))
+    left = ConcentratedGaussian(G.random(BATCH, device=META), _meta(*BATCH, dof, dof), side="left")
+    k = G.rotation_dim
+    _assert_no_host_sync([(f"{G.__name__} Gaussian {name}", fn) for name, fn in [
+        ("to_side", lambda: d.to_side("left")), ("inverse", d.inverse),
+        ("compose", lambda: d.compose(d)), ("compose(left)", lambda: left.compose(left)),
+        ("compose(second_order)", lambda: d.compose(d, second_order=True)),
+        ("compose(cross_covariance)", lambda: d.compose(d, cross_covariance=_meta(*BATCH, dof, dof))),
+        ("between", lambda: d.between(left)),
+        ("act_direction", lambda: d.act_direction(_meta(*BATCH, k), _meta(*BATCH, k, k), validate=False)),
+    ]])
+
+
+@pytest.mark.parametrize("robot", [kin.ur5, kin.iiwa7, kin.scara], ids=["ur5", "iiwa7", "scara"])
+def test_gdh_chain_makes_no_host_sync(robot):
+    """Forward kinematics, velocities and accelerations of a chain built on the device (its
+    table's finiteness check at construction is the one documented read, skipped on meta)."""
+    chain = robot(dtype=torch.float32, device=META)
+    q = _meta(*BATCH, chain.n_joints)
+    _assert_no_host_sync([(f"{robot.__name__} {name}", fn) for name, fn in [
+        ("forward", lambda: chain.forward(q, q)), ("acceleration", lambda: chain.acceleration(q, q, q)),
+        ("link_transforms", lambda: chain.link_transforms(q, q)),
+    ]])
