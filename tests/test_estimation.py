@@ -504,3 +504,158 @@ def test_lbfgs_report_is_on_the_unknowns_device():
         _, _, report = lbfgs(lambda x, e: x.rminus(target).square().sum(-1), x0)
     for name in ("status", "iterations", "initial_cost", "cost", "step_norm", "gradient_norm"):
         assert getattr(report, name).device.type == "meta", name
+
+
+# ------------------------------------------------------------------ robustness of the reports
+def _event_fit(B=4, n=12, sig=0.01, seed=1):
+    """B SGal(3) fits to events: data F_true (x, t) + noise; the whitened residual and cost."""
+    gen = torch.Generator().manual_seed(seed)
+    F_true = ts.SGal3(ts.functional.sgal3.random((B,), f64, None, gen))
+    P = 2 * torch.randn(B, n, 4, generator=gen, dtype=f64)
+    obs = F_true.unsqueeze(-1).act(P) + sig * torch.randn(B, n, 4, generator=gen, dtype=f64)
+    F0 = F_true.rplus(0.05 * torch.randn(B, 10, generator=gen, dtype=f64))
+
+    def make(data):
+        def residual(F):
+            return ((F.unsqueeze(-1).act(P) - data) / sig).flatten(1)
+        return residual, lambda F, _e=None: 0.5 * residual(F).square().sum(-1)
+    return make, obs, F0
+
+
+def test_lbfgs_masks_a_non_finite_problem_out_of_the_batch():
+    """One NaN observation made the summed cost NaN, and every problem of the batch came back
+    NON_FINITE with non-finite x.  The problem is left out of the sum: it stays at x0 with
+    NaN costs, and the others are solved as they are without it."""
+    make, obs, F0 = _event_fit()
+    residual, cost = make(obs)
+    L = torch.linalg.cholesky(gauss_newton(residual, F0).covariance)
+    bad = obs.clone()
+    bad[2, 0, 0] = float("nan")
+    x, _, rep = lbfgs(make(bad)[1], F0, scale=L)
+    assert rep.status.tolist() == [0, 0, SolverStatus.NON_FINITE, 0]
+    assert torch.isfinite(x.as_matrix()).all()
+    assert F0[2:3].rminus(x[2:3]).abs().max() < 1e-14
+    for name in ("initial_cost", "cost", "step_norm", "gradient_norm"):
+        value = getattr(rep, name)
+        assert torch.isnan(value[2]) and torch.isfinite(value[[0, 1, 3]]).all(), name
+    # The three good problems alone (problem 2's row of the residual filled in and dropped).
+    ok = [0, 1, 3]
+
+    def cost3(F, _e=None):
+        full = ts.SGal3(torch.cat([F.as_matrix()[:2], F0.as_matrix()[2:3], F.as_matrix()[2:]]))
+        return 0.5 * residual(full)[ok].square().sum(-1)
+    x3, _, rep3 = lbfgs(cost3, F0[ok], scale=L[ok])
+    assert rep3.converged.all()
+    assert x3.rminus(x[ok]).abs().max() < 1e-12
+    torch.testing.assert_close(rep.cost[ok], rep3.cost, rtol=1e-12, atol=0)
+
+
+def test_lbfgs_checks_its_options_and_reports_an_early_stop():
+    make, obs, F0 = _event_fit()
+    _, cost = make(obs)
+    with pytest.raises(ValueError, match="max_iterations must be an integer >= 0, got -1"):
+        lbfgs(cost, F0, max_iterations=-1)
+    with pytest.raises(ValueError, match="history_size must be an integer >= 1, got 0"):
+        lbfgs(cost, F0, history_size=0)
+    with pytest.raises(ValueError, match="gradient_tol must be a finite number >= 0"):
+        lbfgs(cost, F0, gradient_tol=-1.0)
+    with pytest.raises(ValueError, match=r"scale must have shape \(d,\) = \(10,\), \(B, d\) = "
+                                         r"\(4, 10\) or \(B, d, d\) = \(4, 10, 10\) .*got \(3,\)"):
+        lbfgs(cost, F0, scale=torch.ones(3, dtype=f64))
+    with pytest.raises(TypeError, match="scale has dtype torch.float32"):
+        lbfgs(cost, F0, scale=torch.ones(10))
+    with pytest.raises(ValueError, match=r"extra must have shape \(B, \.\.\., k\) with B = 4"):
+        lbfgs(cost, F0, extra=torch.zeros(3, 2, dtype=f64))
+    with pytest.raises(ValueError, match=r"cost\(x, extra\) must return a tensor of shape "
+                                         r"\(B,\) = \(4,\), got \(4, 1\)"):
+        lbfgs(lambda F, _e: cost(F)[:, None], F0)
+    # max_iterations=0 evaluates x0 only (it used to run an iteration).
+    x, _, rep = lbfgs(cost, F0, max_iterations=0)
+    assert F0.rminus(x).abs().max() < 1e-15 and (rep.iterations == 0).all()
+    assert (rep.status == SolverStatus.MAX_ITERATIONS).all()
+    # Unpreconditioned, LBFGS stops on its loss-change tolerance long before max_iterations
+    # with the gradient test failed: stalled (DIVERGED), not MAX_ITERATIONS.
+    x, _, rep = lbfgs(cost, F0, max_iterations=200)
+    assert (rep.iterations < 200).all()
+    assert (rep.status == SolverStatus.DIVERGED).all()
+    assert (rep.cost < rep.initial_cost).all()
+
+
+def test_solutions_carry_no_autograd_graph():
+    """The start was not detached: d x_hat / d x0 was 1 (it is 0) and gradients with respect
+    to the data were silently dropped.  Results now carry no graph at all."""
+    b = torch.randn(3, 2, dtype=f64, requires_grad=True)
+    x0 = torch.zeros(3, 2, dtype=f64, requires_grad=True)
+    sol = gauss_newton(lambda x: x - b, x0)
+    assert (sol.x - b).abs().max() < 1e-12
+    for t in (sol.x, sol.covariance, sol.report.cost, sol.report.initial_cost,
+              sol.report.gradient_norm, sol.report.step_norm):
+        assert not t.requires_grad and t.grad_fn is None
+    xs, ys = _line_data()
+    cov = (0.09 * torch.eye(2, dtype=f64)).requires_grad_(True)
+    for variant in ("iterated", "paper"):
+        gh = gauss_helmert(_line_condition(xs, ys), (torch.zeros(3, 2, dtype=f64).requires_grad_(),),
+                           cov, variant=variant)
+        for t in (gh.x[0], gh.covariance, gh.aux, gh.report.cost):
+            assert not t.requires_grad and t.grad_fn is None
+    make, obs, F0 = _event_fit(B=2)
+    data = obs.clone().requires_grad_(True)
+    _, cost = make(data)
+    scale = torch.ones(2, 10, dtype=f64, requires_grad=True)
+    x, _, rep = lbfgs(cost, F0, scale=scale, max_iterations=5)
+    assert not x.as_matrix().requires_grad and not rep.cost.requires_grad
+    assert data.grad is None and scale.grad is None  # nothing accumulated in the caller's tensors
+
+
+def test_non_finite_problem_reports_nan_costs_not_a_perfect_fit():
+    """A NON_FINITE problem is sanitised to zeros while the batch iterates; its report said
+    cost 0, initial_cost 0, gradient_norm 0, as if it fitted perfectly."""
+    residual, (g_true, s_true) = _time_flow_problem(B=4)
+    x0 = (g_true.rplus(0.1 * torch.ones(4, 10, dtype=f64)), s_true + 0.2)
+    m0 = x0[0].as_matrix().clone()
+    m0[2, 0, 0] = float("nan")
+    rep = gauss_newton(residual, (ts.SGal3(m0), x0[1])).report
+    assert rep.status[2] == SolverStatus.NON_FINITE
+    for name in ("initial_cost", "cost", "step_norm", "gradient_norm"):
+        value = getattr(rep, name)
+        assert torch.isnan(value[2]) and torch.isfinite(value[[0, 1, 3]]).all(), name
+    assert (rep.initial_cost[[0, 1, 3]] > 0).all()
+
+
+def _sim3_alignment(M=40, N=10, seed=0):
+    """Sim(3) alignment of noisy point pairs q = S p with errors in both (Gauss-Helmert)."""
+    gen = torch.Generator().manual_seed(seed)
+    S_true = ts.Sim3.exp(torch.tensor([0.5, -1.0, 2.0, 0.3, -0.6, 0.9, 0.2], dtype=f64))
+    p = 3 * torch.randn(N, 3, generator=gen, dtype=f64)
+    sp, sq = 0.01, 0.02
+    p_obs = p + sp * torch.randn(M, N, 3, generator=gen, dtype=f64)
+    q_obs = S_true.act(p) + sq * torch.randn(M, N, 3, generator=gen, dtype=f64)
+    cov = torch.diag(torch.tensor([sp ** 2] * 3 + [sq ** 2] * 3, dtype=f64))
+
+    def condition(S, e):
+        e = torch.zeros(M, N, 6, dtype=f64) if e is None else e
+        x = p_obs + e[..., :3]
+        c = S.unsqueeze(-1).act(x) - (q_obs + e[..., 3:])
+        A = torch.func.jacrev(lambda d: S.rplus(d).unsqueeze(-1).act(x).sum(0))(
+            torch.zeros(M, 7, dtype=f64)).permute(2, 0, 1, 3)
+        z = S.act(torch.zeros(M, 3, dtype=f64))
+        lin = torch.stack([S.act(torch.eye(3, dtype=f64)[j].expand(M, 3)) - z for j in range(3)], -1)
+        Bm = torch.cat([lin[:, None].expand(M, N, 3, 3),
+                        -torch.eye(3, dtype=f64).expand(M, N, 3, 3)], -1)
+        return c, A, Bm
+    S0 = ts.Sim3(S_true.as_matrix().expand(M, 4, 4)).rplus(
+        0.05 * torch.randn(M, 7, generator=gen, dtype=f64))
+    return condition, S0, cov
+
+
+def test_gauss_helmert_paper_variant_takes_plain_gauss_newton_steps_by_default():
+    """With the generic solver's default damping (1e-4) the paper variant's Levenberg-Marquardt
+    cost test stalled well-posed problems at its fixed point and reported DIVERGED (~10% of
+    Sim(3) alignments); only the TLS solvers set damping=None.  An explicit damping is kept."""
+    condition, S0, cov = _sim3_alignment()
+    sol = gauss_helmert(condition, S0, cov, variant="paper")
+    assert sol.report.converged.all()
+    damped = gauss_helmert(condition, S0, cov, variant="paper", damping=1e-4)
+    assert (damped.report.status == SolverStatus.DIVERGED).any()
+    ref = gauss_helmert(condition, S0, cov, variant="paper", damping=None)
+    assert torch.equal(ref.x.as_matrix(), sol.x.as_matrix())

@@ -125,3 +125,22 @@ def test_variable_helpers_take_one_block_alone_as_the_solvers_do():
         autograd_jacobian(lambda x: x, "abc")
     with pytest.raises(ValueError, match=r"x \(SE3\) must have batch shape \(B,\)"):
         autograd_jacobian(lambda x: x.log(), ts.SE3.identity(dtype=F64))
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_solutions_of_every_group_carry_no_graph_and_one_nan_problem_stays_alone(G):
+    """The solvers are not differentiable: with a target that requires gradients the estimate
+    used to carry a partial graph (the start was not detached).  And one non-finite problem
+    made every LBFGS problem of the batch NON_FINITE."""
+    target, start, _ = _problem(G)
+    xi = target.log().requires_grad_(True)
+    tgt = G.exp(xi)
+    sol = gauss_newton(lambda x: x.rminus(tgt), start)
+    assert sol.x.as_matrix().grad_fn is None and not sol.covariance.requires_grad
+    assert bool(sol.report.converged.all())
+    bad = target.as_matrix().clone()
+    bad[1] = float("nan")
+    x, _, report = lbfgs(lambda x, _e: x.rminus(G(bad)).square().sum(-1), start)
+    assert x.as_matrix().grad_fn is None
+    assert report.status.tolist() == [0, 3, 0, 0]
+    assert x[[0, 2, 3]].rminus(target[[0, 2, 3]]).abs().max() < 1e-6

@@ -135,6 +135,12 @@ def variant_options(variant: str, options: dict) -> bool:
         options.setdefault("accept_tol", 1e-6)
         options.setdefault("always_accept_below", 0.1)
         options.setdefault("cost_tol", 0.0)
+    else:
+        # The paper's scheme is plain Gauss-Newton: its fixed point (the gradient of the
+        # condition cost with the weights S held fixed) is not a minimum of that cost once S
+        # moves with x, so Levenberg-Marquardt's cost test stalls it there (DIVERGED at the
+        # fixed point).  An explicit ``damping`` is kept.
+        options.setdefault("damping", None)
     return variant == "iterated"
 
 
@@ -165,8 +171,12 @@ def gauss_helmert(
     options: see ``solver.iterate``.  The iterated variant accepts steps whose linearised cost
         rises by at most ``accept_tol`` (default 1e-6, relative) or whose step is below
         ``always_accept_below`` (0.1) standard deviations, since that cost is re-evaluated at
-        the new residual estimate, and by default stops on the step size only (``cost_tol=0``).
-    Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.
+        the new residual estimate, and by default stops on the step size only (``cost_tol=0``);
+        it is Levenberg-Marquardt damped (``damping`` 1e-4).  The paper variant takes plain
+        Gauss-Newton steps by default (``damping=None``): Levenberg-Marquardt's cost test
+        stalls it at its fixed point, which does not minimise the cost it evaluates.
+    Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.  Not
+    differentiable: the solution carries no autograd graph.
     """
     iterated = variant_options(variant, options)
     single = V.is_single(x0)

@@ -31,9 +31,9 @@ class SolverStatus(enum.IntEnum):
     RUNNING = -1  # only while iterating: never in a returned report
     CONVERGED = 0
     MAX_ITERATIONS = 1
-    DIVERGED = 2  # the damping grew past its limit without an acceptable step (plain
-    # Gauss-Newton: an unsolvable or non-finite step)
-    NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start
+    DIVERGED = 2  # stalled: the damping grew past its limit without an acceptable step (plain
+    # Gauss-Newton: an unsolvable or non-finite step; lbfgs: stopped early, gradient test failed)
+    NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start (costs NaN)
     SINGULAR = 4  # the information J^T J is singular at the solution (unobservable directions);
     # takes precedence over CONVERGED / MAX_ITERATIONS / DIVERGED, and the covariance is NaN
 
@@ -46,10 +46,14 @@ class SolverReport:
     status         int64 ``SolverStatus`` codes: CONVERGED (0), MAX_ITERATIONS (1), DIVERGED
                    (2: the damping grew past ``max_damping`` without an acceptable step; with
                    ``damping=None``, a step that could not be solved or gave non-finite
-                   values), NON_FINITE (3: non-finite unknowns, residuals or Jacobians at x0;
-                   ``lbfgs``: at the end), SINGULAR
+                   values; ``lbfgs``: LBFGS stopped before ``max_iterations`` (no further
+                   decrease) without passing the gradient test), NON_FINITE (3: non-finite
+                   unknowns, residuals or Jacobians at x0; ``lbfgs``: a non-finite cost or
+                   gradient at x0 or at any point LBFGS evaluated, or at the end), SINGULAR
                    (4: the information J^T J is singular at the solution; it replaces the
                    other codes, the problem may have converged, its covariance is NaN).
+                   Where the status is NON_FINITE, initial_cost, cost, step_norm and
+                   gradient_norm are NaN (unknown), not the zeros the solver iterated on.
     iterations     int64, the steps taken by that problem, accepted and rejected (``lbfgs``:
                    LBFGS's iteration count, shared by the batch).
     initial_cost   the cost at x0; cost = 1/2 |r|^2 of the whitened residual r, so that
@@ -64,7 +68,7 @@ class SolverReport:
                    variables).
 
     ``converged`` (property) is the bool mask status == CONVERGED; ``counts()`` the number of
-    problems per status (host syncs).
+    problems per status (host syncs).  No field carries autograd history.
     """
 
     status: torch.Tensor  # SolverStatus codes (int64)
@@ -103,6 +107,11 @@ class Solution:
     report      ``SolverReport``: per-problem status, iterations, costs and norms.
     aux         solver-specific state: ``gauss_helmert``, the estimated observation residuals
                 e (B, N, m); None for ``gauss_newton``.
+
+    The solvers are not differentiable: every tensor of a Solution is detached (no
+    ``grad_fn``, ``requires_grad`` False), whether or not x0, the data or the covariances
+    require gradients.  For the derivative of an estimate with respect to the data use the
+    implicit function theorem at the solution (d x_hat = -(J^T J)^-1 J^T (dr/d data) d data).
     """
 
     x: object  # the unknowns, as x0 was given: one block alone, or a tuple of the same blocks
@@ -226,11 +235,15 @@ def iterate(
     sqrt(delta^T J^T J delta) (that is, in standard deviations of the Laplace posterior, a
     dimensionless test), or when the cost falls by less than ``cost_tol`` relative.
     Raises ValueError for a negative ``max_iterations``, ``damping`` or tolerance.
+    Not differentiable: x0 and aux0 are detached, and the solution carries no graph.
     """
     _check_options(max_iterations, damping, max_damping, stop_below_fraction, step_tol=step_tol,
                    cost_tol=cost_tol, accept_tol=accept_tol, always_accept_below=always_accept_below)
-    x = V.check_values(x0)
-    aux = aux0
+    # The solvers are not differentiable: the start is detached (a graph through x0 would
+    # give d x_hat / d x0 = 1, and one through the data would be incomplete), and so is
+    # everything returned.
+    x = V.detach(V.check_values(x0))
+    aux = _detach(aux0)
     lin = linearise(x, aux)
     Bn = V.batch_size(x)
     d = V.tangent_dim(x)
@@ -308,10 +321,32 @@ def iterate(
     H, g = lin.H, lin.g
     singular = information_is_singular(H) & (status != SolverStatus.NON_FINITE)
     status = torch.where(singular, SolverStatus.SINGULAR, status)
-    P = covariance_from_information(H, singular | (status == SolverStatus.NON_FINITE))
-    report = SolverReport(status=status, iterations=iterations, initial_cost=initial_cost,
-                          cost=cost, step_norm=step_norm, gradient_norm=g.norm(dim=-1))
-    return Solution(x=x, covariance=P, report=report, aux=aux)
+    non_finite = status == SolverStatus.NON_FINITE
+    P = covariance_from_information(H, singular | non_finite)
+    # A NON_FINITE problem was sanitised to zeros above: its costs and norms are unknown, not 0.
+    nan = float("nan")
+    report = SolverReport(status=status, iterations=iterations,
+                          initial_cost=torch.where(non_finite, nan, initial_cost),
+                          cost=torch.where(non_finite, nan, cost),
+                          step_norm=torch.where(non_finite, nan, step_norm),
+                          gradient_norm=torch.where(non_finite, nan, g.norm(dim=-1)))
+    report = SolverReport(**{f: getattr(report, f).detach() for f in _REPORT_FIELDS})
+    return Solution(x=V.detach(x), covariance=P.detach(), report=report, aux=_detach(aux))
+
+
+_REPORT_FIELDS = ("status", "iterations", "initial_cost", "cost", "step_norm", "gradient_norm")
+
+
+def _detach(state):
+    """Solver state without autograd history: tensors detached, tuples, lists and dicts
+    entry by entry; anything else as it is."""
+    if isinstance(state, torch.Tensor):
+        return state.detach()
+    if isinstance(state, (tuple, list)):
+        return type(state)(_detach(a) for a in state)
+    if isinstance(state, dict):
+        return {k: _detach(v) for k, v in state.items()}
+    return state
 
 
 def _select_aux(mask, new, old):
@@ -371,6 +406,8 @@ def gauss_newton(
         (``autograd_jacobian``).
     options: see ``iterate`` (max_iterations, damping, step_tol, cost_tol, ...).
     Returns a ``Solution`` with the unknowns, the Laplace covariance and the per-problem report.
+    Not differentiable: the solution carries no autograd graph (x0 is detached; gradients
+    with respect to x0 or to data captured by ``residual`` are not propagated).
     """
     single = V.is_single(x0)
     residual, jacobian = V.unwrapped(residual, single), V.unwrapped(jacobian, single)
