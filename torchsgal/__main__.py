@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import tempfile
 
 import torch
 
@@ -105,8 +107,41 @@ def _positive_int(text: str, minimum: int = 1) -> int:
 
 
 def _samples(text: str) -> int:
-    """At least 3 observation pairs: 11 unknowns, 10 conditions per pair (TLSProblem's check)."""
-    return _positive_int(text, minimum=3)
+    """At least 2 observation pairs (TLSProblem's check): 11 unknowns, 10 conditions per pair;
+    the first fixes F_a0b0, dtau is seen through the drift between two sample indices."""
+    return _positive_int(text, minimum=2)
+
+
+def _max_threads() -> int:
+    """The most torch threads ``--threads`` accepts: the CPUs this process may run on.  (An
+    absurd count made torch crash with a segmentation fault.)"""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _threads(text: str) -> int:
+    value = _positive_int(text)
+    limit = _max_threads()
+    if value > limit:
+        raise argparse.ArgumentTypeError(f"must be at most {limit} (the CPUs available to this "
+                                         f"process), got {value}")
+    return value
+
+
+def _check_output_directory(path: str) -> str | None:
+    """Creates ``path`` if needed and checks that a file can be written there; the reason
+    why not, or None.  Run before the study, so that a bad --out does not lose its results."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        return f"{path!r} exists and is not a directory"
+    try:
+        os.makedirs(path, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as e:
+        return f"cannot write to {path!r}: {e.strerror or e}"
+    return None
 
 
 def _nonnegative_float(text: str) -> float:
@@ -145,7 +180,7 @@ def main(argv=None) -> int:
                        description=tls.__doc__)
     d = __import__("torchsgal.estimation.study", fromlist=["StudyConfig"]).StudyConfig()
     t.add_argument("--trials", type=_positive_int, default=d.trials, help=f"Monte Carlo trials ({d.trials})")
-    t.add_argument("--samples", type=_samples, default=d.samples, help=f"observations per frame, at least 3 ({d.samples})")
+    t.add_argument("--samples", type=_samples, default=d.samples, help=f"observations per frame, at least 2 ({d.samples})")
     t.add_argument("--speed", type=_nonnegative_float, default=d.speed,
                    help=f"relative speed of the frames, m/s ({d.speed})")
     t.add_argument("--separation", type=_nonnegative_float, default=d.separation,
@@ -160,16 +195,27 @@ def main(argv=None) -> int:
     t.add_argument("--dtype", default=d.dtype, type=_study_dtype,
                    help="float64 (the only precision the study supports: in float32 the "
                         "information is too badly conditioned and every trial is reported SINGULAR)")
-    t.add_argument("--chunk", type=_positive_int, default=400, help="trials solved per batch (400)")
-    t.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: torch's)")
+    chunk = __import__("torchsgal.estimation.study", fromlist=["DEFAULT_CHUNK"]).DEFAULT_CHUNK
+    t.add_argument("--chunk", type=_positive_int, default=chunk,
+                   help=f"trials solved per batch ({chunk}; the simulated trials do not depend on it)")
+    t.add_argument("--threads", type=_threads, default=None,
+                   help=f"torch threads, at most the CPUs available ({_max_threads()}; "
+                        f"default: torch's)")
     t.add_argument("--out", default="tls_output", help="output folder (tls_output)")
     t.add_argument("--no-plot", action="store_true", help="skip the NEES plot")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
-    if args.command == "tls":
-        return tls(args)
-    if args.command in (None, "demo"):
-        return demo(args)
+    try:
+        if args.command == "tls":
+            problem = _check_output_directory(args.out)
+            if problem:
+                t.error(f"argument --out: {problem}")
+            return tls(args)
+        if args.command in (None, "demo"):
+            return demo(args)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
     parser.error(f"unknown command {args.command}")
     return 2
 

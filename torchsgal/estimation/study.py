@@ -74,7 +74,7 @@ class StudyConfig:
 
     def __post_init__(self):
         self.trials = checks.integer(self.trials, "trials", 1)
-        self.samples = checks.integer(self.samples, "samples", 3)  # TLSProblem needs 3 pairs
+        self.samples = checks.integer(self.samples, "samples", 2)  # TLSProblem needs 2 pairs
         self.seed = checks.integer(self.seed, "seed")
         self.max_iterations = checks.integer(self.max_iterations, "max_iterations", 1)
         self.nominal_dtau = checks.finite_number(self.nominal_dtau, "nominal_dtau")
@@ -105,34 +105,83 @@ class TrialSet:
     F_ga0: SGal3  # true frame a at n = 0 (defines the baseline's truth)
 
 
-def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Generator | None = None
-             ) -> TrialSet:
+# The simulated trials come in blocks of this many, block b drawn from a generator seeded by
+# (seed, b): a trial's data depend on the seed and its index only, not on how the study is
+# cut into chunks, nor on the number of trials.
+SIMULATION_BLOCK = 16
+# Trials simulated and solved per batch by ``run`` and ``python -m torchsgal tls``.
+DEFAULT_CHUNK = 400
+
+
+def _mix64(v: int) -> int:
+    """splitmix64's finaliser: a 64-bit integer hash."""
+    v = (v + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
+    v = ((v ^ (v >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    v = ((v ^ (v >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return v ^ (v >> 31)
+
+
+def block_seed(seed: int, block: int) -> int:
+    """The generator seed of simulation block ``block`` of the study with ``seed``."""
+    return _mix64(_mix64(seed & 0xFFFFFFFFFFFFFFFF) ^ block)
+
+
+def _draw(cfg: StudyConfig, K: int, g: torch.Generator, dtype) -> tuple:
+    """The random quantities of K trials, in a fixed order from ``g``: the rotation C_ga0 and
+    the tangent pieces of F_ga0 and F_true, the true intervals and the noises."""
+    def normal(*shape):
+        return torch.randn(*shape, generator=g, dtype=dtype)
+
+    def rotation():
+        return SO3.random((K,), dtype=dtype, generator=g).as_matrix()
+
+    w = normal(K, 3)
+    w = w / w.norm(dim=-1, keepdim=True)
+    C_ga = rotation()
+    r_a, t_a = normal(K, 3), normal(K)
+    C_ab = rotation()
+    r_ab, t_ab = normal(K, 3), normal(K)
+    dtau = normal(K)
+    eps_a = normal(K, cfg.samples, 10, 1)
+    eps_b = normal(K, cfg.samples, 10, 1)
+    return w, C_ga, r_a, t_a, C_ab, r_ab, t_ab, dtau, eps_a, eps_b
+
+
+def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Generator | None = None,
+             start: int = 0) -> TrialSet:
+    """The trials ``start`` .. ``start + trials - 1`` of the study (default: all
+    ``cfg.trials``).  Trial i is drawn from the generator of its block, seeded by
+    ``block_seed(cfg.seed, i // SIMULATION_BLOCK)``, so the simulated data do not depend on
+    ``run``'s chunk: ``simulate(cfg, 3, start=2)`` is ``simulate(cfg, 5)``'s last three
+    trials.  With ``generator`` given instead, every draw comes from it, in order (``start``
+    must then be 0)."""
     if not isinstance(cfg, StudyConfig):
         raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
     cfg.__post_init__()  # fields may have been changed since construction
     dtype = getattr(torch, cfg.dtype)
     K = cfg.trials if trials is None else checks.integer(trials, "trials", 0)
-    g = generator or torch.Generator().manual_seed(cfg.seed)
-
-    def normal(*shape):
-        return torch.randn(*shape, generator=g, dtype=dtype)
-
-    def unit(*shape):
-        u = normal(*shape, 3)
-        return u / u.norm(dim=-1, keepdim=True)
-
-    def rotation():
-        return SO3.random((K,), dtype=dtype, generator=g).as_matrix()
-
-    w = unit(K)
-    C_ga = rotation()
-    F_ga0 = SGal3.from_components(C_ga, -0.5 * cfg.speed * w, cfg.separation * normal(K, 3),
-                                  cfg.clock_offset * normal(K))
+    start = checks.integer(start, "start", 0)
+    if generator is not None:
+        if start:
+            raise ValueError(f"start must be 0 when a generator is given, got {start}")
+        if not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+        draws = _draw(cfg, K, generator, dtype)
+    else:
+        first, stop = start // SIMULATION_BLOCK, -(-(start + K) // SIMULATION_BLOCK)
+        blocks = [_draw(cfg, SIMULATION_BLOCK,
+                        torch.Generator().manual_seed(block_seed(cfg.seed, b)), dtype)
+                  for b in range(first, max(stop, first + 1))]
+        offset = start - first * SIMULATION_BLOCK
+        draws = tuple(torch.cat(parts)[offset:offset + K] for parts in zip(*blocks))
+    w, C_ga, r_a, t_a, C_ab, r_ab, t_ab, dtau_n, eps_a_n, eps_b_n = draws
+    F_ga0 = SGal3.from_components(C_ga, -0.5 * cfg.speed * w, cfg.separation * r_a,
+                                  cfg.clock_offset * t_a)
     w_a = (C_ga.transpose(-1, -2) @ w[..., None])[..., 0]
-    F_true = SGal3.from_components(rotation(), cfg.speed * w_a, cfg.separation * normal(K, 3),
-                                   cfg.clock_offset * normal(K))
+    F_true = SGal3.from_components(C_ab, cfg.speed * w_a, cfg.separation * r_ab,
+                                   cfg.clock_offset * t_ab)
     F_gb0 = F_ga0 @ F_true
-    dtau = cfg.nominal_dtau + cfg.dtau_sigma * normal(K)
+    dtau = cfg.nominal_dtau + cfg.dtau_sigma * dtau_n
     n = torch.arange(cfg.samples, dtype=dtype)
     xi = torch.zeros(K, cfg.samples, 10, dtype=dtype)
     xi[..., 9] = -n * dtau[:, None]
@@ -141,8 +190,8 @@ def simulate(cfg: StudyConfig, trials: int | None = None, generator: torch.Gener
     F_gb = F_gb0.unsqueeze(-1) @ T_inv
     Sigma = paper_covariance(dtype)
     Lc = torch.linalg.cholesky(Sigma)
-    eps_a = cfg.noise_scale * (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
-    eps_b = cfg.noise_scale * (Lc @ normal(K, cfg.samples, 10, 1))[..., 0]
+    eps_a = cfg.noise_scale * (Lc @ eps_a_n)[..., 0]
+    eps_b = cfg.noise_scale * (Lc @ eps_b_n)[..., 0]
     obs_a = F_ga @ SGal3.exp(-eps_a)
     obs_b = F_gb @ SGal3.exp(-eps_b)
     problem = TLSProblem(obs_a, obs_b, Sigma, Sigma, indices=n)
@@ -190,14 +239,16 @@ def summarise(err: torch.Tensor, cov: torch.Tensor, status: torch.Tensor) -> dic
     return out
 
 
-def run(cfg: StudyConfig, chunk: int = 300, progress: bool = True) -> dict:
-    """Runs the study; returns a dict with the config, per-estimator results and timings.
-    ``chunk``: trials simulated and solved per batch (a positive int)."""
+def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> dict:
+    """Runs the study; returns a dict with the config, the chunk, per-estimator results and
+    timings.  ``chunk``: trials simulated and solved per batch (a positive int).  The simulated
+    trials do not depend on it (``simulate``); the estimates may, in the last digits: a
+    stopping decision can flip with rounding, and the paper variant takes the generic path for
+    batches below ``tls.STRUCTURED_MIN_CONDITIONS`` conditions."""
     if not isinstance(cfg, StudyConfig):
         raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
     cfg.__post_init__()  # fields may have been changed since construction
-    checks.integer(chunk, "chunk", 1)
-    g = torch.Generator().manual_seed(cfg.seed)
+    chunk = checks.integer(chunk, "chunk", 1)
     estimators = {("SGal(3)", v): (solve_sgal3, errors_sgal3) for v in cfg.variants}
     estimators.update({("SE_2(3) x R", v): (solve_baseline, errors_baseline) for v in cfg.variants})
     acc = {k: {"err": [], "cov": [], "status": [], "iterations": [], "time": 0.0} for k in estimators}
@@ -207,7 +258,7 @@ def run(cfg: StudyConfig, chunk: int = 300, progress: bool = True) -> dict:
     while done < cfg.trials:
         k = min(chunk, cfg.trials - done)
         t0 = time.perf_counter()
-        trials = simulate(cfg, k, g)
+        trials = simulate(cfg, k, start=done)
         sim_time += time.perf_counter() - t0
         for key, (solve, errs) in estimators.items():
             t0 = time.perf_counter()
@@ -231,7 +282,8 @@ def run(cfg: StudyConfig, chunk: int = 300, progress: bool = True) -> dict:
                          if s != SolverStatus.RUNNING and int((status == s).sum())}
         results.setdefault(name, {})[variant] = res
     lo, hi = metrics.anees_band(cfg.trials, 11)
-    return {"config": asdict(cfg), "anees_band_95": [lo, hi], "expected_mmd": metrics.expected_mmd(11),
+    return {"config": asdict(cfg), "chunk": chunk, "anees_band_95": [lo, hi],
+            "expected_mmd": metrics.expected_mmd(11),
             "simulation_time_s": sim_time, "results": results, "paper": PAPER_TABLE1,
             "paper_anees_band_95": list(PAPER_ANEES_BAND),
             "torch": torch.__version__, "threads": torch.get_num_threads()}
@@ -293,21 +345,36 @@ def table_markdown(out: dict) -> str:
     lines.append(f"Setup: {cfg['trials']} trials, {cfg['samples']} samples, nominal dtau "
                  f"{cfg['nominal_dtau']} s (+ N(0, {cfg['dtau_sigma']}^2) per trial), relative speed "
                  f"{cfg['speed']} m/s, separation {cfg['separation']} m, clock offset "
-                 f"{cfg['clock_offset']} s, seed {cfg['seed']}, {cfg['dtype']}.")
+                 f"{cfg['clock_offset']} s, seed {cfg['seed']}, {cfg['dtype']}"
+                 + (f", solved in chunks of {out['chunk']} trials." if "chunk" in out else "."))
     return "\n".join(lines)
 
 
+def _finite_or_null(value):
+    """``value`` with every non-finite float (the metrics of an estimator without a converged
+    trial are NaN) replaced by None, which JSON writes as null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite_or_null(v) for v in value]
+    return value
+
+
 def write_outputs(out: dict, directory: str, plot: bool = True) -> list[str]:
+    """Writes tls_study.json (strict JSON: a metric without converged trials is null),
+    tls_study.md and, with ``plot``, tls_nees.png into ``directory`` (created if needed)."""
     import os
     os.makedirs(directory, exist_ok=True)
     paths = []
-    slim = json.loads(json.dumps(out))
+    slim = _finite_or_null(json.loads(json.dumps(out)))
     for name in slim["results"].values():
         for res in name.values():
             res.pop("nees", None)
     p = os.path.join(directory, "tls_study.json")
     with open(p, "w") as f:
-        json.dump(slim, f, indent=2)
+        json.dump(slim, f, indent=2, allow_nan=False)  # strict JSON
     paths.append(p)
     p = os.path.join(directory, "tls_study.md")
     with open(p, "w") as f:

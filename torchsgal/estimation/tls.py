@@ -59,9 +59,14 @@ def _check_observations(F_ga, F_gb, cov_a, cov_b, indices, group=SGal3):
         raise ValueError(f"F_ga and F_gb must have the same batch shape, got "
                          f"{tuple(F_ga.batch_shape)} and {tuple(F_gb.batch_shape)}")
     Bn, N1 = F_ga.batch_shape
-    if N1 < 3:
-        raise ValueError(f"need at least 3 observation pairs (11 unknowns, 10 per pair, and "
-                         f"dtau needs two sample indices besides 0), got {N1}")
+    if N1 < 2:
+        # One pair gives 10 conditions for 11 unknowns: dtau enters A_n only as r - n dtau v,
+        # confounded with r.  Two pairs at distinct indices n, m separate it through the drift
+        # (m - n) dtau v (observable when the relative velocity v is not zero; repeated
+        # indices or v = 0 leave it unobservable, reported SINGULAR by the solvers).
+        raise ValueError(f"need at least 2 observation pairs (11 unknowns, 10 conditions per "
+                         f"pair; dtau is seen through the drift between two distinct sample "
+                         f"indices), got {N1}")
     for name, S in (("cov_a", cov_a), ("cov_b", cov_b)):
         check_covariance(S, 10, name)
         checks.same_device_dtype(F_ga=F_ga.as_matrix(), **{name: S})
@@ -555,13 +560,6 @@ def _gauss_helmert_tls(problem: TLSProblem, x0, variant: str, e0=None,
 
 
 # ------------------------------------------------------------------------------------ solvers
-def _default_options(variant: str, options: dict) -> None:
-    """The paper's scheme is plain Gauss-Newton: its fixed point (the gradient of the
-    condition cost with the weights S held fixed) is not a minimum of that cost once S moves
-    with x, so Levenberg-Marquardt's cost test stalls it.  The iterated variant is damped."""
-    options.setdefault("damping", None if variant == "paper" else 1e-4)
-
-
 def subset(problem: TLSProblem, index) -> TLSProblem:
     """The trials ``index`` (a slice or index tensor) of a problem."""
     def pick(S):
@@ -662,7 +660,6 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
     variant_options(variant, {})
     x0 = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
     x0 = _check_unknowns(problem, x0, baseline=False)
-    _default_options(variant, options)
     return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(p, x, variant, e0, **kw),
                       problem, x0, options)
 
@@ -679,7 +676,6 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         X0, t0 = split_clock(F0)
         x0 = (X0, t0[:, None], dt)
     x0 = _check_unknowns(problem, x0, baseline=True)
-    _default_options(variant, options)
     return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(
         p, x, variant, e0, baseline=True, **kw), problem, x0, options)
 
@@ -721,7 +717,10 @@ def condition_cost(problem: TLSProblem, weights_at=None):
     def factor(x):
         c, _, Bm = cond(x, None)
         Ga = Bm[..., :10]
-        return torch.linalg.cholesky(Ga @ Sa @ Ga.transpose(-1, -2) + Sb), c
+        # NaN where S is not positive definite (non-finite observations): the cost is NaN
+        # there, which lbfgs reports NON_FINITE, instead of an exception for the batch.
+        L, info = torch.linalg.cholesky_ex(Ga @ Sa @ Ga.transpose(-1, -2) + Sb)
+        return torch.where((info == 0)[..., None, None], L, float("nan")), c
 
     frozen = None
     if weights_at is not None:
@@ -744,21 +743,42 @@ def condition_cost(problem: TLSProblem, weights_at=None):
     return cost
 
 
+def _put(x: tuple, idx: torch.Tensor, part: tuple) -> tuple:
+    """x with the trials ``idx`` replaced by ``part`` (blockwise index_copy)."""
+    out = []
+    for full, p in zip(x, part):
+        if isinstance(full, torch.Tensor):
+            out.append(full.index_copy(0, idx, p))
+        else:
+            out.append(type(full).from_matrix(full.as_matrix().index_copy(0, idx, p.as_matrix())))
+    return tuple(out)
+
+
 def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = False,
                       reweightings: int = 60, step_tol: float = 1e-4, **options) -> Solution:
     """The paper variant's estimate by a first-order method: ``torch.optim.LBFGS`` on the
     reduced condition cost 1/2 sum c^T S^-1 c with the weights S frozen, re-evaluated between
-    LBFGS runs (at most ``reweightings`` times, until the estimate moves by less than
-    ``step_tol`` standard deviations), by autograd through the group operations.
+    LBFGS runs (at most ``reweightings`` times per trial, until its estimate moves by less
+    than ``step_tol`` standard deviations), by autograd through the group operations.
 
     The tangent perturbation is preconditioned by the Cholesky factor of the Gauss-Newton
-    covariance at the current weights (delta = L z).  torch.optim.LBFGS has one line search
-    and one stopping test, so by default the problems are solved one at a time (a Python loop
-    over the batch); ``batched=True`` sums them into one LBFGS problem instead, which couples
-    them.  The covariance is the inverse Gauss-Newton information at the solution."""
+    covariance at the current weights (delta = L z; the identity where that covariance is
+    not available, a SINGULAR or NON_FINITE trial, which then gets one LBFGS run).
+    torch.optim.LBFGS has one line search and one stopping test, so by default the problems
+    are solved one at a time (a Python loop over the batch; each trial's result is the one it
+    gets alone); ``batched=True`` sums the trials still reweighting into one LBFGS problem
+    instead, which couples them.  The covariance is the inverse Gauss-Newton information at
+    the solution.  Report: status from the last LBFGS run, MAX_ITERATIONS for a converged
+    trial still moving after ``reweightings`` rounds, and SINGULAR / NON_FINITE from the
+    information at the solution (NON_FINITE wins); initial_cost is the cost at x0 (weights
+    frozen at x0), cost and gradient_norm those of the last run, iterations the LBFGS
+    iterations summed over the rounds, step_norm the last move in standard deviations (NaN
+    where there is no covariance to measure it).  Not differentiable."""
     from .lbfgs import lbfgs
+    step_tol = checks.finite_number(step_tol, "step_tol", ">= 0")
+    reweightings = checks.integer(reweightings, "reweightings")
     x = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
-    x = _check_unknowns(problem, x, baseline=False)
+    x = V.detach(_check_unknowns(problem, x, baseline=False))
     if problem.batch_size == 0:
         return _empty_solution(problem, x)
     cond = sgal3_condition(problem)
@@ -767,28 +787,64 @@ def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = 
     def run(prob, x_start, scale):
         return lbfgs(condition_cost(prob, weights_at=x_start), x_start, scale=scale, **options)
 
-    iterations = torch.zeros(problem.batch_size, dtype=torch.int64, device=problem.F_ga.device)
-    for _ in range(max(1, reweightings)):
-        info = gauss_helmert(cond, x, problem.covariance, variant="paper", max_iterations=0)
-        scale = torch.linalg.cholesky(info.covariance)
+    Bn = problem.batch_size
+    like = problem.F_ga.as_matrix()
+    nan = like.new_full((Bn,), float("nan"))
+    iterations = torch.zeros(Bn, dtype=torch.int64, device=like.device)
+    status = torch.full((Bn,), int(SolverStatus.MAX_ITERATIONS), dtype=torch.int64,
+                        device=like.device)
+    initial_cost, cost, gradient_norm, moved = nan.clone(), nan.clone(), nan.clone(), nan.clone()
+    eye = torch.eye(11, dtype=like.dtype, device=like.device)
+    active = torch.ones(Bn, dtype=torch.bool, device=like.device)
+    for round_ in range(max(1, reweightings)):
+        idx = active.nonzero()[:, 0]
+        if idx.numel() == 0:
+            break
+        sub = problem if idx.numel() == Bn else subset(problem, idx)
+        xs = tuple(b[idx] for b in x)
+        info = gauss_helmert(sgal3_condition(sub), xs, sub.covariance, variant="paper",
+                             max_iterations=0)
+        L, bad = torch.linalg.cholesky_ex(info.covariance)
+        good = (bad == 0) & torch.isfinite(L).flatten(1).all(-1)
+        scale = torch.where(good[:, None, None], L, eye)
         if batched:
-            x_new, _, report = run(problem, x, scale)
+            x_new, _, report = run(sub, xs, scale)
         else:
-            parts = [run(subset(problem, slice(k, k + 1)), tuple(b[k:k + 1] for b in x),
-                         scale[k:k + 1]) for k in range(problem.batch_size)]
+            parts = [run(subset(sub, slice(k, k + 1)), tuple(b[k:k + 1] for b in xs),
+                         scale[k:k + 1]) for k in range(sub.batch_size)]
             x_new = tuple(type(parts[0][0][i]).stack([p[0][i] for p in parts]).reshape(-1)
                           if hasattr(parts[0][0][i], "as_matrix")
                           else torch.cat([p[0][i] for p in parts]) for i in range(len(x)))
             report = SolverReport(**{f: torch.cat([getattr(p[2], f) for p in parts])
                                      for f in ("status", "iterations", "initial_cost", "cost",
                                                "step_norm", "gradient_norm")})
-        iterations = iterations + report.iterations
-        d = torch.cat([x_new[0].rminus(x[0]), x_new[1] - x[1]], -1)
-        moved = (d * (torch.linalg.inv(info.covariance) @ d[..., None])[..., 0]).sum(-1).sqrt()
-        x = x_new
-        if bool((moved <= step_tol).all()):
-            break
-    report.iterations = iterations
-    report.step_norm = moved
+        # The move in standard deviations of the covariance at the round's start: |L^-1 d|.
+        d = torch.cat([x_new[0].rminus(xs[0]), x_new[1] - xs[1]], -1)
+        w = torch.linalg.solve_triangular(scale, d[..., None], upper=False)[..., 0]
+        step = torch.where(good, w.norm(dim=-1), float("nan"))
+        x = _put(x, idx, x_new)
+        iterations = iterations.index_add(0, idx, report.iterations)
+        status = status.index_copy(0, idx, report.status)
+        cost = cost.index_copy(0, idx, report.cost)
+        gradient_norm = gradient_norm.index_copy(0, idx, report.gradient_norm)
+        moved = moved.index_copy(0, idx, step)
+        if round_ == 0:
+            initial_cost = report.initial_cost  # every trial runs in the first round
+        done = (step <= step_tol) | ~good | (report.status == SolverStatus.NON_FINITE)
+        active = active.index_copy(0, idx, ~done)
+    # Still moving after the last round: not settled.
+    status = torch.where(active & (status == SolverStatus.CONVERGED),
+                         SolverStatus.MAX_ITERATIONS, status)
     at = gauss_helmert(cond, x, problem.covariance, variant="paper", max_iterations=0)
+    singular = at.report.status == SolverStatus.SINGULAR
+    status = torch.where(singular & (status != SolverStatus.NON_FINITE), SolverStatus.SINGULAR,
+                         status)
+    status = torch.where(at.report.status == SolverStatus.NON_FINITE, SolverStatus.NON_FINITE,
+                         status).to(torch.int64)
+    non_finite = status == SolverStatus.NON_FINITE
+    report = SolverReport(status=status, iterations=iterations,
+                          initial_cost=torch.where(non_finite, float("nan"), initial_cost),
+                          cost=torch.where(non_finite, float("nan"), cost),
+                          step_norm=torch.where(non_finite, float("nan"), moved),
+                          gradient_norm=torch.where(non_finite, float("nan"), gradient_norm))
     return Solution(x=x, covariance=at.covariance, report=report)
