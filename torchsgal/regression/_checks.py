@@ -1,13 +1,19 @@
 """Input validation for the regression package: every error names the argument.
 
-Shape, dtype and device checks read metadata only.  The time checks (strictly increasing
-stamps) read values once, at the entry of a fit, never inside the solver loop.
+Shape, dtype and device checks read metadata only.  The value checks (strictly increasing,
+finite stamps; finite time origin; positive, finite weights) are collected by the entry of a
+fit and read in one host sync (``read_values``), never inside the solver loop; as everywhere
+in the library they are skipped where values cannot be read (on 'meta', inside a torch.func
+transform, while torch.compile traces).
 """
 from __future__ import annotations
+
+import numbers
 
 import torch
 
 from ..functional import checks
+from ..functional._blocking import values_readable
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
@@ -30,8 +36,8 @@ def group_samples(samples, name: str = "samples", min_samples: int = 1) -> LieGr
 
 
 def sample_times(times, samples: LieGroup, name: str = "times") -> torch.Tensor:
-    """Stamps (..., N) broadcasting with samples.batch_shape, strictly increasing along the last
-    dimension (reads values: one host sync at the entry of a fit)."""
+    """Stamps (..., N) broadcasting with samples.batch_shape (metadata; their values are
+    checked by ``time_values``)."""
     if not isinstance(times, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape (..., N), got {type(times).__name__}")
     if times.dtype not in SUPPORTED_DTYPES:
@@ -49,35 +55,76 @@ def sample_times(times, samples: LieGroup, name: str = "times") -> torch.Tensor:
     except RuntimeError:
         raise ValueError(f"batch shapes do not broadcast: {name} {tuple(times.shape[:-1])}, "
                          f"samples {tuple(samples.batch_shape[:-1])}") from None
-    if n > 1:
-        gaps = torch.diff(times, dim=-1)
-        if not bool(torch.isfinite(times).all()):
-            raise ValueError(f"{name} must be finite")
-        if bool((gaps == 0).any()):
-            raise ValueError(f"{name} must be strictly increasing along the last dimension: "
-                             f"duplicate time stamps found")
-        if bool((gaps < 0).any()):
-            raise ValueError(f"{name} must be sorted (strictly increasing) along the last "
-                             f"dimension: found a decreasing pair")
     return times
 
 
-def metric_weights(weights, G, like: torch.Tensor, name: str = "weights") -> torch.Tensor:
-    """Positive weights per tangent component, shape (dof,) or (..., dof); default ones."""
+def time_values(times: torch.Tensor, name: str = "times") -> list:
+    """The value checks of the stamps, for ``read_values``: finite, then strictly increasing."""
+    found = [(~torch.isfinite(times).all(), f"{name} must be finite")]
+    if times.shape[-1] > 1:
+        gaps = torch.diff(times, dim=-1)
+        found += [((gaps == 0).any(), f"{name} must be strictly increasing along the last "
+                                      f"dimension: duplicate time stamps found"),
+                  ((gaps < 0).any(), f"{name} must be sorted (strictly increasing) along the last "
+                                     f"dimension: found a decreasing pair")]
+    return found
+
+
+def time_origin(value, like: torch.Tensor, like_name: str = "samples", name: str = "time_origin"):
+    """None (a per-data-set origin, chosen by the fit), a finite real number, or a floating
+    tensor (...) of the samples' dtype and device (its finiteness is checked by
+    ``read_values``).  Returns None or a tensor."""
+    if value is None:
+        return None
+    if isinstance(value, torch.Tensor):
+        checks.floating(value, name)
+        checks.same_device_dtype(**{like_name: like, name: value})
+        return value
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be None, a finite number or a torch.Tensor, got {value!r}")
+    value = checks.finite_number(value, name)
+    return torch.tensor(value, dtype=like.dtype, device=like.device)
+
+
+def metric_weights(weights, G, like: torch.Tensor, like_name: str = "samples",
+                   name: str = "weights") -> torch.Tensor:
+    """Weights per tangent component, shape (dof,) or (..., dof); default ones.  A tensor must
+    have ``like``'s dtype and device; numbers and sequences are converted to them.  Metadata
+    only: their values (positive, finite) are checked by ``weight_values``."""
     if weights is None:
         return torch.ones(G.dof, dtype=like.dtype, device=like.device)
     if not isinstance(weights, torch.Tensor):
         weights = torch.as_tensor(weights, dtype=like.dtype, device=like.device)
-    if weights.dtype not in SUPPORTED_DTYPES:
-        raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {weights.dtype}")
+    checks.floating(weights, name)
     if weights.dim() < 1 or weights.shape[-1] != G.dof:
         raise ValueError(f"{name} must have shape (..., {G.dof}) for {G.__name__}, got "
                          f"{tuple(weights.shape)}")
-    if weights.device != like.device:
-        raise ValueError(f"{name} is on {weights.device} but samples are on {like.device}")
-    if not bool((weights > 0).all()):
-        raise ValueError(f"{name} must be positive")
-    return weights.to(like.dtype)
+    checks.same_device_dtype(**{like_name: like, name: weights})
+    return weights
+
+
+def weight_values(weights: torch.Tensor, name: str = "weights") -> list:
+    """The value checks of metric weights, for ``read_values``."""
+    return [(~torch.isfinite(weights).all(), f"{name} must be finite"),
+            (~(weights > 0).all(), f"{name} must be positive")]
+
+
+def finite_values(value, name: str) -> list:
+    """``value`` (a tensor or None) must be finite, for ``read_values``."""
+    if value is None:
+        return []
+    return [(~torch.isfinite(value).all(), f"{name} must be finite")]
+
+
+def read_values(found: list) -> None:
+    """Raises ValueError with the message of the first failed check of ``found``, a list of
+    (0-d bool tensor, true where the check fails; message).  All are read in one host sync,
+    and none where a value cannot be read (meta, a torch.func transform, torch.compile)."""
+    if not found or not all(values_readable(bad) for bad, _ in found):
+        return
+    for failed, (_, message) in zip(torch.stack([bad for bad, _ in found]).tolist(), found):
+        if failed:
+            raise ValueError(message)
 
 
 def degree(value, n_samples: int, name: str = "degree") -> int:

@@ -95,7 +95,10 @@ class PolynomialModel:
 
     def raw_residuals(self, origin, x):
         s = self.algebra_curve(x, self.tau)
-        gamma = self.G.from_matrix(origin.unsqueeze(-3) @ self.G.exp(s).as_matrix())
+        if self.degree == 0:  # a constant curve: exp(0) = I
+            gamma = self.G.from_matrix(origin.unsqueeze(-3))
+        else:
+            gamma = self.G.from_matrix(origin.unsqueeze(-3) @ self.G.exp(s).as_matrix())
         return gamma.between(self.G.from_matrix(self.samples)).log(), s
 
     def residuals(self, origin: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -107,8 +110,8 @@ class PolynomialModel:
         r, s = self.raw_residuals(origin, x)
         jl_inv = G.jl_inv(r)  # (..., N, dof, dof)
         blocks = []
-        if not self.fix_origin:
-            blocks.append(-jl_inv @ G.exp(-s).adjoint())
+        if not self.fix_origin:  # Ad(exp(-0)) = I for degree 0
+            blocks.append(-jl_inv if self.degree == 0 else -jl_inv @ G.exp(-s).adjoint())
         if self.degree > 0:
             jv = -jl_inv @ G.jr(s)
             if self.basis is not None:

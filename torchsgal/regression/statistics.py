@@ -10,7 +10,7 @@ import torch
 from ..functional import checks
 from ..groups import LieGroup
 from . import _checks
-from .fit import fit_polynomial
+from .fit import _fit_polynomial, _options
 
 
 def _group_pair(a, b, a_name: str, b_name: str) -> None:
@@ -24,9 +24,16 @@ def _group_pair(a, b, a_name: str, b_name: str) -> None:
     checks.broadcast_batch(**{a_name: a.batch_shape, b_name: b.batch_shape})
 
 
-def _squared_log_distance(a: LieGroup, b: LieGroup, weights) -> torch.Tensor:
+def _weights(weights, G, like: torch.Tensor, like_name: str) -> torch.Tensor:
+    """Checked metric weights (values in one host sync, skipped where unreadable)."""
+    w = _checks.metric_weights(weights, G, like, like_name)
+    if weights is not None:
+        _checks.read_values(_checks.weight_values(w))
+    return w
+
+
+def _squared_log_distance(a: LieGroup, b: LieGroup, w: torch.Tensor) -> torch.Tensor:
     r = a.between(b).log()
-    w = _checks.metric_weights(weights, type(a), r)
     return (w * r * r).sum(-1)
 
 
@@ -34,9 +41,11 @@ def log_distance(a: LieGroup, b: LieGroup, weights=None) -> torch.Tensor:
     """d(a, b) = |log(a^-1 b)|_w, batch broadcast (...).  Left-invariant; equal to the
     Riemannian distance of diag(w) near the diagonal to second order only (and exactly for a
     bi-invariant metric, e.g. SO(3) with equal weights).  Its gradient at a = b is zero (the
-    subgradient convention of ``torch.linalg.norm``), not NaN."""
+    subgradient convention of ``torch.linalg.norm``), not NaN.  weights (dof,) or (..., dof):
+    positive and finite (a tensor of a's dtype and device, or numbers); their values are
+    checked in one host sync, skipped on 'meta', under torch.func transforms and torch.compile."""
     _group_pair(a, b, "a", "b")
-    sq = _squared_log_distance(a, b, weights)
+    sq = _squared_log_distance(a, b, _weights(weights, type(a), a.as_matrix(), "a"))
     # sqrt on a safe input: d sqrt(s)/ds is infinite at s = 0, and 0 * inf is NaN.
     positive = sq > 0
     safe = torch.where(positive, sq, torch.ones_like(sq))
@@ -54,12 +63,24 @@ def frechet_mean(samples: LieGroup, weights=None, max_iterations: int = 50,
                  tolerance: float | None = None) -> FrechetMean:
     """Frechet mean argmin_y sum_j d(y, y_j)^2 of samples with batch (..., N), by the same
     Gauss-Newton as the curve fits (it is the degree-0 polynomial), and the Frechet variance
-    of (50): Var_F = (1/N) min_y sum_j d(y, y_j)^2."""
+    of (50): Var_F = (1/N) min_y sum_j d(y, y_j)^2.  weights as in ``log_distance``."""
     _checks.group_samples(samples, "samples", 1)
-    n = samples.batch_shape[-1]
-    times = torch.arange(n, dtype=samples.dtype, device=samples.device)
-    fit = fit_polynomial(samples, times, 0, weights=weights, max_iterations=max_iterations,
-                         tolerance=tolerance)
+    _options("gauss_newton", max_iterations, tolerance)
+    w = _weights(weights, type(samples), samples.as_matrix(), "samples")
+    checks.broadcast_batch(samples=samples.batch_shape[:-1], weights=w.shape[:-1])
+    return _frechet_mean(samples, w, max_iterations, tolerance)
+
+
+def _frechet_mean(samples: LieGroup, w: torch.Tensor, max_iterations, tolerance) -> FrechetMean:
+    """frechet_mean with checked weights."""
+    G, n = type(samples), samples.batch_shape[-1]
+    batch = torch.broadcast_shapes(samples.batch_shape[:-1], w.shape[:-1])
+    m = G.matrix_dim
+    Y = samples.as_matrix().detach().expand(batch + (n, m, m))
+    t = torch.arange(n, dtype=samples.dtype, device=samples.device).expand(batch + (n,))
+    fit = _fit_polynomial(G, Y, t, torch.zeros(batch, dtype=Y.dtype, device=Y.device),
+                          w.detach().expand(batch + (G.dof,)), 0, None, "gauss_newton",
+                          max_iterations, tolerance)
     return FrechetMean(fit.origin, fit.cost / n, fit.converged)
 
 
@@ -84,10 +105,11 @@ def r_squared(samples: LieGroup, fitted: LieGroup, weights=None, mean: LieGroup 
             raise TypeError(f"mean must be a {type(samples).__name__}, got {type(mean).__name__}")
         checks.same_device_dtype(samples=samples.as_matrix(), mean=mean.as_matrix())
         checks.broadcast_batch(samples=samples.batch_shape[:-1], mean=mean.batch_shape)
-    sse = _squared_log_distance(fitted, samples, weights).sum(-1)
+    w = _weights(weights, type(samples), samples.as_matrix(), "samples")
+    sse = _squared_log_distance(fitted, samples, w).sum(-1)
     if mean is None:
-        mean = frechet_mean(samples, weights).mean
-    sst = _squared_log_distance(mean.unsqueeze(-1), samples, weights).sum(-1)
+        mean = _frechet_mean(samples, w, 50, None).mean
+    sst = _squared_log_distance(mean.unsqueeze(-1), samples, w).sum(-1)
     # No NaN where sst = 0: both branches on safe inputs, selected without a host sync.
     varies = sst > 0
     r2 = 1.0 - sse / torch.where(varies, sst, torch.ones_like(sst))
