@@ -374,3 +374,16 @@ def test_gdh_chain_makes_no_host_sync(robot):
         ("forward", lambda: chain.forward(q, q)), ("acceleration", lambda: chain.acceleration(q, q, q)),
         ("link_transforms", lambda: chain.link_transforms(q, q)),
     ]])
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_regression_flows_make_no_host_sync(G):
+    """The regression curves' flows and log distance (the fits themselves run the solvers,
+    whose stop tests read values by design)."""
+    tau = _meta(6)
+    a, b = G.random(BATCH, device=META), G.random(BATCH, device=META)
+    _assert_no_host_sync([(f"{G.__name__} {name}", fn) for name, fn in [
+        ("geodesic_flow", lambda: reg.geodesic_flow(G, _meta(*BATCH, G.dof), tau, _meta(G.dof))),
+        ("log_distance", lambda: reg.log_distance(a, b)),
+        ("log_distance(weights)", lambda: reg.log_distance(a, b, _meta(G.dof))),
+    ]])
