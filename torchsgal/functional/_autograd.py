@@ -15,11 +15,17 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
 
 * Forward mode (``jvp``: torch.func.jacfwd, hessian, torch.autograd.forward_ad) uses the same
   Jacobians the other way round: d exp = M (J_r(xi) dxi)^ and dxi = J_r(xi)^-1 vee(M^-1 dM),
-  the transpose of log's backward map, so jacfwd and jacrev agree.  Not inside torch.compile,
-  which cannot trace a Function with a custom jvp: compiled code gets the classes without it.
+  the transpose of log's backward map, so jacfwd and jacrev agree.
 
-Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev,
-torch.compile), and their backward is itself differentiable (higher derivatives).  Large CPU
+* Under torch.compile, exp and log are the closed forms (``exp_impl``/``log_impl``) under
+  autograd, not these Functions: torch 2.13 differentiates a compiled Function's backward
+  with its saved tensors held constant (second derivatives came out silently wrong) and
+  refuses one with a jvp.  The derivatives agree along the group; for log with respect to a
+  matrix perturbed off the group, compiled code gives the closed form's derivative rather
+  than the projection above.
+
+Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev), and
+their backward is itself differentiable (higher derivatives).  Large CPU
 batches run forward and backward in blocks where nothing records them (_blocking).
 """
 from __future__ import annotations
@@ -101,17 +107,24 @@ def make_exp_log(mod):
     for cls, name in ((Exp, "Exp"), (ExpWithJvp, "Exp"), (Log, "Log"), (LogWithJvp, "Log")):
         cls.__name__ = cls.__qualname__ = f"{mod.NAME}{name}"
 
-    # Dynamo (torch 2.13) refuses to trace a Function that defines jvp, so torch.compile gets
-    # the classes without it (forward mode is not available inside compiled code).
+    # Under torch.compile the closed forms are differentiated by autograd instead: torch 2.13
+    # differentiates a compiled Function's backward with its saved tensors held constant, so
+    # second derivatives through it came out silently wrong (tests/test_autograd.py shows it
+    # on a ten-line Function), and Dynamo refuses a Function that defines jvp.  Compiled, the
+    # Function was no faster than autograd through the closed form (bench_compile.py).
     def exp(xi: torch.Tensor) -> torch.Tensor:
         """Group exponential (..., dof) -> (..., n, n); backward through the closed-form J_r."""
         checks.vector(xi, mod.DOF, "xi")
-        return (Exp if is_compiling() else ExpWithJvp).apply(xi)
+        if is_compiling():
+            return mod.exp_impl(xi)
+        return ExpWithJvp.apply(xi)
 
     def log(M: torch.Tensor) -> torch.Tensor:
         """Principal logarithm (..., n, n) -> (..., dof); backward through J_r^-1 (see module)."""
         checks.matrix(M, mod.MATRIX_DIM, "M")
-        return (Log if is_compiling() else LogWithJvp).apply(M)
+        if is_compiling():
+            return mod.log_impl(M)
+        return LogWithJvp.apply(M)
 
     exp.__doc__ = f"{mod.NAME} exponential, custom autograd. " + (exp.__doc__ or "")
     log.__doc__ = f"{mod.NAME} logarithm, custom autograd. " + (log.__doc__ or "")
