@@ -333,3 +333,26 @@ def test_torch_compile_second_derivatives(G):
     compiled = torch.compile(jacrev(jacrev(loss)), fullgraph=True, backend="eager")(x)
     torch.testing.assert_close(compiled, eager, rtol=1e-10, atol=1e-12)
     assert eager.abs().max() > 0.1  # a Hessian with substance
+
+
+def test_first_call_inside_a_nested_transform_does_not_poison_the_constants():
+    """The series constants are cached per dtype and device on first use; a first use inside
+    torch.func.hessian cached functorch wrappers, and every later grad/jacrev/jacfwd/hessian
+    of the process failed with an internal assert ("level <= current_level").  Run in a fresh
+    interpreter so that the first use is the transformed one."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch, torchsgal as ts\n"
+        "from torch.func import grad, hessian, jacrev\n"
+        "f = lambda v: torch.linalg.slogdet(ts.SE3.jr(v))[1]\n"
+        "x = torch.tensor([0.3, -0.2, 0.1, 0.4, 0.5, -0.6], dtype=torch.float64)\n"
+        "H = hessian(f)(x)\n"
+        "g = grad(f)(x)\n"
+        "J = jacrev(f)(x)\n"
+        "assert torch.allclose(g, J) and torch.isfinite(H).all()\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from ._blocking import is_compiling
+from ._blocking import _is_wrapped, is_compiling
 
 # theta below which Taylor series are used (radians).  At theta = 1 the upward recursion
 # to c_6 loses < 1e-13 relative; the Taylor series below converge to 1e-17 in TAYLOR_TERMS.
@@ -86,9 +86,11 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
         consts = (torch.tensor(taylor, dtype=dtype, device=device),
                   torch.tensor(inv_fact, dtype=dtype, device=device))
         # Cache plain tensors only: not the fake or inference tensors of a tracing or
-        # inference-mode first call.
+        # inference-mode first call, nor the wrappers of a first call inside a torch.func
+        # transform (a cached wrapper broke every later transform of the process).
         if not is_compiling() and all(
-                type(t) is torch.Tensor and not t.is_inference() for t in consts):
+                type(t) is torch.Tensor and not t.is_inference()
+                and (_is_wrapped is None or not _is_wrapped(t)) for t in consts):
             _CONSTANTS[key] = consts
     return consts
 
