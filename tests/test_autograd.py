@@ -356,3 +356,23 @@ def test_first_call_inside_a_nested_transform_does_not_poison_the_constants():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("G", [ts.SO3, ts.SE23, ts.Sim3], ids=["SO3", "SE23", "Sim3"])
+def test_forward_over_forward_second_derivatives(G):
+    """jacfwd(jacfwd(.)) through exp and log equals the other orders and the plain closed
+    forms.  Through the custom Functions torch 2.13 returned wrong second derivatives there
+    (max |jacfwd(jacfwd(SO3.exp))| = 0 against 0.91; pytorch/pytorch#197867)."""
+    from torch.func import jacfwd, jacrev
+
+    f = G._f
+    gen = torch.Generator().manual_seed(5)
+    A = f.exp_impl(0.7 * torch.randn(G.dof, dtype=torch.float64, generator=gen))
+    x = 0.5 * torch.randn(G.dof, dtype=torch.float64, generator=gen)
+    for fn, oracle in ((lambda v: A @ f.exp(v), lambda v: A @ f.exp_impl(v)),
+                       (lambda v: f.log(A @ f.exp_impl(v)), lambda v: f.log_impl(A @ f.exp_impl(v)))):
+        want = jacrev(jacrev(oracle))(x)
+        assert want.abs().max() > 0.05  # second derivatives with substance
+        for name, H in (("fwd(fwd)", jacfwd(jacfwd(fn))(x)), ("fwd(rev)", jacfwd(jacrev(fn))(x)),
+                        ("rev(fwd)", jacrev(jacfwd(fn))(x))):
+            torch.testing.assert_close(H, want, rtol=1e-10, atol=1e-12, msg=name)

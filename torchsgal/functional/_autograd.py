@@ -17,6 +17,10 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
   Jacobians the other way round: d exp = M (J_r(xi) dxi)^ and dxi = J_r(xi)^-1 vee(M^-1 dM),
   the transpose of log's backward map, so jacfwd and jacrev agree.
 
+* Inside two or more forward-mode transforms (jacfwd(jacfwd(f))), where torch 2.13 gets a
+  Function's higher derivatives wrong (pytorch/pytorch#197867), exp and log are the closed
+  forms under autograd too (jacfwd(jacrev), jacrev(jacfwd) and hessian keep the Functions).
+
 * Under torch.compile, exp and log are the closed forms (``exp_impl``/``log_impl``) under
   autograd, not these Functions: torch 2.13 differentiates a compiled Function's backward
   with its saved tensors held constant (second derivatives came out silently wrong) and
@@ -33,7 +37,19 @@ from __future__ import annotations
 import torch
 
 from . import checks
-from ._blocking import is_compiling, run_blocked
+from ._blocking import _is_wrapped, is_compiling, run_blocked
+
+
+def _nested_forward_mode(t: torch.Tensor) -> bool:
+    """Whether ``t`` is inside two or more torch.func forward-mode transforms (jacfwd(jacfwd)),
+    where torch 2.13 returns wrong higher derivatives through an autograd.Function
+    (pytorch/pytorch#197867)."""
+    if _is_wrapped is None or not _is_wrapped(t):
+        return False
+    from torch._C._functorch import TransformType
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    return sum(i.key() == TransformType.Jvp for i in retrieve_all_functorch_interpreters()) >= 2
 
 
 def make_exp_log(mod):
@@ -115,14 +131,14 @@ def make_exp_log(mod):
     def exp(xi: torch.Tensor) -> torch.Tensor:
         """Group exponential (..., dof) -> (..., n, n); backward through the closed-form J_r."""
         checks.vector(xi, mod.DOF, "xi")
-        if is_compiling():
+        if is_compiling() or _nested_forward_mode(xi):
             return mod.exp_impl(xi)
         return ExpWithJvp.apply(xi)
 
     def log(M: torch.Tensor) -> torch.Tensor:
         """Principal logarithm (..., n, n) -> (..., dof); backward through J_r^-1 (see module)."""
         checks.matrix(M, mod.MATRIX_DIM, "M")
-        if is_compiling():
+        if is_compiling() or _nested_forward_mode(M):
             return mod.log_impl(M)
         return LogWithJvp.apply(M)
 
