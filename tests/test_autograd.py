@@ -376,3 +376,18 @@ def test_forward_over_forward_second_derivatives(G):
         for name, H in (("fwd(fwd)", jacfwd(jacfwd(fn))(x)), ("fwd(rev)", jacfwd(jacrev(fn))(x)),
                         ("rev(fwd)", jacrev(jacfwd(fn))(x))):
             torch.testing.assert_close(H, want, rtol=1e-10, atol=1e-12, msg=name)
+
+
+def test_torch_compile_of_vmap_jacrev_and_hessian():
+    """torch.compile(vmap(jacrev(f))) and torch.compile(hessian(f)) through exp and log: they
+    raised "You tried to vmap over ApplyTemplate, but it does not have vmap support" while
+    compiled code ran the custom Functions."""
+    from torch.func import hessian, jacrev, vmap
+
+    f = lambda v: ts.SO3.exp(v).log().square().sum()  # noqa: E731  (= |v|^2 for |v| < pi)
+    x = sample_tangent(ts.SO3, (4,), torch.float64, seed=3)
+    torch._dynamo.reset()
+    got = torch.compile(vmap(jacrev(f)), backend="eager", fullgraph=True)(x)
+    torch.testing.assert_close(got, 2 * x, rtol=1e-12, atol=1e-12)
+    H = torch.compile(hessian(f), backend="eager", fullgraph=True)(x[0])
+    torch.testing.assert_close(H, 2 * torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-12)
