@@ -25,6 +25,7 @@ import pytest
 import torch
 
 import torchsgal as ts
+from host_syncs import HostSyncs
 from torchsgal import imu
 from torchsgal import kinematics as kin
 from torchsgal import regression as reg
@@ -179,74 +180,7 @@ def test_regression_flows_on_device(G):
 # Meta raises on value reads, but a host-to-device copy (torch.tensor(list, device=d), a CPU
 # constant moved with .to(d)) or a linalg error check passes on meta silently, where on CUDA it
 # stalls the host.  This sniffer sees them at torch's dispatch level and fails the hot paths.
-_ATEN = torch.ops.aten
-_SYNC_OPS = {
-    _ATEN._local_scalar_dense.default: "value read (item/bool/float)",
-    _ATEN._linalg_check_errors.default: "linalg error check (cholesky/inv/solve)",
-    _ATEN._linalg_eigh.default: "eigh",
-    _ATEN.nonzero.default: "data-dependent shape (nonzero, mask indexing)",
-    _ATEN.masked_select.default: "data-dependent shape (masked_select)",
-    _ATEN.equal.default: "torch.equal",
-}
-
-
-def _caller() -> str:
-    """The innermost torchsgal frame of the current stack, as 'path:line'."""
-    import traceback
-
-    frames = [f for f in traceback.extract_stack() if "torchsgal" in f.filename.replace("\\", "/")
-              and "/tests/" not in f.filename.replace("\\", "/")]
-    return f"{frames[-1].filename}:{frames[-1].lineno}" if frames else "?"
-
-
-class _HostSyncs:
-    """Context manager: ``events`` lists (what, where) for every operation that synchronises the
-    host on CUDA: value reads, linalg error checks, eigh, data-dependent shapes, host-to-device
-    copies (aten _to_copy/copy_ from a CPU tensor to another device, of any dimension), and
-    torch.tensor/as_tensor/asarray of host data (lists, numbers, arrays) onto another device."""
-
-    def __enter__(self):
-        from torch.overrides import TorchFunctionMode
-        from torch.utils._python_dispatch import TorchDispatchMode
-
-        events = self.events = []
-
-        class Dispatch(TorchDispatchMode):
-            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-                kwargs = kwargs or {}
-                why = _SYNC_OPS.get(func)
-                if func is _ATEN._to_copy.default:
-                    dst = kwargs.get("device")
-                    if dst is not None and torch.device(dst).type != "cpu" and args[0].device.type == "cpu":
-                        why = "host-to-device copy (.to)"
-                elif func is _ATEN.copy_.default and args[0].device.type != "cpu" and args[1].device.type == "cpu":
-                    why = "host-to-device copy (copy_)"
-                if why:
-                    events.append((why, _caller()))
-                return func(*args, **kwargs)
-
-        class Factories(TorchFunctionMode):
-            def __torch_function__(self, func, types, args=(), kwargs=None):
-                kwargs = kwargs or {}
-                device = data = None
-                if func in (torch.tensor, torch.as_tensor, torch.asarray):
-                    device, data = kwargs.get("device"), args[0] if args else kwargs.get("data")
-                elif func is torch.Tensor.new_tensor:  # self's device unless given
-                    device, data = kwargs.get("device", args[0].device), args[1] if len(args) > 1 else kwargs.get("data")
-                if (device is not None and torch.device(device).type != "cpu"
-                        and not isinstance(data, torch.Tensor)):
-                    events.append((f"host-to-device copy ({func.__name__} of host data)", _caller()))
-                return func(*args, **kwargs)
-
-        self._modes = [Factories(), Dispatch()]
-        for mode in self._modes:
-            mode.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        for mode in reversed(self._modes):
-            mode.__exit__(*exc)
-        return False
+# The recorder: tests/host_syncs.py (shared with test_uncertainty's read counts).
 
 
 def _assert_no_host_sync(cases, dtype=torch.float32) -> None:
@@ -258,7 +192,7 @@ def _assert_no_host_sync(cases, dtype=torch.float32) -> None:
     for order in range(1, numerics.MAX_ORDER + 1):
         numerics.series_coefficients(_meta(1, dtype=dtype), order)
     for label, fn in cases:
-        with _HostSyncs() as sniffer:
+        with HostSyncs() as sniffer:
             fn()
         assert not sniffer.events, f"{label}: host syncs {sniffer.events}"
 
@@ -267,6 +201,7 @@ def test_host_sync_sniffer_catches_syncs():
     """The sniffer's premise: each kind of sync it looks for is seen, on meta too."""
     cases = [
         ("value read", lambda: _meta(3).sum().item()),  # raises on meta after being seen
+        ("value read (tolist)", lambda: torch.ones(3).tolist()),  # not dispatched on CPU
         ("linalg error check", lambda: torch.linalg.cholesky(_meta(3, 3))),
         ("host-to-device copy (tensor", lambda: torch.tensor([1.0, 2.0], device=META)),
         ("host-to-device copy (as_tensor", lambda: torch.as_tensor(2.0, device=META)),
@@ -276,13 +211,13 @@ def test_host_sync_sniffer_catches_syncs():
         ("host-to-device copy (copy_)", lambda: _meta(3).__setitem__(0, torch.tensor(1.0))),
     ]
     for what, fn in cases:
-        with _HostSyncs() as sniffer:
+        with HostSyncs() as sniffer:
             try:
                 fn()
             except (RuntimeError, NotImplementedError):
                 pass
         assert any(w.startswith(what) for w, _ in sniffer.events), (what, sniffer.events)
-    with _HostSyncs() as sniffer:  # what is not a sync: fills, scalars, factories on the device
+    with HostSyncs() as sniffer:  # what is not a sync: fills, scalars, factories on the device
         x = torch.zeros(3, device=META)
         x[0:2] = 1.0
         _check(x * 2.0 + torch.tensor(1.0) + torch.full((3,), 0.5, device=META), (3,))

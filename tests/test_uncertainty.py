@@ -14,6 +14,7 @@ import torch
 
 import torchsgal as ts
 from torchsgal.uncertainty import ConcentratedGaussian
+from host_syncs import HostSyncs
 
 IDS = lambda g: g.__name__  # noqa: E731
 N_MC = 20000
@@ -703,41 +704,6 @@ def test_event_fusion_covariance_large_innovation(time_row):
     torch.testing.assert_close(post.covariance, expected, rtol=0, atol=1e-10)
 
 
-class _HostReads:
-    """Counts the reads that are device-to-host syncs on CUDA, on CPU: linalg error checks
-    (torch.linalg.inv/solve/cholesky), eigensolvers, .item() and Tensor.tolist/item/bool/float."""
-
-    def __enter__(self):
-        from torch.overrides import TorchFunctionMode
-        from torch.utils._python_dispatch import TorchDispatchMode
-
-        aten = torch.ops.aten
-        ops = {aten._linalg_check_errors.default, aten._local_scalar_dense.default,
-               aten._linalg_eigh.default}
-        methods = ("tolist", "item", "__bool__", "__float__", "__int__")
-        counter = self
-
-        class Ops(TorchDispatchMode):
-            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-                counter.n += func in ops
-                return func(*args, **(kwargs or {}))
-
-        class Methods(TorchFunctionMode):
-            def __torch_function__(self, func, types, args=(), kwargs=None):
-                counter.n += getattr(func, "__name__", "") in methods
-                return func(*args, **(kwargs or {}))
-
-        self.n = 0
-        self.modes = [Ops(), Methods()]
-        for m in self.modes:
-            m.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        for m in reversed(self.modes):
-            m.__exit__(*exc)
-
-
 def test_host_reads():
     """The validation reads its measures once (it read three or four times); propagation of a
     left Gaussian reads nothing (it inverted Ad with linalg.inv, an error check per call); fuse
@@ -762,13 +728,13 @@ def test_host_reads():
         "log_prob": (lambda: left.log_prob(g), 1),
     }
     for name, (fn, expected) in cases.items():
-        with _HostReads() as reads:
+        with HostSyncs() as reads:
             fn()
-        assert reads.n == expected, f"{name}: {reads.n} host reads, expected {expected}"
+        assert len(reads.events) == expected, f"{name}: host reads {reads.events}, expected {expected}"
     # fuse with tol > 0: one read per iteration (the step test) and one at the end
-    with _HostReads() as reads:
+    with HostSyncs() as reads:
         left.fuse(other, iterations=3, tol=1e-300)
-    assert reads.n == 4
+    assert len(reads.events) == 4, reads.events
 
 
 def test_singular_covariances_raise_in_fusion():
