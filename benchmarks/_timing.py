@@ -174,6 +174,31 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def resolve_device(name: str) -> torch.device:
+    """The ``--device`` of a benchmark script: "cpu" or "cuda[:i]"; exits with a clear message
+    when it is malformed, of another type, or CUDA is asked for and not available."""
+    import sys
+
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError) as e:
+        sys.exit(f"--device must be 'cpu' or 'cuda[:i]', got {name!r} ({e})")
+    if device.type not in ("cpu", "cuda"):
+        sys.exit(f"--device must be 'cpu' or 'cuda[:i]', got {name!r}")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            sys.exit(f"--device {name}: CUDA requested but torch.cuda.is_available() is False "
+                     f"(torch {torch.__version__}, built for CUDA {torch.version.cuda})")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            sys.exit(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s) visible")
+    return device
+
+
+def device_name(device: torch.device) -> str:
+    """torch.cuda.get_device_name for a CUDA device, else the CPU model."""
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model()
+
+
 def dist_version(name: str) -> str | None:
     """Installed version of a distribution, or None."""
     try:
@@ -229,16 +254,22 @@ def environment(benchmark: str, argv: list[str] | None = None, **extra) -> dict:
     return env
 
 
-def interleaved(cases: dict, *, target_s: float, min_rounds: int, max_rounds: int, warmup: int = 2):
+def interleaved(cases: dict, *, target_s: float, min_rounds: int, max_rounds: int, warmup: int = 2,
+                device: torch.device | str | None = None):
     """Round-robin timing of ``cases`` (name -> zero-arg callable): every round calls each case
     once, in an order rotated by one per round, so that slow drifts of the machine hit all cases
-    alike.  Untimed warm-up calls first; GC off while timing.
+    alike.  Untimed warm-up calls first; GC off while timing.  On CUDA (``device``) the device is
+    synchronised before starting and before stopping the clock of every call, as in ``measure``
+    (a case that runs on the CPU, e.g. a C++ peer, then only pays a no-op synchronise).
 
     Returns (per-case dict of median/min/max seconds and rounds, per-round times, foreign share)."""
     names = list(cases)
+    cuda = device is not None and torch.device(device).type == "cuda"
     for name in names:
         for _ in range(warmup):
             cases[name]()
+    if cuda:
+        torch.cuda.synchronize(device)
     times = {k: [] for k in names}
     gc.collect()
     gc_was = gc.isenabled()
@@ -249,8 +280,12 @@ def interleaved(cases: dict, *, target_s: float, min_rounds: int, max_rounds: in
             r = 0
             while r < min_rounds or (time.perf_counter() - t_begin < target_s and r < max_rounds):
                 for name in names[r % len(names):] + names[: r % len(names)]:
+                    if cuda:
+                        torch.cuda.synchronize(device)
                     t0 = time.perf_counter()
                     cases[name]()
+                    if cuda:
+                        torch.cuda.synchronize(device)
                     times[name].append(time.perf_counter() - t0)
                 r += 1
     finally:
