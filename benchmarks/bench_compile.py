@@ -14,9 +14,15 @@ script times, per batch size and dtype (medians, ns per element):
 
 Compilation time is reported separately and excluded from the timings.
 
+``--device cuda[:i]`` runs every case (inputs, compiled code, the pypose peer) on that GPU, with
+the device synchronised around every timed sample; it also records each case's CUDA peak
+memory (torch.cuda.max_memory_allocated over one call, minus what was allocated before) and
+writes ``compile_cuda.{json,md}`` instead of ``compile_cpu.{json,md}``.
+
 Usage::
 
     python benchmarks/bench_compile.py [--sizes 1000 100000 1000000] [--threads N]
+    python benchmarks/bench_compile.py --device cuda --sizes 1000 100000 1000000
 """
 from __future__ import annotations
 
@@ -31,7 +37,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _timing import cpu_model, measure  # noqa: E402
+from _timing import cpu_model, device_name, fmt_bytes, measure, resolve_device, synchronize  # noqa: E402
 
 from torchsgal.functional import sgal3 as F  # noqa: E402
 
@@ -47,6 +53,16 @@ def fwd_bwd(exp, log):
     return step
 
 
+def cuda_peak_bytes(fn, device) -> int:
+    """Peak CUDA memory of one call of ``fn`` above what was allocated before it."""
+    synchronize(device)
+    torch.cuda.reset_peak_memory_stats(device)
+    base = torch.cuda.memory_allocated(device)
+    fn()
+    synchronize(device)
+    return torch.cuda.max_memory_allocated(device) - base
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("Usage::")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 100000, 1000000])
@@ -54,13 +70,18 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--target-s", type=float, default=0.5)
     ap.add_argument("--out", default=str(HERE / "results"))
+    ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (default cpu)")
     args = ap.parse_args(argv)
+    device = resolve_device(args.device)
+    cuda = device.type == "cuda"
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
         import pypose as pp
-    except ImportError:
+    except ImportError as e:
         pp = None
+        pp_missing = f"pypose not importable ({e}): its peer case is skipped"
+        print(f"NOTE: {pp_missing}", file=sys.stderr)
 
     exp_c = torch.compile(F.exp)
     mexp_c = torch.compile(torch.linalg.matrix_exp)
@@ -71,7 +92,8 @@ def main(argv=None) -> int:
     for dt_name in args.dtypes:
         dtype = getattr(torch, dt_name)
         for n in args.sizes:
-            xi = torch.randn(n, 10, generator=gen, dtype=torch.float64).to(dtype)
+            # generated on the CPU, so that the inputs are the same on every device
+            xi = torch.randn(n, 10, generator=gen, dtype=torch.float64).to(dtype=dtype, device=device)
             X = F.hat(xi)
             cases = {"exp eager": lambda: F.exp(xi), "exp compiled": lambda: exp_c(xi),
                      "matrix_exp eager": lambda: torch.linalg.matrix_exp(X),
@@ -85,15 +107,19 @@ def main(argv=None) -> int:
                 cases["pypose SE3 Exp eager"] = lambda: lie.Exp()
             for name, fn in cases.items():
                 if "compiled" in name:
+                    synchronize(device)
                     t0 = time.perf_counter()
                     fn()
+                    synchronize(device)
                     compile_s[f"{name} {dt_name} {n}"] = time.perf_counter() - t0
-                m = measure(fn, target_s=args.target_s)
+                m = measure(fn, target_s=args.target_s, device=device)
                 rows.append({"case": name, "dtype": dt_name, "n": n,
                              "ns_per_elem": 1e9 * m["median_s"] / n, "foreign_cpu": m["foreign_cpu"]})
+                if cuda:
+                    rows[-1]["cuda_peak_bytes"] = cuda_peak_bytes(fn, device)
                 print(f"{dt_name} {n:>8} {name:34s} {rows[-1]['ns_per_elem']:10.1f} ns", file=sys.stderr)
     # Consistency: compiled and eager agree.
-    xi = torch.randn(1000, 10, dtype=torch.float64)
+    xi = torch.randn(1000, 10, dtype=torch.float64, device=device)
     agree = float((exp_c(xi) - F.exp(xi)).abs().max())
 
     def get(case, dt, n):
@@ -109,9 +135,11 @@ def main(argv=None) -> int:
                   ("custom vs plain autograd, eager", "exp+log fwd+bwd plain eager",
                    "exp+log fwd+bwd custom eager")]
     cols = [(dt, n) for dt in args.dtypes for n in args.sizes]
-    md = [f"# SGal(3) under torch.compile ({cpu_model()}, torch {torch.__version__}, "
+    where = f"{device_name(device)} ({device}), host {cpu_model()}" if cuda else cpu_model()
+    md = [f"# SGal(3) under torch.compile ({where}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, {_dt.date.today()})", "",
           f"Compiled and eager exp agree to {agree:.1e} (float64).", "",
+          *([f"NOTE: {pp_missing}.", ""] if pp is None else []),
           "ns per element (medians):", "",
           "| case | " + " | ".join(f"{dt} {n:.0e}" for dt, n in cols) + " |",
           "|---|" + "---:|" * len(cols)]
@@ -119,16 +147,29 @@ def main(argv=None) -> int:
         md.append(f"| {case} | " + " | ".join(f"{get(case, dt, n):,.1f}" for dt, n in cols) + " |")
     md += ["", "Ratios (peer / ours):", "", "| ratio | " + " | ".join(f"{dt} {n:.0e}" for dt, n in cols)
            + " |", "|---|" + "---:|" * len(cols)]
+    present = {r["case"] for r in rows}
     for label, peer, ours in ratio_rows:
+        if peer not in present:  # a peer that did not run (pypose not importable)
+            continue
         md.append(f"| {label} | " + " | ".join(f"{get(peer, dt, n) / get(ours, dt, n):.1f}"
                                                for dt, n in cols) + " |")
+    if cuda:
+        md += ["", "CUDA peak memory of one call (max_memory_allocated minus the allocation before):", "",
+               "| case | " + " | ".join(f"{dt} {n:.0e}" for dt, n in cols) + " |", "|---|" + "---:|" * len(cols)]
+        peaks = {(r["case"], r["dtype"], r["n"]): r["cuda_peak_bytes"] for r in rows}
+        for case in dict.fromkeys(r["case"] for r in rows):
+            md.append(f"| {case} | " + " | ".join(fmt_bytes(peaks.get((case, dt, n))) for dt, n in cols) + " |")
     md += ["", "Compilation (first call) times: " + ", ".join(
         f"{k}: {v:.0f} s" for k, v in compile_s.items() if v > 1), ""]
+    payload = {"rows": rows, "compile_s": compile_s, "agree": agree, "threads": torch.get_num_threads(),
+               "torch": torch.__version__}
+    if cuda:
+        payload.update(device=str(device), device_name=device_name(device), host_cpu=cpu_model(),
+                       torch_cuda=torch.version.cuda)
+    stem = f"compile_{device.type}"
     os.makedirs(args.out, exist_ok=True)
-    Path(args.out, "compile_cpu.md").write_text("\n".join(md))
-    Path(args.out, "compile_cpu.json").write_text(json.dumps(
-        {"rows": rows, "compile_s": compile_s, "agree": agree, "threads": torch.get_num_threads(),
-         "torch": torch.__version__}, indent=2))
+    Path(args.out, f"{stem}.md").write_text("\n".join(md))
+    Path(args.out, f"{stem}.json").write_text(json.dumps(payload, indent=2))
     print("\n".join(md))
     return 0
 
