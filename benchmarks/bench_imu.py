@@ -34,6 +34,14 @@ Usage::
     python benchmarks/bench_imu.py                 # full run, writes benchmarks/results/imu_cpu.*
     python benchmarks/bench_imu.py --quick         # 100 windows, few rounds, no files
     python benchmarks/bench_imu.py --threads 1 --wait-idle 60
+    python benchmarks/bench_imu.py --device cuda   # writes benchmarks/results/imu_cuda.*
+
+Devices: ``--device cuda[:i]`` runs torchsgal and pypose on that GPU (the device synchronised
+around every timed call); GTSAM stays on the CPU (its C++ loop is the peer); the result files
+are ``imu_cuda.*``.  On CUDA torchsgal takes its plain batched path (``_integrate``): the in-place,
+blocked fast path (``_integrate_fast``) is CPU-only.  The accuracy of torchsgal is then measured
+on the device too; pypose's (``peers.pypose_predict``) and GTSAM's on the CPU.  A peer that is not
+importable (gtsam, pypose) is left out with a note; torchsgal is timed alone if need be.
 """
 from __future__ import annotations
 
@@ -48,7 +56,8 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import dist_version, environment, interleaved, loadavg, paired_ratio, wait_for_idle  # noqa: E402
+from _timing import (cpu_model, device_name, dist_version, environment, interleaved, loadavg,  # noqa: E402
+                     paired_ratio, resolve_device, wait_for_idle)
 
 from torchsgal.imu import gravity_vector, preintegrate  # noqa: E402
 from torchsgal.imu import peers  # noqa: E402
@@ -70,13 +79,32 @@ def build(windows: int, samples: int, dt: float):
     return traj, g, t0, gyro, acc, h
 
 
-def accuracy(traj, g, t0, gyro, acc, h) -> dict:
+def import_peers() -> tuple[dict, dict]:
+    """({"pypose": module or None, "gtsam": module or None}, {name: why not importable})."""
+    mods, missing = {}, {}
+    for name in ("pypose", "gtsam"):
+        try:
+            mods[name] = __import__(name)
+        except ImportError as e:
+            mods[name], missing[name] = None, f"{type(e).__name__}: {e}"
+            log(f"NOTE: {name} is not importable ({missing[name]}): its peer cases are skipped")
+    return mods, missing
+
+
+def accuracy(traj, g, t0, gyro, acc, h, device, mods) -> dict:
     X0, X1 = traj.state(t0), traj.state(t0 + h.sum(-1))
-    preds = {
-        "torchsgal": preintegrate(gyro, acc, h, covariance=False, bias_jacobian=False).predict(X0, g),
-        "pypose": peers.pypose_predict(gyro, acc, h, X0, "z_up", G),
-        "GTSAM": peers.gtsam_predict(peers.gtsam_preintegrate(gyro, acc, h, peers.gtsam_params("z_up", G)), X0),
-    }
+    if device.type == "cpu":
+        ours = preintegrate(gyro, acc, h, covariance=False, bias_jacobian=False).predict(X0, g)
+    else:
+        d = {"device": device}
+        ours = preintegrate(gyro.to(**d), acc.to(**d), h.to(**d), covariance=False,
+                            bias_jacobian=False).predict(X0.to(**d), g.to(**d)).cpu()
+    preds = {"torchsgal": ours}
+    if mods["pypose"] is not None:
+        preds["pypose"] = peers.pypose_predict(gyro, acc, h, X0, "z_up", G)
+    if mods["gtsam"] is not None:
+        preds["GTSAM"] = peers.gtsam_predict(
+            peers.gtsam_preintegrate(gyro, acc, h, peers.gtsam_params("z_up", G)), X0)
     out = {}
     for name, P in preds.items():
         pos = (P.position() - X1.position()).norm(dim=-1)
@@ -88,16 +116,16 @@ def accuracy(traj, g, t0, gyro, acc, h) -> dict:
     return out
 
 
-def run(args) -> dict:
-    import gtsam
-    import pypose as pp
+def run(args, device, mods) -> dict:
+    gtsam, pp = mods["gtsam"], mods["pypose"]
 
     traj, g, t0, gyro64, acc64, h64 = build(args.windows, args.samples, args.dt)
     log("accuracy on the benchmark batch ...")
-    acc_res = accuracy(traj, g, t0, gyro64, acc64, h64)
-    params = peers.gtsam_params("z_up", G, SIGMA_G, SIGMA_A)
-    g_np, a_np, h_np = gyro64.numpy(), acc64.numpy(), h64.numpy()
-    bias = gtsam.imuBias.ConstantBias()
+    acc_res = accuracy(traj, g, t0, gyro64, acc64, h64, device, mods)
+    g_np, a_np, h_np = gyro64.numpy(), acc64.numpy(), h64.numpy()  # GTSAM's input, on the CPU
+    if gtsam is not None:
+        params = peers.gtsam_params("z_up", G, SIGMA_G, SIGMA_A)
+        bias = gtsam.imuBias.ConstantBias()
 
     def gtsam_loop():
         out = []
@@ -111,38 +139,46 @@ def run(args) -> dict:
     sections = {}
     for dtype in [getattr(torch, d.strip()) for d in args.dtypes.split(",")]:
         name = str(dtype).replace("torch.", "")
-        gyro, acc, h = gyro64.to(dtype), acc64.to(dtype), h64.to(dtype)
+        gyro, acc, h = (x.to(dtype=dtype, device=device) for x in (gyro64, acc64, h64))
         hh = h.unsqueeze(-1)
-        pp_cov = pp.module.IMUPreintegrator(gravity=G, gyro_cov=SIGMA_G**2 / args.dt, acc_cov=SIGMA_A**2 / args.dt,
-                                            prop_cov=True, reset=True).to(dtype)
-        pp_inc = pp.module.IMUPreintegrator(gravity=G, prop_cov=False, reset=True).to(dtype)
         full = {
             "torchsgal": lambda: preintegrate(gyro, acc, h, gyro_noise_density=SIGMA_G, acc_noise_density=SIGMA_A),
-            "pypose": lambda: pp_cov(hh, gyro, acc),
-            "GTSAM": gtsam_loop,
         }
         inc = {
             "torchsgal": lambda: preintegrate(gyro, acc, h, covariance=False, bias_jacobian=False),
-            "pypose": lambda: pp_inc(hh, gyro, acc),
         }
+        if pp is not None:
+            pp_cov = pp.module.IMUPreintegrator(gravity=G, gyro_cov=SIGMA_G**2 / args.dt,
+                                                acc_cov=SIGMA_A**2 / args.dt, prop_cov=True,
+                                                reset=True).to(dtype=dtype, device=device)
+            pp_inc = pp.module.IMUPreintegrator(gravity=G, prop_cov=False,
+                                                reset=True).to(dtype=dtype, device=device)
+            full["pypose"] = lambda: pp_cov(hh, gyro, acc)
+            inc["pypose"] = lambda: pp_inc(hh, gyro, acc)
+        if gtsam is not None:
+            full["GTSAM"] = gtsam_loop
         with torch.no_grad():
             log(f"[{name}] (a) increment + covariance ...")
             st_a, t_a, load_a = interleaved(full, target_s=args.target, min_rounds=args.min_rounds,
-                                            max_rounds=args.max_rounds)
+                                            max_rounds=args.max_rounds, device=device)
             log(f"[{name}] (b) increment only ...")
             st_b, t_b, load_b = interleaved(inc, target_s=args.target / 2, min_rounds=args.min_rounds,
-                                            max_rounds=args.max_rounds)
-        gtsam_median = st_a["GTSAM"]["median_s"]
+                                            max_rounds=args.max_rounds, device=device)
+        ratios = {}
+        if pp is not None:
+            ratios["(a) pypose / torchsgal"] = paired_ratio(t_a, "pypose", "torchsgal")
+        if gtsam is not None:
+            ratios["(a) GTSAM / torchsgal"] = paired_ratio(t_a, "GTSAM", "torchsgal")
+        if pp is not None:
+            ratios["(b) pypose / torchsgal"] = paired_ratio(t_b, "pypose", "torchsgal")
+        if gtsam is not None:
+            ratios["(b) GTSAM (a) median / torchsgal (b) median"] = (
+                st_a["GTSAM"]["median_s"] / st_b["torchsgal"]["median_s"])
         sections[name] = {
             "increment_covariance": st_a,
             "increment_only": st_b,
             "foreign_cpu": {"increment_covariance": load_a, "increment_only": load_b},
-            "ratios": {
-                "(a) pypose / torchsgal": paired_ratio(t_a, "pypose", "torchsgal"),
-                "(a) GTSAM / torchsgal": paired_ratio(t_a, "GTSAM", "torchsgal"),
-                "(b) pypose / torchsgal": paired_ratio(t_b, "pypose", "torchsgal"),
-                "(b) GTSAM (a) median / torchsgal (b) median": gtsam_median / st_b["torchsgal"]["median_s"],
-            },
+            "ratios": ratios,
         }
     return {"accuracy": acc_res, "timing": sections}
 
@@ -156,12 +192,14 @@ def _pct(x) -> str:
 
 
 def tables(res: dict, args) -> list[str]:
+    label = lambda m: args.labels.get(m, m)  # noqa: E731  (where each method ran, on CUDA)
+    acc_label = lambda m: args.accuracy_labels.get(m, m)  # noqa: E731
     out = [f"## accuracy at equal dt ({args.windows:,} windows of {args.samples} samples, dt = {args.dt} s, "
            "midpoint samples, float64)", "",
            "| method | position median [m] | position max [m] | velocity max [m/s] | rotation max [rad] |",
            "|---|---:|---:|---:|---:|"]
     for m, a in res["accuracy"].items():
-        out.append(f"| {m} | {a['pos_median_m']:.2e} | {a['pos_max_m']:.2e} | {a['vel_max_mps']:.2e} "
+        out.append(f"| {acc_label(m)} | {a['pos_median_m']:.2e} | {a['pos_max_m']:.2e} | {a['vel_max_mps']:.2e} "
                    f"| {a['rot_max_rad']:.2e} |")
     out.append("")
     for dtype, sec in res["timing"].items():
@@ -171,31 +209,54 @@ def tables(res: dict, args) -> list[str]:
                     "| method | ms / batch (median) | min–max ms | µs / sample | rounds |", "|---|---:|---:|---:|---:|"]
             n = args.windows * args.samples
             for m, v in sec[key].items():
-                out.append(f"| {m} | {fmt_ms(v['median_s'])} | {fmt_ms(v['min_s'])}–{fmt_ms(v['max_s'])} "
+                out.append(f"| {label(m)} | {fmt_ms(v['median_s'])} | {fmt_ms(v['min_s'])}–{fmt_ms(v['max_s'])} "
                            f"| {v['median_s'] / n * 1e6:.3f} | {v['rounds']} |")
             out.append("")
         out += [f"### {dtype}: speed-ups of torchsgal (> 1: torchsgal faster)", "", "| ratio | value |", "|---|---:|"]
         out += [f"| {k} | {v:.2f} |" for k, v in sec["ratios"].items()]
+        if not sec["ratios"]:
+            out.append("| (no peer available) | – |")
         out.append("")
     return out
 
 
-def verdict(res: dict) -> list[str]:
+def verdict(res: dict, missing: dict) -> list[str]:
+    """The targets, for the peers that ran; ``missing`` (peer module -> why) names the others."""
     lines = []
     acc = res["accuracy"]
-    better = all(acc["torchsgal"]["pos_max_m"] < acc[m]["pos_max_m"] for m in ("pypose", "GTSAM"))
-    lines.append(f"- accuracy: torchsgal's worst position error {acc['torchsgal']['pos_max_m']:.2e} m vs "
-                 f"pypose {acc['pypose']['pos_max_m']:.2e} m, GTSAM {acc['GTSAM']['pos_max_m']:.2e} m "
-                 f"(better than both: {'met' if better else 'NOT met'})")
+    others = [m for m in ("pypose", "GTSAM") if m in acc]
+    worst = f"- accuracy: torchsgal's worst position error {acc['torchsgal']['pos_max_m']:.2e} m"
+    if others:
+        better = all(acc["torchsgal"]["pos_max_m"] < acc[m]["pos_max_m"] for m in others)
+        lines.append(worst + " vs " + ", ".join(f"{m} {acc[m]['pos_max_m']:.2e} m" for m in others)
+                     + f" (better than {'both' if len(others) == 2 else others[0]}: "
+                     f"{'met' if better else 'NOT met'})")
+    else:
+        lines.append(worst + " (no peer available to compare)")
     for dtype, sec in res["timing"].items():
         r = sec["ratios"]
-        lines.append(
-            f"- {dtype}: (a) {r['(a) pypose / torchsgal']:.2f}x pypose, {r['(a) GTSAM / torchsgal']:.2f}x GTSAM; "
-            f"(b) {r['(b) pypose / torchsgal']:.2f}x pypose, "
-            f"{r['(b) GTSAM (a) median / torchsgal (b) median']:.2f}x GTSAM. Targets: >= 1x pypose "
-            f"({'met' if min(r['(a) pypose / torchsgal'], r['(b) pypose / torchsgal']) >= 1 else 'NOT met'}), "
-            f">= 10x GTSAM ((a) {'met' if r['(a) GTSAM / torchsgal'] >= 10 else 'NOT met'}, "
-            f"(b) {'met' if r['(b) GTSAM (a) median / torchsgal (b) median'] >= 10 else 'NOT met'})")
+        a_parts, b_parts, targets = [], [], []
+        if "(a) pypose / torchsgal" in r:
+            a_parts.append(f"{r['(a) pypose / torchsgal']:.2f}x pypose")
+        if "(a) GTSAM / torchsgal" in r:
+            a_parts.append(f"{r['(a) GTSAM / torchsgal']:.2f}x GTSAM")
+        if "(b) pypose / torchsgal" in r:
+            b_parts.append(f"{r['(b) pypose / torchsgal']:.2f}x pypose")
+            pp_min = min(r["(a) pypose / torchsgal"], r["(b) pypose / torchsgal"])
+            targets.append(f">= 1x pypose ({'met' if pp_min >= 1 else 'NOT met'})")
+        gb = "(b) GTSAM (a) median / torchsgal (b) median"
+        if gb in r:
+            b_parts.append(f"{r[gb]:.2f}x GTSAM")
+            targets.append(f">= 10x GTSAM ((a) {'met' if r['(a) GTSAM / torchsgal'] >= 10 else 'NOT met'}, "
+                           f"(b) {'met' if r[gb] >= 10 else 'NOT met'})")
+        if a_parts:
+            line = (f"- {dtype}: (a) {', '.join(a_parts)}; (b) {', '.join(b_parts)}. "
+                    f"Targets: {', '.join(targets)}")
+        else:
+            line = f"- {dtype}: torchsgal timed alone"
+        if missing:
+            line += " [not compared: " + "; ".join(f"{k} not importable" for k in missing) + "]"
+        lines.append(line)
     return lines
 
 
@@ -212,46 +273,71 @@ def main(argv=None) -> int:
     ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
                     help="first wait up to SECONDS for the 1-min load average to drop below 0.5")
     ap.add_argument("--out-dir", type=Path, default=_HERE / "results")
+    ap.add_argument("--device", default="cpu",
+                    help="cpu or cuda[:i] for torchsgal and pypose (GTSAM always runs on the CPU; default cpu)")
     ap.add_argument("--quick", action="store_true", help="100 windows, 2 rounds, no result files")
     args = ap.parse_args(argv)
+    device = resolve_device(args.device)
+    cuda = device.type == "cuda"
     if args.quick:
         args.windows, args.target, args.min_rounds = 100, 0.0, 2
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     wait_for_idle(args.wait_idle)
-    import gtsam  # noqa: F401
-    import pypose
+    mods, missing = import_peers()
+    # where each method runs, written next to its name in the tables (CUDA runs only); the
+    # accuracy of pypose is computed on the CPU (peers.pypose_predict keeps its module there)
+    args.labels = {"torchsgal": f"torchsgal [{device}, plain path]", "pypose": f"pypose [{device}]",
+                   "GTSAM": "GTSAM [CPU, C++]"} if cuda else {}
+    args.accuracy_labels = dict(args.labels, pypose="pypose [CPU]") if cuda else {}
 
     t_start = time.perf_counter()
     env = environment(
         "bench_imu.py", argv,
-        pypose=getattr(pypose, "__version__", None),
-        gtsam=dist_version("gtsam"),
+        pypose=(getattr(mods["pypose"], "__version__", None) if mods["pypose"] is not None
+                else f"not importable ({missing['pypose']})"),
+        gtsam=(dist_version("gtsam") if mods["gtsam"] is not None
+               else f"not importable ({missing['gtsam']})"),
         windows=args.windows,
         samples=args.samples,
         dt=args.dt,
         noise_densities=f"gyro {SIGMA_G} rad/s/sqrt(Hz), accelerometer {SIGMA_A} m/s^2/sqrt(Hz) (isotropic)",
     )
-    log(f"torch {env['torch']} | pypose {env['pypose']} | gtsam {env['gtsam']} | {env['cpu_model']} | "
+    if cuda:
+        env.update(
+            device=str(device), device_name=device_name(device), torch_cuda=torch.version.cuda,
+            placement=(f"torchsgal on {device} (the plain batched path, _integrate: the in-place blocked "
+                       f"fast path is CPU-only); pypose on {device}; GTSAM on the CPU (C++, Python loop "
+                       "over windows); accuracy: torchsgal on the device, pypose and GTSAM on the CPU"),
+            timing="interleaved rounds, the CUDA device synchronised before and after every timed call",
+        )
+    where = f"{env['device_name']} ({device}), host {cpu_model()}" if cuda else env["cpu_model"]
+    log(f"torch {env['torch']} | pypose {env['pypose']} | gtsam {env['gtsam']} | {where} | "
         f"threads {env['torch_num_threads']} | {args.windows} x {args.samples}")
-    res = run(args)
+    res = run(args, device, mods)
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
     env["loadavg_at_end"] = loadavg()
     body = tables(res, args)
-    ver = verdict(res)
+    ver = verdict(res, missing)
     print("\n" + "\n".join(body))
     print("\n".join(ver))
     log(f"wall {env['wall_s']} s")
     if not args.quick:
         md = [f"# IMU preintegration benchmark: {args.windows:,} windows x {args.samples} samples "
-              f"({env['cpu_model']}, {env['date']})", "", "| | |", "|---|---|"]
+              f"({where}, {env['date']})", "", "| | |", "|---|---|"]
         md += [f"| {k} | {v} |" for k, v in env.items()]
-        md += ["", __doc__.split("Usage::")[0].split("\n", 2)[2].strip(), ""] + body
+        md += ["", __doc__.split("Usage::")[0].split("\n", 2)[2].strip(), ""]
+        md += [f"NOTE: {k} is not importable ({v}): its peer cases were not run." for k, v in missing.items()]
+        md += [""] * bool(missing) + body
         md += ["## targets", ""] + ver + [""]
+        stem = f"imu_{device.type}"
         args.out_dir.mkdir(parents=True, exist_ok=True)
-        (args.out_dir / "imu_cpu.json").write_text(json.dumps({"env": env, "results": res}, indent=2) + "\n")
-        (args.out_dir / "imu_cpu.md").write_text("\n".join(md))
-        log(f"wrote {args.out_dir / 'imu_cpu.json'} and {args.out_dir / 'imu_cpu.md'}")
+        out = {"env": env, "results": res}
+        if missing:
+            out["peers_not_available"] = missing
+        (args.out_dir / f"{stem}.json").write_text(json.dumps(out, indent=2) + "\n")
+        (args.out_dir / f"{stem}.md").write_text("\n".join(md))
+        log(f"wrote {args.out_dir / (stem + '.json')} and {args.out_dir / (stem + '.md')}")
     return 0
 
 
