@@ -37,6 +37,12 @@ Usage::
     python benchmarks/bench_gdh.py                  # full run (~1-2 min on 2 cores)
     python benchmarks/bench_gdh.py --quick          # smoke run, n=1000, few rounds, no files
     python benchmarks/bench_gdh.py --wait-idle 60 --threads 2
+    python benchmarks/bench_gdh.py --device cuda    # writes benchmarks/results/gdh_cuda.*
+
+Devices: ``--device cuda[:i]`` builds both chains and the batch on that GPU and synchronises the
+device before and after every timed call; the result files are ``gdh_cuda.*``.  When
+pytorch-kinematics is not importable its cases, ratios and agreement rows are left out with a
+note, and the GDH cases (forward, acceleration, jvp of GDH) are timed alone.
 """
 from __future__ import annotations
 
@@ -51,7 +57,8 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import dist_version, environment, interleaved, loadavg, paired_ratio, wait_for_idle  # noqa: E402
+from _timing import (cpu_model, device_name, dist_version, environment, interleaved, loadavg,  # noqa: E402
+                     paired_ratio, resolve_device, wait_for_idle)
 
 from torchsgal.kinematics import iiwa7  # noqa: E402
 
@@ -61,17 +68,19 @@ def log(msg: str) -> None:
 
 
 # -------------------------------------------------------------------------- cases
-def build(dtype: torch.dtype, n: int, seed: int):
+def build(dtype: torch.dtype, n: int, seed: int, device: torch.device, with_pk: bool):
     from torchsgal.kinematics.pk_interop import build_pk_chain
 
-    chain = iiwa7(dtype=dtype)
+    chain = iiwa7(dtype=dtype, device=device)
     pk_chain = build_pk_chain(chain.a, chain.alpha, chain.d, chain.theta_offset,
-                              chain.joint_types, dtype=dtype)
+                              chain.joint_types, dtype=dtype, device=device) if with_pk else None
     g = torch.Generator().manual_seed(seed)
-    # joint angles uniform in (-pi, pi); rates and accelerations standard normal
-    q = ((torch.rand(n, 7, generator=g, dtype=torch.float64) * 2 - 1) * torch.pi).to(dtype)
-    qd = torch.randn(n, 7, generator=g, dtype=torch.float64).to(dtype)
-    qdd = torch.randn(n, 7, generator=g, dtype=torch.float64).to(dtype)
+    # joint angles uniform in (-pi, pi); rates and accelerations standard normal (drawn on the
+    # CPU, so that the batch is the same on every device)
+    kw = dict(dtype=dtype, device=device)
+    q = ((torch.rand(n, 7, generator=g, dtype=torch.float64) * 2 - 1) * torch.pi).to(**kw)
+    qd = torch.randn(n, 7, generator=g, dtype=torch.float64).to(**kw)
+    qdd = torch.randn(n, 7, generator=g, dtype=torch.float64).to(**kw)
     return chain, pk_chain, q, qd, qdd
 
 
@@ -124,18 +133,29 @@ def make_functions(chain, pk_chain, q, qd, qdd):
         "jvp(GDH velocity)": jvp_gdh,
         "jvp(pk J(q) qdot)": jvp_pk,
     }
+    if pk_chain is None:  # pytorch-kinematics not available: the GDH cases alone
+        sec_a = {k: v for k, v in sec_a.items() if "pk" not in k}
+        sec_b = {k: v for k, v in sec_b.items() if "pk" not in k}
     return sec_a, sec_b
 
 
 def agreement(sec_a: dict, sec_b: dict) -> dict:
+    m = lambda x, y: (x - y).abs().max().item()  # noqa: E731
     with torch.no_grad():
         T_g, v_g, w_g = sec_a["GDH forward(q, qdot)"]()
-        T_p, v_p, w_p = sec_a["pk FK + J(q) qdot"]()
-        T_f, v_f, w_f = sec_a["pk J(q, ret_eef_pose) qdot"]()
     lin, ang = sec_b["GDH acceleration(q, qdot, qddot)"]()
     jg = sec_b["jvp(GDH velocity)"]()
+    if "pk FK + J(q) qdot" not in sec_a:  # no pytorch-kinematics
+        return {
+            "linear acceleration GDH vs jvp(GDH)": m(lin, jg[:, :3]),
+            "angular acceleration GDH vs jvp(GDH)": m(ang, jg[:, 3:]),
+            "scale: max |dp/dt|, |w|": [v_g.abs().max().item(), w_g.abs().max().item()],
+            "scale: max |d2p/dt2|, |dw/dt|": [lin.abs().max().item(), ang.abs().max().item()],
+        }
+    with torch.no_grad():
+        T_p, v_p, w_p = sec_a["pk FK + J(q) qdot"]()
+        T_f, v_f, w_f = sec_a["pk J(q, ret_eef_pose) qdot"]()
     jp = sec_b["jvp(pk J(q) qdot)"]()
-    m = lambda x, y: (x - y).abs().max().item()  # noqa: E731
     return {
         "pose (4x4) GDH vs pk FK": m(T_g, T_p),
         "position GDH vs pk FK": m(T_g[:, :3, 3], T_p[:, :3, 3]),
@@ -154,27 +174,31 @@ def agreement(sec_a: dict, sec_b: dict) -> dict:
 
 
 # --------------------------------------------------------------------------- main
-def run_dtype(dtype, args) -> dict:
+def run_dtype(dtype, args, device, with_pk) -> dict:
     name = str(dtype).replace("torch.", "")
-    chain, pk_chain, q, qd, qdd = build(dtype, args.n, args.seed)
+    chain, pk_chain, q, qd, qdd = build(dtype, args.n, args.seed, device, with_pk)
     sec_a, sec_b = make_functions(chain, pk_chain, q, qd, qdd)
     log(f"\n[{name}] agreement ...")
     agree = agreement(sec_a, sec_b)
     log(f"[{name}] (a) pose + velocity ...")
     st_a, t_a, load_a = interleaved(sec_a, target_s=args.target_a, min_rounds=args.min_rounds,
-                                    max_rounds=args.max_rounds)
+                                    max_rounds=args.max_rounds, device=device)
     log(f"[{name}] (b) acceleration ...")
     st_b, t_b, load_b = interleaved(sec_b, target_s=args.target_b,
                                     min_rounds=max(3, args.min_rounds // 2),
-                                    max_rounds=args.max_rounds)
+                                    max_rounds=args.max_rounds, device=device)
     gdh, acc = "GDH forward(q, qdot)", "GDH acceleration(q, qdot, qddot)"
-    ratios = {
-        "pk FK + J qdot / GDH forward": paired_ratio(t_a, "pk FK + J(q) qdot", gdh),
-        "pk J(ret_eef_pose) qdot / GDH forward": paired_ratio(t_a, "pk J(q, ret_eef_pose) qdot", gdh),
-        "pk FK / GDH forward [pose only]": paired_ratio(t_a, "pk FK [pose only]", "GDH forward(q) [pose only]"),
-        "jvp(GDH velocity) / GDH acceleration": paired_ratio(t_b, "jvp(GDH velocity)", acc),
-        "jvp(pk J qdot) / GDH acceleration": paired_ratio(t_b, "jvp(pk J(q) qdot)", acc),
-    }
+    if with_pk:
+        ratios = {
+            "pk FK + J qdot / GDH forward": paired_ratio(t_a, "pk FK + J(q) qdot", gdh),
+            "pk J(ret_eef_pose) qdot / GDH forward": paired_ratio(t_a, "pk J(q, ret_eef_pose) qdot", gdh),
+            "pk FK / GDH forward [pose only]": paired_ratio(t_a, "pk FK [pose only]",
+                                                            "GDH forward(q) [pose only]"),
+            "jvp(GDH velocity) / GDH acceleration": paired_ratio(t_b, "jvp(GDH velocity)", acc),
+            "jvp(pk J qdot) / GDH acceleration": paired_ratio(t_b, "jvp(pk J(q) qdot)", acc),
+        }
+    else:
+        ratios = {"jvp(GDH velocity) / GDH acceleration": paired_ratio(t_b, "jvp(GDH velocity)", acc)}
     return {
         "dtype": name,
         "n": args.n,
@@ -241,40 +265,60 @@ def main(argv=None) -> int:
     ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
                     help="first wait up to SECONDS for the 1-min load average to drop below 0.5")
     ap.add_argument("--out-dir", type=Path, default=_HERE / "results")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (default cpu)")
     ap.add_argument("--quick", action="store_true", help="n=1000, 3 rounds, no result files")
     args = ap.parse_args(argv)
+    device = resolve_device(args.device)
+    cuda = device.type == "cuda"
     if args.quick:
         args.n, args.target_a, args.target_b, args.min_rounds = 1000, 0.0, 0.0, 3
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     wait_for_idle(args.wait_idle)
 
-    import pytorch_kinematics as pk
+    try:
+        import pytorch_kinematics as pk
+    except ImportError as e:
+        pk, pk_missing = None, f"{type(e).__name__}: {e}"
+        log(f"NOTE: pytorch-kinematics is not importable ({pk_missing}): its cases are skipped, "
+            "GDH is timed alone")
 
     t_start = time.perf_counter()
     env = environment(
         "bench_gdh.py", argv,
-        pytorch_kinematics=getattr(pk, "__version__", None) or dist_version("pytorch-kinematics"),
+        pytorch_kinematics=((getattr(pk, "__version__", None) or dist_version("pytorch-kinematics"))
+                            if pk is not None else f"not importable ({pk_missing})"),
         robot="iiwa7 (KUKA LBR iiwa, 7 revolute joints, standard DH)",
         batch=args.n,
         method=("interleaved round-robin timing, 2 untimed warm-up calls per case, GC off, "
                 "median over rounds; ratios are medians of per-round ratios; one process, "
                 "same batch for every case"),
     )
-    log(f"torch {env['torch']} | pk {env['pytorch_kinematics']} | {env['cpu_model']} | "
+    if cuda:
+        env.update(device=str(device), device_name=device_name(device), torch_cuda=torch.version.cuda,
+                   timing="the CUDA device synchronised before and after every timed call")
+    where = f"{env['device_name']} ({device}), host {cpu_model()}" if cuda else env["cpu_model"]
+    log(f"torch {env['torch']} | pk {env['pytorch_kinematics']} | {where} | "
         f"threads {env['torch_num_threads']} | n={args.n:,}")
-    results = [run_dtype(getattr(torch, d.strip()), args) for d in args.dtypes.split(",")]
+    results = [run_dtype(getattr(torch, d.strip()), args, device, pk is not None)
+               for d in args.dtypes.split(",")]
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
     env["loadavg_at_end"] = loadavg()
 
-    md = [f"# GDH chain benchmark: iiwa7, batch {args.n:,} ({env['cpu_model']}, {env['date']})", "",
+    md = [f"# GDH chain benchmark: iiwa7, batch {args.n:,} ({where}, {env['date']})", "",
           "| | |", "|---|---|"]
     md += [f"| {k} | {v} |" for k, v in env.items()]
     md += ["", __doc__.split("Usage::")[0].split("\n", 2)[2].strip(), ""]
+    if pk is None:
+        md += [f"NOTE: pytorch-kinematics is not importable ({pk_missing}): its cases, ratios and "
+               "agreement rows were not run.", ""]
     for res in results:
         md += table_md(res)
     verdict = []
     for res in results:
+        if pk is None:
+            verdict.append(f"- {res['dtype']}: not compared (pytorch-kinematics not importable).")
+            continue
         r1 = res["speedup_ratios"]["pk FK + J qdot / GDH forward"]
         r2 = res["speedup_ratios"]["pk J(ret_eef_pose) qdot / GDH forward"]
         verdict.append(
@@ -289,11 +333,12 @@ def main(argv=None) -> int:
     print("\n".join(verdict))
     log(f"wall {env['wall_s']} s")
     if not args.quick:
+        stem = f"gdh_{device.type}"
         args.out_dir.mkdir(parents=True, exist_ok=True)
-        (args.out_dir / "gdh_cpu.json").write_text(
+        (args.out_dir / f"{stem}.json").write_text(
             json.dumps({"env": env, "results": results}, indent=2) + "\n")
-        (args.out_dir / "gdh_cpu.md").write_text(text)
-        log(f"wrote {args.out_dir / 'gdh_cpu.json'} and {args.out_dir / 'gdh_cpu.md'}")
+        (args.out_dir / f"{stem}.md").write_text(text)
+        log(f"wrote {args.out_dir / (stem + '.json')} and {args.out_dir / (stem + '.md')}")
     return 0
 
 
