@@ -5,7 +5,9 @@ value reads (item/bool/float/int, which dispatch aten._local_scalar_dense, and t
 does not dispatch on CPU and so is caught as a method call), linalg error checks
 (cholesky/inv/solve), eigh, data-dependent shapes (nonzero, masked_select), torch.equal,
 host-to-device copies (aten _to_copy/copy_ from a CPU tensor to another device) and
-torch.tensor/as_tensor/asarray/new_tensor of host data onto another device.  On 'meta' the
+torch.tensor/as_tensor/asarray/new_tensor of host data onto another device, and ``t[i, j] = 1.0``
+with a Python number into a single element of a device tensor (torch copies the number as a
+0-d CPU tensor there, a blocking copy on CUDA; into a larger view it fills).  On 'meta' the
 reads raise after being recorded; the copies and checks pass there silently, which is why
 this recorder exists.
 """
@@ -62,6 +64,9 @@ class HostSyncs:
                 device = data = None
                 if func is torch.Tensor.tolist:
                     events.append(("value read (tolist)", _caller()))
+                elif (func is torch.Tensor.__setitem__ and len(args) == 3 and args[0].device.type != "cpu"
+                      and isinstance(args[2], (bool, int, float, complex)) and args[0][args[1]].dim() == 0):
+                    events.append(("host-to-device copy (setitem of a number into one element)", _caller()))
                 elif func in (torch.tensor, torch.as_tensor, torch.asarray):
                     device, data = kwargs.get("device"), args[0] if args else kwargs.get("data")
                 elif func is torch.Tensor.new_tensor:  # self's device unless given

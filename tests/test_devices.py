@@ -37,7 +37,7 @@ BATCH = (4, 2)
 
 
 def _meta(*shape, dtype=torch.float32) -> torch.Tensor:
-    return torch.empty(*shape, dtype=dtype, device=META)
+    return torch.empty(shape, dtype=dtype, device=META)
 
 
 def _check(out, shape, dtype=torch.float32):
@@ -209,6 +209,8 @@ def test_host_sync_sniffer_catches_syncs():
         ("host-to-device copy (.to)", lambda: torch.ones(3).to(META)),
         ("host-to-device copy (copy_)", lambda: _meta(3).copy_(torch.ones(3))),
         ("host-to-device copy (copy_)", lambda: _meta(3).__setitem__(0, torch.tensor(1.0))),
+        ("host-to-device copy (setitem of a number", lambda: _meta(3).__setitem__(0, 1.0)),
+        ("host-to-device copy (setitem of a number", lambda: _meta(2, 3).__setitem__((..., 1, 2), 1.0)),
     ]
     for what, fn in cases:
         with HostSyncs() as sniffer:
@@ -224,12 +226,15 @@ def test_host_sync_sniffer_catches_syncs():
     assert not sniffer.events, sniffer.events
 
 
+@pytest.mark.parametrize("batch", [BATCH, ()], ids=["batched", "unbatched"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
-def test_group_hot_paths_make_no_host_sync(G, dtype):
+def test_group_hot_paths_make_no_host_sync(G, dtype, batch):
     """The group operations, their Jacobians, interpolation and exp/log's custom backward (which
-    runs on meta) make no host sync.  Left out on purpose: from_matrix(check=True), a documented
-    entry check that reads its measures in one sync (and skips it on meta)."""
+    runs on meta) make no host sync, batched or not (x[..., i, j] = 1.0 copies on an unbatched
+    tensor only).  Left out on purpose: from_matrix(check=True), a documented entry check that
+    reads its measures in one sync (and skips it on meta)."""
+    BATCH = batch  # noqa: N806 (the module constant's name, for the cases below)
     xi = _meta(*BATCH, G.dof, dtype=dtype)
     g, h = G.exp(xi), G.random(BATCH, dtype=dtype, device=META)
 
@@ -274,6 +279,8 @@ def test_imu_preintegration_makes_no_host_sync(per_axis):
         ("imu.preintegrate (increment only)",
          lambda: imu.preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False)),
         ("Preintegration.predict", lambda: pre.predict(start, gravity, earth, gyro_bias=_meta(3))),
+        ("gravity_vector", lambda: imu.gravity_vector(device=META)),
+        ("earth_rate_vector", lambda: imu.earth_rate_vector(0.8, frame="ned", device=META)),
         ("Preintegration.predict_covariance",
          lambda: pre.predict_covariance(start, _meta(windows, 10, 10), gravity, earth)),
     ])
@@ -299,14 +306,16 @@ def test_gaussian_propagation_makes_no_host_sync(G):
     ]])
 
 
+@pytest.mark.parametrize("batch", [BATCH, ()], ids=["batched", "unbatched"])
 @pytest.mark.parametrize("robot", [kin.ur5, kin.iiwa7, kin.scara], ids=["ur5", "iiwa7", "scara"])
-def test_gdh_chain_makes_no_host_sync(robot):
+def test_gdh_chain_makes_no_host_sync(robot, batch):
     """Forward kinematics, velocities and accelerations of a chain built on the device (its
     table's finiteness check at construction is the one documented read, skipped on meta)."""
     chain = robot(dtype=torch.float32, device=META)
-    q = _meta(*BATCH, chain.n_joints)
+    q = _meta(*batch, chain.n_joints)
     _assert_no_host_sync([(f"{robot.__name__} {name}", fn) for name, fn in [
-        ("forward", lambda: chain.forward(q, q)), ("acceleration", lambda: chain.acceleration(q, q, q)),
+        ("forward", lambda: chain.forward(q, q)), ("forward(q, q).pose", lambda: chain.forward(q, q).pose),
+        ("acceleration", lambda: chain.acceleration(q, q, q)),
         ("link_transforms", lambda: chain.link_transforms(q, q)),
     ]])
 

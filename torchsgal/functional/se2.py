@@ -107,7 +107,7 @@ def _block(A22, col, batch, like):
     """[[A22, col], [0, 1]] (..., 3, 3) from A22 (..., 2, 2) and col (..., 2)."""
     top = torch.cat((A22, col.unsqueeze(-1)), dim=-1)
     bottom = torch.zeros(*batch, 1, 3, dtype=like.dtype, device=like.device)
-    bottom[..., 0, 2] = 1.0
+    bottom[..., 0, 2].fill_(1.0)  # fill_: an unbatched x[i, j] = 1.0 is a blocking copy on CUDA
     return torch.cat((top, bottom), dim=-2)
 
 

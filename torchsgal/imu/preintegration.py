@@ -757,7 +757,7 @@ def gravity_vector(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY, dty
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
     dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     sign = -1.0 if frame == "z_up" else 1.0
-    return torch.tensor([0.0, 0.0, sign * magnitude], dtype=dtype, device=device)
+    return _filled_vector([0.0, 0.0, sign * magnitude], dtype, device)
 
 
 def earth_rate_vector(latitude: float, frame: str = "z_up", rate: float = EARTH_RATE, dtype=None, device=None):
@@ -767,8 +767,17 @@ def earth_rate_vector(latitude: float, frame: str = "z_up", rate: float = EARTH_
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
     dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     c, s = rate * math.cos(latitude), rate * math.sin(latitude)
-    vec = [0.0, c, s] if frame == "z_up" else [c, 0.0, -s]
-    return torch.tensor(vec, dtype=dtype, device=device)
+    return _filled_vector([0.0, c, s] if frame == "z_up" else [c, 0.0, -s], dtype, device)
+
+
+def _filled_vector(values: list, dtype, device) -> torch.Tensor:
+    """A small constant vector filled on the device (torch.tensor(list, device=cuda) is a
+    blocking host-to-device copy)."""
+    vec = torch.zeros(len(values), dtype=dtype, device=device)
+    for i, v in enumerate(values):
+        if v:
+            vec[i].fill_(v)  # vec[i] = v would copy a CPU scalar tensor (blocking on CUDA)
+    return vec
 
 
 def _time_shift(t: torch.Tensor) -> SGal3:

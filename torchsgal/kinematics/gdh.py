@@ -107,7 +107,7 @@ class GDHState:
         M = self.end_effector.as_matrix()
         top = torch.cat((M[..., :3, :3], M[..., :3, 4:5]), dim=-1)
         bottom = torch.zeros_like(top[..., :1, :])
-        bottom[..., 0, 3] = 1.0
+        bottom[..., 0, 3].fill_(1.0)  # not = 1.0: unbatched, a blocking copy on CUDA
         return torch.cat((top, bottom), dim=-2)
 
 

@@ -200,7 +200,7 @@ def to_transform3d(x):
         m = torch.zeros(*C.shape[:-2], 4, 4, dtype=C.dtype, device=C.device)
         m[..., :3, :3] = C
         m[..., :3, 3] = r
-        m[..., 3, 3] = 1.0
+        m[..., 3, 3].fill_(1.0)  # not = 1.0: unbatched, a blocking copy on CUDA
     else:
         raise TypeError(f"x must be a torchsgal SE3 or SE23, got {type(x).__name__}")
     m = m.reshape(-1, 4, 4)

@@ -127,7 +127,7 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     singular = [(q_status != 0).any(), (s_status != 0).any()]
     h_status = torch.zeros((), dtype=torch.bool, device=Q.device)
     y0 = torch.zeros(*event.shape[:-1], 5, dtype=event.dtype, device=event.device)
-    y0[..., 4] = 1.0
+    y0[..., 4].fill_(1.0)  # not = 1.0: unbatched, a blocking copy on CUDA
     x = (relative_frame.as_matrix() @ y0.unsqueeze(-1)).squeeze(-1)  # kF_i y0
     eps = torch.zeros(*event.shape[:-1], 10, dtype=event.dtype, device=event.device)
     for _ in range(iterations):
