@@ -222,7 +222,10 @@ class ConcentratedGaussian:
         xi = self.perturbation(g)
         L = torch.linalg.cholesky(_sym(self.covariance))
         z = torch.linalg.solve_triangular(L, xi.unsqueeze(-1), upper=False).squeeze(-1)
-        return torch.linalg.vector_norm(z, dim=-1)
+        # dim as a non-negative index: the vector_norm decomposition of torch 2.9 to 2.12 (meta
+        # and fake tensors, inductor) keeps a reduced dimension of size 1 (SO2) named as -1
+        # (pytorch/pytorch#182181, fixed in 2.13; tests/test_devices.py).
+        return torch.linalg.vector_norm(z, dim=z.dim() - 1)
 
     def log_prob(self, g: LieGroup) -> torch.Tensor:
         """Log density with respect to the left-invariant Haar measure, normalised to be the
