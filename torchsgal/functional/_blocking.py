@@ -18,7 +18,6 @@ kernels (tests/test_blocking.py).
 from __future__ import annotations
 
 import functools
-import importlib
 import math
 
 import torch
@@ -36,11 +35,8 @@ _is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapp
 
 
 def is_compiling() -> bool:
-    """torch.compiler.is_compiling (torch >= 2.3), or its torch 2.1-2.2 spelling."""
-    fn = getattr(torch.compiler, "is_compiling", None)
-    if fn is None:  # torch < 2.3
-        fn = importlib.import_module("torch._dynamo").is_compiling
-    return fn()
+    """torch.compiler.is_compiling (one name for the library's callers)."""
+    return torch.compiler.is_compiling()
 
 
 def values_readable(t: torch.Tensor) -> bool:

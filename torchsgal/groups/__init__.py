@@ -14,7 +14,6 @@ from .so3 import SO3
 # matrix's shape and dtype, so allowing the classes lets a checkpoint hold group elements and
 # nothing more.  _rebuild (a subclass element with attributes) only rebuilds allowlisted
 # LieGroup subclasses, after the same checks.
-if hasattr(torch.serialization, "add_safe_globals"):  # torch >= 2.4
-    torch.serialization.add_safe_globals([SO2, SE2, SO3, SE3, SE23, SGal3, Sim3, _rebuild])
+torch.serialization.add_safe_globals([SO2, SE2, SO3, SE3, SE23, SGal3, Sim3, _rebuild])
 
 __all__ = ["LieGroup", "SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3"]

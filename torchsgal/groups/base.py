@@ -580,14 +580,11 @@ def _register_pytree(cls) -> None:
     pytree = torch.utils._pytree
     flatten = lambda g: ([g._matrix], g._state())  # noqa: E731
     unflatten = lambda leaves, context: cls._from_leaf(leaves[0], context)  # noqa: E731
-    if hasattr(pytree, "register_pytree_node"):  # torch >= 2.2
-        pytree.register_pytree_node(
-            cls, flatten, unflatten,
-            serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
-            flatten_with_keys_fn=lambda g: ([(pytree.GetAttrKey("_matrix"), g._matrix)], g._state()),
-        )
-    else:  # torch 2.1
-        pytree._register_pytree_node(cls, flatten, unflatten)
+    pytree.register_pytree_node(
+        cls, flatten, unflatten,
+        serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
+        flatten_with_keys_fn=lambda g: ([(pytree.GetAttrKey("_matrix"), g._matrix)], g._state()),
+    )
 
 
 def _tol_arg(tol) -> float | None:
