@@ -146,6 +146,10 @@ collect_ignore = [] if _CUDA_FILE_COLLECTED else ["test_cuda.py"]
 
 
 def pytest_report_header(config):
+    return [f"torch {torch.__version__}, numpy {np.__version__}", _cuda_header()]
+
+
+def _cuda_header() -> str:
     return ("tests/test_cuda.py: collected (device "
             + os.environ.get("TORCHSGAL_CUDA_TEST_DEVICE", "cuda") + ")" if _CUDA_FILE_COLLECTED
             else "tests/test_cuda.py: not collected, no CUDA device (it runs on a GPU machine)")

@@ -4,7 +4,7 @@ from . import functional
 from .groups import SE2, SE3, SE23, SO2, SO3, LieGroup, SGal3, Sim3
 
 __version__ = "0.1.0"
-GROUPS = (SO3, SE3, SE23, SGal3)  # the 3-D groups
+GROUPS = (SO3, SE3, SE23, SGal3)  # the 3-D Galilean family
 ALL_GROUPS = (SO2, SE2, SO3, SE3, SE23, SGal3, Sim3)  # GROUPS, the planar groups and Sim(3)
 
 __all__ = ["SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3", "LieGroup", "GROUPS", "ALL_GROUPS",
