@@ -19,7 +19,9 @@ export PYTHONPATH=$ROOT:$ROOT/.gpu_site${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFE
 PY=${PYTHON:-python3}
 STEPS=${*:-env tests core compile imu gdh}
 # suite: the whole CPU test suite under that machine's torch (another version than CI's), on
-# 14 workers, stopped after $SUITE_TIMEOUT (default 240) s; peers missing there (gtsam, pytorch-kinematics) skip or fail.
+# 14 workers of one thread each (with torch's default 16 threads per worker two runs did not
+# finish in 330 s), stopped after $SUITE_TIMEOUT (default 240) s; peers missing there (gtsam,
+# pytorch-kinematics) skip or fail.
 
 pack() { tar -czf "$OUT/cuda_results.tgz" -C "$WORK" . ; }
 step() {  # step NAME COMMAND...: runs it, logs to $WORK/NAME.log, prints its status
@@ -47,7 +49,7 @@ nproc; $PY -m pytest --version" ;;
     compile) step compile $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" ;;
     imu) step imu $PY benchmarks/bench_imu.py --device cuda --target 5 --out-dir "$WORK" ;;
     gdh) step gdh $PY benchmarks/bench_gdh.py --device cuda --target-a 5 --target-b 5 --out-dir "$WORK" ;;
-    suite) step suite timeout "${SUITE_TIMEOUT:-240}" $PY -m pytest -q -n 14 -p no:cacheprovider \
+    suite) OMP_NUM_THREADS=1 step suite timeout "${SUITE_TIMEOUT:-240}" $PY -m pytest -q -n 14 -p no:cacheprovider \
              -W ignore::DeprecationWarning -rfEs --tb=short --ignore=tests/test_cuda.py ;;
     *) echo "unknown step $s"; exit 2 ;;
   esac
