@@ -442,8 +442,8 @@ def preintegrate(
 
     Noise densities (continuous time), each >= 0: gyro [rad/s/sqrt(Hz)] and accelerometer
     [m/s^2/sqrt(Hz)] as numbers or 0-d tensors (isotropic: the covariance is then summed in closed
-    form, since C C^T = I) or per-axis tensors (..., 3) (general path: about 7.5x slower than the
-    isotropic one in float64 and 8x in float32, 1,000 windows x 200 samples on one CPU thread);
+    form, since C C^T = I) or per-axis tensors (..., 3) (general path: 6-10x slower than the
+    isotropic one, 1,000 windows x 200 samples on one CPU thread);
     a per-axis density's batch broadcasts with the windows' and widens the result's batch, as a
     bias's does.  The clock [s/s/sqrt(Hz)] (a number or a 0-d tensor: white noise on the rate of
     time, entering iota; 0 = exact timestamps).  A tensor density must have gyro's dtype and
