@@ -44,7 +44,7 @@ def _nested_forward_mode(t: torch.Tensor) -> bool:
     """Whether ``t`` is inside two or more torch.func forward-mode transforms (jacfwd(jacfwd)),
     where torch 2.13 returns wrong higher derivatives through an autograd.Function
     (pytorch/pytorch#197867)."""
-    if _is_wrapped is None or not _is_wrapped(t):
+    if not _is_wrapped(t):
         return False
     from torch._C._functorch import TransformType
     from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters

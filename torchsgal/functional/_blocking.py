@@ -31,12 +31,8 @@ BLOCK = 65536
 # allocator and blocking gained nothing.
 MIN_BATCH = 2 * BLOCK
 
-_is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
-
-
-def is_compiling() -> bool:
-    """torch.compiler.is_compiling (one name for the library's callers)."""
-    return torch.compiler.is_compiling()
+_is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # a torch.func wrapper
+is_compiling = torch.compiler.is_compiling
 
 
 def values_readable(t: torch.Tensor) -> bool:
@@ -45,7 +41,7 @@ def values_readable(t: torch.Tensor) -> bool:
     traces.  The shape, dtype and device checks do not depend on it."""
     if t.device.type == "meta" or is_compiling():
         return False
-    return _is_wrapped is None or not _is_wrapped(t)
+    return not _is_wrapped(t)
 
 
 def unobserved(args) -> bool:
@@ -53,7 +49,7 @@ def unobserved(args) -> bool:
     tensors, no autograd recording (reverse or forward mode), no functorch transform, not
     compiling (the rule of this module, also used by the IMU's fast path, whose ``out=``
     kernels have no forward-mode derivative)."""
-    if _is_wrapped is None or is_compiling():
+    if is_compiling():
         return False
     grad = torch.is_grad_enabled()
     for a in args:

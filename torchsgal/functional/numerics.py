@@ -90,7 +90,7 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
         # transform (a cached wrapper broke every later transform of the process).
         if not is_compiling() and all(
                 type(t) is torch.Tensor and not t.is_inference()
-                and (_is_wrapped is None or not _is_wrapped(t)) for t in consts):
+                and not _is_wrapped(t) for t in consts):
             _CONSTANTS[key] = consts
     return consts
 

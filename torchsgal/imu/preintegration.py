@@ -82,7 +82,7 @@ def _readable(t: torch.Tensor) -> bool:
     functorch transforms and compilation (the rule of functional/_blocking.unobserved, with
     autograd allowed: reading values does not disturb it)."""
     return (type(t) is torch.Tensor and t.device.type == "cpu" and not is_compiling()
-            and not (_is_wrapped is not None and _is_wrapped(t)))
+            and not _is_wrapped(t))
 
 
 def _check_non_negative(t: torch.Tensor, name: str) -> None:
