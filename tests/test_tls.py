@@ -344,7 +344,15 @@ def test_command_line_writes_the_study(tmp_path):
         assert set(est) == {"iterated", "paper"}
         for r in est.values():
             assert r["converged"] == 6 and math.isfinite(r["ANEES"]) and r["ANEES"] > 0
-    assert "paper SGal(3)" in (tmp_path / "tls_study.md").read_text()
+    table = (tmp_path / "tls_study.md").read_text()
+    assert "| SGal(3) paper-style |" in table and "paper: SGal(3)" in table
+
+
+def test_command_line_warns_that_frames_at_rest_hide_dtau(tmp_path, capsys):
+    from torchsgal.__main__ import main
+    assert main(["tls", "--trials", "2", "--samples", "11", "--speed", "0", "--out", str(tmp_path),
+                 "--quiet", "--no-plot", "--variants", "iterated"]) == 0
+    assert "dtau is not observable" in capsys.readouterr().err
 
 
 def test_lbfgs_reaches_the_paper_variant_estimate():

@@ -283,6 +283,11 @@ def test_reparameterised_gradients():
 
 def test_bad_input():
     m = ts.SE3.random((), dtype=torch.float64)
+    d = ConcentratedGaussian(m, torch.eye(6, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"sample_shape must have sizes >= 0, got \(-1,\)"):
+        d.sample(-1)
+    with pytest.raises(TypeError, match=r"sample_shape must be an int or a sequence of ints, got float"):
+        d.sample(2.5)
     with pytest.raises(ValueError, match=r"covariance must have shape \(\.\.\., 6, 6\) for SE3, got \(5, 5\)"):
         ConcentratedGaussian(m, torch.eye(5, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"not symmetric"):

@@ -85,8 +85,12 @@ def tls(args) -> int:
                             separation=args.separation, clock_offset=args.clock_offset,
                             dtau_sigma=args.dtau_sigma, seed=args.seed,
                             variants=tuple(args.variants), dtype=args.dtype)
-    print(f"torchsgal {ts.__version__}, torch {torch.__version__}, {torch.get_num_threads()} "
-          f"threads: {cfg.trials} trials of {cfg.samples} paired observations", file=sys.stderr)
+    n = torch.get_num_threads()
+    print(f"torchsgal {ts.__version__}, torch {torch.__version__}, {n} thread{'s' * (n != 1)}: "
+          f"{cfg.trials} trials of {cfg.samples} paired observations", file=sys.stderr)
+    if cfg.speed == 0:
+        print("warning: --speed 0 puts the frames at rest, where the interval dtau is not "
+              "observable: its estimates and the ANEES mean little", file=sys.stderr)
     out = study.run(cfg, chunk=args.chunk, progress=not args.quiet)
     print(study.table_markdown(out))
     total = sum(r["time_s"] for est in out["results"].values() for r in est.values())
@@ -175,7 +179,7 @@ def main(argv=None) -> int:
     parser.set_defaults(seed=0)
     sub = parser.add_subparsers(dest="command")
     p = sub.add_parser("demo", help="walk through the core API (default)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the demo's samples (0)")
     t = sub.add_parser("tls", help="the total-least-squares Monte Carlo study (Table 1)",
                        description=tls.__doc__)
     d = __import__("torchsgal.estimation.study", fromlist=["StudyConfig"]).StudyConfig()
@@ -191,7 +195,7 @@ def main(argv=None) -> int:
                    help=f"std of the true interval around its nominal value, s ({d.dtau_sigma})")
     t.add_argument("--variants", nargs="+", default=list(d.variants), choices=["iterated", "paper"],
                    help="Gauss-Helmert variants to run (both)")
-    t.add_argument("--seed", type=int, default=d.seed)
+    t.add_argument("--seed", type=int, default=d.seed, help=f"seed of the simulated trials ({d.seed})")
     t.add_argument("--dtype", default=d.dtype, type=_study_dtype,
                    help="float64 (the only precision the study supports: in float32 the "
                         "information is too badly conditioned and every trial is reported SINGULAR)")

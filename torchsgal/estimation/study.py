@@ -325,8 +325,9 @@ def table_markdown(out: dict) -> str:
     for name in ("SGal(3)", "SE_2(3) x R"):
         for variant in res.get(name, {}):
             cols.append((name, variant))
-    head = "| metric | " + " | ".join(f"{n} {v}" for n, v in cols) + \
-        " | paper SGal(3) | paper SE_2(3) x R |"
+    shown = {"paper": "paper-style"}  # our run of the paper's variant, not the paper's numbers
+    head = "| metric | " + " | ".join(f"{n} {shown.get(v, v)}" for n, v in cols) + \
+        " | paper: SGal(3) | paper: SE_2(3) x R |"
     lines = [head, "|" + "---|" * (len(cols) + 3)]
     for key, label in rows:
         vals = [f"{res[n][v][key]:.3f}" if key not in ("ANEES", "MMD") else f"{res[n][v][key]:.2f}"

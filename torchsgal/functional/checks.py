@@ -112,6 +112,29 @@ def integer(value, name: str, minimum: int | None = None) -> int:
     return int(value)
 
 
+def shape(batch_shape, name: str) -> tuple[int, ...]:
+    """A shape argument: an int n (meaning (n,)) or a sequence of ints >= 0 (numpy integers and
+    traced sizes too)."""
+    if isinstance(batch_shape, (int, torch.SymInt)) and not isinstance(batch_shape, bool):
+        batch_shape = (batch_shape,)
+    try:
+        dims = tuple(batch_shape)
+    except TypeError:
+        raise TypeError(f"{name} must be an int or a sequence of ints, "
+                        f"got {type(batch_shape).__name__}") from None
+    sizes = []
+    for s in dims:
+        if isinstance(s, torch.SymInt):  # a traced size (torch.compile, dynamic shapes)
+            sizes.append(s)
+            continue
+        if isinstance(s, bool) or not isinstance(s, numbers.Integral):  # numpy integers are Integral
+            raise TypeError(f"{name} must be an int or a sequence of ints, got {batch_shape!r}")
+        sizes.append(int(s))
+        if sizes[-1] < 0:
+            raise ValueError(f"{name} must have sizes >= 0, got {dims}")
+    return tuple(sizes)
+
+
 def boolean(value, name: str) -> bool:
     """A flag (``check=...``): a Python or numpy bool only, so that a string such as "no", an
     integer or a tensor is refused rather than read by its truth value.  TypeError otherwise."""

@@ -7,7 +7,7 @@ group's functional module (``_f``), the one place its maths lives.
 from __future__ import annotations
 
 import copyreg
-from numbers import Integral, Real
+from numbers import Real
 from typing import Sequence
 
 import torch
@@ -85,7 +85,9 @@ class LieGroup:
     __slots__ = ("_matrix",)
 
     def __init__(self, matrix: torch.Tensor):
-        """Wraps a group matrix without checking it; prefer ``from_matrix``."""
+        """Wraps a group matrix, checking its shape and dtype but not that it is in the group:
+        ``from_matrix(M, check=True)`` checks that too (``check=False`` is its default, for
+        matrices known to be in the group)."""
         checks.matrix(matrix, self.matrix_dim, "matrix")
         self._matrix = matrix
 
@@ -172,9 +174,11 @@ class LieGroup:
         if not finite:
             raise ValueError(f"matrix is not in {cls.__name__}: it has non-finite entries")
         if max(o, d, r) > tol:
+            fixed = (f", max deviation of the fixed rows = {r:.3g}{cls._fixed_note}"
+                     if cls.matrix_dim > cls.rotation_dim else "")  # SO2, SO3: no fixed rows
             raise ValueError(
                 f"matrix is not in {cls.__name__} (tol {tol:g}): max |C^T C - I| = {o:.3g}, "
-                f"max |det C - 1| = {d:.3g}, max deviation of the fixed rows = {r:.3g}{cls._fixed_note}"
+                f"max |det C - 1| = {d:.3g}{fixed}"
             )
         cls._check_extra_measures(extra)
 
@@ -199,7 +203,7 @@ class LieGroup:
     def identity(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None):
         """The identity element, repeated over ``batch_shape`` (an int n means (n,); default
         dtype: torch's default)."""
-        batch_shape = _batch_shape_arg(batch_shape)
+        batch_shape = checks.shape(batch_shape, "batch_shape")
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
         return cls._new(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
@@ -208,7 +212,7 @@ class LieGroup:
     def random(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None, generator=None):
         """Uniform rotations; translations, velocities and times standard normal.  ``batch_shape``
         as in ``identity``; ``generator`` None or a torch.Generator."""
-        batch_shape = _batch_shape_arg(batch_shape)
+        batch_shape = checks.shape(batch_shape, "batch_shape")
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         if generator is not None and not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
@@ -590,28 +594,6 @@ def _register_pytree(cls) -> None:
 def _tol_arg(tol) -> float | None:
     """``tol``: None or a finite number > 0."""
     return None if tol is None else checks.finite_number(tol, "tol", "> 0")
-
-
-def _batch_shape_arg(batch_shape, name: str = "batch_shape") -> tuple[int, ...]:
-    """A batch shape: an int n (meaning (n,)) or a sequence of ints >= 0."""
-    if isinstance(batch_shape, (int, torch.SymInt)) and not isinstance(batch_shape, bool):
-        batch_shape = (batch_shape,)
-    try:
-        shape = tuple(batch_shape)
-    except TypeError:
-        raise TypeError(f"{name} must be an int or a sequence of ints, "
-                        f"got {type(batch_shape).__name__}") from None
-    sizes = []
-    for s in shape:
-        if isinstance(s, torch.SymInt):  # a traced size (torch.compile, dynamic shapes)
-            sizes.append(s)
-            continue
-        if isinstance(s, bool) or not isinstance(s, Integral):  # numpy integers are Integral
-            raise TypeError(f"{name} must be an int or a sequence of ints, got {batch_shape!r}")
-        sizes.append(int(s))
-        if sizes[-1] < 0:
-            raise ValueError(f"{name} must have sizes >= 0, got {shape}")
-    return tuple(sizes)
 
 
 def _batch_axis(dim: int, n_axes: int, name: str) -> int:

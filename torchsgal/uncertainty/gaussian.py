@@ -209,8 +209,7 @@ class ConcentratedGaussian:
     def sample(self, sample_shape=(), generator=None) -> LieGroup:
         """Reparameterised samples, batch ``sample_shape + batch_shape``; gradients flow to the
         mean and the covariance (through its Cholesky factor)."""
-        if isinstance(sample_shape, int):
-            sample_shape = (sample_shape,)
+        sample_shape = checks.shape(sample_shape, "sample_shape")
         L = torch.linalg.cholesky(_sym(self.covariance))
         batch = self.batch_shape
         eps = torch.randn(*sample_shape, *batch, self.dof, dtype=L.dtype, device=L.device,
