@@ -141,6 +141,10 @@ def test_batch_broadcasting_indexing_reshaping(G):
     # random elements are members of the group
     G.from_matrix(G.random((100,), dtype=torch.float64).as_matrix(), check=True)
     assert "batch_shape=(5,)" in repr(g)
+    assert "with matrix" not in repr(g)  # more than REPR_ELEMENTS elements: metadata only
+    one = G.exp(torch.full((G.dof,), 0.25, dtype=torch.float64))
+    assert repr(one).endswith(" with matrix\n" + repr(one.as_matrix()))  # a few show their matrices
+    assert "with matrix" not in repr(G.identity(device="meta"))  # no values to show
 
 
 def test_components_round_trip():

@@ -15,6 +15,8 @@ import torch
 from ..functional import blocks, checks
 from ..functional._blocking import values_readable
 
+REPR_ELEMENTS = 4  # repr shows the matrices of batches up to this size
+
 
 class LieGroup:
     """Base of the group classes (SO2, SE2, SO3, SE3, SE23, SGal3, Sim3); subclasses set
@@ -250,7 +252,7 @@ class LieGroup:
         """None for a tensor of trailing shape (n, n), else what the pytree leaf is."""
         m = self._matrix
         if not isinstance(m, torch.Tensor):
-            return f"<pytree leaf: {m!r}>"
+            return f"<pytree leaf: {m._summary() if isinstance(m, LieGroup) else repr(m)}>"
         if m.dim() < 2 or m.shape[-2:] != (self.matrix_dim, self.matrix_dim):
             return f"<pytree leaf of shape {tuple(m.shape)}, dtype={m.dtype}, device={m.device}>"
         return None
@@ -554,14 +556,23 @@ class LieGroup:
             return cls, (self._matrix,)
         return _rebuild, (cls, self._matrix, state)
 
-    def __repr__(self) -> str:
+    def _summary(self) -> str:
+        """Class, batch shape, dtype and device (or what a torch.func wrapper holds)."""
         leaf = self._leaf_description()
         if leaf is not None:  # a torch.func wrapper, see the class docstring
             return f"{type(self).__name__}({leaf})"
-        return (
-            f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
-            f"device={self.device})"
-        )
+        return (f"{type(self).__name__}(batch_shape={tuple(self.batch_shape)}, dtype={self.dtype}, "
+                f"device={self.device})")
+
+    def __repr__(self) -> str:
+        """The summary; up to REPR_ELEMENTS elements also show their matrices, read as torch
+        prints tensors (a host sync on CUDA; never on 'meta', in a torch.func transform or while
+        compiling)."""
+        head = self._summary()
+        if (self._leaf_description() is None and self.batch_shape.numel() <= REPR_ELEMENTS
+                and values_readable(self._matrix)):
+            return f"{head} with matrix\n{self._matrix.detach()!r}"
+        return head
 
 
 def _rebuild(cls, matrix, state=None):
