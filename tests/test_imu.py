@@ -386,6 +386,17 @@ def test_bias_correction_is_first_order():
     assert all(e < 0.05 * w for e, w in zip(errs, raw)), (errs, raw)
 
 
+def test_a_number_dt_is_the_same_interval_for_every_sample():
+    gyro, acc, _ = random_stream(3, 7, seed=4)
+    kw = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2, gyro_bias=0.01 * gyro[:, 0])
+    by_number = preintegrate(gyro, acc, 0.004, **kw)
+    by_tensor = preintegrate(gyro, acc, torch.full((3, 7), 0.004, dtype=F64), **kw)
+    for name in ("covariance", "bias_jacobian"):
+        assert torch.equal(getattr(by_number, name), getattr(by_tensor, name)), name
+    assert torch.equal(by_number.delta.as_matrix(), by_tensor.delta.as_matrix())
+    assert torch.equal(increment_tangents(gyro, acc, 0.004), increment_tangents(gyro, acc, torch.full((3, 7), 0.004, dtype=F64)))
+
+
 # ------------------------------------------------------------------------------ errors
 def test_bad_input_raises_with_names():
     gyro, acc, dt = random_stream(2, 5, seed=0)
@@ -397,6 +408,8 @@ def test_bad_input_raises_with_names():
         preintegrate(gyro[..., :2], acc, dt)
     with pytest.raises(TypeError, match="dt must have a floating dtype"):
         preintegrate(gyro, acc, torch.ones(2, 5, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"dt must be a number or a tensor \(\.\.\., K\), got bool"):
+        preintegrate(gyro, acc, True)
     with pytest.raises(TypeError, match="acc has dtype torch.float32"):
         preintegrate(gyro, acc.float(), dt)
     with pytest.raises(ValueError, match=r"gyro_bias must have shape \(\.\.\., 3\)"):

@@ -37,6 +37,17 @@ EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
 
 
 # ------------------------------------------------------------------------------ inputs
+def _dt_arg(dt, gyro):
+    """A number dt (one sampling interval for every sample) as a tensor (..., K) like gyro's,
+    filled on its device; tensors are left to _check_stream."""
+    if isinstance(dt, numbers.Real) and not isinstance(dt, bool) and isinstance(gyro, torch.Tensor):
+        checks.floating(gyro, "gyro")
+        return torch.full(gyro.shape[:-1], float(dt), dtype=gyro.dtype, device=gyro.device)
+    if not isinstance(dt, torch.Tensor):
+        raise TypeError(f"dt must be a number or a tensor (..., K), got {type(dt).__name__}")
+    return dt
+
+
 def _check_stream(gyro, acc, dt):
     checks.vector(gyro, 3, "gyro")
     checks.vector(acc, 3, "acc")
@@ -98,6 +109,7 @@ def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Te
 
     gyro, acc (..., K, 3) body rate [rad/s] and specific force [m/s^2]; dt (..., K) [s];
     biases (..., 3) or None."""
+    dt = _dt_arg(dt, gyro)
     batch = _check_stream(gyro, acc, dt)
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch).unsqueeze(-2)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch).unsqueeze(-2)
@@ -436,7 +448,8 @@ def preintegrate(
     """Batched Galilean preintegration of windows of K samples.
 
     gyro (..., K, 3) [rad/s] and acc (..., K, 3) [m/s^2, specific force] in the body frame,
-    constant over sample k's interval dt (..., K) [s] (dt may vary; dt >= 0, zero allowed: a
+    constant over sample k's interval dt (..., K) [s] (a number: the same for every sample;
+    dt may vary; dt >= 0, zero allowed: a
     negative dt raises ValueError, checked where reading it costs no host sync, that is on CPU
     outside torch.func transforms and compilation).  Biases (..., 3) or None.
 
@@ -485,6 +498,7 @@ def preintegrate(
     On CPU with nothing recording (no autograd, functorch transform or compile) the same
     arithmetic runs in place and in blocks of windows (_integrate_fast, docs/imu.md).
     """
+    dt = _dt_arg(dt, gyro)
     batch = _check_stream(gyro, acc, dt)
     _check_non_negative(dt, "dt")
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch)
