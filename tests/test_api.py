@@ -398,8 +398,10 @@ def test_stack_cat_unsqueeze_errors(G):
         g.unsqueeze(2)
     with pytest.raises(IndexError, match="dim must be in"):
         g.squeeze(1)
-    with pytest.raises(IndexError, match=r"does not fit the batch shape \(5,\)"):
+    with pytest.raises(IndexError, match=r"does not fit the batch shape \(5,\) .*: too many indices for 1 batch axis$"):
         g[0, 0]  # would otherwise index a matrix row
+    with pytest.raises(IndexError, match=r"too many indices for 0 batch axes$"):
+        G.identity()[0]
     with pytest.raises(ValueError, match=r"cannot reshape the batch shape \(5,\) .* to \(2, 2\)"):
         g.reshape(2, 2)
     with pytest.raises(ValueError, match="needs at least one element"):

@@ -411,8 +411,12 @@ class LieGroup:
         try:
             return type(self)._new(self._matrix[index + (slice(None), slice(None))])
         except IndexError as err:
+            why = str(err)
+            if "too many indices" in why:  # torch counts the matrix axes too
+                n = len(self.batch_shape)
+                why = f"too many indices for {n} batch ax{'is' if n == 1 else 'es'}"
             raise IndexError(f"index {index!r} does not fit the batch shape "
-                             f"{tuple(self.batch_shape)} of this {type(self).__name__}: {err}") from None
+                             f"{tuple(self.batch_shape)} of this {type(self).__name__}: {why}") from None
 
     def __len__(self) -> int:
         if not self.batch_shape:
