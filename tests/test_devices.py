@@ -234,22 +234,21 @@ def test_group_hot_paths_make_no_host_sync(G, dtype, batch):
     runs on meta) make no host sync, batched or not (x[..., i, j] = 1.0 copies on an unbatched
     tensor only).  Left out on purpose: from_matrix(check=True), a documented entry check that
     reads its measures in one sync (and skips it on meta)."""
-    BATCH = batch  # noqa: N806 (the module constant's name, for the cases below)
-    xi = _meta(*BATCH, G.dof, dtype=dtype)
-    g, h = G.exp(xi), G.random(BATCH, dtype=dtype, device=META)
+    xi = _meta(*batch, G.dof, dtype=dtype)
+    g, h = G.exp(xi), G.random(batch, dtype=dtype, device=META)
 
     def backward():
         x = xi.clone().requires_grad_()
         (grad,) = torch.autograd.grad(G.exp(x).log().sum(), x)
-        _check(grad, (*BATCH, G.dof), dtype)
+        _check(grad, (*batch, G.dof), dtype)
 
     _assert_no_host_sync([(f"{G.__name__}.{name} ({dtype})", fn) for name, fn in [
         ("exp", lambda: G.exp(xi)), ("log", g.log), ("compose", lambda: g @ h),
-        ("inverse", g.inverse), ("act", lambda: g.act(_meta(*BATCH, G.point_dim, dtype=dtype))),
+        ("inverse", g.inverse), ("act", lambda: g.act(_meta(*batch, G.point_dim, dtype=dtype))),
         ("adjoint", g.adjoint), ("jl", lambda: G.jl(xi)), ("jr", lambda: G.jr(xi)),
         ("jl_inv", lambda: G.jl_inv(xi)), ("jr_inv", lambda: G.jr_inv(xi)),
         ("interpolate(number)", lambda: g.interpolate(h, 0.3)),
-        ("interpolate(tensor)", lambda: g.interpolate(h, _meta(*BATCH, dtype=dtype))),
+        ("interpolate(tensor)", lambda: g.interpolate(h, _meta(*batch, dtype=dtype))),
         ("exp/log backward", backward),
     ]], dtype)
 
