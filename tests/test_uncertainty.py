@@ -506,6 +506,24 @@ def test_event_time_row_is_uninformative():
     assert abs(float(paper.covariance[9, 9] / q) - 0.5) < 1e-6
 
 
+@pytest.mark.parametrize("time_row", [False, True], ids=["default", "paper-time-row"])
+def test_event_fusion_prior_covariance_batch_larger_than_its_mean(time_row):
+    """A prior whose covariance has a batch of its own (the mean unbatched) fuses as the same
+    prior with the mean expanded; time_row=True added Q_99 in place into S, which had no
+    batch, and raised torch's expand error."""
+    from torchsgal.uncertainty import fuse_event
+
+    prior, event, Sigma = _event_problem()
+    scales = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)[:, None, None]
+    batched = ConcentratedGaussian(prior.mean, scales * prior.covariance)
+    expanded = ConcentratedGaussian(prior.mean.expand(3), scales * prior.covariance)
+    got = fuse_event(batched, event, Sigma, time_row=time_row)
+    want = fuse_event(expanded, event, Sigma, time_row=time_row)
+    assert got.batch_shape == (3,)
+    torch.testing.assert_close(got.mean.as_matrix(), want.mean.as_matrix(), rtol=0, atol=1e-15)
+    torch.testing.assert_close(got.covariance, want.covariance, rtol=0, atol=1e-15)
+
+
 def test_event_fusion_trades_time_against_position():
     """Figure 5: the timestamp noise enters the position residual along the velocity (N_mu maps
     it to -v Sigma_t v^T), so the Galilean fusion trusts the measurement less along the velocity
@@ -631,6 +649,32 @@ def test_fuse_checks_iterations_and_tol():
             d.fuse(e, tol=bad)
     with pytest.raises(TypeError, match=r"tol must be a finite number >= 0, got tensor"):
         d.fuse(e, tol=torch.tensor(1e-9))
+
+
+def test_fuse_default_tol_follows_the_dtype(monkeypatch):
+    """fuse's default step tolerance is 1e-12 in float64 and 1e-6 in float32: a float32 step
+    never falls below 1e-12, so that default ran (and synced) every iteration."""
+    calls = []
+    original = ts.SE3.jr_inv
+    monkeypatch.setattr(ts.SE3, "jr_inv", classmethod(lambda cls, r: calls.append(1) or original(r)))
+    gen = torch.Generator().manual_seed(5)
+    d = ConcentratedGaussian(ts.SE3.random(2, generator=gen), 0.1 * torch.eye(6))
+    e = ConcentratedGaussian(d.mean.rplus(0.3 * torch.randn(2, 6, generator=gen)), 0.2 * torch.eye(6))
+
+    def steps(a, b, **kw):
+        calls.clear()
+        out = a.fuse(b, **kw)
+        return (len(calls) - 2) // 2, out  # two jr_inv per step, two for the covariance
+
+    n32, f32 = steps(d, e)
+    n32_tol, f32_tol = steps(d, e, tol=1e-6)
+    assert n32 == n32_tol < 10
+    assert torch.equal(f32.mean.as_matrix(), f32_tol.mean.as_matrix())
+    d64, e64 = (ConcentratedGaussian(g.mean.to(torch.float64), g.covariance.double()) for g in (d, e))
+    n64, _ = steps(d64, e64)
+    assert n64 == steps(d64, e64, tol=1e-12)[0] > n32
+    torch.testing.assert_close(f32.mean.as_matrix().double(), steps(d64, e64)[1].mean.as_matrix(),
+                               rtol=0, atol=1e-5)
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)

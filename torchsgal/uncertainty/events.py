@@ -70,7 +70,10 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
 
     ``event_covariance`` must be symmetric positive semi-definite with a positive definite
     position block (an exact timestamp, variance 0, is allowed; an exact position is not: its
-    noise would be singular).  ``validate`` checks this as the ConcentratedGaussian constructor
+    noise would be singular).  The position noise it implies in the prior mean's frame,
+    [I, -v] Sigma [I, -v]^T (v: the mean's velocity), must be positive definite too: a
+    position error exactly correlated with the timestamp along v cancels and raises
+    ValueError ('... is singular').  ``validate`` checks this as the ConcentratedGaussian constructor
     checks its covariance (skipped on 'meta', under torch.func transforms and torch.compile).
 
     One host sync, at the end: it reads the validation's measures and whether a matrix that
@@ -120,8 +123,8 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     S = N_mu @ event_covariance @ N_mu.transpose(-1, -2)
     rows = 4 if time_row else 3
     if time_row:
-        S = S.clone()
-        S[..., 3, 3] = S[..., 3, 3] + Q[..., 9, 9]
+        # + Q_99 e4 e4^T, out of place: Q's batch may be larger than S's
+        S = S + torch.nn.functional.pad(Q[..., 9:, 9:], (3, 0, 3, 0))
     S_inv, s_status = torch.linalg.inv_ex(_sym(S[..., :rows, :rows]))
     Q_inv, q_status = torch.linalg.inv_ex(_sym(Q))
     singular = [(q_status != 0).any(), (s_status != 0).any()]
