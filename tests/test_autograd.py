@@ -213,6 +213,36 @@ def test_jacfwd_equals_jacrev_and_hessian(G):
 
 
 @pytest.mark.parametrize("G", GROUPS, ids=IDS)
+def test_float32_forward_mode_of_one_element(G):
+    """Forward mode in float32 on one (unbatched) element: functorch's jvp gave a Python number
+    times a 0-d float32 tensor a float64 tangent (pytorch/functorch#1073), so jacfwd of the
+    Jacobians and hessian raised in lerp or returned float64.  Each result is float32 and
+    agrees with the float64 one (checked against finite differences by the tests above)."""
+    jacfwd, hessian, vmap = torch.func.jacfwd, torch.func.hessian, torch.func.vmap
+    f = lambda v: G.exp(v).log().square().sum()  # noqa: E731
+    cases = {
+        "jacfwd jl": lambda x: jacfwd(G.jl)(x[0]),
+        "jacfwd jr": lambda x: jacfwd(G.jr)(x[0]),
+        "jacfwd jl_inv": lambda x: jacfwd(G.jl_inv)(x[0]),
+        "jacfwd jr_inv": lambda x: jacfwd(G.jr_inv)(x[0]),
+        "jacfwd adjoint": lambda x: jacfwd(lambda v: G.exp(v).adjoint())(x[0]),
+        "jacfwd exp": lambda x: jacfwd(lambda v: G.exp(v).as_matrix())(x[0]),
+        "jacfwd log": lambda x: jacfwd(lambda v: G.exp(v).log())(x[0]),
+        "jacfwd rminus": lambda x: jacfwd(lambda v: G.exp(v).rminus(G.exp(x[1])))(x[0]),
+        "hessian": lambda x: hessian(f)(x[0]),
+        "jacfwd(jacfwd)": lambda x: jacfwd(jacfwd(f))(x[0]),
+        "vmap(hessian)": lambda x: vmap(hessian(f))(x),
+    }
+    x64 = sample_tangent(G, (3,), torch.float64, seed=31, angles=[0.5, 1e-4, 2.5])
+    for name, case in cases.items():
+        want = case(x64)
+        got = case(x64.float())
+        assert got.dtype == torch.float32, name
+        np.testing.assert_allclose(got.double().numpy(), want.numpy(), rtol=1e-4, atol=1e-4,
+                                   err_msg=name)
+
+
+@pytest.mark.parametrize("G", GROUPS, ids=IDS)
 def test_second_derivatives(G):
     """The custom backward is itself differentiable (hessian against finite differences)."""
     f = G._f

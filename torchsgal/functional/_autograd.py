@@ -37,7 +37,7 @@ from __future__ import annotations
 import torch
 
 from . import checks
-from ._blocking import _is_wrapped, is_compiling, run_blocked
+from ._blocking import _is_wrapped, is_compiling, run_blocked, run_lifted
 
 
 def _nested_forward_mode(t: torch.Tensor) -> bool:
@@ -62,7 +62,7 @@ def make_exp_log(mod):
     def _matvec(A, x):
         return (A @ x.unsqueeze(-1)).squeeze(-1)
 
-    def _exp_jvp(xi, M, dxi):
+    def _exp_jvp(xi, M, dxi):  # (the jl and jl_inv of these jvps are lifted by run_blocked)
         # dM = M (J_r(xi) dxi)^, J_r(xi) = J_l(-xi)
         return M @ mod.hat(_matvec(mod.jl(-xi), dxi))
 
@@ -132,14 +132,14 @@ def make_exp_log(mod):
         """Group exponential (..., dof) -> (..., n, n); backward through the closed-form J_r."""
         checks.vector(xi, mod.DOF, "xi")
         if is_compiling() or _nested_forward_mode(xi):
-            return mod.exp_impl(xi)
+            return run_lifted(mod.exp_impl, (xi,), (1,))
         return ExpWithJvp.apply(xi)
 
     def log(M: torch.Tensor) -> torch.Tensor:
         """Principal logarithm (..., n, n) -> (..., dof); backward through J_r^-1 (see module)."""
         checks.matrix(M, mod.MATRIX_DIM, "M")
         if is_compiling() or _nested_forward_mode(M):
-            return mod.log_impl(M)
+            return run_lifted(mod.log_impl, (M,), (2,))
         return LogWithJvp.apply(M)
 
     exp.__doc__ = f"{mod.NAME} exponential, custom autograd. " + (exp.__doc__ or "")

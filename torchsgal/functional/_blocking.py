@@ -61,14 +61,33 @@ def unobserved(args) -> bool:
     return all(_forward_ad.unpack_dual(a).tangent is None for a in args)
 
 
+def run_lifted(fn, args, event_dims):
+    """``fn(*args)``; inside a torch.func transform, unbatched arguments (each exactly its event
+    dims) run as a batch of one.  functorch's jvp gives a Python number times a 0-d float32
+    tensor a float64 tangent (pytorch/functorch#1073, still in torch 2.13), and the closed forms
+    hold 0-d components when unbatched: float32 jacfwd and hessian raised in lerp or silently
+    returned float64.  With a batch axis the components are 1-d and the tangents keep the
+    dtype.  Same ``fn`` contract as ``run_blocked``.  Not while torch.compile traces (dynamo
+    refuses the wrapper test)."""
+    if (is_compiling() or not all(a.dim() == k for a, k in zip(args, event_dims))
+            or not any(_is_wrapped(a) for a in args)):
+        return fn(*args)
+    try:
+        out = fn(*(a.unsqueeze(0) for a in args))
+    except (ValueError, TypeError):
+        return fn(*args)  # the same error, reported with the caller's shapes
+    return out.squeeze(0)
+
+
 def run_blocked(fn, args, event_dims):
     """``fn(*args)``, over blocks of the broadcast batch where that is safe (module docstring).
 
     ``event_dims[i]`` is the number of trailing non-batch dimensions of ``args[i]``; ``fn`` must
-    act independently on every batch element and return one tensor (..., *event).
+    act independently on every batch element and return one tensor (..., *event).  Inside
+    torch.func transforms, unbatched calls go through ``run_lifted``.
     """
     if not unobserved(args) or any(a.dim() < k for a, k in zip(args, event_dims)):
-        return fn(*args)
+        return run_lifted(fn, args, event_dims)
     shapes = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
     if all(s == shapes[0] for s in shapes):
         batch = shapes[0]  # the common case; broadcast_shapes costs ~10 us per call
