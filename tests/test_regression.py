@@ -664,6 +664,29 @@ def test_fitted_curve_validates_times():
         fit(torch.zeros(4, dtype=F64, device="meta"))
 
 
+def test_fitted_curve_checks_tensor_times_as_the_fits_do():
+    """fit(times) cast any tensor to the fit's dtype (int64, bool, float32 into a float64 fit)
+    where the fit functions raise TypeError; only lists and tuples of numbers are converted."""
+    Y = ts.SE3.exp(torch.randn(6, 6, dtype=F64, generator=torch.Generator().manual_seed(1)))
+    t = torch.linspace(0, 1, 6, dtype=F64)
+    fit = reg.fit_subgroup(Y, t)
+    for bad in (torch.tensor([0, 1]), torch.tensor([True])):
+        with pytest.raises(TypeError, match=f"^times must have a floating dtype .* got {bad.dtype}$"):
+            fit(bad)
+    with pytest.raises(TypeError, match="^times has dtype torch.float32 but the fit has dtype torch.float64$"):
+        fit(torch.tensor([0.5], dtype=torch.float32))
+    fit32 = reg.fit_subgroup(ts.SE3.from_matrix(Y.as_matrix().float()), t.float())
+    with pytest.raises(TypeError, match="^times has dtype torch.float64 but the fit has dtype torch.float32$"):
+        fit32(t)
+    with pytest.raises(TypeError, match=r"^times must be a torch.Tensor or a \(nested\) list of numbers"):
+        fit(["0.5"])
+    # lists and tuples of numbers take the fit's dtype and device, as before
+    expected = fit(torch.tensor([0.25, 0.5], dtype=F64)).as_matrix()
+    for times in ([0.25, 0.5], (0.25, 0.5)):
+        assert torch.equal(fit(times).as_matrix(), expected)
+    assert fit32([0.25, 0.5]).as_matrix().dtype == torch.float32
+
+
 def test_lbfgs_on_an_empty_batch_returns_an_empty_fit_like_gauss_newton():
     Y = ts.SE3.exp(torch.randn(2, 6, 6, dtype=F64))[:0]
     t = torch.linspace(0, 1, 6, dtype=F64)

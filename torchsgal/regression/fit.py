@@ -16,6 +16,7 @@ mean (R^2 < 0; high noise), that data set is solved again from the constant curv
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -57,11 +58,25 @@ class CurveFit:
     _x: torch.Tensor
 
     def __call__(self, times: torch.Tensor) -> LieGroup:
-        """gamma at times (..., M), the leading dimensions broadcasting with the fit's batch."""
-        if isinstance(times, torch.Tensor) and times.device != self.origin.device:
-            raise ValueError(f"times is on {times.device} but the fit is on "
-                             f"{self.origin.device}; move them to one device")
-        times = torch.as_tensor(times, dtype=self.origin.dtype, device=self.origin.device)
+        """gamma at times (..., M), the leading dimensions broadcasting with the fit's batch.
+
+        A tensor ``times`` is checked as the fit functions check theirs, never cast: it must
+        have the fit's floating dtype (TypeError for an integer or bool dtype or the other
+        float) and be on its device (ValueError).  Python numbers in a list or tuple (nested
+        for a batch) are converted to the fit's dtype and device."""
+        if isinstance(times, torch.Tensor):
+            checks.floating(times, "times")
+            checks.same_device_dtype(**{"the fit": self.time_origin, "times": times})
+        elif isinstance(times, (list, tuple)) or (isinstance(times, numbers.Real)
+                                                  and not isinstance(times, bool)):
+            try:
+                times = torch.tensor(times, dtype=self.origin.dtype, device=self.origin.device)
+            except (TypeError, ValueError, RuntimeError):
+                raise TypeError(f"times must be a torch.Tensor or a (nested) list of numbers of "
+                                f"shape (..., M), got {times!r}") from None
+        else:
+            raise TypeError(f"times must be a torch.Tensor or a (nested) list of numbers of shape "
+                            f"(..., M), got {type(times).__name__}")
         if times.dim() < 1:
             raise ValueError(f"times must have shape (..., M), got {tuple(times.shape)}")
         try:
