@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 import torchsgal as ts
 from torchsgal import regression as reg
+from torchsgal.regression import fit as fit_module
 from torchsgal.regression.models import PolynomialModel, RiemannianGeodesicModel
 
 F64 = torch.float64
@@ -853,6 +854,40 @@ def test_fits_never_end_worse_than_the_constant_curve():
     torch.testing.assert_close(grid.cost.reshape(8), flat.cost, atol=0, rtol=1e-12)
     torch.testing.assert_close(grid.origin.as_matrix().reshape(8, 4, 4), flat.origin.as_matrix(),
                                atol=1e-12, rtol=0)
+
+
+def test_restart_solves_only_the_worse_data_sets_and_matches_fitting_them_alone(monkeypatch):
+    """_restart picks the data sets costlier than the constant curve by integer indices (it
+    used boolean masks) and solves them again as a sub-batch: here (SE3, N = 10, sigma = 1)
+    one data set of four.  Each data set of the batch ends as it does fitted alone (where the
+    restarted one is an unbatched restart), also from a (2, 2) batch."""
+    solves = []
+    solve = fit_module._solve
+
+    def spy(model, origin, x, *args):
+        state = solve(model, origin, x, *args)
+        solves.append((tuple(origin.shape[:-2]), state.cost.clone()))
+        return state
+
+    monkeypatch.setattr(fit_module, "_solve", spy)
+    g = torch.Generator().manual_seed(0)
+    sim = reg.simulate_maneuver(ts.SE3, torch.randn(4, 6, dtype=F64, generator=g), 10, 1.0,
+                                generator=g)
+    fit = reg.fit_subgroup(sim.measured, sim.times)
+    # the first solve, the Frechet means (the constant curves), the restart of one data set
+    assert [shape for shape, _ in solves] == [(4,), (4,), (1,)]
+    first, again = solves[0][1], solves[2][1]
+    (restarted,) = (fit.cost != first).nonzero()[:, 0].tolist()
+    assert float(fit.cost[restarted]) == float(again[0]) < float(first[restarted])
+    grid = reg.fit_subgroup(sim.measured.reshape(2, 2, 10), sim.times.reshape(2, 2, 10))
+    torch.testing.assert_close(grid.cost.reshape(4), fit.cost, rtol=1e-12, atol=0)
+    for i in range(4):
+        one = reg.fit_subgroup(sim.measured[i], sim.times[i])
+        torch.testing.assert_close(one.cost, fit.cost[i], rtol=1e-12, atol=0)
+        torch.testing.assert_close(one.origin.as_matrix(), fit.origin.as_matrix()[i],
+                                   rtol=0, atol=1e-12)
+        torch.testing.assert_close(one.coefficients, fit.coefficients[i], rtol=0, atol=1e-12)
+        assert bool(one.converged) == bool(fit.converged[i])
 
 
 def test_riemannian_fits_never_end_worse_than_the_constant_curve():

@@ -186,28 +186,41 @@ def _constant_curve(G, Y, t, t0, w) -> torch.Tensor:
     return _fit_polynomial(G, Y, t, t0, w, 0, None, "gauss_newton", 50, tolerance).origin.as_matrix()
 
 
+def _rows(t: torch.Tensor, idx: torch.Tensor, batch_dims: int) -> torch.Tensor:
+    """The data sets ``idx`` (int64 indices into the flattened leading ``batch_dims``
+    dimensions) of ``t``, stacked: (len(idx),) + t.shape[batch_dims:].  Integer indexing,
+    which does not copy the rest of an expanded ``t``; an unbatched t is data set 0."""
+    if batch_dims == 0:
+        return t.unsqueeze(0).index_select(0, idx)
+    return t[torch.unravel_index(idx, t.shape[:batch_dims])]
+
+
 def _restart(make_model, model, state: SolverState, origin, x, method, max_iterations,
              tolerance) -> SolverState:
     """Where the solution costs more than the start (origin, x), the constant curve at the
     (approximate) Frechet mean, whose cost is about the total variation of R^2 (a local
     minimum worse than the constant curve: R^2 < 0), solves those data sets again from it
-    and keeps that solution (never costlier than its start).  One host sync to find them;
-    the second solve runs on those data sets only.  ``make_model(mask)``: the model of the
-    data sets selected by a boolean mask of the batch."""
+    and keeps that solution where it is cheaper (or finite where the first was not).  One
+    host sync to find them (``nonzero``); the second solve runs on those data sets only.
+    ``make_model(idx)``: the model of the data sets ``idx``, int64 indices into the
+    flattened batch (``_rows``); they are merged back with ``index_copy``."""
     r = model.residuals(origin, x)
     constant = (r * r).sum(-1)
     worse = ~(state.cost <= constant * (1 + 1e-9))  # a non-finite cost too
-    if not bool(worse.any()):
+    idx = worse.reshape(-1).nonzero()[:, 0]  # the one host sync
+    if idx.numel() == 0:
         return state
-    again = _solve(make_model(worse), origin[worse], x[worse], method, max_iterations, tolerance)
-    keep = again.cost < state.cost[worse]
-    keep = keep | (~torch.isfinite(state.cost[worse]) & torch.isfinite(again.cost))
+    nb = worse.dim()
+    again = _solve(make_model(idx), _rows(origin, idx, nb), _rows(x, idx, nb), method,
+                   max_iterations, tolerance)
+    cost = _rows(state.cost, idx, nb)
+    keep = (again.cost < cost) | (~torch.isfinite(cost) & torch.isfinite(again.cost))
     out = []
     for full, part in ((state.origin, again.origin), (state.coefficients, again.coefficients),
                        (state.cost, again.cost), (state.converged, again.converged)):
-        full = full.clone()
-        full[worse] = torch.where(keep.reshape(keep.shape + (1,) * (part.dim() - 1)), part, full[worse])
-        out.append(full)
+        flat = full.reshape((-1,) + full.shape[nb:])
+        merged = torch.where(keep.reshape(keep.shape + (1,) * (part.dim() - 1)), part, flat[idx])
+        out.append(flat.index_copy(0, idx, merged).reshape(full.shape))
     return SolverState(*out, state.iterations + again.iterations)
 
 
@@ -230,8 +243,9 @@ def _fit_polynomial(G, Y, t, t0, w, degree, B, method, max_iterations, tolerance
             state = _solve(model, p, x, method, max_iterations, tolerance)
             if constant is None:
                 constant = _constant_curve(G, Y, t, t0, w)
-            sqrt_w = w.sqrt()
-            state = _restart(lambda k: PolynomialModel(G, Y[k], tau[k], degree, sqrt_w[k], B),
+            sqrt_w, nb = w.sqrt(), t0.dim()
+            state = _restart(lambda k: PolynomialModel(G, _rows(Y, k, nb), _rows(tau, k, nb),
+                                                       degree, _rows(sqrt_w, k, nb), B),
                              model, state, constant, torch.zeros_like(x), method,
                              max_iterations, tolerance)
     return CurveFit(G, "polynomial", G.from_matrix(state.origin), model.coefficients(state.coefficients),
@@ -336,9 +350,10 @@ def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: in
         model = RiemannianPolynomialModel(G, Y, tau, sqrt_w, w, degree, steps)
         x = (start.coefficients * factorials[:, None]).flatten(-2)
         state = _solve(model, start.origin.as_matrix(), x, method, max_iterations, tolerance)
-        state = _restart(lambda k: RiemannianPolynomialModel(G, Y[k], tau[k], sqrt_w[k], w[k], degree, steps),
-                         model, state, constant, torch.zeros_like(x), method, max_iterations,
-                         tolerance)
+        nb = t0.dim()
+        state = _restart(lambda k: RiemannianPolynomialModel(
+            G, *(_rows(v, k, nb) for v in (Y, tau, sqrt_w, w)), degree, steps),
+            model, state, constant, torch.zeros_like(x), method, max_iterations, tolerance)
         V0 = model.initial(state.coefficients)
         # The fitted curve and the polynomial start, whose motion is the data's, must both be
         # resolved (the start too: else a fit that cannot leave the constant curve, where the
