@@ -273,6 +273,36 @@ def test_table_must_be_finite():
     GDHChain(torch.full((1,), math.nan, device="meta"), [0.0], [0.0], [0.0], "R")
 
 
+def test_malformed_table_columns_raise_typeerror_naming_the_column():
+    """A column that is not a sequence of numbers or a 1-D tensor gave torch's or Python's
+    message ("object of type 'float' has no len()", "len() of a 0-d tensor", "too many
+    dimensions 'str'"), naming no column."""
+    expected = r"\(a DH table column\) must be a sequence of numbers or a 1-D tensor"
+    with pytest.raises(TypeError, match=rf"^a {expected}, got float 0.3$"):
+        GDHChain(0.3, 0.0, 0.1, 0.0, "R")
+    with pytest.raises(TypeError, match=rf"^a {expected}, got a 0-D Tensor of shape \(\)$"):
+        GDHChain(torch.tensor(0.3), [0.0], [0.0], [0.0], "R")
+    with pytest.raises(TypeError, match=rf"^d {expected}, got a 2-D Tensor of shape \(1, 1\)$"):
+        GDHChain([0.3], [0.0], torch.zeros(1, 1), [0.0], "R")
+    with pytest.raises(TypeError, match=rf"^alpha {expected}, got str '0'$"):
+        GDHChain([0.3], "0", [0.0], [0.0], "R")
+    with pytest.raises(TypeError, match=rf"^a {expected}: its entries must be real numbers, "
+                                        rf"got \['x'\]$"):
+        GDHChain(["x"], [0.0], [0.0], [0.0], "R")
+    with pytest.raises(TypeError, match=rf"^theta_offset {expected}: its entries must be real "
+                                        rf"numbers, got \[None\]$"):
+        GDHChain([0.3], [0.0], [0.0], [None], "R")
+    with pytest.raises(TypeError, match=rf"^alpha {expected}, got nested sequences of shape "
+                                        rf"\(2, 1\)$"):
+        GDHChain([0.3, 0.2], [[0.0], [0.0]], [0.0, 0.0], [0.0, 0.0], "RR")
+    with pytest.raises(TypeError, match=r"^joint_types must be a string such as 'RRP' or a "
+                                        r"sequence .* got int$"):
+        GDHChain([0.3], [0.0], [0.0], [0.0], 1)
+    # tuples, ranges, numpy and 1-D tensors of any dtype are still columns
+    chain = GDHChain((0.3,), np.array([0.0]), range(1), torch.zeros(1, dtype=torch.int64), "R")
+    assert chain.d.dtype == torch.float64 and chain.n_joints == 1
+
+
 def test_joint_tensor_mismatch_is_typeerror_for_dtype_valueerror_for_device():
     """qdot/qddot against q: a dtype mismatch is TypeError and a device mismatch ValueError, as
     for q against the chain (checks.same_device_dtype); both used to be ValueError."""

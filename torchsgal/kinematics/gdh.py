@@ -130,6 +130,36 @@ def _columns_device(cols: dict) -> torch.device | None:
     return next(iter(devices.values()), None)
 
 
+_COLUMN = "a sequence of numbers or a 1-D tensor"
+
+
+def _column_kind(value, name: str) -> None:
+    """A DH table column must be a sequence (list, tuple, ...) or a 1-D tensor or array:
+    TypeError naming the column, what is expected and what was given (metadata only)."""
+    ndim = value.dim() if isinstance(value, torch.Tensor) else getattr(value, "ndim", None)
+    if ndim is not None and not isinstance(value, Sequence):  # a tensor or a numpy array
+        if ndim != 1:
+            raise TypeError(f"{name} (a DH table column) must be {_COLUMN}, got a {ndim}-D "
+                            f"{type(value).__name__} of shape {tuple(value.shape)}")
+    elif isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        raise TypeError(f"{name} (a DH table column) must be {_COLUMN}, got "
+                        f"{type(value).__name__} {value!r}")
+
+
+def _column_tensor(value, name: str, dtype: torch.dtype, device) -> torch.Tensor:
+    """A column (checked by ``_column_kind``) as a tensor (n,) of ``dtype`` on ``device``;
+    TypeError naming the column where its entries are not real numbers."""
+    try:
+        t = torch.as_tensor(value, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name} (a DH table column) must be {_COLUMN}: its entries must be real "
+                        f"numbers, got {value!r}") from None
+    if t.dim() != 1:  # nested sequences
+        raise TypeError(f"{name} (a DH table column) must be {_COLUMN}, got nested sequences of "
+                        f"shape {tuple(t.shape)}")
+    return t
+
+
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-1)
 
@@ -151,11 +181,13 @@ class GDHChain:
     chain in the dtype and on the device of your data (``ur5(dtype=torch.float32,
     device="cuda")``).
 
-    The columns may be sequences or tensors.  With ``device=None`` the table goes where its
-    tensor columns are (all of them on one device, else ValueError naming the columns), or
-    to torch's default device when no column is a tensor; ``dtype`` is not taken from the
-    columns (float64 unless given: tensor columns are converted).  The table must be finite
-    (ValueError naming the column; not checked on 'meta' or under torch.func transforms).
+    The columns may be sequences of numbers or 1-D tensors (anything else, a scalar, a
+    string, nested sequences or entries that are not real numbers, raises TypeError naming
+    the column).  With ``device=None`` the table goes where its tensor columns are (all of
+    them on one device, else ValueError naming the columns), or to torch's default device
+    when no column is a tensor; ``dtype`` is not taken from the columns (float64 unless given:
+    tensor columns are converted).  The table must be finite (ValueError naming the column;
+    not checked on 'meta' or under torch.func transforms).
     ``joint_types`` is a sequence of "revolute"/"R" and "prismatic"/"P", or a string read
     letter by letter ("RRP").
     """
@@ -173,6 +205,11 @@ class GDHChain:
         name: str = "chain",
     ):
         cols = {"a": a, "alpha": alpha, "d": d, "theta_offset": theta_offset}
+        for k, v in cols.items():
+            _column_kind(v, k)
+        if not isinstance(joint_types, (str, Sequence)):
+            raise TypeError(f"joint_types must be a string such as 'RRP' or a sequence of "
+                            f"'revolute'/'R' and 'prismatic'/'P', got {type(joint_types).__name__}")
         lengths = {k: len(v) for k, v in cols.items()}
         lengths["joint_types"] = len(joint_types)
         n = lengths["a"]
@@ -189,8 +226,8 @@ class GDHChain:
         self.name = name
         self.n_joints = n
         self.joint_types = tuple(types)
-        as_t = lambda v: torch.as_tensor(v, dtype=dtype, device=device).reshape(n)  # noqa: E731
-        self.a, self.alpha, self.d, self.theta_offset = (as_t(cols[k]) for k in cols)
+        self.a, self.alpha, self.d, self.theta_offset = (
+            _column_tensor(v, k, dtype, device) for k, v in cols.items())
         table = dict(zip(cols, (self.a, self.alpha, self.d, self.theta_offset)))
         if all(values_readable(t) for t in table.values()):  # one host sync, at construction
             finite = torch.stack([torch.isfinite(t).all() for t in table.values()]).tolist()
