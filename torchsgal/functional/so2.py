@@ -69,23 +69,24 @@ def inverse(C: torch.Tensor) -> torch.Tensor:
     return C.transpose(-1, -2)
 
 
-def _ones(x: torch.Tensor, batch) -> torch.Tensor:
-    return torch.ones(*batch, 1, 1, dtype=x.dtype, device=x.device)
+# SO(2) is abelian: Ad = J = 1 and ad = 0.  They are built from the input (x * 0 + 1) so that,
+# as for the other groups, they are connected to its autograd graph (a zero gradient, not
+# "does not require grad").
 
 
 def adjoint(C: torch.Tensor) -> torch.Tensor:
     checks.matrix(C, MATRIX_DIM, "C")
-    return _ones(C, C.shape[:-2])
+    return C[..., :1, :1] * 0.0 + 1.0
 
 
 def ad(theta: torch.Tensor) -> torch.Tensor:
     checks.vector(theta, DOF, "xi")
-    return torch.zeros_like(theta).unsqueeze(-1)
+    return theta.unsqueeze(-1) * 0.0
 
 
 def jl(theta: torch.Tensor) -> torch.Tensor:
     checks.vector(theta, DOF, "xi")
-    return _ones(theta, theta.shape[:-1])
+    return theta.unsqueeze(-1) * 0.0 + 1.0
 
 
 jr = jl_inv = jr_inv = jl
