@@ -322,6 +322,47 @@ def test_covariance_converges_to_the_sequential_recursion(per_axis):
     assert errs[1] < errs[0] / 12, errs  # fourth order
 
 
+@pytest.mark.parametrize("per_axis", [False, True])
+@pytest.mark.parametrize("K", [1, 2, 8])
+def test_covariance_at_rest_is_the_continuous_integral(K, per_axis):
+    """At rest with accelerometer noise only, the integral int_0^T Ad(F(s)) G Q_c G^T Ad(F(s))^T
+    ds is, by hand (velocity error s_a W(s), position error its integral): nu block s_a^2 T,
+    rho block s_a^2 T^3/3, cross s_a^2 T^2/2 (each times I), nothing else.  Noise held over
+    each sample would give s_a^2 dt^3 (K^3/3 - K/12) for the rho block (the docstring's
+    factor 1 / (1 - 1/(4 K^2)), 4/3 at K = 1): this pins down which model is computed."""
+    dt, s_a = 0.1, 0.5
+    z = torch.zeros(1, K, 3, dtype=F64)
+    if per_axis:
+        dens = dict(gyro_noise_density=torch.zeros(3, dtype=F64), acc_noise_density=torch.full((3,), s_a, dtype=F64))
+    else:
+        dens = dict(gyro_noise_density=0.0, acc_noise_density=s_a)
+    cov = preintegrate(z, z, torch.full((1, K), dt, dtype=F64), **dens).covariance[0]
+    T, q, eye = K * dt, s_a ** 2, torch.eye(3, dtype=F64)
+    want = torch.zeros(10, 10, dtype=F64)
+    want[:3, :3], want[3:6, 3:6] = q * T ** 3 / 3 * eye, q * T * eye
+    want[:3, 3:6] = want[3:6, :3] = q * T ** 2 / 2 * eye
+    torch.testing.assert_close(cov, want, rtol=0, atol=1e-15)
+    held = q * dt ** 3 * (K ** 3 / 3 - K / 12)
+    assert abs(float(cov[0, 0]) / held - 1 / (1 - 1 / (4 * K ** 2))) < 1e-12
+
+
+def test_per_axis_covariance_gradient_at_a_zero_dt():
+    """dt >= 0 allows a zero interval; the per-axis path took sqrt of the Simpson weights,
+    whose derivative is infinite at 0 (NaN gradient with respect to dt).  The gradient equals
+    the isotropic path's (the same densities on every axis)."""
+    gyro, acc, dt = random_stream(1, 4, seed=24)
+    dt = dt.clone()
+    dt[0, 1] = 0.0
+    grads = []
+    for g, a in ((1e-3, 2e-2), (torch.full((3,), 1e-3, dtype=F64), torch.full((3,), 2e-2, dtype=F64))):
+        d = dt.clone().requires_grad_(True)
+        cov = preintegrate(gyro, acc, d, gyro_noise_density=g, acc_noise_density=a).covariance
+        (grad,) = torch.autograd.grad((cov * torch.arange(100, dtype=F64).reshape(10, 10)).sum(), d)
+        grads.append(grad)
+    assert torch.isfinite(grads[1]).all(), grads[1]
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-10, atol=1e-14)
+
+
 def test_isotropic_and_per_axis_paths_agree():
     gyro, acc, dt = random_stream(3, 30, seed=22)
     iso = preintegrate(gyro, acc, dt, gyro_noise_density=1e-3, acc_noise_density=2e-2, time_noise_density=1e-4)
@@ -395,6 +436,9 @@ def test_a_number_dt_is_the_same_interval_for_every_sample():
         assert torch.equal(getattr(by_number, name), getattr(by_tensor, name)), name
     assert torch.equal(by_number.delta.as_matrix(), by_tensor.delta.as_matrix())
     assert torch.equal(increment_tangents(gyro, acc, 0.004), increment_tangents(gyro, acc, torch.full((3, 7), 0.004, dtype=F64)))
+    for bad in (float("inf"), float("nan"), -0.004):  # inf gave a NaN increment silently
+        with pytest.raises(ValueError, match=rf"dt must be a finite number >= 0, got {bad}"):
+            preintegrate(gyro, acc, bad, **kw)
 
 
 # ------------------------------------------------------------------------------ errors

@@ -59,6 +59,8 @@ def test_peer_helpers_check_their_arguments():
         peers.pypose_predict(empty_g, empty_g, empty_dt, X)
     with pytest.raises(ValueError, match=r"dt must have shape \(\.\.\., K\) with K = 10"):
         peers.gtsam_preintegrate(gyro, acc, dt[:, :4], peers.gtsam_params())
+    with pytest.raises(ValueError, match=r"gyro_bias must be a tensor of shape \(3,\) .* got \(2, 3\)"):
+        peers.gtsam_preintegrate(gyro, acc, dt, peers.gtsam_params(), gyro_bias=torch.zeros(2, 3, dtype=F64))
     with pytest.raises(TypeError, match="frames must be SGal3, got SE3"):
         peers.to_gtsam_navstate(SE3.identity(dtype=F64))
     with pytest.raises(TypeError, match="frames must be SGal3, got SE3"):

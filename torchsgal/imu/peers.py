@@ -108,6 +108,10 @@ def gtsam_preintegrate(gyro, acc, dt, params, gyro_bias=None, acc_bias=None) -> 
     import gtsam
 
     _stream(gyro, acc, dt)
+    for name, b in (("gyro_bias", gyro_bias), ("acc_bias", acc_bias)):
+        if b is not None and tuple(getattr(b, "shape", ())) != (3,):
+            raise ValueError(f"{name} must be a tensor of shape (3,) (one bias for all windows) or "
+                             f"None, got {tuple(b.shape) if hasattr(b, 'shape') else type(b).__name__}")
     g, a, h = _np(gyro).reshape(-1, gyro.shape[-2], 3), _np(acc).reshape(-1, gyro.shape[-2], 3), _np(dt)
     h = np.broadcast_to(h, gyro.shape[:-1]).reshape(-1, gyro.shape[-2])
     bias = gtsam.imuBias.ConstantBias(
