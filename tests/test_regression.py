@@ -487,6 +487,32 @@ def test_r_squared_tends_to_one_as_noise_vanishes():
         assert 50 < a / b < 200, one_minus
 
 
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=ids)
+def test_r_squared_on_every_group_against_matrix_logarithms(G):
+    """(50) with the distances taken from scipy's matrix logarithm (d(a, b) = |vee(logm(a^-1
+    b))|), for a given mean; the Frechet mean (the default) minimises the denominator, so it
+    gives the smallest R^2; a perfect fit gives 1."""
+    gen = torch.Generator().manual_seed(17)
+    Y = G.exp(0.4 * torch.randn(2, 6, G.dof, dtype=F64, generator=gen))
+    fitted = Y.rplus(0.1 * torch.randn(2, 6, G.dof, dtype=F64, generator=gen))
+    mean = G.exp(0.2 * torch.randn(2, G.dof, dtype=F64, generator=gen))
+
+    def sq(a, b):  # sum over the samples of d(a_j, b_j)^2
+        out = np.zeros(2)
+        A, Bm = a.as_matrix().numpy(), b.as_matrix().numpy()
+        for i in range(2):
+            for j in range(6):
+                L = logm(np.linalg.solve(A[i, j], Bm[i, j])).real
+                out[i] += float(G.vee(torch.from_numpy(L)).square().sum())
+        return out
+
+    want = 1 - sq(fitted, Y) / sq(mean.unsqueeze(-1).expand(2, 6), Y)
+    got = reg.r_squared(Y, fitted, mean=mean)
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-10)
+    assert bool((reg.r_squared(Y, fitted) <= got + 1e-12).all())
+    torch.testing.assert_close(reg.r_squared(Y, Y), torch.ones(2, dtype=F64), rtol=0, atol=0)
+
+
 def test_r_squared_against_hand_computed_euclidean_case():
     """On SE(3) with pure translations, a subgroup restricted to translations (basis) is a
     straight line and the log distance is Euclidean: R^2 is the ordinary least-squares R^2 of

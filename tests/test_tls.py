@@ -325,10 +325,11 @@ def test_gtsam_factor_graph_agrees():
             P.F_ga.as_matrix()[k].numpy(), P.F_gb.as_matrix()[k].numpy(), P.cov_a.numpy(),
             P.cov_b.numpy(), F0.as_matrix()[k].numpy(), float(dt0[k, 0]))
         sd = ours.covariance[k].diagonal().sqrt()
-        assert (ts.SGal3(torch.tensor(F)).rminus(ours.x[0][k]) / sd[:10]).abs().max() < 1e-5
-        assert abs(dtau - float(ours.x[1][k, 0])) / float(sd[10]) < 1e-5
+        # measured: 6e-8 and 2e-8 sd, covariances 1.6e-9 and 2e-10 (GTSAM's LM tolerances)
+        assert (ts.SGal3(torch.tensor(F)).rminus(ours.x[0][k]) / sd[:10]).abs().max() < 1e-6
+        assert abs(dtau - float(ours.x[1][k, 0])) / float(sd[10]) < 1e-6
         rel = (torch.tensor(cov) - ours.covariance[k]) / torch.outer(sd, sd)
-        assert rel.abs().max() < 1e-6
+        assert rel.abs().max() < 1e-8
 
 
 def test_command_line_writes_the_study(tmp_path):
