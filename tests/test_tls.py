@@ -157,6 +157,36 @@ def test_non_finite_observation_spoils_only_its_trial():
     assert ref.x[0][ok].rminus(sol.x[0][ok]).abs().max() < 1e-12
 
 
+@pytest.mark.parametrize("solver", ["sgal3", "baseline"])
+@pytest.mark.parametrize("variant,samples", [("iterated", 11), ("paper", 11), ("paper", 101)])
+def test_data_that_require_gradients_solve_as_detached_data(solver, variant, samples):
+    """docs/estimation.md: results come back detached whether or not the data or the
+    covariances require gradients.  The structured solver's out= buffers raised 'functions
+    with out=... arguments don't support automatic differentiation' (iterated, and the paper
+    variant from 2,048 conditions: 21 trials of 101 samples)."""
+    trials = study.simulate(study.StudyConfig(trials=21, samples=samples, seed=12)).problem
+    solve = tls.solve_sgal3 if solver == "sgal3" else tls.solve_baseline
+    ref = solve(trials, variant=variant)
+    F_ga = ts.SGal3(trials.F_ga.as_matrix().clone().requires_grad_(True))
+    cov_a = trials.cov_a.clone().requires_grad_(True)
+    sol = solve(tls.TLSProblem(F_ga, trials.F_gb, cov_a, trials.cov_b), variant=variant)
+    assert not sol.covariance.requires_grad and not sol.x[0].as_matrix().requires_grad
+    assert torch.equal(sol.covariance, ref.covariance)
+    assert torch.equal(sol.x[0].as_matrix(), ref.x[0].as_matrix())
+
+
+def test_straggler_fraction_is_checked_by_its_own_name():
+    P, _ = _problem()
+    for bad in (2.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=r"straggler_fraction must be a finite number in \[0, 1\]"):
+            tls.solve_sgal3(P, straggler_fraction=bad)
+    with pytest.raises(TypeError, match="stop_below_fraction is set by the TLS solvers; give straggler_fraction"):
+        tls.solve_baseline(P, stop_below_fraction=0.5)
+    for bad in (0, -1):
+        with pytest.raises(ValueError, match="reweightings must be an integer >= 1"):
+            tls.solve_sgal3_lbfgs(P, reweightings=bad)
+
+
 def test_frames_at_rest_make_dtau_unobservable():
     """With no relative velocity, dtau does not enter the conditions: SINGULAR information."""
     cfg = study.StudyConfig(trials=3, samples=11, speed=0.0, noise_scale=0.0, seed=7)

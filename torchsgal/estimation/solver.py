@@ -170,9 +170,15 @@ class Linearisation:
 
 def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torch.Tensor:
     """(B,) True where the information is numerically singular: a diagonal entry below
-    ``rcond`` times the largest (a direction that no residual sees, whatever the units), or
-    the Jacobi-scaled matrix with reciprocal condition below ``rcond`` (collinear
-    directions), or non-finite entries.  Default rcond: 1e3 eps."""
+    ``rcond`` times the largest (a direction that no residual sees: its information is then
+    rounding noise, which the Jacobi scaling below would blow up to 1), or the Jacobi-scaled
+    matrix with reciprocal condition below ``rcond`` (collinear directions, a test that does
+    not depend on the units), or non-finite entries.  Default rcond: 1e3 eps.
+
+    The diagonal test compares unknowns with each other, so it depends on their units: an
+    unknown whose standard deviation is 1/sqrt(rcond) times another's (about 1e6 in float64,
+    100 in float32) is flagged.  Express the unknowns in commensurate units where that
+    happens."""
     if rcond is None:
         rcond = 1e3 * torch.finfo(H.dtype).eps
     d = H.diagonal(dim1=-2, dim2=-1)

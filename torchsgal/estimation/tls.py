@@ -614,10 +614,21 @@ def _in_rounds(solve, problem, x0, options) -> Solution:
     """Gauss-Helmert with the stragglers compacted: once at most ``straggler_fraction``
     (default 5%) of the trials are still running, they are solved again on their own, from
     where they stopped, so the whole batch does not iterate for its slowest members."""
+    if "stop_below_fraction" in options:
+        raise TypeError("stop_below_fraction is set by the TLS solvers; give straggler_fraction "
+                        "(the running fraction below which the stragglers are solved on their own)")
+    fraction = checks.finite_number(options.pop("straggler_fraction", 0.05), "straggler_fraction",
+                                    "in [0, 1]")
     if problem.batch_size == 0:
         return _empty_solution(problem, x0)
     max_it = options.pop("max_iterations", 50)
-    fraction = options.pop("straggler_fraction", 0.05)
+    # The solvers are not differentiable (solver.iterate): data that require gradients would
+    # only make the structured solver's out= buffers refuse them.
+    with torch.no_grad():
+        return _rounds(solve, problem, x0, options, max_it, fraction)
+
+
+def _rounds(solve, problem, x0, options, max_it, fraction) -> Solution:
     sol = solve(problem, x0, None, max_iterations=max_it, stop_below_fraction=fraction, **options)
     first = int(sol.report.iterations.max())
     pending = sol.report.status == SolverStatus.MAX_ITERATIONS
@@ -653,10 +664,11 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
     (0.05): the running fraction below which the stragglers are finished in a batch of their
     own.  A problem without trials (B = 0) gives an empty solution.
 
-    Use float64.  The information of this problem is badly scaled (its diagonal spans about
-    six decades, Jacobi-scaled reciprocal condition about 1e-3), below the SINGULAR test's
-    threshold in float32 (1e3 eps = 1.2e-4 relative), so float32 problems may be reported
-    SINGULAR (with NaN covariances) even where the estimate is fine."""
+    Use float64.  The information of this problem is badly scaled: its diagonal spans about
+    six decades (smallest entries 7e-7 to 3e-6 of the largest), below the SINGULAR test's
+    threshold in float32 (1e3 eps = 1.2e-4 relative; its Jacobi-scaled reciprocal condition,
+    3e-4 to 3e-3, passes), so float32 problems are reported SINGULAR (with NaN covariances)
+    even where the estimate is fine."""
     variant_options(variant, {})
     x0 = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
     x0 = _check_unknowns(problem, x0, baseline=False)
@@ -776,7 +788,7 @@ def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = 
     where there is no covariance to measure it).  Not differentiable."""
     from .lbfgs import lbfgs
     step_tol = checks.finite_number(step_tol, "step_tol", ">= 0")
-    reweightings = checks.integer(reweightings, "reweightings")
+    reweightings = checks.integer(reweightings, "reweightings", 1)
     x = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
     x = V.detach(_check_unknowns(problem, x, baseline=False))
     if problem.batch_size == 0:
@@ -796,7 +808,7 @@ def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = 
     initial_cost, cost, gradient_norm, moved = nan.clone(), nan.clone(), nan.clone(), nan.clone()
     eye = torch.eye(11, dtype=like.dtype, device=like.device)
     active = torch.ones(Bn, dtype=torch.bool, device=like.device)
-    for round_ in range(max(1, reweightings)):
+    for round_ in range(reweightings):
         idx = active.nonzero()[:, 0]
         if idx.numel() == 0:
             break
