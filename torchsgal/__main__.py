@@ -159,15 +159,15 @@ def _nonnegative_float(text: str) -> float:
 
 
 def _study_dtype(text: str) -> str:
-    """float64 only: the estimators' information has a diagonal spanning six to seven decades and a
-    Jacobi-scaled reciprocal condition of 3e-4 to 3e-3 (SGal(3)) and 1e-5 to 1e-4 (the baseline),
-    at or below the SINGULAR test's threshold in float32 (1e3 eps = 1.2e-4 against the diagonal
-    ratio and the condition), so a float32 study would report every trial SINGULAR."""
+    """float64 only: the estimators' information has a diagonal spanning six to seven decades
+    (ratios 3e-8 to 3e-6) and a Jacobi-scaled reciprocal condition of 3e-4 to 3e-3 (SGal(3)) and
+    1e-5 to 1e-4 (the baseline); the SINGULAR test's threshold in float32 is 1e3 eps = 1.2e-4, so
+    the diagonal ratio flags every trial (and the condition the baseline's too)."""
     if text == "float32":
         raise argparse.ArgumentTypeError(
-            "the TLS study needs float64: in float32 the information's conditioning (Jacobi-scaled "
-            "reciprocal condition 1e-5 to 3e-3, diagonal ratio 3e-8 to 3e-6) is within the singularity test's "
-            "margin, so every trial would be reported SINGULAR")
+            "the TLS study needs float64: in float32 the information's diagonal ratio (3e-8 to 3e-6) "
+            "is below the singularity test's threshold (1.2e-4), so every trial would be reported "
+            "SINGULAR")
     if text != "float64":
         raise argparse.ArgumentTypeError(f"expected float64, got {text!r}")
     return text
