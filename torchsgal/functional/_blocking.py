@@ -70,7 +70,8 @@ def run_lifted(fn, args, event_dims):
     dtype.  Same ``fn`` contract as ``run_blocked``.  Not while torch.compile traces (dynamo
     refuses the wrapper test)."""
     if (is_compiling()
-            or not all(isinstance(a, torch.Tensor) and a.dim() == k for a, k in zip(args, event_dims))
+            or not all(isinstance(a, torch.Tensor) and a.dim() == k
+                       for a, k in zip(args, event_dims))
             or not any(_is_wrapped(a) for a in args)):
         return fn(*args)
     try:

@@ -483,8 +483,8 @@ def preintegrate(
     Simpson's rule on each sample interval (nodes at the instants and midpoints): exact for the
     parts of the integrand that are cubic in time, error O(dt^4) over the window.  (On a
     one-sample window the gyro-noise part of the position block, quartic in time, is 1/24 of
-    itself off the integral.)  The bias Jacobian is the same integral of Ad(Delta^-1 Delta(s)) G (minus the
-    gyro and accelerometer columns), on the same nodes.
+    itself off the integral.)  The bias Jacobian is the same integral of Ad(Delta^-1 Delta(s)) G
+    (minus the gyro and accelerometer columns), on the same nodes.
 
     Accuracy: the increment is exact for piecewise-constant inputs, for any dt.  The covariance
     and the bias Jacobian are not: Simpson's error on a sample grows with its rotation angle

@@ -73,8 +73,9 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     noise would be singular).  The position noise it implies in the prior mean's frame,
     [I, -v] Sigma [I, -v]^T (v: the mean's velocity), must be positive definite too: a
     position error exactly correlated with the timestamp along v cancels and raises
-    ValueError ('... is singular').  ``validate`` checks this as the ConcentratedGaussian constructor
-    checks its covariance (skipped on 'meta', under torch.func transforms and torch.compile).
+    ValueError ('... is singular').  ``validate`` checks this as the ConcentratedGaussian
+    constructor checks its covariance (skipped on 'meta', under torch.func transforms and
+    torch.compile).
 
     One host sync, at the end: it reads the validation's measures and whether a matrix that
     was inverted (the prior's covariance, the measurement noise, a Gauss-Newton system) was
