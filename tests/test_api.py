@@ -300,6 +300,12 @@ def test_batch_shape_arguments(G):
             make((2, None))
     with pytest.raises(TypeError, match=r"generator must be None or a torch.Generator, got int"):
         G.random(generator=5)
+    # a numpy integer is an int, alone as in a tuple; the functional layer takes the same shapes
+    assert G.identity(np.int64(2)).batch_shape == (2,) == G.random(np.int64(2)).batch_shape
+    f = G._f
+    assert f.random(3, torch.float64, "cpu").shape == (3, G.matrix_dim, G.matrix_dim)
+    with pytest.raises(TypeError, match=r"batch_shape must be an int or a sequence of ints"):
+        f.random(2.5, torch.float64, "cpu")
     g = G.random((4,), dtype=torch.float64)
     assert g.expand(2, 4).batch_shape == (2, 4) and g[:1].expand(3).batch_shape == (3,)
     with pytest.raises(ValueError, match=r"cannot expand the batch shape \(4,\) .* to \(3,\)"):
@@ -469,3 +475,26 @@ def test_series_constant_cache_keeps_only_plain_tensors(monkeypatch):
     assert torch.autograd.gradcheck(lambda v: ts.SGal3.exp(v).as_matrix(), (x,))
     assert numerics._CONSTANTS and all(type(t) is torch.Tensor and not t.is_inference()
                                        for consts in numerics._CONSTANTS.values() for t in consts)
+
+
+def test_the_abstract_base_class_says_so():
+    """LieGroup has no group: its constructors name the classes to use instead of failing on a
+    missing attribute, as does a subclass that names no group."""
+    from torchsgal.groups.base import LieGroup
+
+    class NoGroup(LieGroup):
+        pass
+
+    for cls in (LieGroup, NoGroup):
+        for make in (cls.random, cls.identity, lambda: cls.exp(torch.zeros(3)), lambda: cls(torch.eye(4)),
+                     lambda: cls.from_matrix(torch.eye(4)), lambda: cls.hat(torch.zeros(3))):
+            with pytest.raises(TypeError, match=r"LieGroup is the abstract base class: use SO2, SE2"):
+                make()
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_indexing_gives_views_and_names_a_negative_step(G):
+    g = G.random((4,), dtype=torch.float64)
+    assert g[1:3].as_matrix().data_ptr() == g.as_matrix()[1].data_ptr()  # a view, as documented
+    with pytest.raises(IndexError, match=r"does not fit the batch shape \(4,\) of this .*step must be greater"):
+        g[::-1]

@@ -115,8 +115,8 @@ def integer(value, name: str, minimum: int | None = None) -> int:
 def shape(batch_shape, name: str) -> tuple[int, ...]:
     """A shape argument: an int n (meaning (n,)) or a sequence of ints >= 0 (numpy integers and
     traced sizes too)."""
-    if isinstance(batch_shape, (int, torch.SymInt)) and not isinstance(batch_shape, bool):
-        batch_shape = (batch_shape,)
+    if isinstance(batch_shape, (numbers.Integral, torch.SymInt)) and not isinstance(batch_shape, bool):
+        batch_shape = (batch_shape,)  # numpy integers are Integral
     try:
         dims = tuple(batch_shape)
     except TypeError:

@@ -14,7 +14,9 @@ Below ``SERIES_THRESHOLD`` the two highest coefficients come from their Taylor s
 lower ones from the downward recursion; above it, from sin/cos and the upward recursion.
 Both branches are evaluated on safe inputs and merged with exact 0/1 masks (``select``), so
 values and gradients stay finite everywhere (the "double where" trick).  Functions take
-theta^2, never theta, so nothing differentiates sqrt at zero.
+theta^2, never theta, so nothing differentiates sqrt at zero.  theta^2 overflows (and the
+results are NaN) for rotation vectors longer than sqrt(finfo.max): 1.8e19 in float32, 1.3e154
+in float64.
 """
 from __future__ import annotations
 

@@ -205,6 +205,8 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    """A uniform rotation angle and a standard normal translation; batch_shape an int or a sequence."""
+    batch_shape = checks.shape(batch_shape, "batch_shape")
     checks.dtype_arg(dtype)
     t = (torch.rand(tuple(batch_shape), dtype=dtype, device=device, generator=generator) * 2 - 1) * torch.pi
     r = torch.randn(*batch_shape, 2, dtype=dtype, device=device, generator=generator)

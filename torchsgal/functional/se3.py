@@ -184,6 +184,8 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    """A uniform rotation and a standard normal translation; batch_shape an int or a sequence."""
+    batch_shape = checks.shape(batch_shape, "batch_shape")
     checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)

@@ -398,6 +398,9 @@ def compose_packed(P1: torch.Tensor, P2: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    """A uniform rotation, standard normal velocity, position and time; batch_shape an int or a
+    sequence."""
+    batch_shape = checks.shape(batch_shape, "batch_shape")
     checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     v, r = torch.randn(2, 3, *batch_shape, dtype=dtype, device=device, generator=generator)

@@ -290,7 +290,9 @@ def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
-    """Uniform rotation, standard normal translation, log-scale lambda standard normal."""
+    """Uniform rotation, standard normal translation, log-scale lambda standard normal;
+    batch_shape an int or a sequence."""
+    batch_shape = checks.shape(batch_shape, "batch_shape")
     checks.dtype_arg(dtype)
     C = B.random_rotation(batch_shape, dtype, device, generator)
     r = torch.randn(3, *batch_shape, dtype=dtype, device=device, generator=generator)

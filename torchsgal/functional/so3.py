@@ -130,6 +130,8 @@ def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
+    """A uniform (Haar) rotation; batch_shape an int or a sequence."""
+    batch_shape = checks.shape(batch_shape, "batch_shape")
     checks.dtype_arg(dtype)
     return B.random_rotation(batch_shape, dtype, device, generator)
 

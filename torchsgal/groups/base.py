@@ -18,6 +18,16 @@ from ..functional._blocking import values_readable
 REPR_ELEMENTS = 4  # repr shows the matrices of batches up to this size
 
 
+class _AbstractModule:
+    """``LieGroup._f``: the base class has no group; any use says so."""
+
+    def __getattr__(self, name):
+        raise TypeError(_ABSTRACT)
+
+
+_ABSTRACT = "LieGroup is the abstract base class: use SO2, SE2, SO3, SE3, SE23, SGal3 or Sim3"
+
+
 class LieGroup:
     """Base of the group classes (SO2, SE2, SO3, SE3, SE23, SGal3, Sim3); subclasses set
     ``dof``, ``matrix_dim`` and ``_f``.
@@ -66,6 +76,8 @@ class LieGroup:
     Loading runs only the constructor's checks, the matrix's shape and dtype, not membership:
     a saved matrix that is not in the group (an "SE3" of ``torch.ones(4, 4)``) loads as it is;
     check what you load with ``G.from_matrix(g.as_matrix(), check=True)``.
+    Indexing gives views, as for tensors: ``torch.save(g[0])`` writes the storage of the whole
+    batch; save ``g[0].clone()`` to write one element.
     The attributes of a subclass's instances (its ``__dict__`` and extra ``__slots__``) travel
     with them through pickle, deepcopy and torch.save, and as the pytree context (torch.func
     transforms keep them on the elements they pass through; the group operations and the
@@ -81,7 +93,7 @@ class LieGroup:
     matrix_dim: int
     point_dim: int  # size of the points (events for SGal3) that act() takes
     rotation_dim: int = 3  # 2 for the planar groups
-    _f = None  # functional module of the group
+    _f = _AbstractModule()  # functional module of the group (set by each group)
     _fixed_note = ""  # how _fixed_deviation measures, for the membership error
 
     __slots__ = ("_matrix",)
@@ -90,6 +102,7 @@ class LieGroup:
         """Wraps a group matrix, checking its shape and dtype but not that it is in the group:
         ``from_matrix(M, check=True)`` checks that too (``check=False`` is its default, for
         matrices known to be in the group)."""
+        type(self)._concrete()
         checks.matrix(matrix, self.matrix_dim, "matrix")
         self._matrix = matrix
 
@@ -116,10 +129,17 @@ class LieGroup:
         return state or None
 
     @classmethod
+    def _concrete(cls) -> None:
+        """TypeError for the abstract base class (and its subclasses that name no group)."""
+        if cls._group is LieGroup:
+            raise TypeError(_ABSTRACT)
+
+    @classmethod
     def _new(cls, matrix: torch.Tensor):
         """How every operation and constructor builds its result: the constructor's shape and
         dtype checks, then an element of ``cls`` without calling ``__init__``, so that a
         subclass whose ``__init__`` takes other arguments still composes, inverts, indexes..."""
+        cls._concrete()
         checks.matrix(matrix, cls.matrix_dim, "matrix")
         g = object.__new__(cls)
         g._matrix = matrix
@@ -152,6 +172,7 @@ class LieGroup:
         Checking reads the values (one host sync), so, as everywhere in the library, it is
         skipped where they cannot be read: on 'meta', inside a torch.func transform (vmap, grad,
         jacrev) and while torch.compile traces; shape and dtype are always checked."""
+        cls._concrete()
         checks.matrix(matrix, cls.matrix_dim, "matrix")
         check = checks.boolean(check, "check")
         tol = _tol_arg(tol)
@@ -205,6 +226,7 @@ class LieGroup:
     def identity(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None):
         """The identity element, repeated over ``batch_shape`` (an int n means (n,); default
         dtype: torch's default)."""
+        cls._concrete()
         batch_shape = checks.shape(batch_shape, "batch_shape")
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         eye = torch.eye(cls.matrix_dim, dtype=dtype, device=device)
@@ -212,8 +234,8 @@ class LieGroup:
 
     @classmethod
     def random(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None, generator=None):
-        """Uniform rotations; translations, velocities and times standard normal.  ``batch_shape``
-        as in ``identity``; ``generator`` None or a torch.Generator."""
+        """Uniform rotations; translations, velocities, times and Sim3's log-scale standard normal.
+        ``batch_shape`` as in ``identity``; ``generator`` None or a torch.Generator."""
         batch_shape = checks.shape(batch_shape, "batch_shape")
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
         if generator is not None and not isinstance(generator, torch.Generator):
@@ -405,12 +427,16 @@ class LieGroup:
 
     # ---------------------------------------------------------------- batch handling
     def __getitem__(self, index):
-        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors)."""
+        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors).
+
+        As for tensors, ints, slices and None give a view of this element's matrix: it shares
+        the storage (``torch.save`` of ``g[0]`` writes the whole batch; save ``g[0].clone()``),
+        and in-place changes to either show in both."""
         if not isinstance(index, tuple):
             index = (index,)
         try:
             return type(self)._new(self._matrix[index + (slice(None), slice(None))])
-        except IndexError as err:
+        except (IndexError, ValueError) as err:  # ValueError: a negative slice step
             why = str(err)
             if "too many indices" in why:  # torch counts the matrix axes too
                 n = len(self.batch_shape)
@@ -577,6 +603,9 @@ class LieGroup:
                 and values_readable(self._matrix)):
             return f"{head} with matrix\n{self._matrix.detach()!r}"
         return head
+
+
+LieGroup._group = LieGroup  # abstract: no group of its own (_new and __init__ refuse it)
 
 
 def _rebuild(cls, matrix, state=None):
