@@ -1,7 +1,7 @@
 """SGal(3) exp and exp+log (forward + backward) under ``torch.compile`` against eager mode and
 the peers, in one run.
 
-The core benchmark (bench_core.py) measures eager mode, where SGal3.exp is ~200 small ops and
+The core benchmark (bench_core.py) measures eager mode, where SGal3.exp is ~170 small ops and
 PyTorch's per-op overhead dominates at small batches.  ``torch.compile`` fuses them.  This
 script times, per batch size and dtype (medians, ns per element):
 

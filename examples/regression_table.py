@@ -186,7 +186,7 @@ def markdown(results) -> str:
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reps", type=int, default=30, help="data sets per cell (Monte Carlo)")
     ap.add_argument("--steps", type=int, default=8, help="integrator steps per sample")
     ap.add_argument("--seed", type=int, default=0)

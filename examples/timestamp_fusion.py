@@ -300,7 +300,7 @@ def figure(path: Path, sigma_t: float, sigma_v: float):
 
 # --------------------------------------------------------------------------------- main
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=_HERE / "output", help="output folder")
     ap.add_argument("--trials", type=int, default=2000, help="Monte Carlo trials")
     ap.add_argument("--seed", type=int, default=0)

@@ -197,8 +197,8 @@ def main(argv=None) -> int:
                    help="Gauss-Helmert variants to run (both)")
     t.add_argument("--seed", type=int, default=d.seed, help=f"seed of the simulated trials ({d.seed})")
     t.add_argument("--dtype", default=d.dtype, type=_study_dtype,
-                   help="float64 (the only precision the study supports: in float32 the "
-                        "information is too badly conditioned and every trial is reported SINGULAR)")
+                   help="float64 only; float32 is refused (its information would fail the "
+                        "solver's SINGULAR test in every trial)")
     chunk = __import__("torchsgal.estimation.study", fromlist=["DEFAULT_CHUNK"]).DEFAULT_CHUNK
     t.add_argument("--chunk", type=_positive_int, default=chunk,
                    help=f"trials solved per batch ({chunk}; the simulated trials do not depend on it)")
