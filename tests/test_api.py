@@ -475,6 +475,16 @@ def test_series_constant_cache_keeps_only_plain_tensors(monkeypatch):
     assert torch.autograd.gradcheck(lambda v: ts.SGal3.exp(v).as_matrix(), (x,))
     assert numerics._CONSTANTS and all(type(t) is torch.Tensor and not t.is_inference()
                                        for consts in numerics._CONSTANTS.values() for t in consts)
+    # with the cache filled, a fake-tensor trace still runs (it used to get the cached real
+    # tensors and fail on mixing them with fake ones), and leaves the cache as it was
+    for G in ts.ALL_GROUPS:
+        G.jl(torch.randn(3, G.dof, dtype=torch.float32))
+    cached = dict(numerics._CONSTANTS)
+    with FakeTensorMode():
+        for G in ts.ALL_GROUPS:
+            xi = torch.randn(3, G.dof, dtype=torch.float32)
+            assert G.exp(xi).log().shape == (3, G.dof) and G.jl_inv(xi).shape == (3, G.dof, G.dof)
+    assert numerics._CONSTANTS == cached
 
 
 def test_the_abstract_base_class_says_so():

@@ -80,7 +80,10 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
     as tensors (cached per dtype and device): tensor operands avoid the per-call conversion of
     Python scalars, which costs as much as the arithmetic at small batches."""
     key = (order, dtype, device)
-    consts = _CONSTANTS.get(key)
+    # Under a fake-tensor trace (FakeTensorMode, outside torch.compile) a cached real tensor
+    # cannot be mixed with the fake ones: build fresh constants and leave the cache alone.
+    fake = not is_compiling() and torch._C._get_dispatch_mode(torch._C._TorchDispatchModeKey.FAKE) is not None
+    consts = None if fake else _CONSTANTS.get(key)
     if consts is None:
         taylor = [[(-1.0) ** k / math.factorial(2 * k + m) for m in (order - 1, order)]
                   for k in range(TAYLOR_TERMS)]
@@ -90,7 +93,7 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
         # Cache plain tensors only: not the fake or inference tensors of a tracing or
         # inference-mode first call, nor the wrappers of a first call inside a torch.func
         # transform (a cached wrapper broke every later transform of the process).
-        if not is_compiling() and all(
+        if not fake and not is_compiling() and all(
                 type(t) is torch.Tensor and not t.is_inference()
                 and not _is_wrapped(t) for t in consts):
             _CONSTANTS[key] = consts
