@@ -101,6 +101,23 @@ def test_unobservable_direction_is_reported_singular():
                                           SolverStatus.CONVERGED]
 
 
+@pytest.mark.parametrize("damping", [None, 1e-3])
+def test_solver_loop_reads_the_host_once_per_iteration(damping):
+    """The stop test and the all-accepted shortcut share one read per iteration (they were two):
+    on CUDA each is a host sync.  Outside the loop: the first count, and eigh's of the
+    singularity test."""
+    from host_syncs import HostSyncs
+
+    residual, (g_true, s_true) = _time_flow_problem()
+    x0 = (g_true.rplus(0.3 * torch.ones(4, 10, dtype=f64)), s_true + 0.3)
+    for max_iterations in (1, 4):
+        with HostSyncs() as syncs:
+            sol = gauss_newton(residual, x0, max_iterations=max_iterations, damping=damping)
+        loop = [e for e in syncs.events if "solver.py" in e[1] and "eigh" not in e[0]]
+        n = int(sol.report.iterations.max())
+        assert n == max_iterations and len(loop) == n + 1, syncs.events
+
+
 def test_max_iterations_status():
     residual, (g_true, s_true) = _time_flow_problem()
     x0 = (g_true.rplus(0.5 * torch.ones(4, 10, dtype=f64)), s_true + 0.5)

@@ -274,11 +274,11 @@ def iterate(
     iterations = torch.zeros(Bn, dtype=torch.int64, device=device)
     step_norm = torch.zeros(Bn, dtype=dtype, device=device)
 
+    n_running = int((status == SolverStatus.RUNNING).sum())  # then one read per iteration, below
     for it in range(max_iterations):
-        running = status == SolverStatus.RUNNING
-        n_running = int(running.sum())
         if n_running == 0 or (it > 0 and n_running <= stop_below_fraction * Bn):
             break
+        running = status == SolverStatus.RUNNING
         H, g = lin.H, lin.g
         diag = H.diagonal(dim1=-2, dim2=-1)
         # Damping scaled by the diagonal, floored so that unobservable directions stay solvable.
@@ -303,14 +303,6 @@ def iterate(
                 (cost_new <= cost * (1 + accept_tol)) | (step <= always_accept_below))
         iterations = iterations + running.to(torch.int64)
         step_norm = torch.where(running, step, step_norm)
-        # Keep the accepted problems' new point; the others keep theirs.
-        if bool(accept.all()):  # the common case: no selection copies
-            x, aux, lin = x_new, aux_new, lin_new
-        else:
-            x = V.select(accept, x_new, x)
-            if aux is not None or aux_new is not None:
-                aux = _select_aux(accept, aux_new, aux)
-            lin = lin_new.select(accept, lin)
         old_cost = cost
         cost = torch.where(accept, cost_new, cost)
         if damping is not None:
@@ -322,6 +314,18 @@ def iterate(
             (lam > max_damping) if damping is not None else ~(solvable & finite_new))
         status = torch.where(converged, SolverStatus.CONVERGED, status)
         status = torch.where(diverged, SolverStatus.DIVERGED, status)
+        # The iteration's one host read: the next stop test's count, and whether every problem
+        # accepted its step (the common case, which needs no selection copies).
+        n_running, all_accepted = torch.stack(
+            ((status == SolverStatus.RUNNING).sum(), accept.all().to(torch.int64))).tolist()
+        # Keep the accepted problems' new point; the others keep theirs.
+        if all_accepted:
+            x, aux, lin = x_new, aux_new, lin_new
+        else:
+            x = V.select(accept, x_new, x)
+            if aux is not None or aux_new is not None:
+                aux = _select_aux(accept, aux_new, aux)
+            lin = lin_new.select(accept, lin)
     status = torch.where(status == SolverStatus.RUNNING, SolverStatus.MAX_ITERATIONS, status)
 
     H, g = lin.H, lin.g
