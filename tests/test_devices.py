@@ -330,3 +330,27 @@ def test_regression_flows_make_no_host_sync(G):
         ("log_distance", lambda: reg.log_distance(a, b)),
         ("log_distance(weights)", lambda: reg.log_distance(a, b, _meta(G.dof))),
     ]])
+
+
+def test_estimation_covariance_checks_on_device():
+    """The estimators' covariance checks read values (one read per block, measures and the
+    diagonal test together): skipped on meta, as the Gaussians' are, where a block is then
+    factorised as a full one."""
+    from torchsgal.estimation import study, tls
+    from torchsgal.estimation.gauss_helmert import _CovarianceBlocks
+
+    f64 = torch.float64
+    S = study.paper_covariance()
+    F = ts.SGal3.random((2, 3), dtype=f64, device=META)
+    problem = tls.TLSProblem(F, F, S.to(META), S.to(META))
+    assert problem.cov_a.device == META
+    blocks = _CovarianceBlocks((S.to(META), _meta(3, 3, dtype=f64)))
+    assert blocks.diagonal == [False, False]
+    _check(blocks.factors[0], (10, 10), f64)
+    F = ts.SGal3.random((2, 3), dtype=f64)
+    with HostSyncs() as reads:
+        tls.TLSProblem(F, F, S, S)
+    assert len(reads.events) == 2, reads.events  # cov_a and cov_b, one read each
+    with HostSyncs() as reads:
+        blocks = _CovarianceBlocks((S, torch.eye(3, dtype=f64)))
+    assert len(reads.events) == 2 and blocks.diagonal == [S.diagonal().diag().equal(S), True]

@@ -591,6 +591,11 @@ def test_event_fusion_bad_input():
         fuse_event(prior.mean, event, Sigma)
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: tau \(3,\), t_hat \(4,\)"):
         near_inertial_relative_frame(torch.zeros(3, dtype=D), torch.zeros(4, dtype=D))
+    # a number t_hat is used as it is (no tensor of it made on the device); a non-finite one refused
+    tau = torch.tensor([0.5, 2.0], dtype=D)
+    assert torch.equal(near_inertial_relative_frame(tau, 0.25).time(), tau - 0.25)
+    with pytest.raises(ValueError, match=r"t_hat must be a finite number, got inf"):
+        near_inertial_relative_frame(tau, float("inf"))
     # validate=False skips the data checks; an exact timestamp (zero time variance) is allowed
     # and is the limit of a tiny one
     fuse_event(prior, event, Sigma + 0.01 * torch.triu(torch.ones(4, 4, dtype=D), 1), validate=False)

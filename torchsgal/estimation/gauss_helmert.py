@@ -25,6 +25,7 @@ from typing import Callable
 import torch
 
 from ..functional import checks
+from ..functional._blocking import values_readable
 from ..functional.checks import SUPPORTED_DTYPES
 from . import variables as V
 from .solver import Linearisation, Solution, _as_given, iterate
@@ -33,7 +34,17 @@ VARIANTS = ("iterated", "paper")
 
 
 def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
-    """Symmetric positive definite (..., m, m); raises naming ``name`` otherwise (host sync)."""
+    """Symmetric positive definite (..., m, m); raises naming ``name`` otherwise.  The value
+    checks read their measures together (one host sync) and are skipped where values cannot be
+    read (on 'meta', under torch.func transforms and torch.compile); shape and dtype always."""
+    _checked_factor(S, m, name)
+    return S
+
+
+def _checked_factor(S: torch.Tensor, m: int, name: str):
+    """check_covariance's checks, then (diagonal, factor): whether every matrix of S is diagonal
+    and its square-root diagonal if so, else its Cholesky factor, in the same single read
+    (unreadable values: not diagonal, the factor unchecked)."""
     if not isinstance(S, torch.Tensor):
         raise TypeError(f"{name} must be a tensor (..., {m}, {m}), got {type(S).__name__}")
     if S.dim() < 2 or S.shape[-2:] != (m, m):
@@ -42,19 +53,26 @@ def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
         raise TypeError(f"{name} must be floating point (torch.float32 or torch.float64), got {S.dtype}")
     if m < 1:
         raise ValueError(f"{name} must have shape (..., m, m) with m >= 1, got {tuple(S.shape)}")
+    d = S.diagonal(dim1=-2, dim2=-1)
     if S.numel() == 0:  # an empty batch: nothing to check
-        return S
-    if not bool(torch.isfinite(S).all()):
+        return True, d.sqrt()
+    L, info = torch.linalg.cholesky_ex(S)
+    if not values_readable(S):
+        return False, L
+    measures = torch.stack((torch.isfinite(S).all().to(S.dtype),
+                            (S - S.transpose(-1, -2)).abs().amax(),
+                            S.abs().amax().clamp_min(torch.finfo(S.dtype).tiny),
+                            (info != 0).sum().to(S.dtype),
+                            (S - torch.diag_embed(d)).abs().amax()))
+    finite, asym, scale, bad, off_diagonal = measures.tolist()
+    if not finite:
         raise ValueError(f"{name} has non-finite entries")
-    asym = (S - S.transpose(-1, -2)).abs().amax()
-    scale = S.abs().amax().clamp_min(torch.finfo(S.dtype).tiny)
-    if bool(asym > 1e3 * torch.finfo(S.dtype).eps * scale):
-        raise ValueError(f"{name} is not symmetric: max |S - S^T| = {float(asym):.3g}")
-    _, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):
-        raise ValueError(f"{name} is not positive definite ({int((info != 0).sum())} of "
+    if asym > 1e3 * torch.finfo(S.dtype).eps * scale:
+        raise ValueError(f"{name} is not symmetric: max |S - S^T| = {asym:.3g}")
+    if bad:
+        raise ValueError(f"{name} is not positive definite ({int(bad)} of "
                          f"{info.numel()} matrices fail Cholesky)")
-    return S
+    return (True, d.sqrt()) if off_diagonal == 0 else (False, L)
 
 
 class _CovarianceBlocks:
@@ -74,12 +92,10 @@ class _CovarianceBlocks:
             if not isinstance(S, torch.Tensor) or S.dim() < 2:
                 raise ValueError(f"{name} must be a tensor (..., m, m), got "
                                  f"{tuple(getattr(S, 'shape', ()))}")
-            check_covariance(S, S.shape[-1], name)
-            d = S.diagonal(dim1=-2, dim2=-1)
-            diagonal = S.numel() == 0 or bool((S - torch.diag_embed(d)).abs().amax() == 0)
+            diagonal, factor = _checked_factor(S, S.shape[-1], name)
             self.sizes.append(S.shape[-1])
             self.diagonal.append(diagonal)
-            self.factors.append(d.sqrt() if diagonal else torch.linalg.cholesky(S))
+            self.factors.append(factor)
         # All blocks diagonal: one square-root diagonal for the whole of e.
         self.all_diagonal = all(self.diagonal)
         if self.all_diagonal:

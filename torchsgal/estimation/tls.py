@@ -364,9 +364,9 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     the conditions).  At e = 0 (the paper variant) with covariances shared by the samples,
     Ad(T^-n) = I + s N (s = n dtau, N: rho <- nu) makes S a quadratic in s with per-trial
     coefficients.  The baseline's clock rows (scalar, independent) are appended as they are.
-    The trials are processed ``chunk`` at a time (default: about 8000 conditions) with reused
-    buffers: fresh temporaries that span the whole batch cost more in page faults than in
-    arithmetic.  The
+    The trials are processed ``chunk`` at a time (default: about 8000 conditions on the CPU,
+    the whole batch elsewhere) with reused buffers: on the CPU, fresh temporaries that span the
+    whole batch cost more in page faults than in arithmetic.  The
     per-condition state of a linearisation lives in one of two buffer sets, used in turn, so
     it stays valid until the next-but-one call (``solver.iterate`` keeps the current and the
     new linearisation only, and ``_ChunkState.select`` writes into the newer one)."""
@@ -374,7 +374,8 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     G_, d, M = model.group, model.d, model.M
     n = problem.indices
     Bn, N1 = M.batch_shape
-    chunk = chunk or max(1, 8192 // N1)
+    if chunk is None:  # chunks on the CPU only: elsewhere each would be more kernel launches
+        chunk = max(1, 8192 // N1) if M.as_matrix().device.type == "cpu" else Bn
     slices = [slice(i, min(i + chunk, Bn)) for i in range(0, Bn, chunk)]
     cov = _CovarianceBlocks(model.cov)
     (fa, fb), (da, db) = cov.factors, cov.diagonal

@@ -44,11 +44,12 @@ def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal
     """(58): kF_i = identity but for the time offset tau - t_hat (batch: tau's and t_hat's
     broadcast; t_hat may be a number)."""
     checks.floating(tau, "tau")
-    if not isinstance(t_hat, torch.Tensor):
-        t_hat = torch.as_tensor(t_hat, dtype=tau.dtype, device=tau.device)
-    checks.floating(t_hat, "t_hat")
-    checks.same_device_dtype(tau=tau, t_hat=t_hat)
-    checks.broadcast_batch(tau=tau.shape, t_hat=t_hat.shape)
+    if isinstance(t_hat, torch.Tensor):
+        checks.floating(t_hat, "t_hat")
+        checks.same_device_dtype(tau=tau, t_hat=t_hat)
+        checks.broadcast_batch(tau=tau.shape, t_hat=t_hat.shape)
+    else:  # a number: no copy of it to the device
+        t_hat = checks.finite_number(t_hat, "t_hat")
     dt = tau - t_hat
     eye = torch.eye(3, dtype=dt.dtype, device=dt.device).expand(*dt.shape, 3, 3)
     z = torch.zeros(*dt.shape, 3, dtype=dt.dtype, device=dt.device)
