@@ -84,6 +84,7 @@ def test_one_bad_problem_does_not_spoil_the_batch():
     sol = gauss_newton(residual, (ts.SGal3(m0), x0[1]))
     status = sol.report.status.tolist()
     assert status[2] == SolverStatus.NON_FINITE
+    assert sol.report.counts() == {"CONVERGED": 3, "NON_FINITE": 1}
     ok = [0, 1, 3]
     assert all(status[i] == SolverStatus.CONVERGED for i in ok)
     assert ts.SGal3(M[ok]).rminus(sol.x[0][ok]).abs().max() < 1e-10

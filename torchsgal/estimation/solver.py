@@ -84,9 +84,9 @@ class SolverReport:
         return self.status == SolverStatus.CONVERGED
 
     def counts(self) -> dict[str, int]:
-        """{status name: number of problems}."""
-        return {s.name: int((self.status == s).sum()) for s in SolverStatus
-                if s != SolverStatus.RUNNING and int((self.status == s).sum())}
+        """{status name: number of problems} for the statuses that occur (one host read)."""
+        n = torch.stack([(self.status == s).sum() for s in SolverStatus]).tolist()
+        return {s.name: k for s, k in zip(SolverStatus, n) if s != SolverStatus.RUNNING and k}
 
 
 @dataclass
