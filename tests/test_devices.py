@@ -354,3 +354,24 @@ def test_estimation_covariance_checks_on_device():
     with HostSyncs() as reads:
         blocks = _CovarianceBlocks((S, torch.eye(3, dtype=f64)))
     assert len(reads.events) == 2 and blocks.diagonal == [S.diagonal().diag().equal(S), True]
+
+
+def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(monkeypatch):
+    """On the CPU the structured TLS linearisation runs in chunks of ~8,000 conditions (page
+    faults); elsewhere (meta here, CUDA) the batch is one chunk: more chunks would only be more
+    kernel launches."""
+    from torchsgal.estimation import _small_linalg, study, tls
+
+    calls = []
+    factor = _small_linalg.inverse_cholesky_factor_t
+    monkeypatch.setattr(_small_linalg, "inverse_cholesky_factor_t",
+                        lambda S_t, work=None: calls.append(S_t.shape) or factor(S_t, work))
+    f64, (B, N1) = torch.float64, (40, 300)  # 12,000 conditions
+    for device, chunks in (("cpu", 2), (META, 1)):
+        F = ts.SGal3.random((B, N1), dtype=f64, device=device)
+        cov = study.paper_covariance().to(device)
+        problem = tls.TLSProblem(F, F, cov, cov)
+        linearise, _ = tls._structured(problem, iterated=True)
+        calls.clear()
+        linearise(problem.initial_guess(-1.0), torch.zeros(B, N1, 20, dtype=f64, device=device))
+        assert len(calls) == chunks, (device, calls)
