@@ -241,6 +241,8 @@ def iterate(
     sqrt(delta^T J^T J delta) (that is, in standard deviations of the Laplace posterior, a
     dimensionless test), or when the cost falls by less than ``cost_tol`` relative.
     Raises ValueError for a negative ``max_iterations``, ``damping`` or tolerance.
+    Host reads (syncs on CUDA): one per iteration (the stop test), one before the loop and the
+    singularity test's eigenvalues at the end.
     Not differentiable: x0 and aux0 are detached, and the solution carries no graph.
     """
     _check_options(max_iterations, damping, max_damping, stop_below_fraction, step_tol=step_tol,
