@@ -1,5 +1,5 @@
 """Shared test machinery: one decorator runs a property over every group, several batch
-shapes and both float dtypes; every batched sample covers the small-angle, closed-form and
+shapes and both float dtypes; every batch of 5 or more elements covers the small-angle, closed-form and
 near-pi bands (see ANGLES)."""
 from __future__ import annotations
 

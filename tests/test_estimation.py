@@ -42,9 +42,10 @@ def test_gauss_newton_recovers_group_and_scalar_unknowns():
     x0 = (g_true.rplus(step), s_true + 0.5)
     sol = gauss_newton(residual, x0)
     assert sol.report.converged.all()
-    assert g_true.rminus(sol.x[0]).abs().max() < 1e-10
-    assert (sol.x[1] - s_true).abs().max() < 1e-10
-    assert sol.report.cost.max() < 1e-20
+    # noise-free: Gauss-Newton ends at rounding (measured 4.4e-16, cost 1.4e-30)
+    assert g_true.rminus(sol.x[0]).abs().max() < 1e-13
+    assert (sol.x[1] - s_true).abs().max() < 1e-13
+    assert sol.report.cost.max() < 1e-26
 
 
 def test_autograd_jacobian_matches_finite_differences():
@@ -71,7 +72,7 @@ def test_linear_least_squares_solution_and_covariance_match_lstsq():
     ref = torch.linalg.lstsq(A, y[..., None]).solution[..., 0]
     assert (sol.x[0] - ref).abs().max() < 1e-12
     P = torch.linalg.inv(A.transpose(-1, -2) @ A)
-    assert (sol.covariance - P).abs().max() < 1e-12
+    assert (sol.covariance - P).abs().max() < 1e-14  # measured 2.8e-17 (entries ~0.1)
     assert sol.report.converged.all()
 
 
@@ -87,7 +88,7 @@ def test_one_bad_problem_does_not_spoil_the_batch():
     assert sol.report.counts() == {"CONVERGED": 3, "NON_FINITE": 1}
     ok = [0, 1, 3]
     assert all(status[i] == SolverStatus.CONVERGED for i in ok)
-    assert ts.SGal3(M[ok]).rminus(sol.x[0][ok]).abs().max() < 1e-10
+    assert ts.SGal3(M[ok]).rminus(sol.x[0][ok]).abs().max() < 1e-12  # measured 7.3e-14
     assert torch.isnan(sol.covariance[2]).all() and torch.isfinite(sol.covariance[ok]).all()
 
 
@@ -363,7 +364,7 @@ def test_variables_check_blocks_and_shapes():
     with pytest.raises(ValueError, match="x must hold at least one block, got none"):
         V.batch_size(())
     d = 0.1 * torch.arange(44, dtype=f64).reshape(4, 11) / 44
-    assert torch.allclose(V.local((F, E), V.retract((F, E), d)), d, atol=1e-12)
+    assert torch.allclose(V.local((F, E), V.retract((F, E), d)), d, rtol=0, atol=1e-12)
     sel = V.select(torch.tensor([True, False, True, False]), (F, E + 1), (F, E))
     assert torch.equal(sel[1][:, 0], torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=f64))
 

@@ -55,14 +55,14 @@ def test_link_matrices_are_dh_plus_velocity(robot):
         d = chain.d[i].item() + (0.0 if rev else q[i].item())
         want = _dh_matrix(chain.a[i].item(), chain.alpha[i].item(), d, theta)
         got = K[i][np.ix_([0, 1, 2, 4], [0, 1, 2, 4])]
-        np.testing.assert_allclose(got, want, atol=1e-15)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
         h = 1e-6
         dq = torch.zeros_like(q)
         dq[i] = h
         up = chain.link_transforms(q + dq * qd[i] / 1.0).as_matrix()[i, :3, 4]
         dn = chain.link_transforms(q - dq * qd[i] / 1.0).as_matrix()[i, :3, 4]
         # central difference, h = 1e-6: round-off ~ eps / h; measured 1.5e-10 (40 seeds: 1.3e-10)
-        np.testing.assert_allclose(K[i][:3, 3], ((up - dn) / (2 * h)).numpy(), atol=2e-9)
+        np.testing.assert_allclose(K[i][:3, 3], ((up - dn) / (2 * h)).numpy(), rtol=0, atol=2e-9)
 
 
 def _fd_velocity(chain, q, qd, qdd, h=1e-6):
@@ -82,8 +82,8 @@ def test_velocity_against_finite_differences(robot):
     lin_fd, ang_fd = _fd_velocity(chain, q, qd, qdd)
     # central difference, h = 1e-6: measured worst 3.5e-10 over the three robots
     # (40 seeds: 4.3e-10)
-    np.testing.assert_allclose(state.linear_velocity.numpy(), lin_fd.numpy(), atol=4e-9)
-    np.testing.assert_allclose(state.angular_velocity.numpy(), ang_fd.numpy(), atol=4e-9)
+    np.testing.assert_allclose(state.linear_velocity.numpy(), lin_fd.numpy(), rtol=0, atol=4e-9)
+    np.testing.assert_allclose(state.angular_velocity.numpy(), ang_fd.numpy(), rtol=0, atol=4e-9)
 
 
 @pytest.mark.parametrize("robot", CHAINS, ids=CHAIN_IDS)
@@ -99,7 +99,7 @@ def test_product_velocity_column_is_not_the_end_effector_velocity(robot):
     for i in range(chain.n_joints):
         expected = expected + (R @ links[..., i].velocity().unsqueeze(-1)).squeeze(-1)
         R = R @ links[..., i].rotation()
-    np.testing.assert_allclose(state.end_effector.velocity().numpy(), expected.numpy(), atol=1e-12)
+    np.testing.assert_allclose(state.end_effector.velocity().numpy(), expected.numpy(), rtol=0, atol=1e-12)
     assert (state.end_effector.velocity() - state.linear_velocity).abs().max() > 1e-2
 
 
@@ -136,7 +136,7 @@ def test_angular_velocity_sum_51_is_top_left_of_50(robot):
         R_prev = torch.eye(3, dtype=torch.float64) if i == 0 else frames[..., i - 1, :3, :3]
         z_prev = R_prev[..., :, 2]
         total = total + qd[..., i : i + 1] * (R_n.mT @ z_prev.unsqueeze(-1)).squeeze(-1)
-    np.testing.assert_allclose(state.chain_input[..., 6:9].numpy(), total.numpy(), atol=1e-12)
+    np.testing.assert_allclose(state.chain_input[..., 6:9].numpy(), total.numpy(), rtol=0, atol=1e-12)
 
 
 def test_prismatic_joint_moves_along_its_axis():
@@ -145,8 +145,8 @@ def test_prismatic_joint_moves_along_its_axis():
     qd = torch.tensor([0.0, 0.0, 0.25, 0.0], dtype=torch.float64)  # only the prismatic joint
     state = chain.forward(q, qd)
     z2 = state.frames[1].rotation()[:, 2]  # joint 3 slides along z of frame 2
-    np.testing.assert_allclose(state.linear_velocity.numpy(), (0.25 * z2).numpy(), atol=1e-15)
-    np.testing.assert_allclose(state.angular_velocity.numpy(), np.zeros(3), atol=1e-15)
+    np.testing.assert_allclose(state.linear_velocity.numpy(), (0.25 * z2).numpy(), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(state.angular_velocity.numpy(), np.zeros(3), rtol=0, atol=1e-15)
 
 
 def test_batch_shapes_broadcast():
@@ -158,7 +158,7 @@ def test_batch_shapes_broadcast():
     assert state.frames.batch_shape == (2, 3, 6)
     assert state.pose.shape == (2, 3, 4, 4)
     one = chain.forward(q[1, 0], qd[2])
-    np.testing.assert_allclose(state.linear_velocity[1, 2].numpy(), one.linear_velocity.numpy(), atol=1e-14)
+    np.testing.assert_allclose(state.linear_velocity[1, 2].numpy(), one.linear_velocity.numpy(), rtol=0, atol=1e-14)
     lin, ang = chain.acceleration(q, qd, torch.zeros(6, dtype=torch.float64))
     assert lin.shape == ang.shape == (2, 3, 3)
 
@@ -222,9 +222,9 @@ def test_float32_matches_float64():
     q, qd, qdd = _sample(c64)
     s64, s32 = c64.forward(q, qd), c32.forward(q.float(), qd.float())
     # measured: velocity 2.2e-7 (40 seeds: 5.2e-7), acceleration 9.3e-7 (40 seeds: 3.4e-6)
-    np.testing.assert_allclose(s32.linear_velocity.numpy(), s64.linear_velocity.numpy(), atol=3e-6)
+    np.testing.assert_allclose(s32.linear_velocity.numpy(), s64.linear_velocity.numpy(), rtol=0, atol=3e-6)
     a64, a32 = c64.acceleration(q, qd, qdd)[0], c32.acceleration(q.float(), qd.float(), qdd.float())[0]
-    np.testing.assert_allclose(a32.numpy(), a64.numpy(), atol=1e-5)
+    np.testing.assert_allclose(a32.numpy(), a64.numpy(), rtol=0, atol=1e-5)
     assert isinstance(s32.end_effector, ts.SE23)
 
 

@@ -52,9 +52,10 @@ def test_condition_jacobians_match_autograd(estimator, at_zero):
     Bm = torch.cat([jri @ Bm[..., :rows, :], Bm[..., rows:, :]], -2)
     ee = torch.zeros(3, 5, 20, dtype=f64) if e is None else e
     JA = torch.func.jacrev(lambda d: cond(V.retract(x, d), e)[0].sum(0))(torch.zeros(3, 11, dtype=f64))
-    assert (A - JA.permute(2, 0, 1, 3)).abs().max() < 1e-9
+    # round-off only (entries up to ~10): measured 5e-15 to 9e-15 over the cases
+    assert (A - JA.permute(2, 0, 1, 3)).abs().max() < 1e-12
     JB = _per_condition_jacobian(lambda de: cond(x, ee + de)[0], torch.zeros_like(ee))
-    assert (Bm - JB).abs().max() < 1e-9
+    assert (Bm - JB).abs().max() < 1e-12
 
 
 def test_printed_jacobian_5_21_at_zero_residual():
@@ -70,8 +71,8 @@ def test_printed_jacobian_5_21_at_zero_residual():
             xi[9] = n * dtau[b, 0]
             T = ts.SGal3.exp(xi)
             col = n * ((T @ F[b].inverse()).adjoint() - torch.eye(10, dtype=f64))[:, 9]
-            assert torch.allclose(A[b, n, :, 10], col, atol=1e-12)
-            assert torch.allclose(A[b, n, :, :10], T.adjoint(), atol=1e-12)  # (5.22)
+            assert torch.allclose(A[b, n, :, 10], col, rtol=0, atol=1e-12)
+            assert torch.allclose(A[b, n, :, :10], T.adjoint(), rtol=0, atol=1e-12)  # (5.22)
 
 
 @pytest.mark.parametrize("variant", ["iterated", "paper"])
