@@ -305,8 +305,10 @@ def test_bad_input():
     with pytest.raises(TypeError, match=r"covariance \(torch.float16, cpu\) must match the mean"):
         ConcentratedGaussian(m, torch.eye(6, dtype=torch.float16))
     d = ConcentratedGaussian(m, torch.eye(6, dtype=torch.float64))
-    with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SE3"):
+    with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SE3, got a ConcentratedGaussian on SO3"):
         d.compose(ConcentratedGaussian(ts.SO3.random((), dtype=torch.float64), torch.eye(3, dtype=torch.float64)))
+    with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SE3, got SE3"):
+        d.fuse(m)
 
 
 def test_empty_batch():

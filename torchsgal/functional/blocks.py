@@ -2,7 +2,7 @@
 
     Gamma_l(phi) = sum_n (phi^)^n / (n + l)! = c_l I + c_(l+1) phi^ + c_(l+2) phi phi^T
 
-(c_m from ``numerics``).  Gamma_0 = C (Rodrigues, (3.7)), Gamma_1 = D = J_SO3 (3.8),
+(c_m from ``numerics``).  Gamma_0 = C (Rodrigues, Kelly-Giamou (3.7)), Gamma_1 = D = J_SO3 (3.8),
 Gamma_2 = E (3.9).  The Q-type blocks of the SE(3), SE_2(3) and SGal(3) Jacobians follow from
 the derivative of Gamma_l(phi) x with respect to phi (``q_block``), which avoids the
 cancellation of the closed forms printed in the papers.

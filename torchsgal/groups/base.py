@@ -355,7 +355,9 @@ class LieGroup:
 
     def interpolate(self, other, alpha):
         """Geodesic g exp(alpha log(g^-1 h)); alpha a finite number or a tensor broadcasting with
-        the batch (0 gives g, 1 gives h; a tensor's values are not checked)."""
+        the batch (0 gives g, 1 gives h; a tensor's values are not checked).  Broadcasting is
+        torch's: alpha (N, 1) against a batch (N,) gives (N, N); pass alpha (N,) for one value per
+        element."""
         if isinstance(alpha, torch.Tensor):
             checks.floating(alpha, "alpha")
             checks.same_device_dtype(self=self._matrix, alpha=alpha)

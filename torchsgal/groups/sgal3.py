@@ -25,7 +25,9 @@ class SGal3(LieGroup):
         position: torch.Tensor,
         time: torch.Tensor,
     ):
-        """rotation (..., 3, 3), velocity (..., 3), position (..., 3), time (...)."""
+        """rotation (..., 3, 3), velocity (..., 3), position (..., 3), time (...).  The batch
+        shapes broadcast as in torch: a time of shape (B, 1) with components of batch (B,) gives a
+        (B, B) batch (take ``time[..., 0]``, e.g. for the (B, 1) ``dtau`` of the TLS solvers)."""
         C, v, r, tau = prepare(
             rotation=(rotation, (3, 3)),
             velocity=(velocity, (3,)),

@@ -330,7 +330,9 @@ class ConcentratedGaussian:
     def _same_group(self, other):
         """other: a ConcentratedGaussian on the same group, dtype and device, broadcasting batch."""
         if not isinstance(other, ConcentratedGaussian) or other._group is not self._group:
-            raise TypeError(f"other must be a ConcentratedGaussian on {self._group.__name__}")
+            got = (f"a ConcentratedGaussian on {other._group.__name__}"
+                   if isinstance(other, ConcentratedGaussian) else type(other).__name__)
+            raise TypeError(f"other must be a ConcentratedGaussian on {self._group.__name__}, got {got}")
         checks.same_device_dtype(self=self.covariance, other=other.covariance)
         checks.broadcast_batch(self=self.batch_shape, other=other.batch_shape)
 
