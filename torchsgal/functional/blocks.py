@@ -304,7 +304,11 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
 def random_rotation(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     """Uniformly distributed rotation matrices (normalised Gaussian quaternions)."""
     q = torch.randn(4, *batch_shape, dtype=dtype, device=device, generator=generator)
-    w, x, y, z = q / torch.sqrt((q * q).sum(0))
+    return quaternion_rotation(*(q / torch.sqrt((q * q).sum(0))))
+
+
+def quaternion_rotation(w, x, y, z) -> torch.Tensor:
+    """The rotation matrix (..., 3, 3) of the unit quaternion w + x i + y j + z k (each (...))."""
     return torch.stack(
         (
             1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),

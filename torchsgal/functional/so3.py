@@ -11,7 +11,7 @@ import torch
 from . import blocks as B
 from . import checks
 from ._autograd import checked_backward_parts, make_exp_log
-from ._blocking import blocked
+from ._blocking import blocked, values_readable
 
 NAME = "SO3"
 DOF = 3
@@ -127,6 +127,58 @@ def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(C, d, "d", MATRIX_DIM)
+
+
+QUATERNION_ORDERS = ("wxyz", "xyzw")
+
+
+def _quaternion_order(order) -> None:
+    if not isinstance(order, str) or order not in QUATERNION_ORDERS:
+        raise ValueError(f"order must be 'wxyz' (scalar first: GTSAM, Eigen) or 'xyzw' (scalar "
+                         f"last: scipy, pypose, ROS), got {order!r}")
+
+
+def from_quaternion(q: torch.Tensor, order: str) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) of quaternions q (..., 4) with components in ``order``
+    ("wxyz" or "xyzw"); q is normalised here (any length but zero: ValueError where its values
+    can be read), and q and -q give the same rotation."""
+    _quaternion_order(order)
+    checks.vector(q, 4, "q")
+    if order == "xyzw":
+        q = q.roll(1, -1)
+    norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+    if q.numel() and values_readable(q) and bool((norm == 0).any()):
+        raise ValueError("q has a quaternion of zero length, which is no rotation")
+    return B.quaternion_rotation(*B.first(q / norm))
+
+
+def to_quaternion(C: torch.Tensor, order: str) -> torch.Tensor:
+    """Unit quaternions (..., 4) of rotation matrices C (..., 3, 3), components in ``order``
+    ("wxyz" or "xyzw"), with the scalar part w >= 0 (of q and -q, the one with w >= 0; at
+    w = 0 exactly, either).  Each is computed from its largest of |w|, |x|, |y|, |z| (selected
+    with a gather: no branch, no division by a small number), so it is accurate for every
+    rotation, near pi included."""
+    _quaternion_order(order)
+    checks.matrix(C, MATRIX_DIM, "C")
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = B.entries(C)
+    # 4 w^2, 4 x^2, 4 y^2, 4 z^2 of the unit quaternion
+    t = torch.stack((1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22,
+                     1 - m00 - m11 + m22), dim=-1)
+    positive = t > 0
+    r = torch.where(positive, torch.sqrt(torch.where(positive, t, torch.ones_like(t))), 0.0)
+    # candidate k: 2 |q_k| q / sign(q_k) in (w, x, y, z), divided by 2 * 2 |q_k| below
+    rows = torch.stack((
+        torch.stack((t[..., 0], m21 - m12, m02 - m20, m10 - m01), dim=-1),
+        torch.stack((m21 - m12, t[..., 1], m10 + m01, m02 + m20), dim=-1),
+        torch.stack((m02 - m20, m10 + m01, t[..., 2], m12 + m21), dim=-1),
+        torch.stack((m10 - m01, m02 + m20, m12 + m21, t[..., 3]), dim=-1),
+    ), dim=-2)  # (..., 4, 4)
+    # the largest |q_k| is >= 1/2, so r >= 1 where selected; the floor only keeps the others finite
+    candidates = rows / (2.0 * r.clamp_min(0.1)).unsqueeze(-1)
+    k = r.argmax(dim=-1, keepdim=True)
+    q = torch.gather(candidates, -2, k.unsqueeze(-1).expand(*k.shape, 4)).squeeze(-2)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q.roll(-1, -1) if order == "xyzw" else q
 
 
 def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:

@@ -22,6 +22,18 @@ class SO3(LieGroup):
         return cls.from_matrix(rotation, check=check)
 
     @classmethod
+    def from_quaternion(cls, q: torch.Tensor, *, order: str):
+        """From quaternions q (..., 4), components in ``order``: "wxyz" (scalar first, as GTSAM
+        and Eigen) or "xyzw" (scalar last, as scipy, pypose and ROS); no default, so that the
+        order is always stated.  q is normalised (a zero quaternion raises where its values
+        can be read); q and -q give the same rotation."""
+        return cls._new(cls._f.from_quaternion(q, order))
+
+    def as_quaternion(self, *, order: str) -> torch.Tensor:
+        """Unit quaternions (..., 4) in ``order`` ("wxyz" or "xyzw"), scalar part >= 0."""
+        return self._f.to_quaternion(self._matrix, order)
+
+    @classmethod
     def from_components(cls, rotation: torch.Tensor):
         """The rotation matrix (3, 3) itself (the one component; the same API as the other groups)."""
         (C,) = prepare(rotation=(rotation, (3, 3)))
