@@ -817,3 +817,26 @@ def test_noise_densities_are_checked_with_names():
         preintegrate(gyro, acc, dt, time_noise_density=torch.ones(3, dtype=F64))
     with pytest.raises(ValueError, match=r"acc_noise_density must have shape \(\.\.\., 3\), got \(2,\)"):
         preintegrate(gyro, acc, dt, acc_noise_density=torch.ones(2, dtype=F64))
+
+
+def test_vmap_over_any_one_argument():
+    """Under torch.func.vmap any one argument may be the mapped one (the increment tangents and
+    the prediction Jacobians were written in place into unbatched tensors): each result equals
+    the batched call."""
+    gen = torch.Generator().manual_seed(70)
+    B, K, D = 3, 5, torch.float64
+    gyro = 0.3 * torch.randn(K, 3, dtype=D, generator=gen)
+    accs = torch.randn(B, K, 3, dtype=D, generator=gen)
+    dts = 0.01 + 0.01 * torch.rand(B, K, dtype=D, generator=gen)
+    f = lambda a, h: preintegrate(gyro, a, h, gyro_noise_density=1e-3, acc_noise_density=1e-2).covariance  # noqa: E731
+    want = preintegrate(gyro.expand(B, K, 3), accs, dts, gyro_noise_density=1e-3,
+                        acc_noise_density=1e-2).covariance
+    torch.testing.assert_close(torch.func.vmap(f, in_dims=(0, None))(accs, dts[0]),
+                               torch.stack([f(a, dts[0]) for a in accs]), rtol=0, atol=1e-18)
+    torch.testing.assert_close(torch.func.vmap(f)(accs, dts), want, rtol=0, atol=1e-18)
+    start = SGal3.random((B,), dtype=D, generator=gen)
+    delta = SGal3.exp(0.3 * torch.randn(10, dtype=D, generator=gen))
+    g = gravity_vector(dtype=D)
+    J = lambda m: predict_jacobians(SGal3(m), delta, g)  # noqa: E731  only the start mapped
+    for got, ref in zip(torch.func.vmap(J)(start.as_matrix()), predict_jacobians(start, delta, g)):
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-15)

@@ -833,3 +833,25 @@ def test_gaussian_of_a_subclass_element():
                                fuse_event(prior, event, Sigma).covariance)
     with pytest.raises(TypeError, match=r"other must be a ConcentratedGaussian on SGal3"):
         sub.compose(ConcentratedGaussian(ts.SE23.identity(dtype=D), torch.eye(9, dtype=D)))
+
+
+def test_fusion_under_vmap_over_the_means_only():
+    """fuse and fuse_event read their status at the end; under vmap with only a mean (or the
+    relative frame) mapped that read used to be attempted (the readability was decided on the
+    covariances alone) and crashed.  Each mapped result equals the batched call."""
+    D = torch.float64
+    gen = torch.Generator().manual_seed(71)
+    means = ts.SE3.random((4,), dtype=D, generator=gen)
+    S = 0.01 * torch.eye(6, dtype=D)
+    prior = ConcentratedGaussian(ts.SE3.random((), dtype=D, generator=gen), 0.02 * torch.eye(6, dtype=D))
+    f = lambda M: prior.fuse(ConcentratedGaussian(ts.SE3(M), S)).covariance  # noqa: E731
+    want = prior.fuse(ConcentratedGaussian(means, S.expand(4, 6, 6))).covariance
+    torch.testing.assert_close(torch.func.vmap(f)(means.as_matrix()), want, rtol=0, atol=1e-15)
+    from torchsgal.uncertainty import fuse_event
+
+    _, event, Sigma = _event_problem()
+    P = 0.01 * torch.eye(10, dtype=D)
+    frames = ts.SGal3.random((3,), dtype=D, generator=gen).as_matrix()
+    g = lambda M: fuse_event(ConcentratedGaussian(ts.SGal3(M), P), event, Sigma).covariance  # noqa: E731
+    want = fuse_event(ConcentratedGaussian(ts.SGal3(frames), P.expand(3, 10, 10)), event, Sigma).covariance
+    torch.testing.assert_close(torch.func.vmap(g)(frames), want, rtol=0, atol=1e-15)

@@ -114,13 +114,10 @@ def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Te
     batch = _check_stream(gyro, acc, dt)
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch).unsqueeze(-2)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch).unsqueeze(-2)
-    shape = torch.broadcast_shapes(gyro.shape, b_g.shape, b_a.shape)[:-1]
-    xi = gyro.new_zeros(*shape, 10)  # written in place: no concatenation
     h = dt.unsqueeze(-1)
-    xi[..., 3:6] = (acc - b_a) * h
-    xi[..., 6:9] = (gyro - b_g) * h
-    xi[..., 9] = dt
-    return xi
+    # out of place: under vmap any one of the arguments may be the batched one
+    nu, phi, hh = torch.broadcast_tensors((acc - b_a) * h, (gyro - b_g) * h, h)
+    return torch.cat((torch.zeros_like(nu), nu, phi, hh[..., :1]), dim=-1)
 
 
 # --------------------------------------------------------------------------- products
@@ -866,11 +863,12 @@ def predict_jacobians(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_r
     back = start0.compose(delta).inverse().adjoint()  # Ad((X_i0 Delta)^-1)
     u = A.inverse().adjoint()[..., :, 9].clone()
     u[..., 9] -= 1.0
-    J_start = delta.inverse().adjoint().expand(*batch, 10, 10).clone()
-    J_start[..., :, 9] += (back @ u.unsqueeze(-1)).squeeze(-1)
     g = gravity.expand(*batch, 3)
     w = earth_rate.expand(*batch, 3) if earth_rate is not None else torch.zeros_like(g)
     u_delta = u + torch.cat((torch.zeros_like(g), g, -w, torch.zeros_like(g[..., :1])), dim=-1)
-    J_delta = torch.eye(10, dtype=u.dtype, device=u.device).expand(*batch, 10, 10).clone()
-    J_delta[..., :, 9] += (back @ u_delta.unsqueeze(-1)).squeeze(-1)
+    # the iota columns built out of place (under vmap any argument may be the batched one)
+    Ad = delta.inverse().adjoint().expand(*batch, 10, 10)
+    eye = torch.eye(10, dtype=u.dtype, device=u.device).expand(*batch, 10, 10)
+    J_start = torch.cat((Ad[..., :9], Ad[..., 9:] + back @ u.unsqueeze(-1)), dim=-1)
+    J_delta = torch.cat((eye[..., :9], eye[..., 9:] + back @ u_delta.unsqueeze(-1)), dim=-1)
     return J_start, J_delta

@@ -104,8 +104,8 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     checks.same_device_dtype(**tensors)
     checks.broadcast_batch(**batches)
     # the data checks: measured now, read with the status of the linear algebra at the end
-    readable = (event_covariance.numel() > 0 and values_readable(event_covariance)
-                and values_readable(prior.covariance) and values_readable(event))
+    readable = (event_covariance.numel() > 0 and values_readable(prior.mean.as_matrix())
+                and all(values_readable(t) for t in tensors.values()))
     tol = _default_tol(event_covariance, None)
     checked = []
     if validate and readable:

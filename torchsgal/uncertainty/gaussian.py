@@ -450,7 +450,9 @@ class ConcentratedGaussian:
         infos = [W for W, _ in inverted]
         failed = [(status != 0).any() for _, status in inverted]
         step_failed = torch.zeros((), dtype=torch.bool, device=self.covariance.device)
-        readable = values_readable(self.covariance) and values_readable(other.covariance)
+        # every input feeds the flags read at the end (under vmap any of them may be batched)
+        readable = all(values_readable(t) for t in (self.covariance, other.covariance,
+                                                     self.mean.as_matrix(), other.mean.as_matrix()))
         F = parts[0].mean
         for _ in range(iterations):
             H = 0
