@@ -38,6 +38,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -60,6 +61,15 @@ MDIM = {"SO2": 2, "SE2": 3, "SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5, "Sim3": 4
 POINT_DIM = {"SO2": 2, "SE2": 2, "SO3": 3, "SE3": 3, "SE23": 3, "SGal3": 4, "Sim3": 3}
 PYPOSE_GROUPS = ("SO3", "SE3", "Sim3")  # groups pypose has
 OPS = ("exp", "log", "compose", "act", "adjoint", "jl", "F.exp", "F.log")
+# Ops that run as C kernels where torchsgal.functional.native has them (SGal3 exp/log and their
+# backward, CPU), timed again with the kernels off: rows "<op> [tensor code]".
+NATIVE_OPS = ("exp", "log")
+TENSOR_CODE = " [tensor code]"
+
+
+def has_native(ts, group, device) -> bool:
+    native = ts.functional.native
+    return torch.device(device).type == "cpu" and native.enabled() and native.kernels(group) is not None
 GTSAM_CLASS = {"SO2": "Rot2", "SE2": "Pose2", "SO3": "Rot3", "SE3": "Pose3", "SE23": "NavState",
                "SGal3": "Gal3", "Sim3": "Similarity3"}
 TANGENT_SCALE = 0.5  # xi ~ N(0, 0.5^2) per component: rotation angles mostly in (0, 2)
@@ -213,6 +223,10 @@ def bench_torchsgal(res, args, ts, group, n, dtype, device, gen):
     }
     for op in OPS:
         time_case(res, args, fns[op], n_elem=n, op=op, **key)
+    if has_native(ts, group, device):  # the same calls on the tensor code, for comparison
+        with ts.functional.native.disabled():
+            for op in NATIVE_OPS:
+                time_case(res, args, fns[op], n_elem=n, op=op + TENSOR_CODE, **key)
 
 
 def bench_matrix_exp(res, args, ts, group, n, dtype, device, gen):
@@ -296,6 +310,8 @@ def bench_autograd(res, args, ts, pp, group, n, dtype, device, gen, bytes_per_el
         "custom Function": lambda x: Fm.log(Fm.exp(x)),
         "plain autograd": lambda x: Fm.log_impl(Fm.exp_impl(x)),
     }
+    if has_native(ts, group, device):
+        impls["custom Function" + TENSOR_CODE] = lambda x: Fm.log(Fm.exp(x))
     if pp is not None and group in PYPOSE_GROUPS:
         lie = {"SO3": pp.so3, "SE3": pp.se3, "Sim3": pp.sim3}[group]
         impls["pypose"] = lambda x: lie(x).Exp().Log().tensor()
@@ -310,12 +326,14 @@ def bench_autograd(res, args, ts, pp, group, n, dtype, device, gen, bytes_per_el
             continue
         xi = xi0.clone().requires_grad_(True)
 
-        def step(xi=xi, f=f):
+        def step(xi=xi, f=f, off=impl.endswith(TENSOR_CODE)):
             xi.grad = None
-            f(xi).sum().backward()
+            with ts.functional.native.disabled() if off else contextlib.nullcontext():
+                f(xi).sum().backward()  # forward and backward
 
         try:
-            sb = saved_bytes(lambda: f(xi), xi)
+            with ts.functional.native.disabled() if impl.endswith(TENSOR_CODE) else contextlib.nullcontext():
+                sb = saved_bytes(lambda: f(xi), xi)
             bytes_per_elem[(group, impl, dt)] = sb / n
             if n == min(args.sizes):  # gradient agreement check, once per group/dtype
                 step()
@@ -405,6 +423,8 @@ def compute_ratios(res, args):
                     dict(section="torchsgal", group="SGal3", op="exp"), TARGET_MATRIX_EXP)
                 add("functional.sgal3.exp vs matrix_exp(hat)", mx,
                     dict(section="torchsgal", group="SGal3", op="F.exp"), TARGET_MATRIX_EXP)
+                add("SGal3.exp [tensor code] vs matrix_exp(hat)", mx,
+                    dict(section="torchsgal", group="SGal3", op="exp" + TENSOR_CODE), None)
                 add("SGal3.exp vs pypose SE3 Exp (per element)",
                     dict(section="peer", group="SE3", op="exp", impl="pypose"),
                     dict(section="torchsgal", group="SGal3", op="exp"), TARGET_PYPOSE)
@@ -422,6 +442,8 @@ def compute_ratios(res, args):
                 custom = dict(section="autograd", group=g, impl="custom Function")
                 add(f"{g} custom Function vs plain autograd, exp+log fwd+bwd (time)", plain, custom,
                     TARGET_AUTOGRAD if g == "SGal3" else None)
+                add(f"{g} custom Function [tensor code] vs plain autograd, exp+log fwd+bwd (time)", plain,
+                    dict(section="autograd", group=g, impl="custom Function" + TENSOR_CODE), None)
                 add(f"{g} custom Function vs plain autograd, exp+log (memory held for bwd)", plain, custom,
                     1.0 if g == "SGal3" else None, field="saved_bytes", meaning="plain/custom bytes")
     return rows
@@ -432,7 +454,7 @@ def write_markdown(path: Path, res: Results, ratios, env, args) -> None:
     L.append(f"# torchsgal core benchmark ({env['device_name']}, {env['date']})\n")
     L.append("| | |\n|---|---|")
     for k in ("torch", "device", "device_name", "cpu_model", "torch_num_threads", "python", "platform",
-              "torchsgal", "pypose", "gtsam", "command", "wall_s",
+              "torchsgal", "native_kernels", "pypose", "gtsam", "command", "wall_s",
               "loadavg_at_start", "loadavg_at_end", "warning"):
         if k == "warning" and k not in env:
             continue
@@ -450,7 +472,9 @@ def write_markdown(path: Path, res: Results, ratios, env, args) -> None:
         L.append(head)
         L.append(sep)
         for g in args.groups:
-            for op in OPS:
+            for op in OPS + tuple(o + TENSOR_CODE for o in NATIVE_OPS):
+                if not any(res.get(section="torchsgal", group=g, op=op, dtype=dt, size=n) for n in sizes):
+                    continue
                 L.append(f"| {g} | {op} | " + " | ".join(
                     cell(res, section="torchsgal", group=g, op=op, dtype=dt, size=n) for n in sizes) + " |")
         L.append("")
@@ -475,7 +499,7 @@ def write_markdown(path: Path, res: Results, ratios, env, args) -> None:
         L.append("| group | impl | " + " | ".join(f"n={fmt_n(n)} time | mem" for n in sizes) + " |")
         L.append("|---|---|" + "---:|---:|" * len(sizes))
         for g in args.groups:
-            for impl in ("custom Function", "plain autograd", "pypose"):
+            for impl in ("custom Function", "custom Function" + TENSOR_CODE, "plain autograd", "pypose"):
                 rs = [res.get(section="autograd", group=g, impl=impl, dtype=dt, size=n) for n in sizes]
                 if not any(rs):
                     continue
@@ -522,6 +546,8 @@ def write_markdown(path: Path, res: Results, ratios, env, args) -> None:
     names = list(dict.fromkeys(r["name"] for r in ratios))
     for name in names:
         rs = {(r["dtype"], r["size"]): r for r in ratios if r["name"] == name}
+        if all(r["ratio"] is None for r in rs.values()):
+            continue  # e.g. the tensor-code rows where no C kernels are compiled
         tgt = next(iter(rs.values()))["target"]
         tgt_s = "–" if tgt is None else (f">= {tgt:g}x" if "memory" not in name else "> 1x")
         L.append(f"| {name} | {tgt_s} | " + " | ".join(
@@ -659,6 +685,10 @@ def main(argv=None):
         gtsam = None
         env["gtsam"] = f"not importable ({e})"
 
+    if ts is not None:
+        nat = ts.functional.native
+        env["native_kernels"] = ("enabled" if nat.enabled() else "compiled, switched off" if nat.available()
+                                 else "not compiled")
     log(f"torch {env['torch']} | {env['device_name']} | threads {env['torch_num_threads']} | "
         f"sizes {args.sizes} | dtypes {args.dtype_names} | target {args.target}s/case")
 

@@ -12,9 +12,16 @@ import torch
 from torch.autograd import forward_ad as fwAD
 
 from conftest import GROUP_CLASSES, all_groups, gname, sample_group, sample_tangent
-from torchsgal.functional import _autograd, _blocking
+from torchsgal.functional import _autograd, _blocking, native
 
 BATCH = (4, 9)  # 36 elements: five blocks of 7 and a last one of 1
+
+
+@pytest.fixture(autouse=True)
+def tensor_code_only(monkeypatch):
+    """These tests are about the tensor code's blocking: SGal3's C kernels (native.py), which
+    take the same calls where they are compiled, are switched off."""
+    monkeypatch.setitem(native._state, "on", False)
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ import scipy.linalg
 import torch
 
 import torchsgal as ts
+from torchsgal.functional import native
 
 import reference as ref
 from conftest import all_groups, assert_close, gname, np64, sample_group, sample_tangent
@@ -25,7 +26,9 @@ def test_exp_matches_expm(G, batch_shape, dtype):
 @all_groups
 def test_exp_impl_equals_exp(G, batch_shape, dtype):
     xi = sample_tangent(G, batch_shape, dtype)
-    assert torch.equal(G._f.exp_impl(xi), G.exp(xi).as_matrix())
+    with native.disabled():  # the class runs the functional closed form, bit for bit
+        assert torch.equal(G._f.exp_impl(xi), G.exp(xi).as_matrix())
+    # (SGal3's C kernels evaluate it in another order: equal to rounding, tests/test_native.py)
 
 
 @all_groups

@@ -29,15 +29,39 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
   than the projection above.
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev), and
-their backward is itself differentiable (higher derivatives).  Large CPU
-batches run forward and backward in blocks where nothing records them (_blocking).
+their backward is itself differentiable (higher derivatives).  Where nothing records them,
+SGal(3)'s forward and backward run as C kernels (native.py, if compiled) and large CPU batches
+of the other groups in blocks (_blocking).
 """
 from __future__ import annotations
 
 import torch
 
-from . import checks
+from . import checks, native
 from ._blocking import _is_wrapped, is_compiling, run_blocked, run_lifted
+
+
+try:  # the eager branch of torch.autograd.Function.apply, without its per-call signature binding
+    from torch._functorch.utils import unwrap_dead_wrappers as _unwrap_dead_wrappers
+    from torch.autograd.function import _SingleLevelFunction
+
+    _transforms_active = torch._C._are_functorch_transforms_active
+except ImportError:  # pragma: no cover - another torch layout: Function.apply as it is
+    _SingleLevelFunction = None
+
+
+class _FastApply:
+    """Mixin for the Functions below: ``apply`` as torch's ``Function.apply`` minus its
+    ``inspect.signature`` binding of default arguments (our forwards have none), which costs
+    ~25 us per call in torch 2.13, several times the rest of the call for small batches.
+    Outside torch.func transforms it calls the C ``_FunctionBase.apply`` exactly as torch's
+    eager branch does (dead functorch wrappers unwrapped first); inside them torch's own."""
+
+    @classmethod
+    def apply(cls, *args):
+        if _SingleLevelFunction is not None and not _transforms_active():
+            return super(_SingleLevelFunction, cls).apply(*_unwrap_dead_wrappers(args))
+        return super().apply(*args)
 
 
 def _nested_forward_mode(t: torch.Tensor) -> bool:
@@ -53,11 +77,17 @@ def _nested_forward_mode(t: torch.Tensor) -> bool:
 
 
 def make_exp_log(mod):
+    kern = native.kernels(mod.NAME)  # C kernels where unobserved (native.py), or None
+
     def _exp_backward(xi, M, grad_M):
         return mod._jl_tmv(-xi, mod._exp_pullback(M, grad_M))
 
     def _log_backward(M, xi, grad_xi):
         return mod._log_pullback(M, mod._jl_inv_tmv(-xi, grad_xi))
+
+    def _forward(op, impl, args, event_dims):
+        out = None if kern is None else op(*args)
+        return run_blocked(impl, args, event_dims) if out is None else out
 
     def _matvec(A, x):
         return (A @ x.unsqueeze(-1)).squeeze(-1)
@@ -70,12 +100,12 @@ def make_exp_log(mod):
         # dxi = J_r(xi)^-1 vee(M^-1 dM), the transpose of the backward's map
         return _matvec(mod.jl_inv(-xi), mod.vee(mod.inverse(M) @ dM))
 
-    class Exp(torch.autograd.Function):
+    class Exp(_FastApply, torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(xi):
-            return run_blocked(mod.exp_impl, (xi,), (1,))
+            return _forward(kern and kern.exp, mod.exp_impl, (xi,), (1,))
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -85,14 +115,14 @@ def make_exp_log(mod):
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
-            return run_blocked(_exp_backward, (xi, M, grad_M), (1, 2, 2))
+            return _forward(kern and kern.exp_vjp, _exp_backward, (xi, M, grad_M), (1, 2, 2))
 
-    class Log(torch.autograd.Function):
+    class Log(_FastApply, torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(M):
-            return run_blocked(mod.log_impl, (M,), (2,))
+            return _forward(kern and kern.log, mod.log_impl, (M,), (2,))
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -102,7 +132,7 @@ def make_exp_log(mod):
         def backward(ctx, grad_xi):
             M, xi = ctx.saved_tensors
             # M^-T vee^T(J_r(xi)^-T grad_xi)
-            return run_blocked(_log_backward, (M, xi, grad_xi), (2, 1, 1))
+            return _forward(kern and kern.log_vjp, _log_backward, (M, xi, grad_xi), (2, 1, 1))
 
     def _with_jvp(base, tangent_map):
         """``base`` with forward mode: jvp = tangent_map(*saved, tangent) (saved: input, output)."""

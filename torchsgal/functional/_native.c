@@ -1,0 +1,185 @@
+/* torchsgal.functional._native: the SGal(3) exp, log and their backward maps as plain C loops.
+ *
+ * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
+ * ~170 dispatched tensor operations, so small batches no longer pay torch's per-operation
+ * overhead.  No torch headers: the Python side passes data pointers of contiguous CPU tensors
+ * it allocated and checked.  The constants (thresholds, series) are set once from numerics.py,
+ * which stays their only source.  Large batches are split over threads (pthreads).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+#ifndef _WIN32
+#include <pthread.h>
+#endif
+
+#define MAX_TERMS 32
+static int TAYLOR_TERMS = 0;
+static double TAYLOR_C3[MAX_TERMS], TAYLOR_C4[MAX_TERMS], TAYLOR_C5[MAX_TERMS], TAYLOR_C6[MAX_TERMS];
+static double INV_FACT[8];
+static int N_BERNOULLI = 0;
+static double BERNOULLI[MAX_TERMS];
+static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLOR;
+
+#define T double
+#define SFX f64
+#define SIN sin
+#define COS cos
+#define SQRT sqrt
+#define ATAN2 atan2
+#include "_native_sgal3.h"
+#undef T
+#undef SFX
+#undef SIN
+#undef COS
+#undef SQRT
+#undef ATAN2
+
+#define T float
+#define SFX f32
+#define SIN sinf
+#define COS cosf
+#define SQRT sqrtf
+#define ATAN2 atan2f
+#include "_native_sgal3.h"
+#undef T
+#undef SFX
+#undef SIN
+#undef COS
+#undef SQRT
+#undef ATAN2
+
+typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
+
+typedef struct {
+    range_fn fn;
+    void **args;
+    int64_t lo, hi;
+} job_t;
+
+#ifndef _WIN32
+static void *run_job(void *p) {
+    job_t *j = p;
+    j->fn(j->args, j->lo, j->hi);
+    return NULL;
+}
+#endif
+
+#define MAX_THREADS 64
+/* Elements per thread below which a batch runs on the calling thread alone. */
+#define MIN_PER_THREAD 8192
+
+static void run_parallel(range_fn fn, void **args, int64_t n, int threads) {
+#ifndef _WIN32
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    if (threads > 1 && n / threads >= MIN_PER_THREAD) {
+        pthread_t tid[MAX_THREADS];
+        job_t jobs[MAX_THREADS];
+        int started[MAX_THREADS];
+        int64_t step = (n + threads - 1) / threads;
+        for (int t = 0; t < threads; ++t) {
+            int64_t lo = t * step, hi = lo + step < n ? lo + step : n;
+            jobs[t] = (job_t){fn, args, lo, hi};
+            started[t] = t > 0 && pthread_create(&tid[t], NULL, run_job, &jobs[t]) == 0;
+        }
+        for (int t = 0; t < threads; ++t)
+            if (t == 0 || !started[t]) fn(args, jobs[t].lo, jobs[t].hi);  /* own share, or a failed start */
+        for (int t = 1; t < threads; ++t)
+            if (started[t]) pthread_join(tid[t], NULL);
+        return;
+    }
+#endif
+    fn(args, 0, n);
+}
+
+/* fn(pointers..., n, threads, is_double): the pointers are addresses of contiguous tensors. */
+static PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npointers, range_fn f64, range_fn f32,
+                          const char *name) {
+    if (nargs != npointers + 3) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arguments", name, npointers + 3);
+        return NULL;
+    }
+    if (TAYLOR_TERMS == 0) {
+        PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
+        return NULL;
+    }
+    void *ptr[8];
+    for (int i = 0; i < npointers; ++i) {
+        ptr[i] = PyLong_AsVoidPtr(a[i]);
+        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
+    }
+    int64_t n = PyLong_AsLongLong(a[npointers]);
+    long threads = PyLong_AsLong(a[npointers + 1]);
+    int is_double = PyObject_IsTrue(a[npointers + 2]);
+    if (PyErr_Occurred() || is_double < 0) return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(is_double ? f64 : f32, ptr, n, (int)threads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+#define WRAP(op, np)                                                                      \
+    static PyObject *py_sgal3_##op(PyObject *self, PyObject *const *a, Py_ssize_t nargs) { \
+        (void)self;                                                                       \
+        return dispatch(a, nargs, np, op##_range_f64, op##_range_f32, "sgal3_" #op);      \
+    }
+WRAP(exp, 2)
+WRAP(log, 2)
+WRAP(exp_vjp, 4)
+WRAP(log_vjp, 4)
+
+static int read_table(PyObject *seq, double *out, int cap, const char *name) {
+    PyObject *fast = PySequence_Fast(seq, name);
+    if (!fast) return -1;
+    Py_ssize_t len = PySequence_Fast_GET_SIZE(fast);
+    if (len < 1 || len > cap) {
+        Py_DECREF(fast);
+        PyErr_Format(PyExc_ValueError, "%s: %zd entries, expected 1 to %d", name, len, cap);
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < len; ++i) out[i] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(fast, i));
+    Py_DECREF(fast);
+    return PyErr_Occurred() ? -1 : (int)len;
+}
+
+/* set_constants(series_threshold, jinv_threshold, log_symmetric_cos, log_sin_taylor,
+ *               taylor_c3, taylor_c4, taylor_c5, taylor_c6, inv_fact, bernoulli) */
+static PyObject *py_set_constants(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *t3, *t4, *t5, *t6, *inv_fact, *bern;
+    double st, jt, lsc, lst;
+    if (!PyArg_ParseTuple(args, "ddddOOOOOO", &st, &jt, &lsc, &lst, &t3, &t4, &t5, &t6, &inv_fact, &bern))
+        return NULL;
+    int n3 = read_table(t3, TAYLOR_C3, MAX_TERMS, "taylor_c3"), n4 = read_table(t4, TAYLOR_C4, MAX_TERMS, "taylor_c4");
+    int n5 = read_table(t5, TAYLOR_C5, MAX_TERMS, "taylor_c5"), n6 = read_table(t6, TAYLOR_C6, MAX_TERMS, "taylor_c6");
+    int nf = read_table(inv_fact, INV_FACT, 8, "inv_fact"), nb = read_table(bern, BERNOULLI, MAX_TERMS, "bernoulli");
+    if (n3 < 0 || n4 < 0 || n5 < 0 || n6 < 0 || nf < 0 || nb < 0) return NULL;
+    if (n3 != n4 || n3 != n5 || n3 != n6 || nf < 7) {
+        PyErr_SetString(PyExc_ValueError, "the Taylor tables must have equal lengths and inv_fact 7 entries");
+        return NULL;
+    }
+    SERIES_THRESHOLD = st;
+    JINV_THRESHOLD = jt;
+    LOG_SYMMETRIC_COS = lsc;
+    LOG_SIN_TAYLOR = lst;
+    N_BERNOULLI = nb;
+    TAYLOR_TERMS = n3;
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"sgal3_exp", (PyCFunction)(void (*)(void))py_sgal3_exp, METH_FASTCALL, "exp (xi, out, n, threads, is_double)"},
+    {"sgal3_log", (PyCFunction)(void (*)(void))py_sgal3_log, METH_FASTCALL, "log (M, out, n, threads, is_double)"},
+    {"sgal3_exp_vjp", (PyCFunction)(void (*)(void))py_sgal3_exp_vjp, METH_FASTCALL,
+     "exp backward (xi, M, G, out, n, threads, is_double)"},
+    {"sgal3_log_vjp", (PyCFunction)(void (*)(void))py_sgal3_log_vjp, METH_FASTCALL,
+     "log backward (M, xi, g, out, n, threads, is_double)"},
+    {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3) CPU kernels", -1, methods};
+
+PyMODINIT_FUNC PyInit__native(void) { return PyModule_Create(&module); }

@@ -1,0 +1,134 @@
+"""Optional C kernels: SGal(3) exp, log and their backward maps on CPU (``_native.c``).
+
+In eager CPU code a closed form written as tensor operations pays torch's per-operation
+dispatch (~2 us) about 170 times for SGal(3) exp, whatever the batch size; at 1e3 elements that
+overhead is most of the time.  The C kernels evaluate the same closed forms one element at a
+time in one call: the same thresholds and series (passed from ``numerics`` at import, which
+stays their only source), the same branches and, term by term, the same arithmetic, so the two
+agree to rounding (tests/test_native.py compares them at every angle band, both dtypes).  The
+tensor code remains the reference implementation and the differentiable one.
+
+They are used by ``functional.sgal3.exp``/``log`` (and so ``SGal3.exp``, ``g.log()``, ``rplus``
+...) and by those functions' custom backward, only where the call cannot be observed
+(``unobserved``: plain CPU tensors, nothing recording autograd, no torch.func transform, not
+compiling) and every argument has the same batch shape; everywhere else, and on other devices,
+the tensor code runs.  Batches of at least 16,384 elements are split over
+``torch.get_num_threads()`` threads.
+
+The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
+(``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment, or the ``disabled()``
+context manager, turns the kernels off (the tensor code then runs everywhere).
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+
+import torch
+
+from . import numerics
+from ._blocking import unobserved
+
+try:
+    from . import _native as _lib
+except ImportError:  # not compiled: the tensor code runs everywhere
+    _lib = None
+
+ENV_VAR = "TORCHSGAL_NATIVE"
+_state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0"}
+
+
+def _set_constants() -> None:
+    def taylor(m):  # the series of c_m used by numerics.series_coefficients
+        return [(-1.0) ** k / math.factorial(2 * k + m) for k in range(numerics.TAYLOR_TERMS)]
+
+    bern = [1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160, 691 / 1307674368000,
+            1 / 74724249600]  # numerics.jinv_coefficient's series
+    _lib.set_constants(numerics.SERIES_THRESHOLD, numerics.JINV_THRESHOLD,
+                       numerics.LOG_SYMMETRIC_COS, numerics.LOG_SIN_TAYLOR,
+                       taylor(3), taylor(4), taylor(5), taylor(6),
+                       [1.0 / math.factorial(m) for m in range(7)], bern)
+
+
+if _lib is not None:
+    _set_constants()
+
+
+def available() -> bool:
+    """Whether the C kernels were compiled for this installation."""
+    return _lib is not None
+
+
+def enabled() -> bool:
+    """Whether eligible calls use the C kernels now (``available()`` and not switched off)."""
+    return _state["on"]
+
+
+@contextlib.contextmanager
+def disabled():
+    """Run the tensor code everywhere inside the block (tests and benchmarks compare the two)."""
+    before = _state["on"]
+    _state["on"] = False
+    try:
+        yield
+    finally:
+        _state["on"] = before
+
+
+def _eligible(args) -> bool:
+    dtype = args[0].dtype
+    return _state["on"] and all(a.dtype is dtype for a in args) and unobserved(args)
+
+
+def _data(t: torch.Tensor) -> torch.Tensor:
+    """A contiguous tensor whose memory holds t's values (no lazy negation)."""
+    return t.resolve_neg().contiguous()
+
+
+def _run(fn, inputs, batch, event):
+    """fn over the batch: contiguous inputs, a fresh output (*batch, *event) of their dtype."""
+    ins = [_data(t) for t in inputs]
+    dtype = ins[0].dtype
+    out = torch.empty(batch + event, dtype=dtype)
+    fn(*(t.data_ptr() for t in ins), out.data_ptr(), math.prod(batch), torch.get_num_threads(),
+       dtype is torch.float64)
+    return out
+
+
+class _SGal3Kernels:
+    """exp, log and their backward maps for the custom autograd Functions of sgal3 (each returns
+    None where the C kernels may not run: the caller then runs the tensor code)."""
+
+    @staticmethod
+    def exp(xi: torch.Tensor):
+        if not _eligible((xi,)):
+            return None
+        return _run(_lib.sgal3_exp, (xi,), xi.shape[:-1], (5, 5))
+
+    @staticmethod
+    def log(M: torch.Tensor):
+        if not _eligible((M,)):
+            return None
+        return _run(_lib.sgal3_log, (M,), M.shape[:-2], (10,))
+
+    @staticmethod
+    def exp_vjp(xi: torch.Tensor, M: torch.Tensor, G: torch.Tensor):
+        """J_r(xi)^T hat^T(M^T G), exp's backward (same batch shapes only)."""
+        if not (xi.shape[:-1] == M.shape[:-2] == G.shape[:-2] and _eligible((xi, M, G))):
+            return None
+        return _run(_lib.sgal3_exp_vjp, (xi, M, G), xi.shape[:-1], (10,))
+
+    @staticmethod
+    def log_vjp(M: torch.Tensor, xi: torch.Tensor, g: torch.Tensor):
+        """M^-T vee^T(J_r(xi)^-T g), log's backward (same batch shapes only)."""
+        if not (xi.shape[:-1] == M.shape[:-2] == g.shape[:-1] and _eligible((M, xi, g))):
+            return None
+        return _run(_lib.sgal3_log_vjp, (M, xi, g), M.shape[:-2], (5, 5))
+
+
+def kernels(name: str):
+    """The C kernels of the group ``name`` ("SGal3"), or None (not compiled, or no kernels)."""
+    if _lib is None:
+        return None
+    return {"SGal3": _SGal3Kernels}.get(name)
