@@ -43,12 +43,10 @@ def _set_constants() -> None:
     def taylor(m):  # the series of c_m used by numerics.series_coefficients
         return [(-1.0) ** k / math.factorial(2 * k + m) for k in range(numerics.TAYLOR_TERMS)]
 
-    bern = [1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160, 691 / 1307674368000,
-            1 / 74724249600]  # numerics.jinv_coefficient's series
     _lib.set_constants(numerics.SERIES_THRESHOLD, numerics.JINV_THRESHOLD,
                        numerics.LOG_SYMMETRIC_COS, numerics.LOG_SIN_TAYLOR,
                        taylor(3), taylor(4), taylor(5), taylor(6),
-                       [1.0 / math.factorial(m) for m in range(7)], bern)
+                       [1.0 / math.factorial(m) for m in range(7)], list(numerics.JINV_SERIES))
 
 
 if _lib is not None:

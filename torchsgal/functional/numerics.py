@@ -34,6 +34,9 @@ TAYLOR_TERMS = 11
 MAX_ORDER = 6
 # theta below which the SO(3) inverse-Jacobian coefficient uses its Taylor series.
 JINV_THRESHOLD = 0.5
+# Series of jinv_coefficient below JINV_THRESHOLD: -B_2n / (2n)! for n >= 1 (in theta^2).
+JINV_SERIES = (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160, 691 / 1307674368000,
+               1 / 74724249600)
 # cos(theta) below which SO(3) log takes the rotation axis from the symmetric part of C.
 LOG_SYMMETRIC_COS = 0.0
 
@@ -150,8 +153,7 @@ def jinv_coefficient(theta2: torch.Tensor) -> torch.Tensor:
     t2s = theta2 * mask
     t2l = select(mask, torch.ones_like(theta2), theta2)
     # (theta/2) cot(theta/2) = sum_n (-1)^n B_2n theta^2n / (2n)!  => d = -sum_{n>=1} ... / theta^2
-    bern = [1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160, 691 / 1307674368000,
-            1 / 74724249600]
+    bern = JINV_SERIES
     taylor = torch.full_like(t2s, bern[-1])
     for a in reversed(bern[:-1]):
         taylor = taylor * t2s + a
