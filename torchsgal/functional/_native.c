@@ -29,13 +29,7 @@ static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLO
 #define COS cos
 #define SQRT sqrt
 #define ATAN2 atan2
-#include "_native_sgal3.h"
-#undef T
-#undef SFX
-#undef SIN
-#undef COS
-#undef SQRT
-#undef ATAN2
+#include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
 #define T float
 #define SFX f32
@@ -43,13 +37,7 @@ static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLO
 #define COS cosf
 #define SQRT sqrtf
 #define ATAN2 atan2f
-#include "_native_sgal3.h"
-#undef T
-#undef SFX
-#undef SIN
-#undef COS
-#undef SQRT
-#undef ATAN2
+#include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
 typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
 

@@ -312,3 +312,9 @@ static void K(log_vjp_range)(void **a, int64_t lo, int64_t hi) {
 #undef K
 #undef K_
 #undef K__
+#undef T
+#undef SFX
+#undef SIN
+#undef COS
+#undef SQRT
+#undef ATAN2
