@@ -653,8 +653,13 @@ def _assert_same(fast, plain, tol=1e-13):
 @pytest.mark.parametrize("K", [1, 2, 7, 64])
 @pytest.mark.parametrize("per_axis", [False, True])
 @pytest.mark.parametrize("block_bytes", [None, 700])  # 700: blocks of a few windows, a ragged last one
-def test_fast_path_matches_plain_path(K, per_axis, block_bytes, monkeypatch):
+@pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])  # C: the optional IMU kernel
+def test_fast_path_matches_plain_path(K, per_axis, block_bytes, kernel, monkeypatch):
     import torchsgal.imu.preintegration as P
+    from torchsgal.functional import native
+
+    if not kernel:
+        monkeypatch.setattr(native, "_state", {"on": False})
 
     if block_bytes is not None:
         monkeypatch.setattr(P, "_BLOCK_BYTES", block_bytes)
@@ -701,8 +706,12 @@ def test_forward_ad_takes_the_plain_path():
 
 
 def test_fast_path_blocks_large_float32_batches(monkeypatch):
-    # Default block size: 520 x 256 float32 samples run as two blocks of 260 windows.
+    # Default block size: 520 x 256 float32 samples run as two blocks of 260 windows (the tensor
+    # fast path: the optional C kernel, which needs no blocks, switched off).
     import torchsgal.imu.preintegration as P
+    from torchsgal.functional import native
+
+    monkeypatch.setattr(native, "_state", {"on": False})
 
     gyro, acc, dt = random_stream(520, 256, seed=77, dtype=torch.float32)
     dens = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2)

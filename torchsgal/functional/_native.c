@@ -1,4 +1,5 @@
-/* torchsgal.functional._native: the SGal(3) exp, log and their backward maps as plain C loops.
+/* torchsgal.functional._native: the SGal(3) exp, log and their backward maps, and the IMU
+ * preintegration of torchsgal.imu, as plain C loops.
  *
  * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
  * ~170 dispatched tensor operations, so small batches no longer pay torch's per-operation
@@ -39,6 +40,8 @@ static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLO
 #define ATAN2 atan2f
 #include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
+#include "_native_imu.h"  /* IMU preintegration, in double: uses the f64 kernels above */
+
 typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
 
 typedef struct {
@@ -56,13 +59,16 @@ static void *run_job(void *p) {
 #endif
 
 #define MAX_THREADS 64
-/* Elements per thread below which a batch runs on the calling thread alone. */
+/* Work per thread (elements times their cost) below which a batch runs on the calling thread. */
 #define MIN_PER_THREAD 8192
 
-static void run_parallel(range_fn fn, void **args, int64_t n, int threads) {
+/* fn over [0, n) split over up to ``threads`` threads; ``cost`` is the work of one item in units
+ * of one SGal(3) exp (1 for the group kernels, the samples of a window for the IMU). */
+static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int threads) {
 #ifndef _WIN32
     if (threads > MAX_THREADS) threads = MAX_THREADS;
-    if (threads > 1 && n / threads >= MIN_PER_THREAD) {
+    if (threads > n) threads = (int)n;
+    if (threads > 1 && n / threads * cost >= MIN_PER_THREAD) {
         pthread_t tid[MAX_THREADS];
         job_t jobs[MAX_THREADS];
         int started[MAX_THREADS];
@@ -103,7 +109,7 @@ static PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npointers, r
     int is_double = PyObject_IsTrue(a[npointers + 2]);
     if (PyErr_Occurred() || is_double < 0) return NULL;
     Py_BEGIN_ALLOW_THREADS
-    run_parallel(is_double ? f64 : f32, ptr, n, (int)threads);
+    run_parallel(is_double ? f64 : f32, ptr, n, 1, (int)threads);
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
 }
@@ -117,6 +123,38 @@ WRAP(exp, 2)
 WRAP(log, 2)
 WRAP(exp_vjp, 4)
 WRAP(log_vjp, 4)
+
+/* imu_preintegrate(gyro, acc, dt, b_g, b_a, delta, moments, n, K, threads, is_double): n windows
+ * of K samples (_native_imu.h); moments 0 (a null pointer) for the increment only. */
+static PyObject *py_imu_preintegrate(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 11) {
+        PyErr_SetString(PyExc_TypeError, "imu_preintegrate takes 11 arguments");
+        return NULL;
+    }
+    if (TAYLOR_TERMS == 0) {
+        PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
+        return NULL;
+    }
+    void *ptr[7];
+    for (int i = 0; i < 7; ++i) {
+        ptr[i] = PyLong_AsVoidPtr(a[i]);
+        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
+    }
+    int64_t n = PyLong_AsLongLong(a[7]), K = PyLong_AsLongLong(a[8]);
+    long threads = PyLong_AsLong(a[9]);
+    int is_double = PyObject_IsTrue(a[10]);
+    if (PyErr_Occurred() || is_double < 0) return NULL;
+    if (K < 1) {
+        PyErr_SetString(PyExc_ValueError, "imu_preintegrate needs K >= 1 samples per window");
+        return NULL;
+    }
+    imu_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], K};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(is_double ? imu_range_f64 : imu_range_f32, (void **)&args, n, K, (int)threads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
 
 static int read_table(PyObject *seq, double *out, int cap, const char *name) {
     PyObject *fast = PySequence_Fast(seq, name);
@@ -164,6 +202,8 @@ static PyMethodDef methods[] = {
      "exp backward (xi, M, G, out, n, threads, is_double)"},
     {"sgal3_log_vjp", (PyCFunction)(void (*)(void))py_sgal3_log_vjp, METH_FASTCALL,
      "log backward (M, xi, g, out, n, threads, is_double)"},
+    {"imu_preintegrate", (PyCFunction)(void (*)(void))py_imu_preintegrate, METH_FASTCALL,
+     "IMU windows (gyro, acc, dt, b_g, b_a, delta, moments, n, K, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

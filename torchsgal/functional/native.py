@@ -1,4 +1,5 @@
-"""Optional C kernels: SGal(3) exp, log and their backward maps on CPU (``_native.c``).
+"""Optional C kernels: SGal(3) exp, log and their backward maps, and IMU preintegration, on CPU
+(``_native.c``).
 
 In eager CPU code a closed form written as tensor operations pays torch's per-operation
 dispatch (~2 us) about 170 times for SGal(3) exp, whatever the batch size; at 1e3 elements that
@@ -14,6 +15,10 @@ They are used by ``functional.sgal3.exp``/``log`` (and so ``SGal3.exp``, ``g.log
 compiling) and every argument has the same batch shape; everywhere else, and on other devices,
 the tensor code runs.  Batches of at least 16,384 elements are split over
 ``torch.get_num_threads()`` threads.
+
+``kernels("imu")`` preintegrates IMU windows (``torchsgal.imu.preintegrate``'s CPU fast path,
+docs/imu.md): the increment and the node sums of its covariance and bias Jacobian, one window
+per loop, in double precision.
 
 The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
 (``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment, or the ``disabled()``
@@ -125,8 +130,42 @@ class _SGal3Kernels:
         return _run(_lib.sgal3_log_vjp, (M, xi, g), M.shape[:-2], (5, 5))
 
 
+# Offsets of the node sums in the kernel's (n, 117) output (_native_imu.h), as the dict of
+# imu.preintegration._node_moments: name -> (offset, shape).
+_IMU_MOMENTS = {"w": (0, ()), "wt": (1, ()), "wtt": (2, ()), "wl": (3, (3,)), "wv": (6, (3,)),
+                "outer": (9, (6, 6)), "Y": (45, (8, 3, 3))}
+_IMU_WIDTH = 117
+
+
+class _ImuKernels:
+    """IMU preintegration of flattened windows (torchsgal.imu.preintegration._integrate_fast)."""
+
+    @staticmethod
+    def preintegrate(gyro: torch.Tensor, acc: torch.Tensor, dt: torch.Tensor, b_g: torch.Tensor,
+                     b_a: torch.Tensor, nodes: bool):
+        """(delta (n, 5, 5), node sums or None) of n windows: gyro, acc (n, K, 3), dt (n, K),
+        biases (n, 3), all of one dtype, K >= 1.  With ``nodes`` the sums are the dict of
+        ``_node_moments`` (the identity node included), each (n, ...); None where the kernels
+        may not run (the caller then runs the tensor code)."""
+        args = (gyro, acc, dt, b_g, b_a)
+        n, K = dt.shape
+        if not (gyro.shape == acc.shape == (n, K, 3) and b_g.shape == b_a.shape == (n, 3) and K >= 1
+                and _eligible(args)):
+            return None
+        ins = [_data(t) for t in args]
+        delta = torch.empty(n, 5, 5, dtype=gyro.dtype)
+        moments = torch.empty(n, _IMU_WIDTH, dtype=gyro.dtype) if nodes else None
+        _lib.imu_preintegrate(*(t.data_ptr() for t in ins), delta.data_ptr(),
+                              0 if moments is None else moments.data_ptr(), n, K,
+                              torch.get_num_threads(), gyro.dtype is torch.float64)
+        if moments is None:
+            return delta, None
+        return delta, {k: moments[:, o : o + math.prod(shape)].reshape(n, *shape)
+                       for k, (o, shape) in _IMU_MOMENTS.items()}
+
+
 def kernels(name: str):
-    """The C kernels of the group ``name`` ("SGal3"), or None (not compiled, or no kernels)."""
+    """The C kernels of ``name`` ("SGal3", "imu"), or None (not compiled, or no kernels)."""
     if _lib is None:
         return None
-    return {"SGal3": _SGal3Kernels}.get(name)
+    return {"SGal3": _SGal3Kernels, "imu": _ImuKernels}.get(name)

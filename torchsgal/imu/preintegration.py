@@ -29,7 +29,7 @@ from .. import SGal3
 from ..functional import blocks as B
 from ..functional import checks
 from ..functional import sgal3 as F
-from ..functional import unobserved
+from ..functional import native, unobserved
 from ..functional._blocking import _is_wrapped, is_compiling
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
@@ -499,7 +499,9 @@ def preintegrate(
     stay in SGal3's packed component layout (functional.sgal3.exp_packed / compose_packed),
     where a product is elementwise: several times faster on CPU than batched 5x5 matmuls.
     On CPU with nothing recording (no autograd, functorch transform or compile) the same
-    arithmetic runs in place and in blocks of windows (_integrate_fast, docs/imu.md).
+    arithmetic runs in place and in blocks of windows (_integrate_fast, docs/imu.md), or, where
+    the optional C kernels were built and the covariance is isotropic or not asked for, as a C
+    loop over each window's samples in double precision (functional/_native_imu.h).
     """
     dt = _dt_arg(dt, gyro)
     batch = _check_stream(gyro, acc, dt)
@@ -682,6 +684,12 @@ def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
             dt.expand(*batch, K).reshape(n, K), b_g.reshape(n, 3), b_a.reshape(n, 3)]
     if covariance and not isotropic:
         flat += [s.expand(*batch, 3).reshape(n, 3) for s in (s_a, s_g)]
+    if not (covariance and not isotropic):
+        kernel = native.kernels("imu")
+        done = kernel and kernel.preintegrate(*flat[:5], nodes=covariance or bias_jacobian)
+        if done:
+            return _finish(done[0].reshape(*batch, 5, 5), done[1], batch, s_a, s_g, s_t, covariance,
+                           bias_jacobian)
     per = -(-n // min(n, max(1, n * K * gyro.element_size() // _BLOCK_BYTES)))  # windows per block, balanced
     delta = gyro.new_empty((16, n))
     covs, moments, ws = [], [], _Scratch(gyro)
@@ -696,17 +704,22 @@ def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
             covs.append(_general_covariance(groups, w_id, part[5], part[6], s_t))
         if (covariance and isotropic) or bias_jacobian:
             moments.append(_node_moments_fast(groups, w_id, ws))  # the groups' X overwritten
-    cov = jac = None
-    if covs:
-        cov = torch.cat(covs) if len(covs) > 1 else covs[0]
+    m = None
     if moments:
         m = {k: torch.cat([x[k] for x in moments]) for k in moments[0]} if len(moments) > 1 else moments[0]
-        if covariance and isotropic:
-            cov = _isotropic_covariance(m, s_a, s_g, s_t)
-        if bias_jacobian:
-            jac = _bias_jacobian(m)
-    return (F.unpack(delta).reshape(*batch, 5, 5), None if cov is None else cov.reshape(*batch, 10, 10),
-            None if jac is None else jac.reshape(*batch, 10, 6))
+    out = _finish(F.unpack(delta).reshape(*batch, 5, 5), m, batch, s_a, s_g, s_t, covariance and isotropic,
+                  bias_jacobian)
+    if covs:
+        out = (out[0], (torch.cat(covs) if len(covs) > 1 else covs[0]).reshape(*batch, 10, 10), out[2])
+    return out
+
+
+def _finish(delta, m, batch, s_a, s_g, s_t, isotropic_covariance, bias_jacobian):
+    """(delta, covariance or None, bias Jacobian or None) from the node sums ``m`` of the flattened
+    windows (None: neither is wanted, or the covariance is the general one)."""
+    cov = _isotropic_covariance(m, s_a, s_g, s_t).reshape(*batch, 10, 10) if isotropic_covariance else None
+    jac = _bias_jacobian(m).reshape(*batch, 10, 6) if bias_jacobian else None
+    return delta, cov, jac
 
 
 def _tree_product(E: torch.Tensor, ws: _Scratch | None = None) -> torch.Tensor:
