@@ -11,7 +11,8 @@ setup(
         Extension(
             "torchsgal.functional._native",
             sources=["torchsgal/functional/_native.c"],
-            depends=["torchsgal/functional/_native_sgal3.h", "torchsgal/functional/_native_imu.h"],
+            depends=["torchsgal/functional/_native_sgal3.h", "torchsgal/functional/_native_imu.h",
+                     "torchsgal/functional/_native_tls.h"],
             extra_compile_args=args,
             optional=True,
         )

@@ -4,6 +4,7 @@ rule that decides where they run.  The tensor code is itself checked against sci
 GTSAM elsewhere; the rest of the suite runs through the kernels wherever they are eligible."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import subprocess
@@ -335,3 +336,79 @@ def test_imu_kernel_runs_only_where_unobserved_and_isotropic(recorder):
     # a window of no samples is refused by the kernel itself (preintegrate refuses it first)
     with pytest.raises(ValueError, match="K >= 1"):
         native._lib.imu_preintegrate(0, 0, 0, 0, 0, 0, 0, 1, 0, 1, True)
+
+
+# ------------------------------------------------------------- TLS linearisation kernel
+def tls_problem(trials, samples, covariance, seed):
+    from torchsgal.estimation import study, tls
+    P = study.simulate(study.StudyConfig(trials=trials, samples=samples, seed=seed)).problem
+    if covariance == "paper":  # diagonal, shared
+        return P
+    gen = torch.Generator().manual_seed(seed)
+    shape = (trials, 1) if covariance == "per trial" else (trials, samples)
+    scale = study.paper_covariance().diagonal().sqrt()
+    scale = scale[:, None] * scale[None, :]
+
+    def cov():
+        A = torch.randn(*shape, 10, 10, generator=gen, dtype=torch.float64)
+        return scale * (A @ A.mT / 10 + 0.2 * torch.eye(10, dtype=torch.float64))
+    indices = torch.arange(samples, dtype=torch.float64) * 1.5 - 3.0  # not 0..N
+    return tls.TLSProblem(P.F_ga, P.F_gb, cov(), cov(), indices)
+
+
+def tls_linearisations(P, iterated, e, x):
+    from torchsgal.estimation import tls
+    out = []
+    for on in (True, False):
+        with contextlib.nullcontext() if on else native.disabled():
+            linearise, post_step = tls._structured(P, iterated, chunk=3)
+            lin = linearise(x, e)
+            delta = torch.linspace(-1e-3, 1e-3, 11, dtype=torch.float64).expand(lin.g.shape)
+            out.append((lin, post_step(x, e, lin, delta)))
+    return out
+
+
+@pytest.mark.parametrize("covariance", ["paper", "per trial", "per sample"])
+@pytest.mark.parametrize("iterated", [True, False], ids=["iterated", "paper"])
+def test_tls_kernel_matches_the_tensor_code(covariance, iterated, recorder):
+    P = tls_problem(7, 9, covariance, seed=3)
+    gen = torch.Generator().manual_seed(4)
+    x = P.initial_guess(-1.0)
+    e = 0.05 * torch.randn(7, 9, 20, generator=gen, dtype=torch.float64)
+    (lin_c, step_c), (lin_t, step_t) = tls_linearisations(P, iterated, e, x)
+    assert recorder.calls.count("tls_sgal3") == 3  # 3 chunks, C; none with the kernels off
+    # The whitened Jacobians W: rounding of the same operations (measured 4e-16).  (The paper
+    # variant with shared covariances has no W in the tensor code: its S is a quadratic in s.)
+    quadratic = len(lin_t.extra.parts[0]) == 3
+    assert quadratic == (not iterated and covariance != "per sample")
+    for (R_c, W_c), (R_t, *extra) in zip(lin_c.extra.parts, lin_t.extra.parts):
+        if not quadratic:
+            err = ((W_c - extra[0]).abs().amax((-2, -1)) / extra[0].abs().amax((-2, -1))).max()
+            assert err < 4e-15, float(err)
+    # The rows [L^-1, n L^-1 a, L^-1 w] and the normal equations amplify that rounding by the
+    # condition of S = W W^T (up to ~5e6 here): measured 4e-13 on L^-1 (LAPACK's factor of the
+    # same S differs from either by as much), 1e-13 on H, g, cost and the next e.
+    for name in ("H", "g", "cost"):
+        a, b = getattr(lin_c, name), getattr(lin_t, name)
+        assert ((a - b).abs().max() / b.abs().max()) < 1e-11, name
+    assert ((step_c - step_t).abs().max() / step_t.abs().max()) < 1e-11
+
+
+def test_tls_kernel_marks_non_finite_conditions_and_runs_only_where_it_may(recorder):
+    from torchsgal.estimation import tls
+    P = tls_problem(4, 6, "paper", seed=5)
+    x = P.initial_guess(-1.0)
+    e = torch.zeros(4, 6, 20, dtype=torch.float64)
+    e[2, 3, 5] = math.nan  # one condition of trial 2: its Cholesky fails
+    (lin_c, _), (lin_t, _) = tls_linearisations(P, True, e, x)
+    for lin in (lin_c, lin_t):
+        assert torch.isfinite(lin.cost).tolist() == [True, True, False, True]
+    recorder.calls.clear()
+    tls.solve_sgal3(P, variant="iterated")
+    assert "tls_sgal3" in recorder.calls
+    recorder.calls.clear()
+    tls.solve_baseline(P, variant="iterated")  # SE_2(3) x R: tensor code
+    P32 = tls.TLSProblem(P.F_ga.to(torch.float32), P.F_gb.to(torch.float32),
+                         P.cov_a.float(), P.cov_b.float())
+    tls.solve_sgal3(P32, variant="iterated")  # float32: tensor code
+    assert "tls_sgal3" not in recorder.calls

@@ -10,6 +10,7 @@ import torchsgal as ts
 from torchsgal.estimation import SolverStatus, gauss_helmert, study, tls, variables as V
 from torchsgal.estimation.gauss_helmert import variant_options as gauss_helmert_variant_options
 from torchsgal.estimation.solver import iterate
+from torchsgal.functional import native
 
 f64 = torch.float64
 
@@ -405,13 +406,17 @@ def _random_covariance(shape, gen, scale):
     return scale * (A @ A.transpose(-1, -2) / 10 + 0.2 * torch.eye(10, dtype=f64))
 
 
-@pytest.mark.parametrize("estimator", ["sgal3", "baseline"])
+@pytest.mark.parametrize("estimator, kernel", [("sgal3", True), ("sgal3", False), ("baseline", False)],
+                         ids=["sgal3-C", "sgal3-tensor", "baseline"])
 @pytest.mark.parametrize("variant", ["iterated", "paper"])
 @pytest.mark.parametrize("covariance", ["paper", "per trial", "per sample"])
-def test_structured_solver_matches_generic_gauss_helmert(estimator, variant, covariance):
+def test_structured_solver_matches_generic_gauss_helmert(estimator, kernel, variant, covariance, monkeypatch):
     """The solvers' closed-form normal equations (tls._structured, in chunks of trials) give
     the generic Gauss-Helmert solution of sgal3_condition / baseline_condition: estimates,
-    covariances, residual estimates, costs and iteration counts."""
+    covariances, residual estimates, costs and iteration counts.  SGal(3) with ``kernel``: the
+    optional C kernel of the linearisation where it was built (tests/test_native.py)."""
+    if not kernel:
+        monkeypatch.setattr(native, "_state", {"on": False})
     cfg = study.StudyConfig(trials=5, samples=13, seed=10)
     trials = study.simulate(cfg)
     P = trials.problem
@@ -452,11 +457,14 @@ def test_structured_solver_matches_generic_gauss_helmert(estimator, variant, cov
 
 
 @pytest.mark.parametrize("variant", ["iterated", "paper"])
-def test_structured_solver_marks_a_singular_effective_covariance(variant, monkeypatch):
+@pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])
+def test_structured_solver_marks_a_singular_effective_covariance(variant, kernel, monkeypatch):
     """An effective covariance that is not positive definite (here: zero observation noise in
     one trial, which the input check would reject) makes that trial NON_FINITE; the others
     are solved as usual."""
     import sys
+    if not kernel:
+        monkeypatch.setattr(native, "_state", {"on": False})
     # the input checks skipped (as where values cannot be read: each block then factorised whole)
     monkeypatch.setattr(sys.modules["torchsgal.estimation.gauss_helmert"], "values_readable",
                         lambda S: False)

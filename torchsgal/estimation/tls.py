@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..functional import checks
+from ..functional import checks, native
 from ..groups import SE23, SGal3
 from . import _small_linalg
 from . import variables as V
@@ -386,6 +386,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     eb0 = 10  # eps_b starts at 10 in both layouts (the baseline's clock errors at 9 and 19)
     work = {}
     calls = [0]  # linearisations so far: the state buffer set is calls % 2
+    kernel = None if baseline else native.kernels("tls")  # None: not compiled
 
     def buffer(name, *shape, state=None):
         """A buffer reused between chunks and calls (one per name and shape), or for what
@@ -433,6 +434,16 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         s = n * dtau  # (K, N+1)
         Ad_Xinv = X.inverse().adjoint()  # (K, d, d)
         a = model.dtau_direction(X, Ad_Xinv)  # (K, d)
+        if kernel is not None:  # the optional C kernel: the same rows, one condition at a time
+            R = buffer("R", K, N1 * d, nc, state=sl.start)
+            W = buffer("W", K, N1, d, 2 * d, state=sl.start)
+            factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
+            done = kernel.linearise(Mk.as_matrix(), X.as_matrix(), Ad_Xinv, a, s, n, e, factors, R, W)
+            if done is not None:
+                G, info = done
+                bad = (info != 0).any(-1)
+                G[:, -1, -1] = torch.where(bad, float("nan"), G[:, -1, -1])
+                return G, (R, W)
         A = model.drift(X.unsqueeze(-1), s)
         if e is None:
             c = (Mk @ A).log()
@@ -515,7 +526,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             z = R @ d1[sl]  # (K, rows, 1)
             y = (R[:, :N1 * d, :d].reshape(K, N1, d, d) * z[:, :N1 * d].reshape(K, N1, d, 1)
                  ).sum(-2)  # Li^T z
-            if quadratic:
+            if len(extra) == 2:  # the quadratic form's parts (Ad_Xinv, s)
                 # Ga^T y = P^T Ad(X^-1)^T y, Gb^T y = -P^T y, P^T: nu <- nu + s rho.
                 Ad_Xinv, s = extra
                 u = torch.stack([y @ Ad_Xinv, -y])  # (2, K, N+1, d)
@@ -523,7 +534,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
                 ea, eb = (u[i] @ per_trial(S, 3, sl) for i, S in enumerate(shared))
             else:
                 W, = extra
-                Wy = (W * y[..., :, None]).sum(-2)  # (K, N+1, 2 d)
+                Wy = (y[..., None, :] @ W)[..., 0, :]  # (K, N+1, 2 d): W^T y, no (K, N+1, d, 2 d) temporary
                 ea, eb = Wy[..., :d], Wy[..., d:]
                 ra, rb = per_trial(fa, 3 if da else 4, sl), per_trial(fb, 3 if db else 4, sl)
                 ea = ea * ra if da else (ra @ ea[..., None])[..., 0]

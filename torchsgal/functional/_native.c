@@ -1,5 +1,6 @@
 /* torchsgal.functional._native: the SGal(3) exp, log and their backward maps, and the IMU
- * preintegration of torchsgal.imu, as plain C loops.
+ * preintegration of torchsgal.imu and the SGal(3) TLS linearisation of torchsgal.estimation, as
+ * plain C loops.
  *
  * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
  * ~170 dispatched tensor operations, so small batches no longer pay torch's per-operation
@@ -41,6 +42,7 @@ static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLO
 #include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
 #include "_native_imu.h"  /* IMU preintegration, in double: uses the f64 kernels above */
+#include "_native_tls.h"  /* the TLS linearisation, in double: uses the f64 kernels above */
 
 typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
 
@@ -156,6 +158,37 @@ static PyObject *py_imu_preintegrate(PyObject *self, PyObject *const *a, Py_ssiz
     Py_RETURN_NONE;
 }
 
+/* tls_sgal3(M, X, Ad_Xinv, a, s, n, e, fa, fb, R, W, G, info,
+ *           fa_k, fa_n, fb_k, fb_n, diag_a, diag_b, K, N1, threads): see _native_tls.h; e 0
+ * (a null pointer) for the paper variant.  float64 only. */
+static PyObject *py_tls_sgal3(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 22) {
+        PyErr_SetString(PyExc_TypeError, "tls_sgal3 takes 22 arguments");
+        return NULL;
+    }
+    if (TAYLOR_TERMS == 0) {
+        PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
+        return NULL;
+    }
+    void *ptr[13];
+    for (int i = 0; i < 13; ++i) {
+        ptr[i] = PyLong_AsVoidPtr(a[i]);
+        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
+    }
+    int64_t ints[9];
+    for (int i = 0; i < 9; ++i) ints[i] = PyLong_AsLongLong(a[13 + i]);
+    if (PyErr_Occurred()) return NULL;
+    tls_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], ptr[7], ptr[8],
+                       ints[0], ints[1], ints[2], ints[3], (int)ints[4], (int)ints[5],
+                       ptr[9], ptr[10], ptr[11], ptr[12], ints[7]};
+    /* one condition costs about as much as 32 SGal(3) exps */
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(tls_range, (void **)&args, ints[6], 32 * ints[7], (int)ints[8]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static int read_table(PyObject *seq, double *out, int cap, const char *name) {
     PyObject *fast = PySequence_Fast(seq, name);
     if (!fast) return -1;
@@ -204,6 +237,8 @@ static PyMethodDef methods[] = {
      "log backward (M, xi, g, out, n, threads, is_double)"},
     {"imu_preintegrate", (PyCFunction)(void (*)(void))py_imu_preintegrate, METH_FASTCALL,
      "IMU windows (gyro, acc, dt, b_g, b_a, delta, moments, n, K, threads, is_double)"},
+    {"tls_sgal3", (PyCFunction)(void (*)(void))py_tls_sgal3, METH_FASTCALL,
+     "SGal(3) TLS linearisation (see _native_tls.h)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

@@ -192,10 +192,9 @@ static inline void K(gamma1_t)(const K(parts_t) *P, const T *x, T *o) {
     K(poly)(mphi, x, (T)1, P->c[2], P->c[3], o);
 }
 
-/* _jl_tmv: J_l(xi)^T w, at xi = sign * x. */
-static void K(jl_tmv_one)(const T *x, T sign, const T *w, T *o) {
-    K(parts_t) P;
-    K(transpose_parts)(x, sign, &P);
+/* _jl_tmv: J_l(xi)^T w, with the parts P of xi (transpose_parts). */
+static void K(jl_tmv_parts)(const K(parts_t) *Pp, const T *w, T *o) {
+    const K(parts_t) P = *Pp;
     const T *c = P.c, *w_rho = w, *w_nu = w + 3, *w_phi = w + 6;
     T p[3], pp[3], DT[3], ET[3], g[3], o_nu[3], S[3], z[3], zw[3], g2[3];
     K(cross)(P.phi, w_rho, p);
@@ -215,6 +214,13 @@ static void K(jl_tmv_one)(const T *x, T sign, const T *w, T *o) {
         o[6 + i] = S[i] + g2[i];
     }
     o[9] = K(dot)(P.g2n, w_rho) + w[9];
+}
+
+/* _jl_tmv: J_l(xi)^T w, at xi = sign * x. */
+static void K(jl_tmv_one)(const T *x, T sign, const T *w, T *o) {
+    K(parts_t) P;
+    K(transpose_parts)(x, sign, &P);
+    K(jl_tmv_parts)(&P, w, o);
 }
 
 /* _jl_inv_tmv: J_l(xi)^-T g, at xi = sign * x. */

@@ -164,8 +164,45 @@ class _ImuKernels:
                        for k, (o, shape) in _IMU_MOMENTS.items()}
 
 
+class _TlsKernels:
+    """The structured linearisation of the SGal(3) TLS conditions
+    (torchsgal.estimation.tls._structured), float64 only (``_native_tls.h``)."""
+
+    @staticmethod
+    def linearise(M, X, Ad_Xinv, a, s, n, e, factors, R, W):
+        """Fill R (K, N1 d, 12) and W (K, N1, 10, 20) and return (G (K, 12, 12), info (K, N1));
+        None where the kernel may not run.  M (K, N1, 5, 5), X (K, 5, 5), Ad_Xinv (K, 10, 10),
+        a (K, 10), s (K, N1), n (N1,), e (K, N1, 20) or None (the paper variant), factors
+        ((fa, diagonal_a), (fb, diagonal_b)): square-root diagonals (..., 10) or lower Cholesky
+        factors (..., 10, 10) broadcasting to (K, N1)."""
+        K, N1 = s.shape
+        args = [M, X, Ad_Xinv, a, s, n] + ([] if e is None else [e]) + [f for f, _ in factors]
+        if not (args[0].dtype is torch.float64 and _eligible(args) and R.is_contiguous()
+                and W.is_contiguous() and R.shape == (K, N1 * 10, 12) and W.shape == (K, N1, 10, 20)):
+            return None
+        fs = []
+        for f, diagonal in factors:
+            tail = (10,) if diagonal else (10, 10)
+            if f.shape[-len(tail):] != tail or f.dim() > len(tail) + 2:
+                return None
+            f = f.resolve_neg()
+            if f.stride()[-len(tail):] != torch.empty(tail).stride():
+                f = f.contiguous()
+            fs.append(f.expand(K, N1, *tail))
+        ins = [_data(t) for t in (M, X, Ad_Xinv, a, s, n)]
+        e = None if e is None else _data(e)
+        G = torch.empty(K, 12, 12, dtype=torch.float64)
+        info = torch.empty(K, N1, dtype=torch.int32)
+        _lib.tls_sgal3(*(t.data_ptr() for t in ins), 0 if e is None else e.data_ptr(),
+                       fs[0].data_ptr(), fs[1].data_ptr(), R.data_ptr(), W.data_ptr(),
+                       G.data_ptr(), info.data_ptr(), fs[0].stride(0), fs[0].stride(1),
+                       fs[1].stride(0), fs[1].stride(1), int(factors[0][1]), int(factors[1][1]),
+                       K, N1, torch.get_num_threads())
+        return G, info
+
+
 def kernels(name: str):
-    """The C kernels of ``name`` ("SGal3", "imu"), or None (not compiled, or no kernels)."""
+    """The C kernels of ``name`` ("SGal3", "imu", "tls"), or None (not compiled, or no kernels)."""
     if _lib is None:
         return None
-    return {"SGal3": _SGal3Kernels, "imu": _ImuKernels}.get(name)
+    return {"SGal3": _SGal3Kernels, "imu": _ImuKernels, "tls": _TlsKernels}.get(name)
