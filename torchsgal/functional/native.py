@@ -169,6 +169,11 @@ class _TlsKernels:
     (torchsgal.estimation.tls._structured), float64 only (``_native_tls.h``)."""
 
     @staticmethod
+    def applies(*tensors) -> bool:
+        """Whether a linearisation of these (float64) tensors would run in C now."""
+        return tensors[0].dtype is torch.float64 and _eligible(tensors)
+
+    @staticmethod
     def linearise(M, X, Ad_Xinv, a, s, n, e, factors, R, W):
         """Fill R (K, N1 d, 12) and W (K, N1, 10, 20) and return (G (K, 12, 12), info (K, N1));
         None where the kernel may not run.  M (K, N1, 5, 5), X (K, 5, 5), Ad_Xinv (K, 10, 10),
