@@ -83,10 +83,9 @@ static inline void imu_accumulate(const imu_frame_t *X, double w, double *m) {
     }
     for (int i = 0; i < 6; ++i)  /* upper triangle; mirrored at the end */
         for (int j = i; j < 6; ++j) m[IMU_OUTER + 6 * i + j] += coef[2 + i] * lv[j];
-    for (int a = 0; a < 8; ++a) {
+    for (int a = 0; a < 8; ++a) {  /* sums of coef_a C, transposed at the end of the window */
         double *Y = m + IMU_Y + 9 * a;
-        for (int i = 0; i < 3; ++i)
-            for (int j = 0; j < 3; ++j) Y[3 * i + j] += coef[a] * C[3 * j + i];
+        for (int i = 0; i < 9; ++i) Y[i] += coef[a] * C[i];
     }
 }
 
@@ -142,6 +141,13 @@ typedef struct {
             m[IMU_Y] += w_id; m[IMU_Y + 4] += w_id; m[IMU_Y + 8] += w_id;                         \
             for (int i = 0; i < 6; ++i)                                                           \
                 for (int j = 0; j < i; ++j) m[IMU_OUTER + 6 * i + j] = m[IMU_OUTER + 6 * j + i];  \
+            for (int a = 0; a < 8; ++a) /* sum coef_a C -> sum coef_a C^T */                      \
+                for (int i = 0; i < 3; ++i)                                                       \
+                    for (int j = 0; j < i; ++j) {                                                 \
+                        double *Y = m + IMU_Y + 9 * a, t = Y[3 * i + j];                          \
+                        Y[3 * i + j] = Y[3 * j + i];                                              \
+                        Y[3 * j + i] = t;                                                         \
+                    }                                                                             \
             TIN *mo = mom + IMU_MOMENTS * w;                                                      \
             for (int i = 0; i < IMU_MOMENTS; ++i) mo[i] = (TIN)m[i];                              \
         }                                                                                         \
