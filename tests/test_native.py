@@ -369,14 +369,20 @@ def tls_linearisations(P, iterated, e, x):
 
 
 @pytest.mark.parametrize("covariance", ["paper", "per trial", "per sample"])
-@pytest.mark.parametrize("iterated", [True, False], ids=["iterated", "paper"])
-def test_tls_kernel_matches_the_tensor_code(covariance, iterated, recorder):
+@pytest.mark.parametrize("iterated, e_scale", [(True, 0.05), (True, 1.0), (False, 0.0)],
+                         ids=["iterated", "iterated-large-e", "paper"])
+def test_tls_kernel_matches_the_tensor_code(covariance, iterated, e_scale, recorder):
+    # e_scale 1: rotation angles of eps_a, eps_b up to ~3 rad, past the series threshold of J_r
     P = tls_problem(7, 9, covariance, seed=3)
     gen = torch.Generator().manual_seed(4)
     x = P.initial_guess(-1.0)
-    e = 0.05 * torch.randn(7, 9, 20, generator=gen, dtype=torch.float64)
+    e = e_scale * torch.randn(7, 9, 20, generator=gen, dtype=torch.float64)
+    if e_scale > 0.5:
+        angles = torch.cat([e[..., 6:9], e[..., 16:19]], -1).unflatten(-1, (2, 3)).norm(dim=-1)
+        assert angles.min() < 0.5 and angles.max() > 2.0
     (lin_c, step_c), (lin_t, step_t) = tls_linearisations(P, iterated, e, x)
-    assert recorder.calls.count("tls_sgal3") == 3  # 3 chunks, C; none with the kernels off
+    # 3 chunks, each linearised and updated in C; nothing in C with the kernels off
+    assert recorder.calls.count("tls_sgal3") == recorder.calls.count("tls_sgal3_step") == 3
     # The whitened Jacobians W: rounding of the same operations (measured 4e-16).  (The paper
     # variant with shared covariances has no W in the tensor code: its S is a quadratic in s.)
     quadratic = len(lin_t.extra.parts[0]) == 3

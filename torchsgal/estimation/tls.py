@@ -525,6 +525,12 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
         for sl, (R, *extra) in zip(lin.extra.slices, lin.extra.parts):
             K = R.shape[0]
+            if kernel is not None and len(extra) == 1:  # the C kernel: the same update
+                factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
+                e_new = kernel.step(R, extra[0], delta[sl], factors)
+                if e_new is not None:
+                    out.append(e_new)
+                    continue
             z = R @ d1[sl]  # (K, rows, 1)
             y = (R[:, :N1 * d, :d].reshape(K, N1, d, d) * z[:, :N1 * d].reshape(K, N1, d, 1)
                  ).sum(-2)  # Li^T z

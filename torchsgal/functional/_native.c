@@ -17,6 +17,15 @@
 #include <pthread.h>
 #endif
 
+/* Loops worth vectorising wider than SSE2 get an AVX2 clone, picked at load time by the CPU
+ * (GCC/Clang function multi-versioning, x86-64 with ifunc support).  No FMA contraction
+ * (-ffp-contract=off): both clones round alike, element for element. */
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__linux__) && !defined(TORCHSGAL_NO_CLONES)
+#define WIDE_LOOPS __attribute__((target_clones("avx2", "default")))
+#else
+#define WIDE_LOOPS
+#endif
+
 #define MAX_TERMS 32
 static int TAYLOR_TERMS = 0;
 static double TAYLOR_C3[MAX_TERMS], TAYLOR_C4[MAX_TERMS], TAYLOR_C5[MAX_TERMS], TAYLOR_C6[MAX_TERMS];
@@ -189,6 +198,29 @@ static PyObject *py_tls_sgal3(PyObject *self, PyObject *const *a, Py_ssize_t nar
     Py_RETURN_NONE;
 }
 
+/* tls_sgal3_step(R, W, dx, fa, fb, e, fa_k, fa_n, fb_k, fb_n, diag_a, diag_b, K, N1, threads) */
+static PyObject *py_tls_sgal3_step(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 15) {
+        PyErr_SetString(PyExc_TypeError, "tls_sgal3_step takes 15 arguments");
+        return NULL;
+    }
+    void *ptr[6];
+    for (int i = 0; i < 6; ++i) {
+        ptr[i] = PyLong_AsVoidPtr(a[i]);
+        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
+    }
+    int64_t ints[9];
+    for (int i = 0; i < 9; ++i) ints[i] = PyLong_AsLongLong(a[6 + i]);
+    if (PyErr_Occurred()) return NULL;
+    tls_step_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ints[0], ints[1], ints[2], ints[3],
+                            (int)ints[4], (int)ints[5], ptr[5], ints[7]};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(tls_step_range, (void **)&args, ints[6], 4 * ints[7], (int)ints[8]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static int read_table(PyObject *seq, double *out, int cap, const char *name) {
     PyObject *fast = PySequence_Fast(seq, name);
     if (!fast) return -1;
@@ -239,6 +271,8 @@ static PyMethodDef methods[] = {
      "IMU windows (gyro, acc, dt, b_g, b_a, delta, moments, n, K, threads, is_double)"},
     {"tls_sgal3", (PyCFunction)(void (*)(void))py_tls_sgal3, METH_FASTCALL,
      "SGal(3) TLS linearisation (see _native_tls.h)"},
+    {"tls_sgal3_step", (PyCFunction)(void (*)(void))py_tls_sgal3_step, METH_FASTCALL,
+     "SGal(3) TLS residual update (see _native_tls.h)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

@@ -97,7 +97,7 @@ typedef struct {
 } imu_args_t;
 
 #define IMU_RANGE(SFX, TIN)                                                                       \
-    static void imu_range_##SFX(void **pa, int64_t lo, int64_t hi) {                              \
+    WIDE_LOOPS static void imu_range_##SFX(void **pa, int64_t lo, int64_t hi) {                   \
         const imu_args_t *A = (const imu_args_t *)pa;                                             \
         const TIN *gyro = A->gyro, *acc = A->acc, *dt = A->dt, *bg = A->b_g, *ba = A->b_a;        \
         TIN *delta = A->delta, *mom = A->moments;                                                 \

@@ -194,26 +194,25 @@ static inline void K(gamma1_t)(const K(parts_t) *P, const T *x, T *o) {
 
 /* _jl_tmv: J_l(xi)^T w, with the parts P of xi (transpose_parts). */
 static void K(jl_tmv_parts)(const K(parts_t) *Pp, const T *w, T *o) {
-    const K(parts_t) P = *Pp;
-    const T *c = P.c, *w_rho = w, *w_nu = w + 3, *w_phi = w + 6;
+    const T *c = Pp->c, *w_rho = w, *w_nu = w + 3, *w_phi = w + 6;
     T p[3], pp[3], DT[3], ET[3], g[3], o_nu[3], S[3], z[3], zw[3], g2[3];
-    K(cross)(P.phi, w_rho, p);
-    K(cross)(P.phi, p, pp);
+    K(cross)(Pp->phi, w_rho, p);
+    K(cross)(Pp->phi, p, pp);
     for (int i = 0; i < 3; ++i) {
         DT[i] = w_rho[i] - c[2] * p[i] + c[3] * pp[i];
         ET[i] = (T)0.5 * w_rho[i] - c[3] * p[i] + c[4] * pp[i];
     }
-    K(gamma1_t)(&P, w_nu, g);
-    for (int i = 0; i < 3; ++i) o_nu[i] = g[i] - P.iota * (DT[i] - ET[i]);
-    K(coupling_t)(&P, w_rho, w_nu, S, z);
+    K(gamma1_t)(Pp, w_nu, g);
+    for (int i = 0; i < 3; ++i) o_nu[i] = g[i] - Pp->iota * (DT[i] - ET[i]);
+    K(coupling_t)(Pp, w_rho, w_nu, S, z);
     for (int i = 0; i < 3; ++i) zw[i] = z[i] + w_phi[i];
-    K(gamma1_t)(&P, zw, g2);
+    K(gamma1_t)(Pp, zw, g2);
     for (int i = 0; i < 3; ++i) {
         o[i] = DT[i];
         o[3 + i] = o_nu[i];
         o[6 + i] = S[i] + g2[i];
     }
-    o[9] = K(dot)(P.g2n, w_rho) + w[9];
+    o[9] = K(dot)(Pp->g2n, w_rho) + w[9];
 }
 
 /* _jl_tmv: J_l(xi)^T w, at xi = sign * x. */
@@ -246,6 +245,83 @@ static void K(jl_inv_tmv_one)(const T *x, T sign, const T *g, T *o) {
         o[6 + i] = y_phi[i] - z[i];
     }
     o[9] = g[9] - K(dot)(P.g2n, y_rho);
+}
+
+/* Entries (row-major 3x3) of d I + a phi^ + b phi phi^T (blocks.sym_skew_entries). */
+static inline void K(sym_skew)(T d, T a, T b, const T *phi, T *o) {
+    T x = phi[0], y = phi[1], z = phi[2], ax = a * x, ay = a * y, az = a * z, bx = b * x, by = b * y;
+    T bxy = bx * y, bxz = bx * z, byz = by * z;
+    o[0] = d + bx * x; o[1] = bxy - az; o[2] = bxz + ay;
+    o[3] = bxy + az; o[4] = d + by * y; o[5] = byz - ax;
+    o[6] = bxz - ay; o[7] = byz + ax; o[8] = d + b * z * z;
+}
+
+/* blocks.gamma_vec_derivative: d/dphi [Gamma_l(phi) x] (3x3), coefficients c up to l + 4. */
+static inline void K(gamma_vec_derivative)(const T *c, int l, const T *phi, const T *x, T *o) {
+    T px[3], ppx[3], u[3];
+    K(cross)(phi, x, px);
+    K(cross)(phi, px, ppx);
+    T ea = (T)(l + 1) * c[l + 3] - c[l + 2], eb = (T)(l + 2) * c[l + 4] - c[l + 3];
+    T a = c[l + 1], b = c[l + 2], bpx = b * K(dot)(phi, x);
+    for (int i = 0; i < 3; ++i) u[i] = ea * px[i] + eb * ppx[i] - (T)2 * b * x[i];
+    T sk[9] = {0, -x[2], x[1], x[2], 0, -x[0], -x[1], x[0], 0};
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            o[3 * i + j] = ((u[i] * phi[j] + b * (phi[i] * x[j])) + (i == j ? bpx : (T)0)) - a * sk[3 * i + j];
+}
+
+/* x^ M (column-wise cross products) for row-major 3x3 M, added to o. */
+static inline void K(skew_times_add)(const T *x, const T *M, T *o) {
+    for (int j = 0; j < 3; ++j) {
+        T col[3] = {M[j], M[3 + j], M[6 + j]}, r[3];
+        K(cross)(x, col, r);
+        for (int i = 0; i < 3; ++i) o[3 * i + j] += r[i];
+    }
+}
+
+/* jl (3.21)-(3.23) as a row-major 10x10 matrix, at xi = sign * x (_jl_blocks: D, L = D - E, N,
+ * E nu, M). */
+static inline void K(jl_matrix_one)(const T *x, T sign, T *J) {
+    T rho[3], nu[3], phi[3], iota = sign * x[9], c[7];
+    for (int i = 0; i < 3; ++i) {
+        rho[i] = sign * x[i];
+        nu[i] = sign * x[3 + i];
+        phi[i] = sign * x[6 + i];
+    }
+    K(coefficients)(K(dot)(phi, phi), 6, c);
+    T D[9], E[9], Mb[9], N[9], d2[9], pn[3], ppn[3], pr[3], ppr[3], gn[3], g2n[3], r[3];
+    K(sym_skew)(c[1], c[2], c[3], phi, D);
+    K(sym_skew)(c[2], c[3], c[4], phi, E);
+    K(cross)(phi, nu, pn);
+    K(cross)(phi, pn, ppn);
+    K(cross)(phi, rho, pr);
+    K(cross)(phi, pr, ppr);
+    for (int i = 0; i < 3; ++i) {
+        gn[i] = nu[i] + c[2] * pn[i] + c[3] * ppn[i];                 /* Gamma_1 nu */
+        g2n[i] = nu[i] / (T)2 + c[3] * pn[i] + c[4] * ppn[i];          /* Gamma_2 nu */
+        r[i] = (rho[i] + c[2] * pr[i] + c[3] * ppr[i]) + iota * g2n[i];
+    }
+    K(gamma_vec_derivative)(c, 1, phi, nu, Mb);                        /* q_block */
+    K(skew_times_add)(gn, D, Mb);
+    K(gamma_vec_derivative)(c, 1, phi, rho, N);
+    K(gamma_vec_derivative)(c, 2, phi, nu, d2);
+    for (int i = 0; i < 9; ++i) N[i] += iota * d2[i];
+    K(skew_times_add)(r, D, N);
+    for (int i = 0; i < 9; ++i) N[i] -= iota * Mb[i];
+    for (int i = 0; i < 100; ++i) J[i] = 0;
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            T d = D[3 * i + j];
+            J[10 * i + j] = d;
+            J[10 * (3 + i) + 3 + j] = d;
+            J[10 * (6 + i) + 6 + j] = d;
+            J[10 * i + 3 + j] = -iota * (d - E[3 * i + j]);
+            J[10 * i + 6 + j] = N[3 * i + j];
+            J[10 * (3 + i) + 6 + j] = Mb[3 * i + j];
+        }
+        J[10 * i + 9] = g2n[i];
+    }
+    J[99] = 1;
 }
 
 /* exp's backward: J_r(xi)^T hat^T(M^T G) = J_l(-xi)^T (_exp_pullback). */

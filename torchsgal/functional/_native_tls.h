@@ -34,16 +34,8 @@ static inline void tls_mul5(const double *A, const double *B, double *O) {
         }
 }
 
-/* J_r(x) (10x10, row-major): row j is J_r(x)^T e_j = J_l(-x)^T e_j (_jl_tmv at -x). */
-static inline void tls_jr(const double *x, double *J) {
-    parts_t_f64 P;
-    transpose_parts_f64(x, -1.0, &P);
-    for (int j = 0; j < 10; ++j) {
-        double unit[10] = {0};
-        unit[j] = 1.0;
-        jl_tmv_parts_f64(&P, unit, J + 10 * j);
-    }
-}
+/* J_r(x) = J_l(-x) (10x10, row-major). */
+static inline void tls_jr(const double *x, double *J) { jl_matrix_one_f64(x, -1.0, J); }
 
 /* G R for a 10x10 G and the factor R (diagonal: its 10 entries; else 10x10 row-major), into
  * the columns [col, col + 10) of the 10x20 row-major W. */
@@ -58,6 +50,24 @@ static inline void tls_whiten(const double *G, const double *R, int diag, double
                 for (int k = 0; k < 10; ++k) acc += G[10 * i + k] * R[10 * k + j];
             }
             W[20 * i + col + j] = acc;
+        }
+}
+
+/* S = W W^T (10x10) for W = [Ga Da, Gb Db] with diagonal factors: Ga and Gb (Ad(X^-1), J_r and
+ * Ad(T^-n) are block upper-triangular over [rho, nu, phi, iota]) have zero blocks that diagonal
+ * factors keep: row block nu (3-5) is zero outside the columns 3-8 of each half, phi (6-8)
+ * outside 6-8, iota (9) outside 9.  Only the products of the columns that can be non-zero in
+ * both rows are summed (in the order of the dense loop, so the same rounding). */
+static inline void tls_s_block_sparse(const double *W, double *S) {
+    static const int first[10] = {0, 0, 0, 3, 3, 3, 6, 6, 6, 9}, last[10] = {9, 9, 9, 8, 8, 8, 8, 8, 8, 9};
+    for (int i = 0; i < 10; ++i)
+        for (int j = 0; j <= i; ++j) {
+            int lo = first[i] > first[j] ? first[i] : first[j], hi = last[i] < last[j] ? last[i] : last[j];
+            double acc = 0;
+            for (int h = 0; h < 20; h += 10)
+                for (int m = lo; m <= hi; ++m) acc += W[20 * i + h + m] * W[20 * j + h + m];
+            S[10 * i + j] = acc;
+            S[10 * j + i] = acc;
         }
 }
 
@@ -92,7 +102,7 @@ static inline int32_t tls_inverse_cholesky(const double *S, double *Li) {
     return info;
 }
 
-static void tls_range(void **pa, int64_t lo, int64_t hi) {
+WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
     const tls_args_t *A = (const tls_args_t *)pa;
     const int64_t N1 = A->N1;
     for (int64_t k = lo; k < hi; ++k) {
@@ -126,13 +136,13 @@ static void tls_range(void **pa, int64_t lo, int64_t hi) {
                         Ja[10 * i + j] += s * Ja[10 * (3 + i) + j];
                         Jb[10 * i + j] += s * Jb[10 * (3 + i) + j];
                     }
-                for (int i = 0; i < 10; ++i)
-                    for (int j = 0; j < 10; ++j) {
-                        double acc = 0;
-                        for (int m = 0; m < 10; ++m) acc += Ad[10 * i + m] * Ja[10 * m + j];
-                        Ga[10 * i + j] = acc;
-                        Gb[10 * i + j] = -Jb[10 * i + j];
-                    }
+                for (int i = 0; i < 10; ++i) {  /* Ga = Ad Ja, a row at a time (no reduction chains) */
+                    double *g = Ga + 10 * i;
+                    for (int j = 0; j < 10; ++j) g[j] = Ad[10 * i] * Ja[j];
+                    for (int m = 1; m < 10; ++m)
+                        for (int j = 0; j < 10; ++j) g[j] += Ad[10 * i + m] * Ja[10 * m + j];
+                    for (int j = 0; j < 10; ++j) Gb[10 * i + j] = -Jb[10 * i + j];
+                }
                 for (int i = 0; i < 10; ++i) {  /* w = c' - Ga ea - Gb eb */
                     double acc = 0;
                     for (int j = 0; j < 10; ++j) acc += Ga[10 * i + j] * e[j] + Gb[10 * i + j] * e[10 + j];
@@ -149,13 +159,20 @@ static void tls_range(void **pa, int64_t lo, int64_t hi) {
             double *W = A->W + 200 * q, S[100], Li[100];
             tls_whiten(Ga, A->fa + k * A->fa_k + n * A->fa_n, A->diag_a, W, 0);
             tls_whiten(Gb, A->fb + k * A->fb_k + n * A->fb_n, A->diag_b, W, 10);
-            for (int i = 0; i < 10; ++i)
-                for (int j = 0; j <= i; ++j) {
-                    double acc = 0;
-                    for (int m = 0; m < 20; ++m) acc += W[20 * i + m] * W[20 * j + m];
-                    S[10 * i + j] = acc;
-                    S[10 * j + i] = acc;
+            if (A->diag_a && A->diag_b) {
+                tls_s_block_sparse(W, S);
+            } else {
+                double Wt[200];  /* S = W W^T as a sum of outer products of W's columns */
+                for (int i = 0; i < 10; ++i)
+                    for (int m = 0; m < 20; ++m) Wt[10 * m + i] = W[20 * i + m];
+                for (int i = 0; i < 10; ++i)
+                    for (int j = 0; j < 10; ++j) S[10 * i + j] = Wt[i] * Wt[j];
+                for (int m = 1; m < 20; ++m) {
+                    const double *col = Wt + 10 * m;
+                    for (int i = 0; i < 10; ++i)
+                        for (int j = 0; j < 10; ++j) S[10 * i + j] += col[i] * col[j];
                 }
+            }
             A->info[q] = tls_inverse_cholesky(S, Li);
             double *R = A->R + 120 * q, na = A->n[n];
             for (int i = 0; i < 10; ++i) {
@@ -168,16 +185,69 @@ static void tls_range(void **pa, int64_t lo, int64_t hi) {
                 R[12 * i + 10] = na * la;
                 R[12 * i + 11] = lw;
             }
-            for (int r = 0; r < 10; ++r) {  /* G += rows^T rows (upper triangle) */
-                const double *row = R + 12 * r;
-                for (int i = 0; i < 12; ++i) {
-                    double ri = row[i];
-                    for (int j = i; j < 12; ++j) G[12 * i + j] += ri * row[j];
+            for (int r = 0; r < 10; ++r) {  /* G += rows^T rows (upper triangle); row r of Li */
+                const double *row = R + 12 * r;  /* is zero beyond column r */
+                int idx[12], len = 0;
+                for (int i = 0; i <= r; ++i) idx[len++] = i;
+                idx[len++] = 10;
+                idx[len++] = 11;
+                for (int p = 0; p < len; ++p) {
+                    double ri = row[idx[p]];
+                    double *Gi = G + 12 * idx[p];
+                    for (int q = p; q < len; ++q) Gi[idx[q]] += ri * row[idx[q]];
                 }
             }
         }
         double *Gk = A->G + 144 * k;
         for (int i = 0; i < 12; ++i)
             for (int j = 0; j < 12; ++j) Gk[12 * i + j] = j >= i ? G[12 * i + j] : G[12 * j + i];
+    }
+}
+
+/* The residual update of post_step: e = -[Ra (W_a^T y), Rb (W_b^T y)] with y = Li^T (R [dx, 1])
+ * for each condition (R's first 10 columns are Li); dx (K, 11). */
+typedef struct {
+    const double *R, *W, *dx, *fa, *fb;
+    int64_t fa_k, fa_n, fb_k, fb_n;
+    int diag_a, diag_b;
+    double *e;  /* (K, N1, 20) */
+    int64_t N1;
+} tls_step_args_t;
+
+static inline void tls_unwhiten(const double *u, const double *R, int diag, double *o) {
+    for (int i = 0; i < 10; ++i) {  /* o = -(R u): R diagonal or lower (row-major) */
+        double acc;
+        if (diag) {
+            acc = u[i] * R[i];
+        } else {
+            acc = 0;
+            for (int k = 0; k < 10; ++k) acc += R[10 * i + k] * u[k];
+        }
+        o[i] = -acc;
+    }
+}
+
+WIDE_LOOPS static void tls_step_range(void **pa, int64_t lo, int64_t hi) {
+    const tls_step_args_t *A = (const tls_step_args_t *)pa;
+    const int64_t N1 = A->N1;
+    for (int64_t k = lo; k < hi; ++k) {
+        const double *d = A->dx + 11 * k;
+        for (int64_t n = 0; n < N1; ++n) {
+            const int64_t q = k * N1 + n;
+            const double *R = A->R + 120 * q, *W = A->W + 200 * q;
+            double z[10], y[10] = {0}, u[20] = {0};
+            for (int r = 0; r < 10; ++r) {
+                double acc = 0;
+                for (int j = 0; j < 11; ++j) acc += R[12 * r + j] * d[j];
+                z[r] = acc + R[12 * r + 11];
+            }
+            for (int r = 0; r < 10; ++r)
+                for (int j = 0; j < 10; ++j) y[j] += R[12 * r + j] * z[r];
+            for (int i = 0; i < 10; ++i)
+                for (int j = 0; j < 20; ++j) u[j] += W[20 * i + j] * y[i];
+            double *e = A->e + 20 * q;
+            tls_unwhiten(u, A->fa + k * A->fa_k + n * A->fa_n, A->diag_a, e);
+            tls_unwhiten(u + 10, A->fb + k * A->fb_k + n * A->fb_n, A->diag_b, e + 10);
+        }
     }
 }

@@ -182,18 +182,11 @@ class _TlsKernels:
         factors (..., 10, 10) broadcasting to (K, N1)."""
         K, N1 = s.shape
         args = [M, X, Ad_Xinv, a, s, n] + ([] if e is None else [e]) + [f for f, _ in factors]
-        if not (args[0].dtype is torch.float64 and _eligible(args) and R.is_contiguous()
-                and W.is_contiguous() and R.shape == (K, N1 * 10, 12) and W.shape == (K, N1, 10, 20)):
+        if not (args[0].dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1)):
             return None
-        fs = []
-        for f, diagonal in factors:
-            tail = (10,) if diagonal else (10, 10)
-            if f.shape[-len(tail):] != tail or f.dim() > len(tail) + 2:
-                return None
-            f = f.resolve_neg()
-            if f.stride()[-len(tail):] != torch.empty(tail).stride():
-                f = f.contiguous()
-            fs.append(f.expand(K, N1, *tail))
+        fs = _TlsKernels._factors(factors, K, N1)
+        if fs is None:
+            return None
         ins = [_data(t) for t in (M, X, Ad_Xinv, a, s, n)]
         e = None if e is None else _data(e)
         G = torch.empty(K, 12, 12, dtype=torch.float64)
@@ -204,6 +197,50 @@ class _TlsKernels:
                        fs[1].stride(0), fs[1].stride(1), int(factors[0][1]), int(factors[1][1]),
                        K, N1, torch.get_num_threads())
         return G, info
+
+    @staticmethod
+    def step(R, W, dx, factors):
+        """post_step's residual update e (K, N1, 20) = -Sigma Bm'^T Li^T (R [dx, 1]) from the
+        rows R (K, N1 d, 12), the whitened W (K, N1, 10, 20) and dx (K, 11); None where the
+        kernel may not run."""
+        K, N1 = W.shape[:2]
+        args = [R, W, dx] + [f for f, _ in factors]
+        if not (R.dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1)
+                and dx.shape == (K, 11)):
+            return None
+        fs = _TlsKernels._factors(factors, K, N1)
+        if fs is None:
+            return None
+        dx = _data(dx)
+        e = torch.empty(K, N1, 20, dtype=torch.float64)
+        _lib.tls_sgal3_step(R.data_ptr(), W.data_ptr(), dx.data_ptr(), fs[0].data_ptr(),
+                            fs[1].data_ptr(), e.data_ptr(), fs[0].stride(0), fs[0].stride(1),
+                            fs[1].stride(0), fs[1].stride(1), int(factors[0][1]), int(factors[1][1]),
+                            K, N1, torch.get_num_threads())
+        return e
+
+    @staticmethod
+    def _buffers(R, W, K, N1) -> bool:
+        return (R.is_contiguous() and W.is_contiguous() and not R.is_neg() and not W.is_neg()
+                and R.shape == (K, N1 * 10, 12) and W.shape == (K, N1, 10, 20))
+
+    @staticmethod
+    def _factors(factors, K, N1):
+        """The covariance factors expanded to (K, N1, 10[, 10]) (stride-0 views where they are
+        shared), their last dimensions contiguous; None for a shape the kernel does not take."""
+        fs = []
+        for f, diagonal in factors:
+            tail = (10,) if diagonal else (10, 10)
+            if f.shape[-len(tail):] != tail or f.dim() > len(tail) + 2:
+                return None
+            f = f.resolve_neg()
+            if f.stride()[-len(tail):] != torch.empty(tail).stride():
+                f = f.contiguous()
+            try:
+                fs.append(f.expand(K, N1, *tail))
+            except RuntimeError:
+                return None
+        return fs
 
 
 def kernels(name: str):
