@@ -57,17 +57,26 @@ static inline void tls_whiten(const double *G, const double *R, int diag, double
  * Ad(T^-n) are block upper-triangular over [rho, nu, phi, iota]) have zero blocks that diagonal
  * factors keep: row block nu (3-5) is zero outside the columns 3-8 of each half, phi (6-8)
  * outside 6-8, iota (9) outside 9.  Only the products of the columns that can be non-zero in
- * both rows are summed (in the order of the dense loop, so the same rounding). */
+ * both rows are summed, in the order of the dense loop (the same rounding). */
 static inline void tls_s_block_sparse(const double *W, double *S) {
-    static const int first[10] = {0, 0, 0, 3, 3, 3, 6, 6, 6, 9}, last[10] = {9, 9, 9, 8, 8, 8, 8, 8, 8, 9};
-    for (int i = 0; i < 10; ++i)
-        for (int j = 0; j <= i; ++j) {
-            int lo = first[i] > first[j] ? first[i] : first[j], hi = last[i] < last[j] ? last[i] : last[j];
-            double acc = 0;
-            for (int h = 0; h < 20; h += 10)
-                for (int m = lo; m <= hi; ++m) acc += W[20 * i + h + m] * W[20 * j + h + m];
-            S[10 * i + j] = acc;
-            S[10 * j + i] = acc;
+    /* As outer products of W's columns (no reduction chains): column m of either half can be
+     * non-zero in rows 0-2 (m < 3), 0-5 (m < 6), 0-8 (m < 9), or 0-2 and 9 (m = 9). */
+    for (int i = 0; i < 100; ++i) S[i] = 0;
+    for (int h = 0; h < 20; h += 10)
+        for (int m = 0; m < 10; ++m) {
+            int nr = m < 3 ? 3 : m < 6 ? 6 : m < 9 ? 9 : 3;
+            double col[9];
+            for (int r = 0; r < nr; ++r) col[r] = W[20 * r + h + m];
+            for (int r = 0; r < nr; ++r)
+                for (int c = 0; c < nr; ++c) S[10 * r + c] += col[r] * col[c];
+            if (m == 9) {
+                double w9 = W[20 * 9 + h + 9];
+                for (int r = 0; r < 3; ++r) {
+                    S[10 * r + 9] += col[r] * w9;
+                    S[90 + r] += w9 * col[r];
+                }
+                S[99] += w9 * w9;
+            }
         }
 }
 
