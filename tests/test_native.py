@@ -1,6 +1,7 @@
 """The C kernels of SGal(3) exp, log and their backward maps (torchsgal/functional/native.py)
 against the tensor closed forms they transcribe, at every angle band and in both dtypes, and the
-rule that decides where they run.  The tensor code is itself checked against scipy, mpmath and
+rule that decides where they run; the same for the IMU preintegration kernel and the SGal(3) TLS
+linearisation kernel against their tensor code.  The tensor code is itself checked against scipy, mpmath and
 GTSAM elsewhere; the rest of the suite runs through the kernels wherever they are eligible."""
 from __future__ import annotations
 
