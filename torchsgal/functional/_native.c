@@ -99,28 +99,34 @@ static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int 
     fn(args, 0, n);
 }
 
-/* fn(pointers..., n, threads, is_double): the pointers are addresses of contiguous tensors. */
-static PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npointers, range_fn f64, range_fn f32,
-                          const char *name) {
-    if (nargs != npointers + 3) {
-        PyErr_Format(PyExc_TypeError, "%s takes %d arguments", name, npointers + 3);
-        return NULL;
+/* Reads a call's ``np`` pointers (addresses of contiguous tensors, or 0) and then ``ni`` integers
+ * (a bool reads as 0 or 1) into ptr and ints; -1 with a Python exception set on failure. */
+static int read_call(PyObject *const *a, Py_ssize_t nargs, int np, void **ptr, int ni, int64_t *ints,
+                     const char *name) {
+    if (nargs != np + ni) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arguments", name, np + ni);
+        return -1;
     }
     if (TAYLOR_TERMS == 0) {
         PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
-        return NULL;
+        return -1;
     }
-    void *ptr[8];
-    for (int i = 0; i < npointers; ++i) {
+    for (int i = 0; i < np; ++i) {
         ptr[i] = PyLong_AsVoidPtr(a[i]);
-        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
+        if (ptr[i] == NULL && PyErr_Occurred()) return -1;
     }
-    int64_t n = PyLong_AsLongLong(a[npointers]);
-    long threads = PyLong_AsLong(a[npointers + 1]);
-    int is_double = PyObject_IsTrue(a[npointers + 2]);
-    if (PyErr_Occurred() || is_double < 0) return NULL;
+    for (int i = 0; i < ni; ++i) ints[i] = PyLong_AsLongLong(a[np + i]);
+    return PyErr_Occurred() ? -1 : 0;
+}
+
+/* fn(pointers..., n, threads, is_double) over the batch, the GIL released. */
+static PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npointers, range_fn f64, range_fn f32,
+                          const char *name) {
+    void *ptr[8];
+    int64_t ints[3];  /* n, threads, is_double */
+    if (read_call(a, nargs, npointers, ptr, 3, ints, name) < 0) return NULL;
     Py_BEGIN_ALLOW_THREADS
-    run_parallel(is_double ? f64 : f32, ptr, n, 1, (int)threads);
+    run_parallel(ints[2] ? f64 : f32, ptr, ints[0], 1, (int)ints[1]);
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
 }
@@ -139,30 +145,16 @@ WRAP(log_vjp, 4)
  * of K samples (_native_imu.h); moments 0 (a null pointer) for the increment only. */
 static PyObject *py_imu_preintegrate(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 11) {
-        PyErr_SetString(PyExc_TypeError, "imu_preintegrate takes 11 arguments");
-        return NULL;
-    }
-    if (TAYLOR_TERMS == 0) {
-        PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
-        return NULL;
-    }
     void *ptr[7];
-    for (int i = 0; i < 7; ++i) {
-        ptr[i] = PyLong_AsVoidPtr(a[i]);
-        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
-    }
-    int64_t n = PyLong_AsLongLong(a[7]), K = PyLong_AsLongLong(a[8]);
-    long threads = PyLong_AsLong(a[9]);
-    int is_double = PyObject_IsTrue(a[10]);
-    if (PyErr_Occurred() || is_double < 0) return NULL;
-    if (K < 1) {
+    int64_t ints[4];  /* n, K, threads, is_double */
+    if (read_call(a, nargs, 7, ptr, 4, ints, "imu_preintegrate") < 0) return NULL;
+    if (ints[1] < 1) {
         PyErr_SetString(PyExc_ValueError, "imu_preintegrate needs K >= 1 samples per window");
         return NULL;
     }
-    imu_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], K};
+    imu_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], ints[1]};
     Py_BEGIN_ALLOW_THREADS
-    run_parallel(is_double ? imu_range_f64 : imu_range_f32, (void **)&args, n, K, (int)threads);
+    run_parallel(ints[3] ? imu_range_f64 : imu_range_f32, (void **)&args, ints[0], ints[1], (int)ints[2]);
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
 }
@@ -172,22 +164,9 @@ static PyObject *py_imu_preintegrate(PyObject *self, PyObject *const *a, Py_ssiz
  * (a null pointer) for the paper variant.  float64 only. */
 static PyObject *py_tls_sgal3(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 22) {
-        PyErr_SetString(PyExc_TypeError, "tls_sgal3 takes 22 arguments");
-        return NULL;
-    }
-    if (TAYLOR_TERMS == 0) {
-        PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
-        return NULL;
-    }
     void *ptr[13];
-    for (int i = 0; i < 13; ++i) {
-        ptr[i] = PyLong_AsVoidPtr(a[i]);
-        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
-    }
     int64_t ints[9];
-    for (int i = 0; i < 9; ++i) ints[i] = PyLong_AsLongLong(a[13 + i]);
-    if (PyErr_Occurred()) return NULL;
+    if (read_call(a, nargs, 13, ptr, 9, ints, "tls_sgal3") < 0) return NULL;
     tls_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], ptr[7], ptr[8],
                        ints[0], ints[1], ints[2], ints[3], (int)ints[4], (int)ints[5],
                        ptr[9], ptr[10], ptr[11], ptr[12], ints[7]};
@@ -201,18 +180,9 @@ static PyObject *py_tls_sgal3(PyObject *self, PyObject *const *a, Py_ssize_t nar
 /* tls_sgal3_step(R, W, dx, fa, fb, e, fa_k, fa_n, fb_k, fb_n, diag_a, diag_b, K, N1, threads) */
 static PyObject *py_tls_sgal3_step(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 15) {
-        PyErr_SetString(PyExc_TypeError, "tls_sgal3_step takes 15 arguments");
-        return NULL;
-    }
     void *ptr[6];
-    for (int i = 0; i < 6; ++i) {
-        ptr[i] = PyLong_AsVoidPtr(a[i]);
-        if (ptr[i] == NULL && PyErr_Occurred()) return NULL;
-    }
     int64_t ints[9];
-    for (int i = 0; i < 9; ++i) ints[i] = PyLong_AsLongLong(a[6 + i]);
-    if (PyErr_Occurred()) return NULL;
+    if (read_call(a, nargs, 6, ptr, 9, ints, "tls_sgal3_step") < 0) return NULL;
     tls_step_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ints[0], ints[1], ints[2], ints[3],
                             (int)ints[4], (int)ints[5], ptr[5], ints[7]};
     Py_BEGIN_ALLOW_THREADS
