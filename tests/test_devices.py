@@ -356,13 +356,23 @@ def test_estimation_covariance_checks_on_device():
     assert len(reads.events) == 2 and blocks.diagonal == [S.diagonal().diag().equal(S), True]
 
 
-def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(monkeypatch):
+@pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])
+def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(kernel, monkeypatch):
     """On the CPU the structured TLS linearisation runs in chunks of ~8,000 conditions (page
-    faults); elsewhere (meta here, CUDA) the batch is one chunk: more chunks would only be more
-    kernel launches."""
+    faults), through the optional C kernel (one call per chunk) or the tensor code (one
+    vectorised Cholesky per chunk); elsewhere (meta here, CUDA) the batch is one chunk: more
+    chunks would only be more kernel launches."""
     from torchsgal.estimation import _small_linalg, study, tls
+    from torchsgal.functional import native
 
     calls = []
+    if kernel:
+        lib = native._lib
+        monkeypatch.setattr(native, "_lib", type("Recorder", (), {"__getattr__": lambda self, name: (
+            (lambda *a: calls.append(name) or getattr(lib, name)(*a)) if name == "tls_sgal3"
+            else getattr(lib, name))})())
+    else:
+        monkeypatch.setattr(native, "_state", {"on": False})
     factor = _small_linalg.inverse_cholesky_factor_t
     monkeypatch.setattr(_small_linalg, "inverse_cholesky_factor_t",
                         lambda S_t, work=None: calls.append(S_t.shape) or factor(S_t, work))
@@ -375,3 +385,4 @@ def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(monkeypatch):
         calls.clear()
         linearise(problem.initial_guess(-1.0), torch.zeros(B, N1, 20, dtype=f64, device=device))
         assert len(calls) == chunks, (device, calls)
+        assert (calls == ["tls_sgal3"] * chunks) == (kernel and device == "cpu"), (device, calls)
