@@ -18,7 +18,9 @@ the tensor code runs.  Batches of at least 16,384 elements are split over
 
 ``kernels("imu")`` preintegrates IMU windows (``torchsgal.imu.preintegrate``'s CPU fast path,
 docs/imu.md): the increment and the node sums of its covariance and bias Jacobian, one window
-per loop, in double precision.
+per loop, in double precision.  ``kernels("tls")`` linearises the SGal(3) total-least-squares
+conditions and updates their residuals (``torchsgal.estimation.tls._structured``, float64,
+docs/estimation.md).
 
 The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
 (``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment, or the ``disabled()``
