@@ -41,12 +41,7 @@ static inline void imu_exp(const double *nu, const double *phi, double iota, imu
         o->v[i] = nu[i] + c[2] * pn[i] + c[3] * ppn[i];
         o->r[i] = iota * (0.5 * nu[i] + c[3] * pn[i] + c[4] * ppn[i]);
     }
-    double a = c[1], b = c[2], d = c[0];
-    double ax = a * phi[0], ay = a * phi[1], az = a * phi[2], bx = b * phi[0], by = b * phi[1];
-    double bxy = bx * phi[1], bxz = bx * phi[2], byz = by * phi[2];
-    o->C[0] = d + bx * phi[0]; o->C[1] = bxy - az; o->C[2] = bxz + ay;
-    o->C[3] = bxy + az; o->C[4] = d + by * phi[1]; o->C[5] = byz - ax;
-    o->C[6] = bxz - ay; o->C[7] = byz + ax; o->C[8] = d + b * phi[2] * phi[2];
+    sym_skew_f64(c[0], c[1], c[2], phi, o->C);  /* Gamma_0(phi) */
     o->tau = iota;
 }
 

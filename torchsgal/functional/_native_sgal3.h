@@ -93,6 +93,15 @@ static inline void K(rotation_log)(const T *M, T *phi) {  /* M: row-major 5x5, C
     for (int i = 0; i < 3; ++i) phi[i] = ratio * s[i];
 }
 
+/* Entries (row-major 3x3) of d I + a phi^ + b phi phi^T (blocks.sym_skew_entries). */
+static inline void K(sym_skew)(T d, T a, T b, const T *phi, T *o) {
+    T x = phi[0], y = phi[1], z = phi[2], ax = a * x, ay = a * y, az = a * z, bx = b * x, by = b * y;
+    T bxy = bx * y, bxz = bx * z, byz = by * z;
+    o[0] = d + bx * x; o[1] = bxy - az; o[2] = bxz + ay;
+    o[3] = bxy + az; o[4] = d + by * y; o[5] = byz - ax;
+    o[6] = bxz - ay; o[7] = byz + ax; o[8] = d + b * z * z;
+}
+
 /* exp (3.6): C = Gamma_0(phi), v = Gamma_1 nu, r = Gamma_1 rho + iota Gamma_2 nu, tau = iota. */
 static void K(exp_one)(const T *x, T *o) {
     const T *rho = x, *nu = x + 3, *phi = x + 6;
@@ -103,12 +112,10 @@ static void K(exp_one)(const T *x, T *o) {
     K(cross)(phi, pn, ppn);
     K(cross)(phi, rho, pr);
     K(cross)(phi, pr, ppr);
-    T a = c[1], b = c[2], d = c[0];
-    T ax = a * phi[0], ay = a * phi[1], az = a * phi[2], bx = b * phi[0], by = b * phi[1];
-    T bxy = bx * phi[1], bxz = bx * phi[2], byz = by * phi[2];
-    o[0] = d + bx * phi[0]; o[1] = bxy - az; o[2] = bxz + ay;
-    o[5] = bxy + az; o[6] = d + by * phi[1]; o[7] = byz - ax;
-    o[10] = bxz - ay; o[11] = byz + ax; o[12] = d + b * phi[2] * phi[2];
+    T C[9];
+    K(sym_skew)(c[0], c[1], c[2], phi, C);  /* Gamma_0(phi) */
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) o[5 * i + j] = C[3 * i + j];
     for (int i = 0; i < 3; ++i) {
         o[5 * i + 3] = nu[i] + c[2] * pn[i] + c[3] * ppn[i];
         o[5 * i + 4] = (rho[i] + c[2] * pr[i] + c[3] * ppr[i])
@@ -245,15 +252,6 @@ static void K(jl_inv_tmv_one)(const T *x, T sign, const T *g, T *o) {
         o[6 + i] = y_phi[i] - z[i];
     }
     o[9] = g[9] - K(dot)(P.g2n, y_rho);
-}
-
-/* Entries (row-major 3x3) of d I + a phi^ + b phi phi^T (blocks.sym_skew_entries). */
-static inline void K(sym_skew)(T d, T a, T b, const T *phi, T *o) {
-    T x = phi[0], y = phi[1], z = phi[2], ax = a * x, ay = a * y, az = a * z, bx = b * x, by = b * y;
-    T bxy = bx * y, bxz = bx * z, byz = by * z;
-    o[0] = d + bx * x; o[1] = bxy - az; o[2] = bxz + ay;
-    o[3] = bxy + az; o[4] = d + by * y; o[5] = byz - ax;
-    o[6] = bxz - ay; o[7] = byz + ax; o[8] = d + b * z * z;
 }
 
 /* blocks.gamma_vec_derivative: d/dphi [Gamma_l(phi) x] (3x3), coefficients c up to l + 4. */
