@@ -14,6 +14,7 @@ setup(
             depends=["torchsgal/functional/_native_sgal3.h", "torchsgal/functional/_native_imu.h",
                      "torchsgal/functional/_native_tls.h"],
             extra_compile_args=args,
+            libraries=["dl"] if sys.platform.startswith("linux") else [],  # dlopen: torch's OpenMP
             optional=True,
         )
     ]

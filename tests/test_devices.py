@@ -359,9 +359,9 @@ def test_estimation_covariance_checks_on_device():
 @pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])
 def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(kernel, monkeypatch):
     """On the CPU the structured TLS linearisation runs in chunks of ~8,000 conditions (page
-    faults), through the optional C kernel (one call per chunk) or the tensor code (one
-    vectorised Cholesky per chunk); elsewhere (meta here, CUDA) the batch is one chunk: more
-    chunks would only be more kernel launches."""
+    faults) through the tensor code (one vectorised Cholesky per chunk), or of ~65,000 through
+    the optional C kernel (one call per chunk; it has no temporaries); elsewhere (meta here,
+    CUDA) the batch is one chunk: more chunks would only be more kernel launches."""
     from torchsgal.estimation import _small_linalg, study, tls
     from torchsgal.functional import native
 
@@ -377,6 +377,7 @@ def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(kernel, monkeypa
     monkeypatch.setattr(_small_linalg, "inverse_cholesky_factor_t",
                         lambda S_t, work=None: calls.append(S_t.shape) or factor(S_t, work))
     f64, (B, N1) = torch.float64, (40, 300)  # 12,000 conditions
+    monkeypatch.setattr(tls, "KERNEL_CHUNK", 8192)  # the kernel's chunks as the tensor code's
     for device, chunks in (("cpu", 2), (META, 1)):
         F = ts.SGal3.random((B, N1), dtype=f64, device=device)
         cov = study.paper_covariance().to(device)
@@ -386,3 +387,10 @@ def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(kernel, monkeypa
         linearise(problem.initial_guess(-1.0), torch.zeros(B, N1, 20, dtype=f64, device=device))
         assert len(calls) == chunks, (device, calls)
         assert (calls == ["tls_sgal3"] * chunks) == (kernel and device == "cpu"), (device, calls)
+        if kernel and device == "cpu":  # the kernel's chunks are larger: this batch is one
+            monkeypatch.setattr(tls, "KERNEL_CHUNK", 65536)
+            linearise, _ = tls._structured(problem, iterated=True)
+            calls.clear()
+            linearise(problem.initial_guess(-1.0), torch.zeros(B, N1, 20, dtype=f64))
+            assert calls == ["tls_sgal3"]
+            monkeypatch.setattr(tls, "KERNEL_CHUNK", 8192)

@@ -147,6 +147,32 @@ def test_threads_split_the_batch_without_changing_a_bit():
     assert all(torch.equal(a, b) for a, b in zip(one, two))
 
 
+_SPLIT_EXP = """
+import hashlib, torch
+from torchsgal.functional import native
+torch.set_num_threads(2)
+xi = torch.randn(40000, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+out = native.kernels("SGal3").exp(xi)
+print(native._lib.parallel_backend(), hashlib.sha256(out.numpy().tobytes()).hexdigest())
+"""
+
+
+def test_large_batches_run_on_torchs_openmp_threads_or_on_pthreads_alike():
+    # Where torch runs on OpenMP its threads take the split batches (they would otherwise
+    # spin-wait beside fresh pthreads); TORCHSGAL_NATIVE_OPENMP=0 keeps pthreads.  Same bits.
+    expected = ("none" if sys.platform == "win32" else "openmp"
+                if "ATen parallel backend: OpenMP" in torch.__config__.parallel_info() else "pthreads")
+    runs = {}
+    for flag in ("1", "0"):
+        env = dict(os.environ, TORCHSGAL_NATIVE_OPENMP=flag)
+        out = subprocess.run([sys.executable, "-c", _SPLIT_EXP], env=env, capture_output=True,
+                             text=True, check=True).stdout.split()
+        runs[flag] = out
+    assert runs["1"][0] == expected == native._lib.parallel_backend()
+    assert runs["0"][0] == ("none" if sys.platform == "win32" else "pthreads")
+    assert runs["1"][1] == runs["0"][1]
+
+
 class _Recorder:
     """Stands in for the compiled module and records which kernels were called."""
 
@@ -388,7 +414,15 @@ def test_tls_kernel_matches_the_tensor_code(covariance, iterated, e_scale, recor
     # variant with shared covariances has no W in the tensor code: its S is a quadratic in s.)
     quadratic = len(lin_t.extra.parts[0]) == 3
     assert quadratic == (not iterated and covariance != "per sample")
+    diagonal = covariance == "paper"
     for (R_c, W_c), (R_t, *extra) in zip(lin_c.extra.parts, lin_t.extra.parts):
+        # the kernel's R and W are packed (only the entries that can be non-zero, lanes last)
+        assert R_c.shape[1:] == (3, 75, 4) and W_c.shape[1:] == (3, 116 if diagonal else 188, 4)
+        R_c, W_c = native.kernels("tls").unpack(R_c, W_c, 9, diagonal, diagonal)
+        assert R_c.shape == R_t.shape
+        # the rows, relative to each trial's largest entry: measured 7e-15
+        err = ((R_c - R_t).abs().amax((-2, -1)) / R_t.abs().amax((-2, -1))).max()
+        assert err < 5e-14, float(err)
         if not quadratic:
             err = ((W_c - extra[0]).abs().amax((-2, -1)) / extra[0].abs().amax((-2, -1))).max()
             assert err < 4e-15, float(err)

@@ -371,13 +371,14 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     it stays valid until the next-but-one call (``solver.iterate`` keeps the current and the
     new linearisation only, and ``_ChunkState.select`` writes into the newer one).  For SGal(3)
     in float64 on the CPU, unobserved, the optional C kernel (``native.kernels("tls")``,
-    functional/_native_tls.h) computes a chunk's rows, W and normal equations instead."""
+    functional/_native_tls.h) computes a chunk's rows, W (packed) and normal equations instead."""
     model = _Model(problem, baseline)
     G_, d, M = model.group, model.d, model.M
     n = problem.indices
     Bn, N1 = M.batch_shape
     if chunk is None:  # chunks on the CPU only: elsewhere each would be more kernel launches
-        chunk = max(1, 8192 // N1) if M.as_matrix().device.type == "cpu" else Bn
+        cpu = M.as_matrix().device.type == "cpu"
+        chunk = max(1, (KERNEL_CHUNK if _kernel_applies(problem, baseline) else 8192) // N1) if cpu else Bn
     slices = [slice(i, min(i + chunk, Bn)) for i in range(0, Bn, chunk)]
     cov = _CovarianceBlocks(model.cov)
     (fa, fb), (da, db) = cov.factors, cov.diagonal
@@ -436,9 +437,10 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         s = n * dtau  # (K, N+1)
         Ad_Xinv = X.inverse().adjoint()  # (K, d, d)
         a = model.dtau_direction(X, Ad_Xinv)  # (K, d)
-        if kernel is not None:  # the optional C kernel: the same rows, one condition at a time
-            R = buffer("R", K, N1 * d, nc, state=sl.start)
-            W = buffer("W", K, N1, d, 2 * d, state=sl.start)
+        if kernel is not None:  # the optional C kernel: the same rows, packed (native.py)
+            shape_R, shape_W = kernel.shapes(K, N1, da, db)
+            R = buffer("R packed", *shape_R, state=sl.start)
+            W = buffer("W packed", *shape_W, state=sl.start)
             factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
             done = kernel.linearise(Mk.as_matrix(), X.as_matrix(), Ad_Xinv, a, s, n, e, factors, R, W)
             if done is not None:
@@ -525,12 +527,13 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
         for sl, (R, *extra) in zip(lin.extra.slices, lin.extra.parts):
             K = R.shape[0]
-            if kernel is not None and len(extra) == 1:  # the C kernel: the same update
+            if R.dim() == 4:  # packed by the C kernel: the same update in C, or unpacked
                 factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
-                e_new = kernel.step(R, extra[0], delta[sl], factors)
+                e_new = kernel.step(R, extra[0], delta[sl], factors, N1)
                 if e_new is not None:
                     out.append(e_new)
                     continue
+                R, *extra = kernel.unpack(R, extra[0], N1, da, db)
             z = R @ d1[sl]  # (K, rows, 1)
             y = (R[:, :N1 * d, :d].reshape(K, N1, d, d) * z[:, :N1 * d].reshape(K, N1, d, 1)
                  ).sum(-2)  # Li^T z
@@ -564,6 +567,11 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
 # Where the C kernel of the SGal(3) linearisation runs, the structured path is the faster one at
 # every size (one trial of 101 conditions: 13.5 ms against 22 ms generic, 2-core VM) and is taken.
 STRUCTURED_MIN_CONDITIONS = 2048
+
+
+# Conditions per chunk where the C kernel runs: it has no temporaries, and its per-condition
+# state (about 1.5 kB) for 65,536 conditions is 100 MB per buffer set.
+KERNEL_CHUNK = 65536
 
 
 def _kernel_applies(problem: TLSProblem, baseline: bool) -> bool:

@@ -12,8 +12,10 @@
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
 #include <string.h>
 #ifndef _WIN32
+#include <dlfcn.h>
 #include <pthread.h>
 #endif
 
@@ -61,6 +63,50 @@ typedef struct {
     int64_t lo, hi;
 } job_t;
 
+#define MAX_THREADS 64
+/* Work per thread (elements times their cost) below which a batch runs on the calling thread. */
+#define MIN_PER_THREAD 8192
+
+/* torch's own OpenMP threads, where its runtime is loaded (libgomp, or LLVM's libomp with the
+ * same entry points): work split over them does not compete with their spin-wait after torch's
+ * last parallel operation, as fresh pthreads do (measured: the batched TLS solve, 2 cores,
+ * about 7% of its time in libgomp's spin).  Looked up once, at import (after torch's);
+ * TORCHSGAL_NATIVE_OPENMP=0 in the environment keeps pthreads. */
+typedef void (*gomp_parallel_fn)(void (*)(void *), void *, unsigned, unsigned);
+typedef int (*omp_int_fn)(void);
+static gomp_parallel_fn gomp_parallel = NULL;
+static omp_int_fn omp_thread_num = NULL, omp_num_threads = NULL;
+
+static void find_openmp(void) {
+#ifndef _WIN32
+    const char *off = getenv("TORCHSGAL_NATIVE_OPENMP");
+    if (off && strcmp(off, "0") == 0) return;  /* pthreads instead */
+    const char *names[] = {"libgomp.so.1", "libomp.so", "libomp.dylib", "libiomp5.so", NULL};
+    for (int i = 0; names[i]; ++i) {
+        void *h = dlopen(names[i], RTLD_LAZY | RTLD_NOLOAD);
+        if (!h) continue;
+        gomp_parallel = (gomp_parallel_fn)dlsym(h, "GOMP_parallel");
+        omp_thread_num = (omp_int_fn)dlsym(h, "omp_get_thread_num");
+        omp_num_threads = (omp_int_fn)dlsym(h, "omp_get_num_threads");
+        if (gomp_parallel && omp_thread_num && omp_num_threads) return;
+        gomp_parallel = NULL;
+    }
+#endif
+}
+
+typedef struct {
+    range_fn fn;
+    void **args;
+    int64_t n;
+} omp_job_t;
+
+static void omp_share(void *p) {  /* this thread's share of [0, n), whatever the team's size */
+    const omp_job_t *j = p;
+    int64_t t = omp_thread_num(), nt = omp_num_threads(), step = (j->n + nt - 1) / nt;
+    int64_t lo = t * step, hi = lo + step < j->n ? lo + step : j->n;
+    if (lo < hi) j->fn(j->args, lo, hi);
+}
+
 #ifndef _WIN32
 static void *run_job(void *p) {
     job_t *j = p;
@@ -69,17 +115,19 @@ static void *run_job(void *p) {
 }
 #endif
 
-#define MAX_THREADS 64
-/* Work per thread (elements times their cost) below which a batch runs on the calling thread. */
-#define MIN_PER_THREAD 8192
-
-/* fn over [0, n) split over up to ``threads`` threads; ``cost`` is the work of one item in units
- * of one SGal(3) exp (1 for the group kernels, the samples of a window for the IMU). */
+/* fn over [0, n) split over up to ``threads`` threads (torch's OpenMP threads, else pthreads);
+ * ``cost`` is the work of one item in units of one SGal(3) exp (1 for the group kernels, the
+ * samples of a window for the IMU). */
 static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int threads) {
 #ifndef _WIN32
     if (threads > MAX_THREADS) threads = MAX_THREADS;
     if (threads > n) threads = (int)n;
     if (threads > 1 && n / threads * cost >= MIN_PER_THREAD) {
+        if (gomp_parallel) {
+            omp_job_t job = {fn, args, n};
+            gomp_parallel(omp_share, &job, (unsigned)threads, 0);
+            return;
+        }
         pthread_t tid[MAX_THREADS];
         job_t jobs[MAX_THREADS];
         int started[MAX_THREADS];
@@ -230,7 +278,19 @@ static PyObject *py_set_constants(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
+/* parallel_backend(): "openmp" (torch's OpenMP threads), "pthreads" or "none" (Windows). */
+static PyObject *py_parallel_backend(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+#ifdef _WIN32
+    return PyUnicode_FromString("none");
+#else
+    return PyUnicode_FromString(gomp_parallel ? "openmp" : "pthreads");
+#endif
+}
+
 static PyMethodDef methods[] = {
+    {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"sgal3_exp", (PyCFunction)(void (*)(void))py_sgal3_exp, METH_FASTCALL, "exp (xi, out, n, threads, is_double)"},
     {"sgal3_log", (PyCFunction)(void (*)(void))py_sgal3_log, METH_FASTCALL, "log (M, out, n, threads, is_double)"},
     {"sgal3_exp_vjp", (PyCFunction)(void (*)(void))py_sgal3_exp_vjp, METH_FASTCALL,
@@ -249,4 +309,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3) CPU kernels", -1, methods};
 
-PyMODINIT_FUNC PyInit__native(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__native(void) {
+    find_openmp();
+    return PyModule_Create(&module);
+}

@@ -278,8 +278,10 @@ static inline void K(skew_times_add)(const T *x, const T *M, T *o) {
 }
 
 /* jl (3.21)-(3.23) as a row-major 10x10 matrix, at xi = sign * x (_jl_blocks: D, L = D - E, N,
- * E nu, M). */
-static inline void K(jl_matrix_one)(const T *x, T sign, T *J) {
+ * E nu, M); entry (i, j) at J[st * (10 i + j)].  zero = 0 writes the entries of the block
+ * pattern only (rows nu: columns nu, phi; rows phi: phi; row iota: iota), the others left as
+ * they are (zeros from an earlier call). */
+static inline void K(jl_matrix_one)(const T *x, T sign, T *J, int st, int zero) {
     T rho[3], nu[3], phi[3], iota = sign * x[9], c[7];
     for (int i = 0; i < 3; ++i) {
         rho[i] = sign * x[i];
@@ -306,20 +308,21 @@ static inline void K(jl_matrix_one)(const T *x, T sign, T *J) {
     for (int i = 0; i < 9; ++i) N[i] += iota * d2[i];
     K(skew_times_add)(r, D, N);
     for (int i = 0; i < 9; ++i) N[i] -= iota * Mb[i];
-    for (int i = 0; i < 100; ++i) J[i] = 0;
+    if (zero)
+        for (int i = 0; i < 100; ++i) J[st * i] = 0;
     for (int i = 0; i < 3; ++i) {
         for (int j = 0; j < 3; ++j) {
             T d = D[3 * i + j];
-            J[10 * i + j] = d;
-            J[10 * (3 + i) + 3 + j] = d;
-            J[10 * (6 + i) + 6 + j] = d;
-            J[10 * i + 3 + j] = -iota * (d - E[3 * i + j]);
-            J[10 * i + 6 + j] = N[3 * i + j];
-            J[10 * (3 + i) + 6 + j] = Mb[3 * i + j];
+            J[st * (10 * i + j)] = d;
+            J[st * (10 * (3 + i) + 3 + j)] = d;
+            J[st * (10 * (6 + i) + 6 + j)] = d;
+            J[st * (10 * i + 3 + j)] = -iota * (d - E[3 * i + j]);
+            J[st * (10 * i + 6 + j)] = N[3 * i + j];
+            J[st * (10 * (3 + i) + 6 + j)] = Mb[3 * i + j];
         }
-        J[10 * i + 9] = g2n[i];
+        J[st * (10 * i + 9)] = g2n[i];
     }
-    J[99] = 1;
+    J[st * 99] = 1;
 }
 
 /* exp's backward: J_r(xi)^T hat^T(M^T G) = J_l(-xi)^T (_exp_pullback). */

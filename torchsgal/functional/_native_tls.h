@@ -1,6 +1,6 @@
 /* The structured Gauss-Helmert linearisation of the SGal(3) total-least-squares conditions
- * (torchsgal/estimation/tls.py, _structured.part with the SGal(3) model), one condition at a
- * time, in double (included once by _native.c, after the SGal(3) kernels it uses).
+ * (torchsgal/estimation/tls.py, _structured.part with the SGal(3) model) and its residual
+ * update, in double (included once by _native.c, after the SGal(3) kernels it uses).
  *
  * Condition n of trial k, with s = n dtau, the drifted frame A_n = (C, v, r - s v, tau) of the
  * trial's unknown X, observation errors e = [ea, eb] (or none: the paper variant, e = 0):
@@ -10,211 +10,278 @@
  *   w   = c' - Ga ea - Gb eb,  W = [Ga Ra, Gb Rb]  (R: covariance factors, diagonal or lower)
  *   S   = W W^T = L L^T,  Li = L^-1,  rows [Li, n Li a, Li w],  G_k += rows^T rows.
  *
+ * Conditions run NL at a time ("lanes", conditions n0 .. n0 + NL - 1 of one trial; a trial's
+ * last block repeats its last condition): the group maths (exp, log, J_r) one condition at a
+ * time into lane l of structure-of-arrays blocks, the linear algebra on all lanes at once (the
+ * innermost loops over l vectorise; no sum runs across lanes until G's lanes are added at the
+ * end of the trial).  What the residual update needs is kept in that layout, packed (only the
+ * entries that can be non-zero), per trial and block of lanes, each entry's NL lanes together:
+ *
+ *   R (K, NB, 75, NL):  Li's lower triangle by rows (55), n Li a (10), Li w (10)
+ *   W (K, NB, NW, NL):  W's entries (i, h + j) for h = 0, 10, i = 0..9, j in [lo_h(i), HI[i])
+ *
+ * with NB = ceil(N1 / NL), lo_h = LO with a diagonal factor and 0 with a lower one, and NW the
+ * count of those entries (native.py's _TlsKernels.unpack restores the dense R and W).
+ *
  * The torch code is the oracle (tests/test_native.py compares the two linearisations); it is
  * itself checked against autograd and the generic Gauss-Helmert layer in tests/test_tls.py.
  */
+
+#define NL 4
+#define LANES for (int l = 0; l < NL; ++l)
+#if defined(__GNUC__)
+#define LANE_ALIGN __attribute__((aligned(32)))
+#else
+#define LANE_ALIGN
+#endif
+
+/* Ad(X^-1), Ad(T^-n) and J_r are block upper-triangular over [rho, nu, phi, iota], so row i of
+ * Ga and Gb can be non-zero in the columns [LO[i], HI[i]) only; W's row i in [lo_h(i), HI[i])
+ * (a lower factor R mixes the columns below HI[i]). */
+static const int TLS_LO[10] = {0, 0, 0, 3, 3, 3, 6, 6, 6, 9};
+static const int TLS_HI[10] = {10, 10, 10, 9, 9, 9, 9, 9, 9, 10};
+
+/* W's packed entries: lo[h][i] and, for each (h, i), the offset of its first entry; returns NW. */
+static inline int tls_w_layout(int diag_a, int diag_b, int lo[2][10], int off[2][10]) {
+    int nw = 0;
+    for (int h = 0; h < 2; ++h)
+        for (int i = 0; i < 10; ++i) {
+            lo[h][i] = (h ? diag_b : diag_a) ? TLS_LO[i] : 0;
+            off[h][i] = nw;
+            nw += TLS_HI[i] - lo[h][i];
+        }
+    return nw;
+}
 
 typedef struct {
     const double *M, *X, *Ad_Xinv, *a, *s, *n, *e;  /* (K,N1,5,5) (K,5,5) (K,10,10) (K,10) (K,N1) (N1) (K,N1,20)|NULL */
     const double *fa, *fb;                          /* covariance factors, see the strides */
     int64_t fa_k, fa_n, fb_k, fb_n;                 /* their strides (entries) per trial and per sample */
     int diag_a, diag_b;                             /* 1: the factor is a square-root diagonal (10) */
-    double *R, *W, *G;                              /* (K, N1*10, 12), (K, N1, 10, 20), (K, 12, 12) */
+    double *R, *W, *G;                              /* packed (K, NB, 75, NL), (K, NB, NW, NL); (K, 12, 12) */
     int32_t *info;                                  /* (K, N1): 0, or the failing Cholesky column */
     int64_t N1;
 } tls_args_t;
 
-/* O = A B for 5x5 row-major matrices (the full product, as torch's matmul). */
-static inline void tls_mul5(const double *A, const double *B, double *O) {
-    for (int i = 0; i < 5; ++i)
-        for (int j = 0; j < 5; ++j) {
-            double acc = 0;
-            for (int k = 0; k < 5; ++k) acc += A[5 * i + k] * B[5 * k + j];
-            O[5 * i + j] = acc;
-        }
-}
-
-/* J_r(x) = J_l(-x) (10x10, row-major). */
-static inline void tls_jr(const double *x, double *J) { jl_matrix_one_f64(x, -1.0, J); }
-
-/* G R for a 10x10 G and the factor R (diagonal: its 10 entries; else 10x10 row-major), into
- * the columns [col, col + 10) of the 10x20 row-major W. */
-static inline void tls_whiten(const double *G, const double *R, int diag, double *W, int col) {
-    for (int i = 0; i < 10; ++i)
-        for (int j = 0; j < 10; ++j) {
-            double acc;
-            if (diag) {
-                acc = G[10 * i + j] * R[j];
-            } else {
-                acc = 0;
-                for (int k = 0; k < 10; ++k) acc += G[10 * i + k] * R[10 * k + j];
-            }
-            W[20 * i + col + j] = acc;
-        }
-}
-
-/* S = W W^T (10x10) for W = [Ga Da, Gb Db] with diagonal factors: Ga and Gb (Ad(X^-1), J_r and
- * Ad(T^-n) are block upper-triangular over [rho, nu, phi, iota]) have zero blocks that diagonal
- * factors keep: row block nu (3-5) is zero outside the columns 3-8 of each half, phi (6-8)
- * outside 6-8, iota (9) outside 9.  Only the products of the columns that can be non-zero in
- * both rows are summed, in the order of the dense loop (the same rounding). */
-static inline void tls_s_block_sparse(const double *W, double *S) {
-    /* As outer products of W's columns (no reduction chains): column m of either half can be
-     * non-zero in rows 0-2 (m < 3), 0-5 (m < 6), 0-8 (m < 9), or 0-2 and 9 (m = 9). */
-    for (int i = 0; i < 100; ++i) S[i] = 0;
-    for (int h = 0; h < 20; h += 10)
-        for (int m = 0; m < 10; ++m) {
-            int nr = m < 3 ? 3 : m < 6 ? 6 : m < 9 ? 9 : 3;
-            double col[9];
-            for (int r = 0; r < nr; ++r) col[r] = W[20 * r + h + m];
-            for (int r = 0; r < nr; ++r)
-                for (int c = 0; c < nr; ++c) S[10 * r + c] += col[r] * col[c];
-            if (m == 9) {
-                double w9 = W[20 * 9 + h + 9];
-                for (int r = 0; r < 3; ++r) {
-                    S[10 * r + 9] += col[r] * w9;
-                    S[90 + r] += w9 * col[r];
-                }
-                S[99] += w9 * w9;
-            }
-        }
-}
-
-/* Li = L^-1 with S = L L^T (10x10), as _small_linalg.cholesky_t / tril_inverse_t: the first
- * failing pivot (<= 0 or NaN) is returned (1-based), 0 if none; entries from there on are
- * non-finite. */
-static inline int32_t tls_inverse_cholesky(const double *S, double *Li) {
-    double L[100] = {0};
-    int32_t info = 0;
-    for (int j = 0; j < 10; ++j) {
-        double v[10];
-        for (int i = j; i < 10; ++i) {
-            double acc = 0;
-            for (int k = 0; k < j; ++k) acc += L[10 * i + k] * L[10 * j + k];
-            v[i] = S[10 * i + j] - acc;
-        }
-        double piv = v[j];
-        if (info == 0 && !(piv > 0)) info = j + 1;
-        double rs = 1.0 / sqrt(piv);
-        for (int i = j; i < 10; ++i) L[10 * i + j] = v[i] * rs;
+/* O = A B for SGal(3) matrices (5x5 row-major, rows 3-4 [0 0 0 1 tau], [0 0 0 0 1]): the sums
+ * of the full product in its order, less its terms that are exact zeros (the same rounding). */
+static inline void tls_compose(const double *A, const double *B, double *O) {
+    for (int i = 0; i < 3; ++i) {
+        const double *a = A + 5 * i;
+        for (int j = 0; j < 3; ++j) O[5 * i + j] = a[0] * B[j] + a[1] * B[5 + j] + a[2] * B[10 + j];
+        O[5 * i + 3] = a[0] * B[3] + a[1] * B[8] + a[2] * B[13] + a[3];
+        O[5 * i + 4] = a[0] * B[4] + a[1] * B[9] + a[2] * B[14] + a[3] * B[19] + a[4];
     }
-    for (int i = 0; i < 100; ++i) Li[i] = 0;
+    O[15] = 0; O[16] = 0; O[17] = 0; O[18] = 1; O[19] = B[19] + A[19];
+    O[20] = 0; O[21] = 0; O[22] = 0; O[23] = 0; O[24] = 1;
+}
+
+/* Lane l's condition: c' (10) and, in the iterated variant, e and J_r(ea), J_r(eb) = J_l(-e). */
+static inline void tls_condition_lane(const tls_args_t *A, int64_t k, int64_t q, int l, double (*c)[NL],
+                                      double (*Ja)[NL], double (*Jb)[NL], double (*e)[NL]) {
+    const double *X = A->X + 25 * k, s = A->s[q], *eq = A->e ? A->e + 20 * q : NULL;
+    double Adrift[25], P[25], cl[10];
+    memcpy(Adrift, X, sizeof Adrift);  /* A_n = (C, v, r - s v, tau) */
+    for (int i = 0; i < 3; ++i) Adrift[5 * i + 4] = X[5 * i + 4] - s * X[5 * i + 3];
+    if (eq) {  /* ((exp(-eb) M) exp(ea)) A */
+        double Ea[25], Eb[25], T1[25], T2[25], meb[10];
+        for (int i = 0; i < 10; ++i) meb[i] = -eq[10 + i];
+        exp_one_f64(eq, Ea);
+        exp_one_f64(meb, Eb);
+        tls_compose(Eb, A->M + 25 * q, T1);
+        tls_compose(T1, Ea, T2);
+        tls_compose(T2, Adrift, P);
+        jl_matrix_one_f64(eq, -1.0, &Ja[0][l], NL, 0);  /* the zeros: set once, tls_range */
+        jl_matrix_one_f64(eq + 10, -1.0, &Jb[0][l], NL, 0);
+        for (int i = 0; i < 20; ++i) e[i][l] = eq[i];
+    } else {
+        tls_compose(A->M + 25 * q, Adrift, P);
+    }
+    log_one_f64(P, cl);
+    for (int i = 0; i < 3; ++i) cl[i] += s * cl[3 + i];  /* Ad(T^-n) c */
+    for (int i = 0; i < 10; ++i) c[i][l] = cl[i];
+}
+
+/* Lane l of the covariance factor of condition (k, n): 10 or 100 entries. */
+static inline void tls_factor_lane(const double *f, int64_t fk, int64_t fn, int diag, int64_t k, int64_t n,
+                                   double (*out)[NL], int l) {
+    const double *p = f + k * fk + n * fn;
+    for (int i = 0; i < (diag ? 10 : 100); ++i) out[i][l] = p[i];
+}
+
+/* W[i, h + j] = (G R)[i, j] for j in [lo[i], HI[i]) (zero elsewhere): G (10x10 lanes, row i
+ * zero outside [LO, HI)), R the factors of the lanes (diagonal: 10 entries; else lower 10x10). */
+static inline void tls_whiten_lanes(double (*G)[NL], double (*R)[NL], int diag, const int *lo,
+                                    double (*W)[20][NL], int h) {
     for (int i = 0; i < 10; ++i) {
-        double di = 1.0 / L[11 * i];
-        Li[11 * i] = di;
-        for (int j = 0; j < i; ++j) {
-            double acc = 0;
-            for (int k = j; k < i; ++k) acc += L[10 * i + k] * Li[10 * k + j];
-            Li[10 * i + j] = acc * -di;
+        double (*w)[NL] = W[i] + h;
+        for (int j = 0; j < 10; ++j) LANES w[j][l] = 0;
+        for (int k = TLS_LO[i]; k < TLS_HI[i]; ++k) {
+            const double *g = G[10 * i + k];
+            if (diag) {
+                LANES w[k][l] = g[l] * R[k][l];
+            } else {
+                for (int j = lo[i]; j <= k; ++j) LANES w[j][l] += g[l] * R[10 * k + j][l];
+            }
         }
     }
-    return info;
 }
 
 WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
     const tls_args_t *A = (const tls_args_t *)pa;
-    const int64_t N1 = A->N1;
+    const int64_t N1 = A->N1, NB = (N1 + NL - 1) / NL;
+    const int iterated = A->e != NULL;
+    int wlo[2][10], woff[2][10], rows[2][10][10], nrows[2][10];
+    const int nw = tls_w_layout(A->diag_a, A->diag_b, wlo, woff);
+    for (int h = 0; h < 2; ++h)
+        for (int m = 0; m < 10; ++m) {
+            nrows[h][m] = 0;
+            for (int i = 0; i < 10; ++i)
+                if (m >= wlo[h][i] && m < TLS_HI[i]) rows[h][m][nrows[h][m]++] = i;
+        }
+    double Ja[100][NL] LANE_ALIGN, Jb[100][NL] LANE_ALIGN;  /* J_r's zeros stay (jl_matrix_one) */
+    memset(Ja, 0, sizeof Ja);
+    memset(Jb, 0, sizeof Jb);
     for (int64_t k = lo; k < hi; ++k) {
-        const double *X = A->X + 25 * k, *Ad = A->Ad_Xinv + 100 * k, *a = A->a + 10 * k;
-        double G[144] = {0};
-        for (int64_t n = 0; n < N1; ++n) {
-            const int64_t q = k * N1 + n;
-            const double s = A->s[q], *e = A->e ? A->e + 20 * q : NULL;
-            double Adrift[25], P[25], T1[25], T2[25], c[10], Ga[100], Gb[100];
-            memcpy(Adrift, X, sizeof Adrift);  /* A_n = (C, v, r - s v, tau) */
-            for (int i = 0; i < 3; ++i) Adrift[5 * i + 4] = X[5 * i + 4] - s * X[5 * i + 3];
-            if (e) {  /* ((exp(-eb) M) exp(ea)) A */
-                double Ea[25], Eb[25], meb[10];
-                for (int i = 0; i < 10; ++i) meb[i] = -e[10 + i];
-                exp_one_f64(e, Ea);
-                exp_one_f64(meb, Eb);
-                tls_mul5(Eb, A->M + 25 * q, T1);
-                tls_mul5(T1, Ea, T2);
-                tls_mul5(T2, Adrift, P);
-            } else {
-                tls_mul5(A->M + 25 * q, Adrift, P);
+        const double *Ad = A->Ad_Xinv + 100 * k, *a = A->a + 10 * k;
+        double G[12][12][NL] LANE_ALIGN;
+        memset(G, 0, sizeof G);
+        for (int64_t b = 0; b < NB; ++b) {
+            const int64_t n0 = b * NL;
+            const int nl = N1 - n0 < NL ? (int)(N1 - n0) : NL;  /* lanes beyond nl repeat the last */
+            double c[10][NL] LANE_ALIGN, e[20][NL] LANE_ALIGN, s[NL] LANE_ALIGN, na[NL] LANE_ALIGN;
+            double Ga[100][NL] LANE_ALIGN, Gb[100][NL] LANE_ALIGN;
+            double fa[100][NL] LANE_ALIGN, fb[100][NL] LANE_ALIGN;
+            for (int l = 0; l < NL; ++l) {
+                const int64_t n = n0 + (l < nl ? l : nl - 1), q = k * N1 + n;
+                tls_condition_lane(A, k, q, l, c, Ja, Jb, e);
+                s[l] = A->s[q];
+                na[l] = A->n[n];
+                tls_factor_lane(A->fa, A->fa_k, A->fa_n, A->diag_a, k, n, fa, l);
+                tls_factor_lane(A->fb, A->fb_k, A->fb_n, A->diag_b, k, n, fb, l);
             }
-            log_one_f64(P, c);
-            for (int i = 0; i < 3; ++i) c[i] += s * c[3 + i];  /* Ad(T^-n) c */
-            if (e) {
-                double Ja[100], Jb[100];
-                tls_jr(e, Ja);
-                tls_jr(e + 10, Jb);
-                for (int i = 0; i < 3; ++i)
+            /* Ga = Ad(X^-1) Ad(T^-n) J_r(ea), Gb = -Ad(T^-n) J_r(eb) (zero outside [LO, HI)) */
+            if (iterated) {
+                for (int i = 0; i < 3; ++i)  /* Ad(T^-n): rows rho += s rows nu */
                     for (int j = 0; j < 10; ++j) {
-                        Ja[10 * i + j] += s * Ja[10 * (3 + i) + j];
-                        Jb[10 * i + j] += s * Jb[10 * (3 + i) + j];
+                        LANES Ja[10 * i + j][l] += s[l] * Ja[10 * (3 + i) + j][l];
+                        LANES Jb[10 * i + j][l] += s[l] * Jb[10 * (3 + i) + j][l];
                     }
-                for (int i = 0; i < 10; ++i) {  /* Ga = Ad Ja, a row at a time (no reduction chains) */
-                    double *g = Ga + 10 * i;
-                    for (int j = 0; j < 10; ++j) g[j] = Ad[10 * i] * Ja[j];
-                    for (int m = 1; m < 10; ++m)
-                        for (int j = 0; j < 10; ++j) g[j] += Ad[10 * i + m] * Ja[10 * m + j];
-                    for (int j = 0; j < 10; ++j) Gb[10 * i + j] = -Jb[10 * i + j];
+                for (int i = 0; i < 10; ++i) {
+                    for (int j = 0; j < 10; ++j) LANES Ga[10 * i + j][l] = 0;
+                    for (int m = TLS_LO[i]; m < TLS_HI[i]; ++m) {
+                        const double d = Ad[10 * i + m];
+                        for (int j = TLS_LO[m]; j < TLS_HI[m]; ++j) LANES Ga[10 * i + j][l] += d * Ja[10 * m + j][l];
+                    }
+                    for (int j = 0; j < 10; ++j) LANES Gb[10 * i + j][l] = -Jb[10 * i + j][l];
                 }
-                for (int i = 0; i < 10; ++i) {  /* w = c' - Ga ea - Gb eb */
-                    double acc = 0;
-                    for (int j = 0; j < 10; ++j) acc += Ga[10 * i + j] * e[j] + Gb[10 * i + j] * e[10 + j];
-                    c[i] -= acc;
-                }
+                /* w = c' - Ga ea - Gb eb (the sums over columns j, every row's at once) */
+                double acc[10][NL] LANE_ALIGN;
+                memset(acc, 0, sizeof acc);
+                for (int j = 0; j < 10; ++j)
+                    for (int i = 0; i < 10; ++i)
+                        if (j >= TLS_LO[i] && j < TLS_HI[i])
+                            LANES acc[i][l] += Ga[10 * i + j][l] * e[j][l] + Gb[10 * i + j][l] * e[10 + j][l];
+                for (int i = 0; i < 10; ++i) LANES c[i][l] -= acc[i][l];
             } else {  /* J_r(0) = I: Ga = Ad(X^-1) with nu columns += s rho columns, Gb = -(I + s E) */
                 for (int i = 0; i < 10; ++i)
                     for (int j = 0; j < 10; ++j) {
-                        Ga[10 * i + j] = Ad[10 * i + j] + (j >= 3 && j < 6 ? s * Ad[10 * i + j - 3] : 0.0);
-                        Gb[10 * i + j] = i == j ? -1.0 : 0.0;
+                        const double d = Ad[10 * i + j], d3 = j >= 3 && j < 6 ? Ad[10 * i + j - 3] : 0.0;
+                        LANES Ga[10 * i + j][l] = d + s[l] * d3;
+                        LANES Gb[10 * i + j][l] = i == j ? -1.0 : 0.0;
                     }
-                for (int i = 0; i < 3; ++i) Gb[10 * i + 3 + i] = -s;
+                for (int i = 0; i < 3; ++i) LANES Gb[10 * i + 3 + i][l] = -s[l];
             }
-            double *W = A->W + 200 * q, S[100], Li[100];
-            tls_whiten(Ga, A->fa + k * A->fa_k + n * A->fa_n, A->diag_a, W, 0);
-            tls_whiten(Gb, A->fb + k * A->fb_k + n * A->fb_n, A->diag_b, W, 10);
-            if (A->diag_a && A->diag_b) {
-                tls_s_block_sparse(W, S);
-            } else {
-                double Wt[200];  /* S = W W^T as a sum of outer products of W's columns */
-                for (int i = 0; i < 10; ++i)
-                    for (int m = 0; m < 20; ++m) Wt[10 * m + i] = W[20 * i + m];
-                for (int i = 0; i < 10; ++i)
-                    for (int j = 0; j < 10; ++j) S[10 * i + j] = Wt[i] * Wt[j];
-                for (int m = 1; m < 20; ++m) {
-                    const double *col = Wt + 10 * m;
-                    for (int i = 0; i < 10; ++i)
-                        for (int j = 0; j < 10; ++j) S[10 * i + j] += col[i] * col[j];
+            double W[10][20][NL] LANE_ALIGN;
+            tls_whiten_lanes(Ga, fa, A->diag_a, wlo[0], W, 0);
+            tls_whiten_lanes(Gb, fb, A->diag_b, wlo[1], W, 10);
+            /* S = W W^T, lower triangle, as a sum of outer products of W's columns (each entry
+             * summed in column order; the rows of column m that can be non-zero: rows[h][m]) */
+            double S[10][10][NL] LANE_ALIGN;
+            memset(S, 0, sizeof S);
+            for (int h = 0; h < 2; ++h)
+                for (int m = 0; m < 10; ++m) {
+                    const int *r = rows[h][m], nr = nrows[h][m];
+                    for (int p = 0; p < nr; ++p)
+                        for (int q = 0; q <= p; ++q)
+                            LANES S[r[p]][r[q]][l] += W[r[p]][10 * h + m][l] * W[r[q]][10 * h + m][l];
                 }
+            /* S = L L^T and Li = L^-1 (_small_linalg.cholesky_t / tril_inverse_t): info = the
+             * first failing pivot (<= 0 or NaN), 1-based, 0 if none; non-finite from there on.
+             * The inner sums run over all rows at once (independent chains). */
+            double L[10][10][NL] LANE_ALIGN, Li[10][10][NL] LANE_ALIGN;
+            int32_t info[NL] = {0};
+            for (int j = 0; j < 10; ++j) {
+                double acc[10][NL] LANE_ALIGN, rs[NL] LANE_ALIGN;
+                for (int i = j; i < 10; ++i) LANES acc[i][l] = 0;
+                for (int m = 0; m < j; ++m)
+                    for (int i = j; i < 10; ++i) LANES acc[i][l] += L[i][m][l] * L[j][m][l];
+                for (int i = j; i < 10; ++i) LANES L[i][j][l] = S[i][j][l] - acc[i][l];
+                for (int l = 0; l < NL; ++l)
+                    if (info[l] == 0 && !(L[j][j][l] > 0)) info[l] = j + 1;
+                LANES rs[l] = 1.0 / sqrt(L[j][j][l]);
+                for (int i = j; i < 10; ++i) LANES L[i][j][l] *= rs[l];
             }
-            A->info[q] = tls_inverse_cholesky(S, Li);
-            double *R = A->R + 120 * q, na = A->n[n];
             for (int i = 0; i < 10; ++i) {
-                double la = 0, lw = 0;
-                for (int j = 0; j <= i; ++j) {
-                    la += Li[10 * i + j] * a[j];
-                    lw += Li[10 * i + j] * c[j];
-                }
-                for (int j = 0; j < 10; ++j) R[12 * i + j] = Li[10 * i + j];
-                R[12 * i + 10] = na * la;
-                R[12 * i + 11] = lw;
+                double acc[10][NL] LANE_ALIGN, di[NL] LANE_ALIGN;
+                LANES di[l] = 1.0 / L[i][i][l];
+                LANES Li[i][i][l] = di[l];
+                for (int j = 0; j < i; ++j) LANES acc[j][l] = 0;
+                for (int m = 0; m < i; ++m)
+                    for (int j = 0; j <= m; ++j) LANES acc[j][l] += L[i][m][l] * Li[m][j][l];
+                for (int j = 0; j < i; ++j) LANES Li[i][j][l] = acc[j][l] * -di[l];
             }
-            for (int r = 0; r < 10; ++r) {  /* G += rows^T rows (upper triangle); row r of Li */
-                const double *row = R + 12 * r;  /* is zero beyond column r */
-                int idx[12], len = 0;
-                for (int i = 0; i <= r; ++i) idx[len++] = i;
-                idx[len++] = 10;
-                idx[len++] = 11;
-                for (int p = 0; p < len; ++p) {
-                    double ri = row[idx[p]];
-                    double *Gi = G + 12 * idx[p];
-                    for (int q = p; q < len; ++q) Gi[idx[q]] += ri * row[idx[q]];
+            /* rows [Li, n Li a, Li w], packed into R; W packed */
+            double (*Rp)[NL] = (double (*)[NL])(A->R + 75 * NL * (k * NB + b));
+            double (*Wp)[NL] = (double (*)[NL])(A->W + (int64_t)nw * NL * (k * NB + b));
+            double la[10][NL] LANE_ALIGN, lw[10][NL] LANE_ALIGN;
+            memset(la, 0, sizeof la);
+            memset(lw, 0, sizeof lw);
+            for (int j = 0; j < 10; ++j)
+                for (int i = j; i < 10; ++i) {
+                    LANES la[i][l] += Li[i][j][l] * a[j];
+                    LANES lw[i][l] += Li[i][j][l] * c[j][l];
                 }
+            for (int i = 0, p = 0; i < 10; ++i) {
+                for (int j = 0; j <= i; ++j, ++p) LANES Rp[p][l] = Li[i][j][l];
+                LANES Rp[55 + i][l] = na[l] * la[i][l];
+                LANES Rp[65 + i][l] = lw[i][l];
+            }
+            for (int h = 0; h < 2; ++h)
+                for (int i = 0; i < 10; ++i)
+                    for (int j = wlo[h][i], p = woff[h][i]; j < TLS_HI[i]; ++j, ++p) LANES Wp[p][l] = W[i][10 * h + j][l];
+            for (int l = 0; l < nl; ++l) A->info[k * N1 + n0 + l] = info[l];
+            /* G += rows^T rows (upper triangle; row r of Li is zero beyond column r), the
+             * repeated lanes zeroed */
+            for (int r = 0, p0 = 0; r < 10; p0 += ++r) {
+                double ra[NL] LANE_ALIGN, rw[NL] LANE_ALIGN;
+                LANES ra[l] = l < nl ? Rp[55 + r][l] : 0.0;
+                LANES rw[l] = l < nl ? Rp[65 + r][l] : 0.0;
+                for (int i = 0; i <= r; ++i) {
+                    double ri[NL] LANE_ALIGN;
+                    LANES ri[l] = l < nl ? Rp[p0 + i][l] : 0.0;
+                    for (int j = i; j <= r; ++j) LANES G[i][j][l] += ri[l] * Rp[p0 + j][l];
+                    LANES G[i][10][l] += ri[l] * ra[l];
+                    LANES G[i][11][l] += ri[l] * rw[l];
+                }
+                LANES G[10][10][l] += ra[l] * ra[l];
+                LANES G[10][11][l] += ra[l] * rw[l];
+                LANES G[11][11][l] += rw[l] * rw[l];
             }
         }
         double *Gk = A->G + 144 * k;
         for (int i = 0; i < 12; ++i)
-            for (int j = 0; j < 12; ++j) Gk[12 * i + j] = j >= i ? G[12 * i + j] : G[12 * j + i];
+            for (int j = i; j < 12; ++j) {
+                double acc = 0;
+                for (int l = 0; l < NL; ++l) acc += G[i][j][l];
+                Gk[12 * i + j] = acc;
+                Gk[12 * j + i] = acc;
+            }
     }
 }
 
 /* The residual update of post_step: e = -[Ra (W_a^T y), Rb (W_b^T y)] with y = Li^T (R [dx, 1])
- * for each condition (R's first 10 columns are Li); dx (K, 11). */
+ * for each condition, from the packed R and W of tls_range; dx (K, 11). */
 typedef struct {
     const double *R, *W, *dx, *fa, *fb;
     int64_t fa_k, fa_n, fb_k, fb_n;
@@ -223,40 +290,54 @@ typedef struct {
     int64_t N1;
 } tls_step_args_t;
 
-static inline void tls_unwhiten(const double *u, const double *R, int diag, double *o) {
-    for (int i = 0; i < 10; ++i) {  /* o = -(R u): R diagonal or lower (row-major) */
-        double acc;
-        if (diag) {
-            acc = u[i] * R[i];
-        } else {
-            acc = 0;
-            for (int k = 0; k < 10; ++k) acc += R[10 * i + k] * u[k];
-        }
-        o[i] = -acc;
-    }
-}
-
 WIDE_LOOPS static void tls_step_range(void **pa, int64_t lo, int64_t hi) {
     const tls_step_args_t *A = (const tls_step_args_t *)pa;
-    const int64_t N1 = A->N1;
+    const int64_t N1 = A->N1, NB = (N1 + NL - 1) / NL;
+    int wlo[2][10], woff[2][10];
+    const int nw = tls_w_layout(A->diag_a, A->diag_b, wlo, woff);
     for (int64_t k = lo; k < hi; ++k) {
         const double *d = A->dx + 11 * k;
-        for (int64_t n = 0; n < N1; ++n) {
-            const int64_t q = k * N1 + n;
-            const double *R = A->R + 120 * q, *W = A->W + 200 * q;
-            double z[10], y[10] = {0}, u[20] = {0};
-            for (int r = 0; r < 10; ++r) {
-                double acc = 0;
-                for (int j = 0; j < 11; ++j) acc += R[12 * r + j] * d[j];
-                z[r] = acc + R[12 * r + 11];
+        for (int64_t b = 0; b < NB; ++b) {
+            const int64_t n0 = b * NL;
+            const int nl = N1 - n0 < NL ? (int)(N1 - n0) : NL;
+            const double (*Rp)[NL] = (const double (*)[NL])(A->R + 75 * NL * (k * NB + b));
+            const double (*Wp)[NL] = (const double (*)[NL])(A->W + (int64_t)nw * NL * (k * NB + b));
+            double z[10][NL] LANE_ALIGN, y[10][NL] LANE_ALIGN, u[20][NL] LANE_ALIGN;
+#if defined(__GNUC__)
+            for (int p = 0; p < 75 * NL; p += 8) __builtin_prefetch((const double *)Rp + 75 * NL + p);
+            for (int p = 0; p < nw * NL; p += 8) __builtin_prefetch((const double *)Wp + nw * NL + p);
+#endif
+            for (int r = 0, p0 = 0; r < 10; p0 += ++r) {  /* z = R [dx, 1] */
+                double acc[NL] LANE_ALIGN = {0};
+                for (int j = 0; j <= r; ++j) LANES acc[l] += Rp[p0 + j][l] * d[j];
+                LANES z[r][l] = (acc[l] + Rp[55 + r][l] * d[10]) + Rp[65 + r][l];
             }
-            for (int r = 0; r < 10; ++r)
-                for (int j = 0; j < 10; ++j) y[j] += R[12 * r + j] * z[r];
+            for (int j = 0; j < 10; ++j) LANES y[j][l] = 0;  /* y = Li^T z */
+            for (int r = 0, p0 = 0; r < 10; p0 += ++r)
+                for (int j = 0; j <= r; ++j) LANES y[j][l] += Rp[p0 + j][l] * z[r][l];
+            for (int m = 0; m < 20; ++m) LANES u[m][l] = 0;  /* u = W^T y */
             for (int i = 0; i < 10; ++i)
-                for (int j = 0; j < 20; ++j) u[j] += W[20 * i + j] * y[i];
-            double *e = A->e + 20 * q;
-            tls_unwhiten(u, A->fa + k * A->fa_k + n * A->fa_n, A->diag_a, e);
-            tls_unwhiten(u + 10, A->fb + k * A->fb_k + n * A->fb_n, A->diag_b, e + 10);
+                for (int h = 0; h < 2; ++h)
+                    for (int j = wlo[h][i], p = woff[h][i]; j < TLS_HI[i]; ++j, ++p)
+                        LANES u[10 * h + j][l] += Wp[p][l] * y[i][l];
+            for (int l = 0; l < nl; ++l) {  /* e = -[Ra u_a, Rb u_b] */
+                const int64_t n = n0 + l;
+                double *e = A->e + 20 * (k * N1 + n);
+                for (int h = 0; h < 2; ++h) {
+                    const double *R = h ? A->fb + k * A->fb_k + n * A->fb_n : A->fa + k * A->fa_k + n * A->fa_n;
+                    const int diag = h ? A->diag_b : A->diag_a;
+                    for (int i = 0; i < 10; ++i) {
+                        double acc;
+                        if (diag) {
+                            acc = u[10 * h + i][l] * R[i];
+                        } else {
+                            acc = 0;
+                            for (int j = 0; j < 10; ++j) acc += R[10 * i + j] * u[10 * h + j][l];
+                        }
+                        e[10 * h + i] = -acc;
+                    }
+                }
+            }
         }
     }
 }

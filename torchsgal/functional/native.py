@@ -168,7 +168,15 @@ class _ImuKernels:
 
 class _TlsKernels:
     """The structured linearisation of the SGal(3) TLS conditions
-    (torchsgal.estimation.tls._structured), float64 only (``_native_tls.h``)."""
+    (torchsgal.estimation.tls._structured), float64 only (``_native_tls.h``).
+
+    What the residual update needs is kept packed, in the kernel's layout: R (K, NB, 75, LANES)
+    and W (K, NB, NW, LANES) for NB = ceil(N1 / LANES) blocks of LANES conditions (``shapes``;
+    ``unpack`` restores the dense rows and whitened Jacobians of the tensor code)."""
+
+    LANES = 4  # NL of _native_tls.h
+    _LO = (0, 0, 0, 3, 3, 3, 6, 6, 6, 9)  # TLS_LO, TLS_HI: W's row i can be non-zero in [LO, HI)
+    _HI = (10, 10, 10, 9, 9, 9, 9, 9, 9, 10)
 
     @staticmethod
     def applies(*tensors) -> bool:
@@ -176,15 +184,44 @@ class _TlsKernels:
         return tensors[0].dtype is torch.float64 and _eligible(tensors)
 
     @staticmethod
+    def _w_entries(diagonal_a: bool, diagonal_b: bool) -> list:
+        """(i, column of W) of the packed W's entries, in order (tls_w_layout)."""
+        return [(i, 10 * h + j) for h, diag in enumerate((diagonal_a, diagonal_b)) for i in range(10)
+                for j in range(_TlsKernels._LO[i] if diag else 0, _TlsKernels._HI[i])]
+
+    @staticmethod
+    def shapes(K: int, N1: int, diagonal_a: bool, diagonal_b: bool) -> tuple:
+        """The shapes of the packed R and W of K trials of N1 conditions."""
+        NB, L = -(-N1 // _TlsKernels.LANES), _TlsKernels.LANES
+        return (K, NB, 75, L), (K, NB, len(_TlsKernels._w_entries(diagonal_a, diagonal_b)), L)
+
+    @staticmethod
+    def unpack(R, W, N1: int, diagonal_a: bool, diagonal_b: bool) -> tuple:
+        """The dense rows [Li, n Li a, Li w] (K, N1 10, 12) and W (K, N1, 10, 20) of packed ones."""
+        K = R.shape[0]
+        lanes = lambda P: P.transpose(-1, -2).reshape(K, -1, P.shape[-2])[:, :N1]  # (K, N1, entries)
+        Rl, Wl = lanes(R), lanes(W)
+        i, j = torch.tril_indices(10, 10)
+        Rd = R.new_zeros(K, N1, 10, 12)
+        Rd[..., i, j] = Rl[..., :55]
+        Rd[..., 10] = Rl[..., 55:65]
+        Rd[..., 11] = Rl[..., 65:75]
+        i, j = torch.tensor(_TlsKernels._w_entries(diagonal_a, diagonal_b)).T
+        Wd = W.new_zeros(K, N1, 10, 20)
+        Wd[..., i, j] = Wl
+        return Rd.reshape(K, N1 * 10, 12), Wd
+
+    @staticmethod
     def linearise(M, X, Ad_Xinv, a, s, n, e, factors, R, W):
-        """Fill R (K, N1 d, 12) and W (K, N1, 10, 20) and return (G (K, 12, 12), info (K, N1));
-        None where the kernel may not run.  M (K, N1, 5, 5), X (K, 5, 5), Ad_Xinv (K, 10, 10),
-        a (K, 10), s (K, N1), n (N1,), e (K, N1, 20) or None (the paper variant), factors
-        ((fa, diagonal_a), (fb, diagonal_b)): square-root diagonals (..., 10) or lower Cholesky
-        factors (..., 10, 10) broadcasting to (K, N1)."""
+        """Fill the packed R and W (``shapes``) and return (G (K, 12, 12), info (K, N1)); None
+        where the kernel may not run.  M (K, N1, 5, 5), X (K, 5, 5), Ad_Xinv (K, 10, 10), a (K, 10),
+        s (K, N1), n (N1,), e (K, N1, 20) or None (the paper variant), factors ((fa, diagonal_a),
+        (fb, diagonal_b)): square-root diagonals (..., 10) or lower Cholesky factors
+        (..., 10, 10) broadcasting to (K, N1)."""
         K, N1 = s.shape
         args = [M, X, Ad_Xinv, a, s, n] + ([] if e is None else [e]) + [f for f, _ in factors]
-        if not (args[0].dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1)):
+        if not (args[0].dtype is torch.float64 and _eligible(args)
+                and _TlsKernels._buffers(R, W, K, N1, factors)):
             return None
         fs = _TlsKernels._factors(factors, K, N1)
         if fs is None:
@@ -201,13 +238,12 @@ class _TlsKernels:
         return G, info
 
     @staticmethod
-    def step(R, W, dx, factors):
+    def step(R, W, dx, factors, N1: int):
         """post_step's residual update e (K, N1, 20) = -Sigma Bm'^T Li^T (R [dx, 1]) from the
-        rows R (K, N1 d, 12), the whitened W (K, N1, 10, 20) and dx (K, 11); None where the
-        kernel may not run."""
-        K, N1 = W.shape[:2]
+        packed R and W of ``linearise`` and dx (K, 11); None where the kernel may not run."""
+        K = R.shape[0]
         args = [R, W, dx] + [f for f, _ in factors]
-        if not (R.dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1)
+        if not (R.dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1, factors)
                 and dx.shape == (K, 11)):
             return None
         fs = _TlsKernels._factors(factors, K, N1)
@@ -222,9 +258,10 @@ class _TlsKernels:
         return e
 
     @staticmethod
-    def _buffers(R, W, K, N1) -> bool:
+    def _buffers(R, W, K, N1, factors) -> bool:
+        shapes = _TlsKernels.shapes(K, N1, bool(factors[0][1]), bool(factors[1][1]))
         return (R.is_contiguous() and W.is_contiguous() and not R.is_neg() and not W.is_neg()
-                and R.shape == (K, N1 * 10, 12) and W.shape == (K, N1, 10, 20))
+                and R.dtype is W.dtype is torch.float64 and (R.shape, W.shape) == shapes)
 
     @staticmethod
     def _factors(factors, K, N1):
