@@ -453,3 +453,34 @@ def test_tls_kernel_marks_non_finite_conditions_and_runs_only_where_it_may(recor
                          P.cov_a.float(), P.cov_b.float())
     tls.solve_sgal3(P32, variant="iterated")  # float32: tensor code
     assert "tls_sgal3" not in recorder.calls
+
+
+@pytest.mark.parametrize("variant", ["iterated", "paper"])
+def test_tls_kernel_skips_the_trials_that_stopped_with_the_same_solution(variant, monkeypatch):
+    # solver.iterate passes the running trials to a linearisation that takes them; the kernel
+    # skips the others (their results are dropped).  Same solution, bit for bit, as without.
+    from torchsgal.estimation import solver, study, tls
+    P = study.simulate(study.StudyConfig(trials=24, seed=8)).problem
+    masks = []
+    linearise = native._TlsKernels.linearise
+
+    def spy(*args):
+        masks.append(args[-1])
+        return linearise(*args)
+    monkeypatch.setattr(native._TlsKernels, "linearise", staticmethod(spy))
+    skipping = tls.solve_sgal3(P, variant=variant, straggler_fraction=0.0)
+    # the first linearisation has no mask; later ones skip the trials that converged earlier
+    assert masks[0] is None and all(m is not None for m in masks[1:])
+    assert any(not bool(m.all()) for m in masks[1:])
+    iterations = skipping.report.iterations
+    assert bool((iterations < iterations.max()).any())  # some trials stop before others
+    monkeypatch.setattr(solver, "ACTIVE_SET", "no such attribute")  # every trial, every time
+    masks.clear()
+    full = tls.solve_sgal3(P, variant=variant, straggler_fraction=0.0)
+    assert all(m is None for m in masks)
+    for a, b in zip(skipping.x, full.x):
+        a, b = (t.as_matrix() if hasattr(t, "as_matrix") else t for t in (a, b))
+        assert torch.equal(a, b)
+    assert torch.equal(skipping.covariance, full.covariance)
+    assert torch.equal(skipping.report.status, full.report.status)
+    assert torch.equal(skipping.report.iterations, full.report.iterations)

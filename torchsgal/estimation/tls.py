@@ -39,7 +39,7 @@ from ..groups import SE23, SGal3
 from . import _small_linalg
 from . import variables as V
 from .gauss_helmert import _CovarianceBlocks, check_covariance, gauss_helmert, variant_options
-from .solver import Linearisation, Solution, SolverReport, SolverStatus, iterate
+from .solver import ACTIVE_SET, Linearisation, Solution, SolverReport, SolverStatus, iterate
 
 E10 = 9  # index of iota, the time component of the SGal(3) tangent
 
@@ -429,7 +429,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         Rc[..., d] = sd.reciprocal()
         Rc[..., nc - 1] = ct / sd
 
-    def part(x, e, sl):
+    def part(x, e, sl, active):
         X, tau0, dtau = model.unknowns(tuple(b[sl] for b in x))
         Mk = M[sl]
         K = Mk.batch_shape[0]
@@ -442,7 +442,8 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             R = buffer("R packed", *shape_R, state=sl.start)
             W = buffer("W packed", *shape_W, state=sl.start)
             factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
-            done = kernel.linearise(Mk.as_matrix(), X.as_matrix(), Ad_Xinv, a, s, n, e, factors, R, W)
+            done = kernel.linearise(Mk.as_matrix(), X.as_matrix(), Ad_Xinv, a, s, n, e, factors, R, W,
+                                    None if active is None else active[sl])
             if done is not None:
                 G, info = done
                 bad = (info != 0).any(-1)
@@ -509,19 +510,19 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
         G[:, -1, -1] = torch.where(bad, float("nan"), G[:, -1, -1])
         return G, (R, Ad_Xinv, s) if quadratic else (R, W)
 
-    def linearise(x, e):
+    def linearise(x, e, active=None):
         e = e if iterated else None
         calls[0] += 1
         Gs, parts = [], []
         for sl in slices:
-            G, p = part(x, None if e is None else e[sl], sl)
+            G, p = part(x, None if e is None else e[sl], sl, active)
             Gs.append(G)
             parts.append(p)
         G = torch.cat(Gs)
         return Linearisation(None, None, extra=_ChunkState(slices, parts), H=G[:, :-1, :-1],
                              g=G[:, :-1, -1], cost=0.5 * G[:, -1, -1])
 
-    def post_step(x, e, lin, delta):
+    def post_step(x, e, lin, delta, active=None):
         # e = -Sigma Bm'^T S^-1 (w + A' delta) = -Sigma Bm'^T Li^T (Li w + Li A' delta).
         out = []
         d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
@@ -529,7 +530,8 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             K = R.shape[0]
             if R.dim() == 4:  # packed by the C kernel: the same update in C, or unpacked
                 factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
-                e_new = kernel.step(R, extra[0], delta[sl], factors, N1)
+                e_new = kernel.step(R, extra[0], delta[sl], factors, N1,
+                                    None if active is None else active[sl])
                 if e_new is not None:
                     out.append(e_new)
                     continue
@@ -559,6 +561,8 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             out.append(-torch.cat([ea, eb], -1))
         return torch.cat(out)
 
+    # The C kernel skips the trials that are not running (solver.iterate drops their results).
+    setattr(linearise, ACTIVE_SET, kernel is not None)
     return linearise, post_step
 
 

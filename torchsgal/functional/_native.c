@@ -207,17 +207,17 @@ static PyObject *py_imu_preintegrate(PyObject *self, PyObject *const *a, Py_ssiz
     Py_RETURN_NONE;
 }
 
-/* tls_sgal3(M, X, Ad_Xinv, a, s, n, e, fa, fb, R, W, G, info,
+/* tls_sgal3(M, X, Ad_Xinv, a, s, n, e, fa, fb, R, W, G, info, active,
  *           fa_k, fa_n, fb_k, fb_n, diag_a, diag_b, K, N1, threads): see _native_tls.h; e 0
- * (a null pointer) for the paper variant.  float64 only. */
+ * (a null pointer) for the paper variant, active 0 for all trials.  float64 only. */
 static PyObject *py_tls_sgal3(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    void *ptr[13];
+    void *ptr[14];
     int64_t ints[9];
-    if (read_call(a, nargs, 13, ptr, 9, ints, "tls_sgal3") < 0) return NULL;
+    if (read_call(a, nargs, 14, ptr, 9, ints, "tls_sgal3") < 0) return NULL;
     tls_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], ptr[7], ptr[8],
                        ints[0], ints[1], ints[2], ints[3], (int)ints[4], (int)ints[5],
-                       ptr[9], ptr[10], ptr[11], ptr[12], ints[7]};
+                       ptr[9], ptr[10], ptr[11], ptr[12], ptr[13], ints[7]};
     /* one condition costs about as much as 32 SGal(3) exps */
     Py_BEGIN_ALLOW_THREADS
     run_parallel(tls_range, (void **)&args, ints[6], 32 * ints[7], (int)ints[8]);
@@ -225,14 +225,15 @@ static PyObject *py_tls_sgal3(PyObject *self, PyObject *const *a, Py_ssize_t nar
     Py_RETURN_NONE;
 }
 
-/* tls_sgal3_step(R, W, dx, fa, fb, e, fa_k, fa_n, fb_k, fb_n, diag_a, diag_b, K, N1, threads) */
+/* tls_sgal3_step(R, W, dx, fa, fb, e, active, fa_k, fa_n, fb_k, fb_n, diag_a, diag_b, K, N1,
+ *                threads) */
 static PyObject *py_tls_sgal3_step(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    void *ptr[6];
+    void *ptr[7];
     int64_t ints[9];
-    if (read_call(a, nargs, 6, ptr, 9, ints, "tls_sgal3_step") < 0) return NULL;
+    if (read_call(a, nargs, 7, ptr, 9, ints, "tls_sgal3_step") < 0) return NULL;
     tls_step_args_t args = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ints[0], ints[1], ints[2], ints[3],
-                            (int)ints[4], (int)ints[5], ptr[5], ints[7]};
+                            (int)ints[4], (int)ints[5], ptr[5], ptr[6], ints[7]};
     Py_BEGIN_ALLOW_THREADS
     run_parallel(tls_step_range, (void **)&args, ints[6], 4 * ints[7], (int)ints[8]);
     Py_END_ALLOW_THREADS

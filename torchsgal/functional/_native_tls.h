@@ -60,6 +60,7 @@ typedef struct {
     int diag_a, diag_b;                             /* 1: the factor is a square-root diagonal (10) */
     double *R, *W, *G;                              /* packed (K, NB, 75, NL), (K, NB, NW, NL); (K, 12, 12) */
     int32_t *info;                                  /* (K, N1): 0, or the failing Cholesky column */
+    const uint8_t *active;                          /* (K): 0 skips the trial (G, info 0); NULL: all */
     int64_t N1;
 } tls_args_t;
 
@@ -76,9 +77,107 @@ static inline void tls_compose(const double *A, const double *B, double *O) {
     O[20] = 0; O[21] = 0; O[22] = 0; O[23] = 0; O[24] = 1;
 }
 
-/* Lane l's condition: c' (10) and, in the iterated variant, e and J_r(ea), J_r(eb) = J_l(-e). */
+/* jl_matrix_one of _native_sgal3.h on lanes: the same operations in the same order (a lane of
+ * a vector operation rounds as the scalar one), the series coefficients one lane at a time. */
+static inline void lane_cross(double (*u)[NL], double (*v)[NL], double (*o)[NL]) {
+    LANES o[0][l] = u[1][l] * v[2][l] - u[2][l] * v[1][l];
+    LANES o[1][l] = u[2][l] * v[0][l] - u[0][l] * v[2][l];
+    LANES o[2][l] = u[0][l] * v[1][l] - u[1][l] * v[0][l];
+}
+
+static inline void lane_sym_skew(const double *d, const double *a, const double *b, double (*phi)[NL],
+                                 double (*o)[NL]) {  /* d I + a phi^ + b phi phi^T */
+    LANES {
+        double x = phi[0][l], y = phi[1][l], z = phi[2][l], ax = a[l] * x, ay = a[l] * y, az = a[l] * z;
+        double bx = b[l] * x, by = b[l] * y, bxy = bx * y, bxz = bx * z, byz = by * z;
+        o[0][l] = d[l] + bx * x; o[1][l] = bxy - az; o[2][l] = bxz + ay;
+        o[3][l] = bxy + az; o[4][l] = d[l] + by * y; o[5][l] = byz - ax;
+        o[6][l] = bxz - ay; o[7][l] = byz + ax; o[8][l] = d[l] + b[l] * z * z;
+    }
+}
+
+/* d/dphi [Gamma_L(phi) x] (gamma_vec_derivative) */
+static inline void lane_gamma_vec_derivative(double (*c)[NL], int L, double (*phi)[NL], double (*x)[NL],
+                                             double (*o)[NL]) {
+    double px[3][NL] LANE_ALIGN, ppx[3][NL] LANE_ALIGN, u[3][NL] LANE_ALIGN, bpx[NL] LANE_ALIGN;
+    lane_cross(phi, x, px);
+    lane_cross(phi, px, ppx);
+    const double *a = c[L + 1], *b = c[L + 2];
+    LANES bpx[l] = b[l] * (phi[0][l] * x[0][l] + phi[1][l] * x[1][l] + phi[2][l] * x[2][l]);
+    for (int i = 0; i < 3; ++i)
+        LANES {
+            double ea = (double)(L + 1) * c[L + 3][l] - c[L + 2][l], eb = (double)(L + 2) * c[L + 4][l] - c[L + 3][l];
+            u[i][l] = ea * px[i][l] + eb * ppx[i][l] - 2.0 * b[l] * x[i][l];
+        }
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            /* x^ (i, j): 0 on the diagonal, else -+x[k] */
+            const int k = 3 - i - j, sg = (j == (i + 1) % 3) ? -1 : 1;
+            if (i == j)
+                LANES o[3 * i + j][l] = ((u[i][l] * phi[j][l] + b[l] * (phi[i][l] * x[j][l])) + bpx[l]) - a[l] * 0.0;
+            else
+                LANES o[3 * i + j][l] = ((u[i][l] * phi[j][l] + b[l] * (phi[i][l] * x[j][l])) + 0.0) - a[l] * (sg * x[k][l]);
+        }
+}
+
+static inline void lane_skew_times_add(double (*x)[NL], double (*M)[NL], double (*o)[NL]) {  /* o += x^ M */
+    for (int j = 0; j < 3; ++j)
+        LANES {
+            double c0 = M[j][l], c1 = M[3 + j][l], c2 = M[6 + j][l];
+            o[j][l] += x[1][l] * c2 - x[2][l] * c1;
+            o[3 + j][l] += x[2][l] * c0 - x[0][l] * c2;
+            o[6 + j][l] += x[0][l] * c1 - x[1][l] * c0;
+        }
+}
+
+/* J_l(xi) (3.21)-(3.23) of the lanes' xi (10 x NL) into J (100 x NL): the entries of the
+ * block pattern only (jl_matrix_one with zero = 0). */
+static void lane_jl(double (*xi)[NL], double (*J)[NL]) {
+    double (*rho)[NL] = xi, (*nu)[NL] = xi + 3, (*phi)[NL] = xi + 6, *iota = xi[9];
+    double c[7][NL] LANE_ALIGN;
+    for (int l = 0; l < NL; ++l) {
+        double cl[7], t2 = phi[0][l] * phi[0][l] + phi[1][l] * phi[1][l] + phi[2][l] * phi[2][l];
+        coefficients_f64(t2, 6, cl);
+        for (int m = 0; m < 7; ++m) c[m][l] = cl[m];
+    }
+    double D[9][NL] LANE_ALIGN, E[9][NL] LANE_ALIGN, Mb[9][NL] LANE_ALIGN, N[9][NL] LANE_ALIGN, d2[9][NL] LANE_ALIGN;
+    double pn[3][NL] LANE_ALIGN, ppn[3][NL] LANE_ALIGN, pr[3][NL] LANE_ALIGN, ppr[3][NL] LANE_ALIGN;
+    double gn[3][NL] LANE_ALIGN, g2n[3][NL] LANE_ALIGN, r[3][NL] LANE_ALIGN;
+    lane_sym_skew(c[1], c[2], c[3], phi, D);
+    lane_sym_skew(c[2], c[3], c[4], phi, E);
+    lane_cross(phi, nu, pn);
+    lane_cross(phi, pn, ppn);
+    lane_cross(phi, rho, pr);
+    lane_cross(phi, pr, ppr);
+    for (int i = 0; i < 3; ++i) {
+        LANES gn[i][l] = nu[i][l] + c[2][l] * pn[i][l] + c[3][l] * ppn[i][l];      /* Gamma_1 nu */
+        LANES g2n[i][l] = nu[i][l] / 2.0 + c[3][l] * pn[i][l] + c[4][l] * ppn[i][l];  /* Gamma_2 nu */
+        LANES r[i][l] = (rho[i][l] + c[2][l] * pr[i][l] + c[3][l] * ppr[i][l]) + iota[l] * g2n[i][l];
+    }
+    lane_gamma_vec_derivative(c, 1, phi, nu, Mb);  /* q_block */
+    lane_skew_times_add(gn, D, Mb);
+    lane_gamma_vec_derivative(c, 1, phi, rho, N);
+    lane_gamma_vec_derivative(c, 2, phi, nu, d2);
+    for (int i = 0; i < 9; ++i) LANES N[i][l] += iota[l] * d2[i][l];
+    lane_skew_times_add(r, D, N);
+    for (int i = 0; i < 9; ++i) LANES N[i][l] -= iota[l] * Mb[i][l];
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+            LANES J[10 * i + j][l] = D[3 * i + j][l];
+            LANES J[10 * (3 + i) + 3 + j][l] = D[3 * i + j][l];
+            LANES J[10 * (6 + i) + 6 + j][l] = D[3 * i + j][l];
+            LANES J[10 * i + 3 + j][l] = -iota[l] * (D[3 * i + j][l] - E[3 * i + j][l]);
+            LANES J[10 * i + 6 + j][l] = N[3 * i + j][l];
+            LANES J[10 * (3 + i) + 6 + j][l] = Mb[3 * i + j][l];
+        }
+        LANES J[10 * i + 9][l] = g2n[i][l];
+    }
+    LANES J[99][l] = 1;
+}
+
+/* Lane l's condition: c' (10) and, in the iterated variant, e. */
 static inline void tls_condition_lane(const tls_args_t *A, int64_t k, int64_t q, int l, double (*c)[NL],
-                                      double (*Ja)[NL], double (*Jb)[NL], double (*e)[NL]) {
+                                      double (*e)[NL]) {
     const double *X = A->X + 25 * k, s = A->s[q], *eq = A->e ? A->e + 20 * q : NULL;
     double Adrift[25], P[25], cl[10];
     memcpy(Adrift, X, sizeof Adrift);  /* A_n = (C, v, r - s v, tau) */
@@ -91,8 +190,6 @@ static inline void tls_condition_lane(const tls_args_t *A, int64_t k, int64_t q,
         tls_compose(Eb, A->M + 25 * q, T1);
         tls_compose(T1, Ea, T2);
         tls_compose(T2, Adrift, P);
-        jl_matrix_one_f64(eq, -1.0, &Ja[0][l], NL, 0);  /* the zeros: set once, tls_range */
-        jl_matrix_one_f64(eq + 10, -1.0, &Jb[0][l], NL, 0);
         for (int i = 0; i < 20; ++i) e[i][l] = eq[i];
     } else {
         tls_compose(A->M + 25 * q, Adrift, P);
@@ -139,10 +236,15 @@ WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
             for (int i = 0; i < 10; ++i)
                 if (m >= wlo[h][i] && m < TLS_HI[i]) rows[h][m][nrows[h][m]++] = i;
         }
-    double Ja[100][NL] LANE_ALIGN, Jb[100][NL] LANE_ALIGN;  /* J_r's zeros stay (jl_matrix_one) */
+    double Ja[100][NL] LANE_ALIGN, Jb[100][NL] LANE_ALIGN;  /* J_r's zeros stay (lane_jl) */
     memset(Ja, 0, sizeof Ja);
     memset(Jb, 0, sizeof Jb);
     for (int64_t k = lo; k < hi; ++k) {
+        if (A->active && !A->active[k]) {
+            memset(A->G + 144 * k, 0, 144 * sizeof(double));
+            memset(A->info + k * N1, 0, N1 * sizeof(int32_t));
+            continue;
+        }
         const double *Ad = A->Ad_Xinv + 100 * k, *a = A->a + 10 * k;
         double G[12][12][NL] LANE_ALIGN;
         memset(G, 0, sizeof G);
@@ -154,7 +256,7 @@ WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
             double fa[100][NL] LANE_ALIGN, fb[100][NL] LANE_ALIGN;
             for (int l = 0; l < NL; ++l) {
                 const int64_t n = n0 + (l < nl ? l : nl - 1), q = k * N1 + n;
-                tls_condition_lane(A, k, q, l, c, Ja, Jb, e);
+                tls_condition_lane(A, k, q, l, c, e);
                 s[l] = A->s[q];
                 na[l] = A->n[n];
                 tls_factor_lane(A->fa, A->fa_k, A->fa_n, A->diag_a, k, n, fa, l);
@@ -162,6 +264,10 @@ WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
             }
             /* Ga = Ad(X^-1) Ad(T^-n) J_r(ea), Gb = -Ad(T^-n) J_r(eb) (zero outside [LO, HI)) */
             if (iterated) {
+                double me[20][NL] LANE_ALIGN;  /* J_r(e) = J_l(-e) */
+                for (int i = 0; i < 20; ++i) LANES me[i][l] = -e[i][l];
+                lane_jl(me, Ja);
+                lane_jl(me + 10, Jb);
                 for (int i = 0; i < 3; ++i)  /* Ad(T^-n): rows rho += s rows nu */
                     for (int j = 0; j < 10; ++j) {
                         LANES Ja[10 * i + j][l] += s[l] * Ja[10 * (3 + i) + j][l];
@@ -287,6 +393,7 @@ typedef struct {
     int64_t fa_k, fa_n, fb_k, fb_n;
     int diag_a, diag_b;
     double *e;  /* (K, N1, 20) */
+    const uint8_t *active;  /* (K): 0 skips the trial (e 0); NULL: all */
     int64_t N1;
 } tls_step_args_t;
 
@@ -296,6 +403,10 @@ WIDE_LOOPS static void tls_step_range(void **pa, int64_t lo, int64_t hi) {
     int wlo[2][10], woff[2][10];
     const int nw = tls_w_layout(A->diag_a, A->diag_b, wlo, woff);
     for (int64_t k = lo; k < hi; ++k) {
+        if (A->active && !A->active[k]) {
+            memset(A->e + 20 * k * N1, 0, 20 * N1 * sizeof(double));
+            continue;
+        }
         const double *d = A->dx + 11 * k;
         for (int64_t b = 0; b < NB; ++b) {
             const int64_t n0 = b * NL;

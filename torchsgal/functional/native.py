@@ -212,12 +212,13 @@ class _TlsKernels:
         return Rd.reshape(K, N1 * 10, 12), Wd
 
     @staticmethod
-    def linearise(M, X, Ad_Xinv, a, s, n, e, factors, R, W):
+    def linearise(M, X, Ad_Xinv, a, s, n, e, factors, R, W, active=None):
         """Fill the packed R and W (``shapes``) and return (G (K, 12, 12), info (K, N1)); None
         where the kernel may not run.  M (K, N1, 5, 5), X (K, 5, 5), Ad_Xinv (K, 10, 10), a (K, 10),
         s (K, N1), n (N1,), e (K, N1, 20) or None (the paper variant), factors ((fa, diagonal_a),
         (fb, diagonal_b)): square-root diagonals (..., 10) or lower Cholesky factors
-        (..., 10, 10) broadcasting to (K, N1)."""
+        (..., 10, 10) broadcasting to (K, N1).  active (K,) bool or None (all): the trials to
+        linearise; the others get G = 0 and info = 0, and their R and W are left as they are."""
         K, N1 = s.shape
         args = [M, X, Ad_Xinv, a, s, n] + ([] if e is None else [e]) + [f for f, _ in factors]
         if not (args[0].dtype is torch.float64 and _eligible(args)
@@ -228,19 +229,22 @@ class _TlsKernels:
             return None
         ins = [_data(t) for t in (M, X, Ad_Xinv, a, s, n)]
         e = None if e is None else _data(e)
+        active = _TlsKernels._active(active, K)
         G = torch.empty(K, 12, 12, dtype=torch.float64)
         info = torch.empty(K, N1, dtype=torch.int32)
         _lib.tls_sgal3(*(t.data_ptr() for t in ins), 0 if e is None else e.data_ptr(),
                        fs[0].data_ptr(), fs[1].data_ptr(), R.data_ptr(), W.data_ptr(),
-                       G.data_ptr(), info.data_ptr(), fs[0].stride(0), fs[0].stride(1),
+                       G.data_ptr(), info.data_ptr(), 0 if active is None else active.data_ptr(),
+                       fs[0].stride(0), fs[0].stride(1),
                        fs[1].stride(0), fs[1].stride(1), int(factors[0][1]), int(factors[1][1]),
                        K, N1, torch.get_num_threads())
         return G, info
 
     @staticmethod
-    def step(R, W, dx, factors, N1: int):
+    def step(R, W, dx, factors, N1: int, active=None):
         """post_step's residual update e (K, N1, 20) = -Sigma Bm'^T Li^T (R [dx, 1]) from the
-        packed R and W of ``linearise`` and dx (K, 11); None where the kernel may not run."""
+        packed R and W of ``linearise`` and dx (K, 11); None where the kernel may not run.
+        active (K,) bool or None (all): the trials to update; the others get e = 0."""
         K = R.shape[0]
         args = [R, W, dx] + [f for f, _ in factors]
         if not (R.dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1, factors)
@@ -250,12 +254,24 @@ class _TlsKernels:
         if fs is None:
             return None
         dx = _data(dx)
+        active = _TlsKernels._active(active, K)
         e = torch.empty(K, N1, 20, dtype=torch.float64)
         _lib.tls_sgal3_step(R.data_ptr(), W.data_ptr(), dx.data_ptr(), fs[0].data_ptr(),
-                            fs[1].data_ptr(), e.data_ptr(), fs[0].stride(0), fs[0].stride(1),
+                            fs[1].data_ptr(), e.data_ptr(), 0 if active is None else active.data_ptr(),
+                            fs[0].stride(0), fs[0].stride(1),
                             fs[1].stride(0), fs[1].stride(1), int(factors[0][1]), int(factors[1][1]),
                             K, N1, torch.get_num_threads())
         return e
+
+    @staticmethod
+    def _active(active, K):
+        """The trial mask as contiguous bytes (K,), or None (all trials)."""
+        if active is None:
+            return None
+        if active.shape != (K,) or active.dtype is not torch.bool:
+            raise ValueError(f"active: expected a bool tensor of shape ({K},), got {active.dtype} "
+                             f"{tuple(active.shape)}")
+        return active.contiguous().view(torch.uint8)
 
     @staticmethod
     def _buffers(R, W, K, N1, factors) -> bool:
