@@ -484,3 +484,39 @@ def test_tls_kernel_skips_the_trials_that_stopped_with_the_same_solution(variant
     assert torch.equal(skipping.covariance, full.covariance)
     assert torch.equal(skipping.report.status, full.report.status)
     assert torch.equal(skipping.report.iterations, full.report.iterations)
+
+
+def test_tls_kernel_state_through_rejected_steps_matches_generic_gauss_helmert(monkeypatch):
+    # From a bad start (rotations off by up to 2.5 rad, dtau by a factor 2) and little damping,
+    # Levenberg-Marquardt rejects steps far from the solution: the kernel's packed state is then
+    # kept for the running trials that rejected (only; _ChunkState.select).  The generic
+    # Gauss-Helmert layer (no packed state) is the reference, iteration by iteration: a wrong
+    # kept state changes the next residual estimates and steps.
+    from torchsgal.estimation import gauss_helmert, study, tls
+    cfg = study.StudyConfig(trials=12, samples=31, seed=4)
+    trials = study.simulate(cfg)
+    P = trials.problem
+    gen = torch.Generator().manual_seed(5)
+    axis = torch.nn.functional.normalize(torch.randn(12, 3, generator=gen, dtype=torch.float64), dim=-1)
+    delta = torch.zeros(12, 10, dtype=torch.float64)
+    delta[:, 6:9] = axis * torch.linspace(0.1, 2.5, 12, dtype=torch.float64)[:, None]
+    x0 = (trials.F_true.rplus(delta), (2.0 * trials.dtau_true)[:, None])
+    kept = []
+    select = tls._ChunkState.select
+
+    def spy(self, mask, other):
+        kept.append(int((~mask & self.active).sum()) if self.active is not None else 0)
+        return select(self, mask, other)
+    monkeypatch.setattr(tls._ChunkState, "select", spy)
+    for k in (3, 5, 8, 12, 20, 100):
+        kept.clear()
+        c = tls.solve_sgal3(P, x0=x0, variant="iterated", max_iterations=k, damping=1e-10,
+                            straggler_fraction=0.0)
+        ref = gauss_helmert(tls.sgal3_condition(P), x0, P.covariance, variant="iterated",
+                            max_iterations=k, damping=1e-10)
+        assert torch.equal(c.report.iterations, ref.report.iterations), k
+        assert torch.equal(c.report.status, ref.report.status), k
+        sd = ref.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
+        assert (c.x[0].rminus(ref.x[0]) / sd[:, :10]).abs().max() < 1e-9, k
+        assert ((c.x[1] - ref.x[1]) / sd[:, 10:]).abs().max() < 1e-9, k
+    assert bool(c.report.converged.all()) and sum(kept) > 0  # rejected steps, state kept

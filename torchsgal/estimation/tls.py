@@ -298,16 +298,26 @@ def _shared_over_samples(S: torch.Tensor) -> torch.Tensor | None:
 
 class _ChunkState:
     """Per-condition solver state kept in chunks of trials (``slices``), so that no tensor
-    spans the whole batch: large temporaries cost page faults on every allocation."""
+    spans the whole batch: large temporaries cost page faults on every allocation.  ``active``:
+    the trials this state was computed for (None: all); the others' rows are stale, and they
+    are never used again (solver.iterate: a problem that stopped running does not restart)."""
 
-    def __init__(self, slices, parts):
-        self.slices, self.parts = slices, parts
+    def __init__(self, slices, parts, active=None):
+        self.slices, self.parts, self.active = slices, parts, active
 
     def select(self, mask, other):
-        """This state where ``mask``, else ``other``, written into this state's buffers."""
+        """This state where ``mask``, else ``other``, written into this state's buffers (only
+        for the trials it was computed for: the rest are not used)."""
+        keep = ~mask if self.active is None else ~mask & self.active
         for sl, new, old in zip(self.slices, self.parts, other.parts):
+            if new[0].device.type == "cpu":  # copy the kept rows only (no sync on the CPU)
+                idx = keep[sl].nonzero()[:, 0]
+                if idx.numel():
+                    for a, b in zip(new, old):
+                        a.index_copy_(0, idx, b.index_select(0, idx))
+                continue
             for a, b in zip(new, old):
-                torch.where(mask[sl].reshape((-1,) + (1,) * (a.dim() - 1)), a, b, out=a)
+                torch.where(keep[sl].reshape((-1,) + (1,) * (a.dim() - 1)), b, a, out=a)
         return self
 
 
@@ -519,19 +529,21 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
             Gs.append(G)
             parts.append(p)
         G = torch.cat(Gs)
-        return Linearisation(None, None, extra=_ChunkState(slices, parts), H=G[:, :-1, :-1],
+        return Linearisation(None, None, extra=_ChunkState(slices, parts, active), H=G[:, :-1, :-1],
                              g=G[:, :-1, -1], cost=0.5 * G[:, -1, -1])
 
     def post_step(x, e, lin, delta, active=None):
         # e = -Sigma Bm'^T S^-1 (w + A' delta) = -Sigma Bm'^T Li^T (Li w + Li A' delta).
-        out = []
+        out, e_all = [], None  # e_all: the kernel's updates, written in place (no cat)
         d1 = torch.cat([delta, torch.ones_like(delta[:, :1])], -1)[..., None]
         for sl, (R, *extra) in zip(lin.extra.slices, lin.extra.parts):
             K = R.shape[0]
             if R.dim() == 4:  # packed by the C kernel: the same update in C, or unpacked
                 factors = ((per_trial(fa, 3 if da else 4, sl), da), (per_trial(fb, 3 if db else 4, sl), db))
+                if e_all is None:
+                    e_all = torch.empty(Bn, N1, 2 * d, dtype=M.dtype)
                 e_new = kernel.step(R, extra[0], delta[sl], factors, N1,
-                                    None if active is None else active[sl])
+                                    None if active is None else active[sl], out=e_all[sl])
                 if e_new is not None:
                     out.append(e_new)
                     continue
@@ -559,6 +571,8 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
                 ea = torch.cat([ea, (va * yt)[..., None]], -1)
                 eb = torch.cat([eb, (-vb * yt)[..., None]], -1)
             out.append(-torch.cat([ea, eb], -1))
+        if e_all is not None and all(o.data_ptr() == e_all[sl].data_ptr() for o, sl in zip(out, lin.extra.slices)):
+            return e_all
         return torch.cat(out)
 
     # The C kernel skips the trials that are not running (solver.iterate drops their results).

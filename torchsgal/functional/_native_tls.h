@@ -35,6 +35,20 @@
 #define LANE_ALIGN
 #endif
 
+/* dst[0 .. NL) = src: the packed state is written once and read back by the step only, after
+ * every other condition's (more than the caches hold): streaming stores on x86-64 (SSE2, in
+ * every clone) skip reading the lines into the cache first.  dst 16-byte aligned. */
+#if defined(__x86_64__) && defined(__SSE2__)
+#include <emmintrin.h>
+#define LANE_STREAM_FENCE() _mm_sfence()
+static inline void lane_stream(double *dst, const double *src) {
+    for (int l = 0; l < NL; l += 2) _mm_stream_pd(dst + l, _mm_loadu_pd(src + l));
+}
+#else
+#define LANE_STREAM_FENCE() ((void)0)
+static inline void lane_stream(double *dst, const double *src) { memcpy(dst, src, NL * sizeof(double)); }
+#endif
+
 /* Ad(X^-1), Ad(T^-n) and J_r are block upper-triangular over [rho, nu, phi, iota], so row i of
  * Ga and Gb can be non-zero in the columns [LO[i], HI[i]) only; W's row i in [lo_h(i), HI[i])
  * (a lower factor R mixes the columns below HI[i]). */
@@ -348,25 +362,27 @@ WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
                     LANES la[i][l] += Li[i][j][l] * a[j];
                     LANES lw[i][l] += Li[i][j][l] * c[j][l];
                 }
+            double Rl[75][NL] LANE_ALIGN;
             for (int i = 0, p = 0; i < 10; ++i) {
-                for (int j = 0; j <= i; ++j, ++p) LANES Rp[p][l] = Li[i][j][l];
-                LANES Rp[55 + i][l] = na[l] * la[i][l];
-                LANES Rp[65 + i][l] = lw[i][l];
+                for (int j = 0; j <= i; ++j, ++p) LANES Rl[p][l] = Li[i][j][l];
+                LANES Rl[55 + i][l] = na[l] * la[i][l];
+                LANES Rl[65 + i][l] = lw[i][l];
             }
+            for (int p = 0; p < 75; ++p) lane_stream(Rp[p], Rl[p]);
             for (int h = 0; h < 2; ++h)
                 for (int i = 0; i < 10; ++i)
-                    for (int j = wlo[h][i], p = woff[h][i]; j < TLS_HI[i]; ++j, ++p) LANES Wp[p][l] = W[i][10 * h + j][l];
+                    for (int j = wlo[h][i], p = woff[h][i]; j < TLS_HI[i]; ++j, ++p) lane_stream(Wp[p], W[i][10 * h + j]);
             for (int l = 0; l < nl; ++l) A->info[k * N1 + n0 + l] = info[l];
             /* G += rows^T rows (upper triangle; row r of Li is zero beyond column r), the
              * repeated lanes zeroed */
             for (int r = 0, p0 = 0; r < 10; p0 += ++r) {
                 double ra[NL] LANE_ALIGN, rw[NL] LANE_ALIGN;
-                LANES ra[l] = l < nl ? Rp[55 + r][l] : 0.0;
-                LANES rw[l] = l < nl ? Rp[65 + r][l] : 0.0;
+                LANES ra[l] = l < nl ? Rl[55 + r][l] : 0.0;
+                LANES rw[l] = l < nl ? Rl[65 + r][l] : 0.0;
                 for (int i = 0; i <= r; ++i) {
                     double ri[NL] LANE_ALIGN;
-                    LANES ri[l] = l < nl ? Rp[p0 + i][l] : 0.0;
-                    for (int j = i; j <= r; ++j) LANES G[i][j][l] += ri[l] * Rp[p0 + j][l];
+                    LANES ri[l] = l < nl ? Rl[p0 + i][l] : 0.0;
+                    for (int j = i; j <= r; ++j) LANES G[i][j][l] += ri[l] * Rl[p0 + j][l];
                     LANES G[i][10][l] += ri[l] * ra[l];
                     LANES G[i][11][l] += ri[l] * rw[l];
                 }
@@ -384,6 +400,7 @@ WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
                 Gk[12 * j + i] = acc;
             }
     }
+    LANE_STREAM_FENCE();  /* the streamed state, visible before the threads join */
 }
 
 /* The residual update of post_step: e = -[Ra (W_a^T y), Rb (W_b^T y)] with y = Li^T (R [dx, 1])

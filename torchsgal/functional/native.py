@@ -241,10 +241,11 @@ class _TlsKernels:
         return G, info
 
     @staticmethod
-    def step(R, W, dx, factors, N1: int, active=None):
+    def step(R, W, dx, factors, N1: int, active=None, out=None):
         """post_step's residual update e (K, N1, 20) = -Sigma Bm'^T Li^T (R [dx, 1]) from the
         packed R and W of ``linearise`` and dx (K, 11); None where the kernel may not run.
-        active (K,) bool or None (all): the trials to update; the others get e = 0."""
+        active (K,) bool or None (all): the trials to update; the others get e = 0.  out: a
+        contiguous float64 (K, N1, 20) to write e into (else a new tensor)."""
         K = R.shape[0]
         args = [R, W, dx] + [f for f, _ in factors]
         if not (R.dtype is torch.float64 and _eligible(args) and _TlsKernels._buffers(R, W, K, N1, factors)
@@ -255,7 +256,8 @@ class _TlsKernels:
             return None
         dx = _data(dx)
         active = _TlsKernels._active(active, K)
-        e = torch.empty(K, N1, 20, dtype=torch.float64)
+        e = out if out is not None and out.shape == (K, N1, 20) and out.dtype is torch.float64 \
+            and out.is_contiguous() and out.device.type == "cpu" else torch.empty(K, N1, 20, dtype=torch.float64)
         _lib.tls_sgal3_step(R.data_ptr(), W.data_ptr(), dx.data_ptr(), fs[0].data_ptr(),
                             fs[1].data_ptr(), e.data_ptr(), 0 if active is None else active.data_ptr(),
                             fs[0].stride(0), fs[0].stride(1),
