@@ -213,6 +213,13 @@ static inline void tls_condition_lane(const tls_args_t *A, int64_t k, int64_t q,
     for (int i = 0; i < 10; ++i) c[i][l] = cl[i];
 }
 
+/* S[p, q] += W[p, col] W[q, col] for q <= p < n (rows 0 .. n-1 of the column; n constant where
+ * it is called, so that the loops unroll). */
+static inline void s_outer_leading(double (*S)[10][NL], double (*W)[20][NL], int col, const int n) {
+    for (int p = 0; p < n; ++p)
+        for (int q = 0; q <= p; ++q) LANES S[p][q][l] += W[p][col][l] * W[q][col][l];
+}
+
 /* Lane l of the covariance factor of condition (k, n): 10 or 100 entries. */
 static inline void tls_factor_lane(const double *f, int64_t fk, int64_t fn, int diag, int64_t k, int64_t n,
                                    double (*out)[NL], int l) {
@@ -321,10 +328,18 @@ WIDE_LOOPS static void tls_range(void **pa, int64_t lo, int64_t hi) {
             memset(S, 0, sizeof S);
             for (int h = 0; h < 2; ++h)
                 for (int m = 0; m < 10; ++m) {
-                    const int *r = rows[h][m], nr = nrows[h][m];
-                    for (int p = 0; p < nr; ++p)
-                        for (int q = 0; q <= p; ++q)
-                            LANES S[r[p]][r[q]][l] += W[r[p]][10 * h + m][l] * W[r[q]][10 * h + m][l];
+                    const int *r = rows[h][m], nr = nrows[h][m], col = 10 * h + m;
+                    if (nr == 3 && r[2] == 2) {  /* rows 0-2, 0-5, 0-8 (the diagonal factors' columns) */
+                        s_outer_leading(S, W, col, 3);
+                    } else if (nr == 6 && r[5] == 5) {
+                        s_outer_leading(S, W, col, 6);
+                    } else if (nr == 9 && r[8] == 8) {
+                        s_outer_leading(S, W, col, 9);
+                    } else {
+                        for (int p = 0; p < nr; ++p)
+                            for (int q = 0; q <= p; ++q)
+                                LANES S[r[p]][r[q]][l] += W[r[p]][col][l] * W[r[q]][col][l];
+                    }
                 }
             /* S = L L^T and Li = L^-1 (_small_linalg.cholesky_t / tril_inverse_t): info = the
              * first failing pivot (<= 0 or NaN), 1-based, 0 if none; non-finite from there on.

@@ -14,13 +14,16 @@ They are used by ``functional.sgal3.exp``/``log`` (and so ``SGal3.exp``, ``g.log
 (``unobserved``: plain CPU tensors, nothing recording autograd, no torch.func transform, not
 compiling) and every argument has the same batch shape; everywhere else, and on other devices,
 the tensor code runs.  Batches of at least 16,384 elements are split over
-``torch.get_num_threads()`` threads.
+``torch.get_num_threads()`` threads: torch's own OpenMP threads where torch runs on OpenMP
+(``parallel_backend()`` of the module says "openmp"; fresh threads would compete with their
+spin-wait after torch's last parallel operation), else POSIX threads
+(``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
 
 ``kernels("imu")`` preintegrates IMU windows (``torchsgal.imu.preintegrate``'s CPU fast path,
 docs/imu.md): the increment and the node sums of its covariance and bias Jacobian, one window
 per loop, in double precision.  ``kernels("tls")`` linearises the SGal(3) total-least-squares
 conditions and updates their residuals (``torchsgal.estimation.tls._structured``, float64,
-docs/estimation.md).
+docs/estimation.md), four conditions at a time, keeping its per-condition state packed.
 
 The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
 (``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment, or the ``disabled()``
