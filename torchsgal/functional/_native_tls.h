@@ -11,10 +11,10 @@
  *   S   = W W^T = L L^T,  Li = L^-1,  rows [Li, n Li a, Li w],  G_k += rows^T rows.
  *
  * Conditions run NL at a time ("lanes", conditions n0 .. n0 + NL - 1 of one trial; a trial's
- * last block repeats its last condition): the group maths (exp, log, J_r) one condition at a
- * time into lane l of structure-of-arrays blocks, the linear algebra on all lanes at once (the
- * innermost loops over l vectorise; no sum runs across lanes until G's lanes are added at the
- * end of the trial).  What the residual update needs is kept in that layout, packed (only the
+ * last block repeats its last condition): exp and log one condition at a time into lane l of
+ * structure-of-arrays blocks, J_r and the linear algebra on all lanes at once (the innermost
+ * loops over l vectorise; no sum runs across lanes until G's lanes are added at the end of the
+ * trial).  What the residual update needs is kept in that layout, packed (only the
  * entries that can be non-zero), per trial and block of lanes, each entry's NL lanes together:
  *
  *   R (K, NB, 75, NL):  Li's lower triangle by rows (55), n Li a (10), Li w (10)

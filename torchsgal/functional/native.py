@@ -282,7 +282,8 @@ class _TlsKernels:
     def _buffers(R, W, K, N1, factors) -> bool:
         shapes = _TlsKernels.shapes(K, N1, bool(factors[0][1]), bool(factors[1][1]))
         return (R.is_contiguous() and W.is_contiguous() and not R.is_neg() and not W.is_neg()
-                and R.dtype is W.dtype is torch.float64 and (R.shape, W.shape) == shapes)
+                and R.dtype is W.dtype is torch.float64 and (R.shape, W.shape) == shapes
+                and R.data_ptr() % 16 == 0 and W.data_ptr() % 16 == 0)  # streaming stores
 
     @staticmethod
     def _factors(factors, K, N1):
