@@ -160,17 +160,22 @@ print(native._lib.parallel_backend(), hashlib.sha256(out.numpy().tobytes()).hexd
 def test_large_batches_run_on_torchs_openmp_threads_or_on_pthreads_alike():
     # Where torch runs on OpenMP its threads take the split batches (they would otherwise
     # spin-wait beside fresh pthreads); TORCHSGAL_NATIVE_OPENMP=0 keeps pthreads.  Same bits.
+    import hashlib
     expected = ("none" if sys.platform == "win32" else "openmp"
                 if "ATen parallel backend: OpenMP" in torch.__config__.parallel_info() else "pthreads")
-    runs = {}
-    for flag in ("1", "0"):
-        env = dict(os.environ, TORCHSGAL_NATIVE_OPENMP=flag)
-        out = subprocess.run([sys.executable, "-c", _SPLIT_EXP], env=env, capture_output=True,
-                             text=True, check=True).stdout.split()
-        runs[flag] = out
-    assert runs["1"][0] == expected == native._lib.parallel_backend()
-    assert runs["0"][0] == ("none" if sys.platform == "win32" else "pthreads")
-    assert runs["1"][1] == runs["0"][1]
+    assert native._lib.parallel_backend() == expected
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        xi = torch.randn(40000, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        here = hashlib.sha256(KERNELS.exp(xi).numpy().tobytes()).hexdigest()
+    finally:
+        torch.set_num_threads(before)
+    env = dict(os.environ, TORCHSGAL_NATIVE_OPENMP="0")
+    backend, digest = subprocess.run([sys.executable, "-c", _SPLIT_EXP], env=env, capture_output=True,
+                                     text=True, check=True).stdout.split()
+    assert backend == ("none" if sys.platform == "win32" else "pthreads")
+    assert digest == here
 
 
 class _Recorder:
