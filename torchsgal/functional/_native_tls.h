@@ -91,8 +91,9 @@ static inline void tls_compose(const double *A, const double *B, double *O) {
     O[20] = 0; O[21] = 0; O[22] = 0; O[23] = 0; O[24] = 1;
 }
 
-/* jl_matrix_one of _native_sgal3.h on lanes: the same operations in the same order (a lane of
- * a vector operation rounds as the scalar one), the series coefficients one lane at a time. */
+/* J_l (3.21)-(3.23) on lanes, a transcription of sgal3._jl_blocks and blocks.gamma_vec_derivative
+ * (the same operations in the same order; a lane of a vector operation rounds as a scalar one),
+ * with the series coefficients of _native_sgal3.h one lane at a time. */
 static inline void lane_cross(double (*u)[NL], double (*v)[NL], double (*o)[NL]) {
     LANES o[0][l] = u[1][l] * v[2][l] - u[2][l] * v[1][l];
     LANES o[1][l] = u[2][l] * v[0][l] - u[0][l] * v[2][l];
@@ -145,7 +146,7 @@ static inline void lane_skew_times_add(double (*x)[NL], double (*M)[NL], double 
 }
 
 /* J_l(xi) (3.21)-(3.23) of the lanes' xi (10 x NL) into J (100 x NL): the entries of the
- * block pattern only (jl_matrix_one with zero = 0). */
+ * block pattern only: the others are left as they are (zeros, set once by tls_range). */
 static void lane_jl(double (*xi)[NL], double (*J)[NL]) {
     double (*rho)[NL] = xi, (*nu)[NL] = xi + 3, (*phi)[NL] = xi + 6, *iota = xi[9];
     double c[7][NL] LANE_ALIGN;
