@@ -6,7 +6,8 @@
  * ~170 dispatched tensor operations, so small batches no longer pay torch's per-operation
  * overhead.  No torch headers: the Python side passes data pointers of contiguous CPU tensors
  * it allocated and checked.  The constants (thresholds, series) are set once from numerics.py,
- * which stays their only source.  Large batches are split over threads (pthreads).
+ * which stays their only source.  Large batches are split over threads (torch's OpenMP threads
+ * where its runtime is loaded, else pthreads: run_parallel).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
