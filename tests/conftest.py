@@ -15,6 +15,11 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import torchsgal as ts  # noqa: E402
 
+# Under pytest-xdist each worker takes its share of the cores, so that the workers' torch threads
+# do not outnumber them (oversubscribed OpenMP threads spin against each other).
+if os.environ.get("PYTEST_XDIST_WORKER_COUNT") and not os.environ.get("OMP_NUM_THREADS"):
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
+
 GROUP_CLASSES = list(ts.ALL_GROUPS)
 BATCH_SHAPES = [(), (5,), (2, 3, 1)]
 DTYPES = [torch.float64, torch.float32]
