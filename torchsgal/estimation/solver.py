@@ -36,6 +36,8 @@ class SolverStatus(enum.IntEnum):
     NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start (costs NaN)
     SINGULAR = 4  # the information J^T J is singular at the solution (unobservable directions);
     # takes precedence over CONVERGED / MAX_ITERATIONS / DIVERGED, and the covariance is NaN
+    CONVERGED_RANK_DEFICIENT = 5  # converged (graph solvers), but the information is singular
+    # (a gauge freedom or unobserved directions): the estimate is one of many, covariances NaN
 
 
 @dataclass

@@ -1,0 +1,42 @@
+"""Factor graphs: batched nonlinear least squares over group and Euclidean variables.
+
+A problem is a ``FactorGraph`` of named variables, each a block of N group elements (any of
+``torchsgal.ALL_GROUPS``) or Euclidean vectors, optionally for a batch of B independent
+problems of one structure, and factors.  A factor type's residual is written once, for one
+factor, on group elements; the engine evaluates all factors of a type together (the group
+operations broadcast over the batch (B, E)) and differentiates them with respect to right
+perturbations ``x exp(d)`` by forward-mode autodiff, or uses the type's analytic Jacobians.
+
+    import torchsgal as ts
+    from torchsgal.estimation import graph as fg
+
+    graph = fg.FactorGraph()
+    graph.add_variable("x", poses)                            # SE3 of batch (N,) or (B, N)
+    graph.add(fg.Prior("x", 0, Z0, information=W0))            # Z0 of batch (1,) or (B, 1)
+    graph.add(fg.Between("x", i, j, Z, information=W))          # i, j int64 (E,), Z (E,)/(B, E)
+    graph.add(fg.Factor(residual, variables=[("x", i), ("x", j)], data=[Z], dim=6),
+              loss=fg.Huber(1.0))
+    result = fg.levenberg_marquardt(graph, max_iterations=100)
+    result.values["x"]                # same form as given
+    result.report.status              # (B,) SolverStatus codes; .iterations, .cost, ...
+    result.marginal_covariance("x", idx)   # (B, K, dof, dof) Laplace covariances
+
+Conventions: residuals r = log(Z^-1 h(x)), cost 1/2 sum rho(|L r|^2) (``rho(s) = s`` for the
+plain loss, so 1/2 r^T W r as GTSAM's ``error``), noise as information W or square-root
+information L (W = L^T L), shared or per factor.  The solvers follow GTSAM's
+``LevenbergMarquardtOptimizer`` (``levenberg_marquardt``) and ``GaussNewtonOptimizer``
+(``gauss_newton``) with GTSAM's defaults; a problem whose information is singular at the
+solution (a gauge freedom: no prior) reports ``SolverStatus.CONVERGED_RANK_DEFICIENT``.
+
+Modules: ``factors`` (Factor, Prior, Between, PointObservation), ``robust`` (losses),
+``graph`` (FactorGraph), ``linearize`` (evaluation and assembly of the normal equations),
+``levenberg_marquardt`` (the solvers and ``GraphResult``).
+"""
+from .factors import Between, Factor, PointObservation, Prior
+from .graph import FactorGraph
+from .levenberg_marquardt import GraphResult, gauss_newton, levenberg_marquardt
+from .robust import Cauchy, GemanMcClure, Huber, RobustLoss, TrivialLoss, Tukey
+
+__all__ = ["FactorGraph", "Factor", "Prior", "Between", "PointObservation", "RobustLoss",
+           "TrivialLoss", "Huber", "Cauchy", "GemanMcClure", "Tukey", "levenberg_marquardt",
+           "gauss_newton", "GraphResult"]

@@ -1,0 +1,108 @@
+"""``FactorGraph``: named variables (group elements or Euclidean vectors, N elements each,
+optionally for a batch of B independent problems) and factors (``factors.Factor``)."""
+from __future__ import annotations
+
+import torch
+
+from ...functional import checks
+from ...groups import LieGroup
+from .factors import Factor
+from .robust import RobustLoss
+
+__all__ = ["FactorGraph"]
+
+
+class FactorGraph:
+    """A nonlinear least-squares problem, or a batch of B independent ones of one structure.
+
+    ``add_variable(name, value)``: a group element of batch (N,) or (B, N), or a tensor (N, k)
+    or (B, N, k) (Euclidean, additive updates).  All batched variables share B; an unbatched
+    variable is shared as the initial value of every problem.
+    ``add(factor, loss=None)``: a ``Factor`` (``Prior``, ``Between``, ``PointObservation`` or
+    a user ``Factor``); ``loss`` overrides the factor's robust loss.
+
+    The graph holds references to the tensors given (it never modifies them); the solvers
+    return new values.
+    """
+
+    def __init__(self) -> None:
+        self.variables: dict[str, LieGroup | torch.Tensor] = {}
+        self.factors: list[Factor] = []
+        self._batch: int | None = None
+
+    # ------------------------------------------------------------------ building
+    def add_variable(self, name: str, value: LieGroup | torch.Tensor) -> None:
+        """Adds the variable ``name`` with its initial value (see the class docstring)."""
+        if not isinstance(name, str) or not name:
+            raise TypeError(f"name must be a non-empty str, got {name!r}")
+        if name in self.variables:
+            raise ValueError(f"variable {name!r} is already in the graph")
+        if isinstance(value, LieGroup):
+            nd = len(value.batch_shape)
+            if nd not in (1, 2):
+                raise ValueError(f"variable {name!r}: a group element of batch (N,) or (B, N), "
+                                 f"got batch {tuple(value.batch_shape)}")
+            batch = value.batch_shape[0] if nd == 2 else None
+        elif isinstance(value, torch.Tensor):
+            checks.floating(value, name)
+            if value.dim() not in (2, 3):
+                raise ValueError(f"variable {name!r}: a tensor (N, k) or (B, N, k), got shape "
+                                 f"{tuple(value.shape)}")
+            batch = value.shape[0] if value.dim() == 3 else None
+        else:
+            raise TypeError(f"variable {name!r}: expected a group element or a tensor, got "
+                            f"{type(value).__name__}")
+        if batch is not None:
+            if self._batch is not None and batch != self._batch:
+                raise ValueError(f"variable {name!r}: batch of {batch} problems, but the graph's "
+                                 f"other variables have {self._batch}")
+            self._batch = batch
+        first = next(iter(self.variables.values()), None)
+        if first is not None:
+            checks.same_device_dtype(**{"first variable": _leaf(first), name: _leaf(value)})
+        self.variables[name] = value
+
+    def add(self, factor: Factor, loss: RobustLoss | None = None) -> None:
+        """Adds a ``Factor`` (its variables must already be in the graph); ``loss`` (a
+        ``RobustLoss``) replaces the factor's own."""
+        if not isinstance(factor, Factor):
+            raise TypeError(f"factor must be a Factor, got {type(factor).__name__}")
+        if loss is not None:
+            if not isinstance(loss, RobustLoss):
+                raise TypeError(f"loss must be a RobustLoss or None, got {type(loss).__name__}")
+            factor.loss = loss
+        for name, idx in factor.slots:
+            if name not in self.variables:
+                raise KeyError(f"factor {factor!r} reads variable {name!r}, which is not in the "
+                               f"graph (add_variable first)")
+            n = self.size(name)
+            if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= n):
+                raise IndexError(f"factor {factor!r}: indices of {name!r} must be in [0, {n}), "
+                                 f"got [{int(idx.min())}, {int(idx.max())}]")
+        self.factors.append(factor)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def batch_size(self) -> int | None:
+        """B, or None for one unbatched problem."""
+        return self._batch
+
+    def size(self, name: str) -> int:
+        """N, the number of elements of the variable ``name``."""
+        v = self.variables[name]
+        return v.batch_shape[-1] if isinstance(v, LieGroup) else v.shape[-2]
+
+    def dof(self, name: str) -> int:
+        """The tangent size of one element of the variable ``name``."""
+        v = self.variables[name]
+        return v.dof if isinstance(v, LieGroup) else v.shape[-1]
+
+    def __repr__(self) -> str:
+        vs = ", ".join(f"{n}: {type(v).__name__ if isinstance(v, LieGroup) else 'R^' + str(v.shape[-1])}"
+                       f" x {self.size(n)}" for n, v in self.variables.items())
+        return (f"FactorGraph(B={self._batch}, variables [{vs}], "
+                f"{sum(f.size for f in self.factors)} factors in {len(self.factors)} blocks)")
+
+
+def _leaf(value) -> torch.Tensor:
+    return value.as_matrix() if isinstance(value, LieGroup) else value

@@ -1,0 +1,279 @@
+"""Evaluation and linearisation of a ``FactorGraph`` for a batch of problems.
+
+``Problem`` fixes the layout once: the variables' order and offsets in the stacked tangent
+vector (variable-major, element-major: element n of variable v at ``offset_v + n dof_v``),
+each factor block's data and noise with a problem axis, and the flat indices that scatter
+every factor's Jacobian blocks ``J_a^T J_b`` into the (D x D) normal equations and ``J_a^T r``
+into the gradient.  ``linearize`` evaluates all factors of a block together, whitens, applies
+the robust loss (``robust.correct``) and assembles H = sum J~^T J~, g = sum J~^T r~ with one
+``index_add_`` each; ``H`` may be dense (B, D, D) or the values of a sparse lower-triangular
+pattern (for ``SparseCholesky``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ...groups import LieGroup
+from .factors import Factor
+from .graph import FactorGraph
+from .robust import correct
+
+
+@dataclass
+class VariableInfo:
+    name: str
+    group: type | None  # LieGroup subclass, or None for Euclidean
+    size: int  # N
+    dof: int
+    offset: int
+
+
+@dataclass
+class Block:
+    """One factor object, prepared: per slot (variable position, indices), its data with a
+    problem axis or shared, its square-root information (or None), its scatter indices."""
+
+    factor: Factor
+    slots: list[tuple[int, torch.Tensor]]
+    data: list  # tensors / group elements
+    data_batched: list[bool]
+    sqrt_info: torch.Tensor | None  # (m, m), (E, m, m) or (B, E, m, m)
+    sqrt_info_batched: bool
+    dofs: list[int]
+    h_index: torch.Tensor  # (E * Dk * Dk,) into the flat (D * D) matrix
+    g_index: torch.Tensor  # (E * Dk,) into the (D,) gradient
+
+
+class Problem:
+    """The fixed layout of a graph; ``select(rows)`` gives the same problem for a subset of
+    the batch (the active set of the solvers)."""
+
+    def __init__(self, graph: FactorGraph):
+        if not graph.variables:
+            raise ValueError("the graph has no variables")
+        if not graph.factors:
+            raise ValueError("the graph has no factors")
+        first = next(iter(graph.variables.values()))
+        leaf = first.as_matrix() if isinstance(first, LieGroup) else first
+        self.dtype, self.device = leaf.dtype, leaf.device
+        self.batched = graph.batch_size is not None
+        self.B = graph.batch_size or 1
+        self.variables: list[VariableInfo] = []
+        offset = 0
+        for name, v in graph.variables.items():
+            group = type(v)._group if isinstance(v, LieGroup) else None
+            info = VariableInfo(name, group, graph.size(name), graph.dof(name), offset)
+            offset += info.size * info.dof
+            self.variables.append(info)
+        self.D = offset
+        self.index = {v.name: k for k, v in enumerate(self.variables)}
+        self.blocks = [self._block(f) for f in graph.factors]
+        self.h_index = torch.cat([b.h_index for b in self.blocks])  # (nnz,) flat into (D * D)
+        self.g_index = torch.cat([b.g_index for b in self.blocks])
+
+    def _block(self, factor: Factor) -> Block:
+        E, B = factor.size, self.B
+        slots, dofs, starts = [], [], []
+        for name, idx in factor.slots:
+            k = self.index[name]
+            info = self.variables[k]
+            idx = idx.to(self.device)
+            slots.append((k, idx))
+            dofs.append(info.dof)
+            # (E, dof) positions of each slot's tangent in the stacked vector
+            starts.append(info.offset + idx[:, None] * info.dof
+                          + torch.arange(info.dof, device=self.device))
+        pos = torch.cat(starts, dim=1)  # (E, Dk)
+        h_index = (pos[:, :, None] * self.D + pos[:, None, :]).reshape(-1)
+        data, batched = [], []
+        for k, d in enumerate(factor.data):
+            leaf = d.as_matrix() if isinstance(d, LieGroup) else d
+            if leaf.device != self.device or leaf.dtype != self.dtype:
+                raise ValueError(f"{factor!r} data[{k}]: expected {self.dtype} on {self.device}, "
+                                 f"got {leaf.dtype} on {leaf.device}")
+            nb = len(d.batch_shape) if isinstance(d, LieGroup) else None
+            if nb is not None:
+                per_problem = nb == 2
+                shape_ok = tuple(d.batch_shape) in ((E,), (B, E), (1,), (B, 1))
+            else:
+                per_problem = self.batched and leaf.dim() >= 2 and tuple(leaf.shape[:2]) == (B, E)
+                shape_ok = leaf.dim() >= 1 and leaf.shape[0] in (E, 1) or per_problem
+            if not shape_ok:
+                shape = tuple(d.batch_shape) if nb is not None else tuple(leaf.shape)
+                raise ValueError(f"{factor!r} data[{k}]: expected a leading batch (E,) = ({E},) "
+                                 f"or (B, E) = ({B}, {E}), got {shape}")
+            if per_problem:
+                d = _expand_problem(d, B)
+            data.append(d)
+            batched.append(per_problem)
+        L, L_batched = self._noise(factor)
+        return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1))
+
+    def _noise(self, factor: Factor) -> tuple[torch.Tensor | None, bool]:
+        W, L = factor.information, factor.sqrt_information
+        if W is None and L is None:
+            return None, False
+        given = W if W is not None else L
+        name = "information" if W is not None else "sqrt_information"
+        m = factor.dim
+        if not isinstance(given, torch.Tensor) or given.dim() not in (2, 3, 4) or (
+                m is not None and given.shape[-2:] != (m, m)):
+            raise ValueError(f"{factor!r} {name}: expected (m, m), (E, m, m) or (B, E, m, m) "
+                             f"with m = {m}, got {getattr(given, 'shape', type(given).__name__)}")
+        if given.dtype != self.dtype or given.device != self.device:
+            raise ValueError(f"{factor!r} {name}: expected {self.dtype} on {self.device}, got "
+                             f"{given.dtype} on {given.device}")
+        if given.dim() == 3 and given.shape[0] not in (factor.size, 1):
+            raise ValueError(f"{factor!r} {name}: leading size must be E = {factor.size}, got "
+                             f"{given.shape[0]}")
+        if given.dim() == 4 and tuple(given.shape[:2]) not in ((self.B, factor.size), (self.B, 1)):
+            raise ValueError(f"{factor!r} {name}: leading sizes must be (B, E) = "
+                             f"({self.B}, {factor.size}), got {tuple(given.shape[:2])}")
+        if not torch.isfinite(given).all():
+            raise ValueError(f"{factor!r} {name} has non-finite entries")
+        if W is not None:
+            C, info = torch.linalg.cholesky_ex(W)
+            if bool((info != 0).any()):
+                raise ValueError(f"{factor!r} information must be symmetric positive definite")
+            L = C.mT  # W = C C^T = L^T L
+        return L, L.dim() == 4
+
+    def select(self, rows: torch.Tensor) -> "Problem":
+        """The same problems restricted to the batch rows ``rows`` (int64)."""
+        new = object.__new__(Problem)
+        new.__dict__.update(self.__dict__)
+        new.B = rows.numel()
+        new.blocks = []
+        for b in self.blocks:
+            data = [_take(d, rows) if p else d for d, p in zip(b.data, b.data_batched)]
+            L = b.sqrt_info.index_select(0, rows) if b.sqrt_info_batched else b.sqrt_info
+            new.blocks.append(Block(b.factor, b.slots, data, b.data_batched, L,
+                                    b.sqrt_info_batched, b.dofs, b.h_index, b.g_index))
+        return new
+
+    # ------------------------------------------------------------------ values
+    def initial(self, graph: FactorGraph) -> list[torch.Tensor]:
+        """The variables' values as tensors (B, N, n, n) or (B, N, k), in layout order."""
+        out = []
+        for info in self.variables:
+            v = graph.variables[info.name]
+            leaf = v.as_matrix() if isinstance(v, LieGroup) else v
+            nd = 4 if info.group is not None else 3
+            if leaf.dim() < nd:
+                leaf = leaf.unsqueeze(0)
+            out.append(leaf.expand((self.B,) + leaf.shape[1:]).clone())
+        return out
+
+    def retract(self, x: list[torch.Tensor], delta: torch.Tensor) -> list[torch.Tensor]:
+        """x exp(delta) for group variables, x + delta for Euclidean ones; delta (B, D)."""
+        out = []
+        for info, xv in zip(self.variables, x):
+            d = delta[:, info.offset:info.offset + info.size * info.dof].reshape(
+                xv.shape[0], info.size, info.dof)
+            if info.group is None:
+                out.append(xv + d)
+            else:
+                out.append(xv @ info.group._f.exp(d))
+        return out
+
+    def wrap(self, k: int, leaf: torch.Tensor):
+        info = self.variables[k]
+        return leaf if info.group is None else info.group._from_leaf(leaf)
+
+
+def _expand_problem(d, B: int):
+    """Data with a problem axis of size 1 expanded to B (a view)."""
+    if isinstance(d, LieGroup):
+        m = d.as_matrix()
+        return type(d)._from_leaf(m.expand((B,) + m.shape[1:]))
+    return d.expand((B,) + d.shape[1:])
+
+
+def _take(d, rows: torch.Tensor):
+    if isinstance(d, LieGroup):
+        return type(d)._from_leaf(d.as_matrix().index_select(0, rows))
+    return d.index_select(0, rows)
+
+
+@dataclass
+class Linearization:
+    """values (B, nnz) of the normal equations' entries at ``Problem.h_index`` (duplicates
+    summed: ``dense`` gives H (B, D, D)), g (B, D), cost (B,) = 1/2 sum rho(s), model_cost (B,)
+    = 1/2 |r~|^2 (the linear model's error at zero); None where only costs were asked."""
+
+    values: torch.Tensor | None
+    g: torch.Tensor | None
+    cost: torch.Tensor
+    model_cost: torch.Tensor | None
+
+
+def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jacobian: bool):
+    """r (B, E, m) and, if asked, J (B, E, m, Dk) with respect to the slots' perturbations."""
+    f = block.factor
+    elements = [problem.wrap(k, a) for (k, _), a in zip(block.slots, args)]
+    if not want_jacobian:
+        return f.residual(*elements, *block.data), None
+    if f.jacobians is not None:
+        r, Js = f.jacobians(*elements, *block.data)
+        return r, torch.cat([J.expand(r.shape + J.shape[-1:]) for J in Js], dim=-1)
+    # forward mode: tangent of slot k along basis direction j is X hat(e_j) (right perturbation)
+    tangents, Dk, start = [], sum(block.dofs), 0
+    for (k, _), a, dof in zip(block.slots, args, block.dofs):
+        info = problem.variables[k]
+        eye = torch.eye(dof, dtype=a.dtype, device=a.device)
+        if info.group is None:
+            basis = eye.reshape((dof,) + (1,) * (a.dim() - 1) + (dof,)).expand((dof,) + a.shape)
+        else:
+            basis = a.unsqueeze(0) @ info.group._f.hat(eye).reshape(
+                (dof,) + (1,) * (a.dim() - 2) + a.shape[-2:])
+        t = a.new_zeros((Dk,) + a.shape)
+        t[start:start + dof] = basis
+        tangents.append(t)
+        start += dof
+
+    def fn(*leaves):
+        return f.residual(*[problem.wrap(k, a) for (k, _), a in zip(block.slots, leaves)],
+                          *block.data)
+
+    def column(*ts):
+        return torch.func.jvp(fn, tuple(args), ts)
+
+    r_all, dr = torch.func.vmap(column, out_dims=(None, 0))(*tangents)
+    return r_all, dr.movedim(0, -1)
+
+
+def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = True
+              ) -> Linearization:
+    """Costs (B,) and, with ``want_jacobian``, the normal equations at x (dense H)."""
+    B, D = x[0].shape[0], problem.D
+    cost = x[0].new_zeros(B)
+    h_vals, g_vals = [], []
+    model = x[0].new_zeros(B) if want_jacobian else None
+    for block in problem.blocks:
+        args = [x[k].index_select(1, idx) for k, idx in block.slots]
+        r, J = _residual_and_jacobian(problem, block, args, want_jacobian)
+        E = block.h_index.numel() // (sum(block.dofs) ** 2)
+        r = r.expand((B, E) + r.shape[-1:])
+        if block.sqrt_info is not None:
+            L = block.sqrt_info
+            r = (L @ r.unsqueeze(-1)).squeeze(-1)
+            J = None if J is None else L @ J
+        r, J, rho = correct(block.factor.loss, r, J)
+        cost = cost + 0.5 * rho.sum(dim=-1)
+        if want_jacobian:
+            J = J.expand((B, E) + J.shape[-2:])
+            model = model + 0.5 * (r * r).sum(dim=(-1, -2))
+            h_vals.append((J.mT @ J).reshape(B, -1))
+            g_vals.append((J.mT @ r.unsqueeze(-1)).reshape(B, -1))
+    if not want_jacobian:
+        return Linearization(None, None, cost, None)
+    g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, torch.cat(g_vals, dim=1))
+    return Linearization(torch.cat(h_vals, dim=1), g, cost, model)
+
+
+def dense(problem: Problem, values: torch.Tensor) -> torch.Tensor:
+    """H (B, D, D) from the entries (B, nnz) of ``linearize``."""
+    B, D = values.shape[0], problem.D
+    return values.new_zeros(B, D * D).index_add_(1, problem.h_index, values).reshape(B, D, D)
