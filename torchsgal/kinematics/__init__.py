@@ -1,5 +1,12 @@
-"""Serial manipulators as Generalised Denavit-Hartenberg chains of extended poses (SE_2(3))."""
+"""Serial manipulators: chains from URDF, DH tables and pytorch-kinematics (pose, velocity,
+acceleration, Jacobians as products of extended poses), GDH chains, and inverse kinematics."""
+from .chain import CONTINUOUS, ChainState, Joint, KinematicChain
 from .gdh import PRISMATIC, REVOLUTE, GDHChain, GDHState
-from .robots import iiwa7, scara, ur5
+from .ik import IKResult, inverse_kinematics
+from .robots import URDF_ROBOTS, iiwa7, load_robot, panda, robot_urdf, scara, ur5
+from .urdf import example_robot_data_dir, from_pk, from_urdf, parse_urdf
 
-__all__ = ["GDHChain", "GDHState", "REVOLUTE", "PRISMATIC", "scara", "ur5", "iiwa7"]
+__all__ = ["GDHChain", "GDHState", "REVOLUTE", "PRISMATIC", "CONTINUOUS", "scara", "ur5", "iiwa7",
+           "KinematicChain", "ChainState", "Joint", "from_urdf", "from_pk", "parse_urdf",
+           "load_robot", "panda", "robot_urdf", "URDF_ROBOTS", "example_robot_data_dir",
+           "inverse_kinematics", "IKResult"]

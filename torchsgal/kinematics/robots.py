@@ -1,14 +1,18 @@
-"""Standard-DH tables of example manipulators (joint variables add to theta or d).
+"""Example manipulators: standard-DH tables (:class:`GDHChain`) and real robots' URDF files.
 
-Each factory builds a :class:`GDHChain` in ``dtype`` (float64 by default) on ``device``; the
-joint tensors given to its methods must have that dtype and device (nothing is cast)."""
+Each factory builds its chain in ``dtype`` (float64 by default) on ``device``; the joint
+tensors given to its methods must have that dtype and device (nothing is cast).  The URDF
+robots come from the package ``example-robot-data`` (meshes are not read)."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 
+from .chain import KinematicChain
 from .gdh import GDHChain
+from .urdf import example_robot_data_dir, from_urdf
 
 PI = math.pi
 
@@ -47,3 +51,47 @@ def iiwa7(dtype=torch.float64, device=None) -> GDHChain:
         d=[0.36, 0.0, 0.42, 0.0, 0.4, 0.0, 0.126],
         theta_offset=[0.0] * 7, joint_types="RRRRRRR", dtype=dtype, device=device, name="iiwa7",
     )
+
+
+# ------------------------------------------------------------- real robots (URDF)
+# name -> (URDF path under example-robot-data's robots folder, default end link)
+URDF_ROBOTS = {
+    "panda": ("panda_description/urdf/panda.urdf", "panda_hand_tcp"),
+    "ur3": ("ur_description/urdf/ur3_robot.urdf", "tool0"),
+    "ur5": ("ur_description/urdf/ur5_robot.urdf", "tool0"),
+    "ur10": ("ur_description/urdf/ur10_robot.urdf", "tool0"),
+    "xarm7": ("xarm_description/urdf/xarm7.urdf", "link_eef"),
+    "kinova": ("kinova_description/robots/kinova.urdf", "j2s6s200_end_effector"),
+    "z1": ("z1_description/urdf/z1.urdf", "gripperStator"),
+}
+
+
+def robot_urdf(name: str) -> Path:
+    """The path of the URDF file of a robot shipped by ``example-robot-data``: one of
+    ``URDF_ROBOTS`` ("panda", "ur3", "ur5", "ur10", "xarm7", "kinova", "z1")."""
+    if name not in URDF_ROBOTS:
+        raise ValueError(f"name must be one of {sorted(URDF_ROBOTS)}, got {name!r}")
+    path = example_robot_data_dir() / URDF_ROBOTS[name][0]
+    if not path.is_file():
+        raise FileNotFoundError(f"example-robot-data has no {URDF_ROBOTS[name][0]} (looked in "
+                                f"{path.parent})")
+    return path
+
+
+def load_robot(name: str, end_link: str | None = None, root_link: str | None = None, *,
+               base=None, tool=None, dtype: torch.dtype = torch.float64,
+               device=None) -> KinematicChain:
+    """A :class:`KinematicChain` of a real robot from its URDF in ``example-robot-data``.
+
+    ``end_link`` defaults to the robot's tool frame (``URDF_ROBOTS``: the Panda's
+    ``panda_hand_tcp``, the UR arms' ``tool0``); ``root_link`` to the URDF's root.
+    """
+    default_end = URDF_ROBOTS[name][1] if name in URDF_ROBOTS else None
+    return from_urdf(robot_urdf(name), end_link or default_end, root_link, base=base,
+                     tool=tool, dtype=dtype, device=device)
+
+
+def panda(end_link: str = "panda_hand_tcp", dtype: torch.dtype = torch.float64,
+          device=None) -> KinematicChain:
+    """The Franka Emika Panda (7 revolute joints) from example-robot-data's URDF."""
+    return load_robot("panda", end_link, dtype=dtype, device=device)

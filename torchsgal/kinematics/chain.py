@@ -1,0 +1,690 @@
+"""Serial kinematic chains with arbitrary joint axes: pose, velocity, acceleration, Jacobians.
+
+A chain is a base transform, then for each actuated joint i a fixed origin O_i (the product of
+the URDF joint origins and fixed joints since the previous actuated joint) followed by the
+joint motion M_i(q_i) (a rotation by q_i about the unit axis a_i, or a translation q_i a_i);
+a link's frame is a fixed offset after the last actuated joint before it.  This is the link
+structure of the GDH chain (Mahony, Kelly and Weiss, Section 5, (43)-(45)) with DH's
+Rz Tz Tx Rx factors replaced by a general fixed transform, so that the closed forms of
+(48)-(50) carry over: the chain's velocity is the sum of the joints' inputs transported by
+the adjoint of their frames, and its derivative adds the brackets of those inputs.
+
+In the base frame (spatial twists, tangent order [linear, angular] as SE(3)'s [rho, phi]),
+with z_i the world joint axis and o_i the world joint origin, joint i contributes the unit
+screw S_i = (o_i x z_i, z_i) (revolute) or (z_i, 0) (prismatic).  Then
+
+    V_k   = sum_(i <= k) S_i qd_i                       (spatial velocity after joint k, (50))
+    dV_k  = sum_(i <= k) S_i qdd_i + ad(V_i) S_i qd_i    (its derivative; dS_i/dt = ad(V_i) S_i)
+
+with ad((v, w)) (n, s) = (w x n + v x s, w x s).  A point p fixed to link k moves with
+dp/dt = N_k + W_k x p and d2p/dt2 = dN_k + dW_k x p + W_k x dp/dt, for V_k = (N_k, W_k).
+The body twist is Ad(T^-1) V_k and the body acceleration Ad(T^-1) dV_k.  All of these are
+cumulative sums over the joint axis: only the pose needs a loop over the joints (the product
+(45)), none over the batch.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import torch
+
+from ..functional import checks
+from ..functional.checks import SUPPORTED_DTYPES
+from ..groups import SE3, SE23
+
+REVOLUTE, CONTINUOUS, PRISMATIC = "revolute", "continuous", "prismatic"
+JOINT_KINDS = (REVOLUTE, CONTINUOUS, PRISMATIC)
+FRAMES = ("base", "body", "spatial")
+
+
+@dataclass(frozen=True)
+class Joint:
+    """An actuated joint of a :class:`KinematicChain`.
+
+    name      the joint's name (URDF joint name, or ``q1 .. qn`` for DH tables).
+    kind      "revolute", "continuous" (revolute without limits) or "prismatic".
+    axis      unit axis (3 floats) in the joint frame.
+    origin    (4, 4) float64 tensor: the fixed transform from the previous actuated joint's
+              frame (or the chain root) to this joint's frame at q = 0.
+    lower, upper   position limits (rad or m); -inf / inf where the joint has none.
+    velocity  velocity limit (inf where none is given).
+    """
+
+    name: str
+    kind: str
+    axis: tuple[float, float, float]
+    origin: torch.Tensor = field(repr=False)
+    lower: float = -math.inf
+    upper: float = math.inf
+    velocity: float = math.inf
+
+
+@dataclass
+class ChainState:
+    """Kinematics of the chain's links (``KinematicChain.forward``).
+
+    ``...`` is the batch shape of q (and qdot, qddot broadcast with it); with ``links`` given
+    to ``forward`` every field has one more axis, (..., L), one entry per requested link.
+
+    pose                  SE3: the link frame in the base frame.
+    linear_velocity       (..., 3) dp/dt of the link origin, base frame; None without qdot.
+    angular_velocity      (..., 3) w, base frame (dR/dt = [w]x R); None without qdot.
+    linear_acceleration   (..., 3) d2p/dt2 (classical acceleration), base frame; None
+                          without qddot.
+    angular_acceleration  (..., 3) dw/dt, base frame; None without qddot.
+
+    Properties: ``body_velocity`` (..., 6) = (R^T dp/dt, R^T w), the right-perturbation twist
+    T^-1 dT/dt in SE3's [rho, phi] order; ``spatial_velocity`` (..., 6) = dT/dt T^-1;
+    ``body_acceleration`` (..., 6), the derivative of ``body_velocity``;
+    ``extended_pose``, the SE23 element [[R, dp/dt, p], [0, 1, 0], [0, 0, 1]].
+    """
+
+    pose: SE3
+    linear_velocity: torch.Tensor | None = None
+    angular_velocity: torch.Tensor | None = None
+    linear_acceleration: torch.Tensor | None = None
+    angular_acceleration: torch.Tensor | None = None
+
+    def _needs(self, value, what: str):
+        if value is None:
+            raise ValueError(f"{what} needs {'qddot' if 'acceleration' in what else 'qdot'}: "
+                             f"pass it to KinematicChain.forward")
+        return value
+
+    @property
+    def body_velocity(self) -> torch.Tensor:
+        """(..., 6) [R^T dp/dt, R^T w]: the body twist (T^-1 dT/dt)^vee."""
+        v = self._needs(self.linear_velocity, "body_velocity")
+        R = self.pose.rotation()
+        return torch.cat((_tmatvec(R, v), _tmatvec(R, self.angular_velocity)), dim=-1)
+
+    @property
+    def spatial_velocity(self) -> torch.Tensor:
+        """(..., 6) [dp/dt - w x p, w]: the spatial twist (dT/dt T^-1)^vee."""
+        v = self._needs(self.linear_velocity, "spatial_velocity")
+        w = self.angular_velocity
+        return torch.cat((v - _cross(w, self.pose.position()), w), dim=-1)
+
+    @property
+    def body_acceleration(self) -> torch.Tensor:
+        """(..., 6) d/dt of ``body_velocity``: [R^T (d2p/dt2 - w x dp/dt), R^T dw/dt]."""
+        a = self._needs(self.linear_acceleration, "body_acceleration")
+        R = self.pose.rotation()
+        lin = a - _cross(self.angular_velocity, self.linear_velocity)
+        return torch.cat((_tmatvec(R, lin), _tmatvec(R, self.angular_acceleration)), dim=-1)
+
+    @property
+    def extended_pose(self) -> SE23:
+        """SE23 [[R, dp/dt, p], [0, 1, 0], [0, 0, 1]]: pose and velocity as one extended pose."""
+        v = self._needs(self.linear_velocity, "extended_pose")
+        return SE23.from_components(self.pose.rotation(), v, self.pose.position())
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.cross(a, b, dim=-1)
+
+
+def _matvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return (M @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def _tmatvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return (x.unsqueeze(-2) @ M).squeeze(-2)
+
+
+def _skew(a: torch.Tensor) -> torch.Tensor:
+    zero = torch.zeros_like(a[..., 0])
+    return torch.stack((zero, -a[..., 2], a[..., 1], a[..., 2], zero, -a[..., 0],
+                        -a[..., 1], a[..., 0], zero), dim=-1).unflatten(-1, (3, 3))
+
+
+def _transform(value, name: str) -> torch.Tensor:
+    """A fixed transform argument: None (identity), an SE3 element or a (4, 4) tensor, as a
+    float64 CPU tensor; ValueError naming the argument otherwise."""
+    if value is None:
+        return torch.eye(4, dtype=torch.float64)
+    if isinstance(value, SE3):
+        if value.batch_shape != ():
+            raise ValueError(f"{name} must be one (unbatched) SE3 element, got batch shape "
+                             f"{tuple(value.batch_shape)}")
+        value = value.as_matrix()
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be None, an SE3 element or a (4, 4) tensor, got "
+                        f"{type(value).__name__}")
+    checks.floating(value, name)
+    if tuple(value.shape) != (4, 4):
+        raise ValueError(f"{name} must have shape (4, 4), got {tuple(value.shape)}")
+    m = value.detach().to("cpu", torch.float64)
+    if not bool(torch.isfinite(m).all()):
+        raise ValueError(f"{name} must be finite, got {m.tolist()}")
+    R = m[:3, :3]
+    err = (R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max().item()
+    if err > 1e-6 or abs(torch.linalg.det(R).item() - 1.0) > 1e-6 or \
+            (m[3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)).abs().max() > 0:
+        raise ValueError(f"{name} must be a rigid transform [[R, p], [0, 1]] with R a rotation, "
+                         f"got {m.tolist()}")
+    return m
+
+
+class KinematicChain:
+    """A serial chain of revolute, continuous and prismatic joints about arbitrary axes.
+
+    Build it from a robot description with :func:`torchsgal.kinematics.from_urdf`,
+    :meth:`from_dh` (standard or modified DH), :meth:`from_gdh` or
+    :func:`torchsgal.kinematics.from_pk`; the constructor takes the joints and links directly.
+
+    Args:
+        joints: the actuated joints, root to end (:class:`Joint`).
+        links: {link name: (joint index, (4, 4) offset)}: the link frame is the offset after
+            the frame of joint ``index`` (``-1``: after the base, before any joint).
+        end_link: the link whose kinematics ``forward`` and ``jacobian`` return by default.
+        base: the base transform (None, SE3 or (4, 4)) applied before the chain: poses are in
+            the frame the base maps into.
+        tool: a transform applied after the end link (the tool centre point).
+        dtype, device: of the chain's constants; q, qdot, qddot must match them (nothing is
+            cast).  Change them with :meth:`to`.
+        name: a label for messages.
+
+    Joint limits are ``lower`` and ``upper`` ((n,) tensors, -inf / inf where there are none).
+    """
+
+    def __init__(
+        self,
+        joints: Sequence[Joint],
+        links: Mapping[str, tuple[int, torch.Tensor]],
+        end_link: str,
+        *,
+        base=None,
+        tool=None,
+        dtype: torch.dtype = torch.float64,
+        device=None,
+        name: str = "chain",
+        root_link: str = "base",
+    ):
+        dtype = checks.dtype_arg(dtype)
+        joints = list(joints)
+        if not joints:
+            raise ValueError(f"a chain needs at least one actuated joint, got none ({name!r})")
+        for i, j in enumerate(joints):
+            if not isinstance(j, Joint):
+                raise TypeError(f"joints[{i}] must be a Joint, got {type(j).__name__}")
+            if j.kind not in JOINT_KINDS:
+                raise ValueError(f"joints[{i}] ({j.name!r}) kind must be one of {JOINT_KINDS}, "
+                                 f"got {j.kind!r}")
+            if not j.lower <= j.upper:
+                raise ValueError(f"joint {j.name!r}: lower limit {j.lower} exceeds upper {j.upper}")
+        names = [j.name for j in joints]
+        if len(set(names)) != len(names):
+            raise ValueError(f"joint names must be unique, got {names}")
+        if end_link not in links:
+            raise ValueError(f"end_link {end_link!r} is not a link of the chain; links: "
+                             f"{sorted(links)}")
+        self.name = name
+        self.joints = tuple(joints)
+        self.joint_names = tuple(names)
+        self.n_joints = len(joints)
+        self.root_link = root_link
+        self.end_link = end_link
+        self._base64 = _transform(base, "base")
+        self._tool64 = _transform(tool, "tool")
+        self._links64 = {}
+        for k, (idx, off) in links.items():
+            idx = checks.integer(idx, f"links[{k!r}] joint index", -1)
+            if idx >= self.n_joints:
+                raise ValueError(f"links[{k!r}] joint index must be in [-1, {self.n_joints - 1}], "
+                                 f"got {idx}")
+            self._links64[k] = (idx, _transform(off, f"links[{k!r}] offset"))
+        self.link_names = tuple(self._links64)
+        self._build(dtype, torch.device("cpu") if device is None else torch.device(device))
+
+    # ----------------------------------------------------------------- constants
+    def _build(self, dtype: torch.dtype, device: torch.device) -> None:
+        """The chain's constants in ``dtype`` on ``device``."""
+        f64 = torch.float64
+        origins = torch.stack([j.origin.to("cpu", f64) for j in self.joints])
+        axes = torch.tensor([j.axis for j in self.joints], dtype=f64)
+        Ro, po = origins[:, :3, :3], origins[:, :3, 3]
+        K = _skew(axes)
+        rev = torch.tensor([j.kind != PRISMATIC for j in self.joints])
+        as_ = dict(dtype=dtype, device=device)
+        self._rev = rev.to(device)
+        self._revf = rev.to(**as_)
+        self._prisf = (~rev).to(**as_)
+        self._axes = axes.to(**as_)
+        self._Ro, self._po = Ro.to(**as_), po.to(**as_)
+        self._RoK, self._RoK2 = (Ro @ K).to(**as_), (Ro @ K @ K).to(**as_)
+        self._Roa = (Ro @ axes[:, :, None])[..., 0].to(**as_)
+        self._base_R, self._base_p = self._base64[:3, :3].to(**as_), self._base64[:3, 3].to(**as_)
+        self._lower = torch.tensor([j.lower for j in self.joints], **as_)
+        self._upper = torch.tensor([j.upper for j in self.joints], **as_)
+        self._dtype, self._device = dtype, device
+
+    def _link_constants(self, link_names: Sequence[str]):
+        """(joint indices (L,) long, offsets R (L, 3, 3), p (L, 3), uses the base) for links."""
+        idx, offs = [], []
+        for k in link_names:
+            j, off = self._links64[k]
+            if k == self.end_link:
+                off = off @ self._tool64
+            idx.append(j)
+            offs.append(off)
+        offs = torch.stack(offs).to(dtype=self._dtype, device=self._device)
+        uses_base = min(idx) < 0
+        index = torch.tensor([j + 1 for j in idx] if uses_base else idx, device=self._device)
+        return index, offs[:, :3, :3], offs[:, :3, 3], uses_base
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the chain, which q, qdot and qddot must have."""
+        return self._dtype
+
+    @property
+    def device(self) -> torch.device:
+        """The device of the chain, where q, qdot and qddot must be."""
+        return self._device
+
+    @property
+    def lower(self) -> torch.Tensor:
+        """(n,) lower joint limits (-inf where a joint has none)."""
+        return self._lower
+
+    @property
+    def upper(self) -> torch.Tensor:
+        """(n,) upper joint limits (inf where a joint has none)."""
+        return self._upper
+
+    @property
+    def base(self) -> SE3:
+        """The base transform."""
+        return SE3.from_matrix(self._base64.to(self._device, self._dtype))
+
+    @property
+    def tool(self) -> SE3:
+        """The tool transform after the end link."""
+        return SE3.from_matrix(self._tool64.to(self._device, self._dtype))
+
+    def to(self, dtype: torch.dtype | None = None, device=None) -> "KinematicChain":
+        """A copy of the chain in ``dtype`` and on ``device`` (unchanged where None)."""
+        new = object.__new__(KinematicChain)
+        new.__dict__.update(self.__dict__)
+        new._build(checks.dtype_arg(dtype) if dtype is not None else self._dtype,
+                   torch.device(device) if device is not None else self._device)
+        return new
+
+    def __repr__(self) -> str:
+        kinds = "".join({REVOLUTE: "R", CONTINUOUS: "C", PRISMATIC: "P"}[j.kind] for j in self.joints)
+        return (f"KinematicChain({self.name!r}, {self.root_link!r} -> {self.end_link!r}, "
+                f"{self.n_joints} joints {kinds}, dtype={self._dtype})")
+
+    def within_limits(self, q: torch.Tensor, tol: float = 0.0) -> torch.Tensor:
+        """(...,) bool: every joint of q within [lower - tol, upper + tol]."""
+        q = self._joint_tensor(q, "q")
+        tol = checks.finite_number(tol, "tol", ">= 0")
+        return ((q >= self._lower - tol) & (q <= self._upper + tol)).all(dim=-1)
+
+    def random_configuration(self, batch_shape=(), generator: torch.Generator | None = None,
+                             unbounded_range: float = math.pi) -> torch.Tensor:
+        """(*batch_shape, n) joint positions uniform within the limits (in
+        [-unbounded_range, unbounded_range] for joints without limits)."""
+        shape = checks.shape(batch_shape, "batch_shape")
+        span = checks.finite_number(unbounded_range, "unbounded_range", "> 0")
+        lo = torch.where(torch.isfinite(self._lower), self._lower, -span)
+        hi = torch.where(torch.isfinite(self._upper), self._upper, span)
+        u = torch.rand(*shape, self.n_joints, generator=generator, dtype=self._dtype,
+                       device=generator.device if generator is not None else self._device)
+        return lo + (hi - lo) * u.to(self._device)
+
+    # ---------------------------------------------------------------- validation
+    def _joint_tensor(self, x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
+        if not isinstance(x, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        if x.dtype not in SUPPORTED_DTYPES:
+            raise TypeError(f"{name} must have a floating dtype (torch.float32 or "
+                            f"torch.float64), got {x.dtype}")
+        if x.dim() < 1 or x.shape[-1] != self.n_joints:
+            raise ValueError(f"{name} must have shape (..., {self.n_joints}) for the "
+                             f"{self.n_joints} joints of {self.name!r} {list(self.joint_names)}, "
+                             f"got {tuple(x.shape)}")
+        try:
+            checks.same_device_dtype(**{f"the chain {self.name!r}": self._Ro, name: x})
+        except (TypeError, ValueError) as err:
+            raise type(err)(f"{err} (a chain's dtype and device are set when it is built; "
+                            f"use chain.to(dtype=..., device=...))") from None
+        if like is not None:
+            checks.broadcast_batch(q=like.shape[:-1], **{name: x.shape[:-1]})
+        return x
+
+    def _link_names(self, links, all_links: bool) -> tuple[list[str], bool]:
+        """The requested links and whether a link axis is kept."""
+        all_links = checks.boolean(all_links, "all_links")
+        if all_links:
+            if links is not None:
+                raise ValueError("give either links or all_links=True, not both")
+            return list(self.link_names), True
+        if links is None:
+            return [self.end_link], False
+        if isinstance(links, str):
+            names, keep = [links], False
+        else:
+            names, keep = list(links), True
+        if not names:
+            raise ValueError("links must name at least one link")
+        for k in names:
+            if not isinstance(k, str) or k not in self._links64:
+                raise ValueError(f"unknown link {k!r} of the chain {self.name!r}; its links are "
+                                 f"{list(self.link_names)}")
+        return names, keep
+
+    # -------------------------------------------------------------- the core
+    def _joint_frames(self, q: torch.Tensor):
+        """World rotations R_i (..., n, 3, 3) and positions p_i (..., n, 3) of the joint frames
+        (after each joint's motion): the product (45) with a general fixed origin per link."""
+        qr = q * self._revf
+        s, c = torch.sin(qr)[..., None, None], torch.cos(qr)[..., None, None]
+        LR = self._Ro + s * self._RoK + (1 - c) * self._RoK2  # O_i Rot(a_i, q_i), Rodrigues
+        Lp = self._po + (q * self._prisf)[..., None] * self._Roa
+        Rs, ps = [], []
+        R, p = self._base_R, self._base_p
+        for i in range(self.n_joints):
+            p = p + _matvec(R, Lp[..., i, :])
+            R = R @ LR[..., i, :, :]
+            Rs.append(R)
+            ps.append(p)
+        batch = q.shape[:-1]
+        Rs = torch.stack([r.expand(*batch, 3, 3) for r in Rs], dim=-3)
+        ps = torch.stack([x.expand(*batch, 3) for x in ps], dim=-2)
+        return Rs, ps
+
+    def _screws(self, Rs: torch.Tensor, ps: torch.Tensor):
+        """Unit screws S_i = (S_lin, S_ang) (..., n, 3) each, base frame."""
+        z = _matvec(Rs, self._axes)
+        S_ang = z * self._revf[:, None]
+        S_lin = _cross(ps, S_ang) + z * self._prisf[:, None]
+        return S_lin, S_ang
+
+    @staticmethod
+    def _gather(x: torch.Tensor, index: torch.Tensor, uses_base: bool, dim: int) -> torch.Tensor:
+        """x along the joint axis ``dim`` at the links' joint indices (a zero/identity row
+        first when a link sits on the base)."""
+        if uses_base:
+            pad = torch.zeros_like(x.narrow(dim, 0, 1))
+            x = torch.cat((pad, x), dim=dim)
+        return x.index_select(dim, index)
+
+    def forward(
+        self,
+        q: torch.Tensor,
+        qdot: torch.Tensor | None = None,
+        qddot: torch.Tensor | None = None,
+        *,
+        links: str | Sequence[str] | None = None,
+        all_links: bool = False,
+    ) -> ChainState:
+        """Pose and, with qdot (and qddot), velocity (and acceleration) of links (module doc).
+
+        q, qdot, qddot: (..., n) joint positions, velocities, accelerations (broadcast
+        together); qddot needs qdot.  ``links``: a link name (fields of batch (...)) or a
+        sequence of names (batch (..., L)); default the end link (with the tool transform).
+        ``all_links=True``: every link of the chain, in ``link_names`` order.
+        Returns a :class:`ChainState`.  Differentiable in q, qdot, qddot.
+        """
+        names, keep = self._link_names(links, all_links)
+        q, qdot, qddot = self._inputs(q, qdot, qddot)
+        index, FR, Fp, uses_base = self._link_constants(names)
+        Rs, ps = self._joint_frames(q)
+        Rk = self._gather_frames(Rs, index, uses_base, self._base_R)
+        pk = self._gather_frames(ps, index, uses_base, self._base_p)
+        R, p = Rk @ FR, pk + _matvec(Rk, Fp)
+        state = ChainState(SE3.from_components(R, p))
+        if qdot is not None:
+            S_lin, S_ang = self._screws(Rs, ps)
+            qd = qdot[..., None]
+            nu, om = S_lin * qd, S_ang * qd
+            N, W = nu.cumsum(-2), om.cumsum(-2)  # V_k = sum_(i <= k) S_i qd_i  (50)
+            Nk, Wk = self._gather(N, index, uses_base), self._gather(W, index, uses_base)
+            v = Nk + _cross(Wk, p)
+            state.linear_velocity, state.angular_velocity = v, Wk
+            if qddot is not None:
+                qdd = qddot[..., None]
+                # dV_k = sum_(i <= k) S_i qdd_i + ad(V_i)(S_i qd_i)
+                dN = (S_lin * qdd + _cross(W, nu) + _cross(N, om)).cumsum(-2)
+                dW = (S_ang * qdd + _cross(W, om)).cumsum(-2)
+                dNk, dWk = self._gather(dN, index, uses_base), self._gather(dW, index, uses_base)
+                state.linear_acceleration = dNk + _cross(dWk, p) + _cross(Wk, v)
+                state.angular_acceleration = dWk
+        return state if keep else _squeeze_link(state)
+
+    def pose(self, q: torch.Tensor, link: str | None = None) -> SE3:
+        """The pose (SE3, batch (...)) of ``link`` (default the end link, with the tool)."""
+        return self.forward(q, links=link).pose
+
+    def _inputs(self, q, qdot, qddot):
+        q = self._joint_tensor(q, "q")
+        if qdot is not None:
+            qdot = self._joint_tensor(qdot, "qdot", like=q)
+        if qddot is not None:
+            if qdot is None:
+                raise ValueError("qddot needs qdot: the acceleration depends on the velocity")
+            qddot = self._joint_tensor(qddot, "qddot", like=q)
+        shape = torch.broadcast_shapes(*(x.shape for x in (q, qdot, qddot) if x is not None))
+        return tuple(None if x is None else x.expand(shape) for x in (q, qdot, qddot))
+
+    def _gather_frames(self, x: torch.Tensor, index, uses_base: bool, base: torch.Tensor):
+        """Joint frames (..., n, ...) at the links' joint indices, the base first if needed."""
+        dim = x.dim() - base.dim() - 1
+        if uses_base:
+            x = torch.cat((base.expand(*x.shape[:dim], 1, *base.shape), x), dim=dim)
+        return x.index_select(dim, index)
+
+    @staticmethod
+    def _gather(x: torch.Tensor, index: torch.Tensor, uses_base: bool) -> torch.Tensor:
+        """Cumulative sums (..., n, 3) at the links' joint indices (zero on the base)."""
+        if uses_base:
+            x = torch.cat((torch.zeros_like(x[..., :1, :]), x), dim=-2)
+        return x.index_select(-2, index)
+
+    # -------------------------------------------------------------- Jacobians
+    def _one_link(self, link: str | None) -> str:
+        if link is None:
+            return self.end_link
+        if not isinstance(link, str) or link not in self._links64:
+            raise ValueError(f"unknown link {link!r} of the chain {self.name!r}; its links are "
+                             f"{list(self.link_names)}")
+        return link
+
+    def _jacobian_parts(self, q: torch.Tensor, link: str, qdot: torch.Tensor | None):
+        """Pose (R, p), the base-frame Jacobian at the link origin (..., 6, n) and, with qdot,
+        its time derivative and the link's (dp/dt, w)."""
+        index, FR, Fp, uses_base = self._link_constants([link])
+        j = self._links64[link][0]  # the last joint before the link (-1: the base)
+        Rs, ps = self._joint_frames(q)
+        Rk = self._gather_frames(Rs, index, uses_base, self._base_R)[..., 0, :, :]
+        pk = self._gather_frames(ps, index, uses_base, self._base_p)[..., 0, :]
+        R, p = Rk @ FR[0], pk + _matvec(Rk, Fp[0])
+        S_lin, S_ang = self._screws(Rs, ps)
+        mask = (torch.arange(self.n_joints, device=self._device) <= j).to(self._dtype)[:, None]
+        S_lin, S_ang = S_lin * mask, S_ang * mask  # joints after the link do not move it
+        lin = S_lin + _cross(S_ang, p.unsqueeze(-2))  # z_i x (p - o_i) or z_i
+        J = torch.cat((lin, S_ang), dim=-1).transpose(-1, -2)
+        if qdot is None:
+            return R, p, J, None, None, None
+        qd = qdot[..., None]
+        nu, om = S_lin * qd, S_ang * qd
+        N, W = nu.cumsum(-2), om.cumsum(-2)
+        v = N[..., -1, :] + _cross(W[..., -1, :], p)
+        dS_lin = _cross(W, S_lin) + _cross(N, S_ang)  # dS_i/dt = ad(V_i) S_i
+        dS_ang = _cross(W, S_ang)
+        dlin = dS_lin + _cross(dS_ang, p.unsqueeze(-2)) + _cross(S_ang, v.unsqueeze(-2))
+        dJ = torch.cat((dlin, dS_ang), dim=-1).transpose(-1, -2)
+        return R, p, J, dJ, v, W[..., -1, :]
+
+    def _frame(self, frame: str) -> str:
+        if frame not in FRAMES:
+            raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
+        return frame
+
+    def jacobian(self, q: torch.Tensor, *, link: str | None = None, frame: str = "base") -> torch.Tensor:
+        """The geometric Jacobian (..., 6, n) of ``link`` (default the end link with the
+        tool), rows [linear; angular]:
+
+        * ``frame="base"``: (dp/dt, w) of the link origin in the base frame (pytorch-kinematics'
+          ``jacobian``, Pinocchio's LOCAL_WORLD_ALIGNED);
+        * ``"body"``: the body twist (R^T dp/dt, R^T w) (Pinocchio's LOCAL): the right
+          perturbation, T(q + dq) ~ T(q) exp(J dq);
+        * ``"spatial"``: the spatial twist (dp/dt - w x p, w) (Pinocchio's WORLD).
+        """
+        frame = self._frame(frame)
+        link = self._one_link(link)
+        q = self._joint_tensor(q, "q")
+        R, p, J, _, _, _ = self._jacobian_parts(q, link, None)
+        return _reframe(J, R, p, frame)
+
+    def jacobian_derivative(self, q: torch.Tensor, qdot: torch.Tensor, *, link: str | None = None,
+                            frame: str = "base") -> torch.Tensor:
+        """dJ/dt (..., 6, n) along qdot, J as in :meth:`jacobian` for the same ``frame``:
+        the link's acceleration is J qddot + dJ/dt qdot in that frame (classical acceleration
+        for ``"base"``, the body twist's derivative for ``"body"``)."""
+        frame = self._frame(frame)
+        link = self._one_link(link)
+        q, qdot, _ = self._inputs(q, qdot, None)
+        R, p, J, dJ, v, w = self._jacobian_parts(q, link, qdot)
+        if frame == "base":
+            return dJ
+        if frame == "spatial":  # d/dt (J_lin + p x J_ang) = dJ_lin + v x J_ang + p x dJ_ang
+            lin = dJ[..., :3, :] + _cross0(v[..., :, None], J[..., 3:, :]) \
+                + _cross0(p[..., :, None], dJ[..., 3:, :])
+            return torch.cat((lin, dJ[..., 3:, :]), dim=-2)
+        # body: d/dt (R^T J) = R^T (dJ - [w]x J), blockwise
+        Rt = R.transpose(-1, -2)
+        A = dJ - torch.cat((_cross0(w[..., :, None], J[..., :3, :]),
+                            _cross0(w[..., :, None], J[..., 3:, :])), dim=-2)
+        return torch.cat((Rt @ A[..., :3, :], Rt @ A[..., 3:, :]), dim=-2)
+
+    def pose_and_jacobian(self, q: torch.Tensor, *, link: str | None = None,
+                          frame: str = "base") -> tuple[SE3, torch.Tensor]:
+        """The pose and the Jacobian (as :meth:`jacobian`) from one pass over the chain."""
+        frame = self._frame(frame)
+        link = self._one_link(link)
+        q = self._joint_tensor(q, "q")
+        R, p, J, _, _, _ = self._jacobian_parts(q, link, None)
+        return SE3.from_components(R, p), _reframe(J, R, p, frame)
+
+    # ------------------------------------------------------------ DH tables
+    @classmethod
+    def from_dh(
+        cls,
+        a: Sequence[float],
+        alpha: Sequence[float],
+        d: Sequence[float],
+        theta_offset: Sequence[float],
+        joint_types: Sequence[str] | str,
+        *,
+        convention: str = "standard",
+        base=None,
+        tool=None,
+        lower: Sequence[float] | None = None,
+        upper: Sequence[float] | None = None,
+        dtype: torch.dtype = torch.float64,
+        device=None,
+        name: str = "dh",
+    ) -> "KinematicChain":
+        """A chain from a DH table, standard (Rz(theta) Tz(d) Tx(a) Rx(alpha) per link, as the
+        mahony paper's (43) and :class:`GDHChain`) or ``convention="modified"`` (Craig:
+        Rx(alpha_(i-1)) Tx(a_(i-1)) Rz(theta_i) Tz(d_i), the row i holding alpha_(i-1),
+        a_(i-1)).  theta_i = theta_offset_i + q_i (revolute) or d_i + q_i (prismatic).
+
+        Joints are ``q1 .. qn``; links ``frame_0`` (the base) .. ``frame_n`` (DH frame n, the
+        end link).  ``lower``/``upper``: optional joint limits (n values each).
+        """
+        from .gdh import _letters_hint, normalize_joint_type
+
+        if convention not in ("standard", "modified"):
+            raise ValueError(f"convention must be 'standard' or 'modified', got {convention!r}")
+        cols = {}
+        for key, col in (("a", a), ("alpha", alpha), ("d", d), ("theta_offset", theta_offset)):
+            vals = col.detach().cpu().tolist() if isinstance(col, torch.Tensor) else list(col)
+            try:
+                vals = [checks.finite_number(v, f"{key}[{i}]") for i, v in enumerate(vals)]
+            except (TypeError, ValueError) as err:
+                raise type(err)(f"{err} (a DH table column)") from None
+            cols[key] = vals
+        n = len(joint_types)
+        lengths = {k: len(v) for k, v in cols.items()}
+        if n < 1 or any(v != n for v in lengths.values()):
+            raise ValueError(f"DH table columns must have one equal, non-zero length; got "
+                             f"{lengths}, joint_types {n}{_letters_hint(joint_types)}")
+        types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
+        lo = [-math.inf] * n if lower is None else [float(x) for x in lower]
+        hi = [math.inf] * n if upper is None else [float(x) for x in upper]
+        if len(lo) != n or len(hi) != n:
+            raise ValueError(f"lower and upper must have {n} entries, got {len(lo)} and {len(hi)}")
+        joints, links = [], {"frame_0": (-1, torch.eye(4, dtype=torch.float64))}
+        tail = torch.eye(4, dtype=torch.float64)  # fixed factors since the last joint
+        for i in range(n):
+            th, di, ai, al = (cols[k][i] for k in ("theta_offset", "d", "a", "alpha"))
+            rz, tz = _rot("z", th), _trans(0.0, 0.0, di)
+            if convention == "standard":
+                origin = tail @ rz @ tz
+                after = _trans(ai, 0.0, 0.0) @ _rot("x", al)
+            else:
+                origin = tail @ _rot("x", al) @ _trans(ai, 0.0, 0.0) @ rz @ tz
+                after = torch.eye(4, dtype=torch.float64)
+            kind = REVOLUTE if types[i] == "revolute" else PRISMATIC
+            if kind == REVOLUTE and not (math.isfinite(lo[i]) or math.isfinite(hi[i])):
+                kind = CONTINUOUS
+            joints.append(Joint(f"q{i + 1}", kind, (0.0, 0.0, 1.0), origin, lo[i], hi[i]))
+            links[f"frame_{i + 1}"] = (i, after)
+            tail = after
+        return cls(joints, links, f"frame_{n}", base=base, tool=tool, dtype=dtype,
+                   device=device, name=name, root_link="frame_0")
+
+    @classmethod
+    def from_gdh(cls, chain, *, base=None, tool=None) -> "KinematicChain":
+        """The :class:`GDHChain` (standard DH) as a KinematicChain, same dtype and device."""
+        from .gdh import GDHChain
+
+        if not isinstance(chain, GDHChain):
+            raise TypeError(f"chain must be a GDHChain, got {type(chain).__name__}")
+        return cls.from_dh(chain.a, chain.alpha, chain.d, chain.theta_offset, chain.joint_types,
+                           base=base, tool=tool, dtype=chain.dtype, device=chain.device,
+                           name=chain.name)
+
+
+def _reframe(J: torch.Tensor, R: torch.Tensor, p: torch.Tensor, frame: str) -> torch.Tensor:
+    """A base-frame Jacobian (rows dp/dt, w) in ``frame``."""
+    if frame == "base":
+        return J
+    if frame == "spatial":
+        lin = J[..., :3, :] + _cross0(p[..., :, None], J[..., 3:, :])  # dp/dt - w x p
+        return torch.cat((lin, J[..., 3:, :]), dim=-2)
+    Rt = R.transpose(-1, -2)
+    return torch.cat((Rt @ J[..., :3, :], Rt @ J[..., 3:, :]), dim=-2)
+
+
+def _cross0(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.cross(a, b, dim=-2)
+
+
+def _rot(axis: str, angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    m = torch.eye(4, dtype=torch.float64)
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+    return m
+
+
+def _trans(x: float, y: float, z: float) -> torch.Tensor:
+    m = torch.eye(4, dtype=torch.float64)
+    m[0, 3], m[1, 3], m[2, 3] = x, y, z
+    return m
+
+
+def _squeeze_link(state: ChainState) -> ChainState:
+    """The one-link state without its link axis."""
+    def sq(x):
+        return None if x is None else x.squeeze(-2)
+    return ChainState(state.pose.squeeze(-1), sq(state.linear_velocity),
+                      sq(state.angular_velocity), sq(state.linear_acceleration),
+                      sq(state.angular_acceleration))

@@ -1,0 +1,2 @@
+class IKResult: pass
+def inverse_kinematics(): pass
