@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     ap.add_argument("--dtypes", nargs="+", default=["float32", "float64"])
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--target-s", type=float, default=0.5)
-    ap.add_argument("--out", default=str(HERE / "results"))
+    ap.add_argument("--out", default=str(HERE / "results"),
+                    help="folder for compile_<device>.{json,md} (default benchmarks/results)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:i] (default cpu)")
     args = ap.parse_args(argv)
     device = resolve_device(args.device)

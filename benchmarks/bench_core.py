@@ -614,7 +614,8 @@ def main(argv=None):
                     help="also time matrix_exp and autograd at n > 1e5 for SO3/SE3/SE23 (slow)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"),
                     help="output directory (default benchmarks/results)")
-    ap.add_argument("--tag", default=None, help="file stem (default core_<device>[_quick])")
+    ap.add_argument("--tag", default=None, help="file stem (default core_<device>[_quick], the canonical result file; "
+                         "give another stem for a partial run such as --groups SGal3)")
     ap.add_argument("--target", type=float, default=None, help="seconds per measurement (default 0.4)")
     ap.add_argument("--min-repeats", type=int, default=3)
     ap.add_argument("--gtsam-n", type=int, default=None, help="calls in the GTSAM loop (default 10000)")
@@ -624,7 +625,7 @@ def main(argv=None):
                     "torchsgal,matrix_exp,pypose,gtsam,autograd")
     ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
                     help="before starting, wait up to SECONDS for the 1-min load average to drop "
-                         "below 0.5 (other processes distort timings on a 2-core machine)")
+                         "below 0.5 (other processes distort multi-threaded timings)")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch.set_num_threads(N) (default: leave torch's default alone); "
                          "1 is less sensitive to other processes on a small machine")

@@ -58,7 +58,8 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk", type=int, default=400)
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats (medians are reported)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=os.path.join(HERE, "results"))
+    ap.add_argument("--out", default=os.path.join(HERE, "results"),
+                    help="folder for tls_cpu.{json,md} (default benchmarks/results)")
     args = ap.parse_args(argv)
 
     cfg = study.StudyConfig(trials=args.trials, seed=args.seed)
