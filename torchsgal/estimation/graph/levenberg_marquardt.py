@@ -180,7 +180,8 @@ def _solve(graph: FactorGraph, max_iterations: int, o: dict) -> GraphResult:
                    torch.full((B,), lam0, dtype=dt, device=dev),
                    torch.zeros(B, dtype=torch.int64, device=dev), torch.zeros(B, dtype=dt, device=dev),
                    status)
-    out = _State(state.rows, [v.clone() for v in x0], lin, H.clone(), lin.cost.clone(),
+    out_lin = Linearization(lin.values, lin.g.clone(), lin.cost, lin.model_cost)
+    out = _State(state.rows, [v.clone() for v in x0], out_lin, H.clone(), lin.cost.clone(),
                  lin.cost.clone(), state.lam.clone(), state.iterations.clone(),
                  state.step_norm.clone(), status.clone())
     initial_cost = lin.cost.clone()

@@ -1,0 +1,325 @@
+"""Factor graphs (torchsgal.estimation.graph): Jacobians of the built-in factors, Levenberg-
+Marquardt and Gauss-Newton against GTSAM on a batch of small SE(3) pose graphs, a user factor
+(rigid fit) against the closed form, marginals against GTSAM, statuses and input errors."""
+import numpy as np
+import pytest
+import torch
+
+import torchsgal as ts
+from torchsgal.estimation import SolverStatus
+from torchsgal.estimation import graph as fg
+from torchsgal.estimation.graph import factors as F
+from torchsgal.estimation.graph.linearize import Problem, dense, linearize
+
+from peers import gtsam_map
+
+f64 = torch.float64
+
+
+def _elements(G, shape, gen, scale=0.5):
+    return G.exp(scale * torch.randn(*shape, G.dof, generator=gen, dtype=f64))
+
+
+def _rplus_fd(fn, elements, eps=1e-6):
+    """Central finite differences of fn(*elements) (..., m) with respect to the right
+    perturbation of each element: a list of (..., m, dof)."""
+    out = []
+    for k, g in enumerate(elements):
+        cols = []
+        for a in range(g.dof):
+            d = torch.zeros(g.batch_shape + (g.dof,), dtype=f64)
+            d[..., a] = eps
+            plus = [e.rplus(d) if n == k else e for n, e in enumerate(elements)]
+            minus = [e.rplus(-d) if n == k else e for n, e in enumerate(elements)]
+            cols.append((fn(*plus) - fn(*minus)) / (2 * eps))
+        out.append(torch.stack(cols, dim=-1))
+    return out
+
+
+def _rplus_jacfwd(fn, elements):
+    """Forward-mode Jacobians of d -> fn(g_k exp(d_k)) at d = 0 (torch.func.jacfwd through exp)."""
+    out = []
+    for k, g in enumerate(elements):
+        def moved(d, k=k):
+            return fn(*[e.rplus(d) if n == k else e for n, e in enumerate(elements)])
+        zero = torch.zeros(g.dof, dtype=f64)
+        out.append(torch.func.jacfwd(moved)(zero))
+    return out
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_between_and_prior_jacobians_match_forward_mode_and_finite_differences(G):
+    gen = torch.Generator().manual_seed(1)
+    for trial in range(3):
+        Ti, Tj, Z = (_elements(G, (), gen) for _ in range(3))
+        r, (Ji, Jj) = F._between_jacobians(Ti, Tj, Z)
+        fwd = _rplus_jacfwd(F._between_residual, [Ti, Tj, Z])
+        fd = _rplus_fd(F._between_residual, [Ti, Tj, Z])
+        for J, Jf, Jd in zip((Ji, Jj), fwd, fd):
+            torch.testing.assert_close(J, Jf, rtol=1e-10, atol=1e-10)
+            torch.testing.assert_close(J, Jd, rtol=1e-7, atol=1e-7)
+        torch.testing.assert_close(r, (Z.inverse() @ Ti.inverse() @ Tj).log())
+        r, (J,) = F._prior_jacobians(Ti, Z)
+        torch.testing.assert_close(J, _rplus_jacfwd(F._prior_residual, [Ti, Z])[0], rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(J, _rplus_fd(F._prior_residual, [Ti, Z])[0], rtol=1e-7, atol=1e-7)
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_engine_forward_mode_normal_equations_match_analytic_factors(G):
+    """The same pose graph with the built-in factors (analytic Jacobians) and with user
+    factors of the same residual (forward-mode autodiff in the engine): equal H, g, cost."""
+    gen = torch.Generator().manual_seed(2)
+    B, N = 3, 5
+    x = _elements(G, (B, N), gen, 1.0)
+    i, j = torch.tensor([0, 1, 2, 3, 0]), torch.tensor([1, 2, 3, 4, 3])
+    Z = _elements(G, (B, 5), gen, 1.0)
+    L = torch.randn(5, G.dof, G.dof, generator=gen, dtype=f64) + 3 * torch.eye(G.dof, dtype=f64)
+    graphs = []
+    for analytic in (True, False):
+        graph = fg.FactorGraph()
+        graph.add_variable("x", x)
+        if analytic:
+            graph.add(fg.Between("x", i, j, Z, sqrt_information=L))
+            graph.add(fg.Prior("x", 0, Z[:, :1]))
+        else:
+            graph.add(fg.Factor(F._between_residual, [("x", i), ("x", j)], [Z], dim=G.dof,
+                                sqrt_information=L))
+            graph.add(fg.Factor(F._prior_residual, [("x", 0)], [Z[:, :1]], dim=G.dof))
+        graphs.append(graph)
+    lins = []
+    for graph in graphs:
+        p = Problem(graph)
+        lin = linearize(p, p.initial(graph))
+        lins.append((dense(p, lin.values), lin.g, lin.cost))
+    for a, b in zip(*lins):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    # and against finite differences of the cost's gradient: g = dC/dd
+    p = Problem(graphs[0])
+    x0 = p.initial(graphs[0])
+    eps, k = 1e-6, p.D - 2
+    d = torch.zeros(B, p.D, dtype=f64)
+    d[:, k] = eps
+    fd = (linearize(p, p.retract(x0, d), False).cost - linearize(p, p.retract(x0, -d), False).cost) / (2 * eps)
+    torch.testing.assert_close(lins[0][1][:, k], fd, rtol=1e-6, atol=1e-6)
+
+
+# ----------------------------------------------------------------- pose graphs vs GTSAM
+EDGES_I = torch.tensor([0, 1, 2, 3, 4, 5, 6, 0, 2, 1])
+EDGES_J = torch.tensor([1, 2, 3, 4, 5, 6, 7, 4, 6, 7])
+SIGMA = torch.tensor([0.05, 0.05, 0.05, 0.02, 0.02, 0.02], dtype=f64)
+
+
+def pose_graphs(B=64, N=8, seed=0, init_noise=0.3):
+    """B small SE(3) pose graphs: N poses, 10 relative-pose edges, a prior on pose 0."""
+    gen = torch.Generator().manual_seed(seed)
+    truth = ts.SE3.exp(torch.randn(B, N, 6, generator=gen, dtype=f64)
+                       * torch.tensor([2.0, 2, 2, 0.5, 0.5, 0.5], dtype=f64))
+    Z = (truth[:, EDGES_I].inverse() @ truth[:, EDGES_J]
+         @ ts.SE3.exp(torch.randn(B, len(EDGES_I), 6, generator=gen, dtype=f64) * SIGMA))
+    x0 = truth @ ts.SE3.exp(torch.randn(B, N, 6, generator=gen, dtype=f64) * init_noise)
+    return truth, Z, truth[:, :1], x0
+
+
+def _graph(Z, Z0, x0, prior=True):
+    W = torch.diag(SIGMA ** -2)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0)
+    if prior:
+        graph.add(fg.Prior("x", 0, Z0, information=W))
+    graph.add(fg.Between("x", EDGES_I, EDGES_J, Z, information=W))
+    return graph
+
+
+def _gtsam_graph(Z, Z0, b):
+    import gtsam
+
+    P = gtsam_map.PERM["SE3"]
+    noise = gtsam.noiseModel.Gaussian.Information(torch.diag(SIGMA ** -2).numpy()[np.ix_(P, P)])
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(Z0[b, 0].as_matrix().numpy()), noise))
+    for e in range(len(EDGES_I)):
+        graph.add(gtsam.BetweenFactorPose3(int(EDGES_I[e]), int(EDGES_J[e]),
+                                           gtsam.Pose3(Z[b, e].as_matrix().numpy()), noise))
+    return graph
+
+
+def _gtsam_values(x0, b):
+    import gtsam
+
+    values = gtsam.Values()
+    for n in range(x0.batch_shape[1]):
+        values.insert(n, gtsam.Pose3(x0[b, n].as_matrix().numpy()))
+    return values
+
+
+@pytest.mark.parametrize("solver", ["lm", "gn"])
+def test_pose_graphs_match_gtsam_costs_and_iterations(solver):
+    import gtsam
+
+    _, Z, Z0, x0 = pose_graphs()
+    graph = _graph(Z, Z0, x0)
+    if solver == "lm":
+        result = fg.levenberg_marquardt(graph)
+    else:
+        result = fg.gauss_newton(graph)
+    costs, iterations, poses = [], [], []
+    for b in range(Z.batch_shape[0]):
+        g = _gtsam_graph(Z, Z0, b)
+        if solver == "lm":
+            opt = gtsam.LevenbergMarquardtOptimizer(g, _gtsam_values(x0, b), gtsam.LevenbergMarquardtParams())
+        else:
+            opt = gtsam.GaussNewtonOptimizer(g, _gtsam_values(x0, b), gtsam.GaussNewtonParams())
+        values = opt.optimize()
+        costs.append(g.error(values))
+        iterations.append(opt.iterations())
+        poses.append(np.stack([values.atPose3(n).matrix() for n in range(8)]))
+    rep = result.report
+    assert (rep.status == SolverStatus.CONVERGED).all()
+    torch.testing.assert_close(rep.cost, torch.tensor(costs, dtype=f64), rtol=1e-6, atol=0)
+    assert rep.iterations.tolist() == iterations
+    torch.testing.assert_close(result.values["x"].as_matrix(), torch.tensor(np.stack(poses)),
+                               rtol=0, atol=1e-8)
+    # the initial cost is GTSAM's error at x0
+    g0 = _gtsam_graph(Z, Z0, 0)
+    torch.testing.assert_close(rep.initial_cost[0], torch.tensor(g0.error(_gtsam_values(x0, 0)),
+                                                                 dtype=f64), rtol=1e-12, atol=0)
+
+
+def test_marginal_covariances_match_gtsam():
+    import gtsam
+
+    _, Z, Z0, x0 = pose_graphs(B=3, seed=3)
+    result = fg.levenberg_marquardt(_graph(Z, Z0, x0))
+    cov = result.marginal_covariance("x", torch.tensor([0, 5, 7]))
+    assert cov.shape == (3, 3, 6, 6)
+    for b in range(3):
+        g = _gtsam_graph(Z, Z0, b)
+        values = gtsam.LevenbergMarquardtOptimizer(g, _gtsam_values(x0, b)).optimize()
+        marginals = gtsam.Marginals(g, values)
+        for k, n in enumerate((0, 5, 7)):
+            expected = gtsam_map.operator_from_gtsam("SE3", marginals.marginalCovariance(n))
+            torch.testing.assert_close(cov[b, k], torch.tensor(expected), rtol=1e-6, atol=1e-12)
+
+
+def test_gauge_freedom_converges_rank_deficient_not_failure():
+    _, Z, Z0, x0 = pose_graphs(B=4, seed=4)
+    tight = dict(relative_error_tol=1e-12, absolute_error_tol=1e-12)
+    result = fg.levenberg_marquardt(_graph(Z, Z0, x0, prior=False), **tight)
+    rep = result.report
+    assert (rep.status == SolverStatus.CONVERGED_RANK_DEFICIENT).all(), rep.status
+    # the relative poses are still estimated: the same as with the prior
+    anchored = fg.levenberg_marquardt(_graph(Z, Z0, x0), **tight).values["x"]
+    free = result.values["x"]
+    rel_free = free[:, :1].inverse() @ free
+    rel_anchored = anchored[:, :1].inverse() @ anchored
+    torch.testing.assert_close(rel_free.as_matrix(), rel_anchored.as_matrix(), rtol=0, atol=1e-8)
+    assert torch.isnan(result.marginal_covariance("x", 0)).all()
+    assert rep.cost.lt(rep.initial_cost).all()
+
+
+def test_unbatched_graph_returns_unbatched_values():
+    _, Z, Z0, x0 = pose_graphs(B=1, seed=5)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0[0])
+    W = torch.diag(SIGMA ** -2)
+    graph.add(fg.Prior("x", 0, Z0[0], information=W))
+    graph.add(fg.Between("x", EDGES_I, EDGES_J, Z[0], information=W))
+    result = fg.levenberg_marquardt(graph)
+    batched = fg.levenberg_marquardt(_graph(Z, Z0, x0))
+    assert result.values["x"].batch_shape == (8,)
+    torch.testing.assert_close(result.values["x"].as_matrix(), batched.values["x"].as_matrix()[0])
+    assert result.marginal_covariance("x").shape == (8, 6, 6)
+    assert x0.as_matrix().equal(_graph(Z, Z0, x0).variables["x"].as_matrix())  # input not mutated
+
+
+# ----------------------------------------------------------------- a user factor
+def _kabsch(p, q):
+    """Closed-form argmin_T sum |T p - q|^2 (Umeyama without scale)."""
+    mp, mq = p.mean(-2, keepdim=True), q.mean(-2, keepdim=True)
+    S = (q - mq).mT @ (p - mp)
+    U, _, Vh = torch.linalg.svd(S)
+    d = torch.linalg.det(U @ Vh)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    C = U @ D @ Vh
+    r = mq.squeeze(-2) - (C @ mp.mT).squeeze(-1)
+    return ts.SE3.from_components(C, r)
+
+
+def rigid_fit_problem(B=256, K=100, seed=0, noise=0.01, outliers=0):
+    gen = torch.Generator().manual_seed(seed)
+    T = ts.SE3.exp(torch.randn(B, 6, generator=gen, dtype=f64))
+    p = torch.randn(B, K, 3, generator=gen, dtype=f64)
+    q = T[:, None].act(p) + noise * torch.randn(B, K, 3, generator=gen, dtype=f64)
+    if outliers:
+        q[:, :outliers] += 5.0 * torch.randn(B, outliers, 3, generator=gen, dtype=f64)
+    return T, p, q
+
+
+def rigid_fit_graph(p, q, loss=None):
+    B, K = p.shape[:2]
+    graph = fg.FactorGraph()
+    graph.add_variable("T", ts.SE3.identity((B, 1), dtype=f64))
+    graph.add(fg.Factor(lambda T, a, b: T.act(a) - b, [("T", torch.zeros(K, dtype=torch.int64))],
+                        [p, q], dim=3), loss=loss)
+    return graph
+
+
+def test_user_factor_rigid_fit_matches_closed_form():
+    _, p, q = rigid_fit_problem()
+    result = fg.levenberg_marquardt(rigid_fit_graph(p, q), relative_error_tol=1e-10, absolute_error_tol=0)
+    expected = _kabsch(p, q)
+    assert (result.report.status == SolverStatus.CONVERGED).all()
+    torch.testing.assert_close(result.values["T"][:, 0].as_matrix(), expected.as_matrix(), rtol=0, atol=1e-9)
+
+
+def test_robust_loss_recovers_a_pose_that_the_plain_loss_does_not():
+    T, p, q = rigid_fit_problem(B=8, K=60, seed=6, noise=0.005, outliers=15)
+    plain = fg.levenberg_marquardt(rigid_fit_graph(p, q)).values["T"][:, 0]
+    robust = fg.levenberg_marquardt(rigid_fit_graph(p / 1, q, loss=fg.Cauchy(0.02))).values["T"][:, 0]
+    err_plain = T.rminus(plain).norm(dim=-1)
+    err_robust = T.rminus(robust).norm(dim=-1)
+    assert (err_robust < 5e-3).all(), err_robust
+    assert (err_plain > 5e-2).all(), err_plain
+
+
+# ----------------------------------------------------------------- errors
+def test_bad_input_names_the_argument():
+    _, Z, Z0, x0 = pose_graphs(B=2)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0)
+    with pytest.raises(ValueError, match="already"):
+        graph.add_variable("x", x0)
+    with pytest.raises(ValueError, match="batch of 3"):
+        graph.add_variable("y", ts.SE3.identity((3, 2), dtype=f64))
+    with pytest.raises(KeyError, match="'z'"):
+        graph.add(fg.Prior("z", 0, Z0))
+    with pytest.raises(IndexError, match=r"\[0, 8\)"):
+        graph.add(fg.Between("x", torch.tensor([0]), torch.tensor([8]), Z[:, :1]))
+    with pytest.raises(TypeError, match="measured"):
+        fg.Prior("x", 0, torch.eye(4, dtype=f64))
+    with pytest.raises(TypeError, match="index"):
+        fg.Prior("x", torch.tensor([0.0]), Z0)
+    with pytest.raises(ValueError, match="not both"):
+        fg.Prior("x", 0, Z0, information=torch.eye(6, dtype=f64), sqrt_information=torch.eye(6, dtype=f64))
+    graph.add(fg.Prior("x", 0, Z0, information=torch.eye(5, dtype=f64)))
+    with pytest.raises(ValueError, match="information"):
+        fg.levenberg_marquardt(graph)
+    with pytest.raises(ValueError, match="max_iterations"):
+        fg.levenberg_marquardt(_graph(Z, Z0, x0), max_iterations=-1)
+    with pytest.raises(TypeError, match="diagonal_damping"):
+        fg.levenberg_marquardt(_graph(Z, Z0, x0), diagonal_damping=1)
+    bad = fg.FactorGraph()
+    bad.add_variable("x", x0)
+    bad.add(fg.Prior("x", 0, Z0, information=-torch.eye(6, dtype=f64)))
+    with pytest.raises(ValueError, match="positive definite"):
+        fg.levenberg_marquardt(bad)
+
+
+def test_non_finite_start_is_reported_per_problem():
+    _, Z, Z0, x0 = pose_graphs(B=3)
+    m = x0.as_matrix().clone()
+    m[1, 2, 0, 3] = float("nan")
+    result = fg.levenberg_marquardt(_graph(Z, Z0, ts.SE3(m)))
+    st = result.report.status.tolist()
+    assert st[1] == SolverStatus.NON_FINITE and st[0] == st[2] == SolverStatus.CONVERGED
+    assert torch.isnan(result.report.cost[1]) and torch.isfinite(result.report.cost[[0, 2]]).all()
