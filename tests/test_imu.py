@@ -471,7 +471,7 @@ def test_bad_dtypes_values_and_devices_raise_with_names():
     neg = dt.clone()
     neg[1, 2] = -neg[1, 2]
     for kw in ({}, dict(gyro_noise_density=1e-3), dict(covariance=False, bias_jacobian=False)):
-        with pytest.raises(ValueError, match="dt must be >= 0 everywhere, got 1 negative"):
+        with pytest.raises(ValueError, match="dt must be finite and >= 0 everywhere, got 1 negative"):
             preintegrate(gyro, acc, neg, **kw)
     # Zero intervals are legitimate: a zero-length sample changes nothing.
     zero = torch.cat([dt, torch.zeros(2, 1, dtype=F64)], 1)
@@ -818,9 +818,9 @@ def test_noise_densities_are_checked_with_names():
         for bad in (-1e-3, math.nan, math.inf):
             with pytest.raises(ValueError, match=f"{name} must be a finite number >= 0, got"):
                 preintegrate(gyro, acc, dt, **{name: bad})
-        with pytest.raises(ValueError, match=f"{name} must be >= 0 everywhere, got 1 negative"):
+        with pytest.raises(ValueError, match=f"{name} must be finite and >= 0 everywhere, got 1 negative"):
             preintegrate(gyro, acc, dt, **{name: torch.tensor(-1e-3, dtype=F64)})
-    with pytest.raises(ValueError, match=r"gyro_noise_density must be >= 0 everywhere, got 1 negative"):
+    with pytest.raises(ValueError, match=r"gyro_noise_density must be finite and >= 0 everywhere, got 1 negative"):
         preintegrate(gyro, acc, dt, gyro_noise_density=torch.tensor([1e-3, -1e-3, 0.0], dtype=F64))
     with pytest.raises(ValueError, match=r"time_noise_density must be a float or a 0-d tensor, got shape \(3,\)"):
         preintegrate(gyro, acc, dt, time_noise_density=torch.ones(3, dtype=F64))

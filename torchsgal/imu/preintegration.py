@@ -98,11 +98,13 @@ def _readable(t: torch.Tensor) -> bool:
 
 
 def _check_non_negative(t: torch.Tensor, name: str) -> None:
-    """Raise if a readable tensor has negative (or NaN) entries; see ``_readable``."""
-    if _readable(t) and t.numel() and not bool((t >= 0).all()):
-        bad = t[~(t >= 0)]
-        raise ValueError(f"{name} must be >= 0 everywhere, got {bad.numel()} negative or NaN "
-                         f"entries (first {float(bad[0]):.3g})")
+    """Raise if a readable tensor has negative, infinite or NaN entries; see ``_readable``."""
+    if _readable(t) and t.numel():
+        ok = (t >= 0) & t.isfinite()
+        if not bool(ok.all()):
+            bad = t.detach()[~ok]
+            raise ValueError(f"{name} must be finite and >= 0 everywhere, got {bad.numel()} "
+                             f"negative, infinite or NaN entries (first {float(bad[0]):.3g})")
 
 
 def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Tensor:
@@ -448,8 +450,8 @@ def preintegrate(
     gyro (..., K, 3) [rad/s] and acc (..., K, 3) [m/s^2, specific force] in the body frame,
     constant over sample k's interval dt (..., K) [s] (a number: the same for every sample;
     dt may vary; dt >= 0, zero allowed: a
-    negative dt raises ValueError, checked where reading it costs no host sync, that is on CPU
-    outside torch.func transforms and compilation).  Biases (..., 3) or None.
+    negative or non-finite dt raises ValueError, checked where reading it costs no host sync,
+    that is on CPU outside torch.func transforms and compilation).  Biases (..., 3) or None.
 
     Noise densities (continuous time), each >= 0: gyro [rad/s/sqrt(Hz)] and accelerometer
     [m/s^2/sqrt(Hz)] as numbers or 0-d tensors (isotropic: the covariance is then summed in closed
@@ -459,7 +461,7 @@ def preintegrate(
     bias's does.  The clock [s/s/sqrt(Hz)] (a number or a 0-d tensor: white noise on the rate of
     time, entering iota; 0 = exact timestamps).  A tensor density must have gyro's dtype and
     device; a number is used as a Python float (no copy to the device); a negative or
-    non-finite number raises ValueError, and so do negative tensor entries where reading them
+    non-finite number raises ValueError, and so do negative or non-finite tensor entries where reading them
     costs no host sync (as for dt).  The model is continuous-time white noise n(s) on the
     signals, entering the tangent as G n = [0, -n_a, -n_g, n_t] (Q_c = diag(s_a^2, s_g^2, s_t^2)).
     With time_noise_density=0 (the default) the window length is exact, so the covariance's
@@ -503,6 +505,8 @@ def preintegrate(
     the optional C kernels were built and the covariance is isotropic or not asked for, as a C
     loop over each window's samples in double precision (functional/_native_imu.h).
     """
+    covariance = checks.boolean(covariance, "covariance")
+    bias_jacobian = checks.boolean(bias_jacobian, "bias_jacobian")
     dt = _dt_arg(dt, gyro)
     batch = _check_stream(gyro, acc, dt)
     _check_non_negative(dt, "dt")
@@ -786,6 +790,7 @@ def gravity_vector(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY, dty
     """Gravity in the navigation frame: z-up (ENU) (0, 0, -g) or NED (0, 0, +g)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    magnitude = checks.finite_number(magnitude, "magnitude")
     dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     sign = -1.0 if frame == "z_up" else 1.0
     return _filled_vector([0.0, 0.0, sign * magnitude], dtype, device)
@@ -796,6 +801,8 @@ def earth_rate_vector(latitude: float, frame: str = "z_up", rate: float = EARTH_
     z up) (0, W cos L, W sin L); NED (W cos L, 0, -W sin L)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    latitude = checks.finite_number(latitude, "latitude")
+    rate = checks.finite_number(rate, "rate")
     dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     c, s = rate * math.cos(latitude), rate * math.sin(latitude)
     return _filled_vector([0.0, c, s] if frame == "z_up" else [c, 0.0, -s], dtype, device)

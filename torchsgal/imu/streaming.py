@@ -1,0 +1,460 @@
+"""Streaming Galilean preintegration: samples added as they arrive, batched over IMUs.
+
+The window function :func:`~torchsgal.imu.preintegrate` integrates a whole window at once;
+:class:`StreamingPreintegration` holds the running increment, its covariance and its bias
+Jacobian and folds in one sample or a chunk of samples per call, with the same maths.
+
+Composition rules (docs/guide/imu_streaming.md).  Split a window at an instant into a first
+part (increment D1, covariance S1, bias Jacobian J1) and a second (D2, S2, J2).  The
+covariance of the window is the integral of Ad(Delta^-1 Delta(s)) G Q_c G^T Ad(.)^T
+(preintegration.py); for s in the first part Delta^-1 Delta(s) = D2^-1 (D1^-1 Delta(s)), for
+s in the second it is the second part's own integrand, so
+
+    Delta = D1 D2,   S = Ad(D2^-1) S1 Ad(D2^-1)^T + S2,   J = Ad(D2^-1) J1 + J2      (C1)
+
+and the same for the bias Jacobian, the same integral of Ad(.) G_b.  The window function
+evaluates the integral by Simpson's rule on each sample interval, so (C1) reproduces it to
+rounding for any split at sample instants.  One sample of length h with half-sample factor H
+(E = H H, the exact exp of the sample's tangent) contributes, with A = Ad(E^-1):
+
+    S_k = h/6 (A Q A^T + 4 Ad(H^-1) Q Ad(H^-1)^T + Q),   J_k = h/6 (A + 4 Ad(H^-1) + I) G_b  (C2)
+
+(Q = G Q_c G^T = diag(0, s_a^2 I, s_g^2 I, s_t^2), G_b = d tangent / d [b_g, b_a]).
+
+Bias random walk: the bias deviation db (gyro first) is constant over each sample and takes a
+step of covariance R h (R = diag(s_bg^2 I, s_ba^2 I)) at each sample's end, as in GTSAM's
+PreintegratedCombinedMeasurements.  The error state [eps, db] then moves by
+Phi = [[Ad(E^-1), J_k], [0, I]], and the combined covariance P = [[S, X], [X^T, B]] composes as
+
+    S' = A S A^T + A X J^T + J X^T A^T + J B J^T + S_c,
+    X' = A X + J B + X_c,   B' = B + B_c                                          (C3)
+
+for a part (E, A = Ad(E^-1), J, S_c, X_c, B_c) appended to the running one: (C1) with the
+cross terms.  Both are associative, so chunks are reduced by a log-depth tree over samples.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+
+import torch
+
+from .. import SGal3
+from ..functional import checks
+from ..functional import sgal3 as F
+from .preintegration import Preintegration, increment_tangents, preintegrate
+
+# Taylor coefficients of a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3,
+# d = (t^2/2 + cos t - 1)/t^4 in powers of p = t^2 (n = 0..11): the n = 12 term is below
+# 1e-20 for p <= _TAYLOR_LIMIT; above it the closed forms (cancellation below 1e-16 / p^2).
+_TERMS = 12
+_TAYLOR_LIMIT = 2.5
+_TAYLOR = [[(-1) ** n / math.factorial(2 * n + j) for j in (1, 2, 3, 4)] for n in range(_TERMS)]
+
+
+class _Constants:
+    """Small constant tensors of one dtype and device, made once per accumulator."""
+
+    def __init__(self, dtype, device):
+        kw = dict(dtype=dtype, device=device)
+        self.powers = torch.arange(_TERMS, **kw)
+        self.taylor = torch.tensor(_TAYLOR, **kw)  # (12, 4)
+        skew = torch.zeros(3, 3, 3, **kw)  # skew[i] = e_i^
+        for i, j, k in ((0, 2, 1), (1, 0, 2), (2, 1, 0)):
+            skew[i, j, k], skew[i, k, j] = 1.0, -1.0
+        self.skew = skew.reshape(3, 9)
+        self.eye3 = torch.eye(3, **kw)
+        # [C | v | r] = base s0 + K (base s1) + K^2 (base s2), base = [I | nu | h nu]:
+        # s0 = [1, 1, 1, 1, 1/2], s1 = [a, a, a, b, c], s2 = [b, b, b, c, d] from [a, b, c, d]
+        self.s0 = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.5], **kw)
+        s12 = torch.zeros(4, 2, 5, **kw)
+        s12[0, 0, :3] = s12[1, 0, 3] = s12[2, 0, 4] = 1.0
+        s12[1, 1, :3] = s12[2, 1, 3] = s12[3, 1, 4] = 1.0
+        self.s12 = s12.reshape(4, 10)
+        bottom = torch.zeros(2, 2, 5, **kw)  # the rows [0 0 0 1 h], [0 0 0 0 1] = b0 + h b1
+        bottom[0, 0, 3] = bottom[0, 1, 4] = bottom[1, 0, 4] = 1.0
+        self.bottom = bottom.reshape(2, 10)
+        # Ad(H^-1) = blockdiag(C^T, C^T, C^T, 1) Z, rows 0:9 of Z = Z0 + [h, r, v] L (appendix
+        # of docs/guide/imu_streaming.md): Z = [[I, h I, -r^, -v], [0, I, -v^, 0], [0, 0, I, 0]]
+        Z0 = torch.eye(10, **kw)[:9]
+        L = torch.zeros(7, 9, 10, **kw)
+        L[0, 0:3, 3:6] = torch.eye(3, **kw)
+        for i in range(3):
+            L[1 + i, 0:3, 6:9] = -skew[i]  # -r^
+            L[4 + i, 3:6, 6:9] = -skew[i]  # -v^
+            L[4 + i, i, 9] = -1.0  # -v
+        self.z0, self.lz = Z0.reshape(90), L.reshape(7, 90)
+        self.last_row = torch.eye(10, **kw)[9:]
+        self.eye10 = torch.eye(10, **kw)
+        gb = torch.zeros(10, 6, **kw)  # G_b: d tangent / d [b_g, b_a] = -[e_phi, e_nu]
+        gb[6:9, 0:3] = -torch.eye(3, **kw)
+        gb[3:6, 3:6] = -torch.eye(3, **kw)
+        self.gb = gb
+
+
+def _coefficients(p: torch.Tensor, c: _Constants) -> torch.Tensor:
+    """[a, b, c, d] (..., 4) of p = theta^2 (..., 1) (see _TAYLOR)."""
+    series = p.pow(c.powers) @ c.taylor
+    exact_needed = bool((p > _TAYLOR_LIMIT).any()) if p.device.type == "cpu" else True
+    if not exact_needed:
+        return series
+    big = p > _TAYLOR_LIMIT
+    q = torch.where(big, p, torch.full_like(p, 2 * _TAYLOR_LIMIT))  # no 0/0 in the unused branch
+    t = q.sqrt()
+    a = t.sin() / t
+    b = (1 - t.cos()) / q
+    exact = torch.cat((a, b, (1 - a) / q, (0.5 - b) / q), dim=-1)
+    return torch.where(big, exact, series)
+
+
+def _half_factors(phi, nu, h, c: _Constants):
+    """H = exp([0, nu, phi, h]) (..., 5, 5) ((3.6) with rho = 0) and Ad(H^-1) (..., 10, 10) for
+    half-sample tangents phi, nu (..., 3), h (..., 1)."""
+    coef = _coefficients((phi * phi).sum(-1, keepdim=True), c)
+    K = (phi @ c.skew).view(*phi.shape[:-1], 3, 3)
+    KK = torch.stack((K, K @ K), dim=-3)  # (..., 2, 3, 3)
+    base = torch.cat((c.eye3.expand(*nu.shape[:-1], 3, 3), nu.unsqueeze(-1), (h * nu).unsqueeze(-1)), -1)
+    s12 = (coef @ c.s12).view(*coef.shape[:-1], 2, 1, 5)
+    top = base * c.s0 + (KK @ (base.unsqueeze(-3) * s12)).sum(-3)  # [C | v | r] (..., 3, 5)
+    H = torch.cat((top, torch.addcmul(c.bottom[0], h, c.bottom[1]).view(*h.shape[:-1], 2, 5)), dim=-2)
+    Ct = top[..., :3].mT
+    Z = torch.addmm(c.z0, torch.cat((h, top[..., 4], top[..., 3]), -1).view(-1, 7), c.lz)
+    Z = Z.view(*h.shape[:-1], 3, 3, 10)
+    Ad = torch.cat(((Ct.unsqueeze(-3) @ Z).flatten(-3, -2), c.last_row.expand(*h.shape[:-1], 1, 10)), -2)
+    return H, Ad
+
+
+def _sample_parts(gyro, acc, dt, bias6, q_diag, r_diag, c: _Constants):
+    """Per sample (any leading shape): E (..., 5, 5), A = Ad(E^-1), J_k (..., 10, 6), S_k (10, 10)
+    by (C2), and B_k = R h (..., 6, 6) or None (no random walk)."""
+    half = 0.5 * dt.unsqueeze(-1)
+    H, Ah = _half_factors((gyro - bias6[..., :3]) * half, (acc - bias6[..., 3:]) * half, half, c)
+    E, A = H @ H, Ah @ Ah
+    w = (dt / 6.0)[..., None, None]
+    J = w * ((A + 4.0 * Ah + c.eye10) @ c.gb)
+    AA = torch.cat((A, 2.0 * Ah), dim=-1)
+    S = w * ((AA * torch.cat((q_diag, q_diag), -1).unsqueeze(-2)) @ AA.mT + torch.diag_embed(q_diag))
+    if r_diag is None:
+        return E, A, J, S, None, None
+    return E, A, J, S, torch.zeros_like(J), torch.diag_embed(r_diag * dt.unsqueeze(-1))
+
+
+def _combine(first, second, need_a: bool = True):
+    """A part appended to another, (C1) and (C3): parts (E, A, J, S, X, B), X and B None
+    without random walk."""
+    E1, A1, J1, S1, X1, B1 = first
+    E2, A2, J2, S2, X2, B2 = second
+    S = A2 @ S1 @ A2.mT + S2
+    X = B = None
+    if B1 is not None:
+        AX, JB = A2 @ X1, J2 @ B1
+        T = AX @ J2.mT
+        S = S + T + T.mT + JB @ J2.mT
+        X, B = AX + JB + X2, B1 + B2
+    A = A2 @ A1 if need_a else None
+    return E1 @ E2, A, A2 @ J1 + J2, S, X, B
+
+
+def _along(parts, index):
+    return tuple(None if p is None else p[(Ellipsis, index) + (slice(None),) * 2] for p in parts)
+
+
+def _reduce(parts):
+    """The parts of samples (..., K, ., .) combined along K by a log-depth tree (C1, C3)."""
+    while parts[0].shape[-3] > 1:
+        K = parts[0].shape[-3]
+        pairs = _combine(_along(parts, slice(0, K - 1, 2)), _along(parts, slice(1, K, 2)))
+        if K % 2:
+            tail = _along(parts, slice(K - 1, K))
+            pairs = tuple(None if p is None else torch.cat((p, t), dim=-3) for p, t in zip(pairs, tail))
+        parts = pairs
+    return _along(parts, 0)
+
+
+def _prefix_products(E: torch.Tensor) -> torch.Tensor:
+    """P_k = E_0 ... E_k along the axis -3 (a Hillis-Steele scan, log2 K levels)."""
+    step = 1
+    while step < E.shape[-3]:
+        E = torch.cat((E[..., :step, :, :], E[..., :-step, :, :] @ E[..., step:, :, :]), dim=-3)
+        step *= 2
+    return E
+
+
+def _density_vector(x, name: str, kw: dict) -> torch.Tensor:
+    """A noise density: a number >= 0 or a tensor (..., 3) of entries >= 0, as a tensor (..., 3)."""
+    if isinstance(x, torch.Tensor):
+        checks.vector(x, 3, name)
+        if x.dtype != kw["dtype"] or x.device != kw["device"]:
+            raise TypeError(f"{name} must have dtype {kw['dtype']} on {kw['device']} (the "
+                            f"accumulator's), got {x.dtype} on {x.device}")
+        if x.device.type == "cpu" and not bool(((x >= 0) & x.isfinite()).all()):
+            raise ValueError(f"{name} must be finite and >= 0 everywhere")
+        return x.clone()
+    return torch.full((3,), checks.finite_number(x, name, ">= 0"), **kw)
+
+
+class StreamingPreintegration:
+    """Preintegration of IMU samples as they arrive, for a batch of independent IMUs.
+
+    ``batch_shape`` is the shape of the batch of IMUs; every call to :meth:`integrate` gives
+    one sample per IMU (gyro, acc (*batch_shape, 3), dt (*batch_shape) or a number) or a chunk
+    of K samples per IMU (gyro, acc (*batch_shape, K, 3), dt (*batch_shape, K) or a number).
+    The running increment, covariance and bias Jacobian equal those of
+    :func:`~torchsgal.imu.preintegrate` on all the samples so far, to rounding, however they
+    were split into calls (the composition rules of this module's docstring).
+
+    Biases (*batch_shape, 3) or numbers: the linearisation point, fixed until :meth:`reset`;
+    a later bias estimate enters to first order through the bias Jacobian (:meth:`corrected`,
+    :meth:`predict`, as GTSAM's ``biasCorrectedDelta`` / ``predict``).  Noise densities as in
+    :func:`~torchsgal.imu.preintegrate` (numbers or per-axis tensors (..., 3)); bias random
+    walks [rad/s^2/sqrt(Hz)], [m/s^3/sqrt(Hz)] give the combined covariance of
+    :meth:`combined_covariance`.  ``validate`` (default True) checks each call's dt for
+    finite, positive values (one host read on a GPU); False skips that read.
+    ``buffer_size`` samples are held before they are folded in (1: each call at once); any
+    read (``delta``, ``covariance``, ``result()``, ...) folds in the held ones first.
+    """
+
+    def __init__(self, batch_shape=(), *, gyro_bias=None, acc_bias=None, gyro_noise_density=0.0,
+                 acc_noise_density=0.0, time_noise_density=0.0, gyro_bias_random_walk=0.0,
+                 acc_bias_random_walk=0.0, buffer_size: int = 256, dtype=None, device=None,
+                 validate: bool = True):
+        self.validate = checks.boolean(validate, "validate")
+        self.buffer_size = checks.integer(buffer_size, "buffer_size", 1)
+        if isinstance(batch_shape, numbers.Integral) and not isinstance(batch_shape, bool):
+            batch_shape = (batch_shape,)
+        if not isinstance(batch_shape, (tuple, list, torch.Size)) or not all(
+                isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 0 for n in batch_shape):
+            raise TypeError(f"batch_shape must be a tuple of integers >= 0, got {batch_shape!r}")
+        self.batch_shape = torch.Size(batch_shape)
+        dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
+        self._c = _Constants(dtype, device)
+        self._device = self._c.eye10.device
+        kw = dict(dtype=dtype, device=self._device)
+        self._kw = kw
+        s_a = _density_vector(acc_noise_density, "acc_noise_density", kw)
+        s_g = _density_vector(gyro_noise_density, "gyro_noise_density", kw)
+        s_t = checks.finite_number(time_noise_density, "time_noise_density", ">= 0")
+        batch = checks.broadcast_batch(imus=self.batch_shape, acc_noise_density=s_a.shape[:-1],
+                                       gyro_noise_density=s_g.shape[:-1])
+        if batch != self.batch_shape:
+            raise ValueError(f"the noise densities' batch must broadcast to batch_shape "
+                             f"{tuple(self.batch_shape)}, got {tuple(batch)}")
+        self._dens = tuple(x if not isinstance(x, torch.Tensor) else d.expand(*batch, 3)
+                           for x, d in ((acc_noise_density, s_a), (gyro_noise_density, s_g))) + (s_t,)
+        s_a, s_g = s_a.expand(*batch, 3), s_g.expand(*batch, 3)
+        zero = torch.zeros(*batch, 3, **kw)
+        self._q = torch.cat((zero, s_a**2, s_g**2, torch.full((*batch, 1), s_t**2, **kw)), -1)
+        r_g = _density_vector(gyro_bias_random_walk, "gyro_bias_random_walk", kw)
+        r_a = _density_vector(acc_bias_random_walk, "acc_bias_random_walk", kw)
+        checks.broadcast_batch(imus=self.batch_shape, gyro_bias_random_walk=r_g.shape[:-1],
+                               acc_bias_random_walk=r_a.shape[:-1])
+        r = torch.cat(torch.broadcast_tensors(r_g, r_a), -1).expand(*batch, 6) ** 2
+        zero_walk = r.device.type == "cpu" and not bool(r.any())
+        self._r = None if zero_walk else r
+        self.reset(gyro_bias, acc_bias)
+
+    # ------------------------------------------------------------------------ state
+    def reset(self, gyro_bias=None, acc_bias=None) -> None:
+        """Start a new window (identity increment, zero covariance and bias Jacobian), with new
+        biases if given (otherwise the current ones)."""
+        kw, batch = self._kw, self.batch_shape
+        old = getattr(self, "_bias", None)
+        g = self._bias_arg(gyro_bias, "gyro_bias", None if old is None else old[..., :3])
+        a = self._bias_arg(acc_bias, "acc_bias", None if old is None else old[..., 3:])
+        self._bias = torch.cat((g, a), -1)
+        self._delta = torch.eye(5, **kw).expand(*batch, 5, 5).clone()
+        self._S = torch.zeros(*batch, 10, 10, **kw)
+        self._J = torch.zeros(*batch, 10, 6, **kw)
+        self._X = None if self._r is None else torch.zeros(*batch, 10, 6, **kw)
+        self._B = None if self._r is None else torch.zeros(*batch, 6, 6, **kw)
+        self._count = 0
+        self._pending, self._pending_count = [], 0
+        self._bias6, self._q6 = self._bias.unsqueeze(-2), self._q.unsqueeze(-2)
+        self._r6 = None if self._r is None else self._r.unsqueeze(-2)
+
+    def _bias_arg(self, b, name: str, current) -> torch.Tensor:
+        kw, batch = self._kw, self.batch_shape
+        if b is None:
+            return current if current is not None else torch.zeros(*batch, 3, **kw)
+        if not isinstance(b, torch.Tensor):
+            if isinstance(b, bool) or not isinstance(b, numbers.Real):
+                raise TypeError(f"{name} must be None, a number or a tensor (*batch_shape, 3), got "
+                                f"{type(b).__name__}")
+            return torch.full((*batch, 3), checks.finite_number(b, name), **kw)
+        checks.vector(b, 3, name)
+        if b.dtype != kw["dtype"] or b.device != self._device:
+            raise TypeError(f"{name} must have dtype {kw['dtype']} on {self._device} (the "
+                            f"accumulator's), got {b.dtype} on {b.device}")
+        try:
+            return b.expand(*batch, 3).clone()
+        except RuntimeError:
+            raise ValueError(f"{name} of shape {tuple(b.shape)} must broadcast to "
+                             f"({', '.join(map(str, batch))}{', ' if batch else ''}3)") from None
+
+    @property
+    def num_samples(self) -> int:
+        """The samples integrated since the last :meth:`reset`."""
+        return self._count + self._pending_count
+
+    @property
+    def delta(self) -> SGal3:
+        """The increment (*batch_shape) so far (the identity after :meth:`reset`)."""
+        self._flush()
+        return SGal3(self._delta)
+
+    @property
+    def covariance(self) -> torch.Tensor:
+        """Covariance (*batch_shape, 10, 10) of the increment's right perturbation, as
+        :class:`~torchsgal.imu.Preintegration`'s (bias random walk not included: see
+        :meth:`combined_covariance`)."""
+        self._flush()
+        return self._S
+
+    @property
+    def bias_jacobian(self) -> torch.Tensor:
+        """(*batch_shape, 10, 6): delta(b + db) ~ delta exp(J db), db = [db_g, db_a]."""
+        self._flush()
+        return self._J
+
+    @property
+    def gyro_bias(self) -> torch.Tensor:
+        return self._bias[..., :3]
+
+    @property
+    def acc_bias(self) -> torch.Tensor:
+        return self._bias[..., 3:]
+
+    def combined_covariance(self) -> torch.Tensor:
+        """(*batch_shape, 16, 16): the covariance of [eps, db_g, db_a] at the window's end, the
+        increment's right perturbation eps (10) and the bias deviation (6) accumulated by the
+        random walk over the window (model (C3); GTSAM's PreintegratedCombinedMeasurements
+        in torchsgal's tangent and bias orders: see gtsam_interop)."""
+        self._flush()
+        kw, batch = self._kw, self.batch_shape
+        X = self._X if self._X is not None else torch.zeros(*batch, 10, 6, **kw)
+        B = self._B if self._B is not None else torch.zeros(*batch, 6, 6, **kw)
+        return torch.cat((torch.cat((self._S, X), -1), torch.cat((X.mT, B), -1)), -2)
+
+    def result(self) -> Preintegration:
+        """The window so far as a :class:`~torchsgal.imu.Preintegration` (its ``corrected``,
+        ``predict`` and ``predict_covariance`` apply)."""
+        self._flush()
+        return Preintegration(SGal3(self._delta), self._S, self._J, self.gyro_bias, self.acc_bias)
+
+    def corrected(self, gyro_bias=None, acc_bias=None) -> SGal3:
+        """The increment for other biases without re-integration, to first order:
+        delta exp(J [b_g - b_g0, b_a - b_a0]) (error O(|db|^2))."""
+        return self.result().corrected(gyro_bias, acc_bias)
+
+    def predict(self, start: SGal3, gravity: torch.Tensor, earth_rate=None, gyro_bias=None,
+                acc_bias=None) -> SGal3:
+        """The state at the end of the window so far; see :func:`~torchsgal.imu.predict`."""
+        return self.result().predict(start, gravity, earth_rate, gyro_bias, acc_bias)
+
+    # -------------------------------------------------------------------- integrate
+    def integrate(self, gyro: torch.Tensor, acc: torch.Tensor, dt, intermediate: bool = False):
+        """Add one sample per IMU (gyro, acc (*batch_shape, 3), dt (*batch_shape) or a number)
+        or a chunk (gyro, acc (*batch_shape, K, 3), dt (*batch_shape, K) or a number)
+        [rad/s, m/s^2, s], dt > 0.  With ``intermediate`` the increments after each sample of
+        the call are returned, SGal3 (*batch_shape, K) (K = 1 for one sample), else None.
+
+        Samples are held (copied) until ``buffer_size`` of them are pending or a result is
+        read, then folded in as one chunk: the same result as folding each in at once."""
+        intermediate = checks.boolean(intermediate, "intermediate")
+        sample, dt, K = self._check_samples(gyro, acc, dt)
+        if intermediate or self.buffer_size <= K:
+            self._flush()
+            return self._fold(sample, self._dt_tensor([(dt, K)]), intermediate)
+        self._pending.append((sample, dt, K))
+        self._pending_count += K
+        if self._pending_count >= self.buffer_size:
+            self._flush()
+        return None
+
+    def _dt_tensor(self, dts) -> torch.Tensor:
+        """(*batch, K) from a list of (dt: float or tensor (*batch, k), k)."""
+        kw, batch = self._kw, self.batch_shape
+        if all(not isinstance(h, torch.Tensor) for h, _ in dts):
+            flat = [h for h, k in dts for _ in range(k)]
+            return torch.tensor(flat, **kw).expand(*batch, len(flat))
+        parts = [h if isinstance(h, torch.Tensor) else torch.full((*batch, k), h, **kw) for h, k in dts]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        pend, self._pending, self._pending_count = self._pending, [], 0
+        sample = pend[0][0] if len(pend) == 1 else torch.cat([p[0] for p in pend], -2)
+        self._fold(sample, self._dt_tensor([(h, k) for _, h, k in pend]), False)
+
+    def _fold(self, sample: torch.Tensor, dt: torch.Tensor, intermediate: bool):
+        """Fold samples [gyro, acc] (*batch, K, 6), dt (*batch, K) into the state: one sample by
+        (C2), a chunk by the window function (no random walk) or the tree of (C2) parts (C3),
+        then (C1)/(C3) onto the running part."""
+        gyro, acc = sample[..., :3], sample[..., 3:]
+        K = sample.shape[-2]
+        if K > 1 and self._r is None:
+            pre = preintegrate(gyro, acc, dt, gyro_bias=self.gyro_bias, acc_bias=self.acc_bias,
+                               gyro_noise_density=self._dens[1], acc_noise_density=self._dens[0],
+                               time_noise_density=self._dens[2])
+            E = pre.delta.as_matrix()
+            A = SGal3(E).inverse().adjoint()
+            chunk = (E, A, pre.bias_jacobian, pre.covariance, None, None)
+            factors = None
+        else:
+            factors = _sample_parts(gyro, acc, dt, self._bias6, self._q6, self._r6, self._c)
+            chunk = _along(factors, 0) if K == 1 else _reduce(factors)
+        before = self._delta
+        state = (self._delta, None, self._J, self._S, self._X, self._B)
+        self._delta, _, self._J, self._S, self._X, self._B = _combine(state, chunk, need_a=False)
+        self._count += K
+        if not intermediate:
+            return None
+        if factors is None:
+            xi = increment_tangents(gyro, acc, dt, self.gyro_bias, self.acc_bias)
+            steps = SGal3.exp(xi).as_matrix()
+        else:
+            steps = factors[0]
+        return SGal3(before.unsqueeze(-3) @ _prefix_products(steps))
+
+    def _check_samples(self, gyro, acc, dt):
+        """([gyro, acc] (*batch, K, 6) (a new tensor), dt (a float or a tensor (*batch, K)), K)
+        from one sample or a chunk."""
+        if not isinstance(gyro, torch.Tensor) or gyro.dtype != self._kw["dtype"] or gyro.device != self._device:
+            checks.floating(gyro, "gyro")
+            raise TypeError(f"gyro must have dtype {self._kw['dtype']} on {self._device} (the "
+                            f"accumulator's), got {gyro.dtype} on {gyro.device}")
+        if not isinstance(acc, torch.Tensor) or acc.shape != gyro.shape or acc.dtype != gyro.dtype \
+                or acc.device != gyro.device:
+            checks.floating(acc, "acc")
+            raise ValueError(f"acc must have gyro's shape, dtype and device {tuple(gyro.shape)}, "
+                             f"{gyro.dtype}, {gyro.device}; got {tuple(acc.shape)}, {acc.dtype}, {acc.device}")
+        batch = self.batch_shape
+        nb = len(batch)
+        one = gyro.dim() == nb + 1
+        if not (one or gyro.dim() == nb + 2) or gyro.shape[:nb] != batch or gyro.shape[-1] != 3:
+            raise ValueError(f"gyro must have shape (*batch_shape, 3) (one sample) or (*batch_shape, "
+                             f"K, 3) (a chunk) with batch_shape {tuple(batch)}, got {tuple(gyro.shape)}")
+        K = 1 if one else gyro.shape[-2]
+        if K == 0:
+            raise ValueError(f"gyro must hold at least one sample (K >= 1), got shape {tuple(gyro.shape)}")
+        sample = torch.cat((gyro, acc), -1)
+        if one:
+            sample = sample.unsqueeze(-2)
+        if not isinstance(dt, torch.Tensor):
+            return sample, checks.finite_number(dt, "dt", "> 0"), K
+        checks.floating(dt, "dt")
+        if dt.dtype != gyro.dtype or dt.device != gyro.device:
+            raise TypeError(f"dt must have gyro's dtype and device ({gyro.dtype}, {gyro.device}), "
+                            f"got {dt.dtype}, {dt.device}")
+        want = (*batch, K)
+        try:
+            dt = (dt.unsqueeze(-1) if one else dt).expand(want)
+        except RuntimeError:
+            raise ValueError(f"dt must have shape {tuple(want[:-1]) if one else want} (or broadcast "
+                             f"to it), got {tuple(dt.shape)}") from None
+        if self.validate and not bool(((dt > 0) & dt.isfinite()).all()):
+            bad = dt[~((dt > 0) & dt.isfinite())]
+            raise ValueError(f"dt must be finite and > 0 everywhere, got {bad.numel()} other "
+                             f"entries (first {float(bad[0])!r})")
+        return sample, dt.clone(), K
