@@ -1,0 +1,340 @@
+"""Pose-graph optimisation on CPU: GTSAM's Levenberg-Marquardt and Gauss-Newton (C++ optimisers
+through the Python bindings), the torchsgal factor-graph engine (``torchsgal.estimation.graph``),
+Theseus (when it imports), and ``SparseCholesky``'s backends on the problems' normal equations.
+
+Problems (``../shared/data``): sphere2500 (SE3, iSAM ``EDGE3``, no vertices: the chained
+odometry is the initial guess, as GTSAM's ``load2D`` builds it), pose3example-grid (SE3, g2o,
+the file's vertices) and w100 (SE2, TORO, the file's vertices); each with a tight prior on its
+first pose (at its initial value, sigma 1e-3 on every tangent component).
+
+For every solver: the final cost 1/2 chi-square evaluated by GTSAM's ``graph.error`` on the
+solution (one objective for all), the iterations, and the wall time (median of ``--repeats``
+runs, each from the same initial guess; the graph is built outside the clock).  The torchsgal
+engine runs where its dense normal equations fit (D <= ``--dense-limit``); its targets are
+GTSAM LM's final cost (1e-6 relative) in at most 2x GTSAM LM's time.
+
+Usage: python benchmarks/bench_posegraph.py [--repeats 3] [--out benchmarks/results/posegraph_cpu]
+Writes <out>.json and <out>.md.
+"""
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import platform
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import torchsgal as ts
+from torchsgal.estimation.g2o import PoseGraph, odometry_initial_guess, read_pose_graph
+from torchsgal.estimation.sparse import SparseCholesky, available_backends
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+PROBLEMS = ("sphere2500.txt", "pose3example-grid.txt", "w100.graph")
+PRIOR_SIGMA = 1e-3
+THESEUS_DAMPING = 1e-3  # fixed: Theseus's adaptive damping does not run with its CHOLMOD solver
+
+
+def median_time(fn, repeats: int):
+    """(median seconds, last result) over ``repeats`` calls."""
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+# --------------------------------------------------------------------------- GTSAM
+def gtsam_problem(graph: PoseGraph, initial):
+    import gtsam
+
+    planar = graph.group is ts.SE2
+    fg = gtsam.NonlinearFactorGraph()
+    swap = [0, 1, 2] if planar else [3, 4, 5, 0, 1, 2]  # torchsgal -> GTSAM tangent order
+    Z = graph.measurements.as_matrix().numpy()
+    W = graph.information.numpy()[:, swap][:, :, swap]
+    ids = graph.ids.tolist()
+    for (i, j), z, w in zip(graph.edges.tolist(), Z, W):
+        noise = gtsam.noiseModel.Gaussian.Information(w)
+        if planar:
+            fg.add(gtsam.BetweenFactorPose2(ids[i], ids[j], pose2(z), noise))
+        else:
+            fg.add(gtsam.BetweenFactorPose3(ids[i], ids[j], gtsam.Pose3(z), noise))
+    values = gtsam_values(graph, initial)
+    dof = 3 if planar else 6
+    prior = gtsam.noiseModel.Isotropic.Sigma(dof, PRIOR_SIGMA)
+    first = values.atPose2(ids[0]) if planar else values.atPose3(ids[0])
+    fg.add((gtsam.PriorFactorPose2 if planar else gtsam.PriorFactorPose3)(ids[0], first, prior))
+    return fg, values
+
+
+def pose2(m: np.ndarray):
+    import gtsam
+
+    return gtsam.Pose2(m[0, 2], m[1, 2], np.arctan2(m[1, 0], m[0, 0]))
+
+
+def gtsam_values(graph: PoseGraph, poses):
+    import gtsam
+
+    values = gtsam.Values()
+    make = pose2 if graph.group is ts.SE2 else gtsam.Pose3
+    for k, m in zip(graph.ids.tolist(), poses.as_matrix().detach().cpu().double().numpy()):
+        values.insert(k, make(m))
+    return values
+
+
+def run_gtsam(fg, values, method: str, repeats: int) -> dict:
+    import gtsam
+
+    def solve():
+        if method == "LM":
+            opt = gtsam.LevenbergMarquardtOptimizer(fg, values, gtsam.LevenbergMarquardtParams())
+        else:
+            opt = gtsam.GaussNewtonOptimizer(fg, values, gtsam.GaussNewtonParams())
+        result = opt.optimize()
+        return result, opt.iterations()
+
+    t, (result, iterations) = median_time(solve, repeats)
+    return dict(solver=f"GTSAM {method}", cost=fg.error(result), iterations=iterations, time_s=t)
+
+
+# --------------------------------------------------------------------------- torchsgal engine
+def engine_graph(graph: PoseGraph, initial):
+    from torchsgal.estimation import graph as fg
+
+    g = fg.FactorGraph()
+    g.add_variable("x", initial)
+    i, j = graph.edges[:, 0], graph.edges[:, 1]
+    g.add(fg.Between("x", i, j, graph.measurements, information=graph.information))
+    dof = graph.group.dof
+    W0 = torch.eye(dof, dtype=torch.float64) / PRIOR_SIGMA**2
+    g.add(fg.Prior("x", torch.tensor([0]), initial[0:1], information=W0))
+    return g
+
+
+def run_engine(graph: PoseGraph, initial, gtsam_fg, method: str, repeats: int) -> dict:
+    from torchsgal.estimation import graph as fg
+
+    solver = fg.levenberg_marquardt if method == "LM" else fg.gauss_newton
+
+    def solve():
+        return solver(engine_graph(graph, initial), max_iterations=100)
+
+    t, result = median_time(solve, repeats)
+    poses = result.values["x"]
+    return dict(solver=f"torchsgal {method}", cost=gtsam_fg.error(gtsam_values(graph, poses)),
+                engine_cost=float(result.report.cost[0]),
+                iterations=int(result.report.iterations[0]), time_s=t,
+                status=int(result.report.status[0]))
+
+
+def engine_skip_reason(D: int, dense_limit: int) -> str | None:
+    try:
+        from torchsgal.estimation import graph as fg
+    except ImportError as e:
+        return f"torchsgal.estimation.graph does not import ({e})"
+    params = inspect.signature(fg.levenberg_marquardt).parameters
+    sparse = any(p in params for p in ("linear_solver", "sparse"))
+    if D > dense_limit and not sparse:
+        return (f"the engine assembles dense normal equations ({D} x {D}, "
+                f"{D * D * 8 / 2**30:.1f} GiB per matrix, O(D^3) per step); run above "
+                f"--dense-limit={dense_limit} once it takes a sparse solver")
+    return None
+
+
+# --------------------------------------------------------------------------- Theseus
+def theseus_status() -> tuple[object | None, str]:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import theseus as th
+        return th, f"theseus {th.__version__}"
+    except Exception as e:  # any import failure is reported, not raised
+        return None, f"theseus does not import: {type(e).__name__}: {e}"
+
+
+def run_theseus(th, graph: PoseGraph, initial, gtsam_fg, repeats: int, max_iterations: int) -> dict:
+    """Theseus LM with its CHOLMOD sparse solver; SE3 tangent [v, w] as torchsgal's."""
+    if graph.group is not ts.SE3:
+        raise NotImplementedError("the Theseus run covers SE3 graphs")
+    W = graph.information
+    if not torch.equal(W, torch.diag_embed(torch.diagonal(W, dim1=-2, dim2=-1))):
+        raise NotImplementedError("the Theseus run takes diagonal information")
+    sqrt_diag = torch.diagonal(W, dim1=-2, dim2=-1).sqrt()
+    M0 = initial.as_matrix()[:, :3, :]  # Theseus stores (3, 4)
+    Z = graph.measurements.as_matrix()[:, :3, :]
+
+    def build():
+        poses = [th.SE3(tensor=M0[k:k + 1].clone(), name=f"x{k}") for k in range(M0.shape[0])]
+        objective = th.Objective(dtype=torch.float64)
+        for e, (i, j) in enumerate(graph.edges.tolist()):
+            w = th.DiagonalCostWeight(th.Variable(sqrt_diag[e:e + 1]))
+            objective.add(th.Between(poses[i], poses[j], th.SE3(tensor=Z[e:e + 1]), w,
+                                     name=f"e{e}"))
+        w0 = th.ScaleCostWeight(torch.tensor([[1.0 / PRIOR_SIGMA]], dtype=torch.float64))
+        objective.add(th.Difference(poses[0], th.SE3(tensor=M0[0:1].clone()), w0, name="prior"))
+        return objective, poses
+
+    def solve():
+        objective, poses = build()
+        optimizer = th.LevenbergMarquardt(objective, linear_solver_cls=th.CholmodSparseSolver,
+                                          max_iterations=max_iterations, step_size=1.0,
+                                          abs_err_tolerance=1e-5, rel_err_tolerance=1e-5)
+        layer = th.TheseusLayer(optimizer)
+        with torch.no_grad():
+            _, info = layer.forward({}, optimizer_kwargs={"damping": THESEUS_DAMPING,
+                                                          "track_best_solution": True})
+        return poses, info
+
+    t, (poses, info) = median_time(solve, repeats)
+    M = torch.cat([p.tensor for p in poses]).detach()
+    bottom = torch.tensor([0, 0, 0, 1], dtype=M.dtype).expand(M.shape[0], 1, 4)
+    solution = ts.SE3.from_matrix(torch.cat([M, bottom], dim=1))
+    return dict(solver="Theseus LM (CHOLMOD)", cost=gtsam_fg.error(gtsam_values(graph, solution)),
+                iterations=int(info.converged_iter.max()) if info.converged_iter is not None else None,
+                time_s=t)
+
+
+# --------------------------------------------------------------------------- sparse solver
+def normal_equations(graph: PoseGraph, initial):
+    """The Gauss-Newton normal equations at ``initial``, from the engine's linearisation:
+    lower-triangle pattern (rows, cols), entries (duplicates not merged), gradient."""
+    from torchsgal.estimation.graph.linearize import Problem, linearize
+
+    problem = Problem(engine_graph(graph, initial))
+    lin = linearize(problem, problem.initial(engine_graph(graph, initial)))
+    rows, cols = problem.h_index // problem.D, problem.h_index % problem.D
+    lower = rows >= cols
+    return rows[lower], cols[lower], lin.values[0][lower], lin.g[0], problem.D
+
+
+def run_sparse(graph: PoseGraph, initial, repeats: int) -> list[dict]:
+    rows, cols, values, g, D = normal_equations(graph, initial)
+    out = []
+    for backend in available_backends():
+        if backend == "dense" and D > 5000:
+            out.append(dict(backend=backend, size=D, skipped=f"{D} unknowns: dense O(D^3)"))
+            continue
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            S = SparseCholesky(rows, cols, D, backend=backend)
+        analyse = time.perf_counter() - t0
+
+        def factor_solve(S=S):
+            S.factor(values)
+            return S.solve(-g)
+
+        t, x = median_time(factor_solve, repeats)
+        # residual of the solve against the pattern's matrix product
+        Ax = torch.zeros(D, dtype=torch.float64).index_add_(0, rows, values * x[cols])
+        off = rows != cols
+        Ax.index_add_(0, cols[off], values[off] * x[rows[off]])
+        rel = float((Ax + g).norm() / g.norm())
+        out.append(dict(backend=backend, size=D, nnz=int(rows.numel()), analyse_s=analyse,
+                        factor_solve_s=t, relative_residual=rel))
+    return out
+
+
+# --------------------------------------------------------------------------- main
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--dense-limit", type=int, default=2000)
+    parser.add_argument("--theseus-max-iterations", type=int, default=50)
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "posegraph_cpu"))
+    args = parser.parse_args(argv)
+    torch.set_default_dtype(torch.float64)
+    if not DATA.is_dir():
+        raise SystemExit(f"data folder not found: {DATA}")
+    th, theseus_note = theseus_status()
+    results = dict(machine=platform.processor() or platform.machine(), python=sys.version.split()[0],
+                   torch=torch.__version__, threads=torch.get_num_threads(), repeats=args.repeats,
+                   prior_sigma=PRIOR_SIGMA, theseus=theseus_note, problems={})
+    for name in PROBLEMS:
+        graph = read_pose_graph(DATA / name)
+        initial = graph.poses if graph.poses is not None else odometry_initial_guess(graph)
+        gtsam_fg, values = gtsam_problem(graph, initial)
+        D = graph.ids.numel() * graph.group.dof
+        entry = dict(group=graph.group.__name__, vertices=graph.ids.numel(),
+                     edges=graph.edges.shape[0], unknowns=D, initial_cost=gtsam_fg.error(values),
+                     solvers=[])
+        for method in ("LM", "GN"):
+            entry["solvers"].append(run_gtsam(gtsam_fg, values, method, args.repeats))
+            print(name, entry["solvers"][-1], flush=True)
+        reason = engine_skip_reason(D, args.dense_limit)
+        for method in ("LM", "GN"):
+            if reason:
+                entry["solvers"].append(dict(solver=f"torchsgal {method}", skipped=reason))
+            else:
+                entry["solvers"].append(run_engine(graph, initial, gtsam_fg, method, args.repeats))
+            print(name, entry["solvers"][-1], flush=True)
+        if th is None:
+            entry["solvers"].append(dict(solver="Theseus LM (CHOLMOD)", skipped=theseus_note))
+        else:
+            try:
+                entry["solvers"].append(run_theseus(th, graph, initial, gtsam_fg, 1,
+                                                    args.theseus_max_iterations))
+            except Exception as e:  # reported in the results, not raised
+                entry["solvers"].append(dict(solver="Theseus LM (CHOLMOD)",
+                                             skipped=f"{type(e).__name__}: {e}"))
+        print(name, entry["solvers"][-1], flush=True)
+        try:
+            entry["sparse"] = run_sparse(graph, initial, args.repeats)
+        except Exception as e:  # the engine's linearisation is needed for the real matrices
+            entry["sparse"] = [dict(skipped=f"{type(e).__name__}: {e}")]
+        for s in entry["sparse"]:
+            print(name, s, flush=True)
+        lm = entry["solvers"][0]
+        for s in entry["solvers"]:
+            if "cost" in s:
+                s["cost_vs_gtsam_lm"] = (s["cost"] - lm["cost"]) / lm["cost"]
+                s["time_vs_gtsam_lm"] = s["time_s"] / lm["time_s"]
+        results["problems"][name] = entry
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+    out.with_suffix(".md").write_text(markdown(results))
+    return results
+
+
+def markdown(results: dict) -> str:
+    lines = ["# Pose-graph optimisation (CPU)", "",
+             f"`python benchmarks/bench_posegraph.py --repeats {results['repeats']}`; torch "
+             f"{results['torch']}, {results['threads']} threads; median of {results['repeats']} "
+             f"runs; cost = 1/2 chi-square by GTSAM's `graph.error` on each solution; prior "
+             f"sigma {results['prior_sigma']} on the first pose; {results['theseus']}.", ""]
+    for name, e in results["problems"].items():
+        lines += [f"## {name}: {e['group']}, {e['vertices']} poses, {e['edges']} edges, "
+                  f"{e['unknowns']} unknowns (initial cost {e['initial_cost']:.6g})", "",
+                  "| solver | final cost | rel. to GTSAM LM | iterations | time (s) | x GTSAM LM |",
+                  "|---|---|---|---|---|---|"]
+        for s in e["solvers"]:
+            if "skipped" in s:
+                lines.append(f"| {s['solver']} | not run: {s['skipped']} | | | | |")
+            else:
+                lines.append(f"| {s['solver']} | {s['cost']:.10g} | {s['cost_vs_gtsam_lm']:+.2e} | "
+                             f"{s['iterations']} | {s['time_s']:.4g} | {s['time_vs_gtsam_lm']:.2f} |")
+        lines += ["", "| SparseCholesky backend | unknowns | analyse (s) | factor + solve (s) | "
+                      "relative residual |", "|---|---|---|---|---|"]
+        for s in e["sparse"]:
+            if "skipped" in s:
+                lines.append(f"| {s.get('backend', '-')} | {s.get('size', '')} | not run: "
+                             f"{s['skipped']} | | |")
+            else:
+                lines.append(f"| {s['backend']} | {s['size']} | {s['analyse_s']:.4f} | "
+                             f"{s['factor_solve_s']:.4f} | {s['relative_residual']:.1e} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
