@@ -1,4 +1,4 @@
-"""The README's API tour, runnable: python examples/api_tour.py"""
+"""The API tour of docs/guide/groups.md, runnable: python examples/api_tour.py"""
 import math
 
 import torch
