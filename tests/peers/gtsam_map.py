@@ -1,9 +1,11 @@
 """Mapping between torchsgal's conventions and GTSAM 4.3's (python wrapper).
 
-Plain numpy; imports gtsam lazily and never imports torchsgal. Our conventions are those
-of ``CONVENTIONS.md``. Every fact below was checked numerically (``self_check()`` below
-re-checks them against ``scipy.linalg.expm`` of our own numpy hat and against central
-finite differences; run ``python tests/peers/gtsam_map.py`` or call ``self_check()``).
+Numpy in and out; the orders and the element conversions are the package's own
+(``torchsgal.interop.gtsam``), imported here so that every test using this map tests them too.
+Our conventions are those of ``CONVENTIONS.md``. Every fact below was checked numerically
+(``self_check()`` below re-checks them against ``scipy.linalg.expm`` of an independent numpy
+hat in this file and against central finite differences; run ``python tests/peers/gtsam_map.py``
+or call ``self_check()``).
 
 Group correspondence and matrices
 ---------------------------------
@@ -47,22 +49,21 @@ Derivatives (right / local convention, same as ours)
 """
 
 import numpy as np
+import torch
+
+import torchsgal as ts
+from torchsgal.interop import gtsam as interop
 
 GROUPS = ("SO3", "SE3", "SE23", "SGal3")
 GTSAM_CLASS = {"SO3": "Rot3", "SE3": "Pose3", "SE23": "NavState", "SGal3": "Gal3"}
 DOF = {"SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10}
 MATRIX_DIM = {"SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5}
+_GROUP_CLASS = {"SO3": ts.SO3, "SE3": ts.SE3, "SE23": ts.SE23, "SGal3": ts.SGal3}
 
-# xi_gtsam = xi_ours[PERM[g]]
-PERM = {
-    "SO3": np.array([0, 1, 2]),
-    # ours [rho(0:3), phi(3:6)] -> gtsam [phi, rho]
-    "SE3": np.array([3, 4, 5, 0, 1, 2]),
-    # ours [rho(0:3), nu(3:6), phi(6:9)] -> gtsam [phi, rho, nu]
-    "SE23": np.array([6, 7, 8, 0, 1, 2, 3, 4, 5]),
-    # ours [rho(0:3), nu(3:6), phi(6:9), iota(9)] -> gtsam [phi, nu, rho, iota]
-    "SGal3": np.array([6, 7, 8, 3, 4, 5, 0, 1, 2, 9]),
-}
+# xi_gtsam = xi_ours[PERM[g]], the package's table (interop.TYPES):
+# SE3 ours [rho, phi] -> gtsam [phi, rho]; SE23 ours [rho, nu, phi] -> gtsam [phi, rho, nu];
+# SGal3 ours [rho, nu, phi, iota] -> gtsam [phi, nu, rho, iota]
+PERM = {g: np.array(interop.TYPES[GTSAM_CLASS[g]][1]) for g in GROUPS}
 # where phi sits in our tangent
 PHI_SLICE = {"SO3": slice(0, 3), "SE3": slice(3, 6), "SE23": slice(6, 9), "SGal3": slice(6, 9)}
 # xi_ours = xi_gtsam[INV_PERM[g]]
@@ -100,46 +101,32 @@ def tangent_from_gtsam(group, xi):
 def operator_to_gtsam(group, A):
     """A (dof x dof) acting on our tangents -> same operator on GTSAM's tangents."""
     _check_group(group)
-    P = PERM[group]
-    return np.asarray(A, dtype=np.float64)[np.ix_(P, P)]
+    name = GTSAM_CLASS[group]
+    A = torch.as_tensor(np.asarray(A, dtype=np.float64))
+    return interop.jacobian_to_gtsam(A, output=name, input=name).numpy()
 
 
 def operator_from_gtsam(group, A):
     """A (dof x dof) acting on GTSAM's tangents -> same operator on our tangents."""
     _check_group(group)
-    Q = INV_PERM[group]
-    return np.asarray(A, dtype=np.float64)[np.ix_(Q, Q)]
+    name = GTSAM_CLASS[group]
+    return interop.jacobian_from_gtsam(np.asarray(A, dtype=np.float64), output=name, input=name).numpy()
 
 
 def to_gtsam(group, M):
-    """Our matrix (numpy, n x n) -> gtsam object."""
-    import gtsam
-
+    """Our matrix (numpy, n x n) -> gtsam object (the package's converter)."""
     _check_group(group)
     M = np.asarray(M, dtype=np.float64)
     n = MATRIX_DIM[group]
     if M.shape != (n, n):
         raise ValueError(f"M: expected shape ({n}, {n}) for {group}, got {M.shape}")
-    if group == "SO3":
-        return gtsam.Rot3(M)
-    if group == "SE3":
-        return gtsam.Pose3(M)
-    if group == "SE23":
-        # our [[C, v, r], ...]; NavState(R, position, velocity)
-        return gtsam.NavState(gtsam.Rot3(M[:3, :3]), M[:3, 4].copy(), M[:3, 3].copy())
-    return gtsam.Gal3(M)
+    return interop.to_gtsam(_GROUP_CLASS[group].from_matrix(torch.from_numpy(M.copy())))
 
 
 def from_gtsam(group, obj):
-    """gtsam object -> our matrix (numpy, n x n)."""
+    """gtsam object -> our matrix (numpy, n x n) (the package's converter)."""
     _check_group(group)
-    if group == "SE23":
-        M = np.eye(5)
-        M[:3, :3] = obj.attitude().matrix()
-        M[:3, 3] = np.asarray(obj.velocity()).reshape(3)
-        M[:3, 4] = np.asarray(obj.position()).reshape(3)
-        return M
-    return np.array(obj.matrix(), dtype=np.float64)
+    return interop.from_gtsam(obj, group=_GROUP_CLASS[group]).as_matrix().numpy()
 
 
 def expmap(group, xi_ours):
