@@ -256,6 +256,9 @@ class KinematicChain:
         self._Ro, self._po = Ro.to(**as_), po.to(**as_)
         self._RoK, self._RoK2 = (Ro @ K).to(**as_), (Ro @ K @ K).to(**as_)
         self._Roa = (Ro @ axes[:, :, None])[..., 0].to(**as_)
+        cols = torch.cat((Ro, Ro @ K, Ro @ K @ K, po[:, :, None], Ro @ axes[:, :, None]), dim=-1)
+        self._cols = [m.to(**as_).contiguous() for m in cols]  # (3, 11) per joint
+        self._is_rev = [j.kind != PRISMATIC for j in self.joints]
         self._base_R, self._base_p = self._base64[:3, :3].to(**as_), self._base64[:3, 3].to(**as_)
         self._lower = torch.tensor([j.lower for j in self.joints], **as_)
         self._upper = torch.tensor([j.upper for j in self.joints], **as_)
@@ -380,16 +383,22 @@ class KinematicChain:
     # -------------------------------------------------------------- the core
     def _joint_frames(self, q: torch.Tensor):
         """World rotations R_i (..., n, 3, 3) and positions p_i (..., n, 3) of the joint frames
-        (after each joint's motion): the product (45) with a general fixed origin per link."""
-        qr = q * self._revf
-        s, c = torch.sin(qr)[..., None, None], torch.cos(qr)[..., None, None]
-        LR = self._Ro + s * self._RoK + (1 - c) * self._RoK2  # O_i Rot(a_i, q_i), Rodrigues
-        Lp = self._po + (q * self._prisf)[..., None] * self._Roa
+        (after each joint's motion): the product (45) with a general fixed origin per link.
+
+        R_i = R_(i-1) O_i Rot(a_i, q_i) = A + sin(q) A K + (1 - cos(q)) A K^2 with A = R_(i-1) R_o
+        (Rodrigues), and one matrix product per joint: R_(i-1) [R_o, R_o K, R_o K^2, p_o, R_o a]."""
+        s, c = torch.sin(q), torch.cos(q)
         Rs, ps = [], []
         R, p = self._base_R, self._base_p
         for i in range(self.n_joints):
-            p = p + _matvec(R, Lp[..., i, :])
-            R = R @ LR[..., i, :, :]
+            M = R @ self._cols[i]  # (..., 3, 11)
+            if self._is_rev[i]:
+                R = M[..., 0:3] + s[..., i, None, None] * M[..., 3:6] \
+                    + (1 - c[..., i, None, None]) * M[..., 6:9]
+                p = p + M[..., 9]
+            else:
+                R = M[..., 0:3]
+                p = p + M[..., 9] + q[..., i, None] * M[..., 10]
             Rs.append(R)
             ps.append(p)
         batch = q.shape[:-1]

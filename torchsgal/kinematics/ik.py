@@ -1,2 +1,226 @@
-class IKResult: pass
-def inverse_kinematics(): pass
+"""Batched inverse kinematics on the library's Gauss-Newton / Levenberg-Marquardt solver.
+
+Each (target, seed) pair is one problem of ``torchsgal.estimation.gauss_newton``.  The
+residual of a problem is the position error and the rotation error in the link's frame,
+
+    r = (p(q) - p*,  w log(R*^T R(q)))          (w = ``orientation_weight``, metres per radian)
+
+(either part alone for position-only or orientation-only targets), with the analytic Jacobian
+(J_lin, w J_r^-1(log(R*^T R)) R^T J_ang) from the chain's geometric Jacobian.  Joint limits
+are kept by a bounded parameterisation: a joint with both limits is q = c + h sin(u), c and h
+the middle and half-range of its limits, so every iterate is within them.
+
+Success is decided by the pose error against the user's tolerances, never by the solver's
+status: a redundant arm (7 joints for a 6-dof pose) has a rank-deficient information matrix
+at every solution, which the solver reports as SINGULAR although the target is reached.
+Among the seeds of a target the one with the smallest error (relative to the tolerances) is
+returned.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..estimation import gauss_newton
+from ..functional import checks
+from ..groups import SE3, SO3
+from .chain import KinematicChain
+
+_COST_TOL, _STOP = 1e-10, 0.0
+
+
+@dataclass
+class IKResult:
+    """Inverse-kinematics solutions for a batch of B targets (every field has batch (B,)).
+
+    q               (B, n) joint positions, the best seed's solution (within the joint limits
+                    when ``respect_limits``).
+    success         bool: the position error is at most ``position_tol`` and the rotation
+                    error at most ``rotation_tol`` (those that were asked for).
+    position_error  |p(q) - p*| in metres (0 for orientation-only targets).
+    rotation_error  the angle of R*^T R(q) in radians (0 for position-only targets).
+    seed            int64, the index of the chosen seed.
+    iterations      int64, the solver's steps for the chosen seed.
+    solver_status   int64 ``SolverStatus`` code of the chosen seed, for information only:
+                    SINGULAR is the normal code of a redundant arm that reached its target.
+    """
+
+    q: torch.Tensor
+    success: torch.Tensor
+    position_error: torch.Tensor
+    rotation_error: torch.Tensor
+    seed: torch.Tensor
+    iterations: torch.Tensor
+    solver_status: torch.Tensor
+
+    @property
+    def success_rate(self) -> float:
+        """The fraction of targets solved (one host read)."""
+        return self.success.to(torch.float64).mean().item()
+
+
+def _targets(chain: KinematicChain, target, position: bool, orientation: bool):
+    """(B, 3) positions and (B, 3, 3) rotations (None where not used) of the targets."""
+    if isinstance(target, SE3):
+        if target.batch_shape == ():
+            target = target.unsqueeze(0)
+        if len(target.batch_shape) != 1:
+            raise ValueError(f"target must have batch shape (B,), got {tuple(target.batch_shape)}")
+        R, p = target.rotation(), target.position()
+    elif isinstance(target, torch.Tensor):
+        checks.floating(target, "target")
+        if target.dim() >= 2 and tuple(target.shape[-2:]) == (4, 4):
+            m = target.reshape(-1, 4, 4)
+            R, p = m[:, :3, :3], m[:, :3, 3]
+        elif target.shape[-1:] == (3,) and target.dim() <= 2:
+            if orientation:
+                raise ValueError("target is a position (..., 3): pass orientation=False for "
+                                 "position-only targets, or give SE3 poses")
+            p, R = target.reshape(-1, 3), None
+        else:
+            raise ValueError(f"target must be SE3 poses (B,), a (B, 4, 4) tensor or positions "
+                             f"(B, 3), got a tensor of shape {tuple(target.shape)}")
+    else:
+        raise TypeError(f"target must be an SE3 element or a tensor, got {type(target).__name__}")
+    ref = chain.lower
+    checks.same_device_dtype(**{f"the chain {chain.name!r}": ref, "target": p})
+    return p, R
+
+
+def _seeds(chain: KinematicChain, q0, B: int, num_seeds: int, generator) -> torch.Tensor:
+    """(B, S, n) starting joint positions."""
+    n = chain.n_joints
+    if q0 is None:
+        return chain.random_configuration((B, num_seeds), generator=generator)
+    q0 = chain._joint_tensor(q0, "q0")
+    if q0.dim() == 1:
+        q0 = q0.expand(B, 1, n)
+    elif q0.dim() == 2:
+        q0 = q0[:, None, :] if q0.shape[0] == B else q0.expand(B, *q0.shape)
+    elif q0.dim() != 3 or q0.shape[0] != B:
+        raise ValueError(f"q0 must be (n,), (S, n), (B, n) or (B, S, n) with B = {B} targets, "
+                         f"got {tuple(q0.shape)}")
+    return q0
+
+
+def inverse_kinematics(
+    chain: KinematicChain,
+    target,
+    *,
+    q0: torch.Tensor | None = None,
+    num_seeds: int = 8,
+    link: str | None = None,
+    position: bool = True,
+    orientation: bool = True,
+    orientation_weight: float = 1.0,
+    position_tol: float = 1e-4,
+    rotation_tol: float = 1e-3,
+    respect_limits: bool = True,
+    max_iterations: int = 50,
+    damping: float = 1e-3,
+    generator: torch.Generator | None = None,
+) -> IKResult:
+    """Joint positions that put ``link`` (default the end link with the tool) at ``target``.
+
+    Args:
+        chain: a :class:`KinematicChain`.
+        target: SE3 poses of batch (B,) (or one pose), a (B, 4, 4) tensor, or positions (B, 3)
+            with ``orientation=False``; in the chain's base frame, dtype and device.
+        q0: starting joint positions: (n,), (S, n) (shared seeds), (B, n) or (B, S, n); by
+            default ``num_seeds`` random configurations within the limits per target.
+        position, orientation: which parts of the pose to reach (at least one).
+        orientation_weight: metres per radian in the residual (module doc).
+        position_tol (m), rotation_tol (rad): the errors below which a target is solved.
+        respect_limits: keep joints with limits inside them (bounded parameterisation).
+        max_iterations, damping: of the Levenberg-Marquardt solver.
+        generator: for the random seeds.
+    Returns an :class:`IKResult`.  Not differentiable.
+    """
+    if not isinstance(chain, KinematicChain):
+        raise TypeError(f"chain must be a KinematicChain, got {type(chain).__name__}")
+    position = checks.boolean(position, "position")
+    orientation = checks.boolean(orientation, "orientation")
+    respect_limits = checks.boolean(respect_limits, "respect_limits")
+    if not (position or orientation):
+        raise ValueError("position and orientation are both False: nothing to reach")
+    w = checks.finite_number(orientation_weight, "orientation_weight", "> 0")
+    pos_tol = checks.finite_number(position_tol, "position_tol", "> 0")
+    rot_tol = checks.finite_number(rotation_tol, "rotation_tol", "> 0")
+    num_seeds = checks.integer(num_seeds, "num_seeds", 1)
+    link = chain._one_link(link)
+    p_t, R_t = _targets(chain, target, position, orientation)
+    B, n = p_t.shape[0], chain.n_joints
+    seeds = _seeds(chain, q0, B, num_seeds, generator)
+    S = seeds.shape[1]
+    q_start = seeds.reshape(B * S, n)
+    p_rep = p_t.repeat_interleave(S, dim=0)
+    R_rep = None if R_t is None else R_t.repeat_interleave(S, dim=0)
+
+    lo, hi = chain.lower, chain.upper
+    bounded = torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo) if respect_limits \
+        else torch.zeros_like(lo, dtype=torch.bool)
+    mid = torch.where(bounded, (lo + hi) / 2, 0.0)
+    half = torch.where(bounded, (hi - lo) / 2, 1.0)
+
+    def to_q(u):
+        return torch.where(bounded, mid + half * torch.sin(u), u)
+
+    ratio = ((q_start - mid) / half).clamp(-1.0, 1.0)
+    u0 = torch.where(bounded, torch.asin(ratio), q_start)
+
+    def parts(u):
+        q = to_q(u)
+        pose, J = chain.pose_and_jacobian(q, link=link, frame="base")
+        dq_du = torch.where(bounded, half * torch.cos(u), 1.0)
+        res, jac = [], []
+        if position:
+            res.append(pose.position() - p_rep)
+            jac.append(J[..., :3, :])
+        if orientation:
+            R = pose.rotation()
+            phi = SO3.from_matrix(R_rep.transpose(-1, -2) @ R).log()
+            Jb = R.transpose(-1, -2) @ J[..., 3:, :]  # body angular Jacobian
+            res.append(w * phi)
+            jac.append(w * (SO3.jr_inv(phi) @ Jb))
+        return torch.cat(res, dim=-1), torch.cat(jac, dim=-2) * dq_du[..., None, :]
+
+    cache = {}
+
+    def residual(u):
+        r, J = parts(u)
+        cache["u"], cache["J"] = u, J
+        return r
+
+    def jacobian(u):
+        if cache.get("u") is u:
+            return cache["J"]
+        return parts(u)[1]
+
+    sol = gauss_newton(residual, u0, jacobian=jacobian, max_iterations=max_iterations,
+                       damping=damping, step_tol=1e-10, cost_tol=_COST_TOL, stop_below_fraction=_STOP)
+    with torch.no_grad():
+        q = to_q(sol.x)
+        pose = chain.pose(q, link=link)
+        zero = torch.zeros(B * S, dtype=q.dtype, device=q.device)
+        e_pos = (pose.position() - p_rep).norm(dim=-1) if position else zero
+        if orientation:
+            e_rot = SO3.from_matrix(R_rep.transpose(-1, -2) @ pose.rotation()).log().norm(dim=-1)
+        else:
+            e_rot = zero
+        score = torch.maximum(e_pos / pos_tol, e_rot / rot_tol)
+        score = torch.where(torch.isfinite(score), score, math.inf).reshape(B, S)
+        best = score.argmin(dim=1)
+        pick = best[:, None]
+
+        def choose(x):
+            x = x.reshape(B, S, *x.shape[1:])
+            idx = pick.reshape(B, 1, *([1] * (x.dim() - 2))).expand(B, 1, *x.shape[2:])
+            return x.gather(1, idx)[:, 0]
+
+        q_best = choose(q)
+        return IKResult(q=q_best, success=score.gather(1, pick)[:, 0] <= 1.0,
+                        position_error=choose(e_pos), rotation_error=choose(e_rot), seed=best,
+                        iterations=choose(sol.report.iterations),
+                        solver_status=choose(sol.report.status))

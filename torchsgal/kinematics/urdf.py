@@ -34,16 +34,16 @@ def _import_yourdfpy():
     return yourdfpy
 
 
-def _read_source(source) -> tuple[str, str]:
-    """(the URDF text, a description for messages) from a path or an XML string."""
+def _read_source(source) -> tuple[bytes, str]:
+    """(the URDF bytes, a description for messages) from a path or an XML string."""
     if isinstance(source, Path) or (isinstance(source, str) and not source.lstrip().startswith("<")):
         path = Path(source)
         if not path.is_file():
             raise FileNotFoundError(f"source: no URDF file at {str(path)!r} (give a path to a "
                                     f"file or the URDF XML text itself)")
-        return path.read_text(), str(path)
+        return path.read_bytes(), str(path)
     if isinstance(source, str):
-        return source, "the URDF string"
+        return source.encode("utf-8"), "the URDF string"
     raise TypeError(f"source must be a path (str or pathlib.Path) or a URDF XML string, got "
                     f"{type(source).__name__}")
 
@@ -72,7 +72,7 @@ def parse_urdf(source):
             if el is None or el.get("link") is None:
                 raise ValueError(f"{where}: joint {name!r} has no <{tag} link=...>")
     try:
-        model = yourdfpy.URDF.load(io.StringIO(text), build_scene_graph=False, load_meshes=False,
+        model = yourdfpy.URDF.load(io.BytesIO(text), build_scene_graph=False, load_meshes=False,
                                    build_collision_scene_graph=False,
                                    load_collision_meshes=False)
     except Exception as err:  # yourdfpy raises its own error types and KeyError/ValueError
