@@ -855,3 +855,92 @@ def test_fusion_under_vmap_over_the_means_only():
     g = lambda M: fuse_event(ConcentratedGaussian(ts.SGal3(M), P), event, Sigma).covariance  # noqa: E731
     want = fuse_event(ConcentratedGaussian(ts.SGal3(frames), P.expand(3, 10, 10)), event, Sigma).covariance
     torch.testing.assert_close(torch.func.vmap(g)(frames), want, rtol=0, atol=1e-15)
+
+
+# ------------------------------------------------------------------ singular covariances
+def _imu_gaussian():
+    """The rank-9 covariance of an IMU increment (exact timestamps: zero time row and column)."""
+    from torchsgal.imu import preintegrate
+    g = torch.Generator().manual_seed(3)
+    gyro = torch.randn(40, 3, dtype=torch.float64, generator=g)
+    acc = torch.randn(40, 3, dtype=torch.float64, generator=g) + 9.8
+    pre = preintegrate(gyro, acc, 0.01, gyro_noise_density=0.05, acc_noise_density=0.5)
+    return pre.delta, pre.covariance
+
+
+def test_imu_rank9_covariance_is_accepted_with_a_9_dof_nees():
+    mean, S = _imu_gaussian()
+    assert not S[9].any() and not S[:, 9].any()
+    with pytest.raises(RuntimeError):
+        torch.linalg.cholesky(S)  # singular: the full-rank route cannot take it
+    d = ConcentratedGaussian(mean, S)
+    assert int(d.rank()) == 9
+    x = d.sample((N_MC,), generator=torch.Generator().manual_seed(1))
+    xi = x.rminus(mean)
+    assert not xi[..., 9].any()  # the known direction is exact
+    nees = d.mahalanobis(x) ** 2
+    # chi-square with 9 dof: mean 9, variance 18; the sample mean within 4 standard errors
+    assert abs(float(nees.mean()) - 9.0) < 4 * math.sqrt(18.0 / N_MC)
+    lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], 9)
+    inside = float(((nees > lo) & (nees < hi)).double().mean())
+    assert abs(inside - 0.95) < 4 * math.sqrt(0.95 * 0.05 / N_MC)
+
+
+def test_singular_log_prob_against_scipy_and_the_full_rank_limit():
+    mean, S = _imu_gaussian()
+    d = ConcentratedGaussian(mean, S)
+    g = torch.Generator().manual_seed(2)
+    xi = 0.5 * d.sample((5,), generator=g).rminus(mean)  # on the support (time 0)
+    pts = mean.rplus(xi)
+    got = d.log_prob(pts)
+    # scipy's degenerate normal on the supported subspace, with the group's Jacobian term
+    ref = scipy.stats.multivariate_normal(np.zeros(10), S.numpy(), allow_singular=True).logpdf(xi.numpy())
+    ref = torch.as_tensor(ref) - torch.linalg.slogdet(ts.SGal3.jr(xi))[1]
+    assert torch.allclose(got, ref, rtol=0, atol=1e-8)
+    # the limit of the full-rank density as the known direction's variance s^2 goes to 0
+    for s2 in (1e-6, 1e-12):
+        full = S.clone()
+        full[9, 9] = s2
+        lp = ConcentratedGaussian(mean, full).log_prob(pts)
+        assert torch.allclose(lp + 0.5 * math.log(2 * math.pi * s2), got, rtol=0, atol=1e-9)
+    # the NEES ignores nothing on the support: it is the pseudo-inverse quadratic form
+    quad = (xi.unsqueeze(-2) @ torch.linalg.pinv(S) @ xi.unsqueeze(-1)).reshape(-1)
+    assert torch.allclose(d.mahalanobis(pts) ** 2, quad, rtol=1e-9, atol=0)
+
+
+def test_singular_covariance_rules():
+    G = ts.SE3
+    mean = G.random((), dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    A = torch.randn(6, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    S = 0.01 * A @ A.T  # rank 4, null directions not along the axes
+    with pytest.raises(ValueError, match="not positive definite.*allow_singular=True"):
+        ConcentratedGaussian(mean, S)
+    d = ConcentratedGaussian(mean, S, allow_singular=True)
+    assert int(d.rank()) == 4
+    xi = d.sample((200,), generator=torch.Generator().manual_seed(3)).rminus(mean)
+    Q, _ = torch.linalg.qr(A, mode="complete")
+    null = Q[:, 4:]  # the orthogonal complement of the range
+    assert (xi @ null).abs().max() < 1e-12
+    ref = scipy.stats.multivariate_normal(np.zeros(6), S.numpy(), allow_singular=True).logpdf(xi[:4].numpy())
+    ref = torch.as_tensor(ref) - torch.linalg.slogdet(G.jr(xi[:4]))[1]
+    assert torch.allclose(d.log_prob(mean.rplus(xi[:4])), ref, rtol=0, atol=1e-8)
+    # derived Gaussians keep the rule
+    assert d.to_side("left").allow_singular and d.inverse().allow_singular
+    # a zero row with a non-definite rest, or an indefinite matrix, is refused
+    S2 = torch.eye(6, dtype=torch.float64)
+    S2[0, 0] = 0.0
+    S2[1, 2] = S2[2, 1] = 1.0  # the rest singular, not along axes
+    with pytest.raises(ValueError, match="not positive definite"):
+        ConcentratedGaussian(mean, S2)
+    bad = torch.diag(torch.tensor([1.0, 1.0, 1.0, 1.0, 1.0, -1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="not positive semi-definite"):
+        ConcentratedGaussian(mean, bad, allow_singular=True)
+    with pytest.raises(TypeError, match="allow_singular must be"):
+        ConcentratedGaussian(mean, torch.eye(6, dtype=torch.float64), allow_singular="no")
+    # definite covariances: the same values as before (known directions: none)
+    P = _cov(6, 0.1, 5)
+    a, b = ConcentratedGaussian(mean, P), ConcentratedGaussian(mean, P, allow_singular=True)
+    x = a.sample((50,), generator=torch.Generator().manual_seed(4))
+    assert int(a.rank()) == 6
+    assert torch.allclose(a.log_prob(x), b.log_prob(x), rtol=1e-12, atol=1e-12)
+    assert torch.allclose(a.mahalanobis(x), b.mahalanobis(x), rtol=1e-12, atol=0)
