@@ -122,6 +122,42 @@ def _group_names(method: str | None = None) -> list[str]:
     return [G.__name__ for G in ALL_GROUPS if method is None or hasattr(G, method)]
 
 
+def _known_directions(S: torch.Tensor) -> torch.Tensor:
+    """(..., dof) bool: the rows (and columns) of S that are exactly zero."""
+    zero = S == 0
+    return zero.all(-1) & zero.all(-2)
+
+
+def _with_known_directions(S: torch.Tensor) -> torch.Tensor:
+    """S with a 1 on the diagonal of its zero rows and columns: definite where S is definite on
+    the other directions, and equal to S where it has none."""
+    return S + torch.diag_embed(_known_directions(S).to(S.dtype))
+
+
+def _supported_factor(S: torch.Tensor, allow_singular: bool):
+    """(M, keep, whiten): M (..., dof, dof) with M M^T = S, keep (..., dof) the supported
+    directions, and whiten(xi) -> (z, log pseudo-determinant of S) with |z| the norm of xi's
+    supported part in the metric S^+.  Known (zero) directions: a Cholesky factor of
+    _with_known_directions(S) (S itself where none is zero); ``allow_singular``: eigenvectors."""
+    if not allow_singular:
+        keep = ~_known_directions(S)
+        L = torch.linalg.cholesky(_sym(_with_known_directions(S)))
+
+        def whiten(xi):
+            z = torch.linalg.solve_triangular(L, (xi * keep).unsqueeze(-1), upper=False).squeeze(-1)
+            return z, 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+        return L * keep.unsqueeze(-1), keep, whiten
+    lam, U = torch.linalg.eigh(_sym(S))
+    scale = S.abs().amax(dim=(-1, -2), keepdim=True).squeeze(-1)
+    keep = lam > _default_tol(S, None) * scale
+    safe = torch.where(keep, lam, torch.ones_like(lam))
+
+    def whiten(xi):
+        z = torch.where(keep, _mv(U.transpose(-1, -2), xi) / safe.sqrt(), torch.zeros_like(lam))
+        return z, torch.log(safe).sum(-1)
+    return U * torch.where(keep, safe.sqrt(), torch.zeros_like(lam)).unsqueeze(-2), keep, whiten
+
+
 class ConcentratedGaussian:
     """A concentrated Gaussian on a group: ``mean`` (a group element, any batch shape),
     ``covariance`` (..., dof, dof) of the tangent perturbation, ``side`` 'right' (F = mean
@@ -134,10 +170,28 @@ class ConcentratedGaussian:
     value on CUDA (one sync per call; a covariance that is not positive definite raises there);
     ``fuse`` and ``fuse_event`` read their status once at the end (see their docstrings);
     propagation (``to_side``, ``inverse``, ``compose``, ``between``, the actions without
-    ``validate``) reads nothing."""
+    ``validate``) reads nothing.
+
+    Singular covariances.  A positive semi-definite covariance is accepted where its rows and
+    columns that are exactly zero mark directions known exactly (the rank-9 covariance of an
+    IMU increment with exact timestamps has a zero time row and column) and the rest is
+    positive definite; with ``allow_singular=True`` any positive semi-definite covariance is
+    (its support: the eigenvectors whose eigenvalues exceed the tolerance of
+    ``check_covariance`` times the largest entry).  The distribution then lives on the
+    supported subspace of the tangent, of dimension r = :meth:`rank`: ``sample`` draws
+    perturbations in it (exact zeros along known directions), ``mahalanobis`` is the norm of
+    the perturbation's projection onto it, whitened (its square, a NEES, is chi-square with r
+    degrees of freedom), and ``log_prob`` is the density of that projection on the r-dimensional
+    subspace: the formula below with r for dof and the product of the supported eigenvalues
+    (the pseudo-determinant) for det Sigma.  For known directions it is the limit of the
+    full-rank log_prob plus (dof - r) log(2 pi s^2) / 2 as their variance s^2 goes to 0.
+    Known directions are those of the Gaussian's own side; ``to_side`` mixes them (log_prob of
+    a left Gaussian goes through the right side), so propagate and evaluate such Gaussians with
+    ``allow_singular=True``, which the results of ``to_side``, ``inverse``, ``compose`` and
+    ``between`` inherit."""
 
     def __init__(self, mean: LieGroup, covariance: torch.Tensor, side: str = "right",
-                 validate: bool = True):
+                 validate: bool = True, allow_singular: bool = False):
         if not isinstance(mean, LieGroup):
             raise TypeError(f"mean must be a group element ({', '.join(_group_names())}), "
                             f"got {type(mean).__name__}")
@@ -165,8 +219,19 @@ class ConcentratedGaussian:
                 f"batch shapes do not broadcast: mean {tuple(mean.batch_shape)}, "
                 f"covariance {tuple(covariance.shape[:-2])}"
             ) from None
-        if validate:
-            check_covariance(covariance, dof)
+        validate = checks.boolean(validate, "validate")
+        self.allow_singular = checks.boolean(allow_singular, "allow_singular")
+        if validate and self.allow_singular:
+            check_covariance(covariance, dof, definite=False)
+        elif validate:
+            try:  # definite on the directions that are not known exactly
+                check_covariance(_with_known_directions(covariance), dof)
+            except ValueError as error:
+                if "not positive definite" not in str(error):
+                    raise
+                raise ValueError(f"{error}: a singular covariance is accepted where its null "
+                                 f"directions are rows and columns of exact zeros (directions "
+                                 f"known exactly), or with allow_singular=True") from None
         self.mean = mean
         self.covariance = covariance
         self.side = side
@@ -216,7 +281,7 @@ class ConcentratedGaussian:
         """Reparameterised samples, batch ``sample_shape + batch_shape``; gradients flow to the
         mean and the covariance (through its Cholesky factor)."""
         sample_shape = checks.shape(sample_shape, "sample_shape")
-        L = torch.linalg.cholesky(_sym(self.covariance))
+        L = _supported_factor(self.covariance, self.allow_singular)[0]
         batch = self.batch_shape
         eps = torch.randn(*sample_shape, *batch, self.dof, dtype=L.dtype, device=L.device,
                           generator=generator)
@@ -225,8 +290,7 @@ class ConcentratedGaussian:
     def mahalanobis(self, g: LieGroup) -> torch.Tensor:
         """sqrt(xi^T Sigma^-1 xi) with xi the perturbation of g."""
         xi = self.perturbation(g)
-        L = torch.linalg.cholesky(_sym(self.covariance))
-        z = torch.linalg.solve_triangular(L, xi.unsqueeze(-1), upper=False).squeeze(-1)
+        z = _supported_factor(self.covariance, self.allow_singular)[2](xi)[0]
         # dim as a non-negative index: the vector_norm decomposition of torch 2.9 to 2.12 (meta
         # and fake tensors, inductor) keeps a reduced dimension of size 1 (SO2) named as -1
         # (pytorch/pytorch#182181, fixed in 2.13; tests/test_devices.py).
@@ -249,12 +313,17 @@ class ConcentratedGaussian:
         self._check_element(g)
         r = self._right()
         xi = g.rminus(r.mean)
-        L = torch.linalg.cholesky(_sym(r.covariance))
-        z = torch.linalg.solve_triangular(L, xi.unsqueeze(-1), upper=False).squeeze(-1)
-        log_det_sigma = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+        _, keep, whiten = _supported_factor(r.covariance, self.allow_singular)
+        z, log_det_sigma = whiten(xi)
         log_det_j = torch.linalg.slogdet(self.group.jr(xi))[1]
-        return (-0.5 * (z * z).sum(-1) - 0.5 * (self.dof * math.log(2 * math.pi) + log_det_sigma)
+        dof = keep.sum(-1).to(z.dtype)  # the rank (the dof where the covariance is definite)
+        return (-0.5 * (z * z).sum(-1) - 0.5 * (dof * math.log(2 * math.pi) + log_det_sigma)
                 - log_det_j)
+
+    def rank(self) -> torch.Tensor:
+        """(...) int64: the dimension r of the supported subspace (``dof`` for a definite
+        covariance; the degrees of freedom of ``mahalanobis(g) ** 2``)."""
+        return _supported_factor(self.covariance, self.allow_singular)[1].sum(-1)
 
     # ------------------------------------------------------------------ conversions
     def to_side(self, side: str) -> "ConcentratedGaussian":
@@ -268,7 +337,7 @@ class ConcentratedGaussian:
         # Ad(mean)^-1 = Ad(mean^-1): closed form, no matrix inversion (nor its host sync on CUDA)
         A = self.mean.adjoint() if self.side == "right" else self.mean.inverse().adjoint()
         return ConcentratedGaussian(self.mean, _sym(A @ self.covariance @ A.transpose(-1, -2)),
-                                    side, validate=False)
+                                    side, validate=False, allow_singular=self.allow_singular)
 
     # ------------------------------------------------------------------ propagation
     def _right(self) -> "ConcentratedGaussian":
@@ -279,7 +348,7 @@ class ConcentratedGaussian:
         r = self._right()
         Ad = r.mean.adjoint()
         out = ConcentratedGaussian(r.mean.inverse(), _sym(Ad @ r.covariance @ Ad.transpose(-1, -2)),
-                                   "right", validate=False)
+                                   "right", validate=False, allow_singular=self.allow_singular)
         return out.to_side(self.side)
 
     def compose(self, other: "ConcentratedGaussian", cross_covariance: torch.Tensor | None = None,
@@ -301,7 +370,8 @@ class ConcentratedGaussian:
             S = S + C + C.transpose(-1, -2)
         if second_order:
             S = S + self._fourth_order(Sa, Sb)
-        out = ConcentratedGaussian(r1.mean.compose(r2.mean), _sym(S), "right", validate=False)
+        out = ConcentratedGaussian(r1.mean.compose(r2.mean), _sym(S), "right", validate=False,
+                                   allow_singular=self.allow_singular or other.allow_singular)
         return out.to_side(self.side)
 
     def between(self, other: "ConcentratedGaussian", cross_covariance: torch.Tensor | None = None
@@ -316,7 +386,9 @@ class ConcentratedGaussian:
         if cross_covariance is not None:
             C = A @ cross_covariance
             S = S + C + C.transpose(-1, -2)
-        return ConcentratedGaussian(Bm, _sym(S), "right", validate=False).to_side(self.side)
+        return ConcentratedGaussian(Bm, _sym(S), "right", validate=False,
+                                    allow_singular=self.allow_singular or other.allow_singular
+                                    ).to_side(self.side)
 
     def _fourth_order(self, Sa: torch.Tensor, Sb: torch.Tensor) -> torch.Tensor:
         basis = torch.eye(self.dof, dtype=Sa.dtype, device=Sa.device)
