@@ -50,8 +50,17 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import (cpu_model, environment, fmt_bytes, fmt_ns, loadavg, mem_available_bytes,  # noqa: E402
-                     measure, synchronize, wait_for_idle)
+from _timing import (  # noqa: E402
+    cpu_model,
+    environment,
+    fmt_bytes,
+    fmt_ns,
+    loadavg,
+    measure,
+    mem_available_bytes,
+    synchronize,
+    wait_for_idle,
+)
 
 GROUPS = ("SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3")
 FUNCTIONAL = {"SO2": "so2", "SE2": "se2", "SO3": "so3", "SE3": "se3", "SE23": "se23", "SGal3": "sgal3",
@@ -326,7 +335,7 @@ def bench_autograd(res, args, ts, pp, group, n, dtype, device, gen, bytes_per_el
             continue
         xi = xi0.clone().requires_grad_(True)
 
-        def step(xi=xi, f=f, off=impl.endswith(TENSOR_CODE)):
+        def step(xi=xi, f=f, off=impl.endswith(TENSOR_CODE)):  # noqa: B008 (binds this case's values)
             xi.grad = None
             with ts.functional.native.disabled() if off else contextlib.nullcontext():
                 f(xi).sum().backward()  # forward and backward
@@ -534,7 +543,9 @@ def write_markdown(path: Path, res: Results, ratios, env, args) -> None:
         L.append("")
         L.append("GTSAM is a per-element C++ call; the figure includes the Python loop and pybind11 "
                  "overhead. For comparison, torchsgal float64, batched, per element: "
-                 + ", ".join(f"{g}.exp {fmt_ns(res.ns(section='torchsgal', group=g, op='exp', dtype='float64', size=min(args.sizes)))}"
+                 + ", ".join(f"{g}.exp "
+                             + fmt_ns(res.ns(section='torchsgal', group=g, op='exp', dtype='float64',
+                                             size=min(args.sizes)))
                              for g in args.groups) + f" ns (n={min(args.sizes)}).\n")
 
     L.append("## Ratios against the project's targets\n")
@@ -587,7 +598,8 @@ def print_ratios(ratios):
     for r in ratios:
         if r["ratio"] is None:
             continue
-        tgt = "" if r["target"] is None else ("  [target >= %gx: %s]" % (r["target"], "OK" if r["ratio"] >= r["target"] else "MISSED"))
+        verdict = "OK" if r["target"] is not None and r["ratio"] >= r["target"] else "MISSED"
+        tgt = "" if r["target"] is None else f"  [target >= {r['target']:g}x: {verdict}]"
         busy = "  (measured while other processes were busy)" if r["busy"] else ""
         log(f"  {r['name']:75s} {r['dtype']:8s} n={r['size']:<8d} {fmt_ratio(r['ratio'])}{tgt}{busy}")
 

@@ -226,7 +226,8 @@ def main(argv=None) -> int:
     for v, s in serial.items():
         md.append(f"| one at a time, {v} (paired batched passes: {s['batched_per_trial_ms']:.2f} ms "
                   f"per trial) | {s['trials']} | {s['per_trial_ms']:.1f} ms | "
-                  f"{s['speedup_batched']:.1f}x (repeats: {', '.join(f'{r:.1f}' for r in s['speedup_batched_repeats'])}) | "
+                  f"{s['speedup_batched']:.1f}x "
+                  f"(repeats: {', '.join(f'{r:.1f}' for r in s['speedup_batched_repeats'])}) | "
                   f"{s['max_deviation_sigma']:.1e} sd |")
     g = res["gtsam"]
     if "per_trial_ms" in g:
