@@ -271,7 +271,7 @@ def test_gtsam_points_and_batched_tangent_maps():
     q = torch.randn(5, 2, dtype=F64)
     _close(tg.points_from_gtsam(tg.points_to_gtsam(q)), q, 0.0)
     # batched maps equal the matrix M: xi' = M xi, P' = M P M^T, J' = M_out J M_in^T
-    for name, (G, perm) in tg.TYPES.items():
+    for name, (_, perm) in tg.TYPES.items():
         d = len(perm)
         M = tg.tangent_map(name, F64)
         assert torch.equal(M @ M.T, torch.eye(d, dtype=F64))
@@ -421,7 +421,8 @@ def test_euler_against_scipy(seq, frame):
     _close(angles[torch.from_numpy(away)], ref[away], 1e-12)
     _close(euler.from_euler(angles, sequence=s, frame=frame).as_matrix(), R.as_matrix(), 1e-14)
     a = torch.tensor(np.random.default_rng(41).uniform(-3, 3, (20, 3)), dtype=F64)
-    _close(euler.from_euler(a, sequence=s, frame=frame).as_matrix(), Rotation.from_euler(s, a.numpy()).as_matrix(), 1e-15)
+    ref_a = Rotation.from_euler(s, a.numpy()).as_matrix()
+    _close(euler.from_euler(a, sequence=s, frame=frame).as_matrix(), ref_a, 1e-15)
     # gimbal lock: the third angle is 0, as scipy
     mids = (0.0, math.pi) if seq[0] == seq[2] else (math.pi / 2, -math.pi / 2)
     for m in mids:
@@ -552,3 +553,17 @@ def test_import_does_not_import_the_peers():
             "print(sorted(m for m in ('gtsam', 'pypose', 'scipy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_guide_examples_run():
+    """The code blocks of docs/guide/interop.md, run in order in one namespace (each asserts
+    what it shows)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "interop.md").read_text()
+    blocks = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]
+    assert len(blocks) >= 6
+    namespace: dict = {}
+    torch.manual_seed(0)
+    for i, code in enumerate(blocks):
+        exec(compile(code, f"interop.md block {i}", "exec"), namespace)  # noqa: S102

@@ -7,8 +7,8 @@ A tangent map is a permutation ``perm`` with ``xi_peer = xi_ours[..., perm]``: a
 from __future__ import annotations
 
 import importlib
+from collections.abc import Sequence
 from types import ModuleType
-from typing import Sequence
 
 import torch
 

@@ -48,7 +48,8 @@ def _sequence(sequence, frame) -> tuple[int, int, int]:
             and sequence.upper() != sequence or any(c not in _AXES for c in sequence.lower())):
         raise ValueError(f"sequence must be three of the letters x, y, z (all lower case or all "
                          f"upper case), e.g. 'zyx', got {sequence!r}")
-    axes = tuple(_AXES[c] for c in sequence.lower())
+    a, b, c = (_AXES[letter] for letter in sequence.lower())
+    axes = (a, b, c)
     if axes[0] == axes[1] or axes[1] == axes[2]:
         raise ValueError(f"sequence must not repeat an axis in consecutive places, got {sequence!r}")
     upper = sequence.upper() == sequence

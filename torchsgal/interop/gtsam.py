@@ -44,8 +44,16 @@ import torch
 
 from .. import SE2, SE3, SE23, SO2, SO3, LieGroup, SGal3, Sim3
 from ..functional import checks
-from ._common import (inverse_permutation, nest, nested_shape, permutation_matrix, permute_jacobian,
-                      permute_square, permute_vector, require)
+from ._common import (
+    inverse_permutation,
+    nest,
+    nested_shape,
+    permutation_matrix,
+    permute_jacobian,
+    permute_square,
+    permute_vector,
+    require,
+)
 
 # GTSAM type -> (torchsgal group or None for points, xi_gtsam = xi_ours[perm])
 TYPES: dict[str, tuple[type[LieGroup] | None, tuple[int, ...]]] = {
@@ -189,6 +197,9 @@ def to_gtsam(g: LieGroup) -> Any:
                         f"got {type(g).__name__}")
     gtsam = _gtsam()
     kind = GTSAM_TYPE[g._group]
+    if not hasattr(gtsam, kind):  # Gal3 came with GTSAM 4.3
+        raise ImportError(f"the installed gtsam has no {kind} (GTSAM >= 4.3 has): upgrade it "
+                          f"with pip install 'torchsgal[peers]'")
     mats, shape = _numpy_matrices(g)
     return nest([_one_to_gtsam(gtsam, kind, np.ascontiguousarray(m)) for m in mats], shape)
 
@@ -211,7 +222,8 @@ def from_gtsam(objects, *, group: type[LieGroup] | None = None, dtype: torch.dty
     checked against the objects' type otherwise."""
     gtsam = _gtsam()
     dtype = checks.dtype_arg(dtype)
-    classes = {name: getattr(gtsam, name) for name, (grp, _) in TYPES.items() if grp is not None}
+    classes = {name: getattr(gtsam, name) for name, (grp, _) in TYPES.items()
+               if grp is not None and hasattr(gtsam, name)}
     if group is not None and group not in GTSAM_TYPE:
         raise TypeError(f"group must be None or one of {[c.__name__ for c in GTSAM_TYPE]}, got {group!r}")
     flat, shape = nested_shape(objects, lambda o: isinstance(o, tuple(classes.values())), "objects",
@@ -229,7 +241,7 @@ def from_gtsam(objects, *, group: type[LieGroup] | None = None, dtype: torch.dty
         if not isinstance(obj, classes[kind]):
             raise TypeError(f"objects must all be gtsam.{kind} (as the first), but the element "
                             f"{i} (row-major) is {type(obj).__name__}")
-    cls = TYPES[kind][0]
+    cls = next(grp for grp, name in GTSAM_TYPE.items() if name == kind)
     n = cls.matrix_dim
     mats = np.stack([_matrix_of(kind, o) for o in flat])
     return cls.from_matrix(torch.as_tensor(mats, dtype=dtype, device=device).reshape(*shape, n, n))

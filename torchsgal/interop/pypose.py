@@ -60,10 +60,11 @@ def to_pypose(g: LieGroup):
     pp = _pp()
     _group_arg(g, "g")
     q = _so3.to_quaternion(g.rotation(), "xyzw")
-    if g._group is SO3:
+    if isinstance(g, SO3):
         return pp.SO3(q)
-    if g._group is SE3:
+    if isinstance(g, SE3):
         return pp.SE3(torch.cat((g.position(), q), dim=-1))
+    assert isinstance(g, Sim3)  # _group_arg: SO3, SE3 or Sim3
     s = g.scale().unsqueeze(-1)
     return pp.Sim3(torch.cat((s * g.position(), q, s), dim=-1))
 
