@@ -323,3 +323,37 @@ def test_non_finite_start_is_reported_per_problem():
     st = result.report.status.tolist()
     assert st[1] == SolverStatus.NON_FINITE and st[0] == st[2] == SolverStatus.CONVERGED
     assert torch.isnan(result.report.cost[1]) and torch.isfinite(result.report.cost[[0, 2]]).all()
+
+
+@pytest.mark.parametrize("backend", ["sparse", "scipy"])
+def test_sparse_linear_solver_matches_dense(backend):
+    from torchsgal.estimation.sparse import available_backends
+
+    assert backend == "sparse" or backend in available_backends()
+    _, Z, Z0, x0 = pose_graphs(B=1, seed=7)
+    W = torch.diag(SIGMA ** -2)
+    results = {}
+    for solver in ("dense", backend):
+        graph = fg.FactorGraph()
+        graph.add_variable("x", x0[0])
+        graph.add(fg.Prior("x", 0, Z0[0], information=W))
+        graph.add(fg.Between("x", EDGES_I, EDGES_J, Z[0], information=W))
+        results[solver] = fg.levenberg_marquardt(graph, linear_solver=solver)
+    a, b = results["dense"], results[backend]
+    assert type(b.system).__name__ == "SparseSystem"
+    assert a.report.iterations.tolist() == b.report.iterations.tolist()
+    torch.testing.assert_close(b.report.cost, a.report.cost, rtol=1e-10, atol=0)
+    torch.testing.assert_close(b.values["x"].as_matrix(), a.values["x"].as_matrix(), rtol=0, atol=1e-10)
+    torch.testing.assert_close(b.marginal_covariance("x", [1, 6]), a.marginal_covariance("x", [1, 6]),
+                               rtol=1e-8, atol=1e-14)
+    # without the prior: rank-deficient through the sparse factorisation too
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0[0])
+    graph.add(fg.Between("x", EDGES_I, EDGES_J, Z[0], information=W))
+    free = fg.levenberg_marquardt(graph, linear_solver=backend)
+    assert free.report.status.item() == SolverStatus.CONVERGED_RANK_DEFICIENT
+    assert torch.isnan(free.marginal_covariance("x", 0)).all()
+    with pytest.raises(ValueError, match="linear_solver"):
+        fg.levenberg_marquardt(graph, linear_solver="qr")
+    with pytest.raises(ValueError, match="one problem"):
+        fg.levenberg_marquardt(_graph(Z, Z0, x0.expand(2, 8)), linear_solver="sparse")

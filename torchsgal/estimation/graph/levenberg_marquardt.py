@@ -28,13 +28,16 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
-from ..solver import SolverReport, SolverStatus, information_is_singular
+from ..solver import SolverReport, SolverStatus
 from .graph import FactorGraph
-from .linearize import Linearization, Problem, dense, linearize
+from .linear_system import DenseSystem, SparseSystem
+from .linearize import Linearization, Problem, linearize
 
 __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 
 RUNNING = int(SolverStatus.RUNNING)
+SPARSE_ABOVE = 1000  # linear_solver="auto": one problem with more unknowns takes SparseCholesky
+LINEAR_SOLVERS = ("auto", "dense", "sparse", "cholmod", "cholespy", "scipy")
 
 
 @dataclass
@@ -42,14 +45,21 @@ class GraphResult:
     """values       {name: value at the solution}, in the form the graph was given (group
                     elements of batch (N,) or (B, N), tensors (N, k) or (B, N, k)).
     report          ``SolverReport`` (per problem: status, iterations, costs, norms).
-    information     (B, D, D) H = J~^T J~ at the solution (dense path), the layout of
-                    ``Problem`` (variables in insertion order, element-major).
+    problem         the graph's layout (``linearize.Problem``: variables in insertion order,
+                    element-major tangents).
+    system          the linear system at the solution (``linear_system.DenseSystem`` or
+                    ``SparseSystem``), which gives the marginals.
     """
 
     values: dict
     report: SolverReport
-    information: torch.Tensor
     problem: Problem
+    system: object
+
+    @property
+    def information(self) -> torch.Tensor:
+        """(B, D, D) H = J~^T J~ at the solution (dense; builds it for the sparse path)."""
+        return self.system.dense_information()
 
     def marginal_covariance(self, name: str, index=None) -> torch.Tensor:
         """Laplace covariances (B, K, dof, dof) (or (K, dof, dof) for an unbatched graph) of the
@@ -63,15 +73,10 @@ class GraphResult:
         if index is None:
             index = torch.arange(info.size, device=p.device)
         index = torch.as_tensor(index, dtype=torch.int64, device=p.device).reshape(-1)
-        H = self.information
-        singular = information_is_singular(H)
-        eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
-        L, bad = torch.linalg.cholesky_ex(torch.where(singular[:, None, None], eye, H))
-        P = torch.cholesky_inverse(L)
-        pos = info.offset + index[:, None] * info.dof + torch.arange(info.dof, device=p.device)
-        blocks = P[:, pos[:, :, None], pos[:, None, :]]  # (B, K, dof, dof)
-        nan = (singular | (bad != 0))[:, None, None, None]
-        blocks = torch.where(nan, torch.full_like(blocks, float("nan")), blocks)
+        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= info.size):
+            raise IndexError(f"index must be in [0, {info.size}) for {name!r}, got "
+                             f"[{int(index.min())}, {int(index.max())}]")
+        blocks = self.system.marginal_blocks(info.offset + index * info.dof, info.dof)
         return blocks if p.batched else blocks[0]
 
 
@@ -85,7 +90,8 @@ def _values(problem: Problem, graph: FactorGraph, x: list[torch.Tensor]) -> dict
 
 
 def _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
-           min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping):
+           min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping,
+           linear_solver):
     checks.integer(max_iterations, "max_iterations", 0)
     checks.finite_number(lambda_initial, "lambda_initial", "> 0")
     checks.finite_number(lambda_factor, "lambda_factor", "> 0")
@@ -98,6 +104,8 @@ def _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_l
     checks.finite_number(absolute_error_tol, "absolute_error_tol", ">= 0")
     checks.finite_number(error_tol, "error_tol", ">= 0")
     checks.boolean(diagonal_damping, "diagonal_damping")
+    if linear_solver not in LINEAR_SOLVERS:
+        raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {linear_solver!r}")
 
 
 def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
@@ -105,27 +113,35 @@ def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
                         lambda_upper: float = 1e5, lambda_lower: float = 0.0,
                         min_model_fidelity: float = 1e-3, diagonal_damping: bool = False,
                         relative_error_tol: float = 1e-5, absolute_error_tol: float = 1e-5,
-                        error_tol: float = 0.0) -> GraphResult:
+                        error_tol: float = 0.0, linear_solver: str = "auto") -> GraphResult:
     """Levenberg-Marquardt with GTSAM's trust-region rules and defaults (module docstring),
-    for every problem of the graph's batch.  Returns a ``GraphResult``."""
+    for every problem of the graph's batch.  Returns a ``GraphResult``.
+
+    linear_solver  "dense" (batched Cholesky of H (B, D, D)), "sparse" (one problem:
+                   ``estimation.sparse.SparseCholesky``, its first available backend), a
+                   ``SparseCholesky`` backend name, or "auto": sparse for one problem with more
+                   than ``SPARSE_ABOVE`` unknowns, dense otherwise."""
     _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
-           min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping)
+           min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping,
+           linear_solver)
     return _solve(graph, max_iterations, dict(
         damped=True, lambda_initial=lambda_initial, lambda_factor=lambda_factor,
         lambda_upper=lambda_upper, lambda_lower=lambda_lower, min_fidelity=min_model_fidelity,
         diagonal=diagonal_damping, rel_tol=relative_error_tol, abs_tol=absolute_error_tol,
-        error_tol=error_tol))
+        error_tol=error_tol, linear_solver=linear_solver))
 
 
 def gauss_newton(graph: FactorGraph, max_iterations: int = 100, *,
                  relative_error_tol: float = 1e-5, absolute_error_tol: float = 1e-5,
-                 error_tol: float = 0.0) -> GraphResult:
+                 error_tol: float = 0.0, linear_solver: str = "auto") -> GraphResult:
     """Gauss-Newton (GTSAM's ``GaussNewtonOptimizer``): every solvable step is taken; an
-    unsolvable (singular) system stops the problem as DIVERGED.  Convergence as for LM."""
+    unsolvable (singular) system stops the problem as DIVERGED.  Convergence and
+    ``linear_solver`` as for ``levenberg_marquardt``."""
     _check(max_iterations, 1.0, 10.0, 1.0, 0.0, 0.0, relative_error_tol, absolute_error_tol,
-           error_tol, False)
+           error_tol, False, linear_solver)
     return _solve(graph, max_iterations, dict(
-        damped=False, rel_tol=relative_error_tol, abs_tol=absolute_error_tol, error_tol=error_tol))
+        damped=False, rel_tol=relative_error_tol, abs_tol=absolute_error_tol, error_tol=error_tol,
+        linear_solver=linear_solver))
 
 
 @dataclass
@@ -135,8 +151,6 @@ class _State:
     rows: torch.Tensor  # indices into the full batch
     x: list[torch.Tensor]
     lin: Linearization
-    H: torch.Tensor
-    cost: torch.Tensor
     cost_start: torch.Tensor  # cost at the start of the current iteration
     lam: torch.Tensor
     iterations: torch.Tensor
@@ -144,49 +158,47 @@ class _State:
     status: torch.Tensor
 
     def take(self, keep: torch.Tensor) -> "_State":
-        lin = Linearization(self.lin.values.index_select(0, keep), self.lin.g.index_select(0, keep),
-                            self.lin.cost.index_select(0, keep),
-                            self.lin.model_cost.index_select(0, keep))
+        lin = Linearization(*[t.index_select(0, keep) for t in
+                              (self.lin.values, self.lin.g, self.lin.cost, self.lin.model_cost)])
         return _State(self.rows.index_select(0, keep), [v.index_select(0, keep) for v in self.x],
-                      lin, self.H.index_select(0, keep),
-                      *[getattr(self, n).index_select(0, keep) for n in
-                        ("cost", "cost_start", "lam", "iterations", "step_norm", "status")])
+                      lin, *[getattr(self, n).index_select(0, keep) for n in
+                             ("cost_start", "lam", "iterations", "step_norm", "status")])
 
 
 def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.where(mask.reshape(mask.shape + (1,) * (a.dim() - 1)), a, b)
 
 
+def _full(like: torch.Tensor, code) -> torch.Tensor:
+    return torch.full_like(like, int(code))
+
+
 def _solve(graph: FactorGraph, max_iterations: int, o: dict) -> GraphResult:
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
     full = Problem(graph)
-    B, D = full.B, full.D
+    B = full.B
+    system = _system(full, o["linear_solver"])
     x0 = full.initial(graph)
     lin = linearize(full, x0)
-    H = dense(full, lin.values)
     dev, dt = x0[0].device, x0[0].dtype
-    finite = torch.isfinite(lin.cost) & torch.isfinite(H).all(dim=(-1, -2)) & torch.isfinite(
-        lin.g).all(dim=-1)
+    finite = (torch.isfinite(lin.cost) & torch.isfinite(lin.values).all(dim=-1)
+              & torch.isfinite(lin.g).all(dim=-1))
     status = torch.full((B,), RUNNING, dtype=torch.int64, device=dev)
-    status = torch.where(finite, status, torch.full_like(status, SolverStatus.NON_FINITE))
-    status = torch.where(finite & (lin.cost <= o["error_tol"]),
-                         torch.full_like(status, SolverStatus.CONVERGED), status)
+    status = torch.where(finite, status, _full(status, SolverStatus.NON_FINITE))
+    status = torch.where(finite & (lin.cost <= o["error_tol"]), _full(status, SolverStatus.CONVERGED),
+                         status)
     if max_iterations == 0:
-        status = torch.where(status == RUNNING, torch.full_like(status, SolverStatus.MAX_ITERATIONS),
-                             status)
-    lam0 = o.get("lambda_initial", 0.0)
-    state = _State(torch.arange(B, device=dev), x0, lin, H, lin.cost, lin.cost,
-                   torch.full((B,), lam0, dtype=dt, device=dev),
-                   torch.zeros(B, dtype=torch.int64, device=dev), torch.zeros(B, dtype=dt, device=dev),
-                   status)
-    out_lin = Linearization(lin.values, lin.g.clone(), lin.cost, lin.model_cost)
-    out = _State(state.rows, [v.clone() for v in x0], out_lin, H.clone(), lin.cost.clone(),
-                 lin.cost.clone(), state.lam.clone(), state.iterations.clone(),
-                 state.step_norm.clone(), status.clone())
+        status = torch.where(status == RUNNING, _full(status, SolverStatus.MAX_ITERATIONS), status)
+    zeros = torch.zeros(B, dtype=dt, device=dev)
+    state = _State(torch.arange(B, device=dev), x0, lin, lin.cost,
+                   torch.full((B,), o.get("lambda_initial", 0.0), dtype=dt, device=dev),
+                   torch.zeros(B, dtype=torch.int64, device=dev), zeros, status)
+    out = _State(state.rows, [v.clone() for v in x0],
+                 Linearization(*[t.clone() for t in (lin.values, lin.g, lin.cost, lin.model_cost)]),
+                 lin.cost, state.lam, state.iterations.clone(), zeros.clone(), status.clone())
     initial_cost = lin.cost.clone()
-    problem = full
-    eye = torch.eye(D, dtype=dt, device=dev)
+    problem, working = full, system
     eps = torch.finfo(dt).eps
     while True:
         running = state.status == RUNNING
@@ -195,20 +207,27 @@ def _solve(graph: FactorGraph, max_iterations: int, o: dict) -> GraphResult:
             _write_back(out, state)
             if n_running == 0:
                 break
-            keep = running.nonzero().squeeze(-1)
-            state = state.take(keep)
+            state = state.take(running.nonzero().squeeze(-1))
             problem = full.select(state.rows)
-        state = _round(problem, state, o, max_iterations, eye, eps)
-    singular = information_is_singular(out.H)
+            working = system.select(problem)
+        state = _round(problem, working, state, o, max_iterations, eps)
+    system.set_solution(out.lin.values)
     status = out.status
-    status = torch.where((status == SolverStatus.CONVERGED) & singular,
-                         torch.full_like(status, SolverStatus.CONVERGED_RANK_DEFICIENT), status)
+    status = torch.where((status == SolverStatus.CONVERGED) & system.singular(),
+                         _full(status, SolverStatus.CONVERGED_RANK_DEFICIENT), status)
     nan = torch.full_like(initial_cost, float("nan"))
     bad = status == SolverStatus.NON_FINITE
     report = SolverReport(status, out.iterations, torch.where(bad, nan, initial_cost),
-                          torch.where(bad, nan, out.cost), torch.where(bad, nan, out.step_norm),
+                          torch.where(bad, nan, out.lin.cost), torch.where(bad, nan, out.step_norm),
                           torch.where(bad, nan, out.lin.g.norm(dim=-1)))
-    return GraphResult(_values(full, graph, out.x), report, out.H, full)
+    return GraphResult(_values(full, graph, out.x), report, full, system)
+
+
+def _system(problem: Problem, linear_solver: str):
+    if linear_solver == "dense" or (linear_solver == "auto" and (
+            problem.B > 1 or problem.D <= SPARSE_ABOVE)):
+        return DenseSystem(problem)
+    return SparseSystem(problem, "auto" if linear_solver in ("auto", "sparse") else linear_solver)
 
 
 def _write_back(out: _State, state: _State) -> None:
@@ -216,41 +235,27 @@ def _write_back(out: _State, state: _State) -> None:
     r = state.rows
     for o_v, s_v in zip(out.x, state.x):
         o_v.index_copy_(0, r, s_v)
-    out.H.index_copy_(0, r, state.H)
-    out.lin.g.index_copy_(0, r, state.lin.g)
-    for n in ("cost", "iterations", "step_norm", "status"):
+    for n in ("values", "g", "cost", "model_cost"):
+        getattr(out.lin, n).index_copy_(0, r, getattr(state.lin, n))
+    for n in ("iterations", "step_norm", "status"):
         getattr(out, n).index_copy_(0, r, getattr(state, n))
 
 
-def _round(problem: Problem, s: _State, o: dict, max_iterations: int, eye: torch.Tensor,
-           eps: float) -> _State:
+def _round(problem: Problem, system, s: _State, o: dict, max_iterations: int, eps: float) -> _State:
     """One tryLambda per running problem (module docstring, steps 1-5)."""
-    H, g = s.H, s.lin.g
-    if o["damped"]:
-        if o["diagonal"]:
-            damp = H.diagonal(dim1=-2, dim2=-1).clamp(1e-6, 1e32)
-            Hd = H + torch.diag_embed(s.lam[:, None] * damp)
-        else:
-            Hd = H + s.lam[:, None, None] * eye
-    else:
-        Hd = H
-    L, info = torch.linalg.cholesky_ex(Hd)
-    solved = info == 0
-    delta = torch.cholesky_solve(-g.unsqueeze(-1), L).squeeze(-1)
-    delta = torch.where(solved[:, None] & torch.isfinite(delta), delta, torch.zeros_like(delta))
-    Hdelta = (H @ delta.unsqueeze(-1)).squeeze(-1)
-    quad = (delta * Hdelta).sum(-1)
-    lin_change = -((g * delta).sum(-1) + 0.5 * quad)
+    lam = s.lam if o["damped"] else torch.zeros_like(s.lam)
+    delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
+    lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
     x_new = problem.retract(s.x, delta)
     lin_new = linearize(problem, x_new)
-    new_cost = lin_new.cost
-    cost_change = s.cost - new_cost
+    cost, new_cost = s.lin.cost, lin_new.cost
+    cost_change = cost - new_cost
     if o["damped"]:
         valid = solved & (lin_change >= 0)
         fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
-        success = valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
-        success = success & torch.isfinite(new_cost)
-        stop_search = valid & ~success & (cost_change.abs() < o["rel_tol"] * s.cost)
+        success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
+                   & torch.isfinite(new_cost))
+        stop_search = valid & ~success & (cost_change.abs() < o["rel_tol"] * cost)
         lam_up = s.lam * o["lambda_factor"]
         lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
                           torch.where(stop_search, s.lam, lam_up))
@@ -258,26 +263,20 @@ def _round(problem: Problem, s: _State, o: dict, max_iterations: int, eye: torch
         done = success | stop_search | gave_up
     else:
         success = solved & torch.isfinite(new_cost)
-        gave_up = ~success
-        lam, done = s.lam, torch.ones_like(success)
+        gave_up, done = ~success, torch.ones_like(success)
     x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
-    H_new = dense(problem, lin_new.values)
-    lin = Linearization(_where(success, lin_new.values, s.lin.values),
-                        _where(success, lin_new.g, s.lin.g), _where(success, new_cost, s.cost),
-                        _where(success, lin_new.model_cost, s.lin.model_cost))
-    H = _where(success, H_new, H)
-    cost = lin.cost
+    lin = Linearization(*[_where(success, a, b) for a, b in
+                          ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
+                           (new_cost, cost), (lin_new.model_cost, s.lin.model_cost))])
     iterations = s.iterations + success.to(torch.int64)
-    # checkConvergence(cost_start, cost) after a finished iteration
-    decrease = s.cost_start - cost
-    converged = (cost <= o["error_tol"]) | (decrease <= o["rel_tol"] * s.cost_start) | (
-        decrease <= o["abs_tol"])
+    # checkConvergence(cost at the iteration's start, cost now) after a finished iteration
+    decrease = s.cost_start - lin.cost
+    converged = ((lin.cost <= o["error_tol"]) | (decrease <= o["rel_tol"] * s.cost_start)
+                 | (decrease <= o["abs_tol"]))
     status = s.status
-    status = torch.where(done & gave_up, torch.full_like(status, SolverStatus.DIVERGED), status)
-    status = torch.where(done & ~gave_up & converged,
-                         torch.full_like(status, SolverStatus.CONVERGED), status)
+    status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
+    status = torch.where(done & ~gave_up & converged, _full(status, SolverStatus.CONVERGED), status)
     status = torch.where(done & ~gave_up & ~converged & (iterations >= max_iterations),
-                         torch.full_like(status, SolverStatus.MAX_ITERATIONS), status)
-    cost_start = torch.where(done, cost, s.cost_start)
-    step_norm = quad.clamp_min(0).sqrt()
-    return _State(s.rows, x, lin, H, cost, cost_start, lam, iterations, step_norm, status)
+                         _full(status, SolverStatus.MAX_ITERATIONS), status)
+    cost_start = torch.where(done, lin.cost, s.cost_start)
+    return _State(s.rows, x, lin, cost_start, lam, iterations, quad.clamp_min(0).sqrt(), status)

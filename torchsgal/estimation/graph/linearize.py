@@ -42,8 +42,11 @@ class Block:
     sqrt_info: torch.Tensor | None  # (m, m), (E, m, m) or (B, E, m, m)
     sqrt_info_batched: bool
     dofs: list[int]
-    h_index: torch.Tensor  # (E * Dk * Dk,) into the flat (D * D) matrix
-    g_index: torch.Tensor  # (E * Dk,) into the (D,) gradient
+    h_index: torch.Tensor  # (E * Dk * Dk,) into the flat (D * D) matrix ((Dk * Dk,) if reduced)
+    g_index: torch.Tensor  # (E * Dk,) into the (D,) gradient ((Dk,) if reduced)
+    size: int  # E
+    uniform: list[int | None]  # per slot: the one index every factor reads, or None
+    reduced: bool  # every slot uniform: the E factors' blocks are summed by one product
 
 
 class Problem:
@@ -85,7 +88,14 @@ class Problem:
             # (E, dof) positions of each slot's tangent in the stacked vector
             starts.append(info.offset + idx[:, None] * info.dof
                           + torch.arange(info.dof, device=self.device))
+        # a slot whose factors all read one element is passed as that element (batch (B, 1)),
+        # broadcast against the data; when every slot is, the factors' J^T J sum by one product
+        uniform = [int(idx[0]) if E and bool((idx == idx[0]).all()) else None
+                   for _, idx in slots]
+        reduced = all(u is not None for u in uniform)
         pos = torch.cat(starts, dim=1)  # (E, Dk)
+        if reduced:
+            pos = pos[:1]
         h_index = (pos[:, :, None] * self.D + pos[:, None, :]).reshape(-1)
         data, batched = [], []
         for k, d in enumerate(factor.data):
@@ -96,7 +106,8 @@ class Problem:
             nb = len(d.batch_shape) if isinstance(d, LieGroup) else None
             if nb is not None:
                 per_problem = nb == 2
-                shape_ok = tuple(d.batch_shape) in ((E,), (B, E), (1,), (B, 1))
+                shape_ok = (d.batch_shape[-1] in (E, 1)
+                            and (nb == 1 or d.batch_shape[0] in (B, 1)))
             else:
                 per_problem = self.batched and leaf.dim() >= 2 and tuple(leaf.shape[:2]) == (B, E)
                 shape_ok = leaf.dim() >= 1 and leaf.shape[0] in (E, 1) or per_problem
@@ -109,7 +120,8 @@ class Problem:
             data.append(d)
             batched.append(per_problem)
         L, L_batched = self._noise(factor)
-        return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1))
+        return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1),
+                     E, uniform, reduced)
 
     def _noise(self, factor: Factor) -> tuple[torch.Tensor | None, bool]:
         W, L = factor.information, factor.sqrt_information
@@ -150,7 +162,8 @@ class Problem:
             data = [_take(d, rows) if p else d for d, p in zip(b.data, b.data_batched)]
             L = b.sqrt_info.index_select(0, rows) if b.sqrt_info_batched else b.sqrt_info
             new.blocks.append(Block(b.factor, b.slots, data, b.data_batched, L,
-                                    b.sqrt_info_batched, b.dofs, b.h_index, b.g_index))
+                                    b.sqrt_info_batched, b.dofs, b.h_index, b.g_index, b.size,
+                                    b.uniform, b.reduced))
         return new
 
     # ------------------------------------------------------------------ values
@@ -209,6 +222,15 @@ class Linearization:
     model_cost: torch.Tensor | None
 
 
+def _right_basis(group: type, X: torch.Tensor) -> torch.Tensor:
+    """X hat(e_j) for j < dof: (dof, *X.shape), as one matrix product (X rows against the
+    basis matrices side by side)."""
+    n, dof = X.shape[-1], group.dof
+    hats = group._f.hat(torch.eye(dof, dtype=X.dtype, device=X.device))  # (dof, n, n)
+    prod = X.reshape(-1, n) @ hats.permute(1, 0, 2).reshape(n, dof * n)  # (rows, dof * n)
+    return prod.reshape(X.shape[:-1] + (dof, n)).movedim(-2, 0)
+
+
 def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jacobian: bool):
     """r (B, E, m) and, if asked, J (B, E, m, Dk) with respect to the slots' perturbations."""
     f = block.factor
@@ -222,14 +244,12 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
     tangents, Dk, start = [], sum(block.dofs), 0
     for (k, _), a, dof in zip(block.slots, args, block.dofs):
         info = problem.variables[k]
-        eye = torch.eye(dof, dtype=a.dtype, device=a.device)
-        if info.group is None:
-            basis = eye.reshape((dof,) + (1,) * (a.dim() - 1) + (dof,)).expand((dof,) + a.shape)
-        else:
-            basis = a.unsqueeze(0) @ info.group._f.hat(eye).reshape(
-                (dof,) + (1,) * (a.dim() - 2) + a.shape[-2:])
         t = a.new_zeros((Dk,) + a.shape)
-        t[start:start + dof] = basis
+        if info.group is None:
+            t[start:start + dof] = torch.eye(dof, dtype=a.dtype, device=a.device).reshape(
+                (dof,) + (1,) * (a.dim() - 1) + (dof,))
+        else:
+            t[start:start + dof] = _right_basis(info.group, a)
         tangents.append(t)
         start += dof
 
@@ -252,9 +272,10 @@ def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = Tru
     h_vals, g_vals = [], []
     model = x[0].new_zeros(B) if want_jacobian else None
     for block in problem.blocks:
-        args = [x[k].index_select(1, idx) for k, idx in block.slots]
+        args = [x[k].index_select(1, idx) if u is None else x[k].narrow(1, u, 1)
+                for (k, idx), u in zip(block.slots, block.uniform)]
         r, J = _residual_and_jacobian(problem, block, args, want_jacobian)
-        E = block.h_index.numel() // (sum(block.dofs) ** 2)
+        E = block.size
         r = r.expand((B, E) + r.shape[-1:])
         if block.sqrt_info is not None:
             L = block.sqrt_info
@@ -265,8 +286,11 @@ def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = Tru
         if want_jacobian:
             J = J.expand((B, E) + J.shape[-2:])
             model = model + 0.5 * (r * r).sum(dim=(-1, -2))
+            if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
+                J = J.reshape(B, -1, J.shape[-1])
+                r = r.reshape(B, -1, 1)
             h_vals.append((J.mT @ J).reshape(B, -1))
-            g_vals.append((J.mT @ r.unsqueeze(-1)).reshape(B, -1))
+            g_vals.append((J.mT @ r if block.reduced else J.mT @ r.unsqueeze(-1)).reshape(B, -1))
     if not want_jacobian:
         return Linearization(None, None, cost, None)
     g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, torch.cat(g_vals, dim=1))

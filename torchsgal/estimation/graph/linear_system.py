@@ -1,0 +1,158 @@
+"""The damped normal equations (H + lambda D) delta = -g of a linearised graph.
+
+``DenseSystem``: a batch of small problems; H (B, D, D) assembled from the factors' blocks
+(``linearize.dense``) and factored by a batched ``torch.linalg.cholesky_ex`` (no host sync per
+problem).  ``SparseSystem``: one large problem; the lower triangle of H's block pattern is
+analysed once by ``estimation.sparse.SparseCholesky`` (fill-reducing ordering) and refactored
+numerically at each step.
+
+Both answer the same questions: ``solve(values, g, lam, diagonal)`` -> (delta, solved),
+``quadratic(values, delta)`` = delta^T H delta, ``singular(values)`` and ``marginal_blocks``
+(diagonal blocks of H^-1 at the last ``set_solution``).  Rank deficiency: the Jacobi-scaled
+H (unit diagonal) has a Cholesky pivot at or below ``RCOND`` (or no Cholesky), or a diagonal
+entry at or below ``RCOND`` times the largest (a direction no factor sees).
+"""
+from __future__ import annotations
+
+import torch
+
+from .linearize import Problem, dense
+
+RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
+DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
+
+
+def _scaled(H: torch.Tensor, rcond: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H with unit diagonal, (B,) True where a diagonal entry is <= rcond times the largest
+    or non-finite)."""
+    d = H.diagonal(dim1=-2, dim2=-1)
+    tiny = (d <= rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(H).all(
+        dim=(-1, -2))
+    s = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
+    return H * s[..., :, None] * s[..., None, :], tiny
+
+
+class DenseSystem:
+    """Dense batched normal equations (module docstring)."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
+        self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
+        self._H: torch.Tensor | None = None
+
+    def select(self, problem: Problem) -> "DenseSystem":
+        return DenseSystem(problem)
+
+    def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(delta (B, D), solved (B,) bool, delta^T H delta (B,)); lam (B,) (0: undamped)."""
+        H = dense(self.problem, values)
+        if diagonal:
+            damp = H.diagonal(dim1=-2, dim2=-1).clamp(*DIAGONAL_CLAMP)
+            Hd = H + torch.diag_embed(lam[:, None] * damp)
+        else:
+            Hd = H + lam[:, None, None] * self.eye
+        L, info = torch.linalg.cholesky_ex(Hd)
+        delta = torch.cholesky_solve(-g.unsqueeze(-1), L).squeeze(-1)
+        solved = (info == 0) & torch.isfinite(delta).all(dim=-1)
+        delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
+        quad = (delta * (H @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1)
+        return delta, solved, quad
+
+    def set_solution(self, values: torch.Tensor) -> None:
+        """Keeps H at the solution for ``singular``, ``marginal_blocks``, ``dense_information``."""
+        self._H = dense(self.problem, values)
+
+    def dense_information(self) -> torch.Tensor:
+        return self._H
+
+    def singular(self) -> torch.Tensor:
+        """(B,) True where H at the solution is numerically rank-deficient."""
+        Hs, tiny = _scaled(self._H, self.rcond)
+        L, info = torch.linalg.cholesky_ex(torch.where(tiny[:, None, None], self.eye, Hs))
+        pivots = L.diagonal(dim1=-2, dim2=-1) ** 2
+        return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
+
+    def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
+        """(B, K, block, block) diagonal blocks of H^-1; NaN where H is singular."""
+        singular = self.singular()
+        L, info = torch.linalg.cholesky_ex(torch.where(singular[:, None, None], self.eye, self._H))
+        P = torch.cholesky_inverse(L)
+        pos = starts[:, None] + torch.arange(block, device=starts.device)
+        out = P[:, pos[:, :, None], pos[:, None, :]]
+        nan = (singular | (info != 0))[:, None, None, None]
+        return torch.where(nan, torch.full_like(out, float("nan")), out)
+
+
+class SparseSystem:
+    """Sparse normal equations of one problem (B = 1), through ``SparseCholesky``."""
+
+    def __init__(self, problem: Problem, backend: str = "auto"):
+        from ..sparse import SparseCholesky
+
+        if problem.B != 1:
+            raise ValueError(f"the sparse linear solver takes one problem (B = 1), got B = "
+                             f"{problem.B}: use linear_solver='dense' for batches")
+        self.problem = problem
+        D = problem.D
+        rows, cols = problem.h_index // D, problem.h_index % D
+        self.rows, self.cols = rows, cols
+        self.lower = (rows >= cols).nonzero().squeeze(-1)  # the pattern, once
+        self.on_diagonal = (rows == cols).nonzero().squeeze(-1)
+        diag = torch.arange(D, device=problem.device)
+        self.factorization = SparseCholesky(torch.cat([rows[self.lower], diag]),
+                                            torch.cat([cols[self.lower], diag]), D, backend)
+        self.backend = self.factorization.backend
+        self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
+        self._values: torch.Tensor | None = None
+        self._singular: torch.Tensor | None = None
+
+    def select(self, problem: Problem) -> "SparseSystem":
+        return self
+
+    def _diagonal(self, v: torch.Tensor) -> torch.Tensor:
+        D = self.problem.D
+        return v.new_zeros(D).index_add_(0, self.rows[self.on_diagonal], v[self.on_diagonal])
+
+    def _factor(self, v: torch.Tensor, damping: torch.Tensor) -> bool:
+        from ..sparse import NotPositiveDefiniteError
+
+        try:
+            self.factorization.factor(torch.cat([v[self.lower], damping]))
+        except (NotPositiveDefiniteError, ValueError):
+            return False
+        return True
+
+    def solve(self, values, g, lam, diagonal):
+        v = values[0]
+        D = self.problem.D
+        damp = self._diagonal(v).clamp(*DIAGONAL_CLAMP) if diagonal else v.new_ones(D)
+        ok = self._factor(v, lam[0] * damp)
+        delta = self.factorization.solve(-g[0]) if ok else torch.zeros_like(g[0])
+        ok = ok and bool(torch.isfinite(delta).all())
+        if not ok:
+            delta = torch.zeros_like(delta)
+        Hdelta = v.new_zeros(D).index_add_(0, self.rows, v * delta[self.cols])
+        quad = (delta * Hdelta).sum()
+        return delta[None], torch.tensor([ok], device=v.device), quad[None]
+
+    def set_solution(self, values: torch.Tensor) -> None:
+        v = values[0]
+        d = self._diagonal(v)
+        tiny = bool((d <= self.rcond * d.max()).any()) or not bool(torch.isfinite(v).all())
+        ok = not tiny and self._factor(v, v.new_zeros(self.problem.D))
+        self._values = values
+        self._singular = torch.tensor([not ok], device=v.device)
+
+    def dense_information(self) -> torch.Tensor:
+        return dense(self.problem, self._values)
+
+    def singular(self) -> torch.Tensor:
+        return self._singular
+
+    def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
+        if bool(self._singular[0]):
+            return torch.full((1, starts.numel(), block, block), float("nan"),
+                              dtype=self.problem.dtype, device=self.problem.device)
+        return self.factorization.marginal_blocks(starts, block)[None]
