@@ -159,49 +159,53 @@ def inverse_kinematics(
     R_rep = None if R_t is None else R_t.repeat_interleave(S, dim=0)
 
     lo, hi = chain.lower, chain.upper
-    bounded = torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo) if respect_limits \
-        else torch.zeros_like(lo, dtype=torch.bool)
-    mid = torch.where(bounded, (lo + hi) / 2, 0.0)
-    half = torch.where(bounded, (hi - lo) / 2, 1.0)
+    limited = torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo)
+    mid = torch.where(limited, (lo + hi) / 2, 0.0)
+    half = torch.where(limited, (hi - lo) / 2, 1.0)
+    free = torch.zeros_like(limited)
 
-    def to_q(u):
-        return torch.where(bounded, mid + half * torch.sin(u), u)
+    def solve(q_init, bounded, iterations):
+        """Levenberg-Marquardt from q_init (B S, n), joints in ``bounded`` as mid + half sin(u)."""
+        def to_q(u):
+            return torch.where(bounded, mid + half * torch.sin(u), u)
 
-    ratio = ((q_start - mid) / half).clamp(-1.0, 1.0)
-    u0 = torch.where(bounded, torch.asin(ratio), q_start)
+        # strictly inside the limits: at a limit dq/du = 0 would freeze the joint there
+        ratio = ((q_init - mid) / half).clamp(-1.0 + 1e-6, 1.0 - 1e-6)
+        u0 = torch.where(bounded, torch.asin(ratio), q_init)
 
-    def parts(u):
-        q = to_q(u)
-        pose, J = chain.pose_and_jacobian(q, link=link, frame="base")
-        dq_du = torch.where(bounded, half * torch.cos(u), 1.0)
-        res, jac = [], []
-        if position:
-            res.append(pose.position() - p_rep)
-            jac.append(J[..., :3, :])
-        if orientation:
-            R = pose.rotation()
-            phi = SO3.from_matrix(R_rep.transpose(-1, -2) @ R).log()
-            Jb = R.transpose(-1, -2) @ J[..., 3:, :]  # body angular Jacobian
-            res.append(w * phi)
-            jac.append(w * (SO3.jr_inv(phi) @ Jb))
-        return torch.cat(res, dim=-1), torch.cat(jac, dim=-2) * dq_du[..., None, :]
+        def parts(u):
+            q = to_q(u)
+            pose, J = chain.pose_and_jacobian(q, link=link, frame="base")
+            dq_du = torch.where(bounded, half * torch.cos(u), 1.0)
+            res, jac = [], []
+            if position:
+                res.append(pose.position() - p_rep)
+                jac.append(J[..., :3, :])
+            if orientation:
+                R = pose.rotation()
+                phi = SO3.from_matrix(R_rep.transpose(-1, -2) @ R).log()
+                Jb = R.transpose(-1, -2) @ J[..., 3:, :]  # body angular Jacobian
+                res.append(w * phi)
+                jac.append(w * (SO3.jr_inv(phi) @ Jb))
+            return torch.cat(res, dim=-1), torch.cat(jac, dim=-2) * dq_du[..., None, :]
 
-    cache = {}
+        cache = {}
 
-    def residual(u):
-        r, J = parts(u)
-        cache["u"], cache["J"] = u, J
-        return r
+        def residual(u):
+            r, J = parts(u)
+            cache["u"], cache["J"] = u, J
+            return r
 
-    def jacobian(u):
-        if cache.get("u") is u:
-            return cache["J"]
-        return parts(u)[1]
+        def jacobian(u):
+            return cache["J"] if cache.get("u") is u else parts(u)[1]
 
-    sol = gauss_newton(residual, u0, jacobian=jacobian, max_iterations=max_iterations,
-                       damping=damping, step_tol=1e-10, cost_tol=_COST_TOL, stop_below_fraction=_STOP)
+        sol = gauss_newton(residual, u0, jacobian=jacobian, max_iterations=iterations,
+                           damping=damping, step_tol=1e-10, cost_tol=_COST_TOL)
+        return to_q(sol.x), sol.report
+
+    q_sol, report = solve(q_start, limited if respect_limits else free, max_iterations)
     with torch.no_grad():
-        q = to_q(sol.x)
+        q = q_sol
         pose = chain.pose(q, link=link)
         zero = torch.zeros(B * S, dtype=q.dtype, device=q.device)
         e_pos = (pose.position() - p_rep).norm(dim=-1) if position else zero
@@ -222,5 +226,5 @@ def inverse_kinematics(
         q_best = choose(q)
         return IKResult(q=q_best, success=score.gather(1, pick)[:, 0] <= 1.0,
                         position_error=choose(e_pos), rotation_error=choose(e_rot), seed=best,
-                        iterations=choose(sol.report.iterations),
-                        solver_status=choose(sol.report.status))
+                        iterations=choose(report.iterations),
+                        solver_status=choose(report.status))
