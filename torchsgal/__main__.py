@@ -25,7 +25,7 @@ import torchsgal as ts
 def demo(args) -> int:
     torch.manual_seed(args.seed)
     f64 = torch.float64
-    print(f"torchsgal {ts.__version__}, torch {torch.__version__}")
+    print(f"torchsgal {ts.__version__}, torch {torch.version.__version__}")
 
     # 1. The worked example: an element of SGal(3) acting on an event (x, t).
     F = ts.SGal3.from_components(
@@ -86,7 +86,7 @@ def tls(args) -> int:
                             dtau_sigma=args.dtau_sigma, seed=args.seed,
                             variants=tuple(args.variants), dtype=args.dtype)
     n = torch.get_num_threads()
-    print(f"torchsgal {ts.__version__}, torch {torch.__version__}, {n} thread{'s' * (n != 1)}: "
+    print(f"torchsgal {ts.__version__}, torch {torch.version.__version__}, {n} thread{'s' * (n != 1)}: "
           f"{cfg.trials} trials of {cfg.samples} paired observations", file=sys.stderr)
     if cfg.speed == 0:
         print("warning: --speed 0 puts the frames at rest, where the interval dtau is not "

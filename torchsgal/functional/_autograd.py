@@ -37,43 +37,16 @@ from __future__ import annotations
 
 import torch
 
+from .._compat import FastApply, forward_mode_depth
 from . import checks, native
 from ._blocking import _is_wrapped, is_compiling, run_blocked, run_lifted
-
-
-try:  # the eager branch of torch.autograd.Function.apply, without its per-call signature binding
-    from torch._functorch.utils import unwrap_dead_wrappers as _unwrap_dead_wrappers
-    from torch.autograd.function import _SingleLevelFunction
-
-    _transforms_active = torch._C._are_functorch_transforms_active
-except ImportError:  # pragma: no cover - another torch layout: Function.apply as it is
-    _SingleLevelFunction = None
-
-
-class _FastApply:
-    """Mixin for the Functions below: ``apply`` as torch's ``Function.apply`` minus its
-    ``inspect.signature`` binding of default arguments (our forwards have none), which costs
-    ~25 us per call in torch 2.13, several times the rest of the call for small batches.
-    Outside torch.func transforms it calls the C ``_FunctionBase.apply`` exactly as torch's
-    eager branch does (dead functorch wrappers unwrapped first); inside them torch's own."""
-
-    @classmethod
-    def apply(cls, *args):
-        if _SingleLevelFunction is not None and not _transforms_active():
-            return super(_SingleLevelFunction, cls).apply(*_unwrap_dead_wrappers(args))
-        return super().apply(*args)
 
 
 def _nested_forward_mode(t: torch.Tensor) -> bool:
     """Whether ``t`` is inside two or more torch.func forward-mode transforms (jacfwd(jacfwd)),
     where torch 2.13 returns wrong higher derivatives through an autograd.Function
     (pytorch/pytorch#197867)."""
-    if not _is_wrapped(t):
-        return False
-    from torch._C._functorch import TransformType
-    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
-
-    return sum(i.key() == TransformType.Jvp for i in retrieve_all_functorch_interpreters()) >= 2
+    return _is_wrapped(t) and forward_mode_depth() >= 2
 
 
 def make_exp_log(mod):
@@ -100,7 +73,7 @@ def make_exp_log(mod):
         # dxi = J_r(xi)^-1 vee(M^-1 dM), the transpose of the backward's map
         return _matvec(mod.jl_inv(-xi), mod.vee(mod.inverse(M) @ dM))
 
-    class Exp(_FastApply, torch.autograd.Function):
+    class Exp(FastApply, torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
@@ -117,7 +90,7 @@ def make_exp_log(mod):
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
             return _forward(kern and kern.exp_vjp, _exp_backward, (xi, M, grad_M), (1, 2, 2))
 
-    class Log(_FastApply, torch.autograd.Function):
+    class Log(FastApply, torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod

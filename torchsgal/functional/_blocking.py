@@ -23,6 +23,8 @@ import math
 import torch
 from torch.autograd import forward_ad as _forward_ad
 
+from .._compat import is_functorch_wrapped
+
 # Batch elements per block.  Two of torch's parallel grains (32768 elements), so every kernel of
 # a block still runs on two threads; 16384 lost that and was slower with 2 threads, 131072 gained
 # nothing more (SGal3 exp and log at 1e6 elements, benchmarks/bench_core.py).
@@ -31,7 +33,7 @@ BLOCK = 65536
 # allocator and blocking gained nothing.
 MIN_BATCH = 2 * BLOCK
 
-_is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor  # a torch.func wrapper
+_is_wrapped = is_functorch_wrapped  # a torch.func wrapper
 is_compiling = torch.compiler.is_compiling
 
 

@@ -24,6 +24,8 @@ import math
 
 import torch
 
+from .._compat import fake_tensor_mode_active, mark_compile_constant
+from . import checks
 from ._blocking import _is_wrapped, is_compiling
 
 # theta below which Taylor series are used (radians).  At theta = 1 the upward recursion
@@ -50,13 +52,10 @@ def _constant(value: float):
     custom autograd.Functions (exp's forward and log's backward).  tests/test_autograd.py
     compiles with dynamic=True.
 
-    The mark is the attribute that ``torch.compiler.assume_constant_result`` sets (torch 2.1 to
-    2.13), set here directly: calling that function imports torch._dynamo, which would add
-    about 1.3 s to ``import torchsgal``.  tests/test_autograd.py checks that both agree.
+    The mark is that of ``torch.compiler.assume_constant_result`` (``_compat.mark_compile_constant``);
+    tests/test_autograd.py checks that both agree.
     """
-    getter = lambda: value  # noqa: E731
-    getter._dynamo_marked_constant = True
-    return getter
+    return mark_compile_constant(lambda: value)
 
 
 series_threshold_sq = _constant(SERIES_THRESHOLD**2)
@@ -85,7 +84,7 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
     key = (order, dtype, device)
     # Under a fake-tensor trace (FakeTensorMode, outside torch.compile) a cached real tensor
     # cannot be mixed with the fake ones: build fresh constants and leave the cache alone.
-    fake = not is_compiling() and torch._C._get_dispatch_mode(torch._C._TorchDispatchModeKey.FAKE) is not None
+    fake = not is_compiling() and fake_tensor_mode_active()
     consts = None if fake else _CONSTANTS.get(key)
     if consts is None:
         taylor = [[(-1.0) ** k / math.factorial(2 * k + m) for m in (order - 1, order)]
@@ -202,7 +201,10 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
     Relative error ~1e-16 at every order for |x| <= 6, and at the orders Sim(3) weighs most
     up to |x| = 40 (tests/test_precision.py).  Both recursions run on safe inputs; each order
     takes the stable one (see the constants above), merged with exact 0/1 masks, so values
-    and gradients stay finite.
+    and gradients stay finite.  The downward one runs on s_j = j! q_j,
+    s_(j-1) = (1 + x s_j) / j, whose backward multiplies by x / j (< 1 where it is taken):
+    on q_j itself it multiplies by x at each of its ~50 steps and overflowed float32 (NaN
+    gradients for |x| in about [8, 24]).
 
     ``em1`` (optional, x's shape) is expm1(x), when the caller has it.  With ``sigma`` as well:
     sigma q_j(x), where sigma is 1 or e^-x per entry and em1 = sigma expm1(x).  Entries with
@@ -211,17 +213,18 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
     """
     top = order + SCALE_EXTRA_ORDERS
     ax = x.abs()
-    # Downward from the Taylor series of q_top; inputs with |x| >= top never use it.
-    x_dn = torch.where(ax < top, x, torch.zeros_like(x))
-    q = torch.full_like(x, 1.0 / math.factorial(top + SCALE_TAYLOR_TERMS))
-    for n in range(SCALE_TAYLOR_TERMS - 1, -1, -1):
-        q = q * x_dn + 1.0 / math.factorial(top + 1 + n)
-    for j in range(top, order, -1):
-        q = 1.0 / math.factorial(j) + x_dn * q
-    down = [q]
+    # Downward, on s_j = j! q_j, from the Taylor series of s_top (the same recursion from
+    # s_(top + SCALE_TAYLOR_TERMS + 1) = 0); inputs with |x| > order + margin never use it.
+    x_dn = torch.where(ax <= order + scale_upward_margin(), x, torch.zeros_like(x))
+    one = torch.ones_like(x_dn)
+    s = torch.zeros_like(x_dn)
+    for j in range(top + SCALE_TAYLOR_TERMS + 1, order, -1):
+        s = torch.addcmul(one, x_dn, s) / j
+    down = [s]
     for j in range(order, 0, -1):
-        down.append(1.0 / math.factorial(j) + x_dn * down[-1])
+        down.append(torch.addcmul(one, x_dn, down[-1]) / j)
     down.reverse()
+    inv_fact = _series_constants(order, x.dtype, x.device)[1]  # 1/j!, j = 0..order
     # Upward from expm1(x)/x; inputs with |x| <= SCALE_UPWARD_MARGIN never use it.
     x_up = torch.where(ax > scale_upward_margin(), x, torch.ones_like(x))
     up = [(torch.expm1(x_up) if em1 is None else em1) / x_up]  # em1 is finite where unused
@@ -233,7 +236,7 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
     # Order j takes the upward value where |x| > j + margin (one comparison for all orders).
     j_plus = torch.arange(order + 1, dtype=x.dtype, device=x.device) + scale_upward_margin()
     mask = (ax.unsqueeze(-1) > j_plus).to(x.dtype)
-    merged = select(mask, torch.stack(up, dim=-1), torch.stack(down, dim=-1))
+    merged = select(mask, torch.stack(up, dim=-1), torch.stack(down, dim=-1) * inv_fact)
     return list(merged.unbind(-1))
 
 
@@ -248,6 +251,8 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     of them is e^shift times its value, and the dict has the key shift: lambda where
     lambda < -SIM3_NORMALISE (there they are those of s M, which stay finite), else 0.
     """
+    checks.boolean(derivatives, "derivatives")
+    checks.boolean(normalise, "normalise")
     theta2, lam = torch.broadcast_tensors(theta2, lam)
     K = SIM3_SERIES_TERMS
     x = -lam

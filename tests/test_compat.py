@@ -1,0 +1,91 @@
+"""torchsgal._compat holds every use of a private torch interface; each has a fallback, and the
+library gives the same results on every fallback."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import sample_tangent
+
+import torchsgal as ts
+from torchsgal import _compat
+
+PACKAGE = Path(ts.__file__).resolve().parent
+PRIVATE = re.compile(r"torch\._")
+
+# Each fallback: the module attributes that a torch without the interface leaves unset.
+FALLBACKS = {
+    "functorch_wrapped": {"_is_wrapped_tensor": None},
+    "transform_depth": {"_interpreters": None},
+    "fake_mode": {"_get_dispatch_mode": None},
+    "fast_apply": {"_SingleLevelFunction": None, "_transforms_active": None},
+}
+
+
+def test_no_private_torch_interface_outside_compat():
+    """``grep -rn "torch\\._" torchsgal/`` lists only _compat.py (the Python and the C sources)."""
+    hits = [f"{p.relative_to(PACKAGE)}:{i}" for p in sorted(PACKAGE.rglob("*"))
+            if p.suffix in {".py", ".c", ".h"} and p.name != "_compat.py"
+            for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if PRIVATE.search(line)]
+    assert not hits, f"private torch interfaces outside torchsgal/_compat.py: {hits}"
+
+
+def test_every_interface_is_found_on_the_supported_torch():
+    """On the torch versions pyproject.toml admits, no fallback is in use (a fallback in use
+    means torch moved an interface: the bound must not admit that version unnoticed)."""
+    for attrs in FALLBACKS.values():
+        for name in attrs:
+            assert getattr(_compat, name) is not None, name
+
+
+def _results(G, dtype):
+    xi = sample_tangent(G, (6,), dtype, seed=3).requires_grad_(True)
+    w = torch.linspace(-1.0, 1.0, G.dof, dtype=dtype)
+    g = G.exp(xi)
+    out = {"exp": g.as_matrix().detach(), "log": g.log().detach()}
+    (grad,) = torch.autograd.grad((g.log() * w).sum() + g.as_matrix().sum(), xi)
+    out["grad"] = grad
+    x0 = xi.detach()[1]
+    out["jacfwd_jacfwd"] = torch.func.jacfwd(torch.func.jacfwd(lambda x: G.exp(x).as_matrix()))(x0)
+    out["vmap_jacrev"] = torch.func.vmap(torch.func.jacrev(lambda x: G.exp(x).log()))(xi.detach())
+    return out
+
+
+@pytest.mark.parametrize("fallback", sorted(FALLBACKS))
+@pytest.mark.parametrize("G", [ts.SO3, ts.SE3, ts.SGal3, ts.Sim3], ids=lambda g: g.__name__)
+def test_fallback_gives_the_same_results(G, fallback, monkeypatch):
+    want = _results(G, torch.float64)
+    for name, value in FALLBACKS[fallback].items():
+        monkeypatch.setattr(_compat, name, value)
+    got = _results(G, torch.float64)
+    for key in want:
+        torch.testing.assert_close(got[key], want[key], rtol=1e-12, atol=1e-12, msg=key)
+
+
+def test_fallbacks_answer_conservatively(monkeypatch):
+    for attrs in FALLBACKS.values():
+        for name, value in attrs.items():
+            monkeypatch.setattr(_compat, name, value)
+    t = torch.zeros(2)
+    assert _compat.is_functorch_wrapped(t) is True
+    assert _compat.forward_mode_depth() == 2
+    assert _compat.fake_tensor_mode_active() is True
+
+
+def test_interfaces_report_what_they_see():
+    t = torch.zeros(3)
+    assert _compat.is_functorch_wrapped(t) is False
+    assert torch.func.vmap(lambda x: torch.tensor(_compat.is_functorch_wrapped(x)))(t).all()
+    assert _compat.forward_mode_depth() == 0
+    depths = []
+    torch.func.jacfwd(lambda x: depths.append(_compat.forward_mode_depth()) or x)(t)
+    torch.func.jacfwd(torch.func.jacfwd(lambda x: depths.append(_compat.forward_mode_depth()) or x))(t)
+    assert depths == [1, 2]
+    assert _compat.fake_tensor_mode_active() is False
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    seen = []
+    make_fx(lambda x: seen.append(_compat.fake_tensor_mode_active()) or x, tracing_mode="fake")(t)
+    assert seen == [True]
