@@ -13,7 +13,9 @@ from .preintegration import (
     suffix_products,
     window_product,
 )
+from .streaming import StreamingPreintegration
 
 __all__ = ["EARTH_RATE", "STANDARD_GRAVITY", "Preintegration", "earth_rate_vector",
            "gravity_vector", "increment_tangents", "predict", "predict_jacobians", "preintegrate",
+           "StreamingPreintegration",
            "suffix_products", "window_product"]
