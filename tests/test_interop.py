@@ -567,3 +567,27 @@ def test_guide_examples_run():
     torch.manual_seed(0)
     for i, code in enumerate(blocks):
         exec(compile(code, f"interop.md block {i}", "exec"), namespace)  # noqa: S102
+
+
+def test_tensor_converters_are_device_generic():
+    """The tensor-only converters on 'meta' (no data: an operation that mixes in a CPU constant
+    or reads values raises there, as it would cost a copy or a sync on CUDA)."""
+    meta = torch.device("meta")
+    R = ts.SO3.identity((4, 2), dtype=torch.float32, device=meta)
+    a = euler.as_euler(R, sequence="zxz", frame="extrinsic")
+    assert a.shape == (4, 2, 3) and a.device == meta and a.dtype == torch.float32
+    assert euler.from_euler(a, sequence="ZYX", frame="intrinsic").as_matrix().device == meta
+    g = ts.SE3.identity(3, dtype=torch.float32, device=meta)
+    v = tq.as_pose7(g, order="wxyz")
+    assert v.shape == (3, 7) and v.device == meta
+    assert tq.from_pose7(v, order="wxyz").as_matrix().device == meta
+    xi = torch.empty(3, 9, device=meta)
+    for out in (tg.tangent_to_gtsam(xi, "NavState"), tg.navstate_local_to_tangent(xi),
+                tg.tangent_to_navstate_local(xi)):
+        assert out.shape == (3, 9) and out.device == meta
+    P = torch.empty(3, 10, 10, device=meta)
+    assert tg.covariance_from_gtsam(P, "Gal3").device == meta
+    J = torch.empty(3, 3, 10, device=meta)
+    assert tg.jacobian_to_gtsam(J, output=None, input="Gal3").shape == (3, 3, 10)
+    assert tp.covariance_from_pypose(torch.empty(3, 6, 6, device=meta), g).device == meta
+    assert tg.tangent_map("Pose3", torch.float32, meta).device == meta

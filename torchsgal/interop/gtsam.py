@@ -3,20 +3,16 @@ converter runs).
 
 Groups and matrices (GTSAM's ``.matrix()`` is ours except for NavState):
 
-=============  =========  ==============================  ============================
-GTSAM          torchsgal  GTSAM tangent                   ``xi_gtsam = xi_ours[perm]``
-=============  =========  ==============================  ============================
-``Rot2``       SO2        ``[theta]``                     ``(0,)``
-``Pose2``      SE2        ``[x, y, theta]``               ``(0, 1, 2)``
-``Rot3``       SO3        ``[omega]``                     ``(0, 1, 2)``
-``Pose3``      SE3        ``[omega, v]``                  ``(3, 4, 5, 0, 1, 2)``
-``NavState``   SE23       ``[omega, position, velocity]`` ``(6, 7, 8, 0, 1, 2, 3, 4, 5)``
-``Gal3``       SGal3      ``[omega, velocity, position,   ``(6, 7, 8, 3, 4, 5, 0, 1, 2, 9)``
-                          time]``
-``Similarity3``  Sim3     ``[omega, u, lambda]``          ``(3, 4, 5, 0, 1, 2, 6)``
-``Point2``     (vectors)  ``[x, y]``                      ``(0, 1)``
-``Point3``     (vectors)  ``[x, y, z]``                   ``(0, 1, 2)``
-=============  =========  ==============================  ============================
+| GTSAM | torchsgal | GTSAM tangent | ``xi_gtsam = xi_ours[perm]`` |
+|---|---|---|---|
+| ``Rot2`` | SO2 | ``[theta]`` | ``(0,)`` |
+| ``Pose2`` | SE2 | ``[x, y, theta]`` | ``(0, 1, 2)`` |
+| ``Rot3`` | SO3 | ``[omega]`` | ``(0, 1, 2)`` |
+| ``Pose3`` | SE3 | ``[omega, v]`` | ``(3, 4, 5, 0, 1, 2)`` |
+| ``NavState`` | SE23 | ``[omega, position, velocity]`` | ``(6, 7, 8, 0, 1, 2, 3, 4, 5)`` |
+| ``Gal3`` | SGal3 | ``[omega, velocity, position, time]`` | ``(6, 7, 8, 3, 4, 5, 0, 1, 2, 9)`` |
+| ``Similarity3`` | Sim3 | ``[omega, u, lambda]`` | ``(3, 4, 5, 0, 1, 2, 6)`` |
+| ``Point2``, ``Point3`` | vectors | ``[x, y(, z)]`` | identity |
 
 For each group, GTSAM's ``Expmap(xi_ours[perm])`` is our ``exp(xi_ours)`` and its ``Hat`` puts
 the same entries in the same places (NavState's matrix has the velocity and position columns

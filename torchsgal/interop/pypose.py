@@ -1,18 +1,17 @@
 """Converters between torchsgal and pypose (the ``peers`` extra; imported only when a converter
 runs).  Batched tensor operations on both sides, differentiable, no host copy.
 
-=========  ==================================  ===================  =====================
-torchsgal  pypose LieTensor (storage)          pypose algebra       tangent map
-=========  ==================================  ===================  =====================
-SO3        ``SO3``: ``[qx, qy, qz, qw]``       ``so3``: ``[phi]``        identity
-SE3        ``SE3``: ``[t, qx, qy, qz, qw]``    ``se3``: ``[tau, phi]``   identity
-Sim3       ``Sim3``: ``[t, qx, qy, qz, qw, s]``  ``sim3``: ``[tau, phi, sigma]``  identity
-=========  ==================================  ===================  =====================
+| torchsgal | pypose LieTensor (storage) | pypose algebra | tangent map |
+|---|---|---|---|
+| SO3 | ``SO3``: ``[qx, qy, qz, qw]`` | ``so3``: ``[phi]`` | identity |
+| SE3 | ``SE3``: ``[t, qx, qy, qz, qw]`` | ``se3``: ``[tau, phi]`` | identity |
+| Sim3 | ``Sim3``: ``[t, qx, qy, qz, qw, s]`` | ``sim3``: ``[tau, phi, sigma]`` | identity |
 
 pypose's Sim3 matrix is ``[[s R, t], [0, 1]]``; ours is ``[[C, r], [0, 1/s]]``, the same
-projective map (p -> s C p + s r), so ``t = s r`` and ``pp.Exp`` of the same 7-vector is our
-``exp`` scaled by s.  ``Exp`` of the same tangent vector gives the same element for all three,
-and pypose's ``so3.Jr`` is our ``SO3.jr``.
+projective map (p -> s C p + s r), so ``t = s r`` and ``pp.sim3(xi).Exp().matrix()`` is s times
+our ``Sim3.exp(xi)``'s matrix.  ``Exp`` of the same tangent vector gives the same element for
+all three (pypose's se3 ``Exp`` loses about 2e-17/theta in the translation at small angles),
+and pypose's ``so3.Jr`` is our ``SO3.jr`` (except at tiny angles, where pypose's is the identity).
 
 Perturbation side: pypose perturbs on the LEFT.  Its optimisers update ``X <- Exp(d) X``
 (``LieTensor.add_``) and autograd's gradient of a LieTensor is the derivative with respect to
