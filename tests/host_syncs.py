@@ -13,9 +13,13 @@ this recorder exists.
 """
 from __future__ import annotations
 
+import functools
 import traceback
+from pathlib import Path
 
 import torch
+
+import torchsgal
 
 _ATEN = torch.ops.aten
 SYNC_OPS = {
@@ -28,10 +32,22 @@ SYNC_OPS = {
 }
 
 
+_PACKAGE = Path(torchsgal.__file__).resolve().parent
+
+
+@functools.lru_cache(maxsize=None)
+def _in_package(filename: str) -> bool:
+    """Whether ``filename`` is a file of the torchsgal package itself (by its resolved path:
+    not any path that contains the word, such as a virtualenv inside a checkout of that name)."""
+    try:
+        return Path(filename).resolve().is_relative_to(_PACKAGE)
+    except (OSError, ValueError):  # '<frozen ...>', '<string>' and the like
+        return False
+
+
 def _caller() -> str:
     """The innermost torchsgal frame of the current stack, as 'path:line'."""
-    frames = [f for f in traceback.extract_stack() if "torchsgal" in f.filename.replace("\\", "/")
-              and "/tests/" not in f.filename.replace("\\", "/")]
+    frames = [f for f in traceback.extract_stack() if _in_package(f.filename)]
     return f"{frames[-1].filename}:{frames[-1].lineno}" if frames else "?"
 
 

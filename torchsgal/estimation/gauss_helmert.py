@@ -47,6 +47,7 @@ def _checked_factor(S: torch.Tensor, m: int, name: str):
     (unreadable values: not diagonal, the factor unchecked)."""
     if not isinstance(S, torch.Tensor):
         raise TypeError(f"{name} must be a tensor (..., {m}, {m}), got {type(S).__name__}")
+    checks.dense(S, name)
     if S.dim() < 2 or S.shape[-2:] != (m, m):
         raise ValueError(f"{name} must have shape (..., {m}, {m}), got {tuple(S.shape)}")
     if S.dtype not in SUPPORTED_DTYPES:

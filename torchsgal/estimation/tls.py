@@ -100,8 +100,8 @@ class TLSProblem:
             self.indices = torch.arange(self.F_ga.batch_shape[-1], dtype=self.F_ga.dtype,
                                         device=self.F_ga.device)
         elif isinstance(self.indices, (list, tuple)):
-            self.indices = torch.as_tensor(self.indices, dtype=self.F_ga.dtype,
-                                           device=self.F_ga.device)
+            self.indices = checks.numbers_as_tensor(self.indices, "indices", self.F_ga.dtype,
+                                                    self.F_ga.device)
         elif not isinstance(self.indices, torch.Tensor):
             raise TypeError(f"indices must be a tensor (N+1,) (or a list), got "
                             f"{type(self.indices).__name__}")
@@ -123,7 +123,7 @@ class TLSProblem:
             raise ValueError(f"{name} is on {dtau.device} but the problem is on "
                              f"{self.F_ga.device}; move them to one device")
         F0 = self.F_ga[:, 0].inverse() @ self.F_gb[:, 0]
-        dt = torch.as_tensor(dtau, dtype=self.F_ga.dtype, device=self.F_ga.device)
+        dt = checks.numbers_as_tensor(dtau, name, self.F_ga.dtype, self.F_ga.device)
         if dt.dim() > 1 or (dt.dim() == 1 and dt.shape[0] != self.batch_size):
             raise ValueError(f"{name} must be a scalar or have shape (B,) = ({self.batch_size},), "
                              f"got {tuple(dt.shape)}")
@@ -841,6 +841,7 @@ def solve_sgal3_lbfgs(problem: TLSProblem, x0=None, dtau0=-1.0, batched: bool = 
     iterations summed over the rounds, step_norm the last move in standard deviations (NaN
     where there is no covariance to measure it).  Not differentiable."""
     from .lbfgs import lbfgs
+    batched = checks.boolean(batched, "batched")
     step_tol = checks.finite_number(step_tol, "step_tol", ">= 0")
     reweightings = checks.integer(reweightings, "reweightings", 1)
     x = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0

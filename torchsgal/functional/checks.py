@@ -21,12 +21,38 @@ def floating(x, name: str) -> torch.Tensor:
     are made for float32 and float64."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    dense(x, name)
     if x.dtype not in SUPPORTED_DTYPES:
         hint = "; convert with .float() or .double()" if x.is_floating_point() else ""
         raise TypeError(
             f"{name} must have a floating dtype (torch.float32 or torch.float64), got {x.dtype}{hint}"
         )
     return x
+
+
+def dense(x: torch.Tensor, name: str) -> torch.Tensor:
+    """A tensor of the strided (dense) layout: sparse and other layouts are refused by name
+    rather than failing inside torch's kernels."""
+    if x.layout != torch.strided:
+        raise TypeError(f"{name} must be a dense (strided) torch.Tensor, got layout {x.layout}; "
+                        f"convert with .to_dense()")
+    return x
+
+
+def numbers_as_tensor(value, name: str, dtype: torch.dtype, device) -> torch.Tensor:
+    """A tensor argument that may also be given as a real number or a (nested) sequence of
+    them, converted to ``dtype`` on ``device``; a tensor is returned as it is (dense).  A
+    string, or anything torch cannot read as numbers, is a TypeError naming the argument."""
+    if isinstance(value, torch.Tensor):
+        return dense(value, name)
+    message = (f"{name} must be a torch.Tensor, a real number or a sequence of real numbers, "
+               f"got {value!r}")
+    if isinstance(value, (str, bytes)):
+        raise TypeError(message)
+    try:
+        return torch.as_tensor(value, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(message) from None
 
 
 def dtype_arg(dtype, name: str = "dtype") -> torch.dtype:

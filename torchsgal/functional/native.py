@@ -26,19 +26,21 @@ conditions and updates their residuals (``torchsgal.estimation.tls._structured``
 docs/estimation.md), four conditions at a time, keeping its per-condition state packed.
 
 The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
-(``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment, or the ``disabled()``
-context manager, turns the kernels off (the tensor code then runs everywhere).
+(``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment turns the kernels off in
+the whole process; the ``disabled()`` context manager turns them off in the calling thread
+only, for the duration of its block (the tensor code then runs there).
 """
 from __future__ import annotations
 
 import contextlib
 import math
 import os
+import threading
 
 import torch
 
 from . import numerics
-from ._blocking import unobserved
+from ._blocking import is_compiling, unobserved
 
 try:
     from . import _native as _lib
@@ -46,7 +48,11 @@ except ImportError:  # not compiled: the tensor code runs everywhere
     _lib = None
 
 ENV_VAR = "TORCHSGAL_NATIVE"
+# The process-wide setting (compiled, and not turned off by the environment) ...
 _state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0"}
+# ... and the switch of ``disabled()``, per thread: a block in one thread leaves the kernel
+# choice of the others alone.
+_thread = threading.local()
 
 
 def _set_constants() -> None:
@@ -69,24 +75,31 @@ def available() -> bool:
 
 
 def enabled() -> bool:
-    """Whether eligible calls use the C kernels now (``available()`` and not switched off)."""
-    return _state["on"]
+    """Whether eligible calls of the calling thread use the C kernels now (``available()``,
+    not turned off by the environment, and not inside a ``disabled()`` block of this thread)."""
+    return _state["on"] and not getattr(_thread, "off", False)
 
 
 @contextlib.contextmanager
 def disabled():
-    """Run the tensor code everywhere inside the block (tests and benchmarks compare the two)."""
-    before = _state["on"]
-    _state["on"] = False
+    """Run the tensor code everywhere inside the block, in the calling thread only (other
+    threads keep their own choice; a thread started inside the block does not inherit it).
+    Blocks nest: leaving one restores the state it found (tests and benchmarks compare the two
+    paths)."""
+    before = getattr(_thread, "off", False)
+    _thread.off = True
     try:
         yield
     finally:
-        _state["on"] = before
+        _thread.off = before
 
 
 def _eligible(args) -> bool:
+    if not _state["on"] or is_compiling():  # compiled graphs run the tensor code
+        return False
     dtype = args[0].dtype
-    return _state["on"] and all(a.dtype is dtype for a in args) and unobserved(args)
+    return (not getattr(_thread, "off", False) and all(a.dtype is dtype for a in args)
+            and unobserved(args))
 
 
 def _data(t: torch.Tensor) -> torch.Tensor:

@@ -140,16 +140,26 @@ def _quaternion_order(order) -> None:
 
 def from_quaternion(q: torch.Tensor, order: str) -> torch.Tensor:
     """Rotation matrices (..., 3, 3) of quaternions q (..., 4) with components in ``order``
-    ("wxyz" or "xyzw"); q is normalised here (any length but zero: ValueError where its values
-    can be read), and q and -q give the same rotation."""
+    ("wxyz" or "xyzw"); q is normalised here, at any length the dtype holds, subnormal included
+    (ValueError for a quaternion that is exactly zero or not finite, where its values can be
+    read), and q and -q give the same rotation."""
     _quaternion_order(order)
     checks.vector(q, 4, "q")
     if order == "xyzw":
         q = q.roll(1, -1)
-    norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-    if q.numel() and values_readable(q) and bool((norm == 0).any()):
-        raise ValueError("q has a quaternion of zero length, which is no rotation")
-    return B.quaternion_rotation(*B.first(q / norm))
+    # Scaled by its largest |component| first (as hypot): the sum of squares of q itself
+    # overflows above ~1e154 (float64) / 1e19 (float32) and underflows below their square
+    # roots.  q / |q| does not depend on the scale, so the scale carries no gradient.
+    scale = q.detach().abs().amax(dim=-1, keepdim=True)
+    if q.numel() and values_readable(q):
+        bad = torch.stack(((scale == 0).any(), (~torch.isfinite(q)).any())).tolist()
+        if bad[0]:
+            raise ValueError("q has a quaternion of zero length, which is no rotation")
+        if bad[1]:
+            raise ValueError("q has a quaternion that is not finite (inf or NaN components)")
+    u = q / scale
+    u = u / torch.linalg.vector_norm(u, dim=-1, keepdim=True)
+    return B.quaternion_rotation(*B.first(u))
 
 
 def to_quaternion(C: torch.Tensor, order: str) -> torch.Tensor:

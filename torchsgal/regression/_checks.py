@@ -40,6 +40,7 @@ def sample_times(times, samples: LieGroup, name: str = "times") -> torch.Tensor:
     checked by ``time_values``)."""
     if not isinstance(times, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape (..., N), got {type(times).__name__}")
+    checks.dense(times, name)
     if times.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must have a floating dtype (torch.float32 or torch.float64), got {times.dtype}")
     if times.dtype != samples.dtype:
@@ -93,8 +94,7 @@ def metric_weights(weights, G, like: torch.Tensor, like_name: str = "samples",
     only: their values (positive, finite) are checked by ``weight_values``."""
     if weights is None:
         return torch.ones(G.dof, dtype=like.dtype, device=like.device)
-    if not isinstance(weights, torch.Tensor):
-        weights = torch.as_tensor(weights, dtype=like.dtype, device=like.device)
+    weights = checks.numbers_as_tensor(weights, name, like.dtype, like.device)
     checks.floating(weights, name)
     if weights.dim() < 1 or weights.shape[-1] != G.dof:
         raise ValueError(f"{name} must have shape (..., {G.dof}) for {G.__name__}, got "

@@ -68,7 +68,7 @@ class PolynomialModel:
         self.degree = degree
         self.sqrt_w = sqrt_w  # (..., dof)
         self.basis = basis  # (dof, m) or None
-        self.fix_origin = fix_origin
+        self.fix_origin = checks.boolean(fix_origin, "fix_origin")
 
     @property
     def generator_dim(self) -> int:
@@ -229,6 +229,7 @@ def geodesic_flow(G, velocity: torch.Tensor, tau: torch.Tensor, weights: torch.T
     _group_class(G)
     checks.vector(velocity, G.dof, "velocity")
     _check_flow_args(G, velocity, "velocity", 1, tau, weights, steps)
+    checks.boolean(sensitivity, "sensitivity")
     out = _polynomial_flow(G, velocity.unsqueeze(-2), tau, weights, steps, sensitivity)
     return (out[0], out[1][..., 0, :]) + tuple(out[2:])
 
@@ -258,6 +259,7 @@ def polynomial_flow(G, initial: torch.Tensor, tau: torch.Tensor, weights: torch.
     _group_class(G)
     _coordinates(G, initial, "initial")
     _check_flow_args(G, initial, "initial", 2, tau, weights, steps)
+    checks.boolean(sensitivity, "sensitivity")
     return _polynomial_flow(G, initial, tau, weights, steps, sensitivity)
 
 
@@ -331,7 +333,7 @@ class RiemannianPolynomialModel:
         self.weights = weights
         self.degree = degree
         self.steps = steps
-        self.fix_origin = fix_origin
+        self.fix_origin = checks.boolean(fix_origin, "fix_origin")
 
     def initial(self, x):
         return x.unflatten(-1, (self.degree, self.G.dof))

@@ -84,6 +84,8 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     order above).  The computation runs before, unchecked (``torch.linalg.*_ex``), whatever
     ``iterations``; with ``validate=False`` the read stays (a singular matrix still raises)."""
     checks.integer(iterations, "iterations", 1)
+    checks.boolean(time_row, "time_row")
+    checks.boolean(validate, "validate")
     if not isinstance(prior, ConcentratedGaussian):
         raise TypeError(f"prior must be a ConcentratedGaussian on SGal3, got {type(prior).__name__}")
     if not isinstance(prior.mean, SGal3):

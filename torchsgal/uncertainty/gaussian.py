@@ -48,8 +48,12 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
     positive semi-definite, within ``tol`` of the largest entry).  Shape and dtype are always
     checked; the values (one host sync: all the measures are read together) only where they can
     be read: not on 'meta', under a torch.func transform or torch.compile.  An empty batch
-    passes."""
+    passes.  ``tol``: None (1e-5 float32, 1e-10 float64) or a finite real number >= 0."""
     _covariance_shape(S, dim, name)
+    checks.dense(S, name)
+    checks.boolean(definite, "definite")
+    if tol is not None:
+        tol = checks.finite_number(tol, "tol", ">= 0")
     if S.numel() == 0 or not values_readable(S):
         return
     tol = _default_tol(S, tol)
