@@ -247,6 +247,7 @@ def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> 
     the generic path for batches below ``tls.STRUCTURED_MIN_CONDITIONS`` conditions."""
     if not isinstance(cfg, StudyConfig):
         raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
+    checks.boolean(progress, "progress")
     cfg.__post_init__()  # fields may have been changed since construction
     chunk = checks.integer(chunk, "chunk", 1)
     estimators = {("SGal(3)", v): (solve_sgal3, errors_sgal3) for v in cfg.variants}
@@ -367,6 +368,7 @@ def write_outputs(out: dict, directory: str, plot: bool = True) -> list[str]:
     """Writes tls_study.json (strict JSON: a metric without converged trials is null),
     tls_study.md and, with ``plot``, tls_nees.png into ``directory`` (created if needed)."""
     import os
+    checks.boolean(plot, "plot")
     os.makedirs(directory, exist_ok=True)
     paths = []
     slim = _finite_or_null(json.loads(json.dumps(out)))

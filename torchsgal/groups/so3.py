@@ -25,8 +25,8 @@ class SO3(LieGroup):
     def from_quaternion(cls, q: torch.Tensor, *, order: str):
         """From quaternions q (..., 4), components in ``order``: "wxyz" (scalar first, as GTSAM
         and Eigen) or "xyzw" (scalar last, as scipy, pypose and ROS); no default, so that the
-        order is always stated.  q is normalised (a zero quaternion raises where its values
-        can be read); q and -q give the same rotation."""
+        order is always stated.  q is normalised at any length (a zero or non-finite quaternion
+        raises where its values can be read); q and -q give the same rotation."""
         return cls._new(cls._f.from_quaternion(q, order))
 
     def as_quaternion(self, *, order: str) -> torch.Tensor:
