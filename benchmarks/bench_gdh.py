@@ -32,6 +32,21 @@ machine's CPU used by other processes during each section is recorded (``foreign
 Agreement on the benchmark batch (max abs difference) is recorded: GDH vs pk pose and velocity,
 GDH acceleration vs both jvp's.
 
+Panda from URDF (``--sections panda``): the same (a) and (b) for the Franka Panda built from
+example-robot-data's URDF (``torchsgal.kinematics.load_robot("panda")``, end link
+``panda_hand_tcp``), against pytorch-kinematics' chain from the same URDF (converted to the
+benchmark dtype; pk reads the URDF angles in float32) and against Pinocchio called in a Python
+loop over the configurations (``forwardKinematics`` + ``updateFramePlacement`` +
+``getFrameVelocity`` / ``getFrameClassicalAcceleration``, LOCAL_WORLD_ALIGNED; float64 only).
+
+Inverse kinematics (``--sections ik``): ``--ik-n`` (default 10,000) reachable Panda targets
+(poses of random configurations within the joint limits), ``--ik-seeds`` random seeds each,
+solved once by ``torchsgal.kinematics.inverse_kinematics`` and by pytorch-kinematics'
+``PseudoInverseIK`` (the same seeds count, tolerances 1e-4 m / 1e-3 rad, joint limits, 50
+iterations).  The success rate is recomputed for both from Pinocchio's forward kinematics of the
+returned joints (position and rotation error within the tolerances and joints within the
+limits), next to each library's own count.
+
 Usage::
 
     python benchmarks/bench_gdh.py                  # full run (~1-2 min on 2 cores)
@@ -249,17 +264,254 @@ def _pct(x) -> str:
     return "n/a" if x is None else f"{100 * x:.0f}%"
 
 
+# ---------------------------------------------------------------- Panda (URDF)
+def _pk_panda(pk, dtype, device):
+    import logging
+
+    from torchsgal.kinematics import robot_urdf
+
+    logging.getLogger("pytorch_kinematics").setLevel(logging.ERROR)
+    text = robot_urdf("panda").read_bytes()
+    return pk.build_serial_chain_from_urdf(text, "panda_hand_tcp").to(dtype=dtype, device=device)
+
+
+def _pinocchio():
+    try:
+        import pinocchio as pin
+    except ImportError as e:
+        log(f"NOTE: pinocchio is not importable ({e}): its cases are skipped")
+        return None
+    return pin
+
+
+def run_panda(dtype, args, device, pk) -> dict:
+    """(a) pose + velocity and (b) acceleration of the Panda from URDF (module doc)."""
+    from torchsgal.kinematics import load_robot, robot_urdf
+
+    name = str(dtype).replace("torch.", "")
+    chain = load_robot("panda", dtype=dtype, device=device)
+    g = torch.Generator().manual_seed(args.seed)
+    kw = dict(dtype=dtype, device=device)
+    q = chain.to(dtype=torch.float64, device="cpu").random_configuration((args.n,), generator=g).to(**kw)
+    qd = torch.randn(args.n, 7, generator=g, dtype=torch.float64).to(**kw)
+    qdd = torch.randn(args.n, 7, generator=g, dtype=torch.float64).to(**kw)
+    pk_chain = _pk_panda(pk, dtype, device) if pk is not None else None
+    pin = _pinocchio() if dtype == torch.float64 and device.type == "cpu" else None
+
+    def ours_vel():
+        s = chain.forward(q, qd)
+        return s.pose.as_matrix(), s.linear_velocity, s.angular_velocity
+
+    def ours_acc():
+        s = chain.forward(q, qd, qdd)
+        return s.linear_acceleration, s.angular_acceleration
+
+    sec_a = {"chain forward(q, qdot)": ours_vel}
+    sec_b = {"chain forward(q, qdot, qddot)": ours_acc}
+    if pk_chain is not None:
+        def pk_vel():
+            J, T = pk_chain.jacobian(q, ret_eef_pose=True)
+            tw = (J @ qd.unsqueeze(-1)).squeeze(-1)
+            return T, tw[:, :3], tw[:, 3:]
+
+        def pk_velocity(q_, qd_):
+            return (pk_chain.jacobian(q_) @ qd_.unsqueeze(-1)).squeeze(-1)
+
+        def pk_acc():
+            a = torch.func.jvp(pk_velocity, (q, qd), (qd, qdd))[1]
+            return a[:, :3], a[:, 3:]
+
+        sec_a["pk J(q, ret_eef_pose) qdot"] = pk_vel
+        sec_b["jvp(pk J(q) qdot)"] = pk_acc
+    if pin is not None:
+        model = pin.buildModelFromUrdf(str(robot_urdf("panda")))
+        data = model.createData()
+        fid = model.getFrameId("panda_hand_tcp")
+        import numpy as np
+
+        def full(x):  # the 7 arm joints, fingers at 0
+            out = np.zeros((x.shape[0], model.nq))
+            out[:, :7] = x.cpu().numpy()
+            return out
+
+        qn, qdn, qddn = full(q), full(qd), full(qdd)
+        LWA = pin.LOCAL_WORLD_ALIGNED
+
+        def pin_vel():
+            T = np.empty((args.n, 4, 4))
+            v = np.empty((args.n, 6))
+            for i in range(args.n):
+                pin.forwardKinematics(model, data, qn[i], qdn[i])
+                T[i] = pin.updateFramePlacement(model, data, fid).homogeneous
+                v[i] = pin.getFrameVelocity(model, data, fid, LWA).vector
+            return T, v
+
+        def pin_acc():
+            a = np.empty((args.n, 6))
+            for i in range(args.n):
+                pin.forwardKinematics(model, data, qn[i], qdn[i], qddn[i])
+                pin.updateFramePlacement(model, data, fid)
+                a[i] = pin.getFrameClassicalAcceleration(model, data, fid, LWA).vector
+            return a
+
+        sec_a["Pinocchio loop (FK + frame velocity)"] = pin_vel
+        sec_b["Pinocchio loop (FK + classical acceleration)"] = pin_acc
+
+    # agreement on the batch
+    agree = {}
+    with torch.no_grad():
+        T_o, v_o, w_o = ours_vel()
+        la, aa = ours_acc()
+    jv = torch.func.jvp(lambda a_, b_: torch.cat((chain.forward(a_, b_).linear_velocity,
+                                                  chain.forward(a_, b_).angular_velocity), -1),
+                        (q, qd), (qd, qdd))[1]
+    agree["acceleration chain vs jvp(chain velocity)"] = (torch.cat((la, aa), -1) - jv).abs().max().item()
+    if pk_chain is not None:
+        T_p, v_p, w_p = sec_a["pk J(q, ret_eef_pose) qdot"]()
+        agree["pose chain vs pk (pk: float32 URDF angles)"] = (T_o - T_p).abs().max().item()
+        agree["velocity chain vs pk"] = max((v_o - v_p).abs().max().item(),
+                                            (w_o - w_p).abs().max().item())
+    if pin is not None:
+        T_n, v_n = sec_a["Pinocchio loop (FK + frame velocity)"]()
+        a_n = sec_b["Pinocchio loop (FK + classical acceleration)"]()
+        agree["pose chain vs Pinocchio"] = float(abs(T_o.numpy() - T_n).max())
+        agree["velocity chain vs Pinocchio"] = float(abs(torch.cat((v_o, w_o), -1).numpy() - v_n).max())
+        agree["acceleration chain vs Pinocchio"] = float(abs(torch.cat((la, aa), -1).numpy() - a_n).max())
+    log(f"\n[panda {name}] (a) pose + velocity ...")
+    st_a, t_a, load_a = interleaved(sec_a, target_s=args.target_a, min_rounds=max(3, args.min_rounds // 2),
+                                    max_rounds=args.max_rounds, device=device)
+    log(f"[panda {name}] (b) acceleration ...")
+    st_b, t_b, load_b = interleaved(sec_b, target_s=args.target_b, min_rounds=max(3, args.min_rounds // 2),
+                                    max_rounds=args.max_rounds, device=device)
+    ratios = {}
+    for sec, t, ref in ((sec_a, t_a, "chain forward(q, qdot)"), (sec_b, t_b, "chain forward(q, qdot, qddot)")):
+        for k in sec:
+            if k != ref:
+                ratios[f"{k} / {ref}"] = paired_ratio(t, k, ref)
+    return {"dtype": name, "n": args.n, "pose_velocity": st_a, "acceleration": st_b,
+            "foreign_cpu": {"pose_velocity": load_a, "acceleration": load_b},
+            "speedup_ratios": ratios, "agreement_max_abs": agree}
+
+
+def panda_table_md(res: dict) -> list[str]:
+    n = res["n"]
+    out = [f"## Panda (URDF), {res['dtype']}, batch {n:,}", ""]
+    for sec, title in (("pose_velocity", "(a) pose + end-effector velocity"),
+                       ("acceleration", "(b) end-effector acceleration")):
+        out += [f"### {title}  (foreign CPU load: {_pct(res['foreign_cpu'][sec])})", "",
+                "| case | ms / batch (median) | min–max ms | ns / config | rounds |",
+                "|---|---:|---:|---:|---:|"]
+        for k, v in res[sec].items():
+            out.append(f"| {k} | {fmt_ms(v['median_s'])} | {fmt_ms(v['min_s'])}–{fmt_ms(v['max_s'])} "
+                       f"| {v['median_s'] / n * 1e9:,.0f} | {v['rounds']} |")
+        out.append("")
+    out += ["### speed-ups of the chain (median of per-round ratios; > 1: the chain is faster)", "",
+            "| ratio | value |", "|---|---:|"]
+    out += [f"| {k} | {v:.2f} |" for k, v in res["speedup_ratios"].items()]
+    out += ["", "### agreement (max abs difference)", "", "| quantity | max abs diff |", "|---|---:|"]
+    out += [f"| {k} | {v:.3e} |" for k, v in res["agreement_max_abs"].items()]
+    return out + [""]
+
+
+# --------------------------------------------------------------------------- IK
+def _pin_check(pin, q, target, lower, upper, pos_tol, rot_tol):
+    """Success recomputed by Pinocchio's FK: (B,) bool numpy."""
+    import numpy as np
+
+    from torchsgal.kinematics import robot_urdf
+
+    model = pin.buildModelFromUrdf(str(robot_urdf("panda")))
+    data = model.createData()
+    fid = model.getFrameId("panda_hand_tcp")
+    qn = np.zeros((q.shape[0], model.nq))
+    qn[:, :7] = q.detach().cpu().double().numpy()
+    Tt = target.detach().cpu().double().numpy()
+    ok = np.empty(q.shape[0], dtype=bool)
+    lo, hi = lower.cpu().double().numpy(), upper.cpu().double().numpy()
+    for i in range(q.shape[0]):
+        pin.framesForwardKinematics(model, data, qn[i])
+        M = data.oMf[fid]
+        e_p = np.linalg.norm(M.translation - Tt[i, :3, 3])
+        e_r = np.linalg.norm(pin.log3(Tt[i, :3, :3].T @ M.rotation))
+        ok[i] = e_p <= pos_tol and e_r <= rot_tol and (qn[i, :7] >= lo - 1e-12).all() \
+            and (qn[i, :7] <= hi + 1e-12).all()
+    return ok
+
+
+def run_ik(args, device, pk) -> dict:
+    from torchsgal.kinematics import inverse_kinematics, load_robot
+
+    pos_tol, rot_tol, iters = 1e-4, 1e-3, 50
+    chain = load_robot("panda", device=device)
+    g = torch.Generator().manual_seed(args.seed + 1)
+    q_true = chain.to(device="cpu").random_configuration((args.ik_n,), generator=g).to(device)
+    target = chain.pose(q_true)
+    pin = _pinocchio()
+    out = {"n_targets": args.ik_n, "seeds": args.ik_seeds, "position_tol": pos_tol,
+           "rotation_tol": rot_tol, "max_iterations": iters, "cases": {}}
+    log(f"\n[ik] torchsgal inverse_kinematics, {args.ik_n:,} targets x {args.ik_seeds} seeds ...")
+    t0 = time.perf_counter()
+    res = inverse_kinematics(chain, target, num_seeds=args.ik_seeds, generator=g,
+                             position_tol=pos_tol, rotation_tol=rot_tol, max_iterations=iters)
+    wall = time.perf_counter() - t0
+    case = {"wall_s": wall, "own_success_rate": res.success_rate}
+    if pin is not None:
+        case["pinocchio_verified_success_rate"] = float(_pin_check(
+            pin, res.q, target.as_matrix(), chain.lower, chain.upper, pos_tol, rot_tol).mean())
+    out["cases"]["torchsgal inverse_kinematics"] = case
+    if pk is not None:
+        pk_chain = _pk_panda(pk, torch.float64, device)
+        lim = torch.stack((chain.lower, chain.upper), -1)
+        ik = pk.PseudoInverseIK(pk_chain, pos_tolerance=pos_tol, rot_tolerance=rot_tol,
+                                num_retries=args.ik_seeds, joint_limits=lim, max_iterations=iters,
+                                early_stopping_any_converged=True,
+                                early_stopping_no_improvement=None)
+        log(f"[ik] pytorch-kinematics PseudoInverseIK ...")
+        torch.manual_seed(args.seed)
+        t0 = time.perf_counter()
+        sol = ik.solve(pk.Transform3d(matrix=target.as_matrix(), dtype=torch.float64, device=device))
+        wall = time.perf_counter() - t0
+        case = {"wall_s": wall, "own_success_rate": sol.converged_any.double().mean().item()}
+        if pin is not None:  # the best verified retry of each target
+            import numpy as np
+
+            qs = sol.solutions  # (B, S, n)
+            oks = np.stack([_pin_check(pin, qs[:, k], target.as_matrix(), chain.lower,
+                                       chain.upper, pos_tol, rot_tol)
+                            for k in range(qs.shape[1])], axis=1)
+            case["pinocchio_verified_success_rate"] = float(oks.any(axis=1).mean())
+        out["cases"]["pk PseudoInverseIK"] = case
+    return out
+
+
+def ik_table_md(res: dict) -> list[str]:
+    out = [f"## Inverse kinematics: Panda, {res['n_targets']:,} reachable targets, "
+           f"{res['seeds']} seeds each, tolerances {res['position_tol']} m / "
+           f"{res['rotation_tol']} rad, {res['max_iterations']} iterations", "",
+           "| solver | wall s | own success count | success verified by Pinocchio FK + limits |",
+           "|---|---:|---:|---:|"]
+    for k, v in res["cases"].items():
+        ver = v.get("pinocchio_verified_success_rate")
+        out.append(f"| {k} | {v['wall_s']:.2f} | {100 * v['own_success_rate']:.1f}% | "
+                   f"{'n/a' if ver is None else f'{100 * ver:.1f}%'} |")
+    return out + [""]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="GDH chain (iiwa7) vs pytorch-kinematics and autograd")
     ap.add_argument("--n", type=int, default=10_000, help="batch of configurations")
     ap.add_argument("--dtypes", default="float64,float32")
-    ap.add_argument("--target-a", type=float, default=12.0,
+    ap.add_argument("--target-a", type=float, default=8.0,
                     help="seconds of interleaved sampling for (a), per dtype")
-    ap.add_argument("--target-b", type=float, default=15.0,
+    ap.add_argument("--target-b", type=float, default=8.0,
                     help="seconds of interleaved sampling for (b), per dtype")
     ap.add_argument("--min-rounds", type=int, default=10)
     ap.add_argument("--max-rounds", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sections", default="iiwa,panda,ik",
+                    help="comma-separated: iiwa (DH), panda (URDF), ik")
+    ap.add_argument("--ik-n", type=int, default=10_000, help="IK targets")
+    ap.add_argument("--ik-seeds", type=int, default=4, help="IK seeds per target")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch.set_num_threads(N) (default: torch's default)")
     ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
@@ -300,8 +552,12 @@ def main(argv=None) -> int:
     where = f"{env['device_name']} ({device}), host {cpu_model()}" if cuda else env["cpu_model"]
     log(f"torch {env['torch']} | pk {env['pytorch_kinematics']} | {where} | "
         f"threads {env['torch_num_threads']} | n={args.n:,}")
+    sections = [x.strip() for x in args.sections.split(",")]
     results = [run_dtype(getattr(torch, d.strip()), args, device, pk is not None)
-               for d in args.dtypes.split(",")]
+               for d in args.dtypes.split(",")] if "iiwa" in sections else []
+    panda_results = [run_panda(getattr(torch, d.strip()), args, device, pk)
+                     for d in args.dtypes.split(",")] if "panda" in sections else []
+    ik_result = run_ik(args, device, pk) if "ik" in sections else None
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
     env["loadavg_at_end"] = loadavg()
 
@@ -328,15 +584,24 @@ def main(argv=None) -> int:
         )
     md += ["## target: GDH at least 2x faster than pytorch-kinematics for pose + velocity", ""]
     md += verdict + [""]
+    for res in panda_results:
+        md += panda_table_md(res)
+    if ik_result is not None:
+        md += ik_table_md(ik_result)
     text = "\n".join(md)
     print("\n" + "\n".join(line for res in results for line in table_md(res)))
     print("\n".join(verdict))
+    for res in panda_results:
+        print("\n".join(panda_table_md(res)))
+    if ik_result is not None:
+        print("\n".join(ik_table_md(ik_result)))
     log(f"wall {env['wall_s']} s")
     if not args.quick:
         stem = f"gdh_{device.type}"
         args.out_dir.mkdir(parents=True, exist_ok=True)
         (args.out_dir / f"{stem}.json").write_text(
-            json.dumps({"env": env, "results": results}, indent=2) + "\n")
+            json.dumps({"env": env, "results": results, "panda": panda_results, "ik": ik_result},
+                       indent=2) + "\n")
         (args.out_dir / f"{stem}.md").write_text(text)
         log(f"wrote {args.out_dir / (stem + '.json')} and {args.out_dir / (stem + '.md')}")
     return 0

@@ -8,7 +8,9 @@ residual of a problem is the position error and the rotation error in the link's
 (either part alone for position-only or orientation-only targets), with the analytic Jacobian
 (J_lin, w J_r^-1(log(R*^T R)) R^T J_ang) from the chain's geometric Jacobian.  Joint limits
 are kept by a bounded parameterisation: a joint with both limits is q = c + h sin(u), c and h
-the middle and half-range of its limits, so every iterate is within them.
+the middle and half-range of its limits, so every iterate is within them.  A first stage adds
+the residual ``centering`` (q - c) / h, which keeps the iterates away from the limits (where a
+bounded joint's local minima lie); the second solves the pose alone from its result.
 
 Success is decided by the pose error against the user's tolerances, never by the solver's
 status: a redundant arm (7 joints for a 6-dof pose) has a rank-deficient information matrix
@@ -28,7 +30,8 @@ from ..functional import checks
 from ..groups import SE3, SO3
 from .chain import KinematicChain
 
-_COST_TOL, _STOP = 1e-10, 0.0
+_COST_TOL = 1e-10  # relative cost decrease below which a problem has converged
+_CENTER_ITERATIONS = 20
 
 
 @dataclass
@@ -118,6 +121,7 @@ def inverse_kinematics(
     position_tol: float = 1e-4,
     rotation_tol: float = 1e-3,
     respect_limits: bool = True,
+    centering: float = 0.5,
     max_iterations: int = 50,
     damping: float = 1e-3,
     generator: torch.Generator | None = None,
@@ -134,6 +138,10 @@ def inverse_kinematics(
         orientation_weight: metres per radian in the residual (module doc).
         position_tol (m), rotation_tol (rad): the errors below which a target is solved.
         respect_limits: keep joints with limits inside them (bounded parameterisation).
+        centering: weight of a first stage (20 iterations) whose residual also pulls the
+            limited joints towards the middle of their range, (q - mid) / half: it keeps the
+            iterates away from the limits, where a bounded joint's local minima are; the
+            second stage solves the pose alone from there.  0 skips it.
         max_iterations, damping: of the Levenberg-Marquardt solver.
         generator: for the random seeds.
     Returns an :class:`IKResult`.  Not differentiable.
@@ -146,6 +154,7 @@ def inverse_kinematics(
     if not (position or orientation):
         raise ValueError("position and orientation are both False: nothing to reach")
     w = checks.finite_number(orientation_weight, "orientation_weight", "> 0")
+    centering = checks.finite_number(centering, "centering", ">= 0")
     pos_tol = checks.finite_number(position_tol, "position_tol", "> 0")
     rot_tol = checks.finite_number(rotation_tol, "rotation_tol", "> 0")
     num_seeds = checks.integer(num_seeds, "num_seeds", 1)
@@ -164,8 +173,9 @@ def inverse_kinematics(
     half = torch.where(limited, (hi - lo) / 2, 1.0)
     free = torch.zeros_like(limited)
 
-    def solve(q_init, bounded, iterations):
-        """Levenberg-Marquardt from q_init (B S, n), joints in ``bounded`` as mid + half sin(u)."""
+    def solve(q_init, bounded, iterations, centering=0.0):
+        """Levenberg-Marquardt from q_init (B S, n), joints in ``bounded`` as mid + half sin(u);
+        ``centering`` > 0 adds the residual centering (q - mid) / half of the limited joints."""
         def to_q(u):
             return torch.where(bounded, mid + half * torch.sin(u), u)
 
@@ -187,6 +197,10 @@ def inverse_kinematics(
                 Jb = R.transpose(-1, -2) @ J[..., 3:, :]  # body angular Jacobian
                 res.append(w * phi)
                 jac.append(w * (SO3.jr_inv(phi) @ Jb))
+            if centering > 0:
+                k = centering * limited.to(q.dtype)
+                res.append(k * (q - mid) / half)
+                jac.append(torch.diag_embed((k / half).expand_as(q)))
             return torch.cat(res, dim=-1), torch.cat(jac, dim=-2) * dq_du[..., None, :]
 
         cache = {}
@@ -203,7 +217,10 @@ def inverse_kinematics(
                            damping=damping, step_tol=1e-10, cost_tol=_COST_TOL)
         return to_q(sol.x), sol.report
 
-    q_sol, report = solve(q_start, limited if respect_limits else free, max_iterations)
+    bounded = limited if respect_limits else free
+    if centering > 0:
+        q_start, _ = solve(q_start, bounded, _CENTER_ITERATIONS, centering)
+    q_sol, report = solve(q_start, bounded, max_iterations)
     with torch.no_grad():
         q = q_sol
         pose = chain.pose(q, link=link)
