@@ -57,7 +57,7 @@ def calibrated_speed(r2=0.84, sigma=0.1, n=25) -> float:
     the rotation noise adds about 1/2 n_phi x (u t e_x), variance u^2 t^2 sigma^2 / 4 in each
     cross-track direction.  With it the expected SSE at that cell is 2.279 (formula 2.070)
     and R^2 0.827; measured over 2000 data sets, mean SSE 2.277 and mean R^2 0.8259 +- 0.0005
-    (docs/regression.md).  u is kept as this formula defines it."""
+    (docs/guide/regression.md).  u is kept as this formula defines it."""
     sse = 9 * sigma ** 2 * (n - 2)
     sst = sse / (1 - r2)
     return math.sqrt((sst - 9 * sigma ** 2 * (n - 1)) * 12 * n / (n ** 2 - 1))

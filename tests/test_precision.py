@@ -97,7 +97,7 @@ def test_log_relative_error_against_mpmath(G):
 
 
 # ------------------------------------------------------------------------------ Sim(3)
-# Rotation angles x log-scales lambda (docs/sim3_jacobian.md): the small-scale branch (lambda
+# Rotation angles x log-scales lambda (docs/guide/sim3_jacobian.md): the small-scale branch (lambda
 # down to 0), both signs, |lambda| up to 5, and the joint small-angle & small-scale corner.
 SIM3_LAMBDAS = [0.0, 1e-12, -1e-12, 1e-8, -1e-6, 1e-5, 1e-4, 1e-3, -1e-3, 0.5, -1.0, 2.0, -3.0, 5.0, -5.0]
 

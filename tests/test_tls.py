@@ -162,7 +162,7 @@ def test_non_finite_observation_spoils_only_its_trial():
 @pytest.mark.parametrize("solver", ["sgal3", "baseline"])
 @pytest.mark.parametrize("variant,samples", [("iterated", 11), ("paper", 11), ("paper", 101)])
 def test_data_that_require_gradients_solve_as_detached_data(solver, variant, samples):
-    """docs/estimation.md: results come back detached whether or not the data or the
+    """docs/guide/estimation.md: results come back detached whether or not the data or the
     covariances require gradients.  The structured solver's out= buffers raised 'functions
     with out=... arguments don't support automatic differentiation' (iterated, and the paper
     variant from 2,048 conditions: 21 trials of 101 samples)."""

@@ -1,7 +1,7 @@
 """The Monte Carlo study of kelly-giamou Section 5(c), Table 1.
 
 Simulation (the paper leaves the true transforms unspecified; this is our choice, see
-docs/estimation.md):
+docs/guide/estimation.md):
 - F_ga0: uniform rotation, position N(0, separation^2 I), clock N(0, clock_offset^2), and the
   velocity -speed/2 along a random direction w (expressed in g);
 - F_a0b0: uniform rotation, velocity speed * w' (w' = C_ga0^T w: the frames move apart at the
@@ -207,7 +207,7 @@ def errors_sgal3(sol, trials: TrialSet) -> torch.Tensor:
 def baseline_truth(F_ab: SGal3, F_ga0: SGal3):
     """The (X', tau0) of SE_2(3) x R that reproduces the true observations: composing in the
     product group drops the term v_ga tau of SGal(3)'s product F_ga F_ab, so
-    X' = (C, v, r + C_ga^T v_ga tau), tau0 = tau (see docs/estimation.md)."""
+    X' = (C, v, r + C_ga^T v_ga tau), tau0 = tau (see docs/guide/estimation.md)."""
     C_ga, v_ga = F_ga0.rotation(), F_ga0.velocity()
     tau = F_ab.time()
     shift = (C_ga.transpose(-1, -2) @ v_ga[..., None])[..., 0] * tau[..., None]
@@ -287,7 +287,7 @@ def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> 
             "expected_mmd": metrics.expected_mmd(11),
             "simulation_time_s": sim_time, "results": results, "paper": PAPER_TABLE1,
             "paper_anees_band_95": list(PAPER_ANEES_BAND),
-            "torch": torch.__version__, "threads": torch.get_num_threads()}
+            "torch": torch.version.__version__, "threads": torch.get_num_threads()}
 
 
 def _progress(total: int, enabled: bool):

@@ -15,7 +15,7 @@ Our condition function, one per n (the paper's (5.12) up to the side its exp(eps
 
     c_n(x, eps_a, eps_b) = log(M_n exp(eps_a) A_n exp(-eps_b)),   M_n = F~_gb_n^-1 F~_ga_n.
 
-Its Jacobians (derived in docs/estimation.md, checked against autograd in the tests), with
+Its Jacobians (derived in docs/guide/estimation.md, checked against autograd in the tests), with
 E = exp(c), right perturbations F <- F exp(d), dtau <- dtau + d:
 
     dc/deps_a = J_r(c)^-1 Ad(exp(eps_b)) Ad(A_n^-1) J_r(eps_a)
@@ -25,7 +25,7 @@ E = exp(c), right perturbations F <- F exp(d), dtau <- dtau + d:
 
 At eps = 0 these are (5.19)-(5.22) with the paper's sign of eps.
 
-The SE_2(3) x R baseline (``baseline_condition``) is defined in docs/estimation.md: the direct
+The SE_2(3) x R baseline (``baseline_condition``) is defined in docs/guide/estimation.md: the direct
 product of SE_2(3) and the clock, so that a clock error never moves a position.
 """
 from __future__ import annotations

@@ -20,10 +20,10 @@ spin-wait after torch's last parallel operation), else POSIX threads
 (``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
 
 ``kernels("imu")`` preintegrates IMU windows (``torchsgal.imu.preintegrate``'s CPU fast path,
-docs/imu.md): the increment and the node sums of its covariance and bias Jacobian, one window
+docs/guide/imu.md): the increment and the node sums of its covariance and bias Jacobian, one window
 per loop, in double precision.  ``kernels("tls")`` linearises the SGal(3) total-least-squares
 conditions and updates their residuals (``torchsgal.estimation.tls._structured``, float64,
-docs/estimation.md), four conditions at a time, keeping its per-condition state packed.
+docs/guide/estimation.md), four conditions at a time, keeping its per-condition state packed.
 
 The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
 (``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment turns the kernels off in

@@ -166,7 +166,7 @@ log_sin_taylor = _constant(LOG_SIN_TAYLOR)
 
 
 # ----------------------------------------------------------------------------- Sim(3)
-# The Sim(3) scalar families (Barfoot, "Integral Forms", Sec. 4.4, (90); docs/sim3_jacobian.md).
+# The Sim(3) scalar families (Barfoot, "Integral Forms", Sec. 4.4, (90); docs/guide/sim3_jacobian.md).
 # Moments of the scale weight w(a) = exp(-(1 - a) lambda) on [0, 1]:
 #     q_j(x) = phi_(j+1)(x) = sum_n x^n / (n + j + 1)! = int_0^1 a^j/j! e^((1-a) x) da,  x = -lambda,
 #     q_(j-1) = 1/j! + x q_j  (downward, stable for |x| < j),
@@ -245,7 +245,7 @@ def sim3_coefficients(theta2: torch.Tensor, lam: torch.Tensor, derivatives: bool
     """The scalar coefficients of the Sim(3) translation block and its derivatives.
 
     M(phi, lambda) = int_0^1 e^(-(1-a) lambda) C(a phi) da = m0 I + m1 phi^ + m2 phi^ phi^,
-    e_k = (dm_k/dtheta)/theta, p_k = dm_k/dlambda (docs/sim3_jacobian.md).  Inputs broadcast.
+    e_k = (dm_k/dtheta)/theta, p_k = dm_k/dlambda (docs/guide/sim3_jacobian.md).  Inputs broadcast.
     Returns a dict with keys m0, m1, m2, m_re = m0 - theta^2 m2 (computed without that
     cancellation) and, with ``derivatives``, e1, e2, p0, p1, p2.  With ``normalise`` every one
     of them is e^shift times its value, and the dict has the key shift: lambda where

@@ -16,7 +16,7 @@ direction [d, 0] is rotated only: d -> C d.
     J_l = int_0^1 Ad(exp(a xi)) da = [[s M, s (d(M rho)/dphi + r^ Gamma_1), s dM/dlambda rho],
                                       [0, Gamma_1, 0], [0, 0, 1]]
 
-(docs/sim3_jacobian.md derives J_l from exp(J_l d) exp(xi) = exp(xi + d); the scalar
+(docs/guide/sim3_jacobian.md derives J_l from exp(J_l d) exp(xi) = exp(xi + d); the scalar
 coefficients m_k, their theta- and lambda-derivatives come from ``numerics.sim3_coefficients``).
 The Jacobians take them normalised, so that s M stays finite where s underflows and M overflows
 (lambda -> -inf); the range of lambda each function covers is in ``torchsgal.Sim3``'s docstring.
@@ -161,7 +161,7 @@ def _scale(lam, m, power: float = 1.0):
 def _jl_parts(xi: torch.Tensor):
     """(m, lambda, phi, Gamma_1, coupling, lam_col): J_l = [[s M, s coupling, s lam_col],
     [0, Gamma_1, 0], [0, 0, 1]] with coupling = d(M rho)/dphi + r^ Gamma_1, r = M rho, and
-    lam_col = dM/dlambda rho (docs/sim3_jacobian.md).  m, coupling and lam_col are normalised,
+    lam_col = dM/dlambda rho (docs/guide/sim3_jacobian.md).  m, coupling and lam_col are normalised,
     so s is ``_scale(lambda, m)`` (the products are the same)."""
     rho, phi, lam = _split(xi)
     c = B.coefficients(phi, 3)
