@@ -407,10 +407,11 @@ def test_quaternion_translation_against_scipy_gtsam_and_pypose():
         ref = o.rotation().toQuaternion().coeffs()  # Eigen's storage: x, y, z, w
         ref = ref if ref[3] >= 0 else -ref
         _close(q_xyzw[k], ref, 1e-15)
-    # 7-vectors: pypose's SE3 storage is [t, x, y, z, w]
+    # 7-vectors: pypose's SE3 storage [t, x, y, z, w], by pypose's own mat2SE3 (q up to sign)
     pose = tq.as_pose7(g, order="xyzw")
-    _close(tp.to_pypose(g).tensor() * torch.where(tp.to_pypose(g).tensor()[..., 6:] < 0, -1.0, 1.0).double()
-           .expand(-1, 7).where(torch.arange(7) >= 3, torch.ones(7, dtype=F64)), pose, 1e-15)
+    ref = pp.mat2SE3(g.as_matrix(), check=False).tensor().clone()
+    ref[:, 3:] *= torch.where(ref[:, 6:] < 0, -1.0, 1.0).to(F64)
+    _close(pose, ref, 1e-15)
     for order in ("xyzw", "wxyz"):
         v = tq.as_pose7(g, order=order)
         _close(tq.from_pose7(v, order=order).as_matrix(), g.as_matrix(), 1e-15)
