@@ -35,12 +35,20 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 
+from _timing import cpu_model  # noqa: E402
+from test_factor_graph import (  # noqa: E402
+    _graph,
+    _gtsam_graph,
+    _gtsam_values,
+    _kabsch,
+    pose_graphs,
+    rigid_fit_graph,
+    rigid_fit_problem,
+)
+
 import torchsgal as ts  # noqa: E402
 from torchsgal.estimation import graph as fg  # noqa: E402
 from torchsgal.estimation.graph import factors as F  # noqa: E402
-from _timing import cpu_model  # noqa: E402
-from test_factor_graph import (_gtsam_graph, _gtsam_values, _graph, _kabsch, pose_graphs,  # noqa: E402
-                               rigid_fit_graph, rigid_fit_problem)
 
 
 def median_time(fn, repeats: int) -> tuple[float, object]:

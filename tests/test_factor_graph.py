@@ -4,14 +4,13 @@ Marquardt and Gauss-Newton against GTSAM on a batch of small SE(3) pose graphs, 
 import numpy as np
 import pytest
 import torch
+from peers import gtsam_map
 
 import torchsgal as ts
 from torchsgal.estimation import SolverStatus
 from torchsgal.estimation import graph as fg
 from torchsgal.estimation.graph import factors as F
 from torchsgal.estimation.graph.linearize import Problem, dense, linearize
-
-from peers import gtsam_map
 
 f64 = torch.float64
 
@@ -50,7 +49,7 @@ def _rplus_jacfwd(fn, elements):
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
 def test_between_and_prior_jacobians_match_forward_mode_and_finite_differences(G):
     gen = torch.Generator().manual_seed(1)
-    for trial in range(3):
+    for _ in range(3):
         Ti, Tj, Z = (_elements(G, (), gen) for _ in range(3))
         r, (Ji, Jj) = F._between_jacobians(Ti, Tj, Z)
         fwd = _rplus_jacfwd(F._between_residual, [Ti, Tj, Z])

@@ -14,7 +14,7 @@ The whitened residual is L r and the cost 1/2 rho(|L r|^2) (``robust``).
 """
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 

@@ -157,7 +157,7 @@ class _State:
     step_norm: torch.Tensor
     status: torch.Tensor
 
-    def take(self, keep: torch.Tensor) -> "_State":
+    def take(self, keep: torch.Tensor) -> _State:
         lin = Linearization(*[t.index_select(0, keep) for t in
                               (self.lin.values, self.lin.g, self.lin.cost, self.lin.model_cost)])
         return _State(self.rows.index_select(0, keep), [v.index_select(0, keep) for v in self.x],

@@ -41,7 +41,7 @@ class DenseSystem:
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._H: torch.Tensor | None = None
 
-    def select(self, problem: Problem) -> "DenseSystem":
+    def select(self, problem: Problem) -> DenseSystem:
         return DenseSystem(problem)
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
@@ -108,7 +108,7 @@ class SparseSystem:
         self._values: torch.Tensor | None = None
         self._singular: torch.Tensor | None = None
 
-    def select(self, problem: Problem) -> "SparseSystem":
+    def select(self, problem: Problem) -> SparseSystem:
         return self
 
     def _diagonal(self, v: torch.Tensor) -> torch.Tensor:

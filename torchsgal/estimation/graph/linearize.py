@@ -152,7 +152,7 @@ class Problem:
             L = C.mT  # W = C C^T = L^T L
         return L, L.dim() == 4
 
-    def select(self, rows: torch.Tensor) -> "Problem":
+    def select(self, rows: torch.Tensor) -> Problem:
         """The same problems restricted to the batch rows ``rows`` (int64)."""
         new = object.__new__(Problem)
         new.__dict__.update(self.__dict__)
