@@ -158,6 +158,7 @@ def test_gtsam_navstate_chart():
     """NavState.retract is the component-wise chart, not X exp(xi); navstate_local_to_tangent
     is the exact chart change, and its differential at 0 is the permutation (the charts agree
     to first order), while at second order they differ."""
+    assert tg.navstate_retract_is_expmap() is False  # the wheel's default build
     g = ts.SE23.exp(_xi(ts.SE23, seed=7))
     v = 0.5 * torch.tensor(np.random.default_rng(8).standard_normal((len(ANGLES), 9)), dtype=F64)
     peer = tg.to_gtsam(g)

@@ -29,7 +29,9 @@ rho, v + R J_l(phi) nu)`` (J_l the left Jacobian of SO(3)).  The two charts diff
 order (``p = J_l(phi) rho``) and agree to first order at the point: their differentials at zero
 are both the permutation, so Jacobians (derivatives at zero perturbation) and covariances of
 small perturbations (linearised at the point, as GTSAM's marginals are) map by the permutation.
-The exact chart change is ``navstate_local_to_tangent`` / ``tangent_to_navstate_local``.
+The exact chart change is ``navstate_local_to_tangent`` / ``tangent_to_navstate_local``;
+``navstate_retract_is_expmap()`` tells which chart the installed GTSAM uses.  (Rot3 and Pose3
+retract by Expmap in GTSAM's default build, GTSAM_ROT3_EXPMAP and GTSAM_POSE3_EXPMAP.)
 """
 from __future__ import annotations
 
@@ -159,6 +161,17 @@ def tangent_to_navstate_local(xi: torch.Tensor) -> torch.Tensor:
     p = (J @ rho.unsqueeze(-1)).squeeze(-1)
     q = (J @ nu.unsqueeze(-1)).squeeze(-1)
     return torch.cat((phi, p, q), dim=-1)
+
+
+def navstate_retract_is_expmap() -> bool:
+    """Whether the installed GTSAM's ``NavState.retract`` is ``X * Expmap(v)`` (built with
+    GTSAM_NAVSTATE_EXPMAP: then NavState maps like the other types, by the permutation alone) or
+    the component-wise chart of ``navstate_local_to_tangent`` (the default); read from one
+    retract at the identity, where the two differ in the position."""
+    gtsam = _gtsam()
+    v = np.array([0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # phi about z, p along x
+    moved = gtsam.NavState().retract(v)
+    return bool(abs(float(np.asarray(moved.position())[0]) - 1.0) > 1e-3)
 
 
 # ------------------------------------------------------------------------------ elements
