@@ -426,3 +426,38 @@ def test_point_observations_recover_poses_and_points():
     assert (result.report.status == SolverStatus.CONVERGED).all(), result.report.status
     torch.testing.assert_close(result.values["T"].as_matrix(), poses.inverse().as_matrix(), rtol=0, atol=1e-8)
     torch.testing.assert_close(result.values["p"], points, rtol=0, atol=1e-8)
+
+
+def test_per_problem_per_factor_noise_and_cost_by_hand():
+    """Square-root information (B, E, m, m): the cost is 1/2 sum |L r|^2, summed here factor by
+    factor with the group operations."""
+    _, Z, Z0, x0 = pose_graphs(B=3, seed=10)
+    gen = torch.Generator().manual_seed(10)
+    L = torch.randn(3, 10, 6, 6, generator=gen, dtype=f64) + 4 * torch.eye(6, dtype=f64)
+    W0 = torch.diag(SIGMA ** -2)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0)
+    graph.add(fg.Prior("x", 0, Z0, information=W0))
+    graph.add(fg.Between("x", EDGES_I, EDGES_J, Z, sqrt_information=L))
+    result = fg.levenberg_marquardt(graph, max_iterations=0)
+    assert (result.report.status == SolverStatus.MAX_ITERATIONS).all()
+    for b in range(3):
+        expected = 0.0
+        r0 = Z0[b, 0].inverse().compose(x0[b, 0]).log()
+        expected += 0.5 * float(r0 @ W0 @ r0)
+        for e in range(10):
+            r = (Z[b, e].inverse() @ x0[b, int(EDGES_I[e])].inverse() @ x0[b, int(EDGES_J[e])]).log()
+            expected += 0.5 * float(((L[b, e] @ r) ** 2).sum())
+        assert abs(float(result.report.cost[b]) - expected) <= 1e-12 * expected
+    solved = fg.levenberg_marquardt(graph)
+    assert (solved.report.status == SolverStatus.CONVERGED).all()
+    assert (solved.report.cost < result.report.cost).all()
+
+
+def test_residual_shape_is_checked():
+    _, Z, Z0, x0 = pose_graphs(B=2)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0)
+    graph.add(fg.Factor(lambda T, Zk: Zk.rminus(T)[..., :3], [("x", 0)], [Z0], dim=6))
+    with pytest.raises(ValueError, match=r"expected \(\.\.\., 6\)"):
+        fg.levenberg_marquardt(graph)

@@ -53,7 +53,9 @@ class Factor:
     variables      ``[(name, index), ...]``: for each argument, the variable's name and the
                    (E,) int64 indices of the elements each factor reads (an int for E = 1).
     data           tensors or group elements with leading batch (E,) (shared by the problems)
-                   or (B, E) (one per problem), passed after the variables.
+                   or (B, E) (one per problem), passed after the variables.  In a batched
+                   graph a tensor whose two leading sizes are (B, E) is read as per problem
+                   (group elements are never ambiguous: their batch has one or two axes).
     dim            the residual's size.
     information / sqrt_information: the noise (see the module docstring); neither: identity.
     loss           a ``RobustLoss`` or None (plain least squares).

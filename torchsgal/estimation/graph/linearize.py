@@ -264,6 +264,21 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
     return r_all, dr.movedim(0, -1)
 
 
+def _check_residual(block: Block, r, B: int) -> None:
+    """The residual must be a floating tensor (..., dim) that broadcasts to (B, E, dim)."""
+    f = block.factor
+    if not isinstance(r, torch.Tensor) or not r.is_floating_point():
+        raise TypeError(f"{f!r}: the residual must return a floating tensor, got "
+                        f"{type(r).__name__ if not isinstance(r, torch.Tensor) else r.dtype}")
+    if f.dim is not None and (r.dim() == 0 or r.shape[-1] != f.dim):
+        raise ValueError(f"{f!r}: the residual has shape {tuple(r.shape)}, expected (..., {f.dim})")
+    try:
+        torch.broadcast_shapes(r.shape, (B, block.size, r.shape[-1]))
+    except RuntimeError:
+        raise ValueError(f"{f!r}: the residual's shape {tuple(r.shape)} does not broadcast to "
+                         f"(B, E, dim) = ({B}, {block.size}, {r.shape[-1]})") from None
+
+
 def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = True
               ) -> Linearization:
     """Costs (B,) and, with ``want_jacobian``, the normal equations at x (dense H)."""
@@ -276,6 +291,7 @@ def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = Tru
                 for (k, idx), u in zip(block.slots, block.uniform)]
         r, J = _residual_and_jacobian(problem, block, args, want_jacobian)
         E = block.size
+        _check_residual(block, r, B)
         r = r.expand((B, E) + r.shape[-1:])
         if block.sqrt_info is not None:
             L = block.sqrt_info
