@@ -113,10 +113,12 @@ def _between_residual(Ti, Tj, Z):
 
 
 def _between_jacobians(Ti, Tj, Z):
-    """J_i = -J_r^-1(r) Ad(Tj^-1 Ti), J_j = J_r^-1(r) (right perturbations of Ti and Tj)."""
-    r = _between_residual(Ti, Tj, Z)
+    """J_i = -J_r^-1(r) Ad(Tj^-1 Ti), J_j = J_r^-1(r) (right perturbations of Ti and Tj), with
+    A = Ti^-1 Tj computed once: r = log(Z^-1 A), Ad(Tj^-1 Ti) = Ad(A^-1)."""
+    A = Ti.inverse().compose(Tj)
+    r = Z.inverse().compose(A).log()
     Jj = type(Ti).jr_inv(r)
-    Ji = -Jj @ Tj.inverse().compose(Ti).adjoint()
+    Ji = -Jj @ A.inverse().adjoint()
     return r, [Ji, Jj]
 
 
