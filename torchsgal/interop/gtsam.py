@@ -65,6 +65,8 @@ TYPES: dict[str, tuple[type[LieGroup] | None, tuple[int, ...]]] = {
     "Point2": (None, (0, 1)),
     "Point3": (None, (0, 1, 2)),
 }
+# a GTSAM type: its name ("Pose3") or the class (gtsam.Pose3)
+GtsamType = str | type
 # torchsgal group -> GTSAM type
 GTSAM_TYPE: dict[type[LieGroup], str] = {g: name for name, (g, _) in TYPES.items() if g is not None}
 
@@ -94,29 +96,29 @@ def _tensor(x, name: str) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------ tangents
-def tangent_map(gtsam_type, dtype: torch.dtype | None = None,
+def tangent_map(gtsam_type: GtsamType, dtype: torch.dtype | None = None,
                 device: torch.device | str | None = None) -> torch.Tensor:
     """The permutation matrix M (d, d) with ``xi_gtsam = M xi_ours`` for the GTSAM type
     (a name such as "Pose3" or the class); ``M^-1 = M^T``."""
     return permutation_matrix(_perm(gtsam_type), dtype, device)
 
 
-def tangent_to_gtsam(xi: torch.Tensor, gtsam_type) -> torch.Tensor:
+def tangent_to_gtsam(xi: torch.Tensor, gtsam_type: GtsamType) -> torch.Tensor:
     """Our tangent vectors (..., d) in GTSAM's order for ``gtsam_type``."""
     return permute_vector(_tensor(xi, "xi"), _perm(gtsam_type), "xi")
 
 
-def tangent_from_gtsam(xi, gtsam_type) -> torch.Tensor:
+def tangent_from_gtsam(xi: torch.Tensor | np.ndarray, gtsam_type: GtsamType) -> torch.Tensor:
     """GTSAM's tangent vectors (..., d) (a tensor or a numpy array) in our order."""
     return permute_vector(_tensor(xi, "xi"), inverse_permutation(_perm(gtsam_type)), "xi")
 
 
-def covariance_to_gtsam(P: torch.Tensor, gtsam_type) -> torch.Tensor:
+def covariance_to_gtsam(P: torch.Tensor, gtsam_type: GtsamType) -> torch.Tensor:
     """Our covariances (..., d, d) on the right perturbation as GTSAM's: ``M P M^T``."""
     return permute_square(_tensor(P, "P"), _perm(gtsam_type), "P")
 
 
-def covariance_from_gtsam(P, gtsam_type) -> torch.Tensor:
+def covariance_from_gtsam(P: torch.Tensor | np.ndarray, gtsam_type: GtsamType) -> torch.Tensor:
     """GTSAM's covariances (..., d, d) (e.g. ``Marginals.marginalCovariance``, a tensor or a
     numpy array) in our order: ``M^T P M``."""
     return permute_square(_tensor(P, "P"), inverse_permutation(_perm(gtsam_type)), "P")
@@ -126,13 +128,14 @@ def _side(gtsam_type, name: str):
     return None if gtsam_type is None else _perm(gtsam_type, name)
 
 
-def jacobian_to_gtsam(J: torch.Tensor, *, output, input) -> torch.Tensor:
+def jacobian_to_gtsam(J: torch.Tensor, *, output: GtsamType | None, input: GtsamType | None) -> torch.Tensor:
     """Our Jacobian (..., m, n) of a map from ``input`` to ``output`` (GTSAM type names, or None
     for a plain vector side) in GTSAM's orders: ``M_out J M_in^-1``."""
     return permute_jacobian(_tensor(J, "J"), _side(output, "output"), _side(input, "input"), "J")
 
 
-def jacobian_from_gtsam(J, *, output, input) -> torch.Tensor:
+def jacobian_from_gtsam(J: torch.Tensor | np.ndarray, *, output: GtsamType | None,
+                        input: GtsamType | None) -> torch.Tensor:
     """GTSAM's Jacobian (..., m, n) (the ``H`` arguments, a tensor or a numpy array) of a map
     from ``input`` to ``output`` (type names, or None for a plain vector side) in our orders:
     ``M_out^-1 J M_in``."""
@@ -141,7 +144,7 @@ def jacobian_from_gtsam(J, *, output, input) -> torch.Tensor:
     return permute_jacobian(_tensor(J, "J"), out, inp, "J")
 
 
-def navstate_local_to_tangent(v) -> torch.Tensor:
+def navstate_local_to_tangent(v: torch.Tensor | np.ndarray) -> torch.Tensor:
     """The chart change of NavState: for GTSAM's component-wise ``v = [phi, p, q]`` (..., 9),
     our ``xi = [J_l(phi)^-1 p, J_l(phi)^-1 q, phi]`` with ``X.retract(v) = X exp(xi)``."""
     v = checks.vector(_tensor(v, "v"), 9, "v")
