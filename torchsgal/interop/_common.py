@@ -87,6 +87,8 @@ def nested_shape(objects, is_leaf, name: str, what: str) -> tuple[list, tuple[in
                         f"got {type(objects).__name__}")
     if not objects:
         return [], (0,)
+    if all(is_leaf(o) for o in objects):  # one level: the common case, no recursion
+        return list(objects), (len(objects),)
     parts = [nested_shape(o, is_leaf, f"{name}[{i}]", what) for i, o in enumerate(objects)]
     inner = parts[0][1]
     for i, (_, s) in enumerate(parts):

@@ -238,7 +238,8 @@ def from_gtsam(objects, *, group: type[LieGroup] | None = None, dtype: torch.dty
                if grp is not None and hasattr(gtsam, name)}
     if group is not None and group not in GTSAM_TYPE:
         raise TypeError(f"group must be None or one of {[c.__name__ for c in GTSAM_TYPE]}, got {group!r}")
-    flat, shape = nested_shape(objects, lambda o: isinstance(o, tuple(classes.values())), "objects",
+    accepted = tuple(classes.values())
+    flat, shape = nested_shape(objects, lambda o: isinstance(o, accepted), "objects",
                                "a gtsam " + ", ".join(classes))
     if not flat:
         if group is None:
@@ -249,8 +250,9 @@ def from_gtsam(objects, *, group: type[LieGroup] | None = None, dtype: torch.dty
     if group is not None and GTSAM_TYPE[group] != kind:
         raise TypeError(f"objects are gtsam.{kind}, but group {group.__name__} needs "
                         f"gtsam.{GTSAM_TYPE[group]}")
+    wanted = classes[kind]
     for i, obj in enumerate(flat):
-        if not isinstance(obj, classes[kind]):
+        if type(obj) is not wanted and not isinstance(obj, wanted):
             raise TypeError(f"objects must all be gtsam.{kind} (as the first), but the element "
                             f"{i} (row-major) is {type(obj).__name__}")
     cls = next(grp for grp, name in GTSAM_TYPE.items() if name == kind)
