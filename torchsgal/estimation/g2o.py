@@ -61,7 +61,7 @@ class PoseGraph:
                   writes by default.
     """
 
-    group: type
+    group: type[SE3] | type[SE2]
     ids: torch.Tensor
     poses: SE3 | SE2 | None
     edges: torch.Tensor

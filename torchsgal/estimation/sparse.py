@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import importlib.util
 import warnings
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -40,6 +42,14 @@ PIVOT_RTOL = 1e-13  # a squared pivot at or below this times the largest one is 
 MARGINAL_CHUNK = 1024  # unit columns solved at once by marginal_blocks
 
 _MODULES = {"cholmod": "sksparse", "cholespy": "cholespy", "scipy": "scipy", "dense": "torch"}
+
+
+class _Backend(Protocol):
+    device: torch.device
+
+    def factor(self, values: torch.Tensor) -> None: ...
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor: ...
 
 
 class NotPositiveDefiniteError(torch.linalg.LinAlgError):
@@ -92,7 +102,7 @@ class SparseCholesky:
         self._merged = keys.numel()
         self._rows = (keys % self.size).numpy().astype(np.int64)
         self._cols = (keys // self.size).numpy().astype(np.int64)
-        self._impl = _IMPLEMENTATIONS[self.backend](self._rows, self._cols, self.size)
+        self._impl: _Backend = _IMPLEMENTATIONS[self.backend](self._rows, self._cols, self.size)
         self._dtype: torch.dtype | None = None
         self._device: torch.device | None = None
 
@@ -328,4 +338,5 @@ class _Dense:
         return torch.cholesky_solve(rhs.to(self.device), self._L)
 
 
-_IMPLEMENTATIONS = {"cholmod": _Cholmod, "cholespy": _Cholespy, "scipy": _Scipy, "dense": _Dense}
+_IMPLEMENTATIONS: dict[str, Callable[[np.ndarray, np.ndarray, int], _Backend]] = {
+    "cholmod": _Cholmod, "cholespy": _Cholespy, "scipy": _Scipy, "dense": _Dense}
