@@ -239,6 +239,8 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
         return f.residual(*elements, *block.data), None
     if f.jacobians is not None:
         r, Js = f.jacobians(*elements, *block.data)
+        if len(Js) == 1:
+            return r, Js[0]
         return r, torch.cat([J.expand(r.shape + J.shape[-1:]) for J in Js], dim=-1)
     # forward mode: tangent of slot k along basis direction j is X hat(e_j) (right perturbation)
     tangents, Dk, start = [], sum(block.dofs), 0
@@ -272,11 +274,10 @@ def _check_residual(block: Block, r, B: int) -> None:
                         f"{type(r).__name__ if not isinstance(r, torch.Tensor) else r.dtype}")
     if f.dim is not None and (r.dim() == 0 or r.shape[-1] != f.dim):
         raise ValueError(f"{f!r}: the residual has shape {tuple(r.shape)}, expected (..., {f.dim})")
-    try:
-        torch.broadcast_shapes(r.shape, (B, block.size, r.shape[-1]))
-    except RuntimeError:
+    lead = tuple(r.shape[:-1])
+    if len(lead) > 2 or any(n not in (1, m) for n, m in zip(lead[::-1], (block.size, B))):
         raise ValueError(f"{f!r}: the residual's shape {tuple(r.shape)} does not broadcast to "
-                         f"(B, E, dim) = ({B}, {block.size}, {r.shape[-1]})") from None
+                         f"(B, E, dim) = ({B}, {block.size}, {r.shape[-1]})")
 
 
 def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = True
