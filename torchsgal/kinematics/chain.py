@@ -33,6 +33,7 @@ import torch
 from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import SE3, SE23
+from ._core import Kernel, cross1 as _cross1, to_batch_first
 
 REVOLUTE, CONTINUOUS, PRISMATIC = "revolute", "continuous", "prismatic"
 JOINT_KINDS = (REVOLUTE, CONTINUOUS, PRISMATIC)
@@ -245,38 +246,26 @@ class KinematicChain:
         f64 = torch.float64
         origins = torch.stack([j.origin.to("cpu", f64) for j in self.joints])
         axes = torch.tensor([j.axis for j in self.joints], dtype=f64)
-        Ro, po = origins[:, :3, :3], origins[:, :3, 3]
-        K = _skew(axes)
-        rev = torch.tensor([j.kind != PRISMATIC for j in self.joints])
-        as_ = dict(dtype=dtype, device=device)
-        self._rev = rev.to(device)
-        self._revf = rev.to(**as_)
-        self._prisf = (~rev).to(**as_)
-        self._axes = axes.to(**as_)
-        self._Ro, self._po = Ro.to(**as_), po.to(**as_)
-        self._RoK, self._RoK2 = (Ro @ K).to(**as_), (Ro @ K @ K).to(**as_)
-        self._Roa = (Ro @ axes[:, :, None])[..., 0].to(**as_)
-        cols = torch.cat((Ro, Ro @ K, Ro @ K @ K, po[:, :, None], Ro @ axes[:, :, None]), dim=-1)
-        self._cols = [m.to(**as_).contiguous() for m in cols]  # (3, 11) per joint
-        self._is_rev = [j.kind != PRISMATIC for j in self.joints]
-        self._base_R, self._base_p = self._base64[:3, :3].to(**as_), self._base64[:3, 3].to(**as_)
-        self._lower = torch.tensor([j.lower for j in self.joints], **as_)
-        self._upper = torch.tensor([j.upper for j in self.joints], **as_)
+        self._kernel = Kernel(origins, axes, [j.kind != PRISMATIC for j in self.joints],
+                              self._base64, dtype, device)
+        self._lower = torch.tensor([j.lower for j in self.joints], dtype=dtype, device=device)
+        self._upper = torch.tensor([j.upper for j in self.joints], dtype=dtype, device=device)
         self._dtype, self._device = dtype, device
+        self._link_cache: dict = {}
 
-    def _link_constants(self, link_names: Sequence[str]):
-        """(joint indices (L,) long, offsets R (L, 3, 3), p (L, 3), uses the base) for links."""
-        idx, offs = [], []
-        for k in link_names:
-            j, off = self._links64[k]
-            if k == self.end_link:
-                off = off @ self._tool64
-            idx.append(j)
-            offs.append(off)
-        offs = torch.stack(offs).to(dtype=self._dtype, device=self._device)
-        uses_base = min(idx) < 0
-        index = torch.tensor([j + 1 for j in idx] if uses_base else idx, device=self._device)
-        return index, offs[:, :3, :3], offs[:, :3, 3], uses_base
+    def _link_constants(self, link_names: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor]:
+        """(stack indices (L,) of the links' last joints (0: the base), constants (L, 4, 3))."""
+        key = tuple(link_names)
+        if key not in self._link_cache:
+            idx, consts = [], []
+            for k in link_names:
+                j, off = self._links64[k]
+                if k == self.end_link:
+                    off = off @ self._tool64
+                idx.append(j + 1)
+                consts.append(self._kernel.link_constant(j, off))
+            self._link_cache[key] = (torch.tensor(idx, device=self._device), torch.stack(consts))
+        return self._link_cache[key]
 
     @property
     def dtype(self) -> torch.dtype:
@@ -351,7 +340,7 @@ class KinematicChain:
                              f"{self.n_joints} joints of {self.name!r} {list(self.joint_names)}, "
                              f"got {tuple(x.shape)}")
         try:
-            checks.same_device_dtype(**{f"the chain {self.name!r}": self._Ro, name: x})
+            checks.same_device_dtype(**{f"the chain {self.name!r}": self._lower, name: x})
         except (TypeError, ValueError) as err:
             raise type(err)(f"{err} (a chain's dtype and device are set when it is built; "
                             f"use chain.to(dtype=..., device=...))") from None
@@ -381,47 +370,6 @@ class KinematicChain:
         return names, keep
 
     # -------------------------------------------------------------- the core
-    def _joint_frames(self, q: torch.Tensor):
-        """World rotations R_i (..., n, 3, 3) and positions p_i (..., n, 3) of the joint frames
-        (after each joint's motion): the product (45) with a general fixed origin per link.
-
-        R_i = R_(i-1) O_i Rot(a_i, q_i) = A + sin(q) A K + (1 - cos(q)) A K^2 with A = R_(i-1) R_o
-        (Rodrigues), and one matrix product per joint: R_(i-1) [R_o, R_o K, R_o K^2, p_o, R_o a]."""
-        s, c = torch.sin(q), torch.cos(q)
-        Rs, ps = [], []
-        R, p = self._base_R, self._base_p
-        for i in range(self.n_joints):
-            M = R @ self._cols[i]  # (..., 3, 11)
-            if self._is_rev[i]:
-                R = M[..., 0:3] + s[..., i, None, None] * M[..., 3:6] \
-                    + (1 - c[..., i, None, None]) * M[..., 6:9]
-                p = p + M[..., 9]
-            else:
-                R = M[..., 0:3]
-                p = p + M[..., 9] + q[..., i, None] * M[..., 10]
-            Rs.append(R)
-            ps.append(p)
-        batch = q.shape[:-1]
-        Rs = torch.stack([r.expand(*batch, 3, 3) for r in Rs], dim=-3)
-        ps = torch.stack([x.expand(*batch, 3) for x in ps], dim=-2)
-        return Rs, ps
-
-    def _screws(self, Rs: torch.Tensor, ps: torch.Tensor):
-        """Unit screws S_i = (S_lin, S_ang) (..., n, 3) each, base frame."""
-        z = _matvec(Rs, self._axes)
-        S_ang = z * self._revf[:, None]
-        S_lin = _cross(ps, S_ang) + z * self._prisf[:, None]
-        return S_lin, S_ang
-
-    @staticmethod
-    def _gather(x: torch.Tensor, index: torch.Tensor, uses_base: bool, dim: int) -> torch.Tensor:
-        """x along the joint axis ``dim`` at the links' joint indices (a zero/identity row
-        first when a link sits on the base)."""
-        if uses_base:
-            pad = torch.zeros_like(x.narrow(dim, 0, 1))
-            x = torch.cat((pad, x), dim=dim)
-        return x.index_select(dim, index)
-
     def forward(
         self,
         q: torch.Tensor,
@@ -441,29 +389,40 @@ class KinematicChain:
         """
         names, keep = self._link_names(links, all_links)
         q, qdot, qddot = self._inputs(q, qdot, qddot)
-        index, FR, Fp, uses_base = self._link_constants(names)
-        Rs, ps = self._joint_frames(q)
-        Rk = self._gather_frames(Rs, index, uses_base, self._base_R)
-        pk = self._gather_frames(ps, index, uses_base, self._base_p)
-        R, p = Rk @ FR, pk + _matvec(Rk, Fp)
-        state = ChainState(SE3.from_components(R, p))
+        batch, k = q.shape[:-1], self._kernel
+        index, G = self._link_constants(names)
+        Rs, ps = k.frames(self._flat(q))
+        R, p = k.links(Rs, ps, index, G)  # (L, 3, 3, B), (L, 3, B)
+        state = ChainState(SE3.from_components(to_batch_first(R, batch, 2),
+                                               to_batch_first(p, batch, 1)))
         if qdot is not None:
-            S_lin, S_ang = self._screws(Rs, ps)
-            qd = qdot[..., None]
+            S_lin, S_ang = k.screws(Rs, ps)
+            qd = self._flat(qdot)[:, None, :]
             nu, om = S_lin * qd, S_ang * qd
-            N, W = nu.cumsum(-2), om.cumsum(-2)  # V_k = sum_(i <= k) S_i qd_i  (50)
-            Nk, Wk = self._gather(N, index, uses_base), self._gather(W, index, uses_base)
-            v = Nk + _cross(Wk, p)
-            state.linear_velocity, state.angular_velocity = v, Wk
+            N, W = _cumsum0(nu), _cumsum0(om)  # V_k = sum_(i <= k) S_i qd_i  (50)
+            last = self._is_last(names)
+            Nk, Wk = _at(N, index, last), _at(W, index, last)
+            v = Nk + _cross1(Wk, p)
+            state.linear_velocity = to_batch_first(v, batch, 1)
+            state.angular_velocity = to_batch_first(Wk, batch, 1)
             if qddot is not None:
-                qdd = qddot[..., None]
+                qdd = self._flat(qddot)[:, None, :]
                 # dV_k = sum_(i <= k) S_i qdd_i + ad(V_i)(S_i qd_i)
-                dN = (S_lin * qdd + _cross(W, nu) + _cross(N, om)).cumsum(-2)
-                dW = (S_ang * qdd + _cross(W, om)).cumsum(-2)
-                dNk, dWk = self._gather(dN, index, uses_base), self._gather(dW, index, uses_base)
-                state.linear_acceleration = dNk + _cross(dWk, p) + _cross(Wk, v)
-                state.angular_acceleration = dWk
+                dN = _cumsum0(S_lin * qdd + _cross1(W, nu) + _cross1(N, om))
+                dW = _cumsum0(S_ang * qdd + _cross1(W, om))
+                dNk, dWk = _at(dN, index, last), _at(dW, index, last)
+                a = dNk + _cross1(dWk, p) + _cross1(Wk, v)
+                state.linear_acceleration = to_batch_first(a, batch, 1)
+                state.angular_acceleration = to_batch_first(dWk, batch, 1)
         return state if keep else _squeeze_link(state)
+
+    def _is_last(self, names: Sequence[str]) -> bool:
+        """One link, after the last joint (host-side, from the chain's tables)."""
+        return len(names) == 1 and self._links64[names[0]][0] == self.n_joints - 1
+
+    def _flat(self, x: torch.Tensor) -> torch.Tensor:
+        """(..., n) -> (n, B), batch last."""
+        return x.reshape(-1, self.n_joints).transpose(0, 1).contiguous()
 
     def pose(self, q: torch.Tensor, link: str | None = None) -> SE3:
         """The pose (SE3, batch (...)) of ``link`` (default the end link, with the tool)."""
@@ -480,20 +439,6 @@ class KinematicChain:
         shape = torch.broadcast_shapes(*(x.shape for x in (q, qdot, qddot) if x is not None))
         return tuple(None if x is None else x.expand(shape) for x in (q, qdot, qddot))
 
-    def _gather_frames(self, x: torch.Tensor, index, uses_base: bool, base: torch.Tensor):
-        """Joint frames (..., n, ...) at the links' joint indices, the base first if needed."""
-        dim = x.dim() - base.dim() - 1
-        if uses_base:
-            x = torch.cat((base.expand(*x.shape[:dim], 1, *base.shape), x), dim=dim)
-        return x.index_select(dim, index)
-
-    @staticmethod
-    def _gather(x: torch.Tensor, index: torch.Tensor, uses_base: bool) -> torch.Tensor:
-        """Cumulative sums (..., n, 3) at the links' joint indices (zero on the base)."""
-        if uses_base:
-            x = torch.cat((torch.zeros_like(x[..., :1, :]), x), dim=-2)
-        return x.index_select(-2, index)
-
     # -------------------------------------------------------------- Jacobians
     def _one_link(self, link: str | None) -> str:
         if link is None:
@@ -506,28 +451,31 @@ class KinematicChain:
     def _jacobian_parts(self, q: torch.Tensor, link: str, qdot: torch.Tensor | None):
         """Pose (R, p), the base-frame Jacobian at the link origin (..., 6, n) and, with qdot,
         its time derivative and the link's (dp/dt, w)."""
-        index, FR, Fp, uses_base = self._link_constants([link])
+        batch, k = q.shape[:-1], self._kernel
+        index, G = self._link_constants([link])
+        Rs, ps = k.frames(self._flat(q))
+        R, p = k.links(Rs, ps, index, G)
+        R, p = R[0], p[0]  # (3, 3, B), (3, B)
+        S_lin, S_ang = k.screws(Rs, ps)
         j = self._links64[link][0]  # the last joint before the link (-1: the base)
-        Rs, ps = self._joint_frames(q)
-        Rk = self._gather_frames(Rs, index, uses_base, self._base_R)[..., 0, :, :]
-        pk = self._gather_frames(ps, index, uses_base, self._base_p)[..., 0, :]
-        R, p = Rk @ FR[0], pk + _matvec(Rk, Fp[0])
-        S_lin, S_ang = self._screws(Rs, ps)
-        mask = (torch.arange(self.n_joints, device=self._device) <= j).to(self._dtype)[:, None]
-        S_lin, S_ang = S_lin * mask, S_ang * mask  # joints after the link do not move it
-        lin = S_lin + _cross(S_ang, p.unsqueeze(-2))  # z_i x (p - o_i) or z_i
-        J = torch.cat((lin, S_ang), dim=-1).transpose(-1, -2)
+        if j < self.n_joints - 1:  # joints after the link do not move it
+            mask = (torch.arange(self.n_joints, device=self._device) <= j).to(self._dtype)
+            S_lin, S_ang = S_lin * mask[:, None, None], S_ang * mask[:, None, None]
+        lin = S_lin + _cross1(S_ang, p[None])  # z_i x (p - o_i), or z_i
+        R_b, p_b = to_batch_first(R[None], batch, 2)[..., 0, :, :], to_batch_first(p[None], batch, 1)[..., 0, :]
+        J = _columns(torch.cat((lin, S_ang), dim=1), batch)
         if qdot is None:
-            return R, p, J, None, None, None
-        qd = qdot[..., None]
+            return R_b, p_b, J, None, None, None
+        qd = self._flat(qdot)[:, None, :]
         nu, om = S_lin * qd, S_ang * qd
-        N, W = nu.cumsum(-2), om.cumsum(-2)
-        v = N[..., -1, :] + _cross(W[..., -1, :], p)
-        dS_lin = _cross(W, S_lin) + _cross(N, S_ang)  # dS_i/dt = ad(V_i) S_i
-        dS_ang = _cross(W, S_ang)
-        dlin = dS_lin + _cross(dS_ang, p.unsqueeze(-2)) + _cross(S_ang, v.unsqueeze(-2))
-        dJ = torch.cat((dlin, dS_ang), dim=-1).transpose(-1, -2)
-        return R, p, J, dJ, v, W[..., -1, :]
+        N, W = _cumsum0(nu), _cumsum0(om)
+        v = N[-1] + _cross1(W[-1:], p[None])[0]
+        dS_lin = _cross1(W, S_lin) + _cross1(N, S_ang)  # dS_i/dt = ad(V_i) S_i
+        dS_ang = _cross1(W, S_ang)
+        dlin = dS_lin + _cross1(dS_ang, p[None]) + _cross1(S_ang, v[None])
+        dJ = _columns(torch.cat((dlin, dS_ang), dim=1), batch)
+        return (R_b, p_b, J, dJ, to_batch_first(v[None], batch, 1)[..., 0, :],
+                to_batch_first(W[-1][None], batch, 1)[..., 0, :])
 
     def _frame(self, frame: str) -> str:
         if frame not in FRAMES:
@@ -670,6 +618,25 @@ def _reframe(J: torch.Tensor, R: torch.Tensor, p: torch.Tensor, frame: str) -> t
         return torch.cat((lin, J[..., 3:, :]), dim=-2)
     Rt = R.transpose(-1, -2)
     return torch.cat((Rt @ J[..., :3, :], Rt @ J[..., 3:, :]), dim=-2)
+
+
+def _cumsum0(x: torch.Tensor) -> torch.Tensor:
+    """Inclusive prefix sums over the joints (axis 0, contiguous view)."""
+    return x.reshape(x.shape[0], -1).cumsum(0).view(x.shape)
+
+
+def _at(x: torch.Tensor, index: torch.Tensor, last: bool) -> torch.Tensor:
+    """Cumulative sums (n, 3, B) at stack indices (0: the base, where they are zero);
+    ``last``: the one index is n (the end link after the last joint)."""
+    if last:
+        return x[-1:]
+    x = torch.cat((torch.zeros_like(x[:1]), x), dim=0)
+    return x.index_select(0, index)
+
+
+def _columns(x: torch.Tensor, batch: torch.Size) -> torch.Tensor:
+    """(n, 6, B) Jacobian columns -> (*batch, 6, n)."""
+    return x.permute(2, 1, 0).reshape(*batch, 6, x.shape[0])
 
 
 def _cross0(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
