@@ -57,8 +57,9 @@ class _Constants:
 
     def __init__(self, dtype, device):
         kw = dict(dtype=dtype, device=device)
-        self.powers = torch.arange(_TERMS, **kw)
-        self.taylor = torch.tensor(_TAYLOR, **kw)  # (12, 4)
+        self.powers = torch.arange(1, _TERMS, **kw)  # p^0 apart: its pow has a NaN derivative at 0
+        taylor = torch.tensor(_TAYLOR, **kw)  # (12, 4)
+        self.taylor0, self.taylor = taylor[0], taylor[1:]
         skew = torch.zeros(3, 3, 3, **kw)  # skew[i] = e_i^
         for i, j, k in ((0, 2, 1), (1, 0, 2), (2, 1, 0)):
             skew[i, j, k], skew[i, k, j] = 1.0, -1.0
@@ -94,7 +95,7 @@ class _Constants:
 
 def _coefficients(p: torch.Tensor, c: _Constants) -> torch.Tensor:
     """[a, b, c, d] (..., 4) of p = theta^2 (..., 1) (see _TAYLOR)."""
-    series = p.pow(c.powers) @ c.taylor
+    series = p.pow(c.powers) @ c.taylor + c.taylor0
     exact_needed = bool((p > _TAYLOR_LIMIT).any()) if p.device.type == "cpu" else True
     if not exact_needed:
         return series
