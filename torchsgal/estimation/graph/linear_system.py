@@ -47,17 +47,16 @@ class DenseSystem:
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(delta (B, D), solved (B,) bool, delta^T H delta (B,)); lam (B,) (0: undamped)."""
-        H = dense(self.problem, values)
-        if diagonal:
-            damp = H.diagonal(dim1=-2, dim2=-1).clamp(*DIAGONAL_CLAMP)
-            Hd = H + torch.diag_embed(lam[:, None] * damp)
-        else:
-            Hd = H + lam[:, None, None] * self.eye
+        Hd = dense(self.problem, values)  # a new tensor: damped in place (no (B, D, D) copies)
+        diag = Hd.diagonal(dim1=-2, dim2=-1)
+        damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
+        diag.add_(damp)
         L, info = torch.linalg.cholesky_ex(Hd)
         delta = torch.cholesky_solve(-g.unsqueeze(-1), L).squeeze(-1)
         solved = (info == 0) & torch.isfinite(delta).all(dim=-1)
         delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
-        quad = (delta * (H @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1)
+        # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta
+        quad = (delta * (Hd @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1) - (damp * delta * delta).sum(-1)
         return delta, solved, quad
 
     def set_solution(self, values: torch.Tensor) -> None:

@@ -188,7 +188,7 @@ class Problem:
             if info.group is None:
                 out.append(xv + d)
             else:
-                out.append(xv @ info.group._f.exp(d))
+                out.append(info.group._f.compose(xv, info.group._f.exp(d)))
         return out
 
     def wrap(self, k: int, leaf: torch.Tensor):
