@@ -486,6 +486,12 @@ def test_euler_gradients_match_finite_differences():
     f = lambda x: euler.as_euler(euler.from_euler(x, sequence="zxz", frame="extrinsic"),  # noqa: E731
                                  sequence="yxz", frame="extrinsic")
     assert torch.autograd.gradcheck(f, (a,))
+    # at gimbal lock the angles are not differentiable; the gradients stay finite
+    for seq, mid in (("zyx", math.pi / 2), ("zxz", 0.0), ("zxz", math.pi)):
+        M = euler.from_euler(torch.tensor([0.3, mid, 0.5], dtype=F64), sequence=seq, frame="extrinsic")
+        M = M.as_matrix().clone().requires_grad_()
+        euler.as_euler(ts.SO3.from_matrix(M), sequence=seq, frame="extrinsic").sum().backward()
+        assert bool(M.grad.isfinite().all())
 
 
 # --------------------------------------------------------------------------- bad input

@@ -83,6 +83,15 @@ def from_euler(angles: torch.Tensor, *, sequence: str, frame: str) -> SO3:
     return SO3.from_matrix(C)
 
 
+def _polar(y: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(atan2(y, x), hypot(y, x)) with finite gradients at y = x = 0 (angle 0, a zero
+    subgradient), where the angle is undefined and gimbal lock uses the other pair."""
+    zero = (x == 0) & (y == 0)
+    xs = torch.where(zero, torch.ones_like(x), x)
+    ys = torch.where(zero, torch.zeros_like(y), y)
+    return torch.atan2(ys, xs), torch.where(zero, torch.zeros_like(x), torch.hypot(ys, xs))
+
+
 def _wrap(x: torch.Tensor) -> torch.Tensor:
     """Into [-pi, pi] (inputs in (-2 pi, 2 pi])."""
     x = torch.where(x < -math.pi, x + 2 * math.pi, x)
@@ -91,7 +100,8 @@ def _wrap(x: torch.Tensor) -> torch.Tensor:
 
 def as_euler(rotation: SO3, *, sequence: str, frame: str) -> torch.Tensor:
     """Euler angles (..., 3) of the rotations, for ``sequence`` and ``frame`` (see the module
-    docstring for the ranges and gimbal lock).  Differentiable away from gimbal lock."""
+    docstring for the ranges and gimbal lock).  Differentiable away from gimbal lock; at it, where
+the angles are not differentiable, the gradients are finite (a zero subgradient)."""
     axes = _sequence(sequence, frame)
     if not isinstance(rotation, SO3):
         raise TypeError(f"rotation must be an SO3, got {type(rotation).__name__}")
@@ -108,8 +118,9 @@ def as_euler(rotation: SO3, *, sequence: str, frame: str) -> torch.Tensor:
         a, b, c, d = w, qi, qj, qk
     else:  # rotate the Tait-Bryan sequence onto a proper one (Bernardes and Viollet)
         a, b, c, d = w - qj, qi + qk, qj + w, qk - qi
-    middle = 2 * torch.atan2(torch.hypot(c, d), torch.hypot(a, b))  # in [0, pi]
-    half_sum, half_diff = torch.atan2(b, a), torch.atan2(d, c)
+    half_sum, norm_ab = _polar(b, a)
+    half_diff, norm_cd = _polar(d, c)
+    middle = 2 * torch.atan2(norm_cd, norm_ab)  # in [0, pi]
     tol = GIMBAL_TOL[q.dtype]
     at_zero, at_pi = middle <= tol, middle >= math.pi - tol
     # only half_sum (at 0) or half_diff (at pi) is defined: the third angle of the user's
