@@ -345,6 +345,11 @@ def test_pypose_round_trips_and_exp(G):
     h = G.exp(_xi(G, seed=21, shape=(2, 3)))
     _close(_pp_matrix_ours(G, x * tp.to_pypose(h)), (g @ h).as_matrix(), 1e-13)
     _close(_pp_matrix_ours(G, x.Inv()), g.inverse().as_matrix(), 1e-13)
+    # float32 stays float32, within float32 rounding of the magnitudes
+    x32 = tp.to_pypose(g.float())
+    assert x32.dtype == torch.float32 and tp.from_pypose(x32).dtype == torch.float32
+    scale = float(g.as_matrix().abs().max())
+    _close(tp.from_pypose(x32).as_matrix().double(), g.as_matrix(), 1e-6 * scale)
 
 
 def test_pypose_so3_jr_is_ours():
@@ -421,6 +426,10 @@ def test_quaternion_translation_against_scipy_gtsam_and_pypose():
         _close(tq.from_quaternion_translation(-3.0 * q, tt, order=order).as_matrix(), g.as_matrix(), 1e-15)
         w = q[..., 0] if order == "wxyz" else q[..., 3]
         assert bool((w >= 0).all())
+    v32 = tq.as_pose7(g.float(), order="wxyz")
+    assert v32.dtype == torch.float32
+    scale = float(g.as_matrix().abs().max())
+    _close(tq.from_pose7(v32, order="wxyz").as_matrix().double(), g.as_matrix(), 1e-6 * scale)
     # scipy reads the xyzw pose7 layout (TUM) the same way
     ref = Rotation.from_quat(pose[:, 3:].numpy()).as_matrix()
     _close(tq.from_pose7(pose, order="xyzw").rotation(), ref, 1e-15)
