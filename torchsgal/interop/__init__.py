@@ -12,9 +12,12 @@
 Importing this package imports neither GTSAM nor pypose: each converter imports its peer when
 it runs, and raises ImportError naming the ``peers`` extra if the peer is missing.
 """
-from . import euler, gtsam, pypose, quaternion
+from . import euler, quaternion
+from . import gtsam as gtsam  # noqa: PLC0414 (re-exported, not in __all__)
+from . import pypose as pypose
 from .euler import as_euler, from_euler
 from .quaternion import as_pose7, as_quaternion_translation, from_pose7, from_quaternion_translation
 
-__all__ = ["gtsam", "pypose", "quaternion", "euler", "from_euler", "as_euler", "from_pose7",
-           "as_pose7", "from_quaternion_translation", "as_quaternion_translation"]
+# the submodules gtsam and pypose are left out of __all__: a star import would shadow the peers
+__all__ = ["quaternion", "euler", "from_euler", "as_euler", "from_pose7", "as_pose7",
+           "from_quaternion_translation", "as_quaternion_translation"]
