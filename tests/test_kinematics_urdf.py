@@ -13,8 +13,7 @@ import pytest
 import torch
 
 import torchsgal
-from torchsgal.kinematics import (
-    GDHChain, KinematicChain, from_pk, from_urdf, iiwa7, load_robot, robot_urdf, scara, ur5)
+from torchsgal.kinematics import GDHChain, KinematicChain, from_pk, from_urdf, iiwa7, load_robot, robot_urdf, scara, ur5
 
 pin = pytest.importorskip("pinocchio")
 pk = pytest.importorskip("pytorch_kinematics")

@@ -14,7 +14,6 @@ is at R'_j (Q_j^T F).  The products are those of the extended-pose chain (45).
 """
 from __future__ import annotations
 
-
 import torch
 
 

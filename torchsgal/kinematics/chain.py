@@ -25,15 +25,16 @@ cumulative sums over the joint axis: only the pose needs a loop over the joints 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
 
 import torch
 
 from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import SE3, SE23
-from ._core import Kernel, cross1 as _cross1, to_batch_first
+from ._core import Kernel, to_batch_first
+from ._core import cross1 as _cross1
 
 REVOLUTE, CONTINUOUS, PRISMATIC = "revolute", "continuous", "prismatic"
 JOINT_KINDS = (REVOLUTE, CONTINUOUS, PRISMATIC)
@@ -297,7 +298,7 @@ class KinematicChain:
         """The tool transform after the end link."""
         return SE3.from_matrix(self._tool64.to(self._device, self._dtype))
 
-    def to(self, dtype: torch.dtype | None = None, device=None) -> "KinematicChain":
+    def to(self, dtype: torch.dtype | None = None, device=None) -> KinematicChain:
         """A copy of the chain in ``dtype`` and on ``device`` (unchanged where None)."""
         new = object.__new__(KinematicChain)
         new.__dict__.update(self.__dict__)
@@ -546,7 +547,7 @@ class KinematicChain:
         dtype: torch.dtype = torch.float64,
         device=None,
         name: str = "dh",
-    ) -> "KinematicChain":
+    ) -> KinematicChain:
         """A chain from a DH table, standard (Rz(theta) Tz(d) Tx(a) Rx(alpha) per link, as the
         mahony paper's (43) and :class:`GDHChain`) or ``convention="modified"`` (Craig:
         Rx(alpha_(i-1)) Tx(a_(i-1)) Rz(theta_i) Tz(d_i), the row i holding alpha_(i-1),
@@ -555,50 +556,14 @@ class KinematicChain:
         Joints are ``q1 .. qn``; links ``frame_0`` (the base) .. ``frame_n`` (DH frame n, the
         end link).  ``lower``/``upper``: optional joint limits (n values each).
         """
-        from .gdh import _letters_hint, normalize_joint_type
+        from .dh import dh_links
 
-        if convention not in ("standard", "modified"):
-            raise ValueError(f"convention must be 'standard' or 'modified', got {convention!r}")
-        cols = {}
-        for key, col in (("a", a), ("alpha", alpha), ("d", d), ("theta_offset", theta_offset)):
-            vals = col.detach().cpu().tolist() if isinstance(col, torch.Tensor) else list(col)
-            try:
-                vals = [checks.finite_number(v, f"{key}[{i}]") for i, v in enumerate(vals)]
-            except (TypeError, ValueError) as err:
-                raise type(err)(f"{err} (a DH table column)") from None
-            cols[key] = vals
-        n = len(joint_types)
-        lengths = {k: len(v) for k, v in cols.items()}
-        if n < 1 or any(v != n for v in lengths.values()):
-            raise ValueError(f"DH table columns must have one equal, non-zero length; got "
-                             f"{lengths}, joint_types {n}{_letters_hint(joint_types)}")
-        types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
-        lo = [-math.inf] * n if lower is None else [float(x) for x in lower]
-        hi = [math.inf] * n if upper is None else [float(x) for x in upper]
-        if len(lo) != n or len(hi) != n:
-            raise ValueError(f"lower and upper must have {n} entries, got {len(lo)} and {len(hi)}")
-        joints, links = [], {"frame_0": (-1, torch.eye(4, dtype=torch.float64))}
-        tail = torch.eye(4, dtype=torch.float64)  # fixed factors since the last joint
-        for i in range(n):
-            th, di, ai, al = (cols[k][i] for k in ("theta_offset", "d", "a", "alpha"))
-            rz, tz = _rot("z", th), _trans(0.0, 0.0, di)
-            if convention == "standard":
-                origin = tail @ rz @ tz
-                after = _trans(ai, 0.0, 0.0) @ _rot("x", al)
-            else:
-                origin = tail @ _rot("x", al) @ _trans(ai, 0.0, 0.0) @ rz @ tz
-                after = torch.eye(4, dtype=torch.float64)
-            kind = REVOLUTE if types[i] == "revolute" else PRISMATIC
-            if kind == REVOLUTE and not (math.isfinite(lo[i]) or math.isfinite(hi[i])):
-                kind = CONTINUOUS
-            joints.append(Joint(f"q{i + 1}", kind, (0.0, 0.0, 1.0), origin, lo[i], hi[i]))
-            links[f"frame_{i + 1}"] = (i, after)
-            tail = after
-        return cls(joints, links, f"frame_{n}", base=base, tool=tool, dtype=dtype,
+        joints, links = dh_links(a, alpha, d, theta_offset, joint_types, convention, lower, upper)
+        return cls(joints, links, f"frame_{len(joints)}", base=base, tool=tool, dtype=dtype,
                    device=device, name=name, root_link="frame_0")
 
     @classmethod
-    def from_gdh(cls, chain, *, base=None, tool=None) -> "KinematicChain":
+    def from_gdh(cls, chain, *, base=None, tool=None) -> KinematicChain:
         """The :class:`GDHChain` (standard DH) as a KinematicChain, same dtype and device."""
         from .gdh import GDHChain
 
@@ -641,20 +606,6 @@ def _columns(x: torch.Tensor, batch: torch.Size) -> torch.Tensor:
 
 def _cross0(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-2)
-
-
-def _rot(axis: str, angle: float) -> torch.Tensor:
-    c, s = math.cos(angle), math.sin(angle)
-    m = torch.eye(4, dtype=torch.float64)
-    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
-    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
-    return m
-
-
-def _trans(x: float, y: float, z: float) -> torch.Tensor:
-    m = torch.eye(4, dtype=torch.float64)
-    m[0, 3], m[1, 3], m[2, 3] = x, y, z
-    return m
 
 
 def _squeeze_link(state: ChainState) -> ChainState:
