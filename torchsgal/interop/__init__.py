@@ -13,7 +13,7 @@ Importing this package imports neither GTSAM nor pypose: each converter imports 
 it runs, and raises ImportError naming the ``peers`` extra if the peer is missing.
 """
 from . import euler, quaternion
-from . import gtsam as gtsam  # noqa: PLC0414 (re-exported, not in __all__)
+from . import gtsam as gtsam  # re-exported (not in __all__)
 from . import pypose as pypose
 from .euler import as_euler, from_euler
 from .quaternion import as_pose7, as_quaternion_translation, from_pose7, from_quaternion_translation
