@@ -33,6 +33,8 @@ try:
 except AttributeError:  # pragma: no cover - exercised by tests/test_compat.py's fallback runs
     _is_wrapped_tensor = None
 
+_TransformType: Any
+_interpreters: Callable[[], list[Any]] | None
 try:
     from torch._C._functorch import TransformType as _TransformType
     from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters as _interpreters
@@ -45,6 +47,7 @@ try:
 except AttributeError:  # pragma: no cover
     _get_dispatch_mode = _FAKE_KEY = None
 
+_SingleLevelFunction: Any
 try:
     from torch._functorch.utils import unwrap_dead_wrappers as _unwrap_dead_wrappers
     from torch.autograd.function import _SingleLevelFunction
@@ -101,4 +104,4 @@ class FastApply:
 
 def torch_version() -> str:
     """torch's version string."""
-    return str(torch.version.__version__)  # type: ignore[attr-defined]
+    return str(torch.version.__version__)
