@@ -2,7 +2,8 @@
 and ``python -m torchsgal demo``.
 
 ``tls`` estimates the relative transform of two inertial frames and their sampling interval
-from noisy paired observations, on SGal(3) and on the SE_2(3) x R baseline, over many trials;
+from noisy paired observations, on SGal(3) and on the SE_2(3) x R baseline (in its
+frame-invariant and product readings), over many trials;
 it prints RMSE, ANEES and MMD beside the paper's Table 1 and writes JSON, markdown and a PNG.
 
 ``demo`` (the default) walks through the core API on SGal(3): the worked event example of
@@ -84,7 +85,8 @@ def tls(args) -> int:
     cfg = study.StudyConfig(trials=args.trials, samples=args.samples, speed=args.speed,
                             separation=args.separation, clock_offset=args.clock_offset,
                             dtau_sigma=args.dtau_sigma, seed=args.seed,
-                            variants=tuple(args.variants), dtype=args.dtype)
+                            variants=tuple(args.variants), readings=tuple(args.readings),
+                            dtype=args.dtype)
     n = torch.get_num_threads()
     print(f"torchsgal {ts.__version__}, torch {torch.version.__version__}, {n} thread{'s' * (n != 1)}: "
           f"{cfg.trials} trials of {cfg.samples} paired observations", file=sys.stderr)
@@ -195,6 +197,10 @@ def main(argv=None) -> int:
                    help=f"std of the true interval around its nominal value, s ({d.dtau_sigma})")
     t.add_argument("--variants", nargs="+", default=list(d.variants), choices=["iterated", "paper"],
                    help="Gauss-Helmert variants to run (both)")
+    t.add_argument("--readings", nargs="+", default=list(d.readings), choices=list(d.readings),
+                   help="readings of the SE_2(3) x R baseline to run (both): invariant (relative "
+                        "transforms composed in SGal(3)) and product (observations composed in "
+                        "the product group)")
     t.add_argument("--seed", type=int, default=d.seed, help=f"seed of the simulated trials ({d.seed})")
     t.add_argument("--dtype", default=d.dtype, type=_study_dtype,
                    help="float64 only; float32 is refused (its information would fail the "

@@ -20,6 +20,7 @@ import math
 import sys
 import time
 from dataclasses import asdict, dataclass
+from functools import partial
 
 import torch
 
@@ -28,7 +29,7 @@ from ..groups import SE23, SO3, SGal3
 from . import metrics
 from .gauss_helmert import VARIANTS
 from .solver import SolverStatus
-from .tls import TLSProblem, solve_baseline, solve_sgal3
+from .tls import BASELINE_READINGS, TLSProblem, check_reading, solve_baseline, solve_sgal3
 
 PAPER_TABLE1 = {
     "SGal(3)": {"position": 0.441, "velocity": 0.069, "orientation": 0.013, "time_offset": 0.027,
@@ -37,6 +38,8 @@ PAPER_TABLE1 = {
                     "time_offset": 0.028, "interval": 0.004, "ANEES": 97.08, "MMD": 8.99},
 }
 PAPER_ANEES_BAND = (10.74, 11.27)
+# The baseline's estimators in the results, one per reading (tls.BASELINE_READINGS).
+BASELINE_NAMES = {"invariant": "SE_2(3) x R invariant", "product": "SE_2(3) x R product"}
 
 
 def paper_covariance(dtype=torch.float64, device=None) -> torch.Tensor:
@@ -56,7 +59,9 @@ class StudyConfig:
     """The study's settings; checked on construction (every error names the field).
 
     ``variants`` is a tuple of Gauss-Helmert variants ("iterated", "paper"; a single string is
-    taken as one variant); ``dtype`` is "float64" or "float32" (torch.float64 / torch.float32
+    taken as one variant); ``readings`` a tuple of the SE_2(3) x R baseline's readings
+    ("invariant", "product", see ``tls.solve_baseline``; a single string is one reading);
+    ``dtype`` is "float64" or "float32" (torch.float64 / torch.float32
     are accepted and stored as their names; in float32 every trial is reported SINGULAR, see
     ``python -m torchsgal tls --help``)."""
     trials: int = 1200
@@ -69,6 +74,7 @@ class StudyConfig:
     seed: int = 0
     noise_scale: float = 1.0  # scales the simulated observation noise (the model keeps (5.27))
     variants: tuple = ("iterated", "paper")
+    readings: tuple = BASELINE_READINGS
     max_iterations: int = 50
     dtype: str = "float64"
 
@@ -90,6 +96,17 @@ class StudyConfig:
             raise ValueError(f"variants must be a non-empty tuple of {VARIANTS} (or one of them), "
                              f"got {self.variants!r}")
         self.variants = variants
+        readings = (self.readings,) if isinstance(self.readings, str) else self.readings
+        try:
+            readings = tuple(readings)
+        except TypeError:
+            raise ValueError(f"readings must be a tuple of {BASELINE_READINGS} (or one of them), "
+                             f"got {self.readings!r}") from None
+        if not readings or any(not isinstance(r, str) or r not in BASELINE_READINGS
+                               for r in readings):
+            raise ValueError(f"readings must be a non-empty tuple of {BASELINE_READINGS} (or one "
+                             f"of them), got {self.readings!r}")
+        self.readings = readings
         try:
             self.dtype = _STUDY_DTYPES[self.dtype]
         except (KeyError, TypeError):
@@ -204,20 +221,31 @@ def errors_sgal3(sol, trials: TrialSet) -> torch.Tensor:
     return torch.cat([trials.F_true.rminus(F_hat), (trials.dtau_true - dtau_hat[:, 0])[:, None]], -1)
 
 
-def baseline_truth(F_ab: SGal3, F_ga0: SGal3):
-    """The (X', tau0) of SE_2(3) x R that reproduces the true observations: composing in the
-    product group drops the term v_ga tau of SGal(3)'s product F_ga F_ab, so
-    X' = (C, v, r + C_ga^T v_ga tau), tau0 = tau (see docs/guide/estimation.md)."""
-    C_ga, v_ga = F_ga0.rotation(), F_ga0.velocity()
-    tau = F_ab.time()
-    shift = (C_ga.transpose(-1, -2) @ v_ga[..., None])[..., 0] * tau[..., None]
-    return SE23.from_components(F_ab.rotation(), F_ab.velocity(), F_ab.position() + shift), tau
+def baseline_truth(F_ab: SGal3, F_ga0: SGal3 | None = None, reading: str = "invariant"):
+    """The (X', tau0) of SE_2(3) x R that reproduces the true observations in the baseline's
+    ``reading`` (see docs/guide/estimation.md), with F_ab = (C, v, r, tau), tau0 = tau:
+    "invariant": X' = (C, v, r - v tau), frame b's origin at frame a's time zero (the split of
+    the relative transforms T^n F_ab^-1 T^-n is the SE_2(3) inverse of its drift);
+    "product": composing in the product group drops the term v_ga tau of SGal(3)'s product
+    F_ga F_ab, so X' = (C, v, r + C_ga^T v_ga tau), which needs the true frame a, ``F_ga0``."""
+    check_reading(reading)
+    tau, v = F_ab.time(), F_ab.velocity()
+    if reading == "invariant":
+        shift = -v * tau[..., None]
+    elif not isinstance(F_ga0, SGal3):
+        raise TypeError(f"F_ga0 (the true frame a) must be SGal3 for the product reading, got "
+                        f"{type(F_ga0).__name__}")
+    else:
+        C_ga, v_ga = F_ga0.rotation(), F_ga0.velocity()
+        shift = (C_ga.transpose(-1, -2) @ v_ga[..., None])[..., 0] * tau[..., None]
+    return SE23.from_components(F_ab.rotation(), v, F_ab.position() + shift), tau
 
 
-def errors_baseline(sol, trials: TrialSet) -> torch.Tensor:
-    """[log(X^ ^-1 X) (9), tau0 - tau0^, dtau - dtau^] (K, 11) in the baseline's coordinates."""
+def errors_baseline(sol, trials: TrialSet, reading: str = "invariant") -> torch.Tensor:
+    """[log(X^ ^-1 X) (9), tau0 - tau0^, dtau - dtau^] (K, 11) in the baseline's coordinates,
+    against ``baseline_truth`` in its ``reading`` (the one ``sol`` was solved in)."""
     X_hat, tau_hat, dtau_hat = sol.x
-    X_true, tau_true = baseline_truth(trials.F_true, trials.F_ga0)
+    X_true, tau_true = baseline_truth(trials.F_true, trials.F_ga0, reading)
     return torch.cat([X_true.rminus(X_hat), (tau_true - tau_hat[:, 0])[:, None],
                       (trials.dtau_true - dtau_hat[:, 0])[:, None]], -1)
 
@@ -251,7 +279,10 @@ def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> 
     cfg.__post_init__()  # fields may have been changed since construction
     chunk = checks.integer(chunk, "chunk", 1)
     estimators = {("SGal(3)", v): (solve_sgal3, errors_sgal3) for v in cfg.variants}
-    estimators.update({("SE_2(3) x R", v): (solve_baseline, errors_baseline) for v in cfg.variants})
+    for reading in cfg.readings:
+        estimators.update({(BASELINE_NAMES[reading], v): (partial(solve_baseline, reading=reading),
+                                                          partial(errors_baseline, reading=reading))
+                           for v in cfg.variants})
     acc = {k: {"err": [], "cov": [], "status": [], "iterations": [], "time": 0.0} for k in estimators}
     bar = _progress(cfg.trials, progress)
     sim_time = 0.0
@@ -323,7 +354,7 @@ def table_markdown(out: dict) -> str:
             ("orientation", "RMSE orientation"), ("time_offset", "RMSE time offset"),
             ("interval", "RMSE interval dtau"), ("ANEES", "ANEES"), ("MMD", "MMD")]
     cols = []
-    for name in ("SGal(3)", "SE_2(3) x R"):
+    for name in ("SGal(3)",) + tuple(BASELINE_NAMES.values()):
         for variant in res.get(name, {}):
             cols.append((name, variant))
     shown = {"paper": "paper-style"}  # our run of the paper's variant, not the paper's numbers
@@ -400,11 +431,12 @@ def plot_nees(out: dict, path: str) -> str | None:
         print("matplotlib is not installed: no NEES plot (pip install matplotlib)", file=sys.stderr)
         return None
     res = out["results"]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    names = [name for name in ("SGal(3)",) + tuple(BASELINE_NAMES.values()) if name in res]
+    fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 4), squeeze=False)
     x = torch.linspace(0.01, 60, 400, dtype=torch.float64)
     k = 11
     dens = torch.exp((k / 2 - 1) * x.log() - x / 2 - (k / 2) * math.log(2) - math.lgamma(k / 2))
-    for ax, name in zip(axes, ("SGal(3)", "SE_2(3) x R")):
+    for ax, name in zip(axes[0], names):
         for variant, r in res.get(name, {}).items():
             q = torch.tensor(r["nees"])
             ax.hist(q.clamp(max=200).numpy(), bins=80, range=(0, 200 if name != "SGal(3)" else 60),

@@ -26,7 +26,11 @@ E = exp(c), right perturbations F <- F exp(d), dtau <- dtau + d:
 At eps = 0 these are (5.19)-(5.22) with the paper's sign of eps.
 
 The SE_2(3) x R baseline (``baseline_condition``) is defined in docs/guide/estimation.md: the direct
-product of SE_2(3) and the clock, so that a clock error never moves a position.
+product of SE_2(3) and the clock, so that a clock error never moves a position.  Two readings
+(``BASELINE_READINGS``): "invariant" forms the relative transforms M_n exactly in SGal(3) and reads
+them in the product group, so a Galilean change of the global frame does not move the estimate;
+"product" composes the observations in the product group, which drops v_g t terms and makes the
+estimate depend on the velocity of the global frame.
 """
 from __future__ import annotations
 
@@ -205,26 +209,58 @@ def split_clock(F: SGal3) -> tuple[SE23, torch.Tensor]:
     return SE23.from_components(C, v, r), tau
 
 
+BASELINE_READINGS = ("invariant", "product")
+
+
+def check_reading(reading: str) -> str:
+    """``reading`` if it is one of ``BASELINE_READINGS``, else a ValueError naming it."""
+    if not isinstance(reading, str) or reading not in BASELINE_READINGS:
+        raise ValueError(f"reading must be one of {BASELINE_READINGS}, got {reading!r}")
+    return reading
+
+
+def baseline_observations(problem: TLSProblem, reading: str = "invariant"
+                          ) -> tuple[SE23, torch.Tensor]:
+    """(M'_n SE23 (B, N+1), clock difference t_a - t_b (B, N+1)): the observations as the
+    baseline sees them.  "invariant": M_n = F~_gb_n^-1 F~_ga_n composed in SGal(3), then split;
+    unchanged by a Galilean change of the global frame, F~ <- G F~.  "product": the split
+    observations composed in SE_2(3), X~'_gb^-1 X~'_ga, which lacks SGal(3)'s v t terms and so
+    depends on the velocities of the global frame."""
+    if check_reading(reading) == "invariant":
+        return split_clock(problem.M)
+    Xa, ta = split_clock(problem.F_ga)
+    Xb, tb = split_clock(problem.F_gb)
+    return Xb.inverse() @ Xa, ta - tb
+
+
+def baseline_start(F: SGal3, reading: str = "invariant") -> tuple[SE23, torch.Tensor]:
+    """The baseline's (X', tau0) for a relative transform F = (C, v, r, tau) of SGal(3):
+    "invariant": X' = (C, v, r - v tau), frame b's origin at frame a's time zero, which makes
+    the noise-free M'_n equal to A'_n^-1 (docs/guide/estimation.md); "product": X' = (C, v, r).
+    ``solve_baseline`` starts from it with F the first pair's F~_ga0^-1 F~_gb0."""
+    C, v, r, tau = F.rotation(), F.velocity(), F.position(), F.time()
+    if check_reading(reading) == "invariant":
+        r = r - v * tau[..., None]
+    return SE23.from_components(C, v, r), tau
+
+
 def _drift(X: SE23, s: torch.Tensor) -> SE23:
     """A'_n = (C, v, r - s v): the SE_2(3) part of T^n F T^-n, an automorphism of SE_2(3)."""
     C, v, r = X.rotation(), X.velocity(), X.position()
     return SE23.from_components(C, v, r - s[..., None] * v)
 
 
-def baseline_condition(problem: TLSProblem):
+def baseline_condition(problem: TLSProblem, reading: str = "invariant"):
     """The SE_2(3) x R estimator's condition function; x = (X' in SE_2(3), tau0 (B, 1),
     dtau (B, 1)); observation residuals per frame (eps' (9), clock error (1)).
 
-    Spatial part (9): log(M'_n exp(eps'_a) A'_n exp(-eps'_b)) in SE_2(3), with the observations
-    composed in SE_2(3) (their clocks dropped) and A'_n = drift of X' by s = n dtau.
+    Spatial part (9): log(M'_n exp(eps'_a) A'_n exp(-eps'_b)) in SE_2(3), with M'_n from
+    ``baseline_observations`` (``reading``) and A'_n = drift of X' by s = n dtau.
     Clock part (1): t~_a + iota_a + tau0 - t~_b - iota_b.
     As in ``sgal3_condition`` the spatial rows are returned multiplied by J_r(c).
     """
     n = problem.indices
-    Xa, ta = split_clock(problem.F_ga)
-    Xb, tb = split_clock(problem.F_gb)
-    M = Xb.inverse() @ Xa
-    dclock = ta - tb  # (B, N+1)
+    M, dclock = baseline_observations(problem, reading)  # (B, N+1)
     eye9 = torch.eye(9, dtype=M.dtype, device=M.device)
 
     def condition(x, e):
@@ -325,12 +361,11 @@ class _Model:
     """What the structured solver needs of an estimator: the group of its spatial part and
     its compositions M_n, the spatial covariance blocks, and (baseline) the clock row."""
 
-    def __init__(self, problem: TLSProblem, baseline: bool):
+    def __init__(self, problem: TLSProblem, baseline: bool, reading: str = "invariant"):
         self.baseline = baseline
         if baseline:
-            Xa, ta = split_clock(problem.F_ga)
-            Xb, tb = split_clock(problem.F_gb)
-            self.group, self.d, self.M, self.dclock = SE23, 9, Xb.inverse() @ Xa, ta - tb
+            self.group, self.d = SE23, 9
+            self.M, self.dclock = baseline_observations(problem, reading)
             ca, cb = baseline_covariance(problem)
             self.var = (ca[..., 9, 9], cb[..., 9, 9])  # clock variances (B or 1, N+1 or 1)
             self.cov = (ca[..., :9, :9], cb[..., :9, :9])
@@ -355,10 +390,10 @@ class _Model:
 
 
 def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
-                chunk: int | None = None):
+                chunk: int | None = None, reading: str = "invariant"):
     """(linearise, post_step) for ``solver.iterate``: the Gauss-Helmert reduction of
-    ``sgal3_condition`` (or of ``baseline_condition``) with its normal equations summed in
-    closed form; the same solution, up to rounding.
+    ``sgal3_condition`` (or of ``baseline_condition`` in its ``reading``) with its normal
+    equations summed in closed form; the same solution, up to rounding.
 
     The (spatial) conditions are multiplied by K = Ad(T^-n) Ad(exp(eb))^-1 J_r(c) instead of
     J_r(c) (the solution does not change, see ``gauss_helmert``).  With J_l(x) = Ad(exp(x))
@@ -382,7 +417,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
     new linearisation only, and ``_ChunkState.select`` writes into the newer one).  For SGal(3)
     in float64 on the CPU, unobserved, the optional C kernel (``native.kernels("tls")``,
     functional/_native_tls.h) computes a chunk's rows, W (packed) and normal equations instead."""
-    model = _Model(problem, baseline)
+    model = _Model(problem, baseline, reading)
     G_, d, M = model.group, model.d, model.M
     n = problem.indices
     Bn, N1 = M.batch_shape
@@ -598,18 +633,18 @@ def _kernel_applies(problem: TLSProblem, baseline: bool) -> bool:
 
 
 def _gauss_helmert_tls(problem: TLSProblem, x0, variant: str, e0=None,
-                       baseline: bool = False, **options) -> Solution:
-    """``gauss_helmert`` with ``sgal3_condition`` (or ``baseline_condition`` and
-    ``baseline_covariance``), through ``_structured`` unless the batch is small (paper)."""
+                       baseline: bool = False, reading: str = "invariant", **options) -> Solution:
+    """``gauss_helmert`` with ``sgal3_condition`` (or ``baseline_condition`` in its ``reading``
+    and ``baseline_covariance``), through ``_structured`` unless the batch is small (paper)."""
     if (variant == "paper" and problem.M.batch_shape.numel() < STRUCTURED_MIN_CONDITIONS
             and not _kernel_applies(problem, baseline)):
         if baseline:
-            return gauss_helmert(baseline_condition(problem), x0, baseline_covariance(problem),
-                                 variant=variant, e0=e0, **options)
+            return gauss_helmert(baseline_condition(problem, reading), x0,
+                                 baseline_covariance(problem), variant=variant, e0=e0, **options)
         return gauss_helmert(sgal3_condition(problem), x0, problem.covariance, variant=variant,
                              e0=e0, **options)
     iterated = variant_options(variant, options)
-    linearise, post_step = _structured(problem, iterated, baseline)
+    linearise, post_step = _structured(problem, iterated, baseline, reading=reading)
     return iterate(linearise, V.check_values(x0), e0, post_step, **options)
 
 
@@ -731,19 +766,24 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
 
 
 def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
-                   **options) -> Solution:
+                   reading: str = "invariant", **options) -> Solution:
     """Estimates (X' in SE_2(3), tau0, dtau) on SE_2(3) x R; covariance (B, 11, 11) over
-    [dxi' (9), dtau0, ddtau].  x0: (X' SE23 (B,), tau0 (B, 1), dtau (B, 1)); by default from
-    the first pair and ``dtau0``.  Options, B = 0 and float32 (which may be reported SINGULAR
-    for the reason given there): as ``solve_sgal3``."""
+    [dxi' (9), dtau0, ddtau].  ``reading`` (``BASELINE_READINGS``): "invariant" (default) reads
+    the relative transforms F~_gb^-1 F~_ga, composed in SGal(3), in the product group, and is
+    unchanged by a Galilean change of the global frame; "product" composes the observations in
+    the product group, and depends on the global frame's velocity (``baseline_observations``).
+    x0: (X' SE23 (B,), tau0 (B, 1), dtau (B, 1)); by default ``baseline_start`` of the first
+    pair and ``dtau0``.  Options, B = 0 and float32 (which may be reported SINGULAR for the
+    reason given there): as ``solve_sgal3``."""
     variant_options(variant, {})
+    check_reading(reading)
     if x0 is None:
         F0, dt = problem.initial_guess(dtau0, "dtau0")
-        X0, t0 = split_clock(F0)
+        X0, t0 = baseline_start(F0, reading)
         x0 = (X0, t0[:, None], dt)
     x0 = _check_unknowns(problem, x0, baseline=True)
     return _in_rounds(lambda p, x, e0, **kw: _gauss_helmert_tls(
-        p, x, variant, e0, baseline=True, **kw), problem, x0, options)
+        p, x, variant, e0, baseline=True, reading=reading, **kw), problem, x0, options)
 
 
 def eiv_cost(problem: TLSProblem):
