@@ -225,8 +225,8 @@ class _Cholmod:
         except self._cholmod.CholmodNotPositiveDefiniteError as e:
             raise NotPositiveDefiniteError(f"cholmod: the matrix is not positive definite ({e})") from None
         # CHOLMOD refuses only pivots <= 0; the relative test catches singular matrices whose
-        # zero pivots came out as rounding noise (the squared diagonal of L = D of L D L^T)
-        reason = _singular(self._factor.L().diagonal() ** 2)
+        # zero pivots came out as rounding noise (D of L D L^T: the squared diagonal of L)
+        reason = _singular(np.asarray(self._factor.D()))
         if reason:
             raise NotPositiveDefiniteError(f"cholmod: {reason}")
 
