@@ -29,6 +29,21 @@ ratios.  The share of the CPU used by other processes during each section is rec
 Accuracy at equal dt is measured on the same batch: the state predicted at each window's end
 from the true state at its start (gravity included) against the analytic truth.
 
+(c) streaming (float64, CPU; ``--stream-calls`` calls per timed run), every case fed the same
+samples:
+
+* one IMU, one sample per call (pypose: 64 calls per run, it takes ~10 ms a call):
+  ``StreamingPreintegration.integrate`` (samples held and
+  folded in chunks of 256, the result read at the end of the run), the same with
+  ``buffer_size=1`` (each call folded at once, for a reader of every sample), GTSAM's
+  ``integrateMeasurement`` (C++ from Python), pypose ``IMUPreintegrator(reset=False)`` one
+  sample per call;
+* one IMU, chunks of 10 samples per call (per sample): torchsgal, pypose;
+* one window of 400 samples (latency): ``preintegrate``, one ``integrate`` call, GTSAM's loop,
+  pypose;
+* 1,000 IMUs, one sample per call (per IMU-sample): torchsgal batched, pypose batched,
+  GTSAM (one object per IMU, a Python loop).
+
 Usage::
 
     python benchmarks/bench_imu.py                 # full run, writes benchmarks/results/imu_cpu.*
@@ -56,11 +71,24 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import (cpu_model, device_name, dist_version, environment, interleaved, loadavg,  # noqa: E402
-                     paired_ratio, resolve_device, wait_for_idle)
+from _timing import (  # noqa: E402
+    cpu_model,
+    device_name,
+    dist_version,
+    environment,
+    interleaved,
+    loadavg,
+    paired_ratio,
+    resolve_device,
+    wait_for_idle,
+)
 
-from torchsgal.imu import gravity_vector, preintegrate  # noqa: E402
-from torchsgal.imu import peers  # noqa: E402
+from torchsgal.imu import (  # noqa: E402
+    StreamingPreintegration,
+    gravity_vector,
+    peers,  # noqa: E402
+    preintegrate,
+)
 from torchsgal.imu.trajectory import SinusoidalTrajectory  # noqa: E402
 
 G = 9.80665
@@ -183,6 +211,136 @@ def run(args, device, mods) -> dict:
     return {"accuracy": acc_res, "timing": sections}
 
 
+def streaming(args, mods) -> dict:
+    """Section (c): per-call and per-sample costs of streaming preintegration (float64, CPU)."""
+    gtsam, pp = mods["gtsam"], mods["pypose"]
+    F64, n, dt = torch.float64, args.stream_calls, args.dt
+    gen = torch.Generator().manual_seed(0)
+    gyro = 0.5 * torch.randn(n, 3, generator=gen, dtype=F64)
+    acc = torch.randn(n, 3, generator=gen, dtype=F64) + torch.tensor([0.0, 0.0, G], dtype=F64)
+    dens = dict(gyro_noise_density=SIGMA_G, acc_noise_density=SIGMA_A, dtype=F64)
+    rows = list(zip(gyro.unbind(0), acc.unbind(0)))
+    chunk = 10
+    n_pp = min(n, 64)
+    counts = {("one_sample_per_call", "pypose"): n_pp, ("chunks_of_10", "pypose"): n_pp * chunk}
+
+    def ours(buffer_size):
+        def go():
+            s = StreamingPreintegration(buffer_size=buffer_size, **dens)
+            for g_k, a_k in rows:
+                s.integrate(g_k, a_k, dt)
+            return s.result()
+        return go
+
+    def ours_chunks():
+        s = StreamingPreintegration(**dens)
+        for i in range(0, n, chunk):
+            s.integrate(gyro[i:i + chunk], acc[i:i + chunk], dt)
+        return s.result()
+
+    single, chunked, window, batch = {}, {}, {}, {}
+    single["torchsgal (held, 256)"] = ours(256)
+    single["torchsgal (buffer_size=1)"] = ours(1)
+    chunked["torchsgal"] = ours_chunks
+    K, B = 400, 1000
+    gw, aw, hw = gyro[:K], acc[:K], torch.full((K,), dt, dtype=F64)
+    window["torchsgal preintegrate"] = lambda: preintegrate(gw, aw, hw, gyro_noise_density=SIGMA_G,
+                                                            acc_noise_density=SIGMA_A)
+
+    def ours_window():
+        s = StreamingPreintegration(**dens)
+        s.integrate(gw, aw, dt)
+        return s.result()
+    window["torchsgal integrate (one call)"] = ours_window
+    gb = 0.5 * torch.randn(args.stream_batch_calls, B, 3, generator=gen, dtype=F64)
+    ab = torch.randn(args.stream_batch_calls, B, 3, generator=gen, dtype=F64) + torch.tensor([0, 0, G], dtype=F64)
+
+    def ours_batch():
+        s = StreamingPreintegration((B,), **dens)
+        for k in range(gb.shape[0]):
+            s.integrate(gb[k], ab[k], dt)
+        return s.result()
+    batch["torchsgal"] = ours_batch
+    if gtsam is not None:
+        params = peers.gtsam_params("z_up", G, SIGMA_G, SIGMA_A)
+        bias = gtsam.imuBias.ConstantBias()
+        g_np, a_np = gyro.numpy(), acc.numpy()
+
+        def gtsam_stream(count):
+            def go():
+                pim = gtsam.PreintegratedImuMeasurements(params, bias)
+                for k in range(count):
+                    pim.integrateMeasurement(a_np[k], g_np[k], dt)
+                return pim
+            return go
+        single["GTSAM"] = gtsam_stream(n)
+        window["GTSAM"] = gtsam_stream(K)
+        gb_np, ab_np = gb.numpy(), ab.numpy()
+
+        def gtsam_batch():
+            pims = [gtsam.PreintegratedImuMeasurements(params, bias) for _ in range(B)]
+            for k in range(gb_np.shape[0]):
+                for i, pim in enumerate(pims):
+                    pim.integrateMeasurement(ab_np[k, i], gb_np[k, i], dt)
+            return pims
+        batch["GTSAM"] = gtsam_batch
+    if pp is not None:
+        def pypose_stream(count, size, batch_size=1, g=gyro, a=acc):
+            integ = pp.module.IMUPreintegrator(gravity=G, gyro_cov=SIGMA_G**2 / dt, acc_cov=SIGMA_A**2 / dt,
+                                               prop_cov=True, reset=False).to(F64)
+            h = torch.full((batch_size, size, 1), dt, dtype=F64)
+
+            def go():
+                integ.__init__(gravity=G, gyro_cov=SIGMA_G**2 / dt, acc_cov=SIGMA_A**2 / dt, prop_cov=True,
+                               reset=False)
+                integ.to(F64)
+                for i in range(0, count, size):
+                    integ(h, g[i:i + size].reshape(batch_size, size, 3), a[i:i + size].reshape(batch_size, size, 3))
+                return integ
+            return go
+        single["pypose"] = pypose_stream(n_pp, 1)  # fewer calls: ~10 ms each
+        chunked["pypose"] = pypose_stream(n_pp * chunk, chunk)
+        window["pypose"] = pypose_stream(K, K)
+
+        def pypose_batch():
+            integ = pp.module.IMUPreintegrator(gravity=G, gyro_cov=SIGMA_G**2 / dt, acc_cov=SIGMA_A**2 / dt,
+                                               prop_cov=True, reset=False).to(F64)
+            h = torch.full((B, 1, 1), dt, dtype=F64)
+            for k in range(gb.shape[0]):
+                integ(h, gb[k].unsqueeze(1), ab[k].unsqueeze(1))
+            return integ
+        batch["pypose"] = pypose_batch
+    out = {}
+    with torch.no_grad():
+        for key, cases, per in (("one_sample_per_call", single, n), ("chunks_of_10", chunked, n),
+                                ("window_400", window, 1), ("batch_1000_imus", batch, gb.shape[0] * B)):
+            log(f"(c) streaming: {key} ...")
+            st, _, load = interleaved(cases, target_s=args.stream_target, min_rounds=args.min_rounds,
+                                      max_rounds=args.max_rounds)
+            pers = {m: counts.get((key, m), per) for m in st}
+            out[key] = {"per": pers, "foreign_cpu": load,
+                        "cases": {m: dict(v, per_us=v["median_s"] / pers[m] * 1e6) for m, v in st.items()}}
+    return out
+
+
+def stream_tables(res: dict, args) -> list[str]:
+    titles = {"one_sample_per_call": f"one IMU, one sample per call ({args.stream_calls} calls): µs per call",
+              "chunks_of_10": f"one IMU, chunks of 10 samples ({args.stream_calls} samples): µs per sample",
+              "window_400": "one window of 400 samples: µs per window",
+              "batch_1000_imus": f"1,000 IMUs, one sample each per call ({args.stream_batch_calls} calls): "
+                                 "µs per IMU-sample"}
+    out = []
+    for key, sec in res.items():
+        out += [f"### (c) streaming, float64: {titles[key]}  (foreign CPU load: {_pct(sec['foreign_cpu'])})", "",
+                "| method | µs (median) | min–max µs | rounds |", "|---|---:|---:|---:|"]
+        for m, v in sec["cases"].items():
+            per = sec["per"][m]
+            out.append(f"| {m} | {v['per_us']:,.2f} | {v['min_s'] / per * 1e6:,.2f}–"
+                       f"{v['max_s'] / per * 1e6:,.2f} | {v['rounds']} |")
+        out.append("")
+    return out
+
+
 def fmt_ms(s: float) -> str:
     return f"{s * 1e3:,.1f}"
 
@@ -276,6 +434,11 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu",
                     help="cpu or cuda[:i] for torchsgal and pypose (GTSAM always runs on the CPU; default cpu)")
     ap.add_argument("--quick", action="store_true", help="100 windows, 2 rounds, no result files")
+    ap.add_argument("--stream-calls", type=int, default=1000, help="(c): samples per streaming run")
+    ap.add_argument("--stream-batch-calls", type=int, default=50, help="(c): calls of the 1,000-IMU run")
+    ap.add_argument("--stream-target", type=float, default=4.0, help="(c): seconds of sampling per case group")
+    ap.add_argument("--no-batch-sections", action="store_true",
+                    help="skip (a) and (b) (the batched windows), run (c) only")
     args = ap.parse_args(argv)
     device = resolve_device(args.device)
     cuda = device.type == "cuda"
@@ -314,11 +477,13 @@ def main(argv=None) -> int:
     where = f"{env['device_name']} ({device}), host {cpu_model()}" if cuda else env["cpu_model"]
     log(f"torch {env['torch']} | pypose {env['pypose']} | gtsam {env['gtsam']} | {where} | "
         f"threads {env['torch_num_threads']} | {args.windows} x {args.samples}")
-    res = run(args, device, mods)
+    res = {"accuracy": {}, "timing": {}} if args.no_batch_sections else run(args, device, mods)
+    if not cuda:
+        res["streaming"] = streaming(args, mods)
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
     env["loadavg_at_end"] = loadavg()
-    body = tables(res, args)
-    ver = verdict(res, missing)
+    body = (tables(res, args) if res["timing"] else []) + stream_tables(res.get("streaming", {}), args)
+    ver = verdict(res, missing) if res["timing"] else []
     print("\n" + "\n".join(body))
     print("\n".join(ver))
     log(f"wall {env['wall_s']} s")

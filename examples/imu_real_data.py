@@ -30,15 +30,18 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE.parent))  # run against the checkout this script lives in
 
 from torchsgal import SO3  # noqa: E402
-from torchsgal.imu import StreamingPreintegration, gravity_vector, preintegrate  # noqa: E402
-from torchsgal.imu import gtsam_interop  # noqa: E402
+from torchsgal.imu import (  # noqa: E402
+    StreamingPreintegration,
+    gravity_vector,
+    gtsam_interop,  # noqa: E402
+    preintegrate,
+)
 from torchsgal.imu.data import load_ros_imu_csv, windows  # noqa: E402
 
 DATA = _HERE.parent.parent / "shared" / "data" / "quadraped_imu_data.csv"

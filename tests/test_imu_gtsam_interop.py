@@ -137,7 +137,8 @@ def test_sensor_to_body_matches_gtsams_body_P_sensor():
     g = torch.Generator().manual_seed(0)
     gyro = torch.randn(50, 3, generator=g, dtype=F64)
     acc = torch.randn(50, 3, generator=g, dtype=F64) + torch.tensor([0, 0, 9.8], dtype=F64)
-    with_pose = gi.gtsam_pim(gyro, acc, 0.01, gi.to_gtsam_params(gravity_vector(dtype=F64), body_P_sensor=body, **NOISE))
+    with_pose = gi.gtsam_pim(gyro, acc, 0.01,
+                             gi.to_gtsam_params(gravity_vector(dtype=F64), body_P_sensor=body, **NOISE))
     w, f = gi.sensor_to_body(gyro, acc, body)
     plain = gi.gtsam_pim(w, f, 0.01, gi.to_gtsam_params(gravity_vector(dtype=F64), **NOISE))
     a, b = gi.from_gtsam_pim(with_pose), gi.from_gtsam_pim(plain)
@@ -146,7 +147,8 @@ def test_sensor_to_body_matches_gtsams_body_P_sensor():
     # (d(w x (w x r))/dw), which converted samples with body-frame densities do not: with the
     # sensor at the body's origin (a rotation only, isotropic densities) they are the same.
     turned = SE3.exp(torch.tensor([0, 0, 0, 0.4, -0.2, 0.7], dtype=F64))
-    with_pose = gi.gtsam_pim(gyro, acc, 0.01, gi.to_gtsam_params(gravity_vector(dtype=F64), body_P_sensor=turned, **NOISE))
+    with_pose = gi.gtsam_pim(gyro, acc, 0.01,
+                             gi.to_gtsam_params(gravity_vector(dtype=F64), body_P_sensor=turned, **NOISE))
     w, f = gi.sensor_to_body(gyro, acc, turned)
     plain = gi.gtsam_pim(w, f, 0.01, gi.to_gtsam_params(gravity_vector(dtype=F64), **NOISE))
     a, b = gi.from_gtsam_pim(with_pose), gi.from_gtsam_pim(plain)

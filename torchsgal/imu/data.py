@@ -122,7 +122,7 @@ def load_ros_imu_csv(path, duplicates: str = "error", max_gap: float | None = No
                         t(values["orientation"]), segments, dropped)
 
 
-def windows(recording: ImuRecording, length: float):
+def windows(recording: ImuRecording, length: float) -> list[tuple[int, int]]:
     """Consecutive windows of about ``length`` seconds inside each segment, as index ranges
     [(start, stop)] with stop - start >= 2 (a window integrates samples start .. stop - 2 over
     the intervals to stop - 1: the increment between the instants of samples start and

@@ -22,7 +22,7 @@ import numbers
 import numpy as np
 import torch
 
-from .. import SE3, SGal3, SO3
+from .. import SE3, SO3, SGal3
 from ..functional import checks
 from .preintegration import Preintegration
 from .streaming import StreamingPreintegration
@@ -158,7 +158,7 @@ def _delta(pim, dtype) -> SGal3:
                                  position=t(pim.deltaPij()), time=t(pim.deltaTij()))
 
 
-def from_gtsam_pim(pim, dtype=torch.float64):
+def from_gtsam_pim(pim, dtype=torch.float64) -> Preintegration | tuple[Preintegration, torch.Tensor]:
     """A GTSAM ``PreintegratedImuMeasurements`` as a :class:`Preintegration` (delta with time
     ``deltaTij``, covariance (10, 10) mapped by :func:`gtsam_tangent_map` with a zero time row
     and column, bias Jacobian None: GTSAM's Python API does not expose it) or, for a
@@ -242,7 +242,7 @@ def gtsam_pim(gyro: torch.Tensor, acc: torch.Tensor, dt, params, gyro_bias=None,
 
 # -------------------------------------------------------------------------- extrinsic
 def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt=None,
-                   angular_acceleration: torch.Tensor | None = None):
+                   angular_acceleration: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Body-frame rate and specific force from an IMU mounted at ``body_P_sensor`` (R_bs, r):
     omega_b = R_bs omega_s and, for a rigid body,
 

@@ -41,7 +41,6 @@ import torch
 
 from .. import SGal3
 from ..functional import checks
-from ..functional import sgal3 as F
 from .preintegration import Preintegration, increment_tangents, preintegrate
 
 # Taylor coefficients of a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3,
@@ -75,8 +74,8 @@ class _Constants:
         bottom = torch.zeros(2, 2, 5, **kw)  # the rows [0 0 0 1 h], [0 0 0 0 1] = b0 + h b1
         bottom[0, 0, 3] = bottom[0, 1, 4] = bottom[1, 0, 4] = 1.0
         self.bottom = bottom.reshape(2, 10)
-        # Ad(H^-1) = blockdiag(C^T, C^T, C^T, 1) Z, rows 0:9 of Z = Z0 + [h, r, v] L (appendix
-        # of docs/guide/imu_streaming.md): Z = [[I, h I, -r^, -v], [0, I, -v^, 0], [0, 0, I, 0]]
+        # Ad(H^-1) = blockdiag(C^T, C^T, C^T, 1) Z, rows 0:9 of Z = Z0 + [h, r, v] L (kelly-giamou (3.16);
+        # docs/guide/imu_streaming.md): Z = [[I, h I, -r^, -v], [0, I, -v^, 0], [0, 0, I, 0]]
         Z0 = torch.eye(10, **kw)[:9]
         L = torch.zeros(7, 9, 10, **kw)
         L[0, 0:3, 3:6] = torch.eye(3, **kw)
@@ -319,10 +318,12 @@ class StreamingPreintegration:
 
     @property
     def gyro_bias(self) -> torch.Tensor:
+        """The gyro bias (*batch_shape, 3) of the linearisation point."""
         return self._bias[..., :3]
 
     @property
     def acc_bias(self) -> torch.Tensor:
+        """The accelerometer bias (*batch_shape, 3) of the linearisation point."""
         return self._bias[..., 3:]
 
     def combined_covariance(self) -> torch.Tensor:
@@ -353,7 +354,8 @@ class StreamingPreintegration:
         return self.result().predict(start, gravity, earth_rate, gyro_bias, acc_bias)
 
     # -------------------------------------------------------------------- integrate
-    def integrate(self, gyro: torch.Tensor, acc: torch.Tensor, dt, intermediate: bool = False):
+    def integrate(self, gyro: torch.Tensor, acc: torch.Tensor, dt: float | torch.Tensor,
+                  intermediate: bool = False) -> SGal3 | None:
         """Add one sample per IMU (gyro, acc (*batch_shape, 3), dt (*batch_shape) or a number)
         or a chunk (gyro, acc (*batch_shape, K, 3), dt (*batch_shape, K) or a number)
         [rad/s, m/s^2, s], dt > 0.  With ``intermediate`` the increments after each sample of
