@@ -492,3 +492,31 @@ def test_host_syncs_are_one_per_round_outside_the_setup():
     loop = [e for e in syncs.events if e[1].rsplit(":", 1)[0] == lm.__file__]
     rounds = int(result.report.iterations.max()) + 2
     assert 0 < len(loop) <= 2 * rounds, loop
+
+
+def test_float32_and_inputs_that_require_grad():
+    """float32 graphs solve to the float64 solution within float32 accuracy; inputs that require
+    gradients give detached results and are left as they were (values, the factor's loss)."""
+    _, Z, Z0, x0 = pose_graphs(B=4, seed=12)
+    ref = fg.levenberg_marquardt(_graph(Z, Z0, x0)).values["x"]
+    W = torch.diag(SIGMA ** -2).float()
+    graph = fg.FactorGraph()
+    graph.add_variable("x", ts.SE3(x0.as_matrix().float()))
+    graph.add(fg.Prior("x", 0, ts.SE3(Z0.as_matrix().float()), information=W))
+    between = fg.Between("x", EDGES_I, EDGES_J, ts.SE3(Z.as_matrix().float()), information=W)
+    graph.add(between, loss=fg.Huber(100.0))
+    result = fg.levenberg_marquardt(graph)
+    assert between.loss is None
+    assert (result.report.status == SolverStatus.CONVERGED).all()
+    assert result.values["x"].dtype == torch.float32
+    torch.testing.assert_close(result.values["x"].as_matrix().double(), ref.as_matrix(), rtol=0, atol=1e-4)
+    m = x0.as_matrix().clone().requires_grad_(True)
+    before = m.detach().clone()
+    graph = fg.FactorGraph()
+    graph.add_variable("x", ts.SE3(m))
+    graph.add(fg.Prior("x", 0, Z0, information=torch.diag(SIGMA ** -2).requires_grad_(True)))
+    graph.add(fg.Between("x", EDGES_I, EDGES_J, Z, information=torch.diag(SIGMA ** -2)))
+    out = fg.levenberg_marquardt(graph)
+    assert not out.values["x"].as_matrix().requires_grad and not out.report.cost.requires_grad
+    assert torch.equal(m.detach(), before)
+    torch.testing.assert_close(out.values["x"].as_matrix(), ref.as_matrix(), rtol=0, atol=1e-12)

@@ -2,6 +2,8 @@
 optionally for a batch of B independent problems) and factors (``factors.Factor``)."""
 from __future__ import annotations
 
+import copy
+
 import torch
 
 from ...functional import checks
@@ -70,6 +72,7 @@ class FactorGraph:
         if loss is not None:
             if not isinstance(loss, RobustLoss):
                 raise TypeError(f"loss must be a RobustLoss or None, got {type(loss).__name__}")
+            factor = copy.copy(factor)  # the caller's factor keeps its own loss
             factor.loss = loss
         for name, idx in factor.slots:
             if name not in self.variables:

@@ -115,6 +115,7 @@ class Problem:
                 shape = tuple(d.batch_shape) if nb is not None else tuple(leaf.shape)
                 raise ValueError(f"{factor!r} data[{k}]: expected a leading batch (E,) = ({E},) "
                                  f"or (B, E) = ({B}, {E}), got {shape}")
+            d = type(d)._from_leaf(leaf.detach()) if isinstance(d, LieGroup) else leaf.detach()
             if per_problem:
                 d = _expand_problem(d, B)
             data.append(d)
@@ -145,6 +146,8 @@ class Problem:
                              f"({self.B}, {factor.size}), got {tuple(given.shape[:2])}")
         if not torch.isfinite(given).all():
             raise ValueError(f"{factor!r} {name} has non-finite entries")
+        W = None if W is None else W.detach()
+        L = None if L is None else L.detach()
         if W is not None:
             C, info = torch.linalg.cholesky_ex(W)
             if bool((info != 0).any()):
@@ -172,7 +175,7 @@ class Problem:
         out = []
         for info in self.variables:
             v = graph.variables[info.name]
-            leaf = v.as_matrix() if isinstance(v, LieGroup) else v
+            leaf = (v.as_matrix() if isinstance(v, LieGroup) else v).detach()
             nd = 4 if info.group is not None else 3
             if leaf.dim() < nd:
                 leaf = leaf.unsqueeze(0)
