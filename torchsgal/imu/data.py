@@ -91,10 +91,10 @@ def load_ros_imu_csv(path, duplicates: str = "error", max_gap: float | None = No
                   for k, cols in _COLUMNS.items() if k != "stamp"}
     except (ValueError, IndexError) as error:
         raise ValueError(f"{path}: a row could not be read as numbers ({error})") from None
-    for k, v in values.items():
+    for field, v in values.items():
         bad = ~np.isfinite(v).all(axis=1)
         if bad.any():
-            raise ValueError(f"{path}: non-finite {k} in row {int(np.argmax(bad)) + 2}")
+            raise ValueError(f"{path}: non-finite {field} in row {int(np.argmax(bad)) + 2}")
     step = np.diff(stamps)
     if (step < 0).any():
         k = int(np.argmax(step < 0))
@@ -103,14 +103,14 @@ def load_ros_imu_csv(path, duplicates: str = "error", max_gap: float | None = No
     dropped = 0
     if (step == 0).any():
         if duplicates == "error":
-            k = np.flatnonzero(step == 0)
-            raise ValueError(f"{path}: {k.size} repeated stamps (first rows {int(k[0]) + 2} and "
-                             f"{int(k[0]) + 3}, {stamps[k[0]]} ns); pass duplicates='drop' to keep the "
+            rep = np.flatnonzero(step == 0)
+            raise ValueError(f"{path}: {rep.size} repeated stamps (first rows {int(rep[0]) + 2} and "
+                             f"{int(rep[0]) + 3}, {stamps[rep[0]]} ns); pass duplicates='drop' to keep the "
                              f"first sample of each stamp")
         keep = np.concatenate(([True], step != 0))
         dropped = int((~keep).sum())
         stamps = stamps[keep]
-        values = {k: v[keep] for k, v in values.items()}
+        values = {name: v[keep] for name, v in values.items()}
     seconds = (stamps - stamps[0]) * 1e-9
     segments = [(0, len(stamps))]
     if max_gap is not None:

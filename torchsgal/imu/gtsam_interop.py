@@ -64,14 +64,16 @@ def to_gtsam_params(gravity: torch.Tensor, gyro_noise_density=0.0, acc_noise_den
         raise ValueError("give both gyro_bias_random_walk and acc_bias_random_walk (combined "
                          "parameters) or neither")
     g = _np(gravity).reshape(3, 1)
-    params = gtsam.PreintegrationCombinedParams(g) if walks[0] is not None else gtsam.PreintegrationParams(g)
+    params = gtsam.PreintegrationParams(g)
+    if walks[0] is not None:
+        combined = gtsam.PreintegrationCombinedParams(g)
+        combined.setBiasOmegaCovariance(np.diag(_axes(walks[0], "gyro_bias_random_walk") ** 2))
+        combined.setBiasAccCovariance(np.diag(_axes(walks[1], "acc_bias_random_walk") ** 2))
+        params = combined
     params.setGyroscopeCovariance(np.diag(_axes(gyro_noise_density, "gyro_noise_density") ** 2))
     params.setAccelerometerCovariance(np.diag(_axes(acc_noise_density, "acc_noise_density") ** 2))
     sigma = checks.finite_number(integration_sigma, "integration_sigma", ">= 0")
     params.setIntegrationCovariance(sigma**2 * np.eye(3))
-    if walks[0] is not None:
-        params.setBiasOmegaCovariance(np.diag(_axes(walks[0], "gyro_bias_random_walk") ** 2))
-        params.setBiasAccCovariance(np.diag(_axes(walks[1], "acc_bias_random_walk") ** 2))
     if body_P_sensor is not None:
         if not isinstance(body_P_sensor, SE3) or body_P_sensor.batch_shape != ():
             raise TypeError(f"body_P_sensor must be one SE3 (batch shape ()), got "
@@ -100,11 +102,12 @@ def from_gtsam_params(params, dtype=torch.float64) -> dict:
                         f"got {type(params).__name__}")
     dtype = checks.dtype_arg(dtype)
     t = lambda x: torch.tensor(np.asarray(x, dtype=np.float64), dtype=dtype)  # noqa: E731
-    out = {"gravity": t(params.n_gravity).reshape(3),
-           "gyro_noise_density": t(_diagonal_sqrt(params.getGyroscopeCovariance(), "gyroscope covariance")),
-           "acc_noise_density": t(_diagonal_sqrt(params.getAccelerometerCovariance(), "accelerometer covariance")),
-           "integration_covariance": t(params.getIntegrationCovariance()),
-           "body_P_sensor": None}
+    out: dict[str, object] = {
+        "gravity": t(params.n_gravity).reshape(3),
+        "gyro_noise_density": t(_diagonal_sqrt(params.getGyroscopeCovariance(), "gyroscope covariance")),
+        "acc_noise_density": t(_diagonal_sqrt(params.getAccelerometerCovariance(), "accelerometer covariance")),
+        "integration_covariance": t(params.getIntegrationCovariance()),
+        "body_P_sensor": None}
     pose = params.getBodyPSensor()
     if pose is not None:
         out["body_P_sensor"] = SE3.from_matrix(t(pose.matrix()))

@@ -223,7 +223,7 @@ class StreamingPreintegration:
         if isinstance(batch_shape, numbers.Integral) and not isinstance(batch_shape, bool):
             batch_shape = (batch_shape,)
         if not isinstance(batch_shape, (tuple, list, torch.Size)) or not all(
-                isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 0 for n in batch_shape):
+                isinstance(n, numbers.Integral) and not isinstance(n, bool) and int(n) >= 0 for n in batch_shape):
             raise TypeError(f"batch_shape must be a tuple of integers >= 0, got {batch_shape!r}")
         self.batch_shape = torch.Size(batch_shape)
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
@@ -268,7 +268,8 @@ class StreamingPreintegration:
         self._X = None if self._r is None else torch.zeros(*batch, 10, 6, **kw)
         self._B = None if self._r is None else torch.zeros(*batch, 6, 6, **kw)
         self._count = 0
-        self._pending, self._pending_count = [], 0
+        self._pending: list = []
+        self._pending_count = 0
         self._bias6, self._q6 = self._bias.unsqueeze(-2), self._q.unsqueeze(-2)
         self._r6 = None if self._r is None else self._r.unsqueeze(-2)
 
