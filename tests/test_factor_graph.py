@@ -520,3 +520,31 @@ def test_float32_and_inputs_that_require_grad():
     assert not out.values["x"].as_matrix().requires_grad and not out.report.cost.requires_grad
     assert torch.equal(m.detach(), before)
     torch.testing.assert_close(out.values["x"].as_matrix(), ref.as_matrix(), rtol=0, atol=1e-12)
+
+
+def test_one_pose_read_by_every_factor_beside_per_factor_points():
+    """A slot whose factors all read one element (passed with batch (B, 1)) beside a slot with
+    one element per factor: gradient and information against finite differences of the cost."""
+    gen = torch.Generator().manual_seed(13)
+    B, M = 3, 9
+    T = ts.SE3.exp(torch.randn(B, 1, 6, generator=gen, dtype=f64))
+    points = torch.randn(B, M, 3, generator=gen, dtype=f64)
+    z = T.act(points) + 0.05 * torch.randn(B, M, 3, generator=gen, dtype=f64)
+    graph = fg.FactorGraph()
+    graph.add_variable("T", T @ ts.SE3.exp(0.1 * torch.randn(B, 1, 6, generator=gen, dtype=f64)))
+    graph.add_variable("p", points + 0.1 * torch.randn(B, M, 3, generator=gen, dtype=f64))
+    graph.add(fg.PointObservation("T", torch.zeros(M, dtype=torch.int64), "p", torch.arange(M), z))
+    graph.add(fg.Factor(lambda p, q: p - q, [("p", torch.arange(M))], [points], dim=3))
+    p = Problem(graph)
+    assert p.blocks[0].uniform == [0, None] and not p.blocks[0].reduced
+    x = p.initial(graph)
+    lin = linearize(p, x)
+    H = dense(p, lin.values)
+    eps = 1e-5
+    for k in (2, 4, 6 + 5):  # pose translation and rotation coordinates, a point coordinate
+        d = torch.zeros(B, p.D, dtype=f64)
+        d[:, k] = eps
+        up, down = linearize(p, p.retract(x, d)), linearize(p, p.retract(x, -d))
+        torch.testing.assert_close(lin.g[:, k], (up.cost - down.cost) / (2 * eps), rtol=1e-6, atol=1e-8)
+        if k >= 6:  # the point rows of g = J^T r are linear in the points: H's column there
+            torch.testing.assert_close(H[:, 6:, k], (up.g - down.g)[:, 6:] / (2 * eps), rtol=1e-6, atol=1e-6)
