@@ -7,10 +7,12 @@ group's functional module (``_f``), the one place its maths lives.
 from __future__ import annotations
 
 import copyreg
+from collections.abc import Iterator, Sequence
 from numbers import Real
-from typing import Sequence
+from typing import Any, ClassVar
 
 import torch
+from typing_extensions import Self
 
 from ..functional import blocks, checks
 from ..functional._blocking import values_readable
@@ -21,7 +23,7 @@ REPR_ELEMENTS = 4  # repr shows the matrices of batches up to this size
 class _AbstractModule:
     """``LieGroup._f``: the base class has no group; any use says so."""
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> Any:
         raise TypeError(_ABSTRACT)
 
 
@@ -71,6 +73,20 @@ class LieGroup:
       matrix shape (from grad, or where the sizes coincide) looks like an element, and the
       group methods compute meaningless values from it.
 
+    Acting on points: ``g.act(x, point_axes=k)`` (and ``act_direction``, ``act_velocity``) for g
+    of batch shape S and x of shape (*T, d):
+
+    - k = 0 (the default): S and T broadcast as torch's elementwise ops (aligned on the right);
+      g (B,) with x (B, d) maps each point by its own element, x (N, B, d) gives (N, B, d).
+    - k > 0: the last k axes of x before the coordinates are sets of points that every element
+      maps whole: x (*T', N1, ..., Nk, d), S and T' broadcast, and the result is
+      (*broadcast(S, T'), N1, ..., Nk, d).  With k = 1, g (B,) maps x (B, N, d) (a set per
+      element) or x (N, d) (one set for all) to (B, N, d).  The same as
+      ``g.reshape(*S, 1, ..., 1).act(x)`` (k ones).
+
+    k is never guessed from the shapes: under k = 0, g (B,) with x (B, B, d) already means
+    ``out[i, j] = g[j] x[i, j]``.
+
     Elements pickle, deepcopy and ``torch.save`` as ``cls(matrix)``; ``torch.load`` reads the
     seven classes with its default ``weights_only=True`` (they are registered as safe globals).
     Loading runs only the constructor's checks, the matrix's shape and dtype, not membership:
@@ -93,12 +109,16 @@ class LieGroup:
     matrix_dim: int
     point_dim: int  # size of the points (events for SGal3) that act() takes
     rotation_dim: int = 3  # 2 for the planar groups
-    _f = _AbstractModule()  # functional module of the group (set by each group)
+    _f: Any = _AbstractModule()  # functional module of the group (set by each group)
     _fixed_note = ""  # how _fixed_deviation measures, for the membership error
+    # set by __init_subclass__ (see there)
+    _group: ClassVar[type[LieGroup]]
+    _state_slots: ClassVar[tuple[str, ...]]
+    _has_state: ClassVar[bool]
 
     __slots__ = ("_matrix",)
 
-    def __init__(self, matrix: torch.Tensor):
+    def __init__(self, matrix: torch.Tensor) -> None:
         """Wraps a group matrix, checking its shape and dtype but not that it is in the group:
         ``from_matrix(M, check=True)`` checks that too (``check=False`` is its default, for
         matrices known to be in the group)."""
@@ -106,14 +126,15 @@ class LieGroup:
         checks.matrix(matrix, self.matrix_dim, "matrix")
         self._matrix = matrix
 
-    def __init_subclass__(cls, **kwargs):
+    def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         # the group: the nearest class that sets _f (SE3 for a user subclass of SE3); binary
         # operations and stack/cat take any instance of it, so they are symmetric in subclasses
         cls._group = cls if "_f" in cls.__dict__ else getattr(cls, "_group", cls)
         # a subclass's instance attributes besides the matrix: its __dict__ (if its instances
         # have one) and slots; the seven built-in classes have neither (__slots__ = ())
-        cls._state_slots = tuple(n for n in copyreg._slotnames(cls) if n != "_matrix")
+        slots = copyreg._slotnames(cls)  # type: ignore[attr-defined]  # pickle's own slot list
+        cls._state_slots = tuple(n for n in slots if n != "_matrix")
         cls._has_state = bool(cls._state_slots) or bool(cls.__dictoffset__)
         _register_pytree(cls)
 
@@ -135,7 +156,7 @@ class LieGroup:
             raise TypeError(_ABSTRACT)
 
     @classmethod
-    def _new(cls, matrix: torch.Tensor):
+    def _new(cls, matrix: torch.Tensor) -> Self:
         """How every operation and constructor builds its result: the constructor's shape and
         dtype checks, then an element of ``cls`` without calling ``__init__``, so that a
         subclass whose ``__init__`` takes other arguments still composes, inverts, indexes..."""
@@ -146,7 +167,7 @@ class LieGroup:
         return g
 
     @classmethod
-    def _from_leaf(cls, leaf, state: dict | None = None):
+    def _from_leaf(cls, leaf: Any, state: dict | None = None) -> Self:
         """The pytree unflatten: wraps ``leaf`` unchecked, since torch.func and torch.utils._pytree
         rebuild the structure around whatever leaves they computed (Jacobians of other shapes,
         in_dims, sizes), then sets the attributes ``state`` (the context) without calling
@@ -160,12 +181,12 @@ class LieGroup:
 
     # ---------------------------------------------------------------- constructors
     @classmethod
-    def exp(cls, xi: torch.Tensor):
+    def exp(cls, xi: torch.Tensor) -> Self:
         """exp(xi^) for tangent vectors (..., dof); differentiable w.r.t. xi (custom backward)."""
         return cls._new(cls._f.exp(xi))
 
     @classmethod
-    def from_matrix(cls, matrix: torch.Tensor, check: bool = False, tol: float | None = None):
+    def from_matrix(cls, matrix: torch.Tensor, check: bool = False, tol: float | None = None) -> Self:
         """From homogeneous matrices (..., n, n).  With ``check=True`` raises ValueError if any
         matrix is not in the group (orthonormal rotation with det +1, fixed rows), within
         ``tol`` (None or a finite number > 0; default 1e-4 for float32, 1e-9 for float64).
@@ -223,7 +244,8 @@ class LieGroup:
         return (M - rebuilt).abs().amax(dim=(-1, -2))
 
     @classmethod
-    def identity(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None):
+    def identity(cls, batch_shape: Sequence[int] | int = (), dtype: torch.dtype | None = None,
+                 device: torch.device | str | None = None) -> Self:
         """The identity element, repeated over ``batch_shape`` (an int n means (n,); default
         dtype: torch's default)."""
         cls._concrete()
@@ -233,7 +255,9 @@ class LieGroup:
         return cls._new(eye.expand(*batch_shape, cls.matrix_dim, cls.matrix_dim).clone())
 
     @classmethod
-    def random(cls, batch_shape: Sequence[int] | int = (), dtype=None, device=None, generator=None):
+    def random(cls, batch_shape: Sequence[int] | int = (), dtype: torch.dtype | None = None,
+               device: torch.device | str | None = None,
+               generator: torch.Generator | None = None) -> Self:
         """Uniform rotations; translations, velocities, times and Sim3's log-scale standard normal.
         ``batch_shape`` as in ``identity``; ``generator`` None or a torch.Generator."""
         batch_shape = checks.shape(batch_shape, "batch_shape")
@@ -247,14 +271,33 @@ class LieGroup:
     def batch_shape(self) -> torch.Size:
         """The leading axes of the matrix (TypeError for a torch.func wrapper whose leaf is not
         a tensor of trailing shape (n, n), see the class docstring)."""
-        try:
-            shape = self._matrix.shape
-            n = self.matrix_dim
-            if shape[-1] != n or shape[-2] != n:
-                raise IndexError
-        except (AttributeError, IndexError):
-            raise TypeError(self._not_matrices()) from None
-        return shape[:-2]
+        m = self._matrix
+        n = self.matrix_dim
+        # a leaf that is not a tensor may be a group element, whose .shape is its batch shape
+        if not isinstance(m, torch.Tensor) or m.dim() < 2 or m.shape[-1] != n or m.shape[-2] != n:
+            raise TypeError(self._not_matrices())
+        return m.shape[:-2]
+
+    @property
+    def shape(self) -> torch.Size:
+        """The batch shape, the same as ``batch_shape`` (the matrix axes are not counted: an SE3
+        of ``shape`` (B,) wraps a (B, 4, 4) tensor)."""
+        return self.batch_shape
+
+    @property
+    def requires_grad(self) -> bool:
+        """Whether autograd records operations on the wrapped matrix."""
+        return self._matrix.requires_grad
+
+    def requires_grad_(self, requires_grad: bool = True) -> Self:
+        """Sets ``requires_grad`` of the wrapped matrix in place (as Tensor.requires_grad_, which
+        refuses a matrix that is not a leaf of the autograd graph) and returns this element.
+        The gradient then lands on ``as_matrix().grad``: a Euclidean gradient of the matrix
+        entries, not a tangent vector.  To optimise an element on the group, hold it in a
+        ``torchsgal.nn.ManifoldParameter``, which optimises a right perturbation."""
+        requires_grad = checks.boolean(requires_grad, "requires_grad")
+        self._matrix.requires_grad_(requires_grad)
+        return self
 
     @property
     def dtype(self) -> torch.dtype:
@@ -295,7 +338,7 @@ class LieGroup:
         return self._matrix[..., :k, :k]
 
     # ------------------------------------------------------------------ operations
-    def _same_type(self, other, name: str):
+    def _same_type(self, other: LieGroup, name: str) -> LieGroup:
         """other: an element of the same group (an instance of its class or of a subclass, in
         either order), dtype and device, with a broadcasting batch."""
         if not isinstance(other, self._group):
@@ -307,19 +350,19 @@ class LieGroup:
         """Principal logarithm (..., dof), rotation angle in [0, pi] (custom backward)."""
         return self._f.log(self._matrix)
 
-    def compose(self, other):
+    def compose(self, other: LieGroup) -> Self:
         """g h, the same as ``g @ h``.  Inside torch.compile(fullgraph=True) write
         ``g.compose(h)``: dynamo (torch 2.13) cannot trace ``@`` between objects that are not
         tensors (without fullgraph, ``@`` only breaks the graph).  The methods below use it."""
         self._same_type(other, "other")
         return type(self)._new(self._f.compose(self._matrix, other._matrix))
 
-    def __matmul__(self, other):
+    def __matmul__(self, other: LieGroup) -> Self:
         if not isinstance(other, LieGroup):
             return NotImplemented
         return self.compose(other)
 
-    def inverse(self):
+    def inverse(self) -> Self:
         """g^-1, in closed form (no general matrix inverse)."""
         return type(self)._new(self._f.inverse(self._matrix))
 
@@ -327,33 +370,33 @@ class LieGroup:
         """Ad(g) (..., dof, dof): Ad(g) xi = vee(g hat(xi) g^-1)."""
         return self._f.adjoint(self._matrix)
 
-    def _delta(self, delta):
+    def _delta(self, delta: torch.Tensor) -> torch.Tensor:
         """Checks a tangent-vector argument (..., dof) against self before exp is applied."""
         checks.vector(delta, self.dof, "delta")
         checks.binary(self._matrix, 2, delta, 1, "self", "delta")
         return delta
 
-    def rplus(self, delta: torch.Tensor):
+    def rplus(self, delta: torch.Tensor) -> Self:
         """g exp(delta)."""
         return self.compose(type(self).exp(self._delta(delta)))
 
-    def lplus(self, delta: torch.Tensor):
+    def lplus(self, delta: torch.Tensor) -> Self:
         """exp(delta) g."""
         return type(self).exp(self._delta(delta)).compose(self)
 
-    def rminus(self, other) -> torch.Tensor:
+    def rminus(self, other: LieGroup) -> torch.Tensor:
         """log(other^-1 g)."""
         return self._same_type(other, "other").between(self).log()
 
-    def lminus(self, other) -> torch.Tensor:
+    def lminus(self, other: LieGroup) -> torch.Tensor:
         """log(g other^-1)."""
         return self.compose(self._same_type(other, "other").inverse()).log()
 
-    def between(self, other):
+    def between(self, other: LieGroup) -> Self:
         """g^-1 other."""
         return self.inverse().compose(self._same_type(other, "other"))
 
-    def interpolate(self, other, alpha):
+    def interpolate(self, other: LieGroup, alpha: float | torch.Tensor) -> Self:
         """Geodesic g exp(alpha log(g^-1 h)); alpha a finite number or a tensor broadcasting with
         the batch (0 gives g, 1 gives h; a tensor's values are not checked).  Broadcasting is
         torch's: alpha (N, 1) against a batch (N,) gives (N, N); pass alpha (N,) for one value per
@@ -371,7 +414,7 @@ class LieGroup:
         checks.broadcast_batch(batch=delta.shape[:-1], alpha=alpha.shape)
         return self.rplus(alpha.unsqueeze(-1) * delta)
 
-    def allclose(self, other, rtol: float = 1e-5, atol: float = 1e-8, equal_nan: bool = False) -> bool:
+    def allclose(self, other: LieGroup, rtol: float = 1e-5, atol: float = 1e-8, equal_nan: bool = False) -> bool:
         """True if every matrix of g is close to the matching (broadcast) matrix of ``other``, as
         torch.allclose on the homogeneous matrices: |g - h| <= atol + rtol |h| entrywise, NaNs
         equal only with ``equal_nan=True``.  A Python bool (one host sync; RuntimeError on
@@ -387,9 +430,32 @@ class LieGroup:
                                "tensors on device 'meta' have none")
         return bool(torch.allclose(a, b, rtol=rtol, atol=atol, equal_nan=equal_nan))
 
-    def act_direction(self, d: torch.Tensor) -> torch.Tensor:
-        """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d."""
-        return self._f.act_direction(self._matrix, d)
+    def act_direction(self, d: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d.
+        ``point_axes`` as in ``act``."""
+        return self._f.act_direction(self._acting(d, "d", point_axes, self.rotation_dim), d)
+
+    def _acting(self, x: torch.Tensor, name: str, point_axes: int, size: int) -> torch.Tensor:
+        """The matrix that acts on ``x`` in ``act(x, point_axes)``, act_direction and
+        act_velocity (the rule is in the class docstring): with ``point_axes`` = k > 0, a view with
+        k axes of size 1 between the batch and matrix axes."""
+        k = checks.integer(point_axes, "point_axes", 0)
+        if k == 0 or not isinstance(x, torch.Tensor):  # the functional layer names a non-tensor
+            return self._matrix
+        if x.dim() < k + 1:
+            raise ValueError(f"{name} must have shape (..., {', '.join(['N'] * k)}, {size}) "
+                             f"with point_axes={k}, got {tuple(x.shape)}")
+        batch = self.batch_shape
+        outer = x.shape[: x.dim() - 1 - k]
+        try:
+            torch.broadcast_shapes(batch, outer)
+        except RuntimeError:
+            raise ValueError(
+                f"the batch shape {tuple(batch)} of this {type(self).__name__} does not broadcast "
+                f"with the axes {tuple(outer)} of {name} {tuple(x.shape)} before its {k} point "
+                f"ax{'is' if k == 1 else 'es'} (point_axes={k})") from None
+        index = (Ellipsis,) + (None,) * k + (slice(None), slice(None))
+        return self._matrix[index]  # a view
 
     # ----------------------------------------------------------- static algebra maps
     @classmethod
@@ -428,7 +494,7 @@ class LieGroup:
         return cls._f.jr_inv(checks.vector(xi, cls.dof, "xi"))
 
     # ---------------------------------------------------------------- batch handling
-    def __getitem__(self, index):
+    def __getitem__(self, index: Any) -> Self:
         """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors).
 
         As for tensors, ints, slices and None give a view of this element's matrix: it shares
@@ -451,20 +517,20 @@ class LieGroup:
             raise TypeError(f"len() of an unbatched {type(self).__name__}")
         return self.batch_shape[0]
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Self]:
         """The elements along the first batch axis (as iterating a tensor); TypeError for an
         unbatched element, as for a 0-d tensor."""
         if not self.batch_shape:
             raise TypeError(f"iteration over an unbatched {type(self).__name__}")
         return (self[i] for i in range(self.batch_shape[0]))
 
-    def __bool__(self):
+    def __bool__(self) -> bool:
         raise TypeError(
             f"the truth value of a {type(self).__name__} is ambiguous: test `g is not None`, or "
             f"the batch size with g.batch_shape.numel()"
         )
 
-    def reshape(self, *shape):
+    def reshape(self, *shape: Any) -> Self:
         """A new batch shape (one -1 allowed), as torch.reshape on the batch axes."""
         if len(shape) == 1 and not isinstance(shape[0], int):
             shape = tuple(shape[0])
@@ -475,18 +541,18 @@ class LieGroup:
             raise ValueError(f"cannot reshape the batch shape {tuple(self.batch_shape)} of this "
                              f"{type(self).__name__} to {tuple(shape)}: {err}") from None
 
-    def flatten(self):
+    def flatten(self) -> Self:
         """The batch axes flattened into one (an unbatched element gets batch shape (1,))."""
         return self.reshape(-1)
 
-    def squeeze(self, dim: int | None = None):
+    def squeeze(self, dim: int | None = None) -> Self:
         """Removes batch axes of size 1: all of them, or only ``dim`` (counted over the batch
         axes) if it has size 1."""
         if dim is None:
             return self.reshape(tuple(s for s in self.batch_shape if s != 1))
         return type(self)._new(self._matrix.squeeze(_batch_axis(dim, len(self.batch_shape), "dim")))
 
-    def expand(self, *shape):
+    def expand(self, *shape: Any) -> Self:
         """The elements broadcast to the batch shape ``shape`` (a view, as Tensor.expand)."""
         if len(shape) == 1 and not isinstance(shape[0], int):
             shape = tuple(shape[0])
@@ -499,12 +565,12 @@ class LieGroup:
         except RuntimeError as err:
             raise ValueError(f"{why}: {err}") from None
 
-    def unsqueeze(self, dim: int):
+    def unsqueeze(self, dim: int) -> Self:
         """A new batch axis of size 1 at ``dim`` (counted over the batch axes only)."""
         return type(self)._new(self._matrix.unsqueeze(_batch_axis(dim, len(self.batch_shape) + 1, "dim")))
 
     @classmethod
-    def stack(cls, elements: Sequence["LieGroup"], dim: int = 0):
+    def stack(cls, elements: Sequence[LieGroup], dim: int = 0) -> Self:
         """Stack elements of equal batch shape along a new batch axis ``dim``."""
         mats = cls._matrices(elements, "stack")
         axis = _batch_axis(dim, mats[0].dim() - 1, "dim")
@@ -516,7 +582,7 @@ class LieGroup:
         return cls._new(torch.stack(mats, dim=axis))
 
     @classmethod
-    def cat(cls, elements: Sequence["LieGroup"], dim: int = 0):
+    def cat(cls, elements: Sequence[LieGroup], dim: int = 0) -> Self:
         """Concatenate elements along their existing batch axis ``dim``."""
         mats = cls._matrices(elements, "cat")
         if mats[0].dim() == 2:
@@ -531,7 +597,7 @@ class LieGroup:
         return cls._new(torch.cat(mats, dim=axis))
 
     @classmethod
-    def _matrices(cls, elements, op: str) -> list[torch.Tensor]:
+    def _matrices(cls, elements: Sequence[LieGroup], op: str) -> list[torch.Tensor]:
         if isinstance(elements, LieGroup):  # iterating it would stack or cat its first batch axis
             raise TypeError(f"{cls.__name__}.{op}: elements must be a sequence of elements (a list "
                             f"or tuple), got one {type(elements).__name__}; write "
@@ -547,35 +613,35 @@ class LieGroup:
         checks.same_device_dtype(**{f"elements[{i}]": e._matrix for i, e in enumerate(elements)})
         return [e._matrix for e in elements]
 
-    def to(self, *args, **kwargs):
+    def to(self, *args: Any, **kwargs: Any) -> Self:
         """As torch.Tensor.to on the matrix (dtype and/or device)."""
         return type(self)._new(self._matrix.to(*args, **kwargs))
 
-    def float(self):
+    def float(self) -> Self:
         """The same elements in float32."""
         return self.to(torch.float32)
 
-    def double(self):
+    def double(self) -> Self:
         """The same elements in float64."""
         return self.to(torch.float64)
 
-    def cpu(self):
+    def cpu(self) -> Self:
         """The same elements on the CPU."""
         return type(self)._new(self._matrix.cpu())
 
-    def cuda(self, device=None):
+    def cuda(self, device: torch.device | int | str | None = None) -> Self:
         """The same elements on a CUDA device."""
         return type(self)._new(self._matrix.cuda(device))
 
-    def detach(self):
+    def detach(self) -> Self:
         """The same elements, detached from the autograd graph."""
         return type(self)._new(self._matrix.detach())
 
-    def clone(self):
+    def clone(self) -> Self:
         """A copy with its own storage."""
         return type(self)._new(self._matrix.clone())
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
         """Pickles (and torch.save's, deepcopies) as ``cls(matrix)``: loading goes through the
         constructor's shape and dtype checks (not a membership check), and torch.load's default
         weights_only unpickler accepts it (the group classes are registered with
@@ -610,7 +676,7 @@ class LieGroup:
 LieGroup._group = LieGroup  # abstract: no group of its own (_new and __init__ refuse it)
 
 
-def _rebuild(cls, matrix, state=None):
+def _rebuild(cls: type[LieGroup], matrix: torch.Tensor, state: dict | None = None) -> LieGroup:
     """Unpickles an element with attributes besides its matrix, or of a subclass with its own
     ``__init__`` (LieGroup.__reduce__): checks the matrix's shape and dtype as the constructor
     does, then sets the attributes without calling ``__init__`` (as pickle does for other
@@ -623,7 +689,7 @@ def _rebuild(cls, matrix, state=None):
     return cls._from_leaf(matrix, state)
 
 
-def _register_pytree(cls) -> None:
+def _register_pytree(cls: type[LieGroup]) -> None:
     """Registers a group class as a pytree node with one leaf, its matrix, so that torch.func
     transforms (vmap, grad, jacrev, ...) take and return group objects; the context is the
     instance's other attributes (None for the built-in classes)."""
@@ -637,7 +703,7 @@ def _register_pytree(cls) -> None:
     )
 
 
-def _tol_arg(tol) -> float | None:
+def _tol_arg(tol: float | None) -> float | None:
     """``tol``: None or a finite number > 0."""
     return None if tol is None else checks.finite_number(tol, "tol", "> 0")
 

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import torch
+from typing_extensions import Self
 
 from ..functional import se2 as _se2
 from ._components import prepare
@@ -18,7 +19,7 @@ class SE2(LieGroup):
     __slots__ = ()
 
     @classmethod
-    def from_components(cls, rotation: torch.Tensor, position: torch.Tensor):
+    def from_components(cls, rotation: torch.Tensor, position: torch.Tensor) -> Self:
         """rotation (..., 2, 2), position (..., 2), broadcast to one batch."""
         C, r = prepare(rotation=(rotation, (2, 2)), position=(position, (2,)))
         return cls._new(_se2.from_components(C, r))
@@ -27,6 +28,8 @@ class SE2(LieGroup):
         """The position r (..., 2) (a view of the matrix)."""
         return self._matrix[..., :2, 2]
 
-    def act(self, p: torch.Tensor) -> torch.Tensor:
-        """Points (..., 2): C p + r."""
-        return self._f.act(self._matrix, p)
+    def act(self, p: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Points (..., 2): C p + r.
+        ``point_axes``: how many axes of points before the coordinates every element maps whole
+        (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
+        return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)

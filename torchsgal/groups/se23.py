@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import torch
+from typing_extensions import Self
 
 from ..functional import se23 as _se23
 from ._components import prepare
@@ -17,7 +18,9 @@ class SE23(LieGroup):
     __slots__ = ()
 
     @classmethod
-    def from_components(cls, rotation: torch.Tensor, velocity: torch.Tensor, position: torch.Tensor):
+    def from_components(
+        cls, rotation: torch.Tensor, velocity: torch.Tensor, position: torch.Tensor
+    ) -> Self:
         """rotation (..., 3, 3), velocity (..., 3), position (..., 3), broadcast to one batch."""
         C, v, r = prepare(
             rotation=(rotation, (3, 3)), velocity=(velocity, (3,)), position=(position, (3,))
@@ -32,10 +35,13 @@ class SE23(LieGroup):
         """The position r (..., 3) (a view of the matrix)."""
         return self._matrix[..., :3, 4]
 
-    def act(self, p: torch.Tensor) -> torch.Tensor:
-        """Points (..., 3): C p + r."""
-        return self._f.act(self._matrix, p)
+    def act(self, p: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Points (..., 3): C p + r.
+        ``point_axes``: how many axes of points before the coordinates every element maps whole
+        (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
+        return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)
 
-    def act_velocity(self, u: torch.Tensor) -> torch.Tensor:
-        """Velocities (..., 3), homogeneous [u, 1, 0]: C u + v."""
-        return self._f.act_velocity(self._matrix, u)
+    def act_velocity(self, u: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Velocities (..., 3), homogeneous [u, 1, 0]: C u + v.
+        ``point_axes`` as in ``act``."""
+        return self._f.act_velocity(self._acting(u, "u", point_axes, 3), u)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import torch
+from typing_extensions import Self
 
 from ..functional import sgal3 as _sgal3
 from ._components import prepare
@@ -24,7 +25,7 @@ class SGal3(LieGroup):
         velocity: torch.Tensor,
         position: torch.Tensor,
         time: torch.Tensor,
-    ):
+    ) -> Self:
         """rotation (..., 3, 3), velocity (..., 3), position (..., 3), time (...).  The batch
         shapes broadcast as in torch: a time of shape (B, 1) with components of batch (B,) gives a
         (B, B) batch (take ``time[..., 0]``, e.g. for the (B, 1) ``dtau`` of the TLS solvers)."""
@@ -48,10 +49,13 @@ class SGal3(LieGroup):
         """The time offset tau (...)."""
         return self._matrix[..., 3, 4]
 
-    def act(self, e: torch.Tensor) -> torch.Tensor:
-        """Events (..., 4) = (x, t): (C x + v t + r, t + tau), (3.31)."""
-        return self._f.act(self._matrix, e)
+    def act(self, e: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Events (..., 4) = (x, t): (C x + v t + r, t + tau), (3.31).
+        ``point_axes``: how many axes of points before the coordinates every element maps whole
+        (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
+        return self._f.act(self._acting(e, "e", point_axes, self.point_dim), e)
 
-    def act_velocity(self, u: torch.Tensor) -> torch.Tensor:
-        """Velocities (..., 3), homogeneous [u, 1, 0]: C u + v."""
-        return self._f.act_velocity(self._matrix, u)
+    def act_velocity(self, u: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Velocities (..., 3), homogeneous [u, 1, 0]: C u + v.
+        ``point_axes`` as in ``act``."""
+        return self._f.act_velocity(self._acting(u, "u", point_axes, 3), u)

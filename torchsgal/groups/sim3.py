@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import torch
+from typing_extensions import Self
 
 from ..functional import sim3 as _sim3
 from ._components import prepare
@@ -29,7 +30,9 @@ class Sim3(LieGroup):
     __slots__ = ()
 
     @classmethod
-    def from_components(cls, rotation: torch.Tensor, position: torch.Tensor, scale: torch.Tensor):
+    def from_components(
+        cls, rotation: torch.Tensor, position: torch.Tensor, scale: torch.Tensor
+    ) -> Self:
         """rotation (..., 3, 3), position r (..., 3), scale s (...) (0-dim for one element).
         Only shapes, dtypes and devices are checked, not values: s must be positive, and C a
         rotation (``from_matrix(M, check=True)`` checks the values of a matrix)."""
@@ -65,6 +68,8 @@ class Sim3(LieGroup):
         """s = exp(lambda) (...) = 1 / M[3, 3]."""
         return 1.0 / self._matrix[..., 3, 3]
 
-    def act(self, p: torch.Tensor) -> torch.Tensor:
-        """Points (..., 3): s (C p + r)."""
-        return self._f.act(self._matrix, p)
+    def act(self, p: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Points (..., 3): s (C p + r).
+        ``point_axes``: how many axes of points before the coordinates every element maps whole
+        (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
+        return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)

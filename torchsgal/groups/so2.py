@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import torch
+from typing_extensions import Self
 
 from ..functional import so2 as _so2
 from ._components import prepare
@@ -18,7 +19,7 @@ class SO2(LieGroup):
     __slots__ = ()
 
     @classmethod
-    def from_components(cls, rotation: torch.Tensor):
+    def from_components(cls, rotation: torch.Tensor) -> Self:
         """The rotation matrix (2, 2) itself (the one component; the same API as the other groups)."""
         (C,) = prepare(rotation=(rotation, (2, 2)))
         return cls._new(C)
@@ -27,6 +28,8 @@ class SO2(LieGroup):
         """theta in (-pi, pi] (...)."""
         return self.log()[..., 0]
 
-    def act(self, p: torch.Tensor) -> torch.Tensor:
-        """Points (..., 2): C p."""
-        return self._f.act(self._matrix, p)
+    def act(self, p: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Points (..., 2): C p.
+        ``point_axes``: how many axes of points before the coordinates every element maps whole
+        (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
+        return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import torch
+from typing_extensions import Self
 
 from ..functional import so3 as _so3
 from ._components import prepare
@@ -17,7 +18,7 @@ class SO3(LieGroup):
     __slots__ = ()
 
     @classmethod
-    def from_rotation(cls, rotation: torch.Tensor, check: bool = False):
+    def from_rotation(cls, rotation: torch.Tensor, check: bool = False) -> Self:
         """The same as ``from_matrix(rotation, check)``."""
         return cls.from_matrix(rotation, check=check)
 
@@ -34,11 +35,13 @@ class SO3(LieGroup):
         return self._f.to_quaternion(self._matrix, order)
 
     @classmethod
-    def from_components(cls, rotation: torch.Tensor):
+    def from_components(cls, rotation: torch.Tensor) -> Self:
         """The rotation matrix (3, 3) itself (the one component; the same API as the other groups)."""
         (C,) = prepare(rotation=(rotation, (3, 3)))
         return cls._new(C)
 
-    def act(self, p: torch.Tensor) -> torch.Tensor:
-        """Points (..., 3): C p."""
-        return self._f.act(self._matrix, p)
+    def act(self, p: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """Points (..., 3): C p.
+        ``point_axes``: how many axes of points before the coordinates every element maps whole
+        (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
+        return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)
