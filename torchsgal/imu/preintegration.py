@@ -336,7 +336,9 @@ class Preintegration:
     covariance     (..., 10, 10) or None: right perturbation, Delta_true = delta exp(eps),
                    tangent [rho, nu, phi, iota].  With the default time_noise_density=0
                    (exact timestamps) its iota row and column are zero: it is singular
-                   (rank 9).  For a NEES or a log-likelihood use the 9-dof block
+                   (rank 9).  ``ConcentratedGaussian(delta, covariance)`` takes it (the
+                   zero row marks the exactly known time: sampling, a 9-dof NEES and the
+                   density on the supported subspace); by hand, use the 9-dof block
                    ``covariance[..., :9, :9]`` with eps[..., :9], or integrate with a
                    time_noise_density > 0.
     bias_jacobian  (..., 10, 6) or None: Delta(b + db) ~ delta exp(bias_jacobian db) with
@@ -461,13 +463,14 @@ def preintegrate(
     bias's does.  The clock [s/s/sqrt(Hz)] (a number or a 0-d tensor: white noise on the rate of
     time, entering iota; 0 = exact timestamps).  A tensor density must have gyro's dtype and
     device; a number is used as a Python float (no copy to the device); a negative or
-    non-finite number raises ValueError, and so do negative or non-finite tensor entries where reading them
-    costs no host sync (as for dt).  The model is continuous-time white noise n(s) on the
+    non-finite number raises ValueError, and so do negative or non-finite tensor entries where
+    reading them costs no host sync (as for dt).  The model is continuous-time white noise n(s) on the
     signals, entering the tangent as G n = [0, -n_a, -n_g, n_t] (Q_c = diag(s_a^2, s_g^2, s_t^2)).
     With time_noise_density=0 (the default) the window length is exact, so the covariance's
     iota row and column are zero and the 10 x 10 covariance is singular (rank 9): invert or
     Cholesky-factor only its 9-dof block ``covariance[..., :9, :9]`` (and use eps[..., :9] in a
-    NEES), or give a time_noise_density > 0.
+    NEES), use ``ConcentratedGaussian``, which treats the zero row as a known direction, or
+    give a time_noise_density > 0.
 
     Covariance (right perturbation, Delta_true = Delta exp(eps), tangent [rho, nu, phi, iota]):
     to first order eps = int_0^T Ad(Delta^-1 Delta(s)) G n(s) ds, so
