@@ -200,3 +200,15 @@ def test_write_errors(tmp_path):
         write_pose_graph(tmp_path / "g", graph, edge_tag="EDGE_SE3")
     with pytest.raises(ValueError, match="does not fit a graph of SE2"):
         write_pose_graph(tmp_path / "g", graph, edge_tag="EDGE3")
+    bad = random_graph(ts.SE2, edge_tag="EDGE2")
+    bad.information = bad.information[:, :2, :2]
+    with pytest.raises(ValueError, match=r"information must have shape \(6, 3, 3\), got \(6, 2, 2\)"):
+        write_pose_graph(tmp_path / "g", bad)
+    bad = random_graph(ts.SE2, edge_tag="EDGE2")
+    bad.edges = bad.edges + 10
+    with pytest.raises(ValueError, match=r"edges must hold positions in ids, in \[0, 5\]"):
+        write_pose_graph(tmp_path / "g", bad)
+    bad = random_graph(ts.SE2, edge_tag="EDGE2")
+    bad.poses = bad.poses[:3]
+    with pytest.raises(ValueError, match=r"poses must be None or SE2 of batch \(6,\)"):
+        write_pose_graph(tmp_path / "g", bad)

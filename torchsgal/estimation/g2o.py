@@ -139,6 +139,7 @@ def write_pose_graph(path: str | os.PathLike, graph: PoseGraph, edge_tag: str | 
         raise ValueError(f"edge_tag must be one of {EDGE_TAGS}, got {edge_tag!r}")
     if _IS_3D[edge_tag] != (graph.group is SE3):
         raise ValueError(f"edge_tag {edge_tag!r} does not fit a graph of {graph.group.__name__}")
+    _check_graph(graph)
     lines = []
     if graph.poses is not None:
         values = _pose_numbers(VERTEX_TAG[edge_tag], graph.poses)
@@ -169,6 +170,31 @@ def odometry_initial_guess(graph: PoseGraph) -> SE3 | SE2:
     return graph.group.from_matrix(torch.from_numpy(poses))
 
 
+def _check_graph(graph: PoseGraph) -> None:
+    """The fields' types and shapes agree (a PoseGraph made by hand), ValueError otherwise."""
+    if graph.group not in (SE3, SE2):
+        raise ValueError(f"graph.group must be SE3 or SE2, got {graph.group!r}")
+    n, d = graph.ids.shape[0], graph.group.dof
+    E = graph.edges.shape[0]
+    problems = []
+    if graph.ids.dtype != torch.int64 or graph.ids.dim() != 1:
+        problems.append(f"ids must be int64 (N,), got {graph.ids.dtype} {tuple(graph.ids.shape)}")
+    if graph.edges.dtype != torch.int64 or graph.edges.shape != (E, 2):
+        problems.append(f"edges must be int64 (E, 2), got {graph.edges.dtype} {tuple(graph.edges.shape)}")
+    elif E and (int(graph.edges.min()) < 0 or int(graph.edges.max()) >= n):
+        problems.append(f"edges must hold positions in ids, in [0, {n - 1}]")
+    if not isinstance(graph.measurements, graph.group) or graph.measurements.batch_shape != (E,):
+        problems.append(f"measurements must be {graph.group.__name__} of batch ({E},), got "
+                        f"{type(graph.measurements).__name__}")
+    if graph.information.shape != (E, d, d):
+        problems.append(f"information must have shape ({E}, {d}, {d}), got {tuple(graph.information.shape)}")
+    if graph.poses is not None and (not isinstance(graph.poses, graph.group)
+                                    or graph.poses.batch_shape != (n,)):
+        problems.append(f"poses must be None or {graph.group.__name__} of batch ({n},)")
+    if problems:
+        raise ValueError("graph: " + "; ".join(problems))
+
+
 # --------------------------------------------------------------------------- parsing
 def _numbers(tokens: list[str], n_ids: int, n_values: int, path, number: int):
     tag = tokens[0]
@@ -178,7 +204,7 @@ def _numbers(tokens: list[str], n_ids: int, n_values: int, path, number: int):
                          f"({n_ids} ids, {n_values} numbers), got {len(tokens) - 1}")
     ids = []
     for k, t in enumerate(tokens[1:1 + n_ids], start=1):
-        if not t.isdigit():
+        if not (t.isascii() and t.isdigit()):
             raise ValueError(f"{path}:{number}: {tag} field {k}, token {t!r}, is not a vertex id "
                              f"(an integer >= 0)")
         ids.append(int(t))
