@@ -338,7 +338,11 @@ def test_sparse_linear_solver_matches_dense(backend):
         graph.add(fg.Prior("x", 0, Z0[0], information=W))
         graph.add(fg.Between("x", EDGES_I, EDGES_J, Z[0], information=W))
         results[solver] = fg.levenberg_marquardt(graph, linear_solver=solver)
+        results["gn " + solver] = fg.gauss_newton(graph, linear_solver=solver)
     a, b = results["dense"], results[backend]
+    gn_a, gn_b = results["gn dense"], results["gn " + backend]
+    assert gn_a.report.iterations.tolist() == gn_b.report.iterations.tolist()
+    torch.testing.assert_close(gn_b.report.cost, gn_a.report.cost, rtol=1e-10, atol=0)
     assert type(b.system).__name__ == "SparseSystem"
     assert a.report.iterations.tolist() == b.report.iterations.tolist()
     torch.testing.assert_close(b.report.cost, a.report.cost, rtol=1e-10, atol=0)

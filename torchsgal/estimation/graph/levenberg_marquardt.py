@@ -18,7 +18,9 @@ state's ``increaseLambda``/``decreaseLambda`` and ``NonlinearOptimizer::defaultO
 
 ``iterations`` counts accepted steps, as GTSAM's ``optimizer.iterations()``.  Problems that
 have stopped leave the working set (index_select once per change), so they cost nothing more;
-one host read per round (how many problems still run).
+the dense (batched) path reads one value per round on the host (how many problems still
+run).  The sparse path (one problem) runs its factorisation on the host and linearises a
+trial point only once its step is accepted.
 """
 from __future__ import annotations
 
@@ -247,7 +249,9 @@ def _round(problem: Problem, system, s: _State, o: dict, max_iterations: int, ep
     delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
     x_new = problem.retract(s.x, delta)
-    lin_new = linearize(problem, x_new)
+    # a batch linearises every trial point at once (the Jacobians serve where the step is
+    # accepted); one large problem evaluates the cost first and linearises only an accepted step
+    lin_new = linearize(problem, x_new, want_jacobian=not system.cost_first)
     cost, new_cost = s.lin.cost, lin_new.cost
     cost_change = cost - new_cost
     if o["damped"]:
@@ -264,6 +268,8 @@ def _round(problem: Problem, system, s: _State, o: dict, max_iterations: int, ep
     else:
         success = solved & torch.isfinite(new_cost)
         gave_up, done = ~success, torch.ones_like(success)
+    if system.cost_first:
+        lin_new = linearize(problem, x_new) if bool(success[0]) else s.lin
     x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
     lin = Linearization(*[_where(success, a, b) for a, b in
                           ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),

@@ -35,6 +35,8 @@ def _scaled(H: torch.Tensor, rcond: float) -> tuple[torch.Tensor, torch.Tensor]:
 class DenseSystem:
     """Dense batched normal equations (module docstring)."""
 
+    cost_first = False  # the solver linearises every trial point (one pass for the batch)
+
     def __init__(self, problem: Problem):
         self.problem = problem
         self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
@@ -86,6 +88,8 @@ class DenseSystem:
 
 class SparseSystem:
     """Sparse normal equations of one problem (B = 1), through ``SparseCholesky``."""
+
+    cost_first = True  # the solver evaluates a trial point's cost before linearising it
 
     def __init__(self, problem: Problem, backend: str = "auto"):
         from ..sparse import SparseCholesky
