@@ -1,6 +1,8 @@
-"""Factor graphs (torchsgal.estimation.graph): Jacobians of the built-in factors, Levenberg-
-Marquardt and Gauss-Newton against GTSAM on a batch of small SE(3) pose graphs, a user factor
-(rigid fit) against the closed form, marginals against GTSAM, statuses and input errors."""
+"""Factor graphs (torchsgal.estimation.graph): Jacobians of the built-in factors against
+forward mode and finite differences, the engine's normal equations, a user factor (rigid fit)
+against the closed form, robust fits, statuses, the sparse path, host syncs and input errors
+(comparisons with GTSAM: ``test_factor_graph_gtsam.py``).  The problem generators here are
+shared with that file and ``benchmarks/bench_factor_graph.py``."""
 import numpy as np
 import pytest
 import torch
@@ -149,55 +151,6 @@ def _gtsam_values(x0, b):
     for n in range(x0.batch_shape[1]):
         values.insert(n, gtsam.Pose3(x0[b, n].as_matrix().numpy()))
     return values
-
-
-@pytest.mark.parametrize("solver", ["lm", "gn"])
-def test_pose_graphs_match_gtsam_costs_and_iterations(solver):
-    import gtsam
-
-    _, Z, Z0, x0 = pose_graphs()
-    graph = _graph(Z, Z0, x0)
-    if solver == "lm":
-        result = fg.levenberg_marquardt(graph)
-    else:
-        result = fg.gauss_newton(graph)
-    costs, iterations, poses = [], [], []
-    for b in range(Z.batch_shape[0]):
-        g = _gtsam_graph(Z, Z0, b)
-        if solver == "lm":
-            opt = gtsam.LevenbergMarquardtOptimizer(g, _gtsam_values(x0, b), gtsam.LevenbergMarquardtParams())
-        else:
-            opt = gtsam.GaussNewtonOptimizer(g, _gtsam_values(x0, b), gtsam.GaussNewtonParams())
-        values = opt.optimize()
-        costs.append(g.error(values))
-        iterations.append(opt.iterations())
-        poses.append(np.stack([values.atPose3(n).matrix() for n in range(8)]))
-    rep = result.report
-    assert (rep.status == SolverStatus.CONVERGED).all()
-    torch.testing.assert_close(rep.cost, torch.tensor(costs, dtype=f64), rtol=1e-6, atol=0)
-    assert rep.iterations.tolist() == iterations
-    torch.testing.assert_close(result.values["x"].as_matrix(), torch.tensor(np.stack(poses)),
-                               rtol=0, atol=1e-8)
-    # the initial cost is GTSAM's error at x0
-    g0 = _gtsam_graph(Z, Z0, 0)
-    torch.testing.assert_close(rep.initial_cost[0], torch.tensor(g0.error(_gtsam_values(x0, 0)),
-                                                                 dtype=f64), rtol=1e-12, atol=0)
-
-
-def test_marginal_covariances_match_gtsam():
-    import gtsam
-
-    _, Z, Z0, x0 = pose_graphs(B=3, seed=3)
-    result = fg.levenberg_marquardt(_graph(Z, Z0, x0))
-    cov = result.marginal_covariance("x", torch.tensor([0, 5, 7]))
-    assert cov.shape == (3, 3, 6, 6)
-    for b in range(3):
-        g = _gtsam_graph(Z, Z0, b)
-        values = gtsam.LevenbergMarquardtOptimizer(g, _gtsam_values(x0, b)).optimize()
-        marginals = gtsam.Marginals(g, values)
-        for k, n in enumerate((0, 5, 7)):
-            expected = gtsam_map.operator_from_gtsam("SE3", marginals.marginalCovariance(n))
-            torch.testing.assert_close(cov[b, k], torch.tensor(expected), rtol=1e-6, atol=1e-12)
 
 
 def test_gauge_freedom_converges_rank_deficient_not_failure():
@@ -360,47 +313,6 @@ def test_sparse_linear_solver_matches_dense(backend):
         fg.levenberg_marquardt(graph, linear_solver="qr")
     with pytest.raises(ValueError, match="one problem"):
         fg.levenberg_marquardt(_graph(Z, Z0, x0.expand(2, 8)), linear_solver="sparse")
-
-
-ROBUST_PEERS = {"Huber": "Huber", "Cauchy": "Cauchy", "GemanMcClure": "GemanMcClure", "Tukey": "Tukey"}
-
-
-@pytest.mark.parametrize("name", list(ROBUST_PEERS))
-def test_robust_pose_graphs_match_gtsam_robust_noise_models(name):
-    """GTSAM's Robust noise model reweights the whitened system by sqrt(w(|e|)), w = rho'(s),
-    and its error is loss(|e|) = 1/2 rho(e^2): the same model as the engine's (rho'' <= 0)."""
-    import gtsam
-
-    truth, Z, Z0, x0 = pose_graphs(B=16, seed=8, init_noise=0.1)
-    m = Z.as_matrix().clone()
-    m[:, 3] = (Z[:, 3] @ ts.SE3.exp(torch.tensor([0.5, -0.3, 0.2, 0.3, 0.2, -0.1], dtype=f64))).as_matrix()
-    Z = ts.SE3(m)  # one corrupted edge per graph
-    k = 2.0
-    W = torch.diag(SIGMA ** -2)
-    graph = fg.FactorGraph()
-    graph.add_variable("x", x0)
-    graph.add(fg.Prior("x", 0, Z0, information=W))
-    graph.add(fg.Between("x", EDGES_I, EDGES_J, Z, information=W), loss=getattr(fg, name)(k))
-    result = fg.levenberg_marquardt(graph)
-    P = gtsam_map.PERM["SE3"]
-    gauss = gtsam.noiseModel.Gaussian.Information(W.numpy()[np.ix_(P, P)])
-    robust = gtsam.noiseModel.Robust.Create(getattr(gtsam.noiseModel.mEstimator, ROBUST_PEERS[name]).Create(k), gauss)
-    costs, iterations = [], []
-    for b in range(16):
-        g = gtsam.NonlinearFactorGraph()
-        g.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(Z0[b, 0].as_matrix().numpy()), gauss))
-        for e in range(len(EDGES_I)):
-            g.add(gtsam.BetweenFactorPose3(int(EDGES_I[e]), int(EDGES_J[e]),
-                                           gtsam.Pose3(Z[b, e].as_matrix().numpy()), robust))
-        v0 = _gtsam_values(x0, b)
-        if b == 0:
-            torch.testing.assert_close(result.report.initial_cost[0], torch.tensor(g.error(v0), dtype=f64),
-                                       rtol=1e-12, atol=0)
-        opt = gtsam.LevenbergMarquardtOptimizer(g, v0, gtsam.LevenbergMarquardtParams())
-        costs.append(g.error(opt.optimize()))
-        iterations.append(opt.iterations())
-    torch.testing.assert_close(result.report.cost, torch.tensor(costs, dtype=f64), rtol=1e-6, atol=0)
-    assert result.report.iterations.tolist() == iterations
 
 
 def test_point_observations_recover_poses_and_points():
