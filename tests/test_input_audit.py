@@ -107,6 +107,7 @@ FLAGS = {
         ts.SE3, None, None, 1, None, fix_origin="no")),
     "RiemannianPolynomialModel-fix_origin": ("fix_origin", lambda: models.RiemannianPolynomialModel(
         ts.SE3, None, None, None, None, fix_origin="no")),
+    "variables.unwrapped-single": ("single", lambda: ts.estimation.variables.unwrapped(print, "no")),
     "sim3_coefficients-derivatives": ("derivatives", lambda: numerics.sim3_coefficients(
         torch.ones(2, dtype=F64), torch.ones(2, dtype=F64), derivatives="no")),
     "sim3_coefficients-normalise": ("normalise", lambda: numerics.sim3_coefficients(
@@ -162,10 +163,12 @@ def test_sim3_gradients_at_large_scale_log_are_finite_and_correct(fn):
     assert torch.isfinite(y32).all() and torch.isfinite(g64).all()
     bad = ~torch.isfinite(g32).all(-1)
     assert not bad.any(), f"float32 gradients not finite at lambda {lam[bad].tolist()}"
-    # float32 against float64, relative to the largest entry of each row's gradient
+    # float32 against float64, relative to the largest entry of each row's gradient (worst
+    # measured: 3.6e-7 for jl, jr and exp; 1.5e-5 for jl_inv, the inverse losing more)
     scale = g64.abs().amax(-1, keepdim=True)
     err = ((g32.double() - g64).abs() / scale).amax(-1)
-    assert (err < 1e-4).all(), f"worst {err.max():.2e} at lambda {lam[err.argmax()]:.1f}"
+    tol = 5e-5 if fn == "jl_inv" else 2e-6
+    assert (err < tol).all(), f"worst {err.max():.2e} at lambda {lam[err.argmax()]:.1f}"
     # float64: exact derivatives (finite differences) across the range
     for k in range(0, len(LAMBDAS), 5):
         xk = x64.detach()[k:k + 1].clone().requires_grad_()

@@ -20,6 +20,7 @@ from collections.abc import Iterable
 
 import torch
 
+from ..functional import checks
 from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
@@ -35,7 +36,7 @@ def is_single(x) -> bool:
 def unwrapped(f, single: bool):
     """``f`` called with the one block itself instead of the 1-tuple when ``single`` (further
     arguments passed on)."""
-    if f is None or not single:
+    if not checks.boolean(single, "single") or f is None:
         return f
     return lambda x, *args: f(x[0], *args)
 
