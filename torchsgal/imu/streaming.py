@@ -90,6 +90,7 @@ class _Constants:
         gb[6:9, 0:3] = -torch.eye(3, **kw)
         gb[3:6, 3:6] = -torch.eye(3, **kw)
         self.gb = gb
+        self.gb2 = torch.cat((gb, 4.0 * gb))  # [G_b; 4 G_b] for [A | Ad(H^-1)]
 
 
 def _coefficients(p: torch.Tensor, c: _Constants) -> torch.Tensor:
@@ -107,33 +108,41 @@ def _coefficients(p: torch.Tensor, c: _Constants) -> torch.Tensor:
     return torch.where(big, exact, series)
 
 
-def _half_factors(phi, nu, h, c: _Constants):
+def _half_factors(phi, nu, h, zh, bottom, c: _Constants):
     """H = exp([0, nu, phi, h]) (..., 5, 5) ((3.6) with rho = 0) and Ad(H^-1) (..., 10, 10) for
-    half-sample tangents phi, nu (..., 3), h (..., 1)."""
+    half-sample tangents phi, nu (..., 3) and h (a float or (..., 1)), with zh = z0 + h L[0]
+    (..., 90) and bottom = b0 + h b1 (..., 10) (_Constants) formed by the caller."""
+    batch = phi.shape[:-1]
     coef = _coefficients((phi * phi).sum(-1, keepdim=True), c)
-    K = (phi @ c.skew).view(*phi.shape[:-1], 3, 3)
+    K = (phi @ c.skew).view(*batch, 3, 3)
     KK = torch.stack((K, K @ K), dim=-3)  # (..., 2, 3, 3)
-    base = torch.cat((c.eye3.expand(*nu.shape[:-1], 3, 3), nu.unsqueeze(-1), (h * nu).unsqueeze(-1)), -1)
-    s12 = (coef @ c.s12).view(*coef.shape[:-1], 2, 1, 5)
+    base = torch.cat((c.eye3.expand(*batch, 3, 3), nu.unsqueeze(-1), (nu * h).unsqueeze(-1)), -1)
+    s12 = (coef @ c.s12).view(*batch, 2, 1, 5)
     top = base * c.s0 + (KK @ (base.unsqueeze(-3) * s12)).sum(-3)  # [C | v | r] (..., 3, 5)
-    H = torch.cat((top, torch.addcmul(c.bottom[0], h, c.bottom[1]).view(*h.shape[:-1], 2, 5)), dim=-2)
+    H = torch.cat((top, bottom.view(*bottom.shape[:-1], 2, 5).expand(*batch, 2, 5)), dim=-2)
+    Z = (zh + torch.cat((top[..., 4], top[..., 3]), -1) @ c.lz[1:]).view(*batch, 3, 3, 10)
     Ct = top[..., :3].mT
-    Z = torch.addmm(c.z0, torch.cat((h, top[..., 4], top[..., 3]), -1).view(-1, 7), c.lz)
-    Z = Z.view(*h.shape[:-1], 3, 3, 10)
-    Ad = torch.cat(((Ct.unsqueeze(-3) @ Z).flatten(-3, -2), c.last_row.expand(*h.shape[:-1], 1, 10)), -2)
+    Ad = torch.cat(((Ct.unsqueeze(-3) @ Z).flatten(-3, -2), c.last_row.expand(*batch, 1, 10)), -2)
     return H, Ad
 
 
-def _sample_parts(gyro, acc, dt, bias6, q_diag, r_diag, c: _Constants):
+def _noise_parts(A, Ah, w, sq2, Qd, c: _Constants):
+    """(J_k, S_k) of (C2) from A = Ad(E^-1), Ah = Ad(H^-1), w = h / 6, sq2 = [sqrt(q), 2 sqrt(q)]
+    (..., 1, 20) and Qd = diag(q): with M = [A | Ah], S_k = w (M diag(q, 4 q) M^T + Q)."""
+    M = torch.cat((A, Ah), dim=-1)
+    L = M * sq2
+    return w * (M @ c.gb2 + c.gb), w * (L @ L.mT + Qd)
+
+
+def _sample_parts(gyro, acc, dt, bias6, sq2, Qd, r_diag, c: _Constants):
     """Per sample (any leading shape): E (..., 5, 5), A = Ad(E^-1), J_k (..., 10, 6), S_k (10, 10)
-    by (C2), and B_k = R h (..., 6, 6) or None (no random walk)."""
+    by (C2), and X_k = 0, B_k = R h (..., 6, 6) (None without random walk)."""
     half = 0.5 * dt.unsqueeze(-1)
-    H, Ah = _half_factors((gyro - bias6[..., :3]) * half, (acc - bias6[..., 3:]) * half, half, c)
+    zh = torch.addcmul(c.z0, half, c.lz[0])
+    bottom = torch.addcmul(c.bottom[0], half, c.bottom[1])
+    H, Ah = _half_factors((gyro - bias6[..., :3]) * half, (acc - bias6[..., 3:]) * half, half, zh, bottom, c)
     E, A = H @ H, Ah @ Ah
-    w = (dt / 6.0)[..., None, None]
-    J = w * ((A + 4.0 * Ah + c.eye10) @ c.gb)
-    AA = torch.cat((A, 2.0 * Ah), dim=-1)
-    S = w * ((AA * torch.cat((q_diag, q_diag), -1).unsqueeze(-2)) @ AA.mT + torch.diag_embed(q_diag))
+    J, S = _noise_parts(A, Ah, (dt / 6.0)[..., None, None], sq2, Qd, c)
     if r_diag is None:
         return E, A, J, S, None, None
     return E, A, J, S, torch.zeros_like(J), torch.diag_embed(r_diag * dt.unsqueeze(-1))
@@ -243,7 +252,11 @@ class StreamingPreintegration:
                            for x, d in ((acc_noise_density, s_a), (gyro_noise_density, s_g))) + (s_t,)
         s_a, s_g = s_a.expand(*batch, 3), s_g.expand(*batch, 3)
         zero = torch.zeros(*batch, 3, **kw)
-        self._q = torch.cat((zero, s_a**2, s_g**2, torch.full((*batch, 1), s_t**2, **kw)), -1)
+        q = torch.cat((zero, s_a**2, s_g**2, torch.full((*batch, 1), s_t**2, **kw)), -1)
+        sq = q.sqrt()
+        self._sq2 = torch.cat((sq, 2.0 * sq), -1).unsqueeze(-2)  # (*batch, 1, 20), see _noise_parts
+        self._Qd = torch.diag_embed(q)
+        self._float_cache: dict = {}
         r_g = _density_vector(gyro_bias_random_walk, "gyro_bias_random_walk", kw)
         r_a = _density_vector(acc_bias_random_walk, "acc_bias_random_walk", kw)
         checks.broadcast_batch(imus=self.batch_shape, gyro_bias_random_walk=r_g.shape[:-1],
@@ -270,7 +283,7 @@ class StreamingPreintegration:
         self._count = 0
         self._pending: list = []
         self._pending_count = 0
-        self._bias6, self._q6 = self._bias.unsqueeze(-2), self._q.unsqueeze(-2)
+        self._bias6 = self._bias.unsqueeze(-2)
         self._r6 = None if self._r is None else self._r.unsqueeze(-2)
 
     def _bias_arg(self, b, name: str, current) -> torch.Tensor:
@@ -368,6 +381,8 @@ class StreamingPreintegration:
         sample, dt, K = self._check_samples(gyro, acc, dt)
         if intermediate or self.buffer_size <= K:
             self._flush()
+            if K == 1 and not intermediate:
+                return self._fold_one(sample[..., 0, :], dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
             return self._fold(sample, self._dt_tensor([(dt, K)]), intermediate)
         self._pending.append((sample, dt, K))
         self._pending_count += K
@@ -388,6 +403,10 @@ class StreamingPreintegration:
         if not self._pending:
             return
         pend, self._pending, self._pending_count = self._pending, [], 0
+        if len(pend) == 1 and pend[0][2] == 1:
+            sample, dt, _ = pend[0]
+            self._fold_one(sample[..., 0, :], dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
+            return
         sample = pend[0][0] if len(pend) == 1 else torch.cat([p[0] for p in pend], -2)
         self._fold(sample, self._dt_tensor([(h, k) for _, h, k in pend]), False)
 
@@ -406,7 +425,8 @@ class StreamingPreintegration:
             chunk = (E, A, pre.bias_jacobian, pre.covariance, None, None)
             factors = None
         else:
-            factors = _sample_parts(gyro, acc, dt, self._bias6, self._q6, self._r6, self._c)
+            factors = _sample_parts(gyro, acc, dt, self._bias6, self._sq2.unsqueeze(-3), self._Qd.unsqueeze(-3),
+                                    self._r6, self._c)
             chunk = _along(factors, 0) if K == 1 else _reduce(factors)
         before = self._delta
         state = (self._delta, None, self._J, self._S, self._X, self._B)
@@ -420,6 +440,34 @@ class StreamingPreintegration:
         else:
             steps = factors[0]
         return SGal3(before.unsqueeze(-3) @ _prefix_products(steps))
+
+    def _fold_one(self, sample: torch.Tensor, dt) -> None:
+        """Fold in one sample [gyro, acc] (*batch, 6), dt a float or (*batch): (C2) and (C1)/(C3)
+        written out for one sample (fewer operations than _fold's chunk path, the same maths)."""
+        c = self._c
+        if isinstance(dt, torch.Tensor):
+            half = 0.5 * dt.unsqueeze(-1)
+            zh, bottom = torch.addcmul(c.z0, half, c.lz[0]), torch.addcmul(c.bottom[0], half, c.bottom[1])
+            w = (dt / 6.0)[..., None, None]
+        else:
+            half, w = 0.5 * dt, dt / 6.0
+            if half not in self._float_cache:  # a constant rate: formed once
+                self._float_cache = {half: (c.z0 + half * c.lz[0], c.bottom[0] + half * c.bottom[1])}
+            zh, bottom = self._float_cache[half]
+        xh = (sample - self._bias) * half
+        H, Ah = _half_factors(xh[..., :3], xh[..., 3:], half, zh, bottom, c)
+        E, A = H @ H, Ah @ Ah
+        J, S = _noise_parts(A, Ah, w, self._sq2, self._Qd, c)
+        if self._r is None:
+            self._S = A @ self._S @ A.mT + S
+        else:
+            rh = self._r * (dt.unsqueeze(-1) if isinstance(dt, torch.Tensor) else dt)
+            part = (E, A, J, S, torch.zeros_like(J), torch.diag_embed(rh))
+            _, _, _, self._S, self._X, self._B = _combine((self._delta, None, self._J, self._S, self._X, self._B),
+                                                          part, need_a=False)
+        self._J = A @ self._J + J
+        self._delta = self._delta @ E
+        self._count += 1
 
     def _check_samples(self, gyro, acc, dt):
         """([gyro, acc] (*batch, K, 6) (a new tensor), dt (a float or a tensor (*batch, K)), K)
