@@ -262,7 +262,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=PROBLEMS)
     parser.add_argument("--dense-limit", type=int, default=2000)
-    parser.add_argument("--theseus-max-iterations", type=int, default=50)
+    parser.add_argument("--theseus-max-iterations", type=int, default=30)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "posegraph_cpu"))
     args = parser.parse_args(argv)
     torch.set_default_dtype(torch.float64)
