@@ -382,7 +382,8 @@ class StreamingPreintegration:
         if intermediate or self.buffer_size <= K:
             self._flush()
             if K == 1 and not intermediate:
-                return self._fold_one(sample[..., 0, :], dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
+                self._fold_one(sample[..., 0, :], dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
+                return None
             return self._fold(sample, self._dt_tensor([(dt, K)]), intermediate)
         self._pending.append((sample, dt, K))
         self._pending_count += K
