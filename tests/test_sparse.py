@@ -3,8 +3,7 @@ symmetric positive-definite block-sparse systems, for every backend (CI installs
 import pytest
 import torch
 
-from torchsgal.estimation.sparse import (BACKENDS, NotPositiveDefiniteError, SparseCholesky,
-                                         available_backends)
+from torchsgal.estimation.sparse import BACKENDS, NotPositiveDefiniteError, SparseCholesky, available_backends
 
 
 def block_system(n_blocks=12, block=3, n_edges=20, seed=0, duplicates=False):
