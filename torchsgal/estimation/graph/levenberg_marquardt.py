@@ -32,8 +32,8 @@ from ...functional import checks
 from ...groups import LieGroup
 from ..solver import SolverReport, SolverStatus
 from .graph import FactorGraph
-from .linear_system import DenseSystem, SparseSystem
-from .linearize import Linearization, Problem, linearize
+from .linear_system import DenseSystem, LinearSystem, SparseSystem
+from .linearize import Linearization, Problem, evaluate_cost, linearize
 
 __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 
@@ -56,7 +56,7 @@ class GraphResult:
     values: dict
     report: SolverReport
     problem: Problem
-    system: object
+    system: LinearSystem
 
     @property
     def information(self) -> torch.Tensor:
@@ -225,7 +225,7 @@ def _solve(graph: FactorGraph, max_iterations: int, o: dict) -> GraphResult:
     return GraphResult(_values(full, graph, out.x), report, full, system)
 
 
-def _system(problem: Problem, linear_solver: str):
+def _system(problem: Problem, linear_solver: str) -> LinearSystem:
     if linear_solver == "dense" or (linear_solver == "auto" and (
             problem.B > 1 or problem.D <= SPARSE_ABOVE)):
         return DenseSystem(problem)
@@ -243,7 +243,7 @@ def _write_back(out: _State, state: _State) -> None:
         getattr(out, n).index_copy_(0, r, getattr(state, n))
 
 
-def _round(problem: Problem, system, s: _State, o: dict, max_iterations: int, eps: float) -> _State:
+def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_iterations: int, eps: float) -> _State:
     """One tryLambda per running problem (module docstring, steps 1-5)."""
     lam = s.lam if o["damped"] else torch.zeros_like(s.lam)
     delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
@@ -251,8 +251,12 @@ def _round(problem: Problem, system, s: _State, o: dict, max_iterations: int, ep
     x_new = problem.retract(s.x, delta)
     # a batch linearises every trial point at once (the Jacobians serve where the step is
     # accepted); one large problem evaluates the cost first and linearises only an accepted step
-    lin_new = linearize(problem, x_new, want_jacobian=not system.cost_first)
-    cost, new_cost = s.lin.cost, lin_new.cost
+    if system.cost_first:
+        new_cost = evaluate_cost(problem, x_new)
+    else:
+        lin_new = linearize(problem, x_new)
+        new_cost = lin_new.cost
+    cost = s.lin.cost
     cost_change = cost - new_cost
     if o["damped"]:
         valid = solved & (lin_change >= 0)

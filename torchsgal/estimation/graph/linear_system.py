@@ -44,6 +44,7 @@ class DenseSystem:
         self._H: torch.Tensor | None = None
 
     def select(self, problem: Problem) -> DenseSystem:
+        """The system of a subset of the problems (the solver's active set)."""
         return DenseSystem(problem)
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
@@ -65,12 +66,18 @@ class DenseSystem:
         """Keeps H at the solution for ``singular``, ``marginal_blocks``, ``dense_information``."""
         self._H = dense(self.problem, values)
 
-    def dense_information(self) -> torch.Tensor:
+    def _solution(self) -> torch.Tensor:
+        if self._H is None:
+            raise RuntimeError("set_solution(values) first")
         return self._H
+
+    def dense_information(self) -> torch.Tensor:
+        """(B, D, D) H at the solution."""
+        return self._solution()
 
     def singular(self) -> torch.Tensor:
         """(B,) True where H at the solution is numerically rank-deficient."""
-        Hs, tiny = _scaled(self._H, self.rcond)
+        Hs, tiny = _scaled(self._solution(), self.rcond)
         L, info = torch.linalg.cholesky_ex(torch.where(tiny[:, None, None], self.eye, Hs))
         pivots = L.diagonal(dim1=-2, dim2=-1) ** 2
         return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
@@ -78,7 +85,8 @@ class DenseSystem:
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
         """(B, K, block, block) diagonal blocks of H^-1; NaN where H is singular."""
         singular = self.singular()
-        L, info = torch.linalg.cholesky_ex(torch.where(singular[:, None, None], self.eye, self._H))
+        L, info = torch.linalg.cholesky_ex(torch.where(singular[:, None, None], self.eye,
+                                                       self._solution()))
         P = torch.cholesky_inverse(L)
         pos = starts[:, None] + torch.arange(block, device=starts.device)
         out = P[:, pos[:, :, None], pos[:, None, :]]
@@ -112,6 +120,7 @@ class SparseSystem:
         self._singular: torch.Tensor | None = None
 
     def select(self, problem: Problem) -> SparseSystem:
+        """Itself (one problem: no active set to shrink)."""
         return self
 
     def _diagonal(self, v: torch.Tensor) -> torch.Tensor:
@@ -127,7 +136,9 @@ class SparseSystem:
             return False
         return True
 
-    def solve(self, values, g, lam, diagonal):
+    def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As ``DenseSystem.solve`` for B = 1, through the sparse factorisation."""
         v = values[0]
         D = self.problem.D
         damp = self._diagonal(v).clamp(*DIAGONAL_CLAMP) if diagonal else v.new_ones(D)
@@ -141,6 +152,7 @@ class SparseSystem:
         return delta[None], torch.tensor([ok], device=v.device), quad[None]
 
     def set_solution(self, values: torch.Tensor) -> None:
+        """Factors H at the solution (undamped) for ``singular`` and ``marginal_blocks``."""
         v = values[0]
         d = self._diagonal(v)
         tiny = bool((d <= self.rcond * d.max()).any()) or not bool(torch.isfinite(v).all())
@@ -148,14 +160,25 @@ class SparseSystem:
         self._values = values
         self._singular = torch.tensor([not ok], device=v.device)
 
+    def _solution(self) -> tuple[torch.Tensor, torch.Tensor]:
+        if self._values is None or self._singular is None:
+            raise RuntimeError("set_solution(values) first")
+        return self._values, self._singular
+
     def dense_information(self) -> torch.Tensor:
-        return dense(self.problem, self._values)
+        """(1, D, D) H at the solution (dense: for small problems and checks)."""
+        return dense(self.problem, self._solution()[0])
 
     def singular(self) -> torch.Tensor:
-        return self._singular
+        """(1,) True where H at the solution is not positive definite (``SparseCholesky``)."""
+        return self._solution()[1]
 
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
-        if bool(self._singular[0]):
+        """(1, K, block, block) diagonal blocks of H^-1 (``SparseCholesky.marginal_blocks``)."""
+        if bool(self.singular()[0]):
             return torch.full((1, starts.numel(), block, block), float("nan"),
                               dtype=self.problem.dtype, device=self.problem.device)
         return self.factorization.marginal_blocks(starts, block)[None]
+
+
+LinearSystem = DenseSystem | SparseSystem

@@ -24,7 +24,7 @@ from .robust import correct
 @dataclass
 class VariableInfo:
     name: str
-    group: type | None  # LieGroup subclass, or None for Euclidean
+    group: type[LieGroup] | None  # the group, or None for Euclidean
     size: int  # N
     dof: int
     offset: int
@@ -146,14 +146,13 @@ class Problem:
                              f"({self.B}, {factor.size}), got {tuple(given.shape[:2])}")
         if not torch.isfinite(given).all():
             raise ValueError(f"{factor!r} {name} has non-finite entries")
-        W = None if W is None else W.detach()
-        L = None if L is None else L.detach()
+        sqrt = given.detach()
         if W is not None:
-            C, info = torch.linalg.cholesky_ex(W)
+            C, info = torch.linalg.cholesky_ex(sqrt)
             if bool((info != 0).any()):
                 raise ValueError(f"{factor!r} information must be symmetric positive definite")
-            L = C.mT  # W = C C^T = L^T L
-        return L, L.dim() == 4
+            sqrt = C.mT  # W = C C^T = L^T L
+        return sqrt, sqrt.dim() == 4
 
     def select(self, rows: torch.Tensor) -> Problem:
         """The same problems restricted to the batch rows ``rows`` (int64)."""
@@ -163,7 +162,9 @@ class Problem:
         new.blocks = []
         for b in self.blocks:
             data = [_take(d, rows) if p else d for d, p in zip(b.data, b.data_batched)]
-            L = b.sqrt_info.index_select(0, rows) if b.sqrt_info_batched else b.sqrt_info
+            L = b.sqrt_info
+            if L is not None and b.sqrt_info_batched:
+                L = L.index_select(0, rows)
             new.blocks.append(Block(b.factor, b.slots, data, b.data_batched, L,
                                     b.sqrt_info_batched, b.dofs, b.h_index, b.g_index, b.size,
                                     b.uniform, b.reduced))
@@ -217,15 +218,15 @@ def _take(d, rows: torch.Tensor):
 class Linearization:
     """values (B, nnz) of the normal equations' entries at ``Problem.h_index`` (duplicates
     summed: ``dense`` gives H (B, D, D)), g (B, D), cost (B,) = 1/2 sum rho(s), model_cost (B,)
-    = 1/2 |r~|^2 (the linear model's error at zero); None where only costs were asked."""
+    = 1/2 |r~|^2 (the linear model's error at zero)."""
 
-    values: torch.Tensor | None
-    g: torch.Tensor | None
+    values: torch.Tensor
+    g: torch.Tensor
     cost: torch.Tensor
-    model_cost: torch.Tensor | None
+    model_cost: torch.Tensor
 
 
-def _right_basis(group: type, X: torch.Tensor) -> torch.Tensor:
+def _right_basis(group: type[LieGroup], X: torch.Tensor) -> torch.Tensor:
     """X hat(e_j) for j < dof: (dof, *X.shape), as one matrix product (X rows against the
     basis matrices side by side)."""
     n, dof = X.shape[-1], group.dof
@@ -265,7 +266,8 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
     def column(*ts):
         return torch.func.jvp(fn, tuple(args), ts)
 
-    r_all, dr = torch.func.vmap(column, out_dims=(None, 0))(*tangents)
+    out_dims: tuple = (None, 0)  # the residual once, its derivatives along the basis
+    r_all, dr = torch.func.vmap(column, out_dims=out_dims)(*tangents)
     return r_all, dr.movedim(0, -1)
 
 
@@ -283,36 +285,49 @@ def _check_residual(block: Block, r, B: int) -> None:
                          f"(B, E, dim) = ({B}, {block.size}, {r.shape[-1]})")
 
 
-def linearize(problem: Problem, x: list[torch.Tensor], want_jacobian: bool = True
-              ) -> Linearization:
-    """Costs (B,) and, with ``want_jacobian``, the normal equations at x (dense H)."""
-    B, D = x[0].shape[0], problem.D
-    cost = x[0].new_zeros(B)
-    h_vals, g_vals = [], []
-    model = x[0].new_zeros(B) if want_jacobian else None
+def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jacobian: bool
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """The block's corrected whitened residual r~ (B, E, m), Jacobian J~ (B, E, m, Dk) (None
+    unless asked) and rho(s) (B, E)."""
+    B, E = x[0].shape[0], block.size
+    args = [x[k].index_select(1, idx) if u is None else x[k].narrow(1, u, 1)
+            for (k, idx), u in zip(block.slots, block.uniform)]
+    r, J = _residual_and_jacobian(problem, block, args, want_jacobian)
+    _check_residual(block, r, B)
+    r = r.expand((B, E) + r.shape[-1:])
+    if block.sqrt_info is not None:
+        L = block.sqrt_info
+        r = (L @ r.unsqueeze(-1)).squeeze(-1)
+        J = None if J is None else L @ J
+    return correct(block.factor.loss, r, J)
+
+
+def evaluate_cost(problem: Problem, x: list[torch.Tensor]) -> torch.Tensor:
+    """The costs (B,) = 1/2 sum rho(|L r|^2) at x, without Jacobians."""
+    cost = x[0].new_zeros(x[0].shape[0])
     for block in problem.blocks:
-        args = [x[k].index_select(1, idx) if u is None else x[k].narrow(1, u, 1)
-                for (k, idx), u in zip(block.slots, block.uniform)]
-        r, J = _residual_and_jacobian(problem, block, args, want_jacobian)
-        E = block.size
-        _check_residual(block, r, B)
-        r = r.expand((B, E) + r.shape[-1:])
-        if block.sqrt_info is not None:
-            L = block.sqrt_info
-            r = (L @ r.unsqueeze(-1)).squeeze(-1)
-            J = None if J is None else L @ J
-        r, J, rho = correct(block.factor.loss, r, J)
+        cost = cost + 0.5 * _block_terms(problem, block, x, False)[2].sum(dim=-1)
+    return cost
+
+
+def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
+    """The normal equations' entries, gradient, cost and model cost at x (``Linearization``)."""
+    B, D = x[0].shape[0], problem.D
+    cost, model = x[0].new_zeros(B), x[0].new_zeros(B)
+    h_vals, g_vals = [], []
+    for block in problem.blocks:
+        r, J, rho = _block_terms(problem, block, x, True)
+        assert J is not None  # asked for
         cost = cost + 0.5 * rho.sum(dim=-1)
-        if want_jacobian:
-            J = J.expand((B, E) + J.shape[-2:])
-            model = model + 0.5 * (r * r).sum(dim=(-1, -2))
-            if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
-                J = J.reshape(B, -1, J.shape[-1])
-                r = r.reshape(B, -1, 1)
-            h_vals.append((J.mT @ J).reshape(B, -1))
-            g_vals.append((J.mT @ r if block.reduced else J.mT @ r.unsqueeze(-1)).reshape(B, -1))
-    if not want_jacobian:
-        return Linearization(None, None, cost, None)
+        J = J.expand((B, block.size) + J.shape[-2:])
+        model = model + 0.5 * (r * r).sum(dim=(-1, -2))
+        if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
+            J = J.reshape(B, -1, J.shape[-1])
+            r = r.reshape(B, -1, 1)
+        else:
+            r = r.unsqueeze(-1)
+        h_vals.append((J.mT @ J).reshape(B, -1))
+        g_vals.append((J.mT @ r).reshape(B, -1))
     g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, torch.cat(g_vals, dim=1))
     return Linearization(torch.cat(h_vals, dim=1), g, cost, model)
 
