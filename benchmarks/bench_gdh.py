@@ -72,8 +72,17 @@ import torch
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE))
 sys.path.insert(1, str(_HERE.parent))  # benchmark the checkout this script lives in
-from _timing import (cpu_model, device_name, dist_version, environment, interleaved, loadavg,  # noqa: E402
-                     paired_ratio, resolve_device, wait_for_idle)
+from _timing import (  # noqa: E402
+    cpu_model,
+    device_name,
+    dist_version,
+    environment,
+    interleaved,
+    loadavg,
+    paired_ratio,
+    resolve_device,
+    wait_for_idle,
+)
 
 from torchsgal.kinematics import iiwa7  # noqa: E402
 
@@ -466,7 +475,7 @@ def run_ik(args, device, pk) -> dict:
                                 num_retries=args.ik_seeds, joint_limits=lim, max_iterations=iters,
                                 early_stopping_any_converged=True,
                                 early_stopping_no_improvement=None)
-        log(f"[ik] pytorch-kinematics PseudoInverseIK ...")
+        log("[ik] pytorch-kinematics PseudoInverseIK ...")
         torch.manual_seed(args.seed)
         t0 = time.perf_counter()
         sol = ik.solve(pk.Transform3d(matrix=target.as_matrix(), dtype=torch.float64, device=device))
