@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import torchsgal as ts
-from torchsgal.estimation import SolverStatus, gauss_helmert, metrics, study, tls, variables as V
+from torchsgal.estimation import SolverStatus, gauss_helmert, metrics, study, tls
+from torchsgal.estimation import variables as V
 from torchsgal.estimation.gauss_helmert import variant_options
 from torchsgal.estimation.solver import iterate
 

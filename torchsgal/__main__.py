@@ -186,7 +186,8 @@ def main(argv=None) -> int:
                        description=tls.__doc__)
     d = __import__("torchsgal.estimation.study", fromlist=["StudyConfig"]).StudyConfig()
     t.add_argument("--trials", type=_positive_int, default=d.trials, help=f"Monte Carlo trials ({d.trials})")
-    t.add_argument("--samples", type=_samples, default=d.samples, help=f"observations per frame, at least 2 ({d.samples})")
+    t.add_argument("--samples", type=_samples, default=d.samples,
+                   help=f"observations per frame, at least 2 ({d.samples})")
     t.add_argument("--speed", type=_nonnegative_float, default=d.speed,
                    help=f"relative speed of the frames, m/s ({d.speed})")
     t.add_argument("--separation", type=_nonnegative_float, default=d.separation,
