@@ -43,9 +43,11 @@ Inverse kinematics (``--sections ik``): ``--ik-n`` (default 10,000) reachable Pa
 (poses of random configurations within the joint limits), ``--ik-seeds`` random seeds each,
 solved once by ``torchsgal.kinematics.inverse_kinematics`` and by pytorch-kinematics'
 ``PseudoInverseIK`` (the same seeds count, tolerances 1e-4 m / 1e-3 rad, joint limits, 50
-iterations).  The success rate is recomputed for both from Pinocchio's forward kinematics of the
-returned joints (position and rotation error within the tolerances and joints within the
-limits), next to each library's own count.
+iterations; pk stops a target once one of its retries converged).  The success rate is
+recomputed for both from Pinocchio's forward kinematics of the returned joints (position and
+rotation error within the tolerances and joints within the limits), next to each library's
+own count.  On a small shared machine run it with ``--threads 1`` (the Pinocchio loop is
+single-threaded; torch's threads wait on each other under foreign load).
 
 Usage::
 
@@ -402,6 +404,18 @@ def run_panda(dtype, args, device, pk) -> dict:
             "speedup_ratios": ratios, "agreement_max_abs": agree}
 
 
+def panda_verdict(results: list) -> list[str]:
+    """The Panda targets: faster than pk for pose + velocity, faster than the Pinocchio loop."""
+    if not results:
+        return []
+    out = ["## targets (Panda, URDF): faster than pytorch-kinematics for pose + velocity, faster "
+           "than the Pinocchio loop", ""]
+    for res in results:
+        for k, v in res["speedup_ratios"].items():
+            out.append(f"- {res['dtype']}: {k} = {v:.2f} ({'faster' if v > 1 else 'NOT faster'})")
+    return out + [""]
+
+
 def panda_table_md(res: dict) -> list[str]:
     n = res["n"]
     out = [f"## Panda (URDF), {res['dtype']}, batch {n:,}", ""]
@@ -570,7 +584,8 @@ def main(argv=None) -> int:
     env["wall_s"] = round(time.perf_counter() - t_start, 1)
     env["loadavg_at_end"] = loadavg()
 
-    md = [f"# GDH chain benchmark: iiwa7, batch {args.n:,} ({where}, {env['date']})", "",
+    md = [f"# Chain kinematics benchmark: iiwa7 (DH), Panda (URDF), batch {args.n:,}; Panda IK "
+          f"({where}, {env['date']})", "",
           "| | |", "|---|---|"]
     md += [f"| {k} | {v} |" for k, v in env.items()]
     md += ["", __doc__.split("Usage::")[0].split("\n", 2)[2].strip(), ""]
@@ -595,6 +610,7 @@ def main(argv=None) -> int:
     md += verdict + [""]
     for res in panda_results:
         md += panda_table_md(res)
+    md += panda_verdict(panda_results)
     if ik_result is not None:
         md += ik_table_md(ik_result)
     text = "\n".join(md)
