@@ -128,18 +128,8 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-1)
 
 
-def _matvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    return (M @ x.unsqueeze(-1)).squeeze(-1)
-
-
 def _tmatvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (x.unsqueeze(-2) @ M).squeeze(-2)
-
-
-def _skew(a: torch.Tensor) -> torch.Tensor:
-    zero = torch.zeros_like(a[..., 0])
-    return torch.stack((zero, -a[..., 2], a[..., 1], a[..., 2], zero, -a[..., 0],
-                        -a[..., 1], a[..., 0], zero), dim=-1).unflatten(-1, (3, 3))
 
 
 def _transform(value, name: str) -> torch.Tensor:
