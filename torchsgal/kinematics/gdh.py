@@ -172,7 +172,8 @@ class GDHChain:
     """A serial chain from a standard DH table (a, alpha, d, theta offset, joint type).
 
     Joint variable q_i: theta_i = theta_offset_i + q_i (revolute) or d_i = d_offset_i + q_i
-    (prismatic).  Only standard DH (as in the paper) is supported, not modified (Craig) DH.
+    (prismatic).  Standard DH only (as in the paper); for modified (Craig) DH, URDF and any
+    joint axes use :class:`KinematicChain` (``KinematicChain.from_dh(..., convention="modified")``).
     Every method broadcasts over leading batch dimensions of q, qdot, qddot (..., n).
 
     ``dtype`` (float64 by default, or float32) and ``device`` are those of the DH table, and
