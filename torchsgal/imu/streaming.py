@@ -93,6 +93,17 @@ class _Constants:
         self.gb2 = torch.cat((gb, 4.0 * gb))  # [G_b; 4 G_b] for [A | Ad(H^-1)]
 
 
+_CONSTANTS: dict = {}
+
+
+def _constants(dtype, device) -> _Constants:
+    """The constants of a dtype and device, made once (they are never written to)."""
+    key = (dtype, torch.device(device) if device is not None else torch.empty(0).device)
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = _Constants(*key)
+    return _CONSTANTS[key]
+
+
 def _coefficients(p: torch.Tensor, c: _Constants) -> torch.Tensor:
     """[a, b, c, d] (..., 4) of p = theta^2 (..., 1) (see _TAYLOR)."""
     series = p.pow(c.powers) @ c.taylor + c.taylor0
@@ -236,7 +247,7 @@ class StreamingPreintegration:
             raise TypeError(f"batch_shape must be a tuple of integers >= 0, got {batch_shape!r}")
         self.batch_shape = torch.Size(batch_shape)
         dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
-        self._c = _Constants(dtype, device)
+        self._c = _constants(dtype, device)
         self._device = self._c.eye10.device
         kw = dict(dtype=dtype, device=self._device)
         self._kw = kw
