@@ -11,8 +11,21 @@
 from . import g2o, graph, metrics, sparse, study, tls, variables
 from .g2o import PoseGraph, odometry_initial_guess, read_pose_graph, write_pose_graph
 from .gauss_helmert import gauss_helmert
-from .graph import (Between, Cauchy, Factor, FactorGraph, GemanMcClure, GraphResult, Huber, PointObservation,
-                    Prior, RobustLoss, TrivialLoss, Tukey, levenberg_marquardt)
+from .graph import (
+           Between,
+           Cauchy,
+           Factor,
+           FactorGraph,
+           GemanMcClure,
+           GraphResult,
+           Huber,
+           PointObservation,
+           Prior,
+           RobustLoss,
+           TrivialLoss,
+           Tukey,
+           levenberg_marquardt,
+)
 from .solver import Solution, SolverReport, SolverStatus, autograd_jacobian, gauss_newton
 from .sparse import NotPositiveDefiniteError, SparseCholesky
 from .tls import TLSProblem, solve_baseline, solve_sgal3
