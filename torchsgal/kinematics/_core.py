@@ -38,19 +38,18 @@ class Kernel:
         self.n = n
         self.revolute = list(revolute)
         self.Q = torch.stack([axis_frame(axes[i]) for i in range(n)])  # float64, host
-        as_ = dict(dtype=dtype, device=device)
         mats = []
         Q_prev = torch.eye(3, dtype=torch.float64)
         for i in range(n):
             C = Q_prev.T @ origins[i, :3, :3] @ self.Q[i]
             t = Q_prev.T @ origins[i, :3, 3]
             # out[r] = M @ R'[r] for each row r of R' (3, B): M = [C | t]^T, (4, 3)
-            mats.append(torch.cat((C, t[:, None]), dim=1).T.contiguous().to(**as_))
+            mats.append(torch.cat((C, t[:, None]), dim=1).T.contiguous().to(dtype=dtype, device=device))
             Q_prev = self.Q[i]
         self.mats = mats
-        self.base_R = base[:3, :3].to(**as_)
-        self.base_p = base[:3, 3].to(**as_)
-        self.rev_mask = torch.tensor(revolute, **as_)[:, None, None]  # (n, 1, 1)
+        self.base_R = base[:3, :3].to(dtype=dtype, device=device)
+        self.base_p = base[:3, 3].to(dtype=dtype, device=device)
+        self.rev_mask = torch.tensor(revolute, dtype=dtype, device=device)[:, None, None]  # (n, 1, 1)
         self.pris_mask = 1.0 - self.rev_mask
         self.dtype, self.device = dtype, device
 

@@ -89,7 +89,7 @@ class ChainState:
     linear_acceleration: torch.Tensor | None = None
     angular_acceleration: torch.Tensor | None = None
 
-    def _needs(self, value, what: str):
+    def _needs(self, value: torch.Tensor | None, what: str) -> torch.Tensor:
         if value is None:
             raise ValueError(f"{what} needs {'qddot' if 'acceleration' in what else 'qdot'}: "
                              f"pass it to KinematicChain.forward")
@@ -99,23 +99,26 @@ class ChainState:
     def body_velocity(self) -> torch.Tensor:
         """(..., 6) [R^T dp/dt, R^T w]: the body twist (T^-1 dT/dt)^vee."""
         v = self._needs(self.linear_velocity, "body_velocity")
+        w = self._needs(self.angular_velocity, "body_velocity")
         R = self.pose.rotation()
-        return torch.cat((_tmatvec(R, v), _tmatvec(R, self.angular_velocity)), dim=-1)
+        return torch.cat((_tmatvec(R, v), _tmatvec(R, w)), dim=-1)
 
     @property
     def spatial_velocity(self) -> torch.Tensor:
         """(..., 6) [dp/dt - w x p, w]: the spatial twist (dT/dt T^-1)^vee."""
         v = self._needs(self.linear_velocity, "spatial_velocity")
-        w = self.angular_velocity
+        w = self._needs(self.angular_velocity, "spatial_velocity")
         return torch.cat((v - _cross(w, self.pose.position()), w), dim=-1)
 
     @property
     def body_acceleration(self) -> torch.Tensor:
         """(..., 6) d/dt of ``body_velocity``: [R^T (d2p/dt2 - w x dp/dt), R^T dw/dt]."""
         a = self._needs(self.linear_acceleration, "body_acceleration")
+        dw = self._needs(self.angular_acceleration, "body_acceleration")
+        v = self._needs(self.linear_velocity, "body_acceleration")
+        w = self._needs(self.angular_velocity, "body_acceleration")
         R = self.pose.rotation()
-        lin = a - _cross(self.angular_velocity, self.linear_velocity)
-        return torch.cat((_tmatvec(R, lin), _tmatvec(R, self.angular_acceleration)), dim=-1)
+        return torch.cat((_tmatvec(R, a - _cross(w, v)), _tmatvec(R, dw)), dim=-1)
 
     @property
     def extended_pose(self) -> SE23:
@@ -523,10 +526,10 @@ class KinematicChain:
     @classmethod
     def from_dh(
         cls,
-        a: Sequence[float],
-        alpha: Sequence[float],
-        d: Sequence[float],
-        theta_offset: Sequence[float],
+        a: Sequence[float] | torch.Tensor,
+        alpha: Sequence[float] | torch.Tensor,
+        d: Sequence[float] | torch.Tensor,
+        theta_offset: Sequence[float] | torch.Tensor,
         joint_types: Sequence[str] | str,
         *,
         convention: str = "standard",

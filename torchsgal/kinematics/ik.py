@@ -226,7 +226,7 @@ def inverse_kinematics(
         pose = chain.pose(q, link=link)
         zero = torch.zeros(B * S, dtype=q.dtype, device=q.device)
         e_pos = (pose.position() - p_rep).norm(dim=-1) if position else zero
-        if orientation:
+        if orientation and R_rep is not None:  # R_rep is None only for position targets
             e_rot = SO3.from_matrix(R_rep.transpose(-1, -2) @ pose.rotation()).log().norm(dim=-1)
         else:
             e_rot = zero

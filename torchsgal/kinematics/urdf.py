@@ -162,7 +162,8 @@ def from_urdf(
     inv_root = torch.linalg.inv(to_root)
     path = end_path[common:]
 
-    joints, links = [], {}
+    joints: list[Joint] = []
+    links: dict[str, tuple[int, torch.Tensor]] = {}
     acc = inv_root  # fixed transform since the last actuated joint (from the root link frame)
     anchor = path[0].parent if path else root_link
     links[root_link] = (-1, torch.eye(4, dtype=torch.float64))
@@ -179,11 +180,11 @@ def from_urdf(
         if j.mimic is not None:
             raise ValueError(f"joint {j.name!r} on the chain mimics {j.mimic.joint!r}: mimic "
                              f"joints are not supported")
-        axis = [1.0, 0.0, 0.0] if j.axis is None else [float(x) for x in j.axis]
-        norm = math.sqrt(sum(x * x for x in axis))
-        if not (norm > 0 and math.isfinite(norm)):
-            raise ValueError(f"joint {j.name!r} has axis {axis}: it must be a non-zero vector")
-        axis = tuple(x / norm for x in axis)
+        raw = [1.0, 0.0, 0.0] if j.axis is None else [float(x) for x in j.axis]
+        norm = math.sqrt(sum(x * x for x in raw))
+        if len(raw) != 3 or not (norm > 0 and math.isfinite(norm)):
+            raise ValueError(f"joint {j.name!r} has axis {raw}: it must be a non-zero 3-vector")
+        axis = (raw[0] / norm, raw[1] / norm, raw[2] / norm)
         lim = j.limit
         kind = _KINDS[j.type]
         lower = -math.inf if kind == CONTINUOUS or lim is None or lim.lower is None else float(lim.lower)
@@ -222,7 +223,8 @@ def from_pk(serial_chain, *, base=None, tool=None, dtype: torch.dtype | None = N
                         f"{type(serial_chain).__name__}")
     lows, highs = serial_chain.get_joint_limits() if hasattr(serial_chain, "get_joint_limits") \
         else (None, None)
-    joints, links = [], {}
+    joints: list[Joint] = []
+    links: dict[str, tuple[int, torch.Tensor]] = {}
     acc = torch.eye(4, dtype=torch.float64)
     links[frames[0].name] = (-1, acc.clone())
     for f in frames[1:]:
@@ -236,7 +238,8 @@ def from_pk(serial_chain, *, base=None, tool=None, dtype: torch.dtype | None = N
             continue
         if f.joint.joint_type not in ("revolute", "prismatic"):
             raise ValueError(f"pk joint {f.joint.name!r} has type {f.joint.joint_type!r}")
-        axis = tuple(float(x) for x in f.joint.axis.detach().cpu().double())
+        ax = [float(x) for x in f.joint.axis.detach().cpu().double()]
+        axis = (ax[0], ax[1], ax[2])
         kind = REVOLUTE if f.joint.joint_type == "revolute" else PRISMATIC
         k = len(joints)
         lower = float(lows[k]) if lows is not None else -math.inf
@@ -260,7 +263,7 @@ def example_robot_data_dir() -> Path:
         from importlib import metadata
 
         dist = metadata.distribution("example-robot-data")
-        candidates.append(Path(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")))
+        candidates.append(Path(str(dist.locate_file("cmeel.prefix/share/example-robot-data/robots"))))
     except Exception:  # not installed: the error below says what to install
         pass
     for c in candidates:
