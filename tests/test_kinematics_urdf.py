@@ -225,6 +225,20 @@ def test_modified_dh_agrees_with_urdf():
                                rtol=0, atol=TOL)
 
 
+def test_standard_dh_agrees_with_urdf():
+    """The UR5's published standard DH table (``ur5()``) against its URDF from the frame
+    ``base`` (base_link turned by pi) to ``tool0``.  The URDF writes pi as 3.14159265359 and
+    pi/2 as 1.57079632679 (errors ~2e-12 rad), hence 1e-10 rather than 1e-12."""
+    dh = KinematicChain.from_gdh(ur5())
+    urdf = load_robot("ur5", root_link="base")
+    q, qd, qdd = _random(urdf, 10, 10)
+    a, b = dh.forward(q, qd, qdd), urdf.forward(q, qd, qdd)
+    torch.testing.assert_close(a.pose.as_matrix(), b.pose.as_matrix(), rtol=0, atol=1e-10)
+    for f in ("linear_velocity", "angular_velocity", "linear_acceleration", "angular_acceleration"):
+        torch.testing.assert_close(getattr(a, f), getattr(b, f), rtol=0, atol=1e-10, msg=f)
+    torch.testing.assert_close(dh.jacobian(q), urdf.jacobian(q), rtol=0, atol=1e-10)
+
+
 def _dh_product(q, a, alpha, d, theta, types):
     """Standard DH: prod_i Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i), written out."""
     T = torch.eye(4, dtype=F64)
