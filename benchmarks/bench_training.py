@@ -162,7 +162,8 @@ def main() -> None:
              f"{B} poses, {N} points each, noise {args.noise}, float64, {args.steps} steps from the identity; "
              "time per step = zero_grad + forward + backward + step (torchsgal: + re-anchoring), median over "
              "rounds of the four cases timed round-robin; the ratio is the median over rounds of the paired "
-             f"ratios. Other processes' share of the CPU while timing: {foreign}.", "",
+             "ratios. Other processes' share of the CPU while timing: "
+             + ("unknown" if foreign is None else f"{100 * foreign:.0f}%") + ".", "",
              "| optimiser | library | lr | ms per step | final loss | rot err (deg) | trans err | "
              "gap to least squares | pypose abs(norm q - 1) |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]

@@ -167,7 +167,7 @@ def test_compose_and_point_axes_trace_with_fullgraph(G):
 @pytest.mark.parametrize("G", [ts.SO3, ts.SE3])
 def test_matmul_compiles_with_graph_breaks_only(G):
     """``g @ h`` inside torch.compile: correct without fullgraph (dynamo breaks the graph at
-    ``@``); with fullgraph=True dynamo refuses it (torch 2.11 to 2.13: its object protocol has no
+    ``@``); with fullgraph=True dynamo refuses it (torch 2.13: its object protocol has no
     ``nb_matrix_multiply`` for classes that are not tensors, so ``__matmul__`` is never inlined) and
     ``compose`` is the spelling to use (LieGroup.compose's docstring).  If this starts to compile,
     torch traces ``@``: update that docstring and docs/guide/training.md."""

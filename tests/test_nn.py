@@ -146,6 +146,23 @@ def test_optimisers_converge_across_re_anchoring(G, name):
     assert err.max() < 1e-4, err
 
 
+@pytest.mark.parametrize("G", [ts.SO3, ts.SE3, ts.SGal3])
+def test_float32_training(G):
+    """Adam in float32: the element is found to float32 accuracy, the anchor stays on the group."""
+    truth = G.exp(0.8 * torch.randn(4, G.dof, dtype=F32, generator=_gen(11)))
+    x = torch.randn(4, 12, G.point_dim, dtype=F32, generator=_gen(12))
+    y = truth.act(x, point_axes=1)
+    p = GroupParameter(G.identity((4,), dtype=F32))
+    opt = torch.optim.Adam(p.parameters(), lr=0.03)
+    retract_after_step(opt, p)
+    for _ in range(600):
+        opt.zero_grad()
+        ((p().act(x, point_axes=1) - y) ** 2).sum().backward()
+        opt.step()
+    assert p.anchor.dtype == F32 and p().rminus(truth).detach().abs().max() < 1e-3
+    G.from_matrix(p.anchor, check=True)  # float32 membership tolerance 1e-4
+
+
 @pytest.mark.parametrize("name", list(OPTIMISERS))
 def test_re_anchoring_matches_plain_training_to_first_order(name):
     """Re-anchored every step or never, SGD and Adam reach the same element."""

@@ -352,8 +352,11 @@ class LieGroup:
 
     def compose(self, other: LieGroup) -> Self:
         """g h, the same as ``g @ h``.  Inside torch.compile(fullgraph=True) write
-        ``g.compose(h)``: dynamo (torch 2.13) cannot trace ``@`` between objects that are not
-        tensors (without fullgraph, ``@`` only breaks the graph).  The methods below use it."""
+        ``g.compose(h)``: dynamo (torch 2.13) traces ``+`` and ``*`` of objects that are
+        not tensors through their ``__add__``/``__mul__``, but its object protocol has no matrix
+        multiplication slot, so ``__matmul__`` is never inlined and ``@`` is a graph break (an
+        error under fullgraph; without it ``@`` works, in two graphs).  The methods below use
+        ``compose``."""
         self._same_type(other, "other")
         return type(self)._new(self._f.compose(self._matrix, other._matrix))
 
@@ -429,6 +432,12 @@ class LieGroup:
             raise RuntimeError("allclose reads the matrices' values to return a Python bool, and "
                                "tensors on device 'meta' have none")
         return bool(torch.allclose(a, b, rtol=rtol, atol=atol, equal_nan=equal_nan))
+
+    def act(self, x: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
+        """The group's action on points (..., point_dim) (events (x, t) for SGal3), in homogeneous
+        coordinates; each group's ``act`` gives its formula.  ``point_axes``: how many axes of
+        points before the coordinates every element maps whole (see "Acting on points" above)."""
+        return self._f.act(self._acting(x, "x", point_axes, self.point_dim), x)
 
     def act_direction(self, d: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
         """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d.
