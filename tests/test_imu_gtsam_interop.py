@@ -181,3 +181,38 @@ def test_sensor_to_body_euler_and_centripetal_terms():
         gi.sensor_to_body(gyro_s[:1], acc_s[:1], body, dt=0.01)
     with pytest.raises(TypeError, match="body_P_sensor must be an SE3"):
         gi.sensor_to_body(gyro_s, acc_s, "pose")
+
+
+def gtsam_bias_jacobian_fd(pim, eps=1e-6):
+    """d[theta, p, v] / d[b_a, b_g] of GTSAM's bias-corrected prediction (first order in GTSAM,
+    so central differences are exact up to rounding), from the identity with no gravity."""
+    from torchsgal import SO3
+    cols = []
+    for i in range(6):
+        vals = []
+        for sign in (1.0, -1.0):
+            b = np.zeros(6)
+            b[i] = sign * eps
+            nav = pim.predict(gtsam.NavState(), gtsam.imuBias.ConstantBias(b[:3], b[3:]))
+            theta = SO3.from_matrix(torch.tensor(nav.attitude().matrix(), dtype=F64)).log().numpy()
+            vals.append(np.concatenate((theta, np.asarray(nav.position()), np.asarray(nav.velocity()))))
+        cols.append((vals[0] - vals[1]) / (2 * eps))
+    return np.stack(cols, axis=1)
+
+
+def test_bias_jacobian_against_gtsam():
+    """torchsgal's bias Jacobian in GTSAM's chart and bias order against GTSAM's own (through its
+    bias-corrected prediction): the difference is GTSAM's discretisation, halved with dt."""
+    params = gi.to_gtsam_params(torch.zeros(3, dtype=F64), **NOISE)
+    errors = []
+    for dt in (0.02, 0.01, 0.005):
+        gyro, acc = constant(dt)
+        ref = gtsam_bias_jacobian_fd(gi.gtsam_pim(gyro, acc, dt, params))
+        pre = preintegrate(gyro, acc, dt)
+        ours = gi.to_gtsam_bias_jacobian(pre.bias_jacobian, pre.delta)
+        assert ours.shape == (9, 6)
+        errors.append(np.abs(ours - ref).max() / np.abs(ref).max())
+    assert 1.8 < errors[0] / errors[1] < 2.2 and 1.8 < errors[1] / errors[2] < 2.2
+    assert errors[2] < 6e-3  # 0.95 dt per second of window, first order
+    with pytest.raises(ValueError, match=r"bias_jacobian must have shape \(10, 6\)"):
+        gi.to_gtsam_bias_jacobian(torch.zeros(9, 6, dtype=F64), pre.delta)

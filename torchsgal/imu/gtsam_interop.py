@@ -217,6 +217,21 @@ def to_gtsam_covariance(covariance: torch.Tensor, delta: SGal3) -> np.ndarray:
     return _np(T @ covariance @ T.T)
 
 
+def to_gtsam_bias_jacobian(bias_jacobian: torch.Tensor, delta: SGal3) -> np.ndarray:
+    """torchsgal's bias Jacobian (10, 6) (eps per [db_g, db_a]) as GTSAM's (9, 6): the
+    derivative of its preintegrated vector [theta, p, v] with respect to its bias [b_a, b_g]
+    (what ``biasCorrectedDelta`` adds, first order; the inverse of :func:`gtsam_tangent_map`
+    on the rows, the bias swap on the columns)."""
+    if not isinstance(delta, SGal3) or delta.batch_shape != ():
+        raise TypeError("delta must be one SGal3 (batch shape ())")
+    checks.floating(bias_jacobian, "bias_jacobian")
+    if bias_jacobian.shape != (10, 6):
+        raise ValueError(f"bias_jacobian must have shape (10, 6), got {tuple(bias_jacobian.shape)}")
+    theta = SO3.from_matrix(delta.rotation()).log()
+    Minv = torch.linalg.inv(gtsam_tangent_map(delta.rotation(), theta)[:9])
+    return _np(Minv @ bias_jacobian[:9] @ _bias_swap(bias_jacobian))
+
+
 # ------------------------------------------------------------------ replay into GTSAM
 def gtsam_pim(gyro: torch.Tensor, acc: torch.Tensor, dt, params, gyro_bias=None, acc_bias=None):
     """One GTSAM preintegration (combined for combined ``params``) of the samples gyro, acc
