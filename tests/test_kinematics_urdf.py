@@ -390,3 +390,47 @@ def test_bad_input():
     with pytest.raises(ValueError, match="rigid transform"):
         load_robot("ur5", tool=torch.ones(4, 4, dtype=F64))
     assert isinstance(GDHChain, type)
+
+
+def test_tree_branches_against_pinocchio():
+    """The Allegro hand: four fingers as the branches of one tree (16 joints), every fingertip's
+    pose, velocity, acceleration and Jacobians against Pinocchio."""
+    hand = load_robot("allegro")
+    assert hand.n_joints == 16 and len(hand.end_links) == 4
+    assert hand.parents[:5] == (-1, 0, 1, 2, -1)  # finger 2 starts again at the palm
+    ref = PinRobot(hand, robot_urdf("allegro"))
+    q, qd, qdd = _random(hand, 3, 11)
+    st = hand.forward(q, qd, qdd, links=hand.end_links)
+    m, d = ref.model, ref.data
+    for b in range(3):
+        qp, vp = ref.q(q[b].tolist()), ref.v(qd[b].tolist())
+        pin.forwardKinematics(m, d, qp, vp, ref.v(qdd[b].tolist()))
+        pin.updateFramePlacements(m, d)
+        pin.computeJointJacobians(m, d, qp)
+        pin.computeJointJacobiansTimeVariation(m, d, qp, vp)
+        for k, tip in enumerate(hand.end_links):
+            fid = m.getFrameId(tip)
+            np.testing.assert_allclose(st.pose.as_matrix()[b, k].numpy(), d.oMf[fid].homogeneous,
+                                       atol=TOL, err_msg=tip)
+            vel = pin.getFrameVelocity(m, d, fid, pin.LOCAL_WORLD_ALIGNED)
+            np.testing.assert_allclose(st.linear_velocity[b, k].numpy(), vel.linear, atol=TOL)
+            np.testing.assert_allclose(st.angular_velocity[b, k].numpy(), vel.angular, atol=TOL)
+            acc = pin.getFrameClassicalAcceleration(m, d, fid, pin.LOCAL_WORLD_ALIGNED)
+            np.testing.assert_allclose(st.linear_acceleration[b, k].numpy(), acc.linear, atol=TOL)
+            np.testing.assert_allclose(st.angular_acceleration[b, k].numpy(), acc.angular, atol=TOL)
+            for f, pf in (("base", pin.LOCAL_WORLD_ALIGNED), ("body", pin.LOCAL)):
+                J = hand.jacobian(q[b], link=tip, frame=f)
+                np.testing.assert_allclose(J.numpy(), pin.getFrameJacobian(m, d, fid, pf)[:, ref.cols()],
+                                           atol=TOL, err_msg=f"{tip} {f}")
+                dJ = hand.jacobian_derivative(q[b], qd[b], link=tip, frame=f)
+                np.testing.assert_allclose(
+                    dJ.numpy(), pin.getFrameJacobianTimeVariation(m, d, fid, pf)[:, ref.cols()],
+                    atol=TOL, err_msg=f"{tip} {f}")
+    # a chain to one fingertip alone gives that finger's kinematics
+    one = load_robot("allegro", "link_7.0_tip")
+    assert one.n_joints == 4
+    torch.testing.assert_close(one.pose(q[:, 4:8]).as_matrix(), st.pose.as_matrix()[:, 1],
+                               rtol=0, atol=TOL)
+    with pytest.raises(ValueError, match="parents must give"):
+        KinematicChain(list(one.joints), {"x": (0, torch.eye(4, dtype=F64))}, "x",
+                       parents=[-1, 0, 2, 1])

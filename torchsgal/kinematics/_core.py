@@ -33,20 +33,32 @@ class Kernel:
     """Constants of a chain in one dtype and device, and the batched passes over it."""
 
     def __init__(self, origins: torch.Tensor, axes: torch.Tensor, revolute: list[bool],
-                 base: torch.Tensor, dtype: torch.dtype, device: torch.device):
+                 parents: list[int], base: torch.Tensor, dtype: torch.dtype,
+                 device: torch.device):
         n = origins.shape[0]
         self.n = n
         self.revolute = list(revolute)
+        self.parents = list(parents)  # the joint each joint follows (-1: the base), < its index
+        self.serial = self.parents == list(range(-1, n - 1))
         self.Q = torch.stack([axis_frame(axes[i]) for i in range(n)])  # float64, host
+        eye = torch.eye(3, dtype=torch.float64)
         mats = []
-        Q_prev = torch.eye(3, dtype=torch.float64)
         for i in range(n):
+            Q_prev = self.Q[self.parents[i]] if self.parents[i] >= 0 else eye
             C = Q_prev.T @ origins[i, :3, :3] @ self.Q[i]
             t = Q_prev.T @ origins[i, :3, 3]
             # out[r] = M @ R'[r] for each row r of R' (3, B): M = [C | t]^T, (4, 3)
             mats.append(torch.cat((C, t[:, None]), dim=1).T.contiguous().to(dtype=dtype, device=device))
-            Q_prev = self.Q[i]
         self.mats = mats
+        # A[k, i] = 1 where joint i is joint k or one of its ancestors (lower triangular)
+        A = torch.zeros(n, n, dtype=torch.float64)
+        for k in range(n):
+            i = k
+            while i >= 0:
+                A[k, i] = 1.0
+                i = self.parents[i]
+        self.ancestors = A.to(dtype=dtype, device=device)
+        self.ancestor_rows = [[i for i in range(n) if A[k, i] > 0] for k in range(n)]
         self.base_R = base[:3, :3].to(dtype=dtype, device=device)
         self.base_p = base[:3, 3].to(dtype=dtype, device=device)
         self.rev_mask = torch.tensor(revolute, dtype=dtype, device=device)[:, None, None]  # (n, 1, 1)
@@ -68,6 +80,7 @@ class Kernel:
         p = self.base_p[:, None].expand(3, B)
         Rs, ps = [R], [p]
         for i in range(self.n):
+            R, p = Rs[self.parents[i] + 1], ps[self.parents[i] + 1]
             out = torch.matmul(self.mats[i], R)  # (3, 4, B): rows of R' C and R' t
             A, t = out[:, :3, :], out[:, 3, :]
             if self.revolute[i]:  # A Rz(q): columns (c A0 + s A1, c A1 - s A0, A2)
@@ -88,6 +101,13 @@ class Kernel:
         Rj, pj = Rs.index_select(0, index), ps.index_select(0, index)
         out = torch.matmul(G[:, None], Rj)  # (L, 3, 4, B)
         return out[:, :, :3, :], pj + out[:, :, 3, :]
+
+    def ancestor_sum(self, x: torch.Tensor) -> torch.Tensor:
+        """sum over each joint's ancestors and itself of x (n, ...): a prefix sum on a serial
+        chain, a product with the ancestor matrix on a tree."""
+        flat = x.reshape(x.shape[0], -1)
+        out = flat.cumsum(0) if self.serial else self.ancestors @ flat
+        return out.view(x.shape)
 
     def screws(self, Rs: torch.Tensor, ps: torch.Tensor):
         """Unit screws (S_lin, S_ang) (n, 3, B) of the joints in the base frame: (o x z, z)

@@ -181,6 +181,11 @@ class KinematicChain:
         dtype, device: of the chain's constants; q, qdot, qddot must match them (nothing is
             cast).  Change them with :meth:`to`.
         name: a label for messages.
+        root_link: the name of the base link.
+        parents: for a tree, the index of the joint each joint follows (-1: the base), each
+            smaller than its own index; None for a serial chain (joint i follows i - 1).
+        end_links: a tree's branch ends (``forward(q, links=chain.end_links)``); ``end_link``
+            is the default link of ``forward`` and ``jacobian``.
 
     Joint limits are ``lower`` and ``upper`` ((n,) tensors, -inf / inf where there are none).
     """
@@ -197,6 +202,8 @@ class KinematicChain:
         device=None,
         name: str = "chain",
         root_link: str = "base",
+        parents: Sequence[int] | None = None,
+        end_links: Sequence[str] | None = None,
     ):
         dtype = checks.dtype_arg(dtype)
         joints = list(joints)
@@ -222,6 +229,16 @@ class KinematicChain:
         self.n_joints = len(joints)
         self.root_link = root_link
         self.end_link = end_link
+        self.end_links = tuple(end_links) if end_links is not None else (end_link,)
+        for k in self.end_links:
+            if k not in links:
+                raise ValueError(f"end_links: {k!r} is not a link of the chain")
+        n = len(joints)
+        self.parents = tuple(range(-1, n - 1)) if parents is None else tuple(
+            checks.integer(x, f"parents[{i}]", -1) for i, x in enumerate(parents))
+        if len(self.parents) != n or any(x >= i for i, x in enumerate(self.parents)):
+            raise ValueError(f"parents must give, for each of the {n} joints, an earlier joint's "
+                             f"index or -1 (the base), got {list(self.parents)}")
         self._base64 = _transform(base, "base")
         self._tool64 = _transform(tool, "tool")
         self._links64 = {}
@@ -241,7 +258,7 @@ class KinematicChain:
         origins = torch.stack([j.origin.to("cpu", f64) for j in self.joints])
         axes = torch.tensor([j.axis for j in self.joints], dtype=f64)
         self._kernel = Kernel(origins, axes, [j.kind != PRISMATIC for j in self.joints],
-                              self._base64, dtype, device)
+                              list(self.parents), self._base64, dtype, device)
         self._lower = torch.tensor([j.lower for j in self.joints], dtype=dtype, device=device)
         self._upper = torch.tensor([j.upper for j in self.joints], dtype=dtype, device=device)
         self._dtype, self._device = dtype, device
@@ -393,7 +410,7 @@ class KinematicChain:
             S_lin, S_ang = k.screws(Rs, ps)
             qd = self._flat(qdot)[:, None, :]
             nu, om = S_lin * qd, S_ang * qd
-            N, W = _cumsum0(nu), _cumsum0(om)  # V_k = sum_(i <= k) S_i qd_i  (50)
+            N, W = k.ancestor_sum(nu), k.ancestor_sum(om)  # V_k = sum_(i <= k) S_i qd_i  (50)
             last = self._is_last(names)
             Nk, Wk = _at(N, index, last), _at(W, index, last)
             v = Nk + _cross1(Wk, p)
@@ -402,8 +419,8 @@ class KinematicChain:
             if qddot is not None:
                 qdd = self._flat(qddot)[:, None, :]
                 # dV_k = sum_(i <= k) S_i qdd_i + ad(V_i)(S_i qd_i)
-                dN = _cumsum0(S_lin * qdd + _cross1(W, nu) + _cross1(N, om))
-                dW = _cumsum0(S_ang * qdd + _cross1(W, om))
+                dN = k.ancestor_sum(S_lin * qdd + _cross1(W, nu) + _cross1(N, om))
+                dW = k.ancestor_sum(S_ang * qdd + _cross1(W, om))
                 dNk, dWk = _at(dN, index, last), _at(dW, index, last)
                 a = dNk + _cross1(dWk, p) + _cross1(Wk, v)
                 state.linear_acceleration = to_batch_first(a, batch, 1)
@@ -452,8 +469,8 @@ class KinematicChain:
         R, p = R[0], p[0]  # (3, 3, B), (3, B)
         S_lin, S_ang = k.screws(Rs, ps)
         j = self._links64[link][0]  # the last joint before the link (-1: the base)
-        if j < self.n_joints - 1:  # joints after the link do not move it
-            mask = (torch.arange(self.n_joints, device=self._device) <= j).to(self._dtype)
+        if not (k.serial and j == self.n_joints - 1):  # only the link's ancestors move it
+            mask = k.ancestors[j] if j >= 0 else torch.zeros_like(k.ancestors[0])
             S_lin, S_ang = S_lin * mask[:, None, None], S_ang * mask[:, None, None]
         lin = S_lin + _cross1(S_ang, p[None])  # z_i x (p - o_i), or z_i
         R_b, p_b = to_batch_first(R[None], batch, 2)[..., 0, :, :], to_batch_first(p[None], batch, 1)[..., 0, :]
@@ -462,14 +479,15 @@ class KinematicChain:
             return R_b, p_b, J, None, None, None
         qd = self._flat(qdot)[:, None, :]
         nu, om = S_lin * qd, S_ang * qd
-        N, W = _cumsum0(nu), _cumsum0(om)
-        v = N[-1] + _cross1(W[-1:], p[None])[0]
+        N, W = k.ancestor_sum(nu), k.ancestor_sum(om)
+        w = om.sum(0)  # the link's angular velocity: the sum over its (unmasked) ancestors
+        v = nu.sum(0) + _cross1(w[None], p[None])[0]
         dS_lin = _cross1(W, S_lin) + _cross1(N, S_ang)  # dS_i/dt = ad(V_i) S_i
         dS_ang = _cross1(W, S_ang)
         dlin = dS_lin + _cross1(dS_ang, p[None]) + _cross1(S_ang, v[None])
         dJ = _columns(torch.cat((dlin, dS_ang), dim=1), batch)
         return (R_b, p_b, J, dJ, to_batch_first(v[None], batch, 1)[..., 0, :],
-                to_batch_first(W[-1][None], batch, 1)[..., 0, :])
+                to_batch_first(w[None], batch, 1)[..., 0, :])
 
     def _frame(self, frame: str) -> str:
         if frame not in FRAMES:
@@ -576,11 +594,6 @@ def _reframe(J: torch.Tensor, R: torch.Tensor, p: torch.Tensor, frame: str) -> t
         return torch.cat((lin, J[..., 3:, :]), dim=-2)
     Rt = R.transpose(-1, -2)
     return torch.cat((Rt @ J[..., :3, :], Rt @ J[..., 3:, :]), dim=-2)
-
-
-def _cumsum0(x: torch.Tensor) -> torch.Tensor:
-    """Inclusive prefix sums over the joints (axis 0, contiguous view)."""
-    return x.reshape(x.shape[0], -1).cumsum(0).view(x.shape)
 
 
 def _at(x: torch.Tensor, index: torch.Tensor, last: bool) -> torch.Tensor:

@@ -6,6 +6,7 @@ robots come from the package ``example-robot-data`` (meshes are not read)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -54,7 +55,7 @@ def iiwa7(dtype=torch.float64, device=None) -> GDHChain:
 
 
 # ------------------------------------------------------------- real robots (URDF)
-# name -> (URDF path under example-robot-data's robots folder, default end link)
+# name -> (URDF path under example-robot-data's robots folder, default end link(s))
 URDF_ROBOTS = {
     "panda": ("panda_description/urdf/panda.urdf", "panda_hand_tcp"),
     "ur3": ("ur_description/urdf/ur3_robot.urdf", "tool0"),
@@ -63,12 +64,14 @@ URDF_ROBOTS = {
     "xarm7": ("xarm_description/urdf/xarm7.urdf", "link_eef"),
     "kinova": ("kinova_description/robots/kinova.urdf", "j2s6s200_end_effector"),
     "z1": ("z1_description/urdf/z1.urdf", "gripperStator"),
+    "allegro": ("allegro_hand_description/urdf/allegro_right_hand.urdf",
+                ("link_3.0_tip", "link_7.0_tip", "link_11.0_tip", "link_15.0_tip")),
 }
 
 
 def robot_urdf(name: str) -> Path:
     """The path of the URDF file of a robot shipped by ``example-robot-data``: one of
-    ``URDF_ROBOTS`` ("panda", "ur3", "ur5", "ur10", "xarm7", "kinova", "z1")."""
+    ``URDF_ROBOTS`` ("panda", "ur3", "ur5", "ur10", "xarm7", "kinova", "z1", "allegro")."""
     if name not in URDF_ROBOTS:
         raise ValueError(f"name must be one of {sorted(URDF_ROBOTS)}, got {name!r}")
     path = example_robot_data_dir() / URDF_ROBOTS[name][0]
@@ -78,13 +81,15 @@ def robot_urdf(name: str) -> Path:
     return path
 
 
-def load_robot(name: str, end_link: str | None = None, root_link: str | None = None, *,
+def load_robot(name: str, end_link: str | Sequence[str] | None = None,
+               root_link: str | None = None, *,
                base=None, tool=None, dtype: torch.dtype = torch.float64,
                device=None) -> KinematicChain:
     """A :class:`KinematicChain` of a real robot from its URDF in ``example-robot-data``.
 
     ``end_link`` defaults to the robot's tool frame (``URDF_ROBOTS``: the Panda's
-    ``panda_hand_tcp``, the UR arms' ``tool0``); ``root_link`` to the URDF's root.
+    ``panda_hand_tcp``, the UR arms' ``tool0``, the Allegro hand's four fingertips: a tree);
+    ``root_link`` to the URDF's root.
     """
     default_end = URDF_ROBOTS[name][1] if name in URDF_ROBOTS else None
     return from_urdf(robot_urdf(name), end_link or default_end, root_link, base=base,

@@ -4,7 +4,8 @@ URDF files are parsed with ``yourdfpy`` (an optional dependency: ``pip install y
 meshes are never loaded, so ``package://`` mesh URIs need not resolve.  Joint origins are read
 in float64 (``xyz``, and ``rpy`` as R = Rz(yaw) Ry(pitch) Rx(roll), the URDF convention).
 
-A chain runs from ``root_link`` to ``end_link`` through the tree; fixed joints are folded into
+A chain runs from ``root_link`` to ``end_link`` (or to several end links: the branches of a
+tree) through the tree; fixed joints are folded into
 the next actuated joint's origin (or into the offset of the links after the last one).  The
 links of the chain are those on the path and the links attached to them by fixed joints only
 (a gripper's TCP frame, a flange).  When ``root_link`` is not an ancestor of ``end_link`` it
@@ -16,6 +17,7 @@ import io
 import math
 import os
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -93,7 +95,7 @@ def _origin(joint) -> torch.Tensor:
 
 def from_urdf(
     source,
-    end_link: str | None = None,
+    end_link: str | Sequence[str] | None = None,
     root_link: str | None = None,
     *,
     base=None,
@@ -106,7 +108,10 @@ def from_urdf(
     Args:
         source: a path to a .urdf file, or the URDF text.
         end_link: the chain's end link (default: the only leaf of the tree; ValueError listing
-            the leaves when there are several).
+            the leaves when there are several), or several links, the ends of a tree's
+            branches (a hand's fingertips): the chain then holds the joints of every branch
+            (``chain.parents`` gives each joint's predecessor), ``chain.end_links`` lists the
+            ends and the first is ``chain.end_link``.
         root_link: the chain's base link (default: the root of the tree).
         base, tool: transforms before the root link and after the end link (None, SE3 or
             (4, 4)).
@@ -132,8 +137,11 @@ def from_urdf(
             raise ValueError(f"end_link must be given: the robot {robot.name!r} has several leaf "
                              f"links {leaves}")
         end_link = leaves[0]
-    for arg, k in (("end_link", end_link), ("root_link", root_link)):
-        if k is not None and k not in by_child and k not in roots:
+    ends = [end_link] if isinstance(end_link, str) else list(end_link)
+    if not ends:
+        raise ValueError("end_link must name at least one link")
+    for arg, k in [("end_link", e) for e in ends] + [("root_link", root_link)]:
+        if k is not None and (not isinstance(k, str) or (k not in by_child and k not in roots)):
             raise ValueError(f"{arg} {k!r} is not a link of the robot {robot.name!r}; its links "
                              f"are {link_names}")
     root_link = roots[0] if root_link is None else root_link
@@ -145,59 +153,51 @@ def from_urdf(
             k = by_child[k].parent
         return path[::-1]
 
-    end_path, root_path = ancestors(end_link), ancestors(root_link)
-    common = 0
-    while (common < min(len(end_path), len(root_path))
-           and end_path[common] is root_path[common]):
-        common += 1
-    up = root_path[common:]  # from the common ancestor down to root_link: must be fixed
-    moving = [j.name for j in up if j.type != "fixed"]
-    if moving:
-        raise ValueError(f"root_link {root_link!r} is not an ancestor of end_link {end_link!r} "
-                         f"and hangs from it by the moving joints {moving}; choose a root_link "
-                         f"on the path or attached to it by fixed joints")
+    root_path = ancestors(root_link)
+    paths, anchors = [], set()
+    for e in ends:
+        end_path = ancestors(e)
+        common = 0
+        while (common < min(len(end_path), len(root_path))
+               and end_path[common] is root_path[common]):
+            common += 1
+        up = root_path[common:]  # from the common ancestor down to root_link: must be fixed
+        moving = [j.name for j in up if j.type != "fixed"]
+        if moving:
+            raise ValueError(f"root_link {root_link!r} is not an ancestor of end_link {e!r} and "
+                             f"hangs from it by the moving joints {moving}; choose a root_link "
+                             f"on the path or attached to it by fixed joints")
+        anchors.add(common)
+        paths.append(end_path[common:])
+    if len(anchors) != 1:
+        raise ValueError(f"the end links {ends} must share one ancestor with root_link "
+                         f"{root_link!r}")
     to_root = torch.eye(4, dtype=torch.float64)
-    for j in up:
+    for j in root_path[anchors.pop():]:
         to_root = to_root @ _origin(j)
     inv_root = torch.linalg.inv(to_root)
-    path = end_path[common:]
 
     joints: list[Joint] = []
-    links: dict[str, tuple[int, torch.Tensor]] = {}
-    acc = inv_root  # fixed transform since the last actuated joint (from the root link frame)
-    anchor = path[0].parent if path else root_link
-    links[root_link] = (-1, torch.eye(4, dtype=torch.float64))
-    if anchor != root_link:
-        links[anchor] = (-1, inv_root.clone())
-    for j in path:
-        if j.type == "fixed":
-            acc = acc @ _origin(j)
-            links[j.child] = (len(joints) - 1, acc.clone())
-            continue
-        if j.type not in _KINDS:
-            raise ValueError(f"joint {j.name!r} on the chain has type {j.type!r}; supported: "
-                             f"revolute, continuous, prismatic, fixed")
-        if j.mimic is not None:
-            raise ValueError(f"joint {j.name!r} on the chain mimics {j.mimic.joint!r}: mimic "
-                             f"joints are not supported")
-        raw = [1.0, 0.0, 0.0] if j.axis is None else [float(x) for x in j.axis]
-        norm = math.sqrt(sum(x * x for x in raw))
-        if len(raw) != 3 or not (norm > 0 and math.isfinite(norm)):
-            raise ValueError(f"joint {j.name!r} has axis {raw}: it must be a non-zero 3-vector")
-        axis = (raw[0] / norm, raw[1] / norm, raw[2] / norm)
-        lim = j.limit
-        kind = _KINDS[j.type]
-        lower = -math.inf if kind == CONTINUOUS or lim is None or lim.lower is None else float(lim.lower)
-        upper = math.inf if kind == CONTINUOUS or lim is None or lim.upper is None else float(lim.upper)
-        vel = math.inf if lim is None or lim.velocity is None else float(lim.velocity)
-        joints.append(Joint(j.name, kind, axis, acc @ _origin(j), lower, upper, vel))
-        acc = torch.eye(4, dtype=torch.float64)
-        links[j.child] = (len(joints) - 1, acc.clone())
+    parents: list[int] = []
+    # link -> (the last actuated joint before it, -1 for none; offset from that joint's frame)
+    links: dict[str, tuple[int, torch.Tensor]] = {root_link: (-1, torch.eye(4, dtype=torch.float64))}
+    for path in paths:
+        if path and path[0].parent not in links:
+            links[path[0].parent] = (-1, inv_root.clone())  # the common ancestor
+        for j in path:
+            if j.child in links:  # shared with an earlier branch
+                continue
+            idx, off = links[j.parent]
+            if j.type == "fixed":
+                links[j.child] = (idx, off @ _origin(j))
+                continue
+            joints.append(_joint(j, off @ _origin(j)))
+            parents.append(idx)
+            links[j.child] = (len(joints) - 1, torch.eye(4, dtype=torch.float64))
     if not joints:
-        raise ValueError(f"no actuated joint between {root_link!r} and {end_link!r}")
-    # Links hanging from the path by fixed joints only (flanges, TCP frames).
-    on_path = [root_link] + [j.child for j in path]
-    stack = list(on_path)
+        raise ValueError(f"no actuated joint between {root_link!r} and {ends}")
+    # Links hanging from the chain by fixed joints only (flanges, TCP frames).
+    stack = list(links)
     while stack:
         k = stack.pop()
         for j in children.get(k, []):
@@ -205,8 +205,30 @@ def from_urdf(
                 idx, off = links[k]
                 links[j.child] = (idx, off @ _origin(j))
                 stack.append(j.child)
-    return KinematicChain(joints, links, end_link, base=base, tool=tool, dtype=dtype,
-                          device=device, name=robot.name, root_link=root_link)
+    return KinematicChain(joints, links, ends[0], base=base, tool=tool, dtype=dtype,
+                          device=device, name=robot.name, root_link=root_link, parents=parents,
+                          end_links=ends)
+
+
+def _joint(j, origin: torch.Tensor) -> Joint:
+    """The Joint of an actuated URDF joint ``j`` with the given origin."""
+    if j.type not in _KINDS:
+        raise ValueError(f"joint {j.name!r} on the chain has type {j.type!r}; supported: "
+                         f"revolute, continuous, prismatic, fixed")
+    if j.mimic is not None:
+        raise ValueError(f"joint {j.name!r} on the chain mimics {j.mimic.joint!r}: mimic "
+                         f"joints are not supported")
+    raw = [1.0, 0.0, 0.0] if j.axis is None else [float(x) for x in j.axis]
+    norm = math.sqrt(sum(x * x for x in raw))
+    if len(raw) != 3 or not (norm > 0 and math.isfinite(norm)):
+        raise ValueError(f"joint {j.name!r} has axis {raw}: it must be a non-zero 3-vector")
+    axis = (raw[0] / norm, raw[1] / norm, raw[2] / norm)
+    lim = j.limit
+    kind = _KINDS[j.type]
+    lower = -math.inf if kind == CONTINUOUS or lim is None or lim.lower is None else float(lim.lower)
+    upper = math.inf if kind == CONTINUOUS or lim is None or lim.upper is None else float(lim.upper)
+    vel = math.inf if lim is None or lim.velocity is None else float(lim.velocity)
+    return Joint(j.name, kind, axis, origin, lower, upper, vel)
 
 
 def from_pk(serial_chain, *, base=None, tool=None, dtype: torch.dtype | None = None,
