@@ -1,0 +1,305 @@
+"""Factors for inertial navigation with the factor-graph engine (``estimation.graph``): IMU
+preintegration between navigation states, the bias random walk, and GNSS positions.
+
+States are Galilean frames X = (R, v, p, t) (``SGal3``) or extended poses (``SE23``, times
+known); biases a Euclidean variable of 6-vectors ``[b_g, b_a]`` (gyro first, as
+``Preintegration.bias_jacobian``).  Residuals are right-perturbation errors and every noise is
+given as the covariance of the residual (the engine receives its square-root information).
+Guide: ``docs/guide/imu_factors.md``.
+
+IMU residual (docs/guide/imu.md, "Prediction"; mahony (57), Remark 6.2): the states imply the
+gravity-free increment
+
+    D(X_i, X_j) = X_i^-1 S(t_i) A(tau)^-1 S(-t_i) X_j,   tau = t_j - t_i,
+    A(tau) = S(tau) exp([0, g tau, -Omega tau, -tau]),   S(t) = exp(t N),
+
+the inverse of ``predict`` (X_j = S(t_i) A(T) S(-t_i) X_i Delta), and the residual compares it
+with the preintegrated increment corrected to first order for the bias b_i of the window's
+start (``Preintegration.corrected``):
+
+    r = log(Delta(b_i)^-1 D(X_i, X_j)),   Delta(b_i) = Delta exp(J_b (b_i - b_lin)).
+
+With the model's increment Delta_true = Delta exp(eps), r = eps exactly, so the noise of r
+is the preintegrated covariance itself (GTSAM's ``ImuFactor`` likewise whitens its error in
+the preintegrated-measurement space by ``preintMeasCov``).
+"""
+from __future__ import annotations
+
+import numbers
+
+import torch
+
+from .. import SE3, SE23, SGal3
+from ..estimation.graph.factors import Factor
+from ..functional import checks
+from ..groups import LieGroup
+from .preintegration import Preintegration
+
+__all__ = ["ImuFactor", "BiasRandomWalkFactor", "GnssPositionFactor", "imu_residual",
+           "implied_increment", "sqrt_information_from_covariance"]
+
+
+# ------------------------------------------------------------------------------ helpers
+def sqrt_information_from_covariance(covariance: torch.Tensor, name: str = "covariance"
+                                     ) -> torch.Tensor:
+    """L (..., m, m) with L^T L = covariance^-1: L = C^-1 for the Cholesky factor C C^T =
+    covariance.  Raises ValueError naming ``name`` if a covariance is not positive definite
+    (a construction-time check: it reads the factorisation's status)."""
+    checks.floating(covariance, name)
+    if covariance.dim() < 2 or covariance.shape[-1] != covariance.shape[-2]:
+        raise ValueError(f"{name} must have shape (..., m, m), got {tuple(covariance.shape)}")
+    if not bool(torch.isfinite(covariance).all()):
+        raise ValueError(f"{name} has non-finite entries")
+    C, info = torch.linalg.cholesky_ex(covariance)
+    if bool((info != 0).any()):
+        raise ValueError(f"{name} must be symmetric positive definite; "
+                         f"{int((info != 0).sum())} of its matrices are not")
+    eye = torch.eye(covariance.shape[-1], dtype=covariance.dtype, device=covariance.device)
+    return torch.linalg.solve_triangular(C, eye.expand_as(C), upper=False)
+
+
+def _time_shift(t: torch.Tensor) -> SGal3:
+    """S(t) = exp(t N), the pure time translation, for t (...)."""
+    zero = torch.zeros(t.shape + (9,), dtype=t.dtype, device=t.device)
+    return SGal3.exp(torch.cat((zero, t.unsqueeze(-1)), dim=-1))
+
+
+def _left_factor_inverse(tau: torch.Tensor, gravity: torch.Tensor, earth_rate: torch.Tensor
+                         ) -> SGal3:
+    """A(tau)^-1 = exp(-[0, g tau, -Omega tau, -tau]) S(-tau) (``predict``'s left factor)."""
+    h = tau.unsqueeze(-1)
+    g, w, h = torch.broadcast_tensors(gravity * h, earth_rate * h, h)
+    xi = torch.cat((torch.zeros_like(g), g, -w, -h[..., :1]), dim=-1)
+    return SGal3.exp(-xi).compose(_time_shift(-tau))
+
+
+def implied_increment(start: SGal3, end: SGal3, gravity: torch.Tensor,
+                      earth_rate: torch.Tensor | None = None) -> SGal3:
+    """D = X_i^-1 S(t_i) A(t_j - t_i)^-1 S(-t_i) X_j: the gravity-free increment that carries
+    ``start`` X_i to ``end`` X_j under ``predict``'s model (``predict(start, D, gravity,
+    earth_rate) == end``).  gravity, earth_rate (..., 3) in the navigation frame."""
+    if not isinstance(start, SGal3) or not isinstance(end, SGal3):
+        raise TypeError(f"start and end must be SGal3, got {type(start).__name__} and "
+                        f"{type(end).__name__}")
+    checks.vector(gravity, 3, "gravity")
+    if earth_rate is None:
+        earth_rate = torch.zeros_like(gravity)
+    checks.vector(earth_rate, 3, "earth_rate")
+    t_i = start.time()
+    middle = _time_shift(t_i).compose(_left_factor_inverse(end.time() - t_i, gravity, earth_rate))
+    return start.inverse().compose(middle).compose(_time_shift(-t_i)).compose(end)
+
+
+def _as_galilean(X: SE23 | SGal3, t: torch.Tensor) -> SGal3:
+    """An SE_2(3) state as the Galilean frame of its rotation, velocity and position at time t."""
+    return SGal3.from_components(rotation=X.rotation(), velocity=X.velocity(),
+                                 position=X.position(), time=t)
+
+
+def imu_residual(X_i: SGal3 | SE23, X_j: SGal3 | SE23, bias_i: torch.Tensor, delta: SGal3,
+                 bias_jacobian: torch.Tensor, linearization_bias: torch.Tensor,
+                 gravity: torch.Tensor, earth_rate: torch.Tensor) -> torch.Tensor:
+    """r = log(Delta(b_i)^-1 D(X_i, X_j)) (module docstring): (..., 10) for SGal3 states,
+    (..., 9) = [rho, nu, phi] for SE23 states (placed at times 0 and the window length T, so
+    that r's time component is an exact zero).  One factor, broadcasting over batch axes."""
+    db = bias_i - linearization_bias
+    corrected = delta.rplus((bias_jacobian @ db.unsqueeze(-1)).squeeze(-1))
+    if isinstance(X_i, SGal3) and isinstance(X_j, SGal3):
+        D = implied_increment(X_i, X_j, gravity, earth_rate)
+        return corrected.inverse().compose(D).log()
+    T = delta.time()
+    start = _as_galilean(X_i, torch.zeros_like(T))
+    D = implied_increment(start, _as_galilean(X_j, T), gravity, earth_rate)
+    return corrected.inverse().compose(D).log()[..., :9]
+
+
+def _vector3(x, name: str, like: torch.Tensor) -> torch.Tensor:
+    checks.vector(x, 3, name)
+    checks.same_device_dtype(**{"the preintegration": like, name: x})
+    return x
+
+
+# ----------------------------------------------------------------------------- factors
+class ImuFactor(Factor):
+    """E IMU factors ``r = log(Delta(b_i)^-1 D(X_i, X_j))`` (module docstring) between the
+    elements ``i`` and ``j`` (E,) of the state variable ``states`` and the element
+    ``bias_index`` (E,) of the Euclidean bias variable ``bias`` ((N_b, 6) ``[b_g, b_a]``: one
+    per state, or one per window, or one shared: the indices say which).
+
+    preintegration  a ``Preintegration`` of batch (E,) (shared by the problems) or (B, E),
+                    with its covariance and bias Jacobian (``preintegrate``'s defaults).
+    gravity         (3,) or broadcasting to the preintegration's batch, in the navigation
+                    frame (``gravity_vector``); ``earth_rate`` likewise, or None.
+    state_group     ``SGal3`` (the states' times are estimated; 10-dimensional residual) or
+                    ``SE23`` (times known: state i at 0 and j at the window length;
+                    9-dimensional residual [rho, nu, phi]).
+    time_sigma      [s] SGal3 states only: an extra standard deviation on the residual's time
+                    component, added to the preintegrated time variance.  Rule for the clock:
+                    with ``time_noise_density > 0`` the covariance is regular and
+                    ``time_sigma`` may stay None; with an exact clock (time variance zero,
+                    ``preintegrate``'s default) the residual's time component t_j - t_i - T
+                    needs a ``time_sigma > 0`` (a stiff constraint, e.g. 1e-6 s; the
+                    component is linear in the times, so a stiff weight costs the solvers no
+                    accuracy); else a ValueError says so.
+
+    Noise: information = (Sigma + time_sigma^2 e_iota e_iota^T)^-1 (SGal3) or
+    Sigma[:9, :9]^-1 (SE23), Sigma the preintegrated covariance.  Jacobians: forward-mode
+    autodiff (the engine's default).
+    """
+
+    def __init__(self, states: str, i, j, bias: str, bias_index, preintegration: Preintegration,
+                 gravity: torch.Tensor, earth_rate: torch.Tensor | None = None, *,
+                 state_group: type[LieGroup] = SGal3, time_sigma: float | None = None,
+                 loss=None):
+        if not isinstance(preintegration, Preintegration):
+            raise TypeError(f"preintegration must be a Preintegration, got "
+                            f"{type(preintegration).__name__}")
+        pre = preintegration
+        if pre.covariance is None or pre.bias_jacobian is None:
+            raise ValueError("preintegration must carry its covariance and bias_jacobian "
+                             "(preintegrate with covariance=True, bias_jacobian=True)")
+        if len(pre.batch_shape) not in (1, 2):
+            raise ValueError(f"preintegration must have batch (E,) or (B, E), got "
+                             f"{tuple(pre.batch_shape)}")
+        if state_group not in (SGal3, SE23):
+            raise ValueError(f"state_group must be SGal3 or SE23, got {state_group!r}")
+        batch = pre.batch_shape
+        like = pre.delta.as_matrix()
+        gravity = _vector3(gravity, "gravity", like).expand(*batch, 3)
+        earth_rate = (torch.zeros_like(gravity) if earth_rate is None
+                      else _vector3(earth_rate, "earth_rate", like).expand(*batch, 3))
+        cov = pre.covariance.expand(*batch, 10, 10)
+        if state_group is SE23:
+            if time_sigma is not None:
+                raise ValueError("time_sigma applies to SGal3 states only (SE23 states have "
+                                 "known times)")
+            L = sqrt_information_from_covariance(cov[..., :9, :9], "preintegration.covariance")
+        else:
+            if time_sigma is not None:
+                sigma = checks.finite_number(time_sigma, "time_sigma", "> 0")
+                cov = cov.clone()
+                cov[..., 9, 9] += sigma**2
+            elif bool((cov[..., 9, 9] <= 0).any()):
+                raise ValueError("the preintegrated covariance has a zero time variance (an exact "
+                                 "clock): give time_sigma > 0 (a stiff constraint t_j - t_i = T) "
+                                 "or use SE23 states with known times")
+            L = sqrt_information_from_covariance(cov, "preintegration.covariance")
+        b_lin = torch.cat(torch.broadcast_tensors(pre.gyro_bias, pre.acc_bias), dim=-1)
+        self.state_group = state_group
+        super().__init__(imu_residual, [(states, i), (states, j), (bias, bias_index)],
+                         data=[pre.delta, pre.bias_jacobian.expand(*batch, 10, 6),
+                               b_lin.expand(*batch, 6), gravity, earth_rate],
+                         dim=10 if state_group is SGal3 else 9, sqrt_information=L, loss=loss)
+
+
+def _random_walk_residual(b_i: torch.Tensor, b_j: torch.Tensor) -> torch.Tensor:
+    """r = b_j - b_i."""
+    return b_j - b_i
+
+
+def _random_walk_jacobians(b_i: torch.Tensor, b_j: torch.Tensor):
+    r = b_j - b_i
+    eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
+    return r, [-eye, eye]
+
+
+def _density_axes(x, name: str, like: torch.Tensor) -> torch.Tensor:
+    """A random-walk density: a number > 0 or a tensor (3,) of entries > 0, as (3,)."""
+    if isinstance(x, torch.Tensor):
+        checks.vector(x, 3, name)
+        checks.same_device_dtype(duration=like, **{name: x})
+        if x.shape != (3,):
+            raise ValueError(f"{name} must be a number or a tensor of shape (3,), got "
+                             f"{tuple(x.shape)}")
+        if not bool(((x > 0) & x.isfinite()).all()):
+            raise ValueError(f"{name} must be finite and > 0, got {x.tolist()}")
+        return x
+    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+        raise TypeError(f"{name} must be a number > 0 or a tensor (3,), got {type(x).__name__}")
+    return like.new_full((3,), checks.finite_number(x, name, "> 0"))
+
+
+class BiasRandomWalkFactor(Factor):
+    """E factors ``r = b_j - b_i`` between elements ``i`` and ``j`` (E,) of the Euclidean bias
+    variable ``bias`` ([b_g, b_a], (N, 6)): the bias random walk over a window of length
+    ``duration`` dt (E,) or (B, E) [s] (a tensor, e.g. ``preintegration.duration()``, > 0).
+
+    Covariance diag(s_g^2 I, s_a^2 I) dt with the continuous-time random-walk densities
+    ``gyro_random_walk`` s_g [rad/s^2/sqrt(Hz)] and ``acc_random_walk`` s_a [m/s^3/sqrt(Hz)]
+    (numbers or per-axis tensors (3,)): GTSAM's ``CombinedImuFactor`` bias block
+    (``biasOmegaCovariance dt``, ``biasAccCovariance dt``), or a ``BetweenFactor<ConstantBias>``
+    with sigmas ``sqrt(dt) s``.  Analytic Jacobians [-I, I]."""
+
+    def __init__(self, bias: str, i, j, duration: torch.Tensor, gyro_random_walk,
+                 acc_random_walk, *, loss=None):
+        checks.floating(duration, "duration")
+        if duration.dim() not in (1, 2):
+            raise ValueError(f"duration must have shape (E,) or (B, E), got {tuple(duration.shape)}")
+        if not bool(((duration > 0) & duration.isfinite()).all()):
+            raise ValueError("duration must be finite and > 0 everywhere")
+        s = torch.cat((_density_axes(gyro_random_walk, "gyro_random_walk", duration),
+                       _density_axes(acc_random_walk, "acc_random_walk", duration)))
+        L = torch.diag_embed(1.0 / (s * duration.unsqueeze(-1).sqrt()))  # (E, 6, 6) / (B, E, 6, 6)
+        super().__init__(_random_walk_residual, [(bias, i), (bias, j)], dim=6,
+                         sqrt_information=L, loss=loss, jacobians=_random_walk_jacobians)
+
+
+def _gnss_residual(X: SE3 | SE23 | SGal3, measured: torch.Tensor, lever_arm: torch.Tensor) -> torch.Tensor:
+    """r = p + R l - z."""
+    return X.position() + (X.rotation() @ lever_arm.unsqueeze(-1)).squeeze(-1) - measured
+
+
+def _skew(a: torch.Tensor) -> torch.Tensor:
+    o = torch.zeros_like(a[..., 0])
+    x, y, z = a.unbind(-1)
+    return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).unflatten(-1, (3, 3))
+
+
+def _gnss_jacobians(X: SE3 | SE23 | SGal3, measured: torch.Tensor, lever_arm: torch.Tensor):
+    """X exp(d) moves p by R rho (+ v iota for SGal3) and R l by -R l^ phi (first order)."""
+    R = X.rotation()
+    r = _gnss_residual(X, measured, lever_arm)
+    Rl = -R @ _skew(lever_arm)
+    R, Rl = torch.broadcast_tensors(R, Rl)
+    if isinstance(X, SE3):  # [rho, phi]
+        return r, [torch.cat((R, Rl), dim=-1)]
+    zero = torch.zeros_like(R)
+    if isinstance(X, SE23):  # [rho, nu, phi]
+        return r, [torch.cat((R, zero, Rl), dim=-1)]
+    v = X.velocity().unsqueeze(-1).expand(R.shape[:-1] + (1,))
+    return r, [torch.cat((R, zero, Rl, v), dim=-1)]  # SGal3: [rho, nu, phi, iota]
+
+
+class GnssPositionFactor(Factor):
+    """E GNSS position factors ``r = p_k + R_k l - z`` on elements ``index`` (E,) of the state
+    variable ``states`` (SE3, SE23 or SGal3: the antenna at lever arm ``lever_arm`` l in the
+    body frame, (3,) or (E, 3), default zero; GTSAM's ``GPSFactorArm``); ``measured`` z (E, 3)
+    or (B, E, 3) in the navigation frame.  Noise: ``covariance`` or ``information``, (3, 3),
+    (E, 3, 3) or (B, E, 3, 3).  Analytic Jacobians: R, -R l^ (and v for the time of SGal3)."""
+
+    def __init__(self, states: str, index, measured: torch.Tensor, *,
+                 covariance: torch.Tensor | None = None, information: torch.Tensor | None = None,
+                 lever_arm: torch.Tensor | None = None, loss=None):
+        checks.vector(measured, 3, "measured")
+        if measured.dim() not in (2, 3):
+            raise ValueError(f"measured must have shape (E, 3) or (B, E, 3), got "
+                             f"{tuple(measured.shape)}")
+        if lever_arm is None:
+            lever_arm = torch.zeros_like(measured[..., :1, :])
+        checks.vector(lever_arm, 3, "lever_arm")
+        checks.same_device_dtype(measured=measured, lever_arm=lever_arm)
+        if lever_arm.dim() == 1:
+            lever_arm = lever_arm.unsqueeze(0)
+        if (covariance is None) == (information is None):
+            raise ValueError("give exactly one of covariance and information")
+        for name, noise in (("covariance", covariance), ("information", information)):
+            if noise is not None:
+                checks.matrix(noise, 3, name)
+                checks.same_device_dtype(measured=measured, **{name: noise})
+        kw: dict[str, torch.Tensor] = {}
+        if covariance is not None:
+            kw["sqrt_information"] = sqrt_information_from_covariance(covariance)
+        elif information is not None:
+            kw["information"] = information
+        super().__init__(_gnss_residual, [(states, index)], data=[measured, lever_arm], dim=3,
+                         loss=loss, jacobians=_gnss_jacobians, **kw)
