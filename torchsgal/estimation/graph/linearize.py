@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from ...groups import LieGroup
+from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
 from .robust import correct
@@ -47,6 +48,8 @@ class Block:
     size: int  # E
     uniform: list[int | None]  # per slot: the one index every factor reads, or None
     reduced: bool  # every slot uniform: the E factors' blocks are summed by one product
+    log_form: str | None = None  # "prior" / "between": r = log(Z^-1 h(x)) (``_log_form``)
+    measured_inv: torch.Tensor | None = None  # Z^-1 as a matrix leaf, for ``log_form``
 
 
 class Problem:
@@ -121,8 +124,10 @@ class Problem:
             data.append(d)
             batched.append(per_problem)
         L, L_batched = self._noise(factor)
+        form = _log_form(factor, [self.variables[k].group for k, _ in slots], data)
+        inv = None if form is None else form[1]._f.inverse(data[0].as_matrix())  # Z^-1 once
         return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1),
-                     E, uniform, reduced)
+                     E, uniform, reduced, None if form is None else form[0], inv)
 
     def _noise(self, factor: Factor) -> tuple[torch.Tensor | None, bool]:
         W, L = factor.information, factor.sqrt_information
@@ -165,9 +170,12 @@ class Problem:
             L = b.sqrt_info
             if L is not None and b.sqrt_info_batched:
                 L = L.index_select(0, rows)
+            inv = b.measured_inv
+            if inv is not None and b.data_batched[0]:
+                inv = inv.index_select(0, rows)
             new.blocks.append(Block(b.factor, b.slots, data, b.data_batched, L,
                                     b.sqrt_info_batched, b.dofs, b.h_index, b.g_index, b.size,
-                                    b.uniform, b.reduced))
+                                    b.uniform, b.reduced, b.log_form, inv))
         return new
 
     # ------------------------------------------------------------------ values
@@ -198,6 +206,18 @@ class Problem:
     def wrap(self, k: int, leaf: torch.Tensor):
         info = self.variables[k]
         return leaf if info.group is None else info.group._from_leaf(leaf)
+
+
+def _log_form(factor: Factor, groups: list, data: list) -> tuple[str, type[LieGroup]] | None:
+    """("prior" | "between", the group) for the built-in Prior / Between residuals (with their
+    analytic Jacobians) on group variables of the measurement's group; None otherwise."""
+    kinds = {(_factors._prior_residual, _factors._prior_jacobians, 1): "prior",
+             (_factors._between_residual, _factors._between_jacobians, 2): "between"}
+    kind = kinds.get((factor.residual, factor.jacobians, len(groups)))
+    if kind is None or len(data) != 1 or not isinstance(data[0], LieGroup):
+        return None
+    group = type(data[0])._group
+    return (kind, group) if all(g is group for g in groups) else None
 
 
 def _expand_problem(d, B: int):
@@ -285,16 +305,18 @@ def _check_residual(block: Block, r, B: int) -> None:
                          f"(B, E, dim) = ({B}, {block.size}, {r.shape[-1]})")
 
 
-def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jacobian: bool
-                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """The block's corrected whitened residual r~ (B, E, m), Jacobian J~ (B, E, m, Dk) (None
-    unless asked) and rho(s) (B, E)."""
-    B, E = x[0].shape[0], block.size
-    args = [x[k].index_select(1, idx) if u is None else x[k].narrow(1, u, 1)
+def _args(block: Block, x: list[torch.Tensor]) -> list[torch.Tensor]:
+    """The leaves each slot reads: (B, E, ...) gathered, or (B, 1, ...) for a uniform slot."""
+    return [x[k].index_select(1, idx) if u is None else x[k].narrow(1, u, 1)
             for (k, idx), u in zip(block.slots, block.uniform)]
-    r, J = _residual_and_jacobian(problem, block, args, want_jacobian)
+
+
+def _whiten(block: Block, r: torch.Tensor, J: torch.Tensor | None, B: int
+            ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """Checks r, applies the square-root information and the robust loss: (r~ (B, E, m),
+    J~ (B, E, m, Dk) or None, rho(s) (B, E))."""
     _check_residual(block, r, B)
-    r = r.expand((B, E) + r.shape[-1:])
+    r = r.expand((B, block.size) + r.shape[-1:])
     if block.sqrt_info is not None:
         L = block.sqrt_info
         r = (L @ r.unsqueeze(-1)).squeeze(-1)
@@ -302,11 +324,64 @@ def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jac
     return correct(block.factor.loss, r, J)
 
 
+def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jacobian: bool
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """The block's corrected whitened residual r~ (B, E, m), Jacobian J~ (B, E, m, Dk) (None
+    unless asked) and rho(s) (B, E)."""
+    r, J = _residual_and_jacobian(problem, block, _args(block, x), want_jacobian)
+    return _whiten(block, r, J, x[0].shape[0])
+
+
+def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
+                    ) -> dict[int, tuple[torch.Tensor, torch.Tensor | None]]:
+    """{block number: (r (B, E, dof), J (B, E, dof, Dk) or None)} for the blocks of built-in
+    priors and betweens, r = log(E) with E = Z^-1 T (prior) or Z^-1 T_i^-1 T_j (between).
+    The E of every such block of a group are stacked and go through one ``log`` and one
+    ``J_r^-1``; the Jacobians are J_r^-1(r) (prior; between: J_j) and
+    J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j (the same formulas as ``factors``).
+    Z^-1 is the block's ``measured_inv`` (computed once per problem)."""
+    B = x[0].shape[0]
+    stacks: dict[type, list] = {}
+    for n, block in enumerate(problem.blocks):
+        if block.log_form is None:
+            continue
+        group = problem.variables[block.slots[0][0]].group
+        f = group._f
+        args = _args(block, x)
+        A = args[0] if block.log_form == "prior" else f.compose(f.inverse(args[0]), args[1])
+        err = f.compose(block.measured_inv, A)
+        stacks.setdefault(group, []).append(
+            (n, err.expand((B, block.size) + err.shape[-2:]),
+             A if block.log_form == "between" and want_jacobian else None))
+    out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
+    for group, items in stacks.items():
+        f = group._f
+        sizes = [e.shape[1] for _, e, _ in items]
+        errs = torch.cat([e for _, e, _ in items], dim=1) if len(items) > 1 else items[0][1]
+        r_all = f.log(errs)
+        if not want_jacobian:
+            for (n, _, _), r in zip(items, r_all.split(sizes, dim=1)):
+                out[n] = (r, None)
+            continue
+        jinv_all = f.jr_inv(r_all)
+        for (n, _, A), r, jinv in zip(items, r_all.split(sizes, dim=1), jinv_all.split(sizes, dim=1)):
+            if A is None:
+                out[n] = (r, jinv)
+            else:
+                Ji = -jinv @ f.adjoint(f.inverse(A))
+                out[n] = (r, torch.cat([Ji.expand(jinv.shape), jinv], dim=-1))
+    return out
+
+
 def evaluate_cost(problem: Problem, x: list[torch.Tensor]) -> torch.Tensor:
     """The costs (B,) = 1/2 sum rho(|L r|^2) at x, without Jacobians."""
-    cost = x[0].new_zeros(x[0].shape[0])
-    for block in problem.blocks:
-        cost = cost + 0.5 * _block_terms(problem, block, x, False)[2].sum(dim=-1)
+    B = x[0].shape[0]
+    fused = _log_form_terms(problem, x, False)
+    cost = x[0].new_zeros(B)
+    for n, block in enumerate(problem.blocks):
+        terms = (_whiten(block, fused[n][0], None, B) if n in fused
+                 else _block_terms(problem, block, x, False))
+        cost = cost + 0.5 * terms[2].sum(dim=-1)
     return cost
 
 
@@ -315,8 +390,12 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
     B, D = x[0].shape[0], problem.D
     cost, model = x[0].new_zeros(B), x[0].new_zeros(B)
     h_vals, g_vals = [], []
-    for block in problem.blocks:
-        r, J, rho = _block_terms(problem, block, x, True)
+    fused = _log_form_terms(problem, x, True)
+    for n, block in enumerate(problem.blocks):
+        if n in fused:
+            r, J, rho = _whiten(block, *fused[n], B)
+        else:
+            r, J, rho = _block_terms(problem, block, x, True)
         assert J is not None  # asked for
         cost = cost + 0.5 * rho.sum(dim=-1)
         J = J.expand((B, block.size) + J.shape[-2:])
