@@ -298,6 +298,10 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
     checks.binary(M, 2, x, 1, "g", name)
     if tail:  # constants built on x's device without a host-to-device copy
         x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
+    if M.dim() >= 3 and x.dim() >= 2 and M.shape[-3] == 1 and x.shape[-2] != 1:
+        # one element per batch row acting on N points (M (..., 1, n, n), x (..., N, k)): one
+        # matrix product x M^T over the N rows, not N products of (rows x k) by (k x 1)
+        return x @ M[..., 0, :rows, : x.shape[-1]].mT
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
 
 

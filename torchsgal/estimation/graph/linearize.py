@@ -338,21 +338,29 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     priors and betweens, r = log(E) with E = Z^-1 T (prior) or Z^-1 T_i^-1 T_j (between).
     The E of every such block of a group are stacked and go through one ``log`` and one
     ``J_r^-1``; the Jacobians are J_r^-1(r) (prior; between: J_j) and
-    J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j (the same formulas as ``factors``).
-    Z^-1 is the block's ``measured_inv`` (computed once per problem)."""
+    J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j, A^-1 = T_j^-1 T_i (the formulas of ``factors``),
+    with each variable's inverses computed once and gathered; Z^-1 is the block's
+    ``measured_inv`` (computed once per problem)."""
     B = x[0].shape[0]
     stacks: dict[type, list] = {}
+    inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
     for n, block in enumerate(problem.blocks):
         if block.log_form is None:
             continue
-        group = problem.variables[block.slots[0][0]].group
+        k = block.slots[0][0]
+        group = problem.variables[k].group
         f = group._f
-        args = _args(block, x)
-        A = args[0] if block.log_form == "prior" else f.compose(f.inverse(args[0]), args[1])
+        if block.log_form == "prior":
+            A, A_inv = _args(block, x)[0], None
+        else:
+            if k not in inverses:
+                inverses[k] = f.inverse(x[k])
+            Ti, Tj = _args(block, x)
+            Ti_inv, Tj_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])
+            A = f.compose(Ti_inv, Tj)
+            A_inv = f.compose(Tj_inv, Ti) if want_jacobian else None  # = A^-1, for Ad(A^-1)
         err = f.compose(block.measured_inv, A)
-        stacks.setdefault(group, []).append(
-            (n, err.expand((B, block.size) + err.shape[-2:]),
-             A if block.log_form == "between" and want_jacobian else None))
+        stacks.setdefault(group, []).append((n, err.expand((B, block.size) + err.shape[-2:]), A_inv))
     out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
     for group, items in stacks.items():
         f = group._f
@@ -364,11 +372,12 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                 out[n] = (r, None)
             continue
         jinv_all = f.jr_inv(r_all)
-        for (n, _, A), r, jinv in zip(items, r_all.split(sizes, dim=1), jinv_all.split(sizes, dim=1)):
-            if A is None:
+        for (n, _, A_inv), r, jinv in zip(items, r_all.split(sizes, dim=1),
+                                          jinv_all.split(sizes, dim=1)):
+            if A_inv is None:
                 out[n] = (r, jinv)
             else:
-                Ji = -jinv @ f.adjoint(f.inverse(A))
+                Ji = -jinv @ f.adjoint(A_inv)
                 out[n] = (r, torch.cat([Ji.expand(jinv.shape), jinv], dim=-1))
     return out
 
