@@ -35,7 +35,7 @@ SYNC_OPS = {
 _PACKAGE = Path(torchsgal.__file__).resolve().parent
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _in_package(filename: str) -> bool:
     """Whether ``filename`` is a file of the torchsgal package itself (by its resolved path:
     not any path that contains the word, such as a virtualenv inside a checkout of that name)."""

@@ -9,12 +9,12 @@ import threading
 import traceback
 from pathlib import Path
 
+import host_syncs
 import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-import host_syncs
 import torchsgal as ts
 from torchsgal import regression
 from torchsgal.estimation import study, tls

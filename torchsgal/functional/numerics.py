@@ -220,11 +220,11 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
     s = torch.zeros_like(x_dn)
     for j in range(top + SCALE_TAYLOR_TERMS + 1, order, -1):
         s = torch.addcmul(one, x_dn, s) / j
-    down = [s]
+    down = [s * (1.0 / math.factorial(order))]  # q_j = s_j / j! (Python constants: no copy to the device)
     for j in range(order, 0, -1):
-        down.append(torch.addcmul(one, x_dn, down[-1]) / j)
+        s = torch.addcmul(one, x_dn, s) / j
+        down.append(s if j == 1 else s * (1.0 / math.factorial(j - 1)))
     down.reverse()
-    inv_fact = _series_constants(order, x.dtype, x.device)[1]  # 1/j!, j = 0..order
     # Upward from expm1(x)/x; inputs with |x| <= SCALE_UPWARD_MARGIN never use it.
     x_up = torch.where(ax > scale_upward_margin(), x, torch.ones_like(x))
     up = [(torch.expm1(x_up) if em1 is None else em1) / x_up]  # em1 is finite where unused
@@ -236,7 +236,7 @@ def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
     # Order j takes the upward value where |x| > j + margin (one comparison for all orders).
     j_plus = torch.arange(order + 1, dtype=x.dtype, device=x.device) + scale_upward_margin()
     mask = (ax.unsqueeze(-1) > j_plus).to(x.dtype)
-    merged = select(mask, torch.stack(up, dim=-1), torch.stack(down, dim=-1) * inv_fact)
+    merged = select(mask, torch.stack(up, dim=-1), torch.stack(down, dim=-1))
     return list(merged.unbind(-1))
 
 
