@@ -13,7 +13,14 @@ from torchsgal import SE3, SE23, SGal3
 from torchsgal.estimation import graph as fg
 from torchsgal.estimation.graph.linearize import Problem, evaluate_cost, linearize
 from torchsgal.imu import earth_rate_vector, gravity_vector, predict, preintegrate
-from torchsgal.imu.factors import BiasRandomWalkFactor, GnssPositionFactor, ImuFactor, implied_increment, imu_residual
+from torchsgal.imu.factors import (
+    BiasRandomWalkFactor,
+    GnssPositionFactor,
+    ImuFactor,
+    implied_increment,
+    imu_jacobians,
+    imu_residual,
+)
 from torchsgal.imu.preintegration import Preintegration
 from torchsgal.imu.trajectory import SinusoidalTrajectory
 
@@ -111,7 +118,10 @@ def test_imu_jacobians(group):
         return imu_residual(X_i.rplus(d_i), X_j.rplus(d_j), b + db, pre.delta, pre.bias_jacobian,
                             b_lin, g, w)
     assert f(*[torch.zeros(n, dtype=D64) for n in (group.dof, group.dof, 6)]).norm() > 0.1
-    _check_jacobians(f, [group.dof, group.dof, 6])
+    r, Js = imu_jacobians(X_i, X_j, b, pre.delta, pre.bias_jacobian, b_lin, g, w)
+    torch.testing.assert_close(r, f(*[torch.zeros(n, dtype=D64) for n in (group.dof, group.dof, 6)]),
+                               rtol=0, atol=1e-14)
+    _check_jacobians(f, [group.dof, group.dof, 6], Js)
 
 
 @pytest.mark.parametrize("group", [SE3, SE23, SGal3])
@@ -133,26 +143,39 @@ def test_random_walk_jacobians():
     _check_jacobians(lambda d_i, d_j: f.residual(b_i + d_i, b_j + d_j), [6, 6], Js)
 
 
-def test_engine_gradient_matches_cost_differences():
-    """The engine's (forward-mode) linearisation of a graph of IMU factors: its gradient
-    J^T W r equals central differences of its cost along right perturbations."""
+@pytest.mark.parametrize("group", [SGal3, SE23])
+@pytest.mark.parametrize("analytic", [True, False])
+def test_engine_gradient_matches_cost_differences(group, analytic):
+    """The engine's linearisation of a batch of 2 graphs of IMU factors (analytic or
+    forward-mode Jacobians): its gradient J^T W r equals central differences of its cost
+    along right perturbations, and its normal equations do not depend on the mode."""
     pre = _windows(3, seed=4)
     g = gravity_vector("z_up", dtype=D64)
-    X = _states(4, 9)
-    b = 0.01 * torch.randn(4, 6, dtype=D64, generator=torch.Generator().manual_seed(1))
-    graph = fg.FactorGraph()
-    graph.add_variable("x", X)
-    graph.add_variable("b", b)
-    graph.add(ImuFactor("x", [0, 1, 2], [1, 2, 3], "b", [0, 1, 2], pre, g, time_sigma=1e-2))
-    problem = Problem(graph)
-    x0 = problem.initial(graph)
-    grad = linearize(problem, x0).g[0]
-    h, fd = 1e-6, []
+    X = _states(8, 9, group).reshape(2, 4)
+    b = 0.01 * torch.randn(2, 4, 6, dtype=D64, generator=torch.Generator().manual_seed(1))
+    graphs = []
+    for mode in (analytic, not analytic):
+        graph = fg.FactorGraph()
+        graph.add_variable("x", X)
+        graph.add_variable("b", b)
+        graph.add(ImuFactor("x", [0, 1, 2], [1, 2, 3], "b", [0, 1, 2], pre, g,
+                            state_group=group, time_sigma=1e-2 if group is SGal3 else None,
+                            analytic_jacobians=mode))
+        graphs.append(graph)
+    problem, other = Problem(graphs[0]), Problem(graphs[1])
+    x0 = problem.initial(graphs[0])
+    lin, lin_other = linearize(problem, x0), linearize(other, x0)
+    torch.testing.assert_close(lin.values, lin_other.values, rtol=1e-9, atol=1e-6)
+    grad = lin.g[1]
+    # the costs are ~1e8 here (random states): with h = 1e-6 the rounding, cost eps / h, is
+    # ~0.05; h = 1e-4 keeps rounding and truncation (h^2 f''') near 1e-4 absolute (1e-8 relative)
+    h, fd = 1e-4, []
     for c in range(problem.D):
         e = torch.zeros(1, problem.D, dtype=D64)
         e[0, c] = h
+        e = torch.cat((torch.zeros_like(e), e))  # the second problem
         fd.append((evaluate_cost(problem, problem.retract(x0, e))
-                   - evaluate_cost(problem, problem.retract(x0, -e)))[0] / (2 * h))
+                   - evaluate_cost(problem, problem.retract(x0, -e)))[1] / (2 * h))
     fd = torch.stack(fd)
     assert fd.abs().max() > 1.0
     torch.testing.assert_close(grad, fd, rtol=1e-6, atol=1e-4)

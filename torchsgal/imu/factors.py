@@ -36,7 +36,7 @@ from ..groups import LieGroup
 from .preintegration import Preintegration
 
 __all__ = ["ImuFactor", "BiasRandomWalkFactor", "GnssPositionFactor", "imu_residual",
-           "implied_increment", "sqrt_information_from_covariance"]
+           "imu_jacobians", "implied_increment", "sqrt_information_from_covariance"]
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -113,6 +113,56 @@ def imu_residual(X_i: SGal3 | SE23, X_j: SGal3 | SE23, bias_i: torch.Tensor, del
     return corrected.inverse().compose(D).log()[..., :9]
 
 
+def imu_jacobians(X_i: SGal3 | SE23, X_j: SGal3 | SE23, bias_i: torch.Tensor, delta: SGal3,
+                  bias_jacobian: torch.Tensor, linearization_bias: torch.Tensor,
+                  gravity: torch.Tensor, earth_rate: torch.Tensor
+                  ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """(r, [J_i, J_j, J_b]): ``imu_residual`` and its Jacobians with respect to the right
+    perturbations of X_i and X_j and to the bias b_i.  With D = P Q, P = X_i^-1 S(t_i),
+    Q = A(tau)^-1 S(-t_i) X_j, E = Delta(b_i)^-1 D, h = [0, g, -Omega, -1], n = e_iota and
+    A(tau + s) = S(s) A(tau) exp(s h) (``predict_jacobians``):
+
+        J_j = J_r^-1(r) (I - (Ad(Q^-1) h + Ad(X_j^-1) n) n^T)
+        J_i = J_r^-1(r) (-Ad(D^-1) + (Ad(Q^-1) h + Ad((X_i D)^-1) n) n^T)
+        J_b = -J_r^-1(r) Ad(E^-1) J_r(J_b (b_i - b_lin)) J_b
+
+    (the n^T columns: a state's time moves tau and the time shifts).  SE23 states: the
+    [rho, nu, phi] block, their times being fixed."""
+    phi_b = (bias_jacobian @ (bias_i - linearization_bias).unsqueeze(-1)).squeeze(-1)
+    corrected = delta.rplus(phi_b)
+    start: SGal3
+    end: SGal3
+    galilean = isinstance(X_i, SGal3) and isinstance(X_j, SGal3)
+    if isinstance(X_i, SGal3) and isinstance(X_j, SGal3):
+        start, end = X_i, X_j
+    else:
+        T = delta.time()
+        start, end = _as_galilean(X_i, torch.zeros_like(T)), _as_galilean(X_j, T)
+    t_i = start.time()
+    tau = end.time() - t_i
+    Q = _left_factor_inverse(tau, gravity, earth_rate).compose(_time_shift(-t_i)).compose(end)
+    D = start.inverse().compose(_time_shift(t_i)).compose(Q)
+    E = corrected.inverse().compose(D)
+    r = E.log()
+    Jr_inv = SGal3.jr_inv(r)
+    g, w = torch.broadcast_tensors(gravity, earth_rate)
+    h = torch.cat((torch.zeros_like(g), g, -w, -torch.ones_like(g[..., :1])), dim=-1)
+    Qh = (Q.inverse().adjoint() @ h.unsqueeze(-1)).squeeze(-1)  # Ad(Q^-1) h
+    n_j = end.inverse().adjoint()[..., :, 9]  # Ad(X_j^-1) n
+    n_i = start.compose(D).inverse().adjoint()[..., :, 9]  # Ad((X_i D)^-1) n
+    eye = torch.eye(10, dtype=r.dtype, device=r.device)
+    col_j = eye[:, 9:] - (Qh + n_j).unsqueeze(-1)
+    J_j = torch.cat((eye[:, :9].expand(col_j.shape[:-1] + (9,)), col_j), dim=-1)
+    minus_Ad = -D.inverse().adjoint()
+    col_i = minus_Ad[..., 9:] + (Qh + n_i).unsqueeze(-1)
+    J_i = torch.cat((minus_Ad[..., :9].expand(col_i.shape[:-1] + (9,)), col_i), dim=-1)
+    J_b = -E.inverse().adjoint() @ SGal3.jr(phi_b) @ bias_jacobian
+    J_i, J_j, J_b = Jr_inv @ J_i, Jr_inv @ J_j, Jr_inv @ J_b
+    if galilean:
+        return r, [J_i, J_j, J_b]
+    return r[..., :9], [J_i[..., :9, :9], J_j[..., :9, :9], J_b[..., :9, :]]
+
+
 def _vector3(x, name: str, like: torch.Tensor) -> torch.Tensor:
     checks.vector(x, 3, name)
     checks.same_device_dtype(**{"the preintegration": like, name: x})
@@ -143,14 +193,15 @@ class ImuFactor(Factor):
                     accuracy); else a ValueError says so.
 
     Noise: information = (Sigma + time_sigma^2 e_iota e_iota^T)^-1 (SGal3) or
-    Sigma[:9, :9]^-1 (SE23), Sigma the preintegrated covariance.  Jacobians: forward-mode
-    autodiff (the engine's default).
+    Sigma[:9, :9]^-1 (SE23), Sigma the preintegrated covariance.  Jacobians: analytic
+    (``imu_jacobians``), or with ``analytic_jacobians=False`` the engine's forward-mode
+    autodiff.
     """
 
     def __init__(self, states: str, i, j, bias: str, bias_index, preintegration: Preintegration,
                  gravity: torch.Tensor, earth_rate: torch.Tensor | None = None, *,
                  state_group: type[LieGroup] = SGal3, time_sigma: float | None = None,
-                 loss=None):
+                 analytic_jacobians: bool = True, loss=None):
         if not isinstance(preintegration, Preintegration):
             raise TypeError(f"preintegration must be a Preintegration, got "
                             f"{type(preintegration).__name__}")
@@ -163,6 +214,7 @@ class ImuFactor(Factor):
                              f"{tuple(pre.batch_shape)}")
         if state_group not in (SGal3, SE23):
             raise ValueError(f"state_group must be SGal3 or SE23, got {state_group!r}")
+        analytic = checks.boolean(analytic_jacobians, "analytic_jacobians")
         batch = pre.batch_shape
         like = pre.delta.as_matrix()
         gravity = _vector3(gravity, "gravity", like).expand(*batch, 3)
@@ -189,7 +241,8 @@ class ImuFactor(Factor):
         super().__init__(imu_residual, [(states, i), (states, j), (bias, bias_index)],
                          data=[pre.delta, pre.bias_jacobian.expand(*batch, 10, 6),
                                b_lin.expand(*batch, 6), gravity, earth_rate],
-                         dim=10 if state_group is SGal3 else 9, sqrt_information=L, loss=loss)
+                         dim=10 if state_group is SGal3 else 9, sqrt_information=L, loss=loss,
+                         jacobians=imu_jacobians if analytic else None)
 
 
 def _random_walk_residual(b_i: torch.Tensor, b_j: torch.Tensor) -> torch.Tensor:
