@@ -220,20 +220,24 @@ def test_native_disabled_is_local_to_its_thread(monkeypatch):
     monkeypatch.setitem(native._state, "on", True)  # as where the kernels are compiled
     inside, outside = threading.Event(), threading.Event()
     seen = {}
+    x = torch.zeros(4, 10, dtype=F64)  # a call the kernels may take (plain CPU tensor, no autograd)
+
+    def state():  # the switch, and the decision of the kernels' dispatch for x
+        return native.enabled(), native._eligible((x,))
 
     def switched():
         with native.disabled():
-            seen["inside"] = native.enabled()
+            seen["inside"] = state()
             inside.set()
             outside.wait(10)  # the other thread looks while this one is inside the block
             with native.disabled():
                 pass
-            seen["after nested"] = native.enabled()
-        seen["after"] = native.enabled()
+            seen["after nested"] = state()
+        seen["after"] = state()
 
     def other():
         inside.wait(10)
-        seen["other thread"] = native.enabled()
+        seen["other thread"] = state()
         outside.set()
 
     threads = [threading.Thread(target=switched), threading.Thread(target=other)]
@@ -241,17 +245,18 @@ def test_native_disabled_is_local_to_its_thread(monkeypatch):
         t.start()
     for t in threads:
         t.join(20)
-    assert seen == {"inside": False, "other thread": True, "after nested": False, "after": True}
+    on, off = (True, True), (False, False)
+    assert seen == {"inside": off, "other thread": on, "after nested": off, "after": on}
     # the main thread: its own state, unchanged by the others; a thread started inside the
     # block does not inherit it
-    assert native.enabled()
+    assert state() == on
     with native.disabled():
         child = {}
-        t = threading.Thread(target=lambda: child.setdefault("on", native.enabled()))
+        t = threading.Thread(target=lambda: child.setdefault("state", state()))
         t.start()
         t.join(10)
-        assert not native.enabled() and child == {"on": True}
-    assert native.enabled()
+        assert state() == off and child == {"state": on}
+    assert state() == on
 
 
 # ------------------------------------------------ 7. host syncs attributed to the library
