@@ -11,7 +11,9 @@
    The same from far initial poses (most problems stop after 5-7 iterations, a few run to
    100), then for larger batches (64, 256, 1024 graphs).
 3. Where the engine's time goes: cProfile of one pose-graph solve, cumulative seconds of the
-   linearisation (residuals, Jacobians, assembly), the linear solves and the rest.
+   linearisation (residuals, Jacobians, assembly; of which the fused prior and between
+   residuals and Jacobians: one log and one J_r^-1 per linearisation), the linear solves and
+   the rest.
 4. Native batching against ``torch.func.vmap`` over factors for the Between residual and its
    analytic Jacobians (64 x 10 factors): medians and ratio.
 
@@ -175,7 +177,7 @@ def profile_pose_graphs() -> dict:
         return sum(v[3] for (f, _, fn), v in stats.items() if f.endswith(fname) and fn == func)
 
     parts = dict(linearize=cum("linearize.py", "linearize"),
-                 between_jacobians=cum("factors.py", "_between_jacobians"),
+                 prior_between_log_terms=cum("linearize.py", "_log_form_terms"),
                  linear_solve=cum("linear_system.py", "solve"),
                  retract=cum("linearize.py", "retract"),
                  final_rank_test=cum("linear_system.py", "set_solution") + cum("linear_system.py", "singular"),

@@ -153,3 +153,31 @@ def test_fused_solve_matches_the_blockwise_solve():
     for name in ("x", "y"):
         torch.testing.assert_close(a.values[name].as_matrix(), b.values[name].as_matrix(),
                                    rtol=1e-9, atol=1e-9)
+
+
+def test_fused_evaluation_reads_nothing_on_the_host():
+    """No host read inside the fused prior / between evaluation and the helpers it shares with
+    the blockwise path (the solvers' one read per round is elsewhere)."""
+    import importlib
+    import inspect
+
+    from host_syncs import HostSyncs
+
+    lz = importlib.import_module("torchsgal.estimation.graph.linearize")
+
+    def lines(fn):
+        src, start = inspect.getsourcelines(fn)
+        return range(start, start + len(src))
+
+    graph = _graph(True, torch.Generator().manual_seed(8))
+    problem = Problem(graph)
+    x = problem.initial(graph)
+    with HostSyncs() as syncs:
+        linearize(problem, x)
+        evaluate_cost(problem, x)
+    hot = [lines(f) for f in (lz._log_form_terms, lz._whiten, lz._args, lz.linearize,
+                              lz.evaluate_cost)]
+    seen = [(why, where) for why, where in syncs.events
+            if where.rsplit(":", 1)[0] == lz.__file__
+            and any(int(where.rsplit(":", 1)[1]) in r for r in hot)]
+    assert not seen, seen
