@@ -448,6 +448,8 @@ class LieGroup:
         """The matrix that acts on ``x`` in ``act(x, point_axes)``, act_direction and
         act_velocity (the rule is in the class docstring): with ``point_axes`` = k > 0, a view with
         k axes of size 1 between the batch and matrix axes."""
+        if type(point_axes) is int and point_axes == 0:  # the default, without the checks' cost
+            return self._matrix
         k = checks.integer(point_axes, "point_axes", 0)
         if k == 0 or not isinstance(x, torch.Tensor):  # the functional layer names a non-tensor
             return self._matrix
