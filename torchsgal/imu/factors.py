@@ -3,8 +3,9 @@ preintegration between navigation states, the bias random walk, and GNSS positio
 
 States are Galilean frames X = (R, v, p, t) (``SGal3``) or extended poses (``SE23``, times
 known); biases a Euclidean variable of 6-vectors ``[b_g, b_a]`` (gyro first, as
-``Preintegration.bias_jacobian``).  Residuals are right-perturbation errors and every noise is
-given as the covariance of the residual (the engine receives its square-root information).
+``Preintegration.bias_jacobian``).  Residuals are right-perturbation errors; noise is given as
+the residual's covariance (GNSS: or its information), passed to the engine as a square-root
+information.
 Guide: ``docs/guide/imu_factors.md``.
 
 IMU residual (docs/guide/imu.md, "Prediction"; mahony (57), Remark 6.2): the states imply the
@@ -189,8 +190,8 @@ class ImuFactor(Factor):
                     ``time_sigma`` may stay None; with an exact clock (time variance zero,
                     ``preintegrate``'s default) the residual's time component t_j - t_i - T
                     needs a ``time_sigma > 0`` (a stiff constraint, e.g. 1e-6 s; the
-                    component is linear in the times, so a stiff weight costs the solvers no
-                    accuracy); else a ValueError says so.
+                    component is linear in the times, so in float64 a stiff weight costs the
+                    solvers no accuracy); else a ValueError says so.
 
     Noise: information = (Sigma + time_sigma^2 e_iota e_iota^T)^-1 (SGal3) or
     Sigma[:9, :9]^-1 (SE23), Sigma the preintegrated covariance.  Jacobians: analytic
