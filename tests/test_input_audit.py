@@ -112,6 +112,14 @@ FLAGS = {
         torch.ones(2, dtype=F64), torch.ones(2, dtype=F64), derivatives="no")),
     "sim3_coefficients-normalise": ("normalise", lambda: numerics.sim3_coefficients(
         torch.ones(2, dtype=F64), torch.ones(2, dtype=F64), normalise="no")),
+    "ConcentratedGaussian-validate": ("validate", lambda: gaussian.ConcentratedGaussian(
+        ts.SE3.identity(dtype=F64), torch.eye(6, dtype=F64), validate="no")),
+    "ConcentratedGaussian-allow_singular": ("allow_singular", lambda: gaussian.ConcentratedGaussian(
+        ts.SE3.identity(dtype=F64), torch.eye(6, dtype=F64), allow_singular="no")),
+    "ConcentratedGaussian.compose-second_order": ("second_order", lambda: _gaussian_sgal3().compose(
+        _gaussian_sgal3(), second_order="no")),
+    "ConcentratedGaussian.act-validate": ("validate", lambda: _gaussian_sgal3().act(
+        _EVENT, _EVENT_COV, validate="no")),
 }
 
 
@@ -272,3 +280,15 @@ def test_host_sync_caller_ignores_a_virtualenv_inside_a_checkout_named_torchsgal
     assert host_syncs._caller() == f"{library}:42"
     stack = traceback.StackSummary.from_list([(test_file, 5, "test", ""), (venv_torch, 7, "__bool__", "")])
     assert host_syncs._caller() == "?"
+
+
+def test_unvalidated_non_positive_definite_covariance_names_the_covariance():
+    """validate=False skips the checks at construction; a covariance that is not positive
+    definite then fails with our message where it is factorised (sample, mahalanobis, log_prob),
+    not with torch's internal linear-algebra error."""
+    bad = -torch.eye(6, dtype=F64)
+    d = gaussian.ConcentratedGaussian(ts.SE3.identity(dtype=F64), bad, validate=False)
+    for use in (lambda: d.sample(3), lambda: d.mahalanobis(ts.SE3.identity(dtype=F64)),
+                lambda: d.log_prob(ts.SE3.identity(dtype=F64))):
+        with pytest.raises(ValueError, match=r"^covariance is not positive definite .*validate=False"):
+            use()

@@ -145,7 +145,10 @@ def _supported_factor(S: torch.Tensor, allow_singular: bool):
     _with_known_directions(S) (S itself where none is zero); ``allow_singular``: eigenvectors."""
     if not allow_singular:
         keep = ~_known_directions(S)
-        L = torch.linalg.cholesky(_sym(_with_known_directions(S)))
+        L, info = torch.linalg.cholesky_ex(_sym(_with_known_directions(S)))
+        if values_readable(S) and bool((info != 0).any()):
+            raise ValueError("covariance is not positive definite on its supported directions (it was not "
+                             "validated: validate=False); use allow_singular=True for a semi-definite one")
 
         def whiten(xi):
             z = torch.linalg.solve_triangular(L, (xi * keep).unsqueeze(-1), upper=False).squeeze(-1)
@@ -360,6 +363,7 @@ class ConcentratedGaussian:
         """F1 F2.  Right perturbations: F1 F2 exp(a) exp(b) with a = Ad(mean2^-1) xi1, b = xi2.
         ``cross_covariance`` is E[xi1 xi2^T] of the right perturbations (first order only);
         ``second_order`` adds the Barfoot-Furgale fourth-order terms (independent operands)."""
+        second_order = checks.boolean(second_order, "second_order")
         self._same_group(other)
         self._check_cross(other, cross_covariance)
         r1, r2 = self._right(), other._right()
@@ -429,6 +433,7 @@ class ConcentratedGaussian:
         M[:, :k].  Points are z[:k] / z[n-1] (projective: Sim3's last row is [0, 1/s]; for the
         other groups z[n-1] = 1 and the division changes nothing), so
         dy = (dz[:k] - y dz[n-1]) / z[n-1].  Velocities and directions are z[:k]."""
+        validate = checks.boolean(validate, "validate")
         if not hasattr(self.group, fn_name):
             raise TypeError(f"{fn_name} is not available for a Gaussian on {self.group.__name__}: "
                             f"only {', '.join(_group_names(fn_name))} have {fn_name}")
