@@ -3,11 +3,11 @@ SE(2) and Sim(3) on the same API)."""
 from . import functional
 from .groups import SE2, SE3, SE23, SO2, SO3, LieGroup, SGal3, Sim3
 
-from . import interop  # noqa: E402,I001  (after the groups it converts)
+from . import interop, nn  # noqa: E402,I001  (after the groups they use)
 
 __version__ = "0.1.0"
 GROUPS = (SO3, SE3, SE23, SGal3)  # the 3-D Galilean family
 ALL_GROUPS = (SO2, SE2, SO3, SE3, SE23, SGal3, Sim3)  # GROUPS, the planar groups and Sim(3)
 
 __all__ = ["SO2", "SE2", "SO3", "SE3", "SE23", "SGal3", "Sim3", "LieGroup", "GROUPS", "ALL_GROUPS",
-           "functional", "interop", "__version__"]
+           "functional", "interop", "nn", "__version__"]
