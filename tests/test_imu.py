@@ -167,7 +167,7 @@ def test_predict_free_fall_and_rest(frame):
 
 
 def _ode_reference(X0, gyro, acc, dt, g, Omega):
-    """scipy DOP853 on mahony (29) (sign of g_A e3 corrected; see docs/imu.md) with Xdot = ...,
+    """scipy DOP853 on mahony (29) (sign of g_A e3 corrected; see docs/guide/imu.md) with Xdot = ...,
     sample by sample (inputs constant on each interval)."""
     W = algebra(Omega, [0, 0, 0], 0.0)[:3, :3]
     y = np.concatenate([X0.rotation().numpy().ravel(), X0.velocity().numpy(), X0.position().numpy(),

@@ -1,9 +1,7 @@
 """torchsgal: batched, differentiable SO(3), SE(3), SE_2(3) and SGal(3) for PyTorch (with SO(2),
 SE(2) and Sim(3) on the same API)."""
-from . import functional
+from . import functional, interop, nn
 from .groups import SE2, SE3, SE23, SO2, SO3, LieGroup, SGal3, Sim3
-
-from . import interop, nn  # noqa: E402,I001  (after the groups they use)
 
 __version__ = "0.1.0"
 GROUPS = (SO3, SE3, SE23, SGal3)  # the 3-D Galilean family

@@ -12,7 +12,7 @@ dt_k] (CONVENTIONS.md order; U's (omega, a) are mahony's first two slots).  Delt
 frame at the end of the window seen from the frame at its start, without gravity: its
 rotation, velocity and position are the classical Delta R, Delta v, Delta p of preintegration
 and its time is the window length.  Gravity (and the Earth's rotation) enter on the *left*
-at prediction time, see :func:`predict` and docs/imu.md.
+at prediction time, see :func:`predict` and docs/guide/imu.md.
 
 Perturbations are on the right throughout: Delta_true = Delta exp(eps), eps ~ N(0, covariance),
 and Delta(b + db) ~ Delta(b) exp(bias_jacobian db).
@@ -504,7 +504,7 @@ def preintegrate(
     stay in SGal3's packed component layout (functional.sgal3.exp_packed / compose_packed),
     where a product is elementwise: several times faster on CPU than batched 5x5 matmuls.
     On CPU with nothing recording (no autograd, functorch transform or compile) the same
-    arithmetic runs in place and in blocks of windows (_integrate_fast, docs/imu.md), or, where
+    arithmetic runs in place and in blocks of windows (_integrate_fast, docs/guide/imu.md), or, where
     the optional C kernels were built and the covariance is isotropic or not asked for, as a C
     loop over each window's samples in double precision (functional/_native_imu.h).
     """
@@ -832,7 +832,7 @@ def predict(start: SGal3, delta: SGal3, gravity: torch.Tensor, earth_rate=None) 
 
     The navigation frame is a local-level frame with constant gravity g (..., 3) (from
     :func:`gravity_vector`) and optionally rotating at the constant rate Omega (..., 3)
-    (mahony (29), with the sign of g_A e3 corrected, see docs/imu.md):
+    (mahony (29), with the sign of g_A e3 corrected, see docs/guide/imu.md):
 
         Xdot = X (U(omega, f) + N) - U(Omega, 0) X + [[0, g, 0], [0, 0, 0], [0, 0, 0]].
 

@@ -31,9 +31,9 @@ import math
 
 import torch
 
-from .. import SO3
 from ..functional import checks
 from ..functional import so3 as _so3
+from ..groups import SO3
 
 FRAMES = ("intrinsic", "extrinsic")
 GIMBAL_TOL = {torch.float64: 1e-12, torch.float32: 1e-6}

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .. import SE2, SE3, SE23, SO2, SO3, LieGroup, SGal3, Sim3
 from ..functional import checks
+from ..groups import SE2, SE3, SE23, SO2, SO3, LieGroup, SGal3, Sim3
 from ._common import (
     inverse_permutation,
     nest,

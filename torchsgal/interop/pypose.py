@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import torch
 
-from .. import SE3, SO3, LieGroup, Sim3
 from ..functional import checks
 from ..functional import so3 as _so3
+from ..groups import SE3, SO3, LieGroup, Sim3
 from ._common import require
 
 GROUPS = (SO3, SE3, Sim3)

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import torch
 
-from .. import SE3
 from ..functional import checks
 from ..functional import so3 as _so3
+from ..groups import SE3
 
 
 def _se3(g, name: str) -> SE3:
