@@ -42,8 +42,13 @@ _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE.parent))  # run against the checkout this script lives in
 
 from torchsgal import SGal3  # noqa: E402
-from torchsgal.imu import gravity_vector, increment_tangents, preintegrate, window_product  # noqa: E402
-from torchsgal.imu import peers  # noqa: E402
+from torchsgal.imu import (  # noqa: E402
+    gravity_vector,
+    increment_tangents,
+    peers,  # noqa: E402
+    preintegrate,
+    window_product,
+)
 from torchsgal.imu.trajectory import SinusoidalTrajectory  # noqa: E402
 
 DTYPE = torch.float64
@@ -130,14 +135,16 @@ def chained(traj, g, h, n_windows, window=0.25):
     params = peers.gtsam_params("z_up", G)
     for _ in range(n_windows):
         gyro, acc, dt = traj.stream(est["torchsgal"].time(), window, h, g)
-        est["torchsgal"] = preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False).predict(est["torchsgal"], g)
+        pre = preintegrate(gyro, acc, dt, covariance=False, bias_jacobian=False)
+        est["torchsgal"] = pre.predict(est["torchsgal"], g)
         est["GTSAM"] = peers.gtsam_predict(peers.gtsam_preintegrate(gyro, acc, dt, params), est["GTSAM"])
         est["pypose"] = peers.pypose_predict(gyro, acc, dt, est["pypose"], "z_up", G)
         for m in METHODS:
             path[m].append(est[m].position()[0].numpy())
     t_end = est["torchsgal"].time()
     truth = traj.state(torch.linspace(0.0, float(t_end), 400, dtype=DTYPE)).position().numpy()
-    return {m: np.array(p) for m, p in path.items()}, truth, {m: end_errors(est[m], traj.state(t_end))[2] for m in METHODS}
+    final = {m: end_errors(est[m], traj.state(t_end))[2] for m in METHODS}
+    return {m: np.array(p) for m, p in path.items()}, truth, final
 
 
 def plots(res, dts, path, truth, out: Path):

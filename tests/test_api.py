@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
+from conftest import all_groups, assert_close, np64, sample_group, sample_tangent
 
 import torchsgal as ts
-from conftest import all_groups, assert_close, np64, sample_group, sample_tangent
 
 IDS = lambda g: g.__name__  # noqa: E731
 

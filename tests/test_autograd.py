@@ -10,11 +10,11 @@ import sys
 
 import numpy as np
 import pytest
-import torch
-
 import reference as ref
-import torchsgal as ts
+import torch
 from conftest import np64, sample_tangent
+
+import torchsgal as ts
 
 GROUPS = ts.ALL_GROUPS
 IDS = lambda g: g.__name__  # noqa: E731

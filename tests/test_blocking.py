@@ -9,9 +9,9 @@ import math
 
 import pytest
 import torch
+from conftest import GROUP_CLASSES, all_groups, gname, sample_group, sample_tangent
 from torch.autograd import forward_ad as fwAD
 
-from conftest import GROUP_CLASSES, all_groups, gname, sample_group, sample_tangent
 from torchsgal.functional import _autograd, _blocking, native
 
 BATCH = (4, 9)  # 36 elements: five blocks of 7 and a last one of 1

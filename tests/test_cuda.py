@@ -14,9 +14,9 @@ import os
 
 import pytest
 import torch
+from conftest import GROUP_CLASSES, assert_close, sample_tangent
 
 import torchsgal as ts
-from conftest import GROUP_CLASSES, assert_close, sample_tangent
 from torchsgal import imu
 from torchsgal import kinematics as kin
 from torchsgal import regression as reg

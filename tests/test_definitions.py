@@ -6,14 +6,13 @@ import math
 
 import numpy as np
 import pytest
+import reference as ref
 import scipy.linalg
 import torch
+from conftest import all_groups, assert_close, gname, np64, sample_group, sample_tangent
 
 import torchsgal as ts
 from torchsgal.functional import native
-
-import reference as ref
-from conftest import all_groups, assert_close, gname, np64, sample_group, sample_tangent
 
 
 @all_groups

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from host_syncs import HostSyncs
 
 import torchsgal as ts
-from host_syncs import HostSyncs
 from torchsgal import imu
 from torchsgal import kinematics as kin
 from torchsgal import regression as reg

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 import torchsgal as ts
-from torchsgal.estimation import (SolverStatus, autograd_jacobian, gauss_helmert, gauss_newton,
-                                  metrics, variables as V)
+from torchsgal.estimation import SolverStatus, autograd_jacobian, gauss_helmert, gauss_newton, metrics
+from torchsgal.estimation import variables as V
 from torchsgal.estimation.lbfgs import lbfgs
 
 f64 = torch.float64

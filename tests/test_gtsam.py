@@ -189,6 +189,6 @@ def test_from_matrix_roundtrip(name):
     xi = _samples(name, 1.0)
     elems = _gtsam_elements(name, xi)
     M = _from_gtsam_batch(name, elems)
-    for e, m in zip(elems, _np(M)):
+    for m in _np(M):
         _close(gm.from_gtsam(name, gm.to_gtsam(name, m)), m, 1e-15, f"{name} gtsam roundtrip")
     _close(_np(GROUPS[name].from_matrix(M).as_matrix()), _np(M), 1e-15, f"{name}.from_matrix")

@@ -24,9 +24,9 @@ import math
 
 import numpy as np
 import pytest
+import reference as ref
 import torch
 
-import reference as ref
 import torchsgal as ts
 
 gtsam = pytest.importorskip("gtsam")

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.stats
-from scipy.integrate import solve_ivp
 import torch
+from scipy.integrate import solve_ivp
 
 from torchsgal import SGal3
 from torchsgal.imu import (

@@ -8,8 +8,7 @@ import scipy.linalg
 import torch
 
 from torchsgal import SGal3
-from torchsgal.imu import gravity_vector, preintegrate
-from torchsgal.imu import peers
+from torchsgal.imu import gravity_vector, peers, preintegrate
 from torchsgal.imu.trajectory import SinusoidalTrajectory
 
 gtsam = pytest.importorskip("gtsam")

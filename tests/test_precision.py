@@ -12,11 +12,11 @@ import math
 import mpmath
 import numpy as np
 import pytest
-import torch
-
 import reference as ref
-import torchsgal as ts
+import torch
 from conftest import sample_tangent
+
+import torchsgal as ts
 from torchsgal.functional import numerics
 
 ANGLES = [1e-12, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 0.1, 0.5, 1.0, 2.0, 3.0, math.pi - 1e-6]

@@ -13,11 +13,11 @@ import math
 
 import numpy as np
 import pytest
+import reference as ref
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import reference as ref
 import torchsgal as ts
 
 GROUPS = ts.ALL_GROUPS

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import scipy.stats
 import torch
+from host_syncs import HostSyncs
 
 import torchsgal as ts
 from torchsgal.uncertainty import ConcentratedGaussian
-from host_syncs import HostSyncs
 
 IDS = lambda g: g.__name__  # noqa: E731
 N_MC = 20000
