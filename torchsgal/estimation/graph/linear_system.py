@@ -10,7 +10,8 @@ Both answer the same questions: ``solve(values, g, lam, diagonal)`` -> (delta, s
 ``quadratic(values, delta)`` = delta^T H delta, ``singular(values)`` and ``marginal_blocks``
 (diagonal blocks of H^-1 at the last ``set_solution``).  Rank deficiency: the Jacobi-scaled
 H (unit diagonal) has a Cholesky pivot at or below ``RCOND`` (or no Cholesky), or a diagonal
-entry at or below ``RCOND`` times the largest (a direction no factor sees).
+entry at or below ``RCOND`` times the largest (a direction no factor sees); the scaled pivots
+come from the Cholesky factor of H itself (chol(S H S) = S chol(H)).
 """
 from __future__ import annotations
 
@@ -22,14 +23,13 @@ RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
 
 
-def _scaled(H: torch.Tensor, rcond: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(H with unit diagonal, (B,) True where a diagonal entry is <= rcond times the largest
-    or non-finite)."""
+def _tiny_diagonal(H: torch.Tensor, rcond: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the diagonal (B, D) of H, (B,) True where an entry is <= rcond times the largest or H
+    has a non-finite entry)."""
     d = H.diagonal(dim1=-2, dim2=-1)
     tiny = (d <= rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(H).all(
         dim=(-1, -2))
-    s = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
-    return H * s[..., :, None] * s[..., None, :], tiny
+    return d, tiny
 
 
 class DenseSystem:
@@ -37,25 +37,42 @@ class DenseSystem:
 
     cost_first = False  # the solver linearises every trial point (one pass for the batch)
 
-    def __init__(self, problem: Problem):
+    def __init__(self, problem: Problem, workspace: tuple[torch.Tensor, ...] | None = None):
         self.problem = problem
         self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._H: torch.Tensor | None = None
+        self._work = workspace
 
     def select(self, problem: Problem) -> DenseSystem:
-        """The system of a subset of the problems (the solver's active set)."""
-        return DenseSystem(problem)
+        """The system of a subset of the problems (the solver's active set); it reuses this
+        system's work buffers (the active set only shrinks)."""
+        return DenseSystem(problem, self._work)
+
+    def _workspace(self, B: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(H (B, D * D), L (B, D, D), info (B,) int32): the damped matrix and its Cholesky
+        factor, allocated once per solve and reused by every step (fresh (B, D, D) temporaries
+        cost more than their arithmetic at these sizes)."""
+        D = self.problem.D
+        if self._work is None or self._work[0].shape[0] < B:
+            like = self.eye
+            self._work = (like.new_empty(B, D * D), like.new_empty(B, D, D),
+                          torch.empty(B, dtype=torch.int32, device=like.device))
+        return tuple(w[:B] for w in self._work)  # type: ignore[return-value]
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(delta (B, D), solved (B,) bool, delta^T H delta (B,)); lam (B,) (0: undamped)."""
-        Hd = dense(self.problem, values)  # a new tensor: damped in place (no (B, D, D) copies)
-        diag = Hd.diagonal(dim1=-2, dim2=-1)
+        B, D = values.shape[0], self.problem.D
+        flat, L, info = self._workspace(B)
+        Hd = flat.zero_().index_add_(1, self.problem.h_index, values).view(B, D, D)
+        diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
         damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
         diag.add_(damp)
-        L, info = torch.linalg.cholesky_ex(Hd)
-        delta = torch.cholesky_solve(-g.unsqueeze(-1), L).squeeze(-1)
+        torch.linalg.cholesky_ex(Hd, out=(L, info))
+        # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
+        y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
+        delta = torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
         solved = (info == 0) & torch.isfinite(delta).all(dim=-1)
         delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
         # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta
@@ -77,9 +94,13 @@ class DenseSystem:
 
     def singular(self) -> torch.Tensor:
         """(B,) True where H at the solution is numerically rank-deficient."""
-        Hs, tiny = _scaled(self._solution(), self.rcond)
-        L, info = torch.linalg.cholesky_ex(torch.where(tiny[:, None, None], self.eye, Hs))
-        pivots = L.diagonal(dim1=-2, dim2=-1) ** 2
+        H = self._solution()
+        d, tiny = _tiny_diagonal(H, self.rcond)
+        # the pivots of the Jacobi-scaled S H S (S = diag(H)^-1/2) without forming it:
+        # chol(S H S) = S chol(H), so its pivots are L_ii^2 / H_ii (rows where ``tiny`` holds
+        # are decided by ``tiny`` whatever their factorisation gives)
+        L, info = torch.linalg.cholesky_ex(H)
+        pivots = L.diagonal(dim1=-2, dim2=-1) ** 2 / torch.where(d > 0, d, torch.ones_like(d))
         return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
 
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:

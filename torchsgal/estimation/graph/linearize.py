@@ -270,6 +270,9 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
     tangents, Dk, start = [], sum(block.dofs), 0
     for (k, _), a, dof in zip(block.slots, args, block.dofs):
         info = problem.variables[k]
+        if len(args) == 1 and info.group is not None:  # one slot: the basis itself, no copy
+            tangents.append(_right_basis(info.group, a))
+            break
         t = a.new_zeros((Dk,) + a.shape)
         if info.group is None:
             t[start:start + dof] = torch.eye(dof, dtype=a.dtype, device=a.device).reshape(
