@@ -8,9 +8,9 @@ from __future__ import annotations
 import math
 import numbers
 import sys
+from typing import cast
 
 import torch
-
 
 SUPPORTED_DTYPES = (torch.float32, torch.float64)
 
@@ -148,10 +148,10 @@ def shape(batch_shape, name: str) -> tuple[int, ...]:
     except TypeError:
         raise TypeError(f"{name} must be an int or a sequence of ints, "
                         f"got {type(batch_shape).__name__}") from None
-    sizes = []
+    sizes: list[int] = []
     for s in dims:
         if isinstance(s, torch.SymInt):  # a traced size (torch.compile, dynamic shapes)
-            sizes.append(s)
+            sizes.append(cast(int, s))  # a SymInt stands in for an int in shapes
             continue
         if isinstance(s, bool) or not isinstance(s, numbers.Integral):  # numpy integers are Integral
             raise TypeError(f"{name} must be an int or a sequence of ints, got {batch_shape!r}")

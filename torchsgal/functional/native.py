@@ -43,7 +43,7 @@ from . import numerics
 from ._blocking import is_compiling, unobserved
 
 try:
-    from . import _native as _lib
+    from . import _native as _lib  # type: ignore[attr-defined]  # compiled: mypy reads no .so
 except ImportError:  # not compiled: the tensor code runs everywhere
     _lib = None
 

@@ -21,6 +21,7 @@ in float64.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import torch
 
@@ -119,7 +120,7 @@ def series_coefficients(theta2: torch.Tensor, order: int = MAX_ORDER) -> list[to
     lo: list[torch.Tensor | None] = [None] * (order + 1)
     lo[order - 1], lo[order] = acc.unbind(0)
     for m in range(order - 2, -1, -1):
-        lo[m] = torch.addcmul(inv_fact[m], t2_small, lo[m + 2], value=-1.0)
+        lo[m] = torch.addcmul(inv_fact[m], t2_small, cast(torch.Tensor, lo[m + 2]), value=-1.0)
 
     # Large branch: sin/cos of the half angle, then upwards.
     theta = torch.sqrt(t2_large)
@@ -133,7 +134,8 @@ def series_coefficients(theta2: torch.Tensor, order: int = MAX_ORDER) -> list[to
     for m in range(3, order + 1):
         hi.append((inv_fact[m - 2] - hi[m - 2]) * inv_t2)
 
-    return [select(mask, a, b) for a, b in zip(lo, hi)]
+    # every entry of lo is set above
+    return [select(mask, a, b) for a, b in zip(cast("list[torch.Tensor]", lo), hi)]
 
 
 def series_derivative(c: list[torch.Tensor], m: int) -> torch.Tensor:

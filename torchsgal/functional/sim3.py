@@ -92,7 +92,7 @@ def exp_impl(xi: torch.Tensor) -> torch.Tensor:
     return _matrix(B.gamma_entries(c, 0, phi), r, torch.exp(-lam))
 
 
-def _m_inverse(m, phi):
+def _m_inverse(m: dict[str, torch.Tensor], phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(n0, n1, n2): M(phi, lambda)^-1 = n0 I + n1 phi^ + n2 phi^ phi^."""
     return B.poly_inverse(m["m0"], m["m1"], m["m2"], B.theta_squared(phi), m["m_re"])
 
