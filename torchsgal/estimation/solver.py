@@ -15,8 +15,9 @@ respect to right perturbations of the unknowns (``variables.retract``):
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
+from typing import cast
 
 import torch
 
@@ -143,9 +144,10 @@ class Linearisation:
     g: torch.Tensor | None = None  # (B, d) J^T r
     cost: torch.Tensor | None = None  # (B,) 1/2 |r|^2
 
-    def normal_equations(self) -> "Linearisation":
+    def normal_equations(self) -> Linearisation:
         """Fills H, g and cost from r and J (once)."""
         if self.H is None:
+            assert self.r is not None and self.J is not None  # r and J, or H, g and cost
             Jt = self.J.transpose(-1, -2)
             self.H = Jt @ self.J
             self.g = (Jt @ self.r[..., None])[..., 0]
@@ -155,11 +157,13 @@ class Linearisation:
     def finite(self) -> torch.Tensor:
         """(B,) residuals and Jacobians finite (the normal equations when there is no J)."""
         if self.J is not None:
+            assert self.r is not None  # given with J
             return torch.isfinite(self.r).all(-1) & torch.isfinite(self.J).flatten(1).all(-1)
+        assert self.H is not None and self.g is not None and self.cost is not None
         return (torch.isfinite(self.H).flatten(1).all(-1) & torch.isfinite(self.g).all(-1)
                 & torch.isfinite(self.cost))
 
-    def select(self, mask: torch.Tensor, other: "Linearisation") -> "Linearisation":
+    def select(self, mask: torch.Tensor, other: Linearisation) -> Linearisation:
         """Per problem: this one where ``mask``, else ``other`` (both with normal equations)."""
         def pick(a, b):
             if a is None or b is None:
@@ -280,6 +284,7 @@ def iterate(
                             torch.where(ok0[:, None], lin.g, 0), torch.where(ok0, lin.cost, 0))
     lin.normal_equations()
     cost = lin.cost
+    assert cost is not None  # normal_equations filled it
     initial_cost = cost.clone()
     lam = torch.full((Bn,), damping if damping is not None else 0.0, dtype=dtype, device=device)
     iterations = torch.zeros(Bn, dtype=torch.int64, device=device)
@@ -291,6 +296,7 @@ def iterate(
             break
         running = status == SolverStatus.RUNNING
         H, g = lin.H, lin.g
+        assert H is not None and g is not None  # normal_equations filled them
         diag = H.diagonal(dim1=-2, dim2=-1)
         # Damping scaled by the diagonal, floored so that unobservable directions stay solvable.
         floor = 1e-12 * diag.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
@@ -308,6 +314,7 @@ def iterate(
         finite_new = V.finite(x_new) & lin_new.finite()
         lin_new.normal_equations()
         cost_new = lin_new.cost
+        assert cost_new is not None  # normal_equations filled it
         finite_new = finite_new & torch.isfinite(cost_new)
         step = (delta * (H @ delta[..., None])[..., 0]).sum(-1).clamp_min(0).sqrt()
         if damping is None:
@@ -343,6 +350,7 @@ def iterate(
     status = torch.where(status == SolverStatus.RUNNING, SolverStatus.MAX_ITERATIONS, status)
 
     H, g = lin.H, lin.g
+    assert H is not None and g is not None  # normal_equations filled them
     singular = information_is_singular(H) & (status != SolverStatus.NON_FINITE)
     status = torch.where(singular, SolverStatus.SINGULAR, status)
     non_finite = status == SolverStatus.NON_FINITE
@@ -462,5 +470,5 @@ def gauss_newton(
 def _as_given(solution: Solution, single: bool) -> Solution:
     """The solution's unknowns unwrapped when x0 was one block alone."""
     if single:
-        solution.x = solution.x[0]
+        solution.x = cast(tuple, solution.x)[0]  # iterate returns the tuple form
     return solution

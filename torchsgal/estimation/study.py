@@ -21,6 +21,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from functools import partial
+from typing import TypedDict
 
 import torch
 
@@ -258,13 +259,23 @@ def summarise(err: torch.Tensor, cov: torch.Tensor, status: torch.Tensor) -> dic
     ok = status == SolverStatus.CONVERGED
     e, P = err[ok], cov[ok]
     q = metrics.nees(e, P)
-    out = {name: float(metrics.rmse(e[:, sl])) for name, sl in COMPONENTS.items()}
+    out: dict[str, float | list[float]] = {name: float(metrics.rmse(e[:, sl])) for name, sl in COMPONENTS.items()}
     out["ANEES"] = float(q.mean())
     out["MMD"] = float(q.sqrt().mean())
     out["converged"] = int(ok.sum())
     out["trials"] = int(status.numel())
     out["nees"] = q.tolist()
     return out
+
+
+class _Accumulator(TypedDict):
+    """One estimator's results over the chunks of ``run``."""
+
+    err: list[torch.Tensor]  # (k, 11) errors per chunk
+    cov: list[torch.Tensor]  # (k, 11, 11) covariances
+    status: list[torch.Tensor]  # (k,) SolverStatus
+    iterations: list[torch.Tensor]  # (k,)
+    time: float  # seconds spent solving
 
 
 def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> dict:
@@ -283,7 +294,8 @@ def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> 
         estimators.update({(BASELINE_NAMES[reading], v): (partial(solve_baseline, reading=reading),
                                                           partial(errors_baseline, reading=reading))
                            for v in cfg.variants})
-    acc = {k: {"err": [], "cov": [], "status": [], "iterations": [], "time": 0.0} for k in estimators}
+    acc: dict[tuple[str, str], _Accumulator] = {
+        k: {"err": [], "cov": [], "status": [], "iterations": [], "time": 0.0} for k in estimators}
     bar = _progress(cfg.trials, progress)
     sim_time = 0.0
     done = 0
@@ -304,7 +316,7 @@ def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> 
         done += k
         bar(k)
     bar(0, close=True)
-    results = {}
+    results: dict[str, dict[str, dict]] = {}
     for (name, variant), a in acc.items():
         status = torch.cat(a["status"])
         res = summarise(torch.cat(a["err"]), torch.cat(a["cov"]), status)
@@ -415,9 +427,9 @@ def write_outputs(out: dict, directory: str, plot: bool = True) -> list[str]:
         f.write("# Kelly-Giamou Table 1, reproduced\n\n" + table_markdown(out) + "\n")
     paths.append(p)
     if plot:
-        p = plot_nees(out, os.path.join(directory, "tls_nees.png"))
-        if p:
-            paths.append(p)
+        png = plot_nees(out, os.path.join(directory, "tls_nees.png"))
+        if png:
+            paths.append(png)
     return paths
 
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import torch
 
 from ..functional import checks, native
-from ..groups import SE23, SGal3
+from ..groups import SE23, LieGroup, SGal3
 from . import _small_linalg
 from . import variables as V
 from .gauss_helmert import _CovarianceBlocks, check_covariance, gauss_helmert, variant_options
@@ -363,6 +363,7 @@ class _Model:
 
     def __init__(self, problem: TLSProblem, baseline: bool, reading: str = "invariant"):
         self.baseline = baseline
+        self.group: type[LieGroup]
         if baseline:
             self.group, self.d = SE23, 9
             self.M, self.dclock = baseline_observations(problem, reading)
@@ -660,6 +661,7 @@ def subset(problem: TLSProblem, index) -> TLSProblem:
 def _check_unknowns(problem: TLSProblem, x0, baseline: bool, name: str = "x0") -> tuple:
     """x0 of ``solve_sgal3`` (F SGal3 (B,), dtau (B, 1)) or of ``solve_baseline``
     (X' SE23 (B,), tau0 (B, 1), dtau (B, 1)), on the problem's dtype and device."""
+    layout: tuple[type[LieGroup] | int, ...]  # a group block of that class, or a tensor (B, k)
     if baseline:
         layout, expected = (SE23, 1, 1), "(X' SE23 (B,), tau0 (B, 1), dtau (B, 1))"
     else:
@@ -671,10 +673,10 @@ def _check_unknowns(problem: TLSProblem, x0, baseline: bool, name: str = "x0") -
     x0 = V.check_values(x0, name)
     Bn = problem.batch_size
     for i, (b, kind) in enumerate(zip(x0, layout)):
-        if isinstance(kind, type):
+        if isinstance(kind, type) and issubclass(kind, LieGroup):  # a group block, else (B, kind)
             if not isinstance(b, kind) or tuple(b.batch_shape) != (Bn,):
                 got = (f"{type(b).__name__} of batch shape {tuple(b.batch_shape)}"
-                       if hasattr(b, "batch_shape") else f"a tensor of shape {tuple(b.shape)}")
+                       if isinstance(b, LieGroup) else f"a tensor of shape {tuple(b.shape)}")
                 raise ValueError(f"{name}[{i}] must be {kind.__name__} of batch shape (B,) = "
                                  f"({Bn},) ({name} = {expected}), got {got}")
         elif not isinstance(b, torch.Tensor) or tuple(b.shape) != (Bn, kind):

@@ -16,7 +16,8 @@ tangent; Euclidean blocks by addition.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from typing import overload
 
 import torch
 
@@ -25,7 +26,8 @@ from ..functional.checks import SUPPORTED_DTYPES
 from ..groups import LieGroup
 
 Block = LieGroup | torch.Tensor
-Values = tuple
+Values = tuple  # the blocks, in order
+Unknowns = Block | Values  # one block alone, or a tuple of blocks (returned in the form given)
 
 
 def is_single(x) -> bool:
@@ -51,7 +53,7 @@ def as_values(x, name: str = "x") -> Values:
     return tuple(x)
 
 
-def block_dims(x: Values) -> list[int]:
+def block_dims(x: Unknowns) -> list[int]:
     """The tangent size of each block: dof (group, batch (B,)), K dof (group, batch (B, K)),
     k or K k (tensor (B, k) or (B, K, k))."""
     x = as_values(x)
@@ -59,11 +61,11 @@ def block_dims(x: Values) -> list[int]:
             else math.prod(b.shape[1:]) for b in x]
 
 
-def tangent_dim(x: Values) -> int:
+def tangent_dim(x: Unknowns) -> int:
     return sum(block_dims(x))
 
 
-def batch_size(x: Values) -> int:
+def batch_size(x: Unknowns) -> int:
     x = as_values(x)
     if not x:
         raise ValueError("x must hold at least one block, got none")
@@ -75,7 +77,7 @@ def _block_name(name: str, i: int, single: bool) -> str:
     return name if single else f"{name}[{i}]"
 
 
-def check_values(x: Values, name: str = "x0") -> Values:
+def check_values(x: Block | Sequence[Block], name: str = "x0") -> Values:
     """Checks that every block has the same batch size B (a group element of batch shape (B,)
     or (B, K), a tensor (B, k) or (B, K, k)), dtype and device; errors name ``name`` for a
     block given alone and ``name[i]`` for the blocks of a tuple."""
@@ -123,7 +125,11 @@ def _same_blocks(x: Values, y: Values, x_name: str, y_name: str) -> None:
                             f"({type(a).__name__}), got {type(b).__name__}")
 
 
-def retract(x: Values, delta: torch.Tensor) -> Values:
+@overload
+def retract(x: Values, delta: torch.Tensor) -> Values: ...
+@overload
+def retract(x: Block, delta: torch.Tensor) -> Block: ...
+def retract(x: Unknowns, delta: torch.Tensor) -> Unknowns:
     """x boxplus delta: group blocks g exp(d), Euclidean blocks x + d; delta (B, dim).  Like
     every helper here, it takes one block alone or a tuple, and returns the same form."""
     single, x = is_single(x), as_values(x)
@@ -132,7 +138,8 @@ def retract(x: Values, delta: torch.Tensor) -> Values:
         got = tuple(delta.shape) if isinstance(delta, torch.Tensor) else type(delta).__name__
         raise ValueError(f"delta must have shape (B, {sum(dims)}) (the tangent dimension of x, "
                          f"blocks {dims}), got {got}")
-    out, i = [], 0
+    out: list[Block] = []
+    i = 0
     for b, k in zip(x, dims):
         d = delta[..., i:i + k]
         if isinstance(b, LieGroup):
@@ -145,7 +152,7 @@ def retract(x: Values, delta: torch.Tensor) -> Values:
     return out[0] if single else tuple(out)
 
 
-def local(x: Values, y: Values) -> torch.Tensor:
+def local(x: Unknowns, y: Unknowns) -> torch.Tensor:
     """y boxminus x: the tangent d with retract(x, d) = y (group blocks log(x^-1 y))."""
     x, y = as_values(x), as_values(y)
     _same_blocks(x, y, "x", "y")
@@ -159,7 +166,11 @@ def local(x: Values, y: Values) -> torch.Tensor:
     return torch.cat(parts, dim=-1)
 
 
-def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
+@overload
+def select(mask: torch.Tensor, new: Values, old: Values) -> Values: ...
+@overload
+def select(mask: torch.Tensor, new: Block, old: Block) -> Block: ...
+def select(mask: torch.Tensor, new: Unknowns, old: Unknowns) -> Unknowns:
     """Blockwise torch.where over the batch: new where mask (B,) else old."""
     single, new, old = is_single(new), as_values(new), as_values(old)
     _same_blocks(new, old, "new", "old")
@@ -168,7 +179,7 @@ def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
         got = (f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, torch.Tensor)
                else type(mask).__name__)
         raise ValueError(f"mask must be a bool tensor of shape (B,) = ({B},), got {got}")
-    out = []
+    out: list[Block] = []
     for a, b in zip(new, old):
         if isinstance(a, LieGroup):
             A = a.as_matrix()
@@ -179,13 +190,17 @@ def select(mask: torch.Tensor, new: Values, old: Values) -> Values:
     return out[0] if single else tuple(out)
 
 
-def detach(x: Values) -> Values:
-    if is_single(x):
+@overload
+def detach(x: Values) -> Values: ...
+@overload
+def detach(x: Block) -> Block: ...
+def detach(x: Unknowns) -> Unknowns:
+    if isinstance(x, (LieGroup, torch.Tensor)):  # is_single
         return x.detach()
     return tuple(b.detach() for b in x)
 
 
-def finite(x: Values) -> torch.Tensor:
+def finite(x: Unknowns) -> torch.Tensor:
     """(B,) True where every entry of every block is finite."""
     x = as_values(x)
     ok = None
@@ -193,4 +208,6 @@ def finite(x: Values) -> torch.Tensor:
         t = (b.as_matrix() if isinstance(b, LieGroup) else b).flatten(1)
         f = torch.isfinite(t).all(dim=-1)
         ok = f if ok is None else ok & f
+    if ok is None:
+        raise ValueError("x must hold at least one block, got none")
     return ok
