@@ -57,8 +57,8 @@ def test_panda_pose_targets():
     e_pos, e_rot = _pinocchio_errors("panda", "panda_hand_tcp", chain, res.q, target)
     ok = res.success.numpy()
     assert (e_pos[ok] <= 1e-4).all() and (e_rot[ok] <= 1e-3).all()
-    np.testing.assert_allclose(res.position_error.numpy(), e_pos, atol=1e-12)
-    np.testing.assert_allclose(res.rotation_error.numpy(), e_rot, atol=1e-9)
+    np.testing.assert_allclose(res.position_error.numpy(), e_pos, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res.rotation_error.numpy(), e_rot, rtol=0, atol=1e-9)
     assert ((e_pos[~ok] > 1e-4) | (e_rot[~ok] > 1e-3)).all()  # failures are real too
     # 7 joints for a 6-dof pose: the information is rank-deficient at every solution
     singular = (res.solver_status == SolverStatus.SINGULAR).numpy()

@@ -299,7 +299,7 @@ def test_float32_and_limits_and_root_link():
     pin.framesForwardKinematics(ref.model, ref.data, ref.q(qq[0].tolist()))
     rel = ref.data.oMf[ref.model.getFrameId("base")].inverse() * \
         ref.data.oMf[ref.model.getFrameId("tool0")]
-    np.testing.assert_allclose(ur_b.pose(qq[0]).as_matrix().numpy(), rel.homogeneous, atol=TOL)
+    np.testing.assert_allclose(ur_b.pose(qq[0]).as_matrix().numpy(), rel.homogeneous, rtol=0, atol=TOL)
     # base and tool transforms
     base = torchsgal.SE3.exp(torch.tensor([0.1, 0.2, 0.3, 0.4, -0.2, 0.1], dtype=F64))
     tool = torchsgal.SE3.exp(torch.tensor([0.0, 0.0, 0.05, 0.0, 0.3, 0.0], dtype=F64))
@@ -336,10 +336,10 @@ def test_urdf_string_and_custom_axes():
         qp = np.array([q[b, 0], q[b, 1], math.cos(q[b, 2]), math.sin(q[b, 2])])
         pin.forwardKinematics(model, data, qp, qd[b].numpy(), qdd[b].numpy())
         pin.updateFramePlacements(model, data)
-        np.testing.assert_allclose(st.pose.as_matrix()[b].numpy(), data.oMf[fid].homogeneous, atol=TOL)
+        np.testing.assert_allclose(st.pose.as_matrix()[b].numpy(), data.oMf[fid].homogeneous, rtol=0, atol=TOL)
         acc = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
-        np.testing.assert_allclose(st.linear_acceleration[b].numpy(), acc.linear, atol=TOL)
-        np.testing.assert_allclose(st.angular_acceleration[b].numpy(), acc.angular, atol=TOL)
+        np.testing.assert_allclose(st.linear_acceleration[b].numpy(), acc.linear, rtol=0, atol=TOL)
+        np.testing.assert_allclose(st.angular_acceleration[b].numpy(), acc.angular, rtol=0, atol=TOL)
 
 
 # ---------------------------------------------------------------- bad input
@@ -411,21 +411,21 @@ def test_tree_branches_against_pinocchio():
         for k, tip in enumerate(hand.end_links):
             fid = m.getFrameId(tip)
             np.testing.assert_allclose(st.pose.as_matrix()[b, k].numpy(), d.oMf[fid].homogeneous,
-                                       atol=TOL, err_msg=tip)
+                                       rtol=0, atol=TOL, err_msg=tip)
             vel = pin.getFrameVelocity(m, d, fid, pin.LOCAL_WORLD_ALIGNED)
-            np.testing.assert_allclose(st.linear_velocity[b, k].numpy(), vel.linear, atol=TOL)
-            np.testing.assert_allclose(st.angular_velocity[b, k].numpy(), vel.angular, atol=TOL)
+            np.testing.assert_allclose(st.linear_velocity[b, k].numpy(), vel.linear, rtol=0, atol=TOL)
+            np.testing.assert_allclose(st.angular_velocity[b, k].numpy(), vel.angular, rtol=0, atol=TOL)
             acc = pin.getFrameClassicalAcceleration(m, d, fid, pin.LOCAL_WORLD_ALIGNED)
-            np.testing.assert_allclose(st.linear_acceleration[b, k].numpy(), acc.linear, atol=TOL)
-            np.testing.assert_allclose(st.angular_acceleration[b, k].numpy(), acc.angular, atol=TOL)
+            np.testing.assert_allclose(st.linear_acceleration[b, k].numpy(), acc.linear, rtol=0, atol=TOL)
+            np.testing.assert_allclose(st.angular_acceleration[b, k].numpy(), acc.angular, rtol=0, atol=TOL)
             for f, pf in (("base", pin.LOCAL_WORLD_ALIGNED), ("body", pin.LOCAL)):
                 J = hand.jacobian(q[b], link=tip, frame=f)
                 np.testing.assert_allclose(J.numpy(), pin.getFrameJacobian(m, d, fid, pf)[:, ref.cols()],
-                                           atol=TOL, err_msg=f"{tip} {f}")
+                                           rtol=0, atol=TOL, err_msg=f"{tip} {f}")
                 dJ = hand.jacobian_derivative(q[b], qd[b], link=tip, frame=f)
                 np.testing.assert_allclose(
                     dJ.numpy(), pin.getFrameJacobianTimeVariation(m, d, fid, pf)[:, ref.cols()],
-                    atol=TOL, err_msg=f"{tip} {f}")
+                    rtol=0, atol=TOL, err_msg=f"{tip} {f}")
     # a chain to one fingertip alone gives that finger's kinematics
     one = load_robot("allegro", "link_7.0_tip")
     assert one.n_joints == 4
