@@ -78,14 +78,18 @@ def test_act_fast_path_forward_mode_derivatives_match_the_per_point_product(G):
 
 
 def _graph(fused: bool, gen):
-    """Two groups (SE3 poses x, SO3 rotations y), priors and betweens with shared and
-    per-factor noise, a robust loss, per-problem and shared measurements, a uniform slot."""
+    """Two groups (SE3 poses x and z, SO3 rotations y), priors and betweens with shared and
+    per-factor noise, a robust loss, per-problem and shared measurements, a uniform slot, a
+    between of two variables."""
     B = 4
     x = _elements(ts.SE3, (B, 6), gen)
     y = _elements(ts.SO3, (B, 5), gen)
     graph = fg.FactorGraph()
     graph.add_variable("x", x)
     graph.add_variable("y", y)
+    graph.add_variable("z", _elements(ts.SE3, (B, 3), gen))
+    iz, jz = torch.tensor([4, 1]), torch.tensor([0, 2])  # x_i to z_j: two variables of a group
+    Zxz = _elements(ts.SE3, (B, 2), gen)
     i, j = torch.tensor([0, 1, 2, 3, 4, 0]), torch.tensor([1, 2, 3, 4, 5, 3])
     Zx = _elements(ts.SE3, (B, 6), gen)
     L = torch.randn(6, 6, 6, generator=gen, dtype=f64) * 0.1 + 2 * torch.eye(6, dtype=f64)
@@ -98,6 +102,8 @@ def _graph(fused: bool, gen):
         graph.add(fg.Between("x", 5, torch.tensor([1, 2]), Zx[:, :2]))  # a uniform slot
         graph.add(fg.Prior("y", torch.tensor([0, 3]), _elements(ts.SO3, (B, 2), gen)))
         graph.add(fg.Between("y", iy, jy, Zy), loss=fg.Cauchy(0.3))
+        graph.add(fg.Factor(F._between_residual, [("x", iz), ("z", jz)], [Zxz], dim=6,
+                            jacobians=F._between_jacobians))
     else:  # the same residuals, not recognised as built-ins: evaluated one block at a time
         def between(*a):
             return F._between_jacobians(*a)
@@ -115,6 +121,8 @@ def _graph(fused: bool, gen):
                             [_elements(ts.SO3, (B, 2), gen)], dim=3, jacobians=prior))
         graph.add(fg.Factor(F._between_residual, [("y", iy), ("y", jy)], [Zy], dim=3,
                             jacobians=between), loss=fg.Cauchy(0.3))
+        graph.add(fg.Factor(F._between_residual, [("x", iz), ("z", jz)], [Zxz], dim=6,
+                            jacobians=between))
     return graph
 
 
@@ -122,7 +130,7 @@ def test_fused_priors_and_betweens_match_the_blockwise_evaluation():
     graphs = [_graph(fused, torch.Generator().manual_seed(5)) for fused in (True, False)]
     problems = [Problem(g) for g in graphs]
     assert [b.log_form for b in problems[0].blocks] == ["prior", "between", "between", "prior",
-                                                       "between"]
+                                                       "between", "between"]
     assert all(b.log_form is None for b in problems[1].blocks)
     rows = torch.tensor([3, 1])
     results = []
@@ -150,7 +158,7 @@ def test_fused_solve_matches_the_blockwise_solve():
     assert torch.equal(a.report.iterations, b.report.iterations)
     assert torch.equal(a.report.status, b.report.status)
     torch.testing.assert_close(a.report.cost, b.report.cost, rtol=1e-10, atol=1e-12)
-    for name in ("x", "y"):
+    for name in ("x", "y", "z"):
         torch.testing.assert_close(a.values[name].as_matrix(), b.values[name].as_matrix(),
                                    rtol=1e-9, atol=1e-9)
 

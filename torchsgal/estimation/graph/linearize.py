@@ -200,7 +200,7 @@ class Problem:
             if info.group is None:
                 out.append(xv + d)
             else:
-                out.append(info.group._f.compose(xv, info.group._f.exp(d)))
+                out.append(xv @ info.group._f.exp(d))  # the group product: the matrices' product
         return out
 
     def wrap(self, k: int, leaf: torch.Tensor):
@@ -356,13 +356,14 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
         if block.log_form == "prior":
             A, A_inv = _args(block, x)[0], None
         else:
-            if k not in inverses:
-                inverses[k] = f.inverse(x[k])
+            for v, _ in block.slots:  # T_i and T_j may be elements of two variables
+                if v not in inverses:
+                    inverses[v] = f.inverse(x[v])
             Ti, Tj = _args(block, x)
             Ti_inv, Tj_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])
-            A = f.compose(Ti_inv, Tj)
-            A_inv = f.compose(Tj_inv, Ti) if want_jacobian else None  # = A^-1, for Ad(A^-1)
-        err = f.compose(block.measured_inv, A)
+            A = Ti_inv @ Tj  # the group product: the product of the matrices
+            A_inv = Tj_inv @ Ti if want_jacobian else None  # = A^-1, for Ad(A^-1)
+        err = block.measured_inv @ A
         stacks.setdefault(group, []).append((n, err.expand((B, block.size) + err.shape[-2:]), A_inv))
     out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
     for group, items in stacks.items():
