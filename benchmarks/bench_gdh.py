@@ -26,8 +26,8 @@ Timing method: the cases of a section are *interleaved* (round-robin, one call o
 round, order rotated every round) so that all cases see the same machine load; two untimed
 warm-up calls per case; Python's GC is off while the clock runs; the figure is the median over
 rounds, and each speed-up is the median over rounds of the per-round ratio.  The share of the
-machine's CPU used by other processes during each section is recorded (``foreign_cpu``): on a
-2-core machine any foreign load inflates multi-threaded torch timings.
+machine's CPU used by other processes during each section is recorded (``foreign_cpu``): with few
+cores, any foreign load inflates multi-threaded torch timings.
 
 Agreement on the benchmark batch (max abs difference) is recorded: GDH vs pk pose and velocity,
 GDH acceleration vs both jvp's.

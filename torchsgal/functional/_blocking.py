@@ -2,8 +2,8 @@
 
 A closed form here is a few dozen elementwise operations, each of which allocates a batch-sized
 temporary.  On CPU a large temporary is a fresh ``mmap`` that the kernel fills page by page, and
-past a few hundred thousand elements those page faults cost more than the arithmetic (about
-0.35 ms per MB on the reference VM: at 1e6 elements, SGal3.exp spends most of its time there).
+past a few hundred thousand elements those page faults cost more than the arithmetic (of the
+order of 0.3 ms per MB: at 1e6 elements, SGal3.exp would spend most of its time there).
 ``blocked`` runs such a function over blocks of ``BLOCK`` batch elements, whose temporaries the
 allocator recycles from block to block instead of mapping fresh pages, and writes each block into
 one output.
