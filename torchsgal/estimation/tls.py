@@ -619,7 +619,7 @@ def _structured(problem: TLSProblem, iterated: bool, baseline: bool = False,
 # Below this many conditions the paper variant takes the generic path: the structured one
 # saves arithmetic but costs a few more (overhead-bound) operations (a rule on shapes only).
 # Where the C kernel of the SGal(3) linearisation runs, the structured path is the faster one at
-# every size (one trial of 101 conditions: 13.5 ms against 22 ms generic, 2-core VM) and is taken.
+# every size (one trial of 101 conditions: 13.5 ms against 22 ms generic) and is taken.
 STRUCTURED_MIN_CONDITIONS = 2048
 
 
