@@ -211,8 +211,9 @@ class Problem:
 def _log_form(factor: Factor, groups: list, data: list) -> tuple[str, type[LieGroup]] | None:
     """("prior" | "between", the group) for the built-in Prior / Between residuals (with their
     analytic Jacobians) on group variables of the measurement's group; None otherwise."""
-    kinds = {(_factors._prior_residual, _factors._prior_jacobians, 1): "prior",
-             (_factors._between_residual, _factors._between_jacobians, 2): "between"}
+    kinds: dict[tuple[object, object, int], str] = {
+        (_factors._prior_residual, _factors._prior_jacobians, 1): "prior",
+        (_factors._between_residual, _factors._between_jacobians, 2): "between"}
     kind = kinds.get((factor.residual, factor.jacobians, len(groups)))
     if kind is None or len(data) != 1 or not isinstance(data[0], LieGroup):
         return None
@@ -345,13 +346,14 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     with each variable's inverses computed once and gathered; Z^-1 is the block's
     ``measured_inv`` (computed once per problem)."""
     B = x[0].shape[0]
-    stacks: dict[type, list] = {}
+    stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
     for n, block in enumerate(problem.blocks):
         if block.log_form is None:
             continue
-        k = block.slots[0][0]
-        group = problem.variables[k].group
+        group = problem.variables[block.slots[0][0]].group
+        Z_inv = block.measured_inv
+        assert group is not None and Z_inv is not None  # set with log_form (``_log_form``)
         f = group._f
         if block.log_form == "prior":
             A, A_inv = _args(block, x)[0], None
@@ -363,7 +365,7 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
             Ti_inv, Tj_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])
             A = Ti_inv @ Tj  # the group product: the product of the matrices
             A_inv = Tj_inv @ Ti if want_jacobian else None  # = A^-1, for Ad(A^-1)
-        err = block.measured_inv @ A
+        err = Z_inv @ A
         stacks.setdefault(group, []).append((n, err.expand((B, block.size) + err.shape[-2:]), A_inv))
     out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
     for group, items in stacks.items():
