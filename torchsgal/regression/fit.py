@@ -45,7 +45,7 @@ class CurveFit:
     cost: sum_i d(gamma(t_i), y_i)^2 (...); converged: (...) bool.
     Call ``fit(times)`` for gamma at times (..., M)."""
 
-    group: type
+    group: type[LieGroup]
     model: str
     origin: LieGroup
     coefficients: torch.Tensor
@@ -54,7 +54,7 @@ class CurveFit:
     converged: torch.Tensor
     iterations: int
     method: str
-    _model: object
+    _model: PolynomialModel | RiemannianPolynomialModel
     _x: torch.Tensor
 
     def __call__(self, times: torch.Tensor) -> LieGroup:
@@ -221,7 +221,9 @@ def _restart(make_model, model, state: SolverState, origin, x, method, max_itera
         flat = full.reshape((-1,) + full.shape[nb:])
         merged = torch.where(keep.reshape(keep.shape + (1,) * (part.dim() - 1)), part, flat[idx])
         out.append(flat.index_copy(0, idx, merged).reshape(full.shape))
-    return SolverState(*out, state.iterations + again.iterations)
+    merged_origin, merged_coefficients, merged_cost, merged_converged = out
+    return SolverState(merged_origin, merged_coefficients, merged_cost, merged_converged,
+                       state.iterations + again.iterations)
 
 
 def _fit_polynomial(G, Y, t, t0, w, degree, B, method, max_iterations, tolerance,
@@ -352,7 +354,7 @@ def fit_riemannian_polynomial(samples: LieGroup, times: torch.Tensor, degree: in
         state = _solve(model, start.origin.as_matrix(), x, method, max_iterations, tolerance)
         nb = t0.dim()
         state = _restart(lambda k: RiemannianPolynomialModel(
-            G, *(_rows(v, k, nb) for v in (Y, tau, sqrt_w, w)), degree, steps),
+            G, *(_rows(v, k, nb) for v in (Y, tau, sqrt_w, w)), degree, steps),  # type: ignore[call-arg]  # mypy: 4 rows
             model, state, constant, torch.zeros_like(x), method, max_iterations, tolerance)
         V0 = model.initial(state.coefficients)
         # The fitted curve and the polynomial start, whose motion is the data's, must both be

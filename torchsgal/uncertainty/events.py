@@ -31,13 +31,14 @@ Departures, checked by the tests (brute-force posterior) and examples/timestamp_
 """
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 
 from ..functional import checks
 from ..functional._blocking import values_readable
 from ..groups import SGal3
-from .gaussian import (ConcentratedGaussian, _covariance_measures, _default_tol, _mv,
-                       _raise_for_measures, _read, _sym)
+from .gaussian import ConcentratedGaussian, _covariance_measures, _default_tol, _mv, _raise_for_measures, _read, _sym
 
 
 def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal3:
@@ -116,7 +117,7 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
                     "the position block event_covariance[..., :3, :3]", True)]
     measures = [_covariance_measures(S, definite, tol) for S, _, definite in checked]
     prior = prior.to_side("right")
-    F_hat, Q = prior.mean, prior.covariance
+    F_hat, Q = cast(SGal3, prior.mean), prior.covariance  # an SGal3 mean, checked above
     if relative_frame is None:
         relative_frame = near_inertial_relative_frame(event[..., 3], F_hat.time())
     # d = I4^T F_hat^-1 y_tau (60)

@@ -159,10 +159,10 @@ def _supported_factor(S: torch.Tensor, allow_singular: bool):
     keep = lam > _default_tol(S, None) * scale
     safe = torch.where(keep, lam, torch.ones_like(lam))
 
-    def whiten(xi):
+    def whiten_eigen(xi):
         z = torch.where(keep, _mv(U.transpose(-1, -2), xi) / safe.sqrt(), torch.zeros_like(lam))
         return z, torch.log(safe).sum(-1)
-    return U * torch.where(keep, safe.sqrt(), torch.zeros_like(lam)).unsqueeze(-2), keep, whiten
+    return U * torch.where(keep, safe.sqrt(), torch.zeros_like(lam)).unsqueeze(-2), keep, whiten_eigen
 
 
 class ConcentratedGaussian:
@@ -244,7 +244,7 @@ class ConcentratedGaussian:
         self.side = side
 
     @property
-    def group(self) -> type:
+    def group(self) -> type[LieGroup]:
         return type(self.mean)
 
     @property
@@ -265,7 +265,7 @@ class ConcentratedGaussian:
         return torch.broadcast_shapes(self.mean.batch_shape, self.covariance.shape[:-2])
 
     @property
-    def _group(self) -> type:
+    def _group(self) -> type[LieGroup]:
         """The built-in group class of the mean (that of a user subclass's base)."""
         return self.mean._group
 
@@ -333,7 +333,7 @@ class ConcentratedGaussian:
         return _supported_factor(self.covariance, self.allow_singular)[1].sum(-1)
 
     # ------------------------------------------------------------------ conversions
-    def to_side(self, side: str) -> "ConcentratedGaussian":
+    def to_side(self, side: str) -> ConcentratedGaussian:
         """The same distribution with the other perturbation side, exactly: mean exp(xi) =
         exp(Ad(mean) xi) mean, a linear map of the Gaussian perturbation (Ad(mean) Sigma
         Ad(mean)^T to the left, Ad(mean^-1) Sigma Ad(mean^-1)^T to the right)."""
@@ -347,10 +347,10 @@ class ConcentratedGaussian:
                                     side, validate=False, allow_singular=self.allow_singular)
 
     # ------------------------------------------------------------------ propagation
-    def _right(self) -> "ConcentratedGaussian":
+    def _right(self) -> ConcentratedGaussian:
         return self.to_side("right")
 
-    def inverse(self) -> "ConcentratedGaussian":
+    def inverse(self) -> ConcentratedGaussian:
         """F^-1 = mean^-1 exp(-Ad(mean) xi): Sigma' = Ad(mean) Sigma Ad(mean)^T (right side)."""
         r = self._right()
         Ad = r.mean.adjoint()
@@ -358,8 +358,8 @@ class ConcentratedGaussian:
                                    "right", validate=False, allow_singular=self.allow_singular)
         return out.to_side(self.side)
 
-    def compose(self, other: "ConcentratedGaussian", cross_covariance: torch.Tensor | None = None,
-                second_order: bool = False) -> "ConcentratedGaussian":
+    def compose(self, other: ConcentratedGaussian, cross_covariance: torch.Tensor | None = None,
+                second_order: bool = False) -> ConcentratedGaussian:
         """F1 F2.  Right perturbations: F1 F2 exp(a) exp(b) with a = Ad(mean2^-1) xi1, b = xi2.
         ``cross_covariance`` is E[xi1 xi2^T] of the right perturbations (first order only);
         ``second_order`` adds the Barfoot-Furgale fourth-order terms (independent operands)."""
@@ -382,8 +382,8 @@ class ConcentratedGaussian:
                                    allow_singular=self.allow_singular or other.allow_singular)
         return out.to_side(self.side)
 
-    def between(self, other: "ConcentratedGaussian", cross_covariance: torch.Tensor | None = None
-                ) -> "ConcentratedGaussian":
+    def between(self, other: ConcentratedGaussian, cross_covariance: torch.Tensor | None = None
+                ) -> ConcentratedGaussian:
         """F1^-1 F2 = B exp(-Ad(B^-1) xi1 + xi2), B = mean1^-1 mean2 (first order, right side)."""
         self._same_group(other)
         self._check_cross(other, cross_covariance)
@@ -487,8 +487,8 @@ class ConcentratedGaussian:
         return self._act("act_direction", d, d_covariance, "d", validate)
 
     # --------------------------------------------------------------------- fusion
-    def fuse(self, other: "ConcentratedGaussian", iterations: int = 10,
-             tol: float | None = None) -> "ConcentratedGaussian":
+    def fuse(self, other: ConcentratedGaussian, iterations: int = 10,
+             tol: float | None = None) -> ConcentratedGaussian:
         """Fusion of two concentrated Gaussians on the same group by Gauss-Newton on the group
         (right side): the mean minimises r_1^T Sigma_1^-1 r_1 + r_2^T Sigma_2^-1 r_2, r_k =
         log(mean_k^-1 F), i.e. it maximises the product of the two tangent-space Gaussians.
@@ -536,8 +536,8 @@ class ConcentratedGaussian:
                                                      self.mean.as_matrix(), other.mean.as_matrix()))
         F = parts[0].mean
         for _ in range(iterations):
-            H = 0
-            g = 0
+            H: torch.Tensor | int = 0  # a tensor once the (two) parts are added
+            g: torch.Tensor | int = 0
             for p, W in zip(parts, infos):
                 r = F.rminus(p.mean)
                 J = self.group.jr_inv(r)
