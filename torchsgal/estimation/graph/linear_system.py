@@ -80,8 +80,10 @@ class DenseSystem:
         return delta, solved, quad
 
     def set_solution(self, values: torch.Tensor) -> None:
-        """Keeps H at the solution for ``singular``, ``marginal_blocks``, ``dense_information``."""
+        """Keeps H at the solution for ``singular``, ``marginal_blocks``, ``dense_information``
+        (and frees the work buffers of the steps)."""
         self._H = dense(self.problem, values)
+        self._work = None
 
     def _solution(self) -> torch.Tensor:
         if self._H is None:
