@@ -67,8 +67,10 @@ def demo(args) -> int:
     target = ts.SGal3.random((len(angles),), dtype=f64)
     loss = ts.SGal3.exp(xi_req).rminus(target).square().sum()
     loss.backward()
-    print(f"\n4. d loss / d xi finite: {bool(torch.isfinite(xi_req.grad).all())}, "
-          f"norm {xi_req.grad.norm():.4f}")
+    grad = xi_req.grad
+    assert grad is not None  # set by backward
+    print(f"\n4. d loss / d xi finite: {bool(torch.isfinite(grad).all())}, "
+          f"norm {grad.norm():.4f}")
 
     # 5. Batches broadcast like torch tensors.
     a, b = ts.SGal3.random((4, 1)), ts.SGal3.random((3,))

@@ -61,12 +61,11 @@ def from_gtsam_navstate(states, time: torch.Tensor) -> SGal3:
     R = np.stack([s.attitude().matrix() for s in states]) if n else np.zeros((0, 3, 3))
     v = np.stack([np.asarray(s.velocity()) for s in states]) if n else np.zeros((0, 3))
     p = np.stack([np.asarray(s.position()) for s in states]) if n else np.zeros((0, 3))
-    kw = dict(dtype=time.dtype, device=time.device)
     shape = tuple(time.shape)
     return SGal3.from_components(
-        rotation=torch.tensor(R, **kw).reshape(*shape, 3, 3),
-        velocity=torch.tensor(v, **kw).reshape(*shape, 3),
-        position=torch.tensor(p, **kw).reshape(*shape, 3),
+        rotation=torch.tensor(R, dtype=time.dtype, device=time.device).reshape(*shape, 3, 3),
+        velocity=torch.tensor(v, dtype=time.dtype, device=time.device).reshape(*shape, 3),
+        position=torch.tensor(p, dtype=time.dtype, device=time.device).reshape(*shape, 3),
         time=time,
     )
 

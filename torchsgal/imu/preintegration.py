@@ -27,9 +27,8 @@ import torch
 
 from .. import SGal3
 from ..functional import blocks as B
-from ..functional import checks
+from ..functional import checks, native, unobserved
 from ..functional import sgal3 as F
-from ..functional import native, unobserved
 from ..functional._blocking import _is_wrapped, is_compiling
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
@@ -260,7 +259,7 @@ def _node_moments(groups, w_identity: torch.Tensor) -> dict:
     ``groups`` is a list of (X packed with the node axis last (16, ..., n), weights (..., n)),
     ``w_identity`` the weight of an extra node F = I.  With X = (C, v, r, tau): F has rotation
     C^T, velocity vh = -C^T v, lever (r - tau v of F) lh = -C^T r and time -tau."""
-    sums = {}
+    sums: dict[str, torch.Tensor] = {}
     for X, w in groups:
         C, v, r, tau = X[0:9], X[9:12], X[12:15], X[15]
         Ct = [C[3 * j + i] for i in range(3) for j in range(3)]  # entries of C^T, row-major
@@ -368,7 +367,7 @@ class Preintegration:
         """The batch shape of the windows, that of ``delta``."""
         return self.delta.batch_shape
 
-    def __getitem__(self, index) -> "Preintegration":
+    def __getitem__(self, index) -> Preintegration:
         """The windows ``index`` of the batch (ints, slices, None, Ellipsis, index or mask
         tensors over the batch axes, as for ``SGal3``), every field indexed alike: delta
         (...'), covariance (...', 10, 10), bias_jacobian (...', 10, 6), the biases (...', 3),
@@ -567,7 +566,8 @@ class _Scratch:
     each time (functional/_blocking.py), a reused one is not."""
 
     def __init__(self, like: torch.Tensor):
-        self.like, self.bufs = like, {}
+        self.like = like
+        self.bufs: dict[str | tuple[str, int], torch.Tensor] = {}  # by name (and size)
 
     def __call__(self, key, shape) -> torch.Tensor:
         n = math.prod(shape)
@@ -671,6 +671,7 @@ def _node_moments_fast(groups, w_identity: torch.Tensor, ws: _Scratch) -> dict:
         torch.mul(w, X[9:15], out=A[2:8])
         a, x = A.movedim(0, -2), X.movedim(0, -1)
         P = a @ x if P is None else torch.baddbmm(P, a, x)  # (n, 8, 16)
+    assert P is not None  # groups is never empty
     rows = [0, 1, 5, 6, 7, 2, 3, 4]  # coefficients in _node_moments' order [w, w t, w l, w v]
     sums = {"w": sum(w.sum(-1) for _, w in groups) + w_identity, "wt": P[:, 0, 15], "wtt": P[:, 1, 15],
             "wl": P[:, 0, 12:15], "wv": P[:, 0, 9:12],

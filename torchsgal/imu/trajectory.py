@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .. import SGal3, SO3
+from .. import SO3, SGal3
 from ..functional import checks
 
 _PARAMS = ("rot_amplitude", "rot_frequency", "rot_phase", "pos_amplitude", "pos_frequency",
