@@ -383,8 +383,8 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
             if A_inv is None:
                 out[n] = (r, jinv)
             else:
-                Ji = -jinv @ f.adjoint(A_inv)
-                out[n] = (r, torch.cat([Ji.expand(jinv.shape), jinv], dim=-1))
+                Ji = torch.matmul(jinv, f.adjoint(A_inv)).neg_()
+                out[n] = (r, torch.cat([Ji, jinv], dim=-1))
     return out
 
 
@@ -422,8 +422,13 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
             r = r.unsqueeze(-1)
         h_vals.append((J.mT @ J).reshape(B, -1))
         g_vals.append((J.mT @ r).reshape(B, -1))
-    g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, torch.cat(g_vals, dim=1))
-    return Linearization(torch.cat(h_vals, dim=1), g, cost, model)
+    g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, _cat(g_vals))
+    return Linearization(_cat(h_vals), g, cost, model)
+
+
+def _cat(parts: list[torch.Tensor]) -> torch.Tensor:
+    """The blocks' entries side by side (B, n); one block's as they are (no copy)."""
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
 
 
 def dense(problem: Problem, values: torch.Tensor) -> torch.Tensor:
