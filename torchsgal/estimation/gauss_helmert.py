@@ -20,7 +20,7 @@ The whitened reduced residual L^-1 w (S = L L^T) drives the shared Levenberg-Mar
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

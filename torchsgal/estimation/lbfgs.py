@@ -12,7 +12,7 @@ does not turn the others into NaN.  Not differentiable: the results carry no aut
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

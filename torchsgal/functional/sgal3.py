@@ -12,8 +12,7 @@ import sys
 import torch
 
 from . import blocks as B
-from . import checks
-from . import numerics
+from . import checks, numerics
 from ._autograd import checked_backward_parts, make_exp_log
 from ._blocking import blocked
 

@@ -34,8 +34,8 @@ Only the public group API (SE23) is used.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 

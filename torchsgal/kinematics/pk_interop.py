@@ -40,7 +40,7 @@ both expressed in the base frame, ``v`` being the velocity of the end-effector o
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Union
+from collections.abc import Sequence
 
 import torch
 
@@ -103,7 +103,7 @@ def build_pk_chain(
     theta_offset: Sequence[float],
     joint_types: Sequence[str],
     dtype: torch.dtype = torch.float64,
-    device: Union[str, torch.device] = "cpu",
+    device: str | torch.device = "cpu",
 ):
     """A ``pytorch_kinematics.SerialChain`` equivalent to a standard-DH table.
 
@@ -191,7 +191,7 @@ def to_transform3d(x):
     ``batch_shape=x.batch_shape`` to :func:`from_transform3d` to restore it.
     """
     _, _, pk_tf = _import_pk()
-    from ..groups import SE23, SE3
+    from ..groups import SE3, SE23
 
     if isinstance(x, SE3):
         m = x.as_matrix()
@@ -207,8 +207,8 @@ def to_transform3d(x):
     return pk_tf.Transform3d(matrix=m, dtype=m.dtype, device=m.device)
 
 
-def from_transform3d(t, velocity: Optional[torch.Tensor] = None, batch_shape=None,
-                     check: bool = False, tol: Optional[float] = None):
+def from_transform3d(t, velocity: torch.Tensor | None = None, batch_shape=None,
+                     check: bool = False, tol: float | None = None):
     """A ``pytorch_kinematics.Transform3d`` (or a (..., 4, 4) pose tensor) as torchsgal.
 
     Returns ``SE3`` of batch (N,) where N = len(t), or, when ``velocity`` (..., 3) is given,
@@ -221,7 +221,7 @@ def from_transform3d(t, velocity: Optional[torch.Tensor] = None, batch_shape=Non
     element outside the group, unless ``check=True``, which raises ValueError for such
     matrices (``SE3.from_matrix(check=True, tol=tol)``: one host sync).
     """
-    from ..groups import SE23, SE3
+    from ..groups import SE3, SE23
 
     if torch.is_tensor(t):
         m = t

@@ -5,8 +5,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..groups import LieGroup
 from ..functional import checks
+from ..groups import LieGroup
 
 
 @dataclass

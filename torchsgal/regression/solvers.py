@@ -50,7 +50,7 @@ def gauss_newton(model, origin: torch.Tensor, x: torch.Tensor, max_iterations: i
     converged = torch.zeros_like(cost, dtype=torch.bool)
     floor = torch.finfo(cost.dtype).tiny ** 0.5
     it = 0
-    for it in range(1, max_iterations + 1):
+    for it in range(1, max_iterations + 1):  # noqa: B007 (it counts the iterations run, read after the loop)
         Jt = J.transpose(-1, -2)
         H = Jt @ J
         g = (Jt @ r.unsqueeze(-1)).squeeze(-1)
