@@ -233,7 +233,7 @@ def environment(benchmark: str, argv: list[str] | None = None, **extra) -> dict:
     try:
         import torchsgal
 
-        where = f"{getattr(torchsgal, '__version__', '?')} ({Path(torchsgal.__file__).parent})"
+        where = str(getattr(torchsgal, "__version__", "?"))
     except Exception as e:  # the peer sections of a benchmark can still run
         where = f"not importable ({type(e).__name__}: {e})"
     env = {
