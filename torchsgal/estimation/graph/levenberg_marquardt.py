@@ -21,6 +21,11 @@ have stopped leave the working set (index_select once per change), so they cost 
 the dense (batched) path reads one value per round on the host (how many problems still
 run).  The sparse path (one problem) runs its factorisation on the host and linearises a
 trial point only once its step is accepted.
+
+Differentiable solves (``backward_mode``): "none" (default) returns values without gradient;
+"implicit" attaches the gradient of the solution with respect to every tensor the residuals
+read (data, noise, closed-over tensors) by implicit differentiation at the solution
+(``implicit``); "unroll" runs the iterations under autograd (dense solver only).
 """
 from __future__ import annotations
 
@@ -32,6 +37,7 @@ from ...functional import checks
 from ...groups import LieGroup
 from ..solver import SolverReport, SolverStatus
 from .graph import FactorGraph
+from .implicit import attach_implicit
 from .linear_system import DenseSystem, LinearSystem, SparseSystem
 from .linearize import Linearization, Problem, evaluate_cost, linearize
 
@@ -40,6 +46,7 @@ __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 RUNNING = int(SolverStatus.RUNNING)
 SPARSE_ABOVE = 1000  # linear_solver="auto": one problem with more unknowns takes SparseCholesky
 LINEAR_SOLVERS = ("auto", "dense", "sparse", "cholmod", "cholespy", "scipy")
+BACKWARD_MODES = ("none", "implicit", "unroll")
 
 
 @dataclass
@@ -93,7 +100,12 @@ def _values(problem: Problem, graph: FactorGraph, x: list[torch.Tensor]) -> dict
 
 def _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
            min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping,
-           linear_solver):
+           linear_solver, backward_mode):
+    if backward_mode not in BACKWARD_MODES:
+        raise ValueError(f"backward_mode must be one of {BACKWARD_MODES}, got {backward_mode!r}")
+    if backward_mode == "unroll" and linear_solver not in ("auto", "dense"):
+        raise ValueError(f"backward_mode='unroll' needs the dense linear solver, got "
+                         f"linear_solver={linear_solver!r}")
     checks.integer(max_iterations, "max_iterations", 0)
     checks.finite_number(lambda_initial, "lambda_initial", "> 0")
     checks.finite_number(lambda_factor, "lambda_factor", "> 0")
@@ -115,9 +127,17 @@ def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
                         lambda_upper: float = 1e5, lambda_lower: float = 0.0,
                         min_model_fidelity: float = 1e-3, diagonal_damping: bool = False,
                         relative_error_tol: float = 1e-5, absolute_error_tol: float = 1e-5,
-                        error_tol: float = 0.0, linear_solver: str = "auto") -> GraphResult:
+                        error_tol: float = 0.0, linear_solver: str = "auto",
+                        backward_mode: str = "none") -> GraphResult:
     """Levenberg-Marquardt with GTSAM's trust-region rules and defaults (module docstring),
     for every problem of the graph's batch.  Returns a ``GraphResult``.
+
+    backward_mode  "none": values without gradient; "implicit": values that carry the
+                   gradient of the solution with respect to the factors' data, noise and the
+                   tensors their residuals close over, by implicit differentiation at the
+                   solution (``implicit``; Gauss-Newton information in place of the Hessian:
+                   exact at zero residual); "unroll": autograd through every iteration (dense
+                   solver only; memory grows with the iterations).
 
     linear_solver  "dense" (batched Cholesky of H (B, D, D)), "sparse" (one problem:
                    ``estimation.sparse.SparseCholesky``, its first available backend), a
@@ -125,8 +145,8 @@ def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
                    than ``SPARSE_ABOVE`` unknowns, dense otherwise."""
     _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
            min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping,
-           linear_solver)
-    return _solve(graph, max_iterations, dict(
+           linear_solver, backward_mode)
+    return _solve(graph, max_iterations, backward_mode, dict(
         damped=True, lambda_initial=lambda_initial, lambda_factor=lambda_factor,
         lambda_upper=lambda_upper, lambda_lower=lambda_lower, min_fidelity=min_model_fidelity,
         diagonal=diagonal_damping, rel_tol=relative_error_tol, abs_tol=absolute_error_tol,
@@ -135,13 +155,14 @@ def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
 
 def gauss_newton(graph: FactorGraph, max_iterations: int = 100, *,
                  relative_error_tol: float = 1e-5, absolute_error_tol: float = 1e-5,
-                 error_tol: float = 0.0, linear_solver: str = "auto") -> GraphResult:
+                 error_tol: float = 0.0, linear_solver: str = "auto",
+                 backward_mode: str = "none") -> GraphResult:
     """Gauss-Newton (GTSAM's ``GaussNewtonOptimizer``): every solvable step is taken; an
-    unsolvable (singular) system stops the problem as DIVERGED.  Convergence and
-    ``linear_solver`` as for ``levenberg_marquardt``."""
+    unsolvable (singular) system stops the problem as DIVERGED.  Convergence,
+    ``linear_solver`` and ``backward_mode`` as for ``levenberg_marquardt``."""
     _check(max_iterations, 1.0, 10.0, 1.0, 0.0, 0.0, relative_error_tol, absolute_error_tol,
-           error_tol, False, linear_solver)
-    return _solve(graph, max_iterations, dict(
+           error_tol, False, linear_solver, backward_mode)
+    return _solve(graph, max_iterations, backward_mode, dict(
         damped=False, rel_tol=relative_error_tol, abs_tol=absolute_error_tol, error_tol=error_tol,
         linear_solver=linear_solver))
 
@@ -175,10 +196,25 @@ def _full(like: torch.Tensor, code) -> torch.Tensor:
     return torch.full_like(like, int(code))
 
 
-def _solve(graph: FactorGraph, max_iterations: int, o: dict) -> GraphResult:
+def _solve(graph: FactorGraph, max_iterations: int, backward_mode: str, o: dict) -> GraphResult:
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
-    full = Problem(graph)
+    # the layout, with the data and noise in the autograd graph unless no gradient is asked
+    problem = Problem(graph, attach=backward_mode != "none")
+    if backward_mode == "unroll":
+        return _iterate(graph, problem, max_iterations, o)[0]
+    with torch.no_grad():
+        result, x = _iterate(graph, problem, max_iterations, o)
+    if backward_mode == "implicit" and torch.is_grad_enabled():
+        x = attach_implicit(result.problem, result.system, x, result.report.status)
+        result.values = _values(result.problem, graph, x)
+    return result
+
+
+def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
+             ) -> tuple[GraphResult, list[torch.Tensor]]:
+    """The solver's rounds (module docstring) on the graph's problems (layout ``full``), and
+    the solution in layout order."""
     B = full.B
     system = _system(full, o["linear_solver"])
     x0 = full.initial(graph)
@@ -213,16 +249,17 @@ def _solve(graph: FactorGraph, max_iterations: int, o: dict) -> GraphResult:
             problem = full.select(state.rows)
             working = system.select(problem)
         state = _round(problem, working, state, o, max_iterations, eps)
-    system.set_solution(out.lin.values)
+    system.set_solution(out.lin.values.detach())
     status = out.status
     status = torch.where((status == SolverStatus.CONVERGED) & system.singular(),
                          _full(status, SolverStatus.CONVERGED_RANK_DEFICIENT), status)
     nan = torch.full_like(initial_cost, float("nan"))
     bad = status == SolverStatus.NON_FINITE
-    report = SolverReport(status, out.iterations, torch.where(bad, nan, initial_cost),
-                          torch.where(bad, nan, out.lin.cost), torch.where(bad, nan, out.step_norm),
-                          torch.where(bad, nan, out.lin.g.norm(dim=-1)))
-    return GraphResult(_values(full, graph, out.x), report, full, system)
+    report = SolverReport(status, out.iterations, torch.where(bad, nan, initial_cost.detach()),
+                          torch.where(bad, nan, out.lin.cost.detach()),
+                          torch.where(bad, nan, out.step_norm.detach()),
+                          torch.where(bad, nan, out.lin.g.detach().norm(dim=-1)))
+    return GraphResult(_values(full, graph, out.x), report, full, system), out.x
 
 
 def _system(problem: Problem, linear_solver: str) -> LinearSystem:

@@ -64,6 +64,8 @@ class DenseSystem:
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(delta (B, D), solved (B,) bool, delta^T H delta (B,)); lam (B,) (0: undamped)."""
         B, D = values.shape[0], self.problem.D
+        if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
+            return self._solve_differentiable(values, g, lam, diagonal)
         flat, L, info = self._workspace(B)
         Hd = flat.zero_().index_add_(1, self.problem.h_index, values).view(B, D, D)
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
@@ -78,6 +80,31 @@ class DenseSystem:
         # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta
         quad = (delta * (Hd @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1) - (damp * delta * delta).sum(-1)
         return delta, solved, quad
+
+    def _solve_differentiable(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor,
+                              diagonal: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``solve`` without work buffers or in-place steps (autograd through the iterations:
+        ``backward_mode="unroll"``)."""
+        H = dense(self.problem, values)
+        diag = H.diagonal(dim1=-2, dim2=-1)
+        damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
+        L, info = torch.linalg.cholesky_ex(H + torch.diag_embed(damp))
+        ok = info == 0
+        L = torch.where(ok[:, None, None], L, self.eye)  # a failed factor: no step, no NaN
+        delta = torch.cholesky_solve(-g.unsqueeze(-1), L).squeeze(-1)
+        solved = ok & torch.isfinite(delta).all(dim=-1)
+        delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
+        quad = (delta * (H @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1)
+        return delta, solved, quad
+
+    def solve_information(self, rhs: torch.Tensor) -> torch.Tensor:
+        """H^-1 rhs (B, D) with H at the solution (undamped), by a batched Cholesky (the
+        implicit backward).  Raises where H is singular."""
+        L, info = torch.linalg.cholesky_ex(self._solution())
+        if bool((info != 0).any()):
+            raise ValueError("the information at the solution is not positive definite: "
+                             "no implicit gradient (add priors that fix the gauge)")
+        return torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
 
     def set_solution(self, values: torch.Tensor) -> None:
         """Keeps H at the solution for ``singular``, ``marginal_blocks``, ``dense_information``
@@ -187,6 +214,14 @@ class SparseSystem:
         if self._values is None or self._singular is None:
             raise RuntimeError("set_solution(values) first")
         return self._values, self._singular
+
+    def solve_information(self, rhs: torch.Tensor) -> torch.Tensor:
+        """H^-1 rhs (1, D) with H at the solution, by its sparse factorisation (the implicit
+        backward).  Raises where H is singular."""
+        if bool(self._solution()[1][0]):
+            raise ValueError("the information at the solution is not positive definite: "
+                             "no implicit gradient (add priors that fix the gauge)")
+        return self.factorization.solve(rhs[0])[None]
 
     def dense_information(self) -> torch.Tensor:
         """(1, D, D) H at the solution (dense: for small problems and checks)."""

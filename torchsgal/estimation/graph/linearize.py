@@ -54,9 +54,11 @@ class Block:
 
 class Problem:
     """The fixed layout of a graph; ``select(rows)`` gives the same problem for a subset of
-    the batch (the active set of the solvers)."""
+    the batch (the active set of the solvers).  ``attach=True`` keeps the factors' data and
+    noise in the autograd graph (differentiable solves); by default they are detached."""
 
-    def __init__(self, graph: FactorGraph):
+    def __init__(self, graph: FactorGraph, attach: bool = False):
+        self.attach = attach
         if not graph.variables:
             raise ValueError("the graph has no variables")
         if not graph.factors:
@@ -118,7 +120,9 @@ class Problem:
                 shape = tuple(d.batch_shape) if nb is not None else tuple(leaf.shape)
                 raise ValueError(f"{factor!r} data[{k}]: expected a leading batch (E,) = ({E},) "
                                  f"or (B, E) = ({B}, {E}), got {shape}")
-            d = type(d)._from_leaf(leaf.detach()) if isinstance(d, LieGroup) else leaf.detach()
+            if not self.attach:
+                leaf = leaf.detach()
+            d = type(d)._from_leaf(leaf) if isinstance(d, LieGroup) else leaf
             if per_problem:
                 d = _expand_problem(d, B)
             data.append(d)
@@ -151,7 +155,7 @@ class Problem:
                              f"({self.B}, {factor.size}), got {tuple(given.shape[:2])}")
         if not torch.isfinite(given).all():
             raise ValueError(f"{factor!r} {name} has non-finite entries")
-        sqrt = given.detach()
+        sqrt = given if self.attach else given.detach()
         if W is not None:
             C, info = torch.linalg.cholesky_ex(sqrt)
             if bool((info != 0).any()):
