@@ -57,7 +57,7 @@ sys.path.insert(0, str(_HERE.parent))  # run against the checkout this script li
 
 from torchsgal import SE23, SO3, SGal3  # noqa: E402
 from torchsgal.estimation import graph as fg  # noqa: E402
-from torchsgal.imu import gravity_vector, predict, preintegrate  # noqa: E402
+from torchsgal.imu import Preintegration, gravity_vector, predict, preintegrate  # noqa: E402
 from torchsgal.imu.factors import BiasRandomWalkFactor, GnssPositionFactor, ImuFactor  # noqa: E402
 
 F64 = torch.float64
@@ -128,16 +128,15 @@ def vehicle(t: torch.Tensor) -> dict:
     forward, z up) with the nose along the velocity: psi = atan2(v_y, v_x),
     theta = -atan2(v_z, v_h); body rate R^T R_dot = (roll_dot e_x + Rx^T theta_dot e_y +
     Rx^T Ry^T psi_dot e_z)^."""
-    p = torch.stack([torch.full_like(t, 0.0)] * 3, -1) + torch.tensor(_DRIFT, dtype=t.dtype) * t[..., None]
-    v = torch.zeros_like(p) + torch.tensor(_DRIFT, dtype=t.dtype)
+    drift = torch.tensor(_DRIFT, dtype=t.dtype)
+    p = drift * t[..., None]
+    v = drift.expand_as(p).clone()
     a = torch.zeros_like(p)
-    j = torch.zeros_like(p)  # jerk
     for axis, A, w, c in _WAVES:
         s, co = torch.sin(w * t + c), torch.cos(w * t + c)
         p[..., axis] += A * s
         v[..., axis] += A * w * co
-        a[..., axis] += -A * w**2 * s
-        j[..., axis] += -A * w**3 * co
+        a[..., axis] -= A * w**2 * s
     vx, vy, vz = v.unbind(-1)
     ax, ay, az = a.unbind(-1)
     vh2 = vx**2 + vy**2
@@ -265,7 +264,7 @@ def build_graph(sim: dict, pre) -> fg.FactorGraph:
     return graph
 
 
-TOLERANCES = dict(relative_error_tol=1e-9, absolute_error_tol=1e-9)
+RELATIVE_TOL = ABSOLUTE_TOL = 1e-9  # both solvers' error tolerances
 
 
 def solve_torchsgal(sim: dict) -> dict:
@@ -274,7 +273,8 @@ def solve_torchsgal(sim: dict) -> dict:
     pre = preintegrate_runs(sim)
     t1 = time.perf_counter()
     graph = build_graph(sim, pre)
-    result = fg.levenberg_marquardt(graph, max_iterations=50, **TOLERANCES)
+    result = fg.levenberg_marquardt(graph, max_iterations=50, relative_error_tol=RELATIVE_TOL,
+                                    absolute_error_tol=ABSOLUTE_TOL)
     t2 = time.perf_counter()
     cov = result.marginal_covariance("x")  # (B, N, 9, 9), right perturbation [rho, nu, phi]
     t3 = time.perf_counter()
@@ -288,7 +288,8 @@ def solve_one_sparse(sim: dict) -> tuple[SE23, float]:
     one = first_runs(sim, 1)
     t0 = time.perf_counter()
     graph = build_graph(one, preintegrate_runs(one))
-    result = fg.levenberg_marquardt(graph, max_iterations=50, linear_solver="sparse", **TOLERANCES)
+    result = fg.levenberg_marquardt(graph, max_iterations=50, linear_solver="sparse",
+                                    relative_error_tol=RELATIVE_TOL, absolute_error_tol=ABSOLUTE_TOL)
     return result.values["x"], time.perf_counter() - t0
 
 
@@ -336,8 +337,8 @@ def solve_gtsam(sim: dict, run: int) -> dict:
                                             gtsam.noiseModel.Diagonal.Sigmas(np.r_[bs[3:], bs[:3]])))
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(50)
-    lm.setRelativeErrorTol(TOLERANCES["relative_error_tol"])
-    lm.setAbsoluteErrorTol(TOLERANCES["absolute_error_tol"])
+    lm.setRelativeErrorTol(RELATIVE_TOL)
+    lm.setAbsoluteErrorTol(ABSOLUTE_TOL)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
     out = optimizer.optimize()
     t2 = time.perf_counter()
@@ -393,7 +394,10 @@ def compare_preintegrations(sim: dict, pre, pims: list, run: int) -> dict:
     fix before it to the first fix after it), one with each preintegration."""
     from torchsgal.imu.gtsam_interop import from_gtsam_pim
 
-    theirs = SGal3.stack([from_gtsam_pim(q).delta for q in pims])
+    converted = [from_gtsam_pim(q) for q in pims]
+    if not all(isinstance(c, Preintegration) for c in converted):
+        raise TypeError("pims must be PreintegratedImuMeasurements (not combined)")
+    theirs = SGal3.stack([c.delta for c in converted if isinstance(c, Preintegration)])
     ours = pre.delta[run]
     window = errors(SE23.from_components(ours.rotation(), ours.velocity(), ours.position()),
                     SE23.from_components(theirs.rotation(), theirs.velocity(), theirs.position()))
