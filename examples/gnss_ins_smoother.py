@@ -82,6 +82,13 @@ class Config:
     lever_arm: tuple = (0.5, 0.0, 1.2)  # m, antenna in the body frame
     prior_sigma: tuple = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.01, 0.01, 0.05)  # [rho, nu, phi]
 
+    def __post_init__(self):
+        for name, ratio in (("duration", self.duration * self.keyframe_rate),
+                            ("imu_rate", self.imu_rate / self.keyframe_rate)):
+            if not (ratio >= 1 and abs(ratio - round(ratio)) < 1e-9):
+                raise ValueError(f"{name} must be a positive whole multiple of the keyframe period or "
+                                 f"rate ({self.keyframe_rate:g} Hz), got {getattr(self, name)}")
+
     @property
     def samples_per_window(self) -> int:
         return int(round(self.imu_rate / self.keyframe_rate))
@@ -97,19 +104,11 @@ class Config:
         return torch.nonzero((t <= a) | (t >= b)).squeeze(-1)
 
 
-def _rz(a: torch.Tensor) -> torch.Tensor:
-    c, s, o, i = torch.cos(a), torch.sin(a), torch.zeros_like(a), torch.ones_like(a)
-    return torch.stack((c, -s, o, s, c, o, o, o, i), -1).unflatten(-1, (3, 3))
-
-
-def _ry(a: torch.Tensor) -> torch.Tensor:
-    c, s, o, i = torch.cos(a), torch.sin(a), torch.zeros_like(a), torch.ones_like(a)
-    return torch.stack((c, o, s, o, i, o, -s, o, c), -1).unflatten(-1, (3, 3))
-
-
-def _rx(a: torch.Tensor) -> torch.Tensor:
-    c, s, o, i = torch.cos(a), torch.sin(a), torch.zeros_like(a), torch.ones_like(a)
-    return torch.stack((i, o, o, o, c, -s, o, s, c), -1).unflatten(-1, (3, 3))
+def _rotation(angle: torch.Tensor, axis: int) -> torch.Tensor:
+    """The rotation matrices (..., 3, 3) by ``angle`` (...) about body axis ``axis``."""
+    phi = torch.zeros(angle.shape + (3,), dtype=angle.dtype)
+    phi[..., axis] = angle
+    return SO3.exp(phi).as_matrix()
 
 
 # position p(t) = drift t + sum_k A_k sin(w_k t + c_k) per axis (closed form, derivatives exact)
@@ -148,14 +147,14 @@ def vehicle(t: torch.Tensor) -> dict:
     theta_dot = -(vh * az - vz * vh_dot) / (vh2 + vz**2)
     A, w, c = _ROLL
     roll, roll_dot = A * torch.sin(w * t + c), A * w * torch.cos(w * t + c)
-    Rx, Ry = _rx(roll), _ry(theta)
+    Rx, Ry = _rotation(roll, 0), _rotation(theta, 1)
     ez = torch.zeros_like(p)
     ez[..., 2] = psi_dot
     ey = torch.zeros_like(p)
     ey[..., 1] = theta_dot
     omega = (Rx.mT @ (Ry.mT @ ez[..., None] + ey[..., None])).squeeze(-1)
     omega[..., 0] += roll_dot
-    return dict(position=p, velocity=v, acceleration=a, rotation=_rz(psi) @ Ry @ Rx, rate=omega)
+    return dict(position=p, velocity=v, acceleration=a, rotation=_rotation(psi, 2) @ Ry @ Rx, rate=omega)
 
 
 def truth_states(cfg: Config) -> SE23:
@@ -230,7 +229,7 @@ def initial_values(cfg: Config, gnss: torch.Tensor, fixes: torch.Tensor) -> SE23
     p = fixes[:, before] * (1 - w)[:, None] + fixes[:, after] * w[:, None]  # (B, N, 3)
     h = 1.0 / cfg.keyframe_rate
     v = torch.cat((p[:, 1:2] - p[:, :1], (p[:, 2:] - p[:, :-2]) / 2, p[:, -1:] - p[:, -2:-1]), 1) / h
-    R = _rz(torch.atan2(v[..., 1], v[..., 0]))
+    R = _rotation(torch.atan2(v[..., 1], v[..., 0]), 2)
     return SE23.from_components(R, v, p)
 
 
@@ -593,6 +592,10 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.runs < 1 or args.duration <= 0 or args.gtsam_runs < 0 or args.repeats < 1:
         parser.error("--runs and --repeats must be >= 1, --gtsam-runs >= 0, --duration > 0")
+    try:
+        Config(duration=args.duration)
+    except ValueError as error:
+        parser.error(str(error))
     out = compute(args.runs, args.duration, args.seed, args.gtsam_runs, args.repeats)
     args.out.mkdir(parents=True, exist_ok=True)
     text = summary(out)
