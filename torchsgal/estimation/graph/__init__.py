@@ -28,13 +28,19 @@ information L (W = L^T L), shared or per factor.  The solvers follow GTSAM's
 (``gauss_newton``) with GTSAM's defaults; a problem whose information is singular at the
 solution (a gauge freedom: no prior) reports ``SolverStatus.CONVERGED_RANK_DEFICIENT``.
 
+Differentiable solves: ``backward_mode="implicit"`` returns values that carry the gradient
+with respect to every tensor the residuals read (measurements and other data, noise, tensors a
+residual closes over) by implicit differentiation at the solution (``implicit``: one solve with
+the Gauss-Newton information, exact at zero residual); ``"unroll"`` differentiates through the
+iterations; ``"none"`` (default) returns detached values.
+
 Batches of small problems use a dense batched Cholesky; one large problem (more than 1000
 unknowns, or ``linear_solver="sparse"``) the sparse Cholesky of ``estimation.sparse``.
 
 Modules: ``factors`` (Factor, Prior, Between, PointObservation), ``robust`` (losses),
 ``graph`` (FactorGraph), ``linearize`` (evaluation and assembly of the normal equations),
 ``linear_system`` (dense and sparse solves, rank test, marginals), ``levenberg_marquardt``
-(the solvers and ``GraphResult``).  User guide: ``docs/guide/factor_graphs.md``.
+(the solvers and ``GraphResult``), ``implicit`` (the implicit gradient).  User guide: ``docs/guide/factor_graphs.md``.
 """
 from .factors import Between, Factor, PointObservation, Prior
 from .graph import FactorGraph

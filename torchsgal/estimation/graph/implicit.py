@@ -35,12 +35,12 @@ class _ImplicitStep(torch.autograd.Function):
     """d = 0 in value; backward: grad_g = -H^-1 grad_d (H at the solution)."""
 
     @staticmethod
-    def forward(ctx, g: torch.Tensor, system: LinearSystem) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx, g: torch.Tensor, system: LinearSystem) -> torch.Tensor:
         ctx.system = system
         return torch.zeros_like(g)
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:  # type: ignore[override]
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
         return -ctx.system.solve_information(grad), None
 
 
