@@ -477,7 +477,8 @@ def summary(out: dict) -> str:
         f"float64.",
         "",
         f"Converged: {int(out['converged'].sum())} of {B} runs; iterations (median) "
-        f"{int(out['iterations'].median())}.",
+        f"{int(out['iterations'].median())}"
+        + (f"; GTSAM's on runs 0-{len(out['gtsam']) - 1}: {out['gtsam_iterations']}." if out["gtsam"] else "."),
         "",
         "| RMSE | position [m] | velocity [m/s] | attitude [rad] |",
         "|---|---|---|---|",
