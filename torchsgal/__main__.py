@@ -81,16 +81,17 @@ def demo(args) -> int:
 def tls(args) -> int:
     """Monte Carlo study of kelly-giamou Section 5(c): SGal(3) versus SE_2(3) x R."""
     from torchsgal.estimation import study
+    from torchsgal.load import threads_for_load
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    chosen = "" if args.threads else " (for the current load; --threads sets it)"
+    torch.set_num_threads(args.threads or threads_for_load())
     cfg = study.StudyConfig(trials=args.trials, samples=args.samples, speed=args.speed,
                             separation=args.separation, clock_offset=args.clock_offset,
                             dtau_sigma=args.dtau_sigma, seed=args.seed,
                             variants=tuple(args.variants), readings=tuple(args.readings),
                             dtype=args.dtype)
     n = torch.get_num_threads()
-    print(f"torchsgal {ts.__version__}, torch {torch.version.__version__}, {n} thread{'s' * (n != 1)}: "
+    print(f"torchsgal {ts.__version__}, torch {torch.version.__version__}, {n} thread{'s' * (n != 1)}{chosen}: "
           f"{cfg.trials} trials of {cfg.samples} paired observations", file=sys.stderr)
     if cfg.speed == 0:
         print("warning: --speed 0 puts the frames at rest, where the interval dtau is not "
@@ -212,8 +213,8 @@ def main(argv=None) -> int:
     t.add_argument("--chunk", type=_positive_int, default=chunk,
                    help=f"trials solved per batch ({chunk}; the simulated trials do not depend on it)")
     t.add_argument("--threads", type=_threads, default=None,
-                   help=f"torch threads, at most the CPUs available ({_max_threads()}; "
-                        f"default: torch's)")
+                   help=f"torch threads, at most the CPUs available ({_max_threads()}; default: "
+                        f"the cores idle at the start, see torchsgal.load)")
     t.add_argument("--out", default="tls_output", help="output folder (tls_output)")
     t.add_argument("--no-plot", action="store_true", help="skip the NEES plot")
     t.add_argument("--quiet", action="store_true", help="no progress bar")

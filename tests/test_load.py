@@ -1,0 +1,47 @@
+"""torchsgal.load: the thread count chosen from the idle cores (the command line's default)."""
+from __future__ import annotations
+
+import pytest
+
+from torchsgal import load
+
+
+def _fake_stat(monkeypatch, samples, cpus):
+    """/proc/stat read as ``samples`` (idle, total) in turn, on a machine of ``cpus`` CPUs."""
+    it = iter(samples)
+    monkeypatch.setattr(load, "_cpu_times", lambda: next(it))
+    monkeypatch.setattr(load.os, "cpu_count", lambda: cpus)
+    monkeypatch.setattr(load.time, "sleep", lambda s: None)
+
+
+@pytest.mark.parametrize(("idle_share", "cores", "want"), [
+    (1.0, 2, 2),     # idle machine: every core
+    (0.5, 2, 1),     # one busy process on two cores: one thread
+    (0.02, 2, 1),    # both cores busy: still one thread
+    (0.74, 4, 3),    # one of four cores busy
+    (1.0, 1, 1),     # affinity allows one core only
+])
+def test_threads_follow_the_idle_cores(monkeypatch, idle_share, cores, want):
+    cpus = max(cores, 2) if cores > 1 else 4
+    _fake_stat(monkeypatch, [(0.0, 0.0), (100.0 * idle_share, 100.0)], cpus)
+    monkeypatch.setattr(load, "available_cores", lambda: cores)
+    assert load.threads_for_load() == want
+
+
+def test_without_proc_stat_all_available_cores(monkeypatch):
+    _fake_stat(monkeypatch, [None], 8)
+    monkeypatch.setattr(load, "available_cores", lambda: 3)
+    assert load.threads_for_load() == 3
+
+
+def test_idle_cores_reads_this_machine():
+    idle = load.idle_cores(0.05)
+    if idle is not None:  # Linux: /proc/stat
+        assert 0.0 <= idle <= (load.os.cpu_count() or 1)
+    assert 1 <= load.threads_for_load(0.05) <= load.available_cores()
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), "0.2", True])
+def test_interval_is_checked(bad):
+    with pytest.raises(ValueError, match="interval must be a finite number > 0"):
+        load.idle_cores(bad)
