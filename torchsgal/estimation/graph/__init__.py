@@ -24,8 +24,9 @@ perturbations ``x exp(d)`` by forward-mode autodiff, or uses the type's analytic
 Conventions: residuals r = log(Z^-1 h(x)), cost 1/2 sum rho(|L r|^2) (``rho(s) = s`` for the
 plain loss, so 1/2 r^T W r as GTSAM's ``error``), noise as information W or square-root
 information L (W = L^T L), shared or per factor.  The solvers follow GTSAM's
-``LevenbergMarquardtOptimizer`` (``levenberg_marquardt``) and ``GaussNewtonOptimizer``
-(``gauss_newton``) with GTSAM's defaults; a problem whose information is singular at the
+``LevenbergMarquardtOptimizer`` (``levenberg_marquardt``), ``GaussNewtonOptimizer``
+(``gauss_newton``) and ``DoglegOptimizer`` (``dogleg``: Powell's dogleg, a per-problem trust
+region) with GTSAM's defaults; a problem whose information is singular at the
 solution (a gauge freedom: no prior) reports ``SolverStatus.CONVERGED_RANK_DEFICIENT``.
 
 Differentiable solves: ``backward_mode="implicit"`` returns values that carry the gradient
@@ -40,8 +41,10 @@ unknowns, or ``linear_solver="sparse"``) the sparse Cholesky of ``estimation.spa
 Modules: ``factors`` (Factor, Prior, Between, PointObservation), ``robust`` (losses),
 ``graph`` (FactorGraph), ``linearize`` (evaluation and assembly of the normal equations),
 ``linear_system`` (dense and sparse solves, rank test, marginals), ``levenberg_marquardt``
-(the solvers and ``GraphResult``), ``implicit`` (the implicit gradient).  User guide: ``docs/guide/factor_graphs.md``.
+(the solvers and ``GraphResult``), ``dogleg`` (the dogleg solver), ``implicit`` (the implicit
+gradient).  User guide: ``docs/guide/factor_graphs.md``.
 """
+from .dogleg import dogleg
 from .factors import Between, Factor, PointObservation, Prior
 from .graph import FactorGraph
 from .levenberg_marquardt import GraphResult, gauss_newton, levenberg_marquardt
@@ -49,4 +52,4 @@ from .robust import Cauchy, GemanMcClure, Huber, RobustLoss, TrivialLoss, Tukey
 
 __all__ = ["FactorGraph", "Factor", "Prior", "Between", "PointObservation", "RobustLoss",
            "TrivialLoss", "Huber", "Cauchy", "GemanMcClure", "Tukey", "levenberg_marquardt",
-           "gauss_newton", "GraphResult"]
+           "gauss_newton", "dogleg", "GraphResult"]

@@ -213,8 +213,9 @@ def _solve(graph: FactorGraph, max_iterations: int, backward_mode: str, o: dict)
 
 def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
              ) -> tuple[GraphResult, list[torch.Tensor]]:
-    """The solver's rounds (module docstring) on the graph's problems (layout ``full``), and
-    the solution in layout order."""
+    """The solver's rounds (module docstring; ``o["round"]`` replaces ``_round``, and the
+    state's ``lam`` starts at ``o["lambda_initial"]``) on the graph's problems (layout
+    ``full``), and the solution in layout order."""
     B = full.B
     system = _system(full, o["linear_solver"])
     x0 = full.initial(graph)
@@ -248,7 +249,7 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
             state = state.take(running.nonzero().squeeze(-1))
             problem = full.select(state.rows)
             working = system.select(problem)
-        state = _round(problem, working, state, o, max_iterations, eps)
+        state = o.get("round", _round)(problem, working, state, o, max_iterations, eps)
     system.set_solution(out.lin.values.detach())
     status = out.status
     status = torch.where((status == SolverStatus.CONVERGED) & system.singular(),
