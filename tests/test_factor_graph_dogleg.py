@@ -122,10 +122,31 @@ def test_gauge_freedom_converges_rank_deficient(linear_solver):
     assert torch.isnan(result.marginal_covariance("x", 0)).all()
 
 
-def test_implicit_gradient_matches_finite_differences():
-    """backward_mode="implicit": d(solution)/d(measurement) against central differences of
-    tightly converged solves, on consistent measurements (zero residual at the solution, where
-    the implicit gradient's Gauss-Newton information is the exact Hessian)."""
+def test_trust_region_stops_at_minimum_delta():
+    """A wall the linear model does not see: r = 1 + x for x > 0, larger for x <= 0.  Steps
+    that cross it raise the cost, so Delta halves until it is <= 1e-5, where the iteration ends
+    without a step (DoglegOptimizerImpl::Iterate) and the zero decrease converges: the last
+    failed step of length Delta <= 1e-5 crossed the wall, so 0 < x <= 1e-5."""
+
+    def walled(x):
+        return torch.where(x > 0, 1 + x, 2 - 1000 * x)
+
+    graph = fg.FactorGraph()
+    graph.add_variable("x", torch.tensor([[[0.5]], [[0.8]]], dtype=f64))
+    graph.add(fg.Factor(walled, variables=[("x", torch.zeros(1, dtype=torch.int64))], dim=1))
+    result = fg.dogleg(graph, relative_error_tol=0.0, absolute_error_tol=0.0)
+    x = result.values["x"].flatten()
+    assert (result.report.status == SolverStatus.CONVERGED).all()
+    assert (result.report.iterations < 100).all()
+    assert (x > 0).all() and (x <= 1e-5).all(), x
+    torch.testing.assert_close(result.report.cost, 0.5 * (1 + x) ** 2, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("backward_mode", ["implicit", "unroll"])
+def test_gradient_matches_finite_differences(backward_mode):
+    """d(solution)/d(measurement) against central differences of tightly converged solves, on
+    consistent measurements (zero residual at the solution, where the implicit gradient's
+    Gauss-Newton information is the exact Hessian); "unroll" differentiates the iterations."""
     truth, _, Z0, x0 = pose_graphs(B=2, seed=5)
     Z = truth[:, EDGES_I].inverse() @ truth[:, EDGES_J]
     W = torch.diag(SIGMA ** -2)
@@ -141,7 +162,7 @@ def test_implicit_gradient_matches_finite_differences():
         graph.add(fg.Between("x", EDGES_I, EDGES_J, Zp, information=W))
         return fg.dogleg(graph, backward_mode=backward_mode, **tight).values["x"]
 
-    out = solve(xi, "implicit")[:, 7].log()[:, 3]  # a rotation coordinate of the last pose
+    out = solve(xi, backward_mode)[:, 7].log()[:, 3]  # a rotation coordinate of the last pose
     (grad,) = torch.autograd.grad(out.sum(), xi)
     h = 1e-6
     fd = torch.stack([(solve(h * e, "none")[:, 7].log()[:, 3]
