@@ -21,12 +21,15 @@ Each iteration follows ``DoglegOptimizer::iterate`` and ``DoglegOptimizerImpl::I
 
 Where H has no Cholesky factor (a gauge freedom), the Gauss-Newton point is solved with the
 damping ``RCOND * max diag(H)`` (the minimum-norm step up to that damping: g has no part in
-H's null space); the problem then reports ``CONVERGED_RANK_DEFICIENT`` at convergence.  The
+H's null space; in a batch from the next round on, the first round taking the Cauchy point);
+the problem then reports ``CONVERGED_RANK_DEFICIENT`` at convergence.  The
 rounds, the active set, the dense/sparse solves and ``backward_mode`` are those of
 ``levenberg_marquardt`` (one trial per running problem per round, no host read in the dense
 round).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 
@@ -76,27 +79,37 @@ def _diagonal(problem: Problem, values: torch.Tensor) -> torch.Tensor:
                                                           values[:, on])
 
 
-def _steps(problem: Problem, system: LinearSystem, lin: Linearization
-           ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(dx_u, dx_n): the Cauchy and Gauss-Newton points (module docstring, step 1)."""
+@dataclass
+class _DoglegState(_State):
+    """The solver state and, per problem, whether its H had no Cholesky factor (then damped)."""
+
+    damped: torch.Tensor
+
+    def take(self, keep: torch.Tensor) -> _DoglegState:
+        b = super().take(keep)
+        return _DoglegState(b.rows, b.x, b.lin, b.cost_start, b.lam, b.iterations, b.step_norm,
+                            b.status, self.damped.index_select(0, keep))
+
+
+def _steps(problem: Problem, system: LinearSystem, lin: Linearization, damped: torch.Tensor
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(dx_u, dx_n, damped): the Cauchy and Gauss-Newton points (module docstring, step 1).
+    Where H has no Cholesky factor (a gauge freedom) the Gauss-Newton point is that of
+    H + RCOND max diag(H) I: at once for one problem on the host; in a batch, from the next
+    round on (``damped``), this round taking the Cauchy point."""
     g, values = lin.g, lin.values
-    zero = torch.zeros_like(lin.cost)
-    dx_n, solved, _ = system.solve(values, g, zero, False)
-    # no Cholesky of H (a gauge freedom): the step of H + RCOND max diag(H) I
     damping = system.rcond * _diagonal(problem, values).amax(dim=-1).clamp_min(0)
-    if system.cost_first:  # one problem on the host: solve again only if needed
-        if not bool(solved[0]):
-            dx_n, solved, _ = system.solve(values, g, damping, False)
-    else:
-        dx_d, solved_d, _ = system.solve(values, g, damping, False)
-        dx_n = _where(solved, dx_n, dx_d)
-        solved = solved | solved_d
+    dx_n, solved, _ = system.solve(values, g, torch.where(damped, damping, torch.zeros_like(damping)),
+                                   False)
+    if system.cost_first and not bool(solved[0]):
+        dx_n, solved, _ = system.solve(values, g, damping, False)
+    damped = damped | ~solved
     gg = (g * g).sum(-1)
     gHg = (g * _h_times(problem, values, g)).sum(-1)
     curved = gHg > 0
     alpha = gg / torch.where(curved, gHg, torch.ones_like(gHg))
     dx_u = -torch.where(curved, alpha, torch.zeros_like(alpha))[:, None] * g
-    return dx_u, _where(solved, dx_n, dx_u)
+    return dx_u, _where(solved, dx_n, dx_u), damped
 
 
 def _dogleg_point(delta: torch.Tensor, dx_u: torch.Tensor, dx_n: torch.Tensor) -> torch.Tensor:
@@ -123,7 +136,8 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
                   max_iterations: int, eps: float) -> _State:
     """One trial per running problem (module docstring, steps 1-5); ``s.lam`` holds Delta."""
     delta = s.lam
-    dx_u, dx_n = _steps(problem, system, s.lin)
+    damped = s.damped if isinstance(s, _DoglegState) else torch.zeros_like(s.status, dtype=torch.bool)
+    dx_u, dx_n, damped = _steps(problem, system, s.lin, damped)
     dx = _dogleg_point(delta, dx_u, dx_n)
     quad = (dx * _h_times(problem, s.lin.values, dx)).sum(-1)
     model_change = -((s.lin.g * dx).sum(-1) + 0.5 * quad)
@@ -162,5 +176,5 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
     status = torch.where(done & ~converged & (iterations >= max_iterations),
                          _full(status, SolverStatus.MAX_ITERATIONS), status)
     cost_start = torch.where(done, lin.cost, s.cost_start)
-    return _State(s.rows, x, lin, cost_start, delta_new, iterations, quad.clamp_min(0).sqrt(),
-                  status)
+    return _DoglegState(s.rows, x, lin, cost_start, delta_new, iterations,
+                        quad.clamp_min(0).sqrt(), status, damped)
