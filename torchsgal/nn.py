@@ -128,6 +128,9 @@ def group_parameters(module: nn.Module) -> Iterator[GroupParameter[Any]]:
 def retract_all_(module: nn.Module, optimizer: torch.optim.Optimizer | None = None,
                  reset_state: bool = False) -> nn.Module:
     """``retract_`` on every ``GroupParameter`` in ``module`` (itself included); returns it."""
+    reset_state = checks.boolean(reset_state, "reset_state")
+    if optimizer is not None and not isinstance(optimizer, torch.optim.Optimizer):
+        raise TypeError(f"optimizer must be None or a torch.optim.Optimizer, got {type(optimizer).__name__}")
     for p in group_parameters(module):
         p.retract_(optimizer, reset_state)
     return module

@@ -75,6 +75,12 @@ class PoseGraph:
         return self.ids[self.edges]
 
 
+def _pose_graph(graph) -> PoseGraph:
+    if not isinstance(graph, PoseGraph):
+        raise TypeError(f"graph must be a PoseGraph (read_pose_graph), got {type(graph).__name__}")
+    return graph
+
+
 def read_pose_graph(path: str | os.PathLike) -> PoseGraph:
     """Reads a g2o, iSAM or TORO pose-graph file (see the module docstring for the formats and
     the information order).  All edges must be of one dimension (3-D or 2-D) and one format;
@@ -134,6 +140,7 @@ def write_pose_graph(path: str | os.PathLike, graph: PoseGraph, edge_tag: str | 
     ``EDGE_TAGS`` of the graph's dimension), with the matching vertex lines if it has poses;
     numbers with 17 significant digits, so that reading it back gives the same float64 values
     (rotations up to the rounding of their quaternion or angles)."""
+    _pose_graph(graph)
     edge_tag = graph.edge_tag if edge_tag is None else edge_tag
     if edge_tag not in EDGE_TAGS:
         raise ValueError(f"edge_tag must be one of {EDGE_TAGS}, got {edge_tag!r}")
@@ -158,6 +165,7 @@ def odometry_initial_guess(graph: PoseGraph) -> SE3 | SE2:
     file without vertices: in file order, an edge's first vertex not yet placed is put at the
     identity and its second at ``T_i Z_ij``; vertices no edge reaches stay at the identity.
     Sequential by nature (each pose depends on the one before), so it runs on the host once."""
+    _pose_graph(graph)
     M = graph.measurements.as_matrix().detach().cpu().numpy()
     poses = np.tile(np.eye(M.shape[-1]), (graph.ids.numel(), 1, 1))
     placed = np.zeros(graph.ids.numel(), dtype=bool)

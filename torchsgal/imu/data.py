@@ -122,12 +122,21 @@ def load_ros_imu_csv(path, duplicates: str = "error", max_gap: float | None = No
                         t(values["orientation"]), segments, dropped)
 
 
+MAX_WINDOWS = 10**8  # windows' bound on the number of windows (a tiny length is a mistake)
+
+
 def windows(recording: ImuRecording, length: float) -> list[tuple[int, int]]:
     """Consecutive windows of about ``length`` seconds inside each segment, as index ranges
     [(start, stop)] with stop - start >= 2 (a window integrates samples start .. stop - 2 over
     the intervals to stop - 1: the increment between the instants of samples start and
     stop - 1)."""
+    if not isinstance(recording, ImuRecording):
+        raise TypeError(f"recording must be an ImuRecording, got {type(recording).__name__}")
     length = checks.finite_number(length, "length", "> 0")
+    duration = float(recording.time[-1] - recording.time[0]) if recording.time.numel() else 0.0
+    if duration / length > MAX_WINDOWS:  # also keeps the window count finite for a tiny length
+        raise ValueError(f"length must give at most {MAX_WINDOWS} windows over the recording's "
+                         f"{duration:g} s, got {length!r}")
     out = []
     for a, b in recording.segments:
         t = recording.time[a:b]

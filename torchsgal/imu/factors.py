@@ -86,6 +86,10 @@ def implied_increment(start: SGal3, end: SGal3, gravity: torch.Tensor,
     if earth_rate is None:
         earth_rate = torch.zeros_like(gravity)
     checks.vector(earth_rate, 3, "earth_rate")
+    checks.same_device_dtype(start=start.as_matrix(), end=end.as_matrix(), gravity=gravity,
+                             earth_rate=earth_rate)
+    checks.broadcast_batch(start=start.batch_shape, end=end.batch_shape,
+                           gravity=gravity.shape[:-1], earth_rate=earth_rate.shape[:-1])
     t_i = start.time()
     middle = _time_shift(t_i).compose(_left_factor_inverse(end.time() - t_i, gravity, earth_rate))
     return start.inverse().compose(middle).compose(_time_shift(-t_i)).compose(end)

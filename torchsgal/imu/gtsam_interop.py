@@ -240,18 +240,31 @@ def gtsam_pim(gyro: torch.Tensor, acc: torch.Tensor, dt, params, gyro_bias=None,
 
     checks.vector(gyro, 3, "gyro")
     checks.vector(acc, 3, "acc")
+    if not isinstance(params, gtsam.PreintegrationParams):
+        raise TypeError(f"params must be gtsam.PreintegrationParams or PreintegrationCombinedParams, "
+                        f"got {type(params).__name__}")
+    for name, b in (("gyro_bias", gyro_bias), ("acc_bias", acc_bias)):
+        if b is not None and (checks.vector(b, 3, name).shape != (3,) or not bool(b.isfinite().all())):
+            raise ValueError(f"{name} must be None or a finite tensor (3,), got shape {tuple(b.shape)}")
     if gyro.dim() != 2 or acc.shape != gyro.shape:
         raise ValueError(f"gyro and acc must have one shape (K, 3), got {tuple(gyro.shape)} and "
                          f"{tuple(acc.shape)}")
     K = gyro.shape[0]
-    h = np.full(K, checks.finite_number(dt, "dt", "> 0")) if isinstance(dt, numbers.Real) else _np(dt)
+    if isinstance(dt, numbers.Real):
+        h = np.full(K, checks.finite_number(dt, "dt", "> 0"))
+    else:
+        h = _np(checks.floating(dt, "dt"))
     if h.shape != (K,):
         raise ValueError(f"dt must be a number or have shape ({K},), got {h.shape}")
+    if not (np.isfinite(h) & (h > 0)).all():
+        raise ValueError("dt must be finite and > 0 everywhere")
     bias = gtsam.imuBias.ConstantBias(np.zeros(3) if acc_bias is None else _np(acc_bias).reshape(3),
                                       np.zeros(3) if gyro_bias is None else _np(gyro_bias).reshape(3))
-    cls = (gtsam.PreintegratedCombinedMeasurements
-           if isinstance(params, gtsam.PreintegrationCombinedParams) else gtsam.PreintegratedImuMeasurements)
-    pim = cls(params, bias)
+    pim: gtsam.PreintegratedCombinedMeasurements | gtsam.PreintegratedImuMeasurements
+    if isinstance(params, gtsam.PreintegrationCombinedParams):
+        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+    else:
+        pim = gtsam.PreintegratedImuMeasurements(params, bias)
     g, a = _np(gyro), _np(acc)
     for k in range(K):
         pim.integrateMeasurement(a[k], g[k], float(h[k]))

@@ -178,8 +178,16 @@ def navstate_retract_is_expmap() -> bool:
 
 
 # ------------------------------------------------------------------------------ elements
+def _with_data(x: torch.Tensor, name: str) -> torch.Tensor:
+    """x, refused on the 'meta' device (shapes without values: nothing to convert)."""
+    if x.device.type == "meta":
+        raise ValueError(f"{name} is on the 'meta' device, which holds no values to convert; "
+                         f"give it on cpu or cuda")
+    return x
+
+
 def _numpy_matrices(g: LieGroup) -> tuple[np.ndarray, tuple[int, ...]]:
-    M = g.as_matrix().detach().to("cpu", torch.float64)
+    M = _with_data(g.as_matrix(), "g").detach().to("cpu", torch.float64)
     n = g.matrix_dim
     return M.reshape(-1, n, n).numpy(), tuple(g.batch_shape)
 
@@ -267,7 +275,7 @@ def points_to_gtsam(p: torch.Tensor) -> Any:
     checks.floating(p, "p")
     if p.dim() < 1 or p.shape[-1] not in (2, 3):
         raise ValueError(f"p must have shape (..., 3) or (..., 2), got {tuple(p.shape)}")
-    flat = p.detach().to("cpu", torch.float64).reshape(-1, p.shape[-1]).numpy()
+    flat = _with_data(p, "p").detach().to("cpu", torch.float64).reshape(-1, p.shape[-1]).numpy()
     return nest([row.copy() for row in flat], tuple(p.shape[:-1]))
 
 

@@ -121,6 +121,7 @@ def covariance_from_pypose(P: torch.Tensor, at) -> torch.Tensor:
     ``Ad(at)^-1 P Ad(at)^-T``."""
     A = _inverse_adjoint(at, "at")
     checks.matrix(P, A.shape[-1], "P")
+    checks.binary(P, 2, A, 2, "P", "at")
     return A @ P @ A.transpose(-1, -2)
 
 
@@ -129,6 +130,7 @@ def covariance_to_pypose(P: torch.Tensor, at) -> torch.Tensor:
     ``Ad(at) P Ad(at)^T``."""
     A = perturbation_map(at)
     checks.matrix(P, A.shape[-1], "P")
+    checks.binary(P, 2, A, 2, "P", "at")
     return A @ P @ A.transpose(-1, -2)
 
 
@@ -139,6 +141,9 @@ def _jacobian(J: torch.Tensor, left, right) -> torch.Tensor:
     n = "n" if right is None else right.shape[-2]
     if J.dim() < 2 or (left is not None and J.shape[-2] != m) or (right is not None and J.shape[-1] != n):
         raise ValueError(f"J must have shape (..., {m}, {n}), got {tuple(J.shape)}")
+    for side, A in (("output", left), ("input", right)):
+        if A is not None:  # dtype, device and batch of J against each element's
+            checks.binary(J, 2, A, 2, "J", side)
     if left is not None:
         J = left @ J
     if right is not None:

@@ -333,6 +333,8 @@ class KinematicChain:
         [-unbounded_range, unbounded_range] for joints without limits)."""
         shape = checks.shape(batch_shape, "batch_shape")
         span = checks.finite_number(unbounded_range, "unbounded_range", "> 0")
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
         lo = torch.where(torch.isfinite(self._lower), self._lower, -span)
         hi = torch.where(torch.isfinite(self._upper), self._upper, span)
         u = torch.rand(*shape, self.n_joints, generator=generator, dtype=self._dtype,
@@ -371,7 +373,11 @@ class KinematicChain:
         if isinstance(links, str):
             names, keep = [links], False
         else:
-            names, keep = list(links), True
+            try:
+                names, keep = list(links), True
+            except TypeError:
+                raise TypeError(f"links must be a link name, a list of them or None, "
+                                f"got {links!r}") from None
         if not names:
             raise ValueError("links must name at least one link")
         for k in names:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 
 import torch
@@ -24,6 +25,20 @@ def _trans(x: float, y: float, z: float) -> torch.Tensor:
     return m
 
 
+def _limits(values, name: str) -> list[float]:
+    """Joint limits: real numbers, +-inf allowed (no limit), NaN refused."""
+    if isinstance(values, torch.Tensor):
+        values = values.detach().cpu().tolist()
+    try:
+        values = list(values)
+    except TypeError:
+        raise TypeError(f"{name} must be a sequence of numbers, got {type(values).__name__}") from None
+    for i, v in enumerate(values):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or math.isnan(v):
+            raise TypeError(f"{name}[{i}] must be a number (inf for no limit), got {v!r}")
+    return [float(v) for v in values]
+
+
 def dh_links(a, alpha, d, theta_offset, joint_types, convention: str = "standard",
              lower: Sequence[float] | None = None, upper: Sequence[float] | None = None):
     """(joints, links) of a DH table for :class:`KinematicChain` (see ``from_dh``): the joint
@@ -35,7 +50,13 @@ def dh_links(a, alpha, d, theta_offset, joint_types, convention: str = "standard
         raise ValueError(f"convention must be 'standard' or 'modified', got {convention!r}")
     cols = {}
     for key, col in (("a", a), ("alpha", alpha), ("d", d), ("theta_offset", theta_offset)):
-        vals = col.detach().cpu().tolist() if isinstance(col, torch.Tensor) else list(col)
+        if not isinstance(col, torch.Tensor):
+            try:
+                col = list(col)
+            except TypeError:
+                raise TypeError(f"{key} must be a sequence of numbers or a tensor (a DH table "
+                                f"column), got {type(col).__name__}") from None
+        vals = col.detach().cpu().tolist() if isinstance(col, torch.Tensor) else col
         try:
             vals = [checks.finite_number(v, f"{key}[{i}]") for i, v in enumerate(vals)]
         except (TypeError, ValueError) as err:
@@ -47,8 +68,8 @@ def dh_links(a, alpha, d, theta_offset, joint_types, convention: str = "standard
         raise ValueError(f"DH table columns must have one equal, non-zero length; got "
                          f"{lengths}, joint_types {n}{_letters_hint(joint_types)}")
     types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
-    lo = [-math.inf] * n if lower is None else [float(x) for x in lower]
-    hi = [math.inf] * n if upper is None else [float(x) for x in upper]
+    lo = [-math.inf] * n if lower is None else _limits(lower, "lower")
+    hi = [math.inf] * n if upper is None else _limits(upper, "upper")
     if len(lo) != n or len(hi) != n:
         raise ValueError(f"lower and upper must have {n} entries, got {len(lo)} and {len(hi)}")
     joints, links = [], {"frame_0": (-1, torch.eye(4, dtype=torch.float64))}

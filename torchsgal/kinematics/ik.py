@@ -158,6 +158,8 @@ def inverse_kinematics(
     pos_tol = checks.finite_number(position_tol, "position_tol", "> 0")
     rot_tol = checks.finite_number(rotation_tol, "rotation_tol", "> 0")
     num_seeds = checks.integer(num_seeds, "num_seeds", 1)
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
     link = chain._one_link(link)
     p_t, R_t = _targets(chain, target, position, orientation)
     B, n = p_t.shape[0], chain.n_joints

@@ -137,6 +137,8 @@ def from_urdf(
             raise ValueError(f"end_link must be given: the robot {robot.name!r} has several leaf "
                              f"links {leaves}")
         end_link = leaves[0]
+    if not isinstance(end_link, (str, list, tuple)):
+        raise TypeError(f"end_link must be a link name, a list of them or None, got {end_link!r}")
     ends = [end_link] if isinstance(end_link, str) else list(end_link)
     if not ends:
         raise ValueError("end_link must name at least one link")

@@ -34,7 +34,13 @@ def _indices(index, name: str) -> torch.Tensor:
     if isinstance(index, int):
         return torch.tensor([index], dtype=torch.int64)
     if not isinstance(index, torch.Tensor):
-        index = torch.as_tensor(index)
+        if index is None or isinstance(index, (str, bytes)):
+            raise TypeError(f"{name} must be an integer index or an int64 tensor (E,), got {index!r}")
+        try:
+            index = torch.as_tensor(index)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{name} must be an integer index or an int64 tensor (E,), "
+                            f"got {index!r}") from None
     if index.dtype not in (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8):
         raise TypeError(f"{name} must be an integer tensor (E,), got dtype {index.dtype}")
     if index.dim() == 0:
@@ -42,6 +48,15 @@ def _indices(index, name: str) -> torch.Tensor:
     if index.dim() != 1:
         raise ValueError(f"{name} must have shape (E,), got {tuple(index.shape)}")
     return index.to(torch.int64)
+
+
+def _noise(noise, name: str) -> None:
+    """A noise matrix: a float tensor (m, m), (E, m, m) or (B, E, m, m) (m against the
+    residual's size and E, B against the graph are checked when the graph is linearised)."""
+    checks.floating(noise, name)
+    if noise.dim() not in (2, 3, 4) or noise.shape[-2] != noise.shape[-1]:
+        raise ValueError(f"{name} must have shape (m, m), (E, m, m) or (B, E, m, m), got "
+                         f"{tuple(noise.shape)}")
 
 
 class Factor:
@@ -96,6 +111,9 @@ class Factor:
         self.dim = None if dim is None else checks.integer(dim, "dim", 1)
         if information is not None and sqrt_information is not None:
             raise ValueError("give information or sqrt_information, not both")
+        for noise_name, noise in (("information", information), ("sqrt_information", sqrt_information)):
+            if noise is not None:
+                _noise(noise, noise_name)
         self.information = information
         self.sqrt_information = sqrt_information
         if loss is not None and not isinstance(loss, RobustLoss):
@@ -176,6 +194,9 @@ class PointObservation(Factor):
                  information: torch.Tensor | None = None,
                  sqrt_information: torch.Tensor | None = None, loss: RobustLoss | None = None):
         measured = checks.floating(measured, "measured")
+        if measured.dim() < 1:
+            raise ValueError(f"measured must have shape (E, point_dim) or (B, E, point_dim), got "
+                             f"{tuple(measured.shape)}")
         super().__init__(_point_residual, [(pose, i), (point, j)], data=[measured],
                          dim=measured.shape[-1], information=information,
                          sqrt_information=sqrt_information, loss=loss)

@@ -8,7 +8,7 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
-from .factors import Factor
+from .factors import Between, Factor, Prior
 from .robust import RobustLoss
 
 __all__ = ["FactorGraph"]
@@ -82,6 +82,16 @@ class FactorGraph:
             if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= n):
                 raise IndexError(f"factor {factor!r}: indices of {name!r} must be in [0, {n}), "
                                  f"got [{int(idx.min())}, {int(idx.max())}]")
+        if isinstance(factor, (Prior, Between)):  # measured Z must be of the variable's group
+            name = factor.slots[0][0]
+            variable, measured = self.variables[name], factor.data[0]
+            if not isinstance(variable, LieGroup) or variable._group is not measured._group:
+                kind = type(variable).__name__ if isinstance(variable, LieGroup) else "a Euclidean tensor"
+                raise TypeError(f"factor {factor!r}: measured is a {type(measured).__name__} but the "
+                                f"variable {name!r} is {kind}")
+        first = _leaf(next(iter(self.variables.values())))
+        for k, d in enumerate(factor.data):
+            checks.same_device_dtype(**{"the graph's variables": first, f"factor {factor!r} data[{k}]": _leaf(d)})
         self.factors.append(factor)
 
     # ------------------------------------------------------------------ queries
@@ -92,13 +102,19 @@ class FactorGraph:
 
     def size(self, name: str) -> int:
         """N, the number of elements of the variable ``name``."""
-        v = self.variables[name]
+        v = self._variable(name)
         return v.batch_shape[-1] if isinstance(v, LieGroup) else v.shape[-2]
 
     def dof(self, name: str) -> int:
         """The tangent size of one element of the variable ``name``."""
-        v = self.variables[name]
+        v = self._variable(name)
         return v.dof if isinstance(v, LieGroup) else v.shape[-1]
+
+    def _variable(self, name: str) -> LieGroup | torch.Tensor:
+        if name not in self.variables:
+            raise KeyError(f"no variable {name!r} in the graph; its variables are "
+                           f"{list(self.variables)}")
+        return self.variables[name]
 
     def __repr__(self) -> str:
         vs = ", ".join(f"{n}: {type(v).__name__ if isinstance(v, LieGroup) else 'R^' + str(v.shape[-1])}"

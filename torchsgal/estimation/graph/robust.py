@@ -115,6 +115,17 @@ def correct(loss: RobustLoss | None, r: torch.Tensor, J: torch.Tensor | None
             ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """Ceres' Corrector on whitened residuals r (..., m) and Jacobians J (..., m, n) (or None):
     returns (r~, J~, rho(s)) with s = |r|^2 (see the module docstring); no loss: (r, J, s)."""
+    if loss is not None and not isinstance(loss, RobustLoss):
+        raise TypeError(f"loss must be a RobustLoss or None, got {type(loss).__name__}")
+    checks.floating(r, "r")
+    if r.dim() < 1:
+        raise ValueError(f"r must have shape (..., m), got {tuple(r.shape)}")
+    if J is not None:
+        checks.floating(J, "J")
+        if J.dim() < 2 or J.shape[-2] != r.shape[-1]:
+            raise ValueError(f"J must have shape (..., {r.shape[-1]}, n) (r has shape "
+                             f"{tuple(r.shape)}), got {tuple(J.shape)}")
+        checks.binary(r, 1, J, 2, "r", "J")
     s = (r * r).sum(dim=-1)
     if loss is None:
         return r, J, s
