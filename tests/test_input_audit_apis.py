@@ -13,7 +13,17 @@ import torchsgal as ts
 from torchsgal import load
 from torchsgal import nn as tsnn
 from torchsgal.estimation import g2o
-from torchsgal.estimation.graph import Between, FactorGraph, Huber, PointObservation, Prior
+from torchsgal.estimation.graph import (
+    Between,
+    Cauchy,
+    FactorGraph,
+    GemanMcClure,
+    Huber,
+    PointObservation,
+    Prior,
+    TrivialLoss,
+    Tukey,
+)
 from torchsgal.estimation.graph.robust import correct
 from torchsgal.imu import data as imu_data
 from torchsgal.imu.factors import implied_increment
@@ -83,6 +93,16 @@ def test_correct_checks_its_arguments():
         correct(Huber(), r, torch.ones(4, 3, 6, dtype=D))
 
 
+@pytest.mark.parametrize("loss", [TrivialLoss(), Huber(), Cauchy(), GemanMcClure(), Tukey()], ids=repr)
+def test_losses_check_s(loss):
+    with pytest.raises(TypeError, match="s must be a torch.Tensor, got list"):
+        loss.evaluate([1.0])
+    with pytest.raises(TypeError, match="s must be a torch.Tensor, got str"):
+        loss("x")
+    with pytest.raises(TypeError, match="s must have a floating dtype"):
+        loss(torch.tensor([4]))
+
+
 def test_correct_is_unchanged_for_good_input():
     """The checks leave the result alone: Huber beyond its scale scales r by sqrt(rho') (the
     plain IRLS weighting where rho'' < 0), rho'(s) = a / sqrt(s)."""
@@ -149,6 +169,18 @@ def test_graph_size_of_an_unknown_variable():
 
 
 # ------------------------------------------------------------------ g2o
+def test_g2o_paths(tmp_path: Path):
+    with pytest.raises(TypeError, match="path must be a str or an os.PathLike, got NoneType"):
+        g2o.read_pose_graph(None)
+    with pytest.raises(FileNotFoundError, match="no pose-graph file at"):
+        g2o.read_pose_graph(tmp_path)
+    (tmp_path / "a.g2o").write_text("EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    graph = g2o.read_pose_graph(tmp_path / "a.g2o")
+    with pytest.raises(TypeError, match="path must be a str or an os.PathLike, got int"):
+        g2o.write_pose_graph(3, graph)
+    assert graph.edges.tolist() == [[0, 1]]
+
+
 def test_g2o_functions_need_a_pose_graph(tmp_path: Path):
     with pytest.raises(TypeError, match="graph must be a PoseGraph .*got str"):
         g2o.odometry_initial_guess("graph.g2o")
@@ -162,6 +194,11 @@ def _recording(seconds: float) -> imu_data.ImuRecording:
     time = torch.tensor([0.0, seconds / 2, seconds], dtype=D)
     z3 = torch.zeros(3, 3, dtype=D)
     return imu_data.ImuRecording((time * 1e9).long(), time, z3, z3, torch.zeros(3, 4, dtype=D), [(0, 3)])
+
+
+def test_imu_csv_path_type():
+    with pytest.raises(TypeError, match="path must be a str or an os.PathLike, got int"):
+        imu_data.load_ros_imu_csv(3)
 
 
 def test_windows_checks_the_recording_and_the_count():

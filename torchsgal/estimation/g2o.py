@@ -75,6 +75,12 @@ class PoseGraph:
         return self.ids[self.edges]
 
 
+def _path(path) -> str | os.PathLike:
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or an os.PathLike, got {type(path).__name__}")
+    return path
+
+
 def _pose_graph(graph) -> PoseGraph:
     if not isinstance(graph, PoseGraph):
         raise TypeError(f"graph must be a PoseGraph (read_pose_graph), got {type(graph).__name__}")
@@ -85,6 +91,9 @@ def read_pose_graph(path: str | os.PathLike) -> PoseGraph:
     """Reads a g2o, iSAM or TORO pose-graph file (see the module docstring for the formats and
     the information order).  All edges must be of one dimension (3-D or 2-D) and one format;
     if the file has vertex lines, every vertex of an edge must have one."""
+    path = _path(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no pose-graph file at {os.fspath(path)!r}")
     vertices: dict[str, list] = {}
     edges: dict[str, list] = {}
     with open(path) as f:
@@ -141,6 +150,7 @@ def write_pose_graph(path: str | os.PathLike, graph: PoseGraph, edge_tag: str | 
     numbers with 17 significant digits, so that reading it back gives the same float64 values
     (rotations up to the rounding of their quaternion or angles)."""
     _pose_graph(graph)
+    _path(path)
     edge_tag = graph.edge_tag if edge_tag is None else edge_tag
     if edge_tag not in EDGE_TAGS:
         raise ValueError(f"edge_tag must be one of {EDGE_TAGS}, got {edge_tag!r}")

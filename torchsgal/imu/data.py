@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,6 +65,8 @@ def load_ros_imu_csv(path, duplicates: str = "error", max_gap: float | None = No
     that decrease raise ValueError.  ``max_gap`` [s]: intervals longer than it split the
     recording into ``segments`` (None: one segment).  Non-finite values raise ValueError
     naming the first row (1-based, the header is row 1)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a str or an os.PathLike, got {type(path).__name__}")
     path = Path(path)
     if duplicates not in ("error", "drop"):
         raise ValueError(f"duplicates must be 'error' or 'drop', got {duplicates!r}")

@@ -45,6 +45,7 @@ class TrivialLoss(RobustLoss):
     """rho(s) = s: the plain least-squares cost."""
 
     def evaluate(self, s):
+        checks.floating(s, "s")
         one = torch.ones_like(s)
         return s, one, torch.zeros_like(s)
 
@@ -61,6 +62,7 @@ class Huber(RobustLoss):
         self.scale = _scale(scale)
 
     def evaluate(self, s):
+        checks.floating(s, "s")
         b = self.scale ** 2
         outer = s > b
         root = torch.where(outer, s, torch.ones_like(s)).sqrt()  # safe: sqrt only where s > b
@@ -78,6 +80,7 @@ class Cauchy(RobustLoss):
         self.scale = _scale(scale)
 
     def evaluate(self, s):
+        checks.floating(s, "s")
         b = self.scale ** 2
         inv = 1.0 / (1.0 + s / b)
         return b * torch.log1p(s / b), inv, -inv * inv / b
@@ -91,6 +94,7 @@ class GemanMcClure(RobustLoss):
         self.scale = _scale(scale)
 
     def evaluate(self, s):
+        checks.floating(s, "s")
         b = self.scale ** 2
         den = b + s
         return b * s / den, (b / den) ** 2, -2.0 * b * b / den ** 3
@@ -104,6 +108,7 @@ class Tukey(RobustLoss):
         self.scale = _scale(scale)
 
     def evaluate(self, s):
+        checks.floating(s, "s")
         b = self.scale ** 2
         inner = s <= b
         u = torch.where(inner, 1.0 - s / b, torch.zeros_like(s))
