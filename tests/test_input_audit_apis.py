@@ -219,6 +219,78 @@ def test_implied_increment_batches_and_dtypes():
         implied_increment(ts.SGal3.identity(dtype=D), ts.SGal3.identity(dtype=D), g.float())
 
 
+def _preintegration(E: int):
+    from torchsgal.imu import preintegrate
+
+    z = torch.zeros(E, 4, 3, dtype=D)
+    return preintegrate(z, z, 0.01, gyro_noise_density=1e-3, acc_noise_density=1e-2,
+                        time_noise_density=1e-4)
+
+
+def test_imu_factor_gravity_batch_and_factor_count():
+    from torchsgal.imu import ImuFactor
+
+    pre, g = _preintegration(3), torch.tensor([0.0, 0.0, -9.81], dtype=D)
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: the preintegration \(3,\), gravity \(2,\)"):
+        ImuFactor("x", [0, 1, 2], [1, 2, 3], "b", 0, pre, g.expand(2, 3))
+    with pytest.raises(ValueError, match="earth_rate of shape .* must broadcast to the preintegration's batch"):
+        ImuFactor("x", [0, 1, 2], [1, 2, 3], "b", 0, pre, g, torch.zeros(2, 3, 3, dtype=D))
+    with pytest.raises(ValueError, match=r"preintegration has batch \(3,\): .* E = 2"):
+        ImuFactor("x", [0, 1], [1, 2], "b", 0, pre, g)
+    assert ImuFactor("x", [0, 1, 2], [1, 2, 3], "b", 0, pre, g.expand(3, 3)).size == 3
+
+
+def test_imu_residual_and_jacobians_check_their_arguments():
+    from torchsgal.imu import imu_jacobians, imu_residual
+
+    pre = _preintegration(1)
+    X, b = ts.SGal3.identity(dtype=D), torch.zeros(6, dtype=D)
+    good = dict(X_i=X, X_j=X, bias_i=b, delta=pre.delta, bias_jacobian=pre.bias_jacobian,
+                linearization_bias=b, gravity=torch.tensor([0.0, 0.0, -9.81], dtype=D),
+                earth_rate=torch.zeros(3, dtype=D))
+    cases = [
+        (dict(bias_i=[0.0] * 6), TypeError, "bias_i must be a torch.Tensor, got list"),
+        (dict(bias_i=torch.zeros(5, dtype=D)), ValueError, r"bias_i must have shape \(\.\.\., 6\), got \(5,\)"),
+        (dict(X_i="x"), TypeError, "X_i and X_j must be both SGal3 or both SE23, got str and SGal3"),
+        (dict(X_j=ts.SE23.identity(dtype=D)), TypeError, "both SGal3 or both SE23, got SGal3 and SE23"),
+        (dict(bias_i=torch.zeros(6)), TypeError, "bias_i has dtype torch.float32 but X_i has dtype torch.float64"),
+        (dict(bias_jacobian=torch.zeros(10, 5, dtype=D)), ValueError, r"bias_jacobian must have shape \(\.\.\., 10, 6\)"),
+        (dict(delta=ts.SE3.identity(dtype=D)), TypeError, "delta must be an SGal3, got SE3"),
+        (dict(X_i=ts.SGal3.identity(2, dtype=D), X_j=ts.SGal3.identity(3, dtype=D)), ValueError,
+         r"batch shapes do not broadcast: X_i \(2,\), X_j \(3,\)"),
+    ]
+    for fn in (imu_residual, imu_jacobians):
+        for change, error, message in cases:
+            with pytest.raises(error, match=message):
+                fn(**{**good, **change})
+    # the checks pass good input through: X_j predicted from X_i by the increment has r = 0
+    X_j = pre.predict(X, good["gravity"])
+    r = imu_residual(**{**good, "X_j": X_j})
+    torch.testing.assert_close(r, torch.zeros(1, 10, dtype=D), atol=1e-12, rtol=0)
+
+
+def test_gtsam_imu_converters_check_dtype_batch_and_gravity():
+    pytest.importorskip("gtsam")
+    from torchsgal.imu import gtsam_interop
+
+    with pytest.raises(ValueError, match=r"gravity must be finite, got \[0.0, 0.0, nan\]"):
+        gtsam_interop.to_gtsam_params(torch.tensor([0.0, 0.0, math.nan], dtype=D))
+    with pytest.raises(TypeError, match="theta has dtype torch.float32 but delta_rotation has dtype torch.float64"):
+        gtsam_interop.gtsam_tangent_map(torch.eye(3, dtype=D), torch.zeros(3))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: delta_rotation \(2,\), theta \(3,\)"):
+        gtsam_interop.gtsam_tangent_map(torch.eye(3, dtype=D).expand(2, 3, 3), torch.zeros(3, 3, dtype=D))
+    delta = ts.SGal3.identity(dtype=D)
+    with pytest.raises(TypeError, match="covariance has dtype torch.float32 but delta has dtype torch.float64"):
+        gtsam_interop.to_gtsam_covariance(torch.eye(10), delta)
+    with pytest.raises(TypeError, match="bias_jacobian has dtype torch.float32 but delta"):
+        gtsam_interop.to_gtsam_bias_jacobian(torch.zeros(10, 6), delta)
+    z = torch.zeros(2, 3, dtype=D)
+    with pytest.raises(TypeError, match="dt must be a torch.Tensor, got list"):
+        gtsam_interop.sensor_to_body(z, z, ts.SE3.identity(dtype=D), dt=[0.1, 0.1])
+    with pytest.raises(ValueError, match=r"dt must be a number or broadcast to \(2,\), got shape \(3,\)"):
+        gtsam_interop.sensor_to_body(z, z, ts.SE3.identity(dtype=D), dt=torch.ones(3, dtype=D))
+
+
 def test_gtsam_pim_checks_params_and_biases():
     pytest.importorskip("gtsam")
     import gtsam

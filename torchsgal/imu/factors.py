@@ -101,12 +101,38 @@ def _as_galilean(X: SE23 | SGal3, t: torch.Tensor) -> SGal3:
                                  position=X.position(), time=t)
 
 
+def _check_factor_args(X_i, X_j, bias_i, delta, bias_jacobian, linearization_bias, gravity,
+                       earth_rate) -> None:
+    """imu_residual's arguments: states of one group (SGal3 or SE23), the rest of their dtype
+    and device, with batches that broadcast (metadata only)."""
+    if not (isinstance(X_i, (SGal3, SE23)) and type(X_j) is type(X_i)):
+        raise TypeError(f"X_i and X_j must be both SGal3 or both SE23, got {type(X_i).__name__} "
+                        f"and {type(X_j).__name__}")
+    if not isinstance(delta, SGal3):
+        raise TypeError(f"delta must be an SGal3, got {type(delta).__name__}")
+    checks.vector(bias_i, 6, "bias_i")
+    checks.vector(linearization_bias, 6, "linearization_bias")
+    checks.floating(bias_jacobian, "bias_jacobian")
+    if bias_jacobian.dim() < 2 or bias_jacobian.shape[-2:] != (10, 6):
+        raise ValueError(f"bias_jacobian must have shape (..., 10, 6), got {tuple(bias_jacobian.shape)}")
+    checks.vector(gravity, 3, "gravity")
+    checks.vector(earth_rate, 3, "earth_rate")
+    checks.same_device_dtype(X_i=X_i.as_matrix(), X_j=X_j.as_matrix(), delta=delta.as_matrix(),
+                             bias_i=bias_i, bias_jacobian=bias_jacobian,
+                             linearization_bias=linearization_bias, gravity=gravity, earth_rate=earth_rate)
+    checks.broadcast_batch(X_i=X_i.batch_shape, X_j=X_j.batch_shape, delta=delta.batch_shape,
+                           bias_i=bias_i.shape[:-1], bias_jacobian=bias_jacobian.shape[:-2],
+                           linearization_bias=linearization_bias.shape[:-1],
+                           gravity=gravity.shape[:-1], earth_rate=earth_rate.shape[:-1])
+
+
 def imu_residual(X_i: SGal3 | SE23, X_j: SGal3 | SE23, bias_i: torch.Tensor, delta: SGal3,
                  bias_jacobian: torch.Tensor, linearization_bias: torch.Tensor,
                  gravity: torch.Tensor, earth_rate: torch.Tensor) -> torch.Tensor:
     """r = log(Delta(b_i)^-1 D(X_i, X_j)) (module docstring): (..., 10) for SGal3 states,
     (..., 9) = [rho, nu, phi] for SE23 states (placed at times 0 and the window length T, so
     that r's time component is an exact zero).  One factor, broadcasting over batch axes."""
+    _check_factor_args(X_i, X_j, bias_i, delta, bias_jacobian, linearization_bias, gravity, earth_rate)
     db = bias_i - linearization_bias
     corrected = delta.rplus((bias_jacobian @ db.unsqueeze(-1)).squeeze(-1))
     if isinstance(X_i, SGal3) and isinstance(X_j, SGal3):
@@ -133,6 +159,7 @@ def imu_jacobians(X_i: SGal3 | SE23, X_j: SGal3 | SE23, bias_i: torch.Tensor, de
 
     (the n^T columns: a state's time moves tau and the time shifts).  SE23 states: the
     [rho, nu, phi] block, their times being fixed."""
+    _check_factor_args(X_i, X_j, bias_i, delta, bias_jacobian, linearization_bias, gravity, earth_rate)
     phi_b = (bias_jacobian @ (bias_i - linearization_bias).unsqueeze(-1)).squeeze(-1)
     corrected = delta.rplus(phi_b)
     start: SGal3
@@ -168,10 +195,14 @@ def imu_jacobians(X_i: SGal3 | SE23, X_j: SGal3 | SE23, bias_i: torch.Tensor, de
     return r[..., :9], [J_i[..., :9, :9], J_j[..., :9, :9], J_b[..., :9, :]]
 
 
-def _vector3(x, name: str, like: torch.Tensor) -> torch.Tensor:
+def _vector3(x, name: str, like: torch.Tensor, batch: torch.Size) -> torch.Tensor:
+    """x (..., 3) of like's dtype and device, expanded to (*batch, 3)."""
     checks.vector(x, 3, name)
     checks.same_device_dtype(**{"the preintegration": like, name: x})
-    return x
+    if checks.broadcast_batch(**{"the preintegration": batch, name: x.shape[:-1]}) != batch:
+        raise ValueError(f"{name} of shape {tuple(x.shape)} must broadcast to the preintegration's "
+                         f"batch {tuple(batch)} + (3,)")
+    return x.expand(*batch, 3)
 
 
 # ----------------------------------------------------------------------------- factors
@@ -222,9 +253,9 @@ class ImuFactor(Factor):
         analytic = checks.boolean(analytic_jacobians, "analytic_jacobians")
         batch = pre.batch_shape
         like = pre.delta.as_matrix()
-        gravity = _vector3(gravity, "gravity", like).expand(*batch, 3)
+        gravity = _vector3(gravity, "gravity", like, batch)
         earth_rate = (torch.zeros_like(gravity) if earth_rate is None
-                      else _vector3(earth_rate, "earth_rate", like).expand(*batch, 3))
+                      else _vector3(earth_rate, "earth_rate", like, batch))
         cov = pre.covariance.expand(*batch, 10, 10)
         if state_group is SE23:
             if time_sigma is not None:
@@ -248,6 +279,9 @@ class ImuFactor(Factor):
                                b_lin.expand(*batch, 6), gravity, earth_rate],
                          dim=10 if state_group is SGal3 else 9, sqrt_information=L, loss=loss,
                          jacobians=imu_jacobians if analytic else None)
+        if batch[-1] not in (self.size, 1):
+            raise ValueError(f"preintegration has batch {tuple(batch)}: its last size must be the "
+                             f"number of factors E = {self.size} given by the indices (or 1)")
 
 
 def _random_walk_residual(b_i: torch.Tensor, b_j: torch.Tensor) -> torch.Tensor:

@@ -59,6 +59,8 @@ def to_gtsam_params(gravity: torch.Tensor, gyro_noise_density=0.0, acc_noise_den
     checks.vector(gravity, 3, "gravity")
     if gravity.shape != (3,):
         raise ValueError(f"gravity must have shape (3,), got {tuple(gravity.shape)}")
+    if not bool(gravity.isfinite().all()):
+        raise ValueError(f"gravity must be finite, got {gravity.tolist()}")
     walks = (gyro_bias_random_walk, acc_bias_random_walk)
     if (walks[0] is None) != (walks[1] is None):
         raise ValueError("give both gyro_bias_random_walk and acc_bias_random_walk (combined "
@@ -138,6 +140,7 @@ def gtsam_tangent_map(delta_rotation: torch.Tensor, theta: torch.Tensor) -> torc
     delta_rotation (..., 3, 3) = Exp(theta), theta (..., 3)."""
     checks.matrix(delta_rotation, 3, "delta_rotation")
     checks.vector(theta, 3, "theta")
+    checks.binary(delta_rotation, 2, theta, 1, "delta_rotation", "theta")
     Rt = delta_rotation.transpose(-1, -2)
     batch = torch.broadcast_shapes(Rt.shape[:-2], theta.shape[:-1])
     M = Rt.new_zeros(*batch, 10, 9)
@@ -206,6 +209,7 @@ def to_gtsam_covariance(covariance: torch.Tensor, delta: SGal3) -> np.ndarray:
     checks.floating(covariance, "covariance")
     if covariance.shape not in ((10, 10), (16, 16)):
         raise ValueError(f"covariance must have shape (10, 10) or (16, 16), got {tuple(covariance.shape)}")
+    checks.same_device_dtype(delta=delta.as_matrix(), covariance=covariance)
     theta = SO3.from_matrix(delta.rotation()).log()
     M = gtsam_tangent_map(delta.rotation(), theta)[:9]  # (9, 9), invertible
     Minv = torch.linalg.inv(M)
@@ -227,6 +231,7 @@ def to_gtsam_bias_jacobian(bias_jacobian: torch.Tensor, delta: SGal3) -> np.ndar
     checks.floating(bias_jacobian, "bias_jacobian")
     if bias_jacobian.shape != (10, 6):
         raise ValueError(f"bias_jacobian must have shape (10, 6), got {tuple(bias_jacobian.shape)}")
+    checks.same_device_dtype(delta=delta.as_matrix(), bias_jacobian=bias_jacobian)
     theta = SO3.from_matrix(delta.rotation()).log()
     Minv = torch.linalg.inv(gtsam_tangent_map(delta.rotation(), theta)[:9])
     return _np(Minv @ bias_jacobian[:9] @ _bias_swap(bias_jacobian))
@@ -301,8 +306,17 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
         if gyro.dim() < 2 or gyro.shape[-2] < 2:
             raise ValueError(f"differentiating the rate needs K >= 2 samples along gyro's axis -2, "
                              f"got shape {tuple(gyro.shape)}")
-        h = (torch.full(gyro.shape[:-1], checks.finite_number(dt, "dt", "> 0"), dtype=gyro.dtype,
-                        device=gyro.device) if isinstance(dt, numbers.Real) else dt.expand(gyro.shape[:-1]))
+        if isinstance(dt, numbers.Real):
+            h = torch.full(gyro.shape[:-1], checks.finite_number(dt, "dt", "> 0"), dtype=gyro.dtype,
+                           device=gyro.device)
+        else:
+            checks.floating(dt, "dt")
+            checks.same_device_dtype(gyro=gyro, dt=dt)
+            try:
+                h = dt.expand(gyro.shape[:-1])
+            except RuntimeError:
+                raise ValueError(f"dt must be a number or broadcast to {tuple(gyro.shape[:-1])}, "
+                                 f"got shape {tuple(dt.shape)}") from None
         t = torch.cat((torch.zeros_like(h[..., :1]), h.cumsum(-1)[..., :-1]), -1)  # sample instants
         dw = torch.cat((w[..., 1:2, :] - w[..., 0:1, :], w[..., 2:, :] - w[..., :-2, :],
                         w[..., -1:, :] - w[..., -2:-1, :]), -2)
