@@ -151,9 +151,9 @@ def test_graph_add_checks_measurement_group_dtype_and_device():
         g.add(Prior("x", 0, ts.SO3.identity(1, dtype=D)))
     with pytest.raises(TypeError, match="measured is a SE3 but the variable 'p' is a Euclidean tensor"):
         g.add(Prior("p", 0, ts.SE3.identity(1, dtype=D)))
-    with pytest.raises(TypeError, match=r"data\[0\] has dtype torch.float32 but the graph's variables"):
+    with pytest.raises(TypeError, match=r"data\[0\] has dtype torch.float32 but the graph's first variable"):
         g.add(Between("x", 0, 1, ts.SE3.identity(1)))
-    with pytest.raises(ValueError, match=r"data\[0\] is on meta but the graph's variables"):
+    with pytest.raises(ValueError, match=r"data\[0\] is on meta but the graph's first variable"):
         g.add(PointObservation("x", 0, "p", 0, torch.zeros(1, 3, dtype=D, device="meta")))
     assert not g.factors
     g.add(Between("x", 0, 1, ts.SE3.identity(1, dtype=D)))

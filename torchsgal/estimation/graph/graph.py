@@ -65,7 +65,8 @@ class FactorGraph:
         self.variables[name] = value
 
     def add(self, factor: Factor, loss: RobustLoss | None = None) -> None:
-        """Adds a ``Factor`` (its variables must already be in the graph); ``loss`` (a
+        """Adds a ``Factor`` (its variables must already be in the graph, its data of their dtype
+        and device; a ``Prior`` or ``Between`` measured in its variable's group); ``loss`` (a
         ``RobustLoss``) replaces the factor's own."""
         if not isinstance(factor, Factor):
             raise TypeError(f"factor must be a Factor, got {type(factor).__name__}")
@@ -91,7 +92,8 @@ class FactorGraph:
                                 f"variable {name!r} is {kind}")
         first = _leaf(next(iter(self.variables.values())))
         for k, d in enumerate(factor.data):
-            checks.same_device_dtype(**{"the graph's variables": first, f"factor {factor!r} data[{k}]": _leaf(d)})
+            checks.same_device_dtype(**{"the graph's first variable": first,
+                                        f"factor {factor!r} data[{k}]": _leaf(d)})
         self.factors.append(factor)
 
     # ------------------------------------------------------------------ queries
