@@ -209,6 +209,18 @@ def test_windows_checks_the_recording_and_the_count():
     assert imu_data.windows(_recording(2.0), 1.0) == [(0, 2), (1, 3)]
 
 
+def test_streaming_biases_must_be_finite():
+    from torchsgal.imu import StreamingPreintegration
+
+    nan = torch.tensor([0.0, math.nan, 0.0], dtype=D)
+    with pytest.raises(ValueError, match="gyro_bias must be finite"):
+        StreamingPreintegration((2,), gyro_bias=nan, dtype=D)
+    imu = StreamingPreintegration((2,), dtype=D)
+    with pytest.raises(ValueError, match="acc_bias must be finite"):
+        imu.reset(acc_bias=nan)
+    StreamingPreintegration((2,), gyro_bias=nan, dtype=D, validate=False)  # validate=False: no read
+
+
 def test_implied_increment_batches_and_dtypes():
     g = torch.tensor([0.0, 0.0, -9.81], dtype=D)
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: start \(2,\), end \(3,\)"):

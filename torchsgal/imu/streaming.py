@@ -229,7 +229,8 @@ class StreamingPreintegration:
     :func:`~torchsgal.imu.preintegrate` (numbers or per-axis tensors (..., 3)); bias random
     walks [rad/s^2/sqrt(Hz)], [m/s^3/sqrt(Hz)] give the combined covariance of
     :meth:`combined_covariance`.  ``validate`` (default True) checks each call's dt for
-    finite, positive values (one host read on a GPU); False skips that read.
+    finite, positive values and bias tensors for finite ones (one host read each on a GPU);
+    False skips those reads.
     ``buffer_size`` samples are held before they are folded in (1: each call at once); any
     read (``delta``, ``covariance``, ``result()``, ...) folds in the held ones first.
     """
@@ -310,6 +311,8 @@ class StreamingPreintegration:
         if b.dtype != kw["dtype"] or b.device != self._device:
             raise TypeError(f"{name} must have dtype {kw['dtype']} on {self._device} (the "
                             f"accumulator's), got {b.dtype} on {b.device}")
+        if self.validate and not bool(b.isfinite().all()):  # once per window (a host read)
+            raise ValueError(f"{name} must be finite, got non-finite entries")
         try:
             return b.expand(*batch, 3).clone()
         except RuntimeError:
