@@ -367,3 +367,17 @@ def test_dh_column_not_a_sequence():
 def test_idle_cores_interval_beyond_float_range():
     with pytest.raises(ValueError, match="interval must be a finite number > 0"):
         load.idle_cores(10**400)
+
+
+def test_a_non_finite_number_bias_is_refused_by_name():
+    """A bias given as a number went into the increment unchecked: nan gave a NaN increment."""
+    from torchsgal.imu import preintegrate
+
+    gyro = torch.zeros(4, 3, dtype=torch.float64)
+    pre = preintegrate(gyro, gyro + torch.tensor([0.0, 0.0, 9.81], dtype=torch.float64), 0.01)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"^gyro_bias must be a finite number"):
+            pre.corrected(gyro_bias=bad)
+        with pytest.raises(ValueError, match=r"^acc_bias must be a finite number"):
+            preintegrate(gyro, gyro, 0.01, acc_bias=bad)
+

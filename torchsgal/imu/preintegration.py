@@ -81,7 +81,7 @@ def _as_vector(x, like: torch.Tensor, name: str, batch, like_name: str = "gyro")
         if isinstance(x, bool) or not isinstance(x, numbers.Real):
             raise TypeError(f"{name} must be None, a float or a tensor (..., 3), got "
                             f"{type(x).__name__}")
-        return torch.full((3,), float(x), dtype=like.dtype, device=like.device)
+        return torch.full((3,), checks.finite_number(x, name), dtype=like.dtype, device=like.device)
     checks.vector(x, 3, name)
     checks.same_device_dtype(**{like_name: like, name: x})
     checks.broadcast_batch(stream=batch, **{name: x.shape[:-1]})
