@@ -356,7 +356,7 @@ def test_estimation_covariance_checks_on_device():
     assert len(reads.events) == 2 and blocks.diagonal == [S.diagonal().diag().equal(S), True]
 
 
-@pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])
+@pytest.mark.parametrize("kernel", [pytest.param(True, marks=pytest.mark.kernels), False], ids=["C", "tensor"])
 def test_tls_structured_solver_chunks_the_batch_on_the_cpu_only(kernel, monkeypatch):
     """On the CPU the structured TLS linearisation runs in chunks of ~8,000 conditions (page
     faults) through the tensor code (one vectorised Cholesky per chunk), or of ~65,000 through

@@ -19,8 +19,11 @@ from torchsgal import SGal3
 from torchsgal.functional import native
 from torchsgal.functional import sgal3 as F
 
-pytestmark = pytest.mark.skipif(not native.available() and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
-                                reason="the C kernels were not compiled for this installation")
+# ``kernels``: tests of the C kernels themselves, left out of the run with the kernels switched off
+# (TORCHSGAL_NATIVE=0, the second test run of .ci/run).
+pytestmark = [pytest.mark.kernels,
+              pytest.mark.skipif(not native.available() and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
+                                 reason="the C kernels were not compiled for this installation")]
 
 KERNELS = native.kernels("SGal3")
 # Both branches of every series and threshold: numerics.SERIES_THRESHOLD = 1, JINV_THRESHOLD =
