@@ -41,7 +41,8 @@ def test_idle_cores_reads_this_machine():
     assert 1 <= load.threads_for_load(0.05) <= load.available_cores()
 
 
-@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), "0.2", True])
-def test_interval_is_checked(bad):
-    with pytest.raises(ValueError, match="interval must be a finite number > 0"):
+@pytest.mark.parametrize(("bad", "error"), [(0, ValueError), (-1.0, ValueError), (float("nan"), ValueError),
+                                            (float("inf"), ValueError), ("0.2", TypeError), (True, TypeError)])
+def test_interval_is_checked(bad, error):
+    with pytest.raises(error, match="interval must be a finite number > 0"):
         load.idle_cores(bad)

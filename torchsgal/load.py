@@ -11,10 +11,10 @@ the call: a load that starts later is not seen.
 """
 from __future__ import annotations
 
-import math
-import numbers
 import os
 import time
+
+from .functional import checks
 
 
 def available_cores() -> int:
@@ -43,15 +43,7 @@ def idle_cores(interval: float = 0.2) -> float | None:
     """The number of cores left idle by all processes over the next ``interval`` seconds (a
     float in [0, the machine's CPU count]), or None where the platform does not report it
     (no /proc/stat)."""
-    message = f"interval must be a finite number > 0 (seconds), got {interval!r}"
-    if isinstance(interval, bool) or not isinstance(interval, numbers.Real):
-        raise ValueError(message)
-    try:
-        finite = math.isfinite(interval)  # an int beyond the float range overflows
-    except OverflowError:
-        finite = False
-    if not finite or not interval > 0:
-        raise ValueError(message)
+    checks.finite_number(interval, "interval", "> 0")
     first = _cpu_times()
     if first is None:
         return None

@@ -36,9 +36,9 @@ import torch
 from ...functional import checks
 from ..solver import SolverStatus
 from .graph import FactorGraph
-from .levenberg_marquardt import GraphResult, _check, _full, _solve, _State, _where
+from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _full, _solve, _State, _trial, _where
 from .linear_system import LinearSystem
-from .linearize import Linearization, Problem, evaluate_cost, linearize
+from .linearize import Linearization, Problem
 
 __all__ = ["dogleg"]
 
@@ -73,10 +73,11 @@ def _h_times(problem: Problem, values: torch.Tensor, v: torch.Tensor) -> torch.T
 
 
 def _diagonal(problem: Problem, values: torch.Tensor) -> torch.Tensor:
+    """The diagonal (B, D) of H from its entries (no data-dependent shapes: no host sync)."""
     D = problem.D
-    on = (problem.h_index // D == problem.h_index % D).nonzero().squeeze(-1)
-    return values.new_zeros(values.shape[0], D).index_add(1, problem.h_index[on] // D,
-                                                          values[:, on])
+    rows = problem.h_index // D
+    on = (rows == problem.h_index % D).to(values.dtype)
+    return values.new_zeros(values.shape[0], D).index_add(1, rows, values * on)
 
 
 @dataclass
@@ -141,12 +142,7 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
     dx = _dogleg_point(delta, dx_u, dx_n)
     quad = (dx * _h_times(problem, s.lin.values, dx)).sum(-1)
     model_change = -((s.lin.g * dx).sum(-1) + 0.5 * quad)
-    x_new = problem.retract(s.x, dx)
-    if system.cost_first:
-        new_cost = evaluate_cost(problem, x_new)
-    else:
-        lin_new = linearize(problem, x_new)
-        new_cost = lin_new.cost
+    x_new, lin_new, new_cost = _trial(problem, system, s, dx)
     cost = s.lin.cost
     cost_change = cost - new_cost
     tiny = (cost_change.abs() < TINY_CHANGE) | (model_change.abs() < TINY_CHANGE)
@@ -161,16 +157,9 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
     delta_new = torch.where(grow, torch.maximum(delta, 3 * dx.norm(dim=-1)),
                             torch.where((shrink | ~success) & above, 0.5 * delta, delta))
     done = success | ~above  # otherwise: the same linearisation again with Delta / 2
-    if system.cost_first:
-        lin_new = linearize(problem, x_new) if bool(success[0]) else s.lin
-    x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
-    lin = Linearization(*[_where(success, a, b) for a, b in
-                          ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
-                           (new_cost, cost), (lin_new.model_cost, s.lin.model_cost))])
+    x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     iterations = s.iterations + done.to(torch.int64)
-    decrease = s.cost_start - lin.cost
-    converged = ((lin.cost <= o["error_tol"]) | (decrease <= o["rel_tol"] * s.cost_start)
-                 | (decrease <= o["abs_tol"]))
+    converged = _converged(s, lin, o)
     status = s.status
     status = torch.where(done & converged, _full(status, SolverStatus.CONVERGED), status)
     status = torch.where(done & ~converged & (iterations >= max_iterations),

@@ -286,14 +286,7 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
     lam = s.lam if o["damped"] else torch.zeros_like(s.lam)
     delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
-    x_new = problem.retract(s.x, delta)
-    # a batch linearises every trial point at once (the Jacobians serve where the step is
-    # accepted); one large problem evaluates the cost first and linearises only an accepted step
-    if system.cost_first:
-        new_cost = evaluate_cost(problem, x_new)
-    else:
-        lin_new = linearize(problem, x_new)
-        new_cost = lin_new.cost
+    x_new, lin_new, new_cost = _trial(problem, system, s, delta)
     cost = s.lin.cost
     cost_change = cost - new_cost
     if o["damped"]:
@@ -310,17 +303,9 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
     else:
         success = solved & torch.isfinite(new_cost)
         gave_up, done = ~success, torch.ones_like(success)
-    if system.cost_first:
-        lin_new = linearize(problem, x_new) if bool(success[0]) else s.lin
-    x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
-    lin = Linearization(*[_where(success, a, b) for a, b in
-                          ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
-                           (new_cost, cost), (lin_new.model_cost, s.lin.model_cost))])
+    x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     iterations = s.iterations + success.to(torch.int64)
-    # checkConvergence(cost at the iteration's start, cost now) after a finished iteration
-    decrease = s.cost_start - lin.cost
-    converged = ((lin.cost <= o["error_tol"]) | (decrease <= o["rel_tol"] * s.cost_start)
-                 | (decrease <= o["abs_tol"]))
+    converged = _converged(s, lin, o)
     status = s.status
     status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
     status = torch.where(done & ~gave_up & converged, _full(status, SolverStatus.CONVERGED), status)
@@ -328,3 +313,36 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
                          _full(status, SolverStatus.MAX_ITERATIONS), status)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     return _State(s.rows, x, lin, cost_start, lam, iterations, quad.clamp_min(0).sqrt(), status)
+
+
+def _trial(problem: Problem, system: LinearSystem, s: _State, delta: torch.Tensor
+           ) -> tuple[list[torch.Tensor], Linearization | None, torch.Tensor]:
+    """The trial point x exp(delta) and its cost.  A batch linearises every trial point at once
+    (the Jacobians serve where the step is accepted); one large problem evaluates the cost first
+    and linearises only an accepted step (``_accept``)."""
+    x_new = problem.retract(s.x, delta)
+    if system.cost_first:
+        return x_new, None, evaluate_cost(problem, x_new)
+    lin_new = linearize(problem, x_new)
+    return x_new, lin_new, lin_new.cost
+
+
+def _accept(problem: Problem, system: LinearSystem, s: _State, success: torch.Tensor,
+            x_new: list[torch.Tensor], lin_new: Linearization | None, new_cost: torch.Tensor
+            ) -> tuple[list[torch.Tensor], Linearization]:
+    """The unknowns and linearisation after a trial: the trial's where ``success``, else the
+    current ones."""
+    if lin_new is None:  # cost_first: one problem
+        lin_new = linearize(problem, x_new) if bool(success[0]) else s.lin
+    x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
+    lin = Linearization(*[_where(success, a, b) for a, b in
+                          ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
+                           (new_cost, s.lin.cost), (lin_new.model_cost, s.lin.model_cost))])
+    return x, lin
+
+
+def _converged(s: _State, lin: Linearization, o: dict) -> torch.Tensor:
+    """GTSAM's checkConvergence(cost at the iteration's start, cost now), per problem."""
+    decrease = s.cost_start - lin.cost
+    return ((lin.cost <= o["error_tol"]) | (decrease <= o["rel_tol"] * s.cost_start)
+            | (decrease <= o["abs_tol"]))
