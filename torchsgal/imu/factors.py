@@ -30,7 +30,7 @@ import numbers
 
 import torch
 
-from .. import SE3, SE23, SGal3
+from .. import SE3, SE23, SO3, SGal3
 from ..estimation.graph.factors import Factor
 from ..functional import checks
 from ..groups import LieGroup
@@ -341,17 +341,11 @@ def _gnss_residual(X: SE3 | SE23 | SGal3, measured: torch.Tensor, lever_arm: tor
     return X.position() + (X.rotation() @ lever_arm.unsqueeze(-1)).squeeze(-1) - measured
 
 
-def _skew(a: torch.Tensor) -> torch.Tensor:
-    o = torch.zeros_like(a[..., 0])
-    x, y, z = a.unbind(-1)
-    return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).unflatten(-1, (3, 3))
-
-
 def _gnss_jacobians(X: SE3 | SE23 | SGal3, measured: torch.Tensor, lever_arm: torch.Tensor):
     """X exp(d) moves p by R rho (+ v iota for SGal3) and R l by -R l^ phi (first order)."""
     R = X.rotation()
     r = _gnss_residual(X, measured, lever_arm)
-    Rl = -R @ _skew(lever_arm)
+    Rl = -R @ SO3.hat(lever_arm)
     R, Rl = torch.broadcast_tensors(R, Rl)
     if isinstance(X, SE3):  # [rho, phi]
         return r, [torch.cat((R, Rl), dim=-1)]
