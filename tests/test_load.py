@@ -1,7 +1,11 @@
-"""torchsgal.load: the thread count chosen from the idle cores (the command line's default)."""
+"""torchsgal.load: the thread count chosen from the idle cores (the command line's default and
+``use_threads_for_load``)."""
 from __future__ import annotations
 
+import threading
+
 import pytest
+import torch
 
 from torchsgal import load
 
@@ -46,3 +50,50 @@ def test_idle_cores_reads_this_machine():
 def test_interval_is_checked(bad, error):
     with pytest.raises(error, match="interval must be a finite number > 0"):
         load.idle_cores(bad)
+
+
+@pytest.fixture
+def restore_threads():
+    """torch's thread count as the test found it, restored afterwards."""
+    before = torch.get_num_threads()
+    yield before
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("chosen", [1, 3])
+def test_use_threads_for_load_sets_torch_threads(monkeypatch, restore_threads, chosen):
+    """The count of threads_for_load becomes torch's (which the C kernels split over), returned."""
+    calls = []
+    monkeypatch.setattr(load, "threads_for_load", lambda interval=0.2: calls.append(interval) or chosen)
+    assert load.use_threads_for_load(0.05) == chosen
+    assert calls == [0.05]
+    assert torch.get_num_threads() == chosen
+
+
+def test_use_threads_for_load_one_thread_beside_a_busy_core(monkeypatch, restore_threads):
+    """Two cores, one kept busy by another process: one torch thread (from /proc/stat's counts)."""
+    torch.set_num_threads(2)
+    _fake_stat(monkeypatch, [(0.0, 0.0), (50.0, 100.0)], 2)
+    monkeypatch.setattr(load, "available_cores", lambda: 2)
+    assert load.use_threads_for_load() == 1
+    assert torch.get_num_threads() == 1
+
+
+def test_use_threads_for_load_reaches_threads_started_later(monkeypatch, restore_threads):
+    """A thread whose first torch operation comes after the call takes the count too."""
+    monkeypatch.setattr(load, "threads_for_load", lambda interval=0.2: 1)
+    torch.set_num_threads(2)
+    load.use_threads_for_load()
+    seen = []
+    worker = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
+    worker.start()
+    worker.join()
+    assert seen == [1]
+
+
+@pytest.mark.parametrize(("bad", "error"), [(0, ValueError), (float("nan"), ValueError), ("0.2", TypeError)])
+def test_use_threads_for_load_checks_interval_first(restore_threads, bad, error):
+    """A bad interval raises before torch's thread count is touched."""
+    with pytest.raises(error, match="interval must be a finite number > 0"):
+        load.use_threads_for_load(bad)
+    assert torch.get_num_threads() == restore_threads

@@ -5,14 +5,17 @@ another busy process holds one of the cores, each such operation waits for the t
 its core, and a multi-threaded run can take twice the time of a single-threaded one or more.
 ``threads_for_load`` picks a thread count from the cores that are idle now: every core on an
 idle machine, one fewer for each core another process keeps busy, never fewer than one.  The
-command line (``python -m torchsgal tls``) uses it unless ``--threads`` is given; a program can
-call ``torch.set_num_threads(threads_for_load())`` the same way.  It samples the load once, at
-the call: a load that starts later is not seen.
+command line (``python -m torchsgal tls``) uses it unless ``--threads`` is given; a program
+calls ``use_threads_for_load()`` once, where it starts, to the same end (docs/guide/threads.md:
+the measurements behind this policy).  It samples the load once, at the call: a load that
+starts later is not seen.
 """
 from __future__ import annotations
 
 import os
 import time
+
+import torch
 
 from .functional import checks
 
@@ -64,3 +67,17 @@ def threads_for_load(interval: float = 0.2) -> int:
     if idle is None:
         return cores
     return max(1, min(cores, int(idle + 0.5)))
+
+
+def use_threads_for_load(interval: float = 0.2) -> int:
+    """Set torch's intra-op thread count to ``threads_for_load(interval)`` and return it.
+
+    torch's parallel operations and the C kernels of ``torchsgal.functional.native`` (which
+    split large batches over ``torch.get_num_threads()``) then run on that many threads.  Call
+    it once, where the program starts and before its own computations (the load of this process
+    counts as busy), from the thread that runs them: ``torch.set_num_threads`` sets the calling
+    thread's count and the one that threads starting their first torch operation later take.
+    The load is sampled once, at the call (``interval`` seconds, > 0)."""
+    threads = threads_for_load(interval)
+    torch.set_num_threads(threads)
+    return threads
