@@ -1,21 +1,31 @@
-"""Build of the optional C kernels (torchsgal/functional/_native.c); everything else is in
-pyproject.toml.  The extension is optional: where it does not compile, the package installs
-without it and runs the same closed forms as tensor operations (torchsgal.functional.native)."""
+"""Build of the optional C kernels (torchsgal/functional/_native.c: the SGal(3) and TLS kernels;
+torchsgal/imu/_native.c: IMU preintegration); everything else is in pyproject.toml.  Both
+extensions are optional: where they do not compile, the package installs without them and runs
+the same closed forms as tensor operations (torchsgal.functional.native, torchsgal.imu._kernels)."""
 import sys
 
 from setuptools import Extension, setup
 
 args = [] if sys.platform == "win32" else ["-O3", "-std=c99", "-fno-math-errno", "-ffp-contract=off"]
+libraries = ["dl"] if sys.platform.startswith("linux") else []  # dlopen: torch's OpenMP
+common = ["torchsgal/functional/_native_common.h", "torchsgal/functional/_native_sgal3.h"]
 setup(
     ext_modules=[
         Extension(
             "torchsgal.functional._native",
             sources=["torchsgal/functional/_native.c"],
-            depends=["torchsgal/functional/_native_sgal3.h", "torchsgal/functional/_native_imu.h",
-                     "torchsgal/functional/_native_tls.h"],
+            depends=common + ["torchsgal/functional/_native_tls.h"],
             extra_compile_args=args,
-            libraries=["dl"] if sys.platform.startswith("linux") else [],  # dlopen: torch's OpenMP
+            libraries=libraries,
             optional=True,
-        )
+        ),
+        Extension(
+            "torchsgal.imu._native",
+            sources=["torchsgal/imu/_native.c"],
+            depends=common + ["torchsgal/imu/_native_imu.h"],
+            extra_compile_args=args,
+            libraries=libraries,
+            optional=True,
+        ),
     ]
 )

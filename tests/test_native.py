@@ -1,7 +1,7 @@
 """The C kernels of SGal(3) exp, log and their backward maps (torchsgal/functional/native.py)
 against the tensor closed forms they transcribe, at every angle band and in both dtypes, and the
-rule that decides where they run; the same for the IMU preintegration kernel and the SGal(3) TLS
-linearisation kernel against their tensor code.  The tensor code is itself checked against scipy, mpmath and
+rule that decides where they run; the same for the SGal(3) TLS linearisation kernel against its
+tensor code (the IMU preintegration kernel: tests/test_imu_kernels.py).  The tensor code is itself checked against scipy, mpmath and
 GTSAM elsewhere; the rest of the suite runs through the kernels wherever they are eligible."""
 from __future__ import annotations
 
@@ -262,115 +262,6 @@ def test_environment_variable_turns_the_kernels_off():
     env = dict(os.environ, TORCHSGAL_NATIVE="0")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
-
-
-# ------------------------------------------------------------------ IMU preintegration kernel
-def imu_stream(n, K, dtype, seed=0):
-    """n windows of K samples whose half-step rotation angles |omega| dt / 2 run over ANGLES
-    (every branch of the exp series), with a zero dt among them, and biases."""
-    rng = np.random.default_rng(seed)
-    dt = rng.uniform(0.001, 0.05, (n, K))
-    dt[0, 0] = 0.0
-    axis = rng.standard_normal((n, K, 3))
-    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    angle = np.resize(np.array(ANGLES), n * K).reshape(n, K)
-    gyro = axis * (2 * angle / np.where(dt > 0, dt, 1.0))[..., None]
-    acc = rng.normal(0, 5.0, (n, K, 3))
-    b_g, b_a = rng.normal(0, 0.01, (n, 3)), rng.normal(0, 0.1, (n, 3))
-    return [torch.tensor(x, dtype=dtype) for x in (gyro, acc, dt, b_g, b_a)]
-
-
-def imu_results(gyro, acc, dt, b_g, b_a, **flags):
-    from torchsgal.imu import preintegrate
-    r = preintegrate(gyro, acc, dt, gyro_bias=b_g, acc_bias=b_a, gyro_noise_density=1e-3,
-                     acc_noise_density=1e-2, time_noise_density=1e-4, **flags)
-    return [x for x in (r.delta.as_matrix(), r.covariance, r.bias_jacobian) if x is not None]
-
-
-# float64: the kernel's order of operations differs from the tensor code's (a sequential product
-# per window, not a scan; its own summation order): measured 2.8e-15 (bias Jacobian), 1.8e-15
-# (increment), 1.1e-15 (covariance).  float32: the kernel computes in double and rounds once,
-# the covariance is formed from the rounded sums in float32: measured 1.7e-7, against the float64
-# reference (the float32 tensor code itself is 3.0e-6 off it there: its scan rounds in float32).
-IMU_TOL = {torch.float64: 1e-14, torch.float32: 1e-6}
-
-
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
-@pytest.mark.parametrize("K", [1, 2, 3, 64])
-@pytest.mark.parametrize("nodes", [True, False], ids=["covariance", "increment"])
-def test_imu_kernel_matches_the_tensor_code(dtype, K, nodes):
-    stream = imu_stream(12, K, dtype, seed=K)
-    flags = {} if nodes else dict(covariance=False, bias_jacobian=False)
-    out = imu_results(*stream, **flags)
-    with native.disabled():  # the reference: the tensor code in float64 on the same values
-        ref = imu_results(*(x.double() for x in stream), **flags)
-    assert len(out) == len(ref) == (3 if nodes else 1)
-    for a, e in zip(out, ref):
-        assert a.dtype == dtype and a.shape == e.shape
-        scale = e.abs().amax(dim=(-2, -1)).clamp_min(1e-300)  # a zero-length window: all zero
-        err = float(((a.double() - e).abs().amax(dim=(-2, -1)) / scale).max())
-        assert err <= IMU_TOL[dtype], f"kernel vs tensor code: {err:.3g} > {IMU_TOL[dtype]:.1g}"
-
-
-def test_imu_kernel_reads_strided_and_broadcast_inputs_by_value():
-    from torchsgal.imu import preintegrate
-    gyro, acc, dt, b_g, b_a = imu_stream(6, 9, torch.float64, seed=5)
-    gyro_t = gyro.transpose(0, 1).contiguous().transpose(0, 1)  # window-minor memory
-    assert not gyro_t.is_contiguous()
-    kw = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2)
-    for args in [(gyro_t, acc, dt[0], b_g[0], None), (gyro, acc, 0.01, b_g, b_a[:1])]:
-        out = preintegrate(args[0], acc, args[2], gyro_bias=args[3], acc_bias=args[4], **kw)
-        with native.disabled():
-            ref = preintegrate(args[0].contiguous(), acc, args[2], gyro_bias=args[3], acc_bias=args[4], **kw)
-        for a, e in [(out.delta.as_matrix(), ref.delta.as_matrix()), (out.covariance, ref.covariance),
-                     (out.bias_jacobian, ref.bias_jacobian)]:
-            assert torch.allclose(a, e, rtol=0, atol=2e-14 * e.abs().max())
-
-
-def test_imu_kernel_threads_split_the_windows_without_changing_a_bit():
-    stream = imu_stream(200, 100, torch.float64, seed=6)  # 200 x 100 samples: over 2 threads
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = imu_results(*stream)
-        torch.set_num_threads(2)
-        two = imu_results(*stream)
-    finally:
-        torch.set_num_threads(before)
-    assert all(torch.equal(a, b) for a, b in zip(one, two))
-
-
-def test_imu_kernel_keeps_a_non_finite_sample_in_its_window():
-    gyro, acc, dt, b_g, b_a = imu_stream(4, 5, torch.float64, seed=7)
-    gyro[1, 2, 0], acc[2, 4, 1] = math.nan, math.inf
-    out = imu_results(gyro, acc, dt, b_g, b_a)
-    with native.disabled():
-        ref = imu_results(gyro, acc, dt, b_g, b_a)
-    for a, e in zip(out, ref):
-        assert torch.equal(torch.isfinite(a), torch.isfinite(e))
-        assert torch.isfinite(a[[0, 3]]).all() and not torch.isfinite(a[1]).all()
-        finite = torch.isfinite(e)
-        assert torch.allclose(a[finite], e[finite], rtol=0, atol=2e-14 * e[finite].abs().max())
-
-
-def test_imu_kernel_runs_only_where_unobserved_and_isotropic(recorder):
-    from torchsgal.imu import preintegrate
-    gyro, acc, dt, b_g, b_a = imu_stream(3, 4, torch.float64, seed=8)
-    imu_results(gyro, acc, dt, b_g, b_a)
-    imu_results(gyro, acc, dt, b_g, b_a, covariance=False, bias_jacobian=False)
-    preintegrate(gyro, acc, dt, covariance=False)  # bias Jacobian only
-    assert recorder.calls == ["imu_preintegrate"] * 3
-    recorder.calls.clear()
-    per_axis = torch.tensor([1e-2, 2e-2, 3e-2], dtype=torch.float64)
-    preintegrate(gyro, acc, dt, acc_noise_density=per_axis)  # the general covariance: tensor code
-    preintegrate(gyro.clone().requires_grad_(), acc, dt)  # recorded by autograd
-    torch.func.vmap(lambda g: preintegrate(g, acc[0], dt[0]).delta.as_matrix())(gyro)
-    with native.disabled():
-        imu_results(gyro, acc, dt, b_g, b_a)
-    assert "imu_preintegrate" not in recorder.calls
-    # a window of no samples is refused by the kernel itself (preintegrate refuses it first)
-    with pytest.raises(ValueError, match="K >= 1"):
-        native._lib.imu_preintegrate(0, 0, 0, 0, 0, 0, 0, 1, 0, 1, True)
 
 
 # ------------------------------------------------------------- TLS linearisation kernel

@@ -1,5 +1,7 @@
-"""Optional C kernels: SGal(3) exp, log and their backward maps, and IMU preintegration, on CPU
-(``_native.c``).
+"""Optional C kernels: SGal(3) exp, log and their backward maps and the SGal(3) TLS linearisation,
+on CPU (``_native.c``); and the switches and constants of every C kernel of the package (the IMU
+preintegration kernel, ``torchsgal.imu._native``, is registered as a torch operator in
+``torchsgal.imu._kernels`` and follows ``enabled()`` too).
 
 In eager CPU code a closed form written as tensor operations pays torch's per-operation
 dispatch (~2 us) about 170 times for SGal(3) exp, whatever the batch size; at 1e3 elements that
@@ -19,14 +21,12 @@ the tensor code runs.  Batches of at least 16,384 elements are split over
 spin-wait after torch's last parallel operation), else POSIX threads
 (``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
 
-``kernels("imu")`` preintegrates IMU windows (``torchsgal.imu.preintegrate``'s CPU fast path,
-docs/guide/imu.md): the increment and the node sums of its covariance and bias Jacobian, one window
-per loop, in double precision.  ``kernels("tls")`` linearises the SGal(3) total-least-squares
+``kernels("tls")`` linearises the SGal(3) total-least-squares
 conditions and updates their residuals (``torchsgal.estimation.tls._structured``, float64,
 docs/guide/estimation.md), four conditions at a time, keeping its per-condition state packed.
 
-The extension is built by ``pip install`` where a C compiler is found and skipped otherwise
-(``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment turns the kernels off in
+The extensions are built by ``pip install`` where a C compiler is found and skipped otherwise
+(``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment turns every kernel off in
 the whole process; the ``disabled()`` context manager turns them off in the calling thread
 only, for the duration of its block (the tensor code then runs there).
 """
@@ -55,18 +55,20 @@ _state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0"}
 _thread = threading.local()
 
 
-def _set_constants() -> None:
+def set_constants(lib) -> None:
+    """Give a compiled kernel module (``functional._native``, ``imu._native``: each holds its own
+    copy, _native_common.h) the thresholds and series of ``numerics``, their only source."""
     def taylor(m):  # the series of c_m used by numerics.series_coefficients
         return [(-1.0) ** k / math.factorial(2 * k + m) for k in range(numerics.TAYLOR_TERMS)]
 
-    _lib.set_constants(numerics.SERIES_THRESHOLD, numerics.JINV_THRESHOLD,
-                       numerics.LOG_SYMMETRIC_COS, numerics.LOG_SIN_TAYLOR,
-                       taylor(3), taylor(4), taylor(5), taylor(6),
-                       [1.0 / math.factorial(m) for m in range(7)], list(numerics.JINV_SERIES))
+    lib.set_constants(numerics.SERIES_THRESHOLD, numerics.JINV_THRESHOLD,
+                      numerics.LOG_SYMMETRIC_COS, numerics.LOG_SIN_TAYLOR,
+                      taylor(3), taylor(4), taylor(5), taylor(6),
+                      [1.0 / math.factorial(m) for m in range(7)], list(numerics.JINV_SERIES))
 
 
 if _lib is not None:
-    _set_constants()
+    set_constants(_lib)
 
 
 def available() -> bool:
@@ -146,40 +148,6 @@ class _SGal3Kernels:
         if not (xi.shape[:-1] == M.shape[:-2] == g.shape[:-1] and _eligible((M, xi, g))):
             return None
         return _run(_lib.sgal3_log_vjp, (M, xi, g), M.shape[:-2], (5, 5))
-
-
-# Offsets of the node sums in the kernel's (n, 117) output (_native_imu.h), as the dict of
-# imu.preintegration._node_moments: name -> (offset, shape).
-_IMU_MOMENTS = {"w": (0, ()), "wt": (1, ()), "wtt": (2, ()), "wl": (3, (3,)), "wv": (6, (3,)),
-                "outer": (9, (6, 6)), "Y": (45, (8, 3, 3))}
-_IMU_WIDTH = 117
-
-
-class _ImuKernels:
-    """IMU preintegration of flattened windows (torchsgal.imu.preintegration._integrate_fast)."""
-
-    @staticmethod
-    def preintegrate(gyro: torch.Tensor, acc: torch.Tensor, dt: torch.Tensor, b_g: torch.Tensor,
-                     b_a: torch.Tensor, nodes: bool):
-        """(delta (n, 5, 5), node sums or None) of n windows: gyro, acc (n, K, 3), dt (n, K),
-        biases (n, 3), all of one dtype, K >= 1.  With ``nodes`` the sums are the dict of
-        ``_node_moments`` (the identity node included), each (n, ...); None where the kernels
-        may not run (the caller then runs the tensor code)."""
-        args = (gyro, acc, dt, b_g, b_a)
-        n, K = dt.shape
-        if not (gyro.shape == acc.shape == (n, K, 3) and b_g.shape == b_a.shape == (n, 3) and K >= 1
-                and _eligible(args)):
-            return None
-        ins = [_data(t) for t in args]
-        delta = torch.empty(n, 5, 5, dtype=gyro.dtype)
-        moments = torch.empty(n, _IMU_WIDTH, dtype=gyro.dtype) if nodes else None
-        _lib.imu_preintegrate(*(t.data_ptr() for t in ins), delta.data_ptr(),
-                              0 if moments is None else moments.data_ptr(), n, K,
-                              torch.get_num_threads(), gyro.dtype is torch.float64)
-        if moments is None:
-            return delta, None
-        return delta, {k: moments[:, o : o + math.prod(shape)].reshape(n, *shape)
-                       for k, (o, shape) in _IMU_MOMENTS.items()}
 
 
 class _TlsKernels:
@@ -318,7 +286,8 @@ class _TlsKernels:
 
 
 def kernels(name: str):
-    """The C kernels of ``name`` ("SGal3", "imu", "tls"), or None (not compiled, or no kernels)."""
+    """The C kernels of ``name`` ("SGal3", "tls"), or None (not compiled, or no kernels; the IMU
+    kernel is the operator ``torch.ops.torchsgal.imu_preintegrate``, torchsgal.imu._kernels)."""
     if _lib is None:
         return None
-    return {"SGal3": _SGal3Kernels, "imu": _ImuKernels, "tls": _TlsKernels}.get(name)
+    return {"SGal3": _SGal3Kernels, "tls": _TlsKernels}.get(name)

@@ -167,6 +167,22 @@ LOG_SIN_TAYLOR = 1e-4
 log_sin_taylor = _constant(LOG_SIN_TAYLOR)
 
 
+# ----------------------------------------------------------------------- IMU streaming
+# The one-sample path of imu/streaming.py evaluates c_1 .. c_4 at p = theta^2 as one product of
+# the powers p^1 .. p^(IMU_STREAM_TAYLOR_TERMS - 1) with their Taylor coefficients
+# (``taylor_table``) wherever p <= IMU_STREAM_SERIES_THRESHOLD_SQ, so a typical sample (theta < 1.58)
+# needs no sin/cos: the first term left out, p^12 / 25!, is below 4e-21 there.  Above it, the
+# closed forms (cancellation error about 1e-16 / p).
+IMU_STREAM_SERIES_THRESHOLD_SQ = 2.5
+IMU_STREAM_TAYLOR_TERMS = 12
+
+
+def taylor_table(orders: tuple[int, ...], terms: int) -> list[list[float]]:
+    """Taylor coefficients of c_m for m in ``orders``: row k holds (-1)^k / (2k + m)!, the
+    coefficient of theta^(2k), for k = 0 .. terms - 1."""
+    return [[(-1.0) ** k / math.factorial(2 * k + m) for m in orders] for k in range(terms)]
+
+
 # ----------------------------------------------------------------------------- Sim(3)
 # The Sim(3) scalar families (Barfoot, "Integral Forms", Sec. 4.4, (90); docs/guide/sim3_jacobian.md).
 # Moments of the scale weight w(a) = exp(-(1 - a) lambda) on [0, 1]:

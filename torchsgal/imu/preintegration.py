@@ -27,9 +27,10 @@ import torch
 
 from .. import SGal3
 from ..functional import blocks as B
-from ..functional import checks, native, unobserved
+from ..functional import checks, unobserved
 from ..functional import sgal3 as F
 from ..functional._blocking import _is_wrapped, is_compiling
+from . import _kernels  # registers torch.ops.torchsgal.imu_preintegrate
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
 EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
@@ -505,7 +506,8 @@ def preintegrate(
     On CPU with nothing recording (no autograd, functorch transform or compile) the same
     arithmetic runs in place and in blocks of windows (_integrate_fast, docs/guide/imu.md), or, where
     the optional C kernels were built and the covariance is isotropic or not asked for, as a C
-    loop over each window's samples in double precision (functional/_native_imu.h).
+    loop over each window's samples in double precision (imu/_native_imu.h), both through the
+    torch operator torch.ops.torchsgal.imu_preintegrate (imu/_kernels.py).
     """
     covariance = checks.boolean(covariance, "covariance")
     bias_jacobian = checks.boolean(bias_jacobian, "bias_jacobian")
@@ -682,44 +684,54 @@ def _node_moments_fast(groups, w_identity: torch.Tensor, ws: _Scratch) -> dict:
 
 
 def _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian):
-    """_integrate's results by the fast path: the windows flattened, run in blocks of about
-    _BLOCK_BYTES per component with one set of scratch buffers, the node sums of every block
-    gathered and the (small) covariance and bias Jacobian formed once."""
+    """_integrate's results by the fast path: the windows flattened and preintegrated by the
+    operator torch.ops.torchsgal.imu_preintegrate (imu/_kernels.py: the C loop, or the blocked
+    tensor code ``_blocked``), whose node sums give the (small) covariance and bias Jacobian;
+    a general (per-axis) covariance needs every node, so it runs ``_blocked`` here."""
     gyro, acc, dt, b_g, b_a, s_a, s_g = args
     K = gyro.shape[-2]
     n = math.prod(batch)
     flat = [gyro.expand(*batch, K, 3).reshape(n, K, 3), acc.expand(*batch, K, 3).reshape(n, K, 3),
             dt.expand(*batch, K).reshape(n, K), b_g.reshape(n, 3), b_a.reshape(n, 3)]
     if covariance and not isotropic:
-        flat += [s.expand(*batch, 3).reshape(n, 3) for s in (s_a, s_g)]
-    if not (covariance and not isotropic):
-        kernel = native.kernels("imu")
-        done = kernel and kernel.preintegrate(*flat[:5], nodes=covariance or bias_jacobian)
-        if done:
-            return _finish(done[0].reshape(*batch, 5, 5), done[1], batch, s_a, s_g, s_t, covariance,
-                           bias_jacobian)
+        general = tuple(s.expand(*batch, 3).reshape(n, 3) for s in (s_a, s_g)) + (s_t,)
+        delta, m, cov = _blocked(*flat, bias_jacobian, general)
+        jac = _bias_jacobian(m).reshape(*batch, 10, 6) if bias_jacobian else None
+        assert cov is not None  # general is given
+        return delta.reshape(*batch, 5, 5), cov.reshape(*batch, 10, 10), jac
+    nodes = covariance or bias_jacobian
+    delta, packed = torch.ops.torchsgal.imu_preintegrate(*flat, nodes)
+    return _finish(delta.reshape(*batch, 5, 5), _kernels.node_sums(packed) if nodes else None, batch,
+                   s_a, s_g, s_t, covariance, bias_jacobian)
+
+
+def _blocked(gyro, acc, dt, b_g, b_a, moments: bool, general=None):
+    """The fast path's tensor code for n >= 1 flattened windows, gyro, acc (n, K, 3), dt (n, K),
+    biases (n, 3): (delta (n, 5, 5), the node sums of _node_moments or None, the general
+    covariance (n, 10, 10) or None).  ``moments``: the node sums are wanted; ``general``: the
+    densities (s_a (n, 3), s_g (n, 3), s_t) of a general covariance, or None.  Run in blocks of
+    about _BLOCK_BYTES per component with one set of scratch buffers."""
+    n, K = dt.shape
     per = -(-n // min(n, max(1, n * K * gyro.element_size() // _BLOCK_BYTES)))  # windows per block, balanced
     delta = gyro.new_empty((16, n))
-    covs, moments, ws = [], [], _Scratch(gyro)
+    covs, sums, ws = [], [], _Scratch(gyro)
     for start in range(0, n, per):
-        part = [x[start : start + per] for x in flat]
-        if not (covariance or bias_jacobian):
-            delta[:, start : start + per] = _tree_product(_exp_streams(*part[:5], 1.0, ws), ws)
+        g, a, h, bg, ba = (x[start : start + per] for x in (gyro, acc, dt, b_g, b_a))
+        if not (moments or general is not None):
+            delta[:, start : start + per] = _tree_product(_exp_streams(g, a, h, bg, ba, 1.0, ws), ws)
             continue
-        d, groups, w_id = _nodes_fast(*part[:5], ws)
+        d, groups, w_id = _nodes_fast(g, a, h, bg, ba, ws)
         delta[:, start : start + per] = d
-        if covariance and not isotropic:
-            covs.append(_general_covariance(groups, w_id, part[5], part[6], s_t))
-        if (covariance and isotropic) or bias_jacobian:
-            moments.append(_node_moments_fast(groups, w_id, ws))  # the groups' X overwritten
+        if general is not None:
+            s_a, s_g, s_t = general
+            covs.append(_general_covariance(groups, w_id, s_a[start : start + per], s_g[start : start + per], s_t))
+        if moments:
+            sums.append(_node_moments_fast(groups, w_id, ws))  # the groups' X overwritten
     m = None
-    if moments:
-        m = {k: torch.cat([x[k] for x in moments]) for k in moments[0]} if len(moments) > 1 else moments[0]
-    out = _finish(F.unpack(delta).reshape(*batch, 5, 5), m, batch, s_a, s_g, s_t, covariance and isotropic,
-                  bias_jacobian)
-    if covs:
-        out = (out[0], (torch.cat(covs) if len(covs) > 1 else covs[0]).reshape(*batch, 10, 10), out[2])
-    return out
+    if sums:
+        m = {k: torch.cat([x[k] for x in sums]) for k in sums[0]} if len(sums) > 1 else sums[0]
+    cov = (torch.cat(covs) if len(covs) > 1 else covs[0]) if covs else None
+    return F.unpack(delta), m, cov
 
 
 def _finish(delta, m, batch, s_a, s_g, s_t, isotropic_covariance, bias_jacobian):

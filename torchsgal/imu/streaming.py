@@ -34,21 +34,20 @@ cross terms.  Both are associative, so chunks are reduced by a log-depth tree ov
 """
 from __future__ import annotations
 
-import math
 import numbers
 
 import torch
 
 from .. import SGal3
-from ..functional import checks
+from ..functional import checks, numerics
 from .preintegration import Preintegration, increment_tangents, preintegrate
 
 # Taylor coefficients of a = sin t / t, b = (1 - cos t)/t^2, c = (t - sin t)/t^3,
-# d = (t^2/2 + cos t - 1)/t^4 in powers of p = t^2 (n = 0..11): the n = 12 term is below
-# 1e-20 for p <= _TAYLOR_LIMIT; above it the closed forms (cancellation error about 1e-16 / p).
-_TERMS = 12
-_TAYLOR_LIMIT = 2.5
-_TAYLOR = [[(-1) ** n / math.factorial(2 * n + j) for j in (1, 2, 3, 4)] for n in range(_TERMS)]
+# d = (t^2/2 + cos t - 1)/t^4 (numerics' c_1 .. c_4) in powers of p = t^2, used for
+# p <= _TAYLOR_LIMIT; above it the closed forms (numerics.IMU_STREAM_SERIES_THRESHOLD_SQ).
+_TERMS = numerics.IMU_STREAM_TAYLOR_TERMS
+_TAYLOR_LIMIT = numerics.IMU_STREAM_SERIES_THRESHOLD_SQ
+_TAYLOR = numerics.taylor_table((1, 2, 3, 4), _TERMS)
 
 
 class _Constants:

@@ -1,5 +1,5 @@
-/* Galilean IMU preintegration of one window at a time (included once by _native.c, after the
- * SGal(3) kernels, whose exp coefficients it uses).
+/* Galilean IMU preintegration of one window at a time (included once by imu/_native.c, after
+ * the float64 SGal(3) kernels of functional/_native_sgal3.h, whose exp coefficients it uses).
  *
  * The arithmetic of torchsgal/imu/preintegration.py (_integrate / _integrate_fast) in a loop
  * over the samples of a window, run backwards so that nothing but the current suffix product
@@ -14,10 +14,10 @@
  *
  * Everything is computed in double, for float32 input too (the sequential product of a window
  * would otherwise drift by K float32 roundings).  The torch code is the oracle:
- * tests/test_native.py compares the two.  Packed layout as F.pack: C row-major (9), v, r, tau.
+ * tests/test_imu_kernels.py compares the two.  Packed layout as F.pack: C row-major (9), v, r, tau.
  */
 
-/* The 117 node sums per window, in this order (native.py reads them by these offsets). */
+/* The 117 node sums per window, in this order (imu/_kernels.py reads them by these offsets). */
 #define IMU_W 0        /* sum w (with the identity node) */
 #define IMU_WT 1       /* sum w th */
 #define IMU_WTT 2      /* sum w th^2 */

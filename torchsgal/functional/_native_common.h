@@ -1,0 +1,199 @@
+/* What the C extensions of torchsgal share (included once by each: functional/_native.c and
+ * imu/_native.c, every definition static to its module): the includes, the thresholds and series
+ * (each module holds its own copy, set from numerics.py by native.set_constants), the splitting
+ * of a batch over threads (run_parallel), the reading of a call's arguments (read_call) and the
+ * module functions set_constants and parallel_backend.  Include it before _native_sgal3.h.
+ */
+#ifndef TORCHSGAL_NATIVE_COMMON_H
+#define TORCHSGAL_NATIVE_COMMON_H
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#ifndef _WIN32
+#include <dlfcn.h>
+#include <pthread.h>
+#endif
+
+/* Loops worth vectorising wider than SSE2 get an AVX2 clone, picked at load time by the CPU
+ * (GCC/Clang function multi-versioning, x86-64 with ifunc support).  No FMA contraction
+ * (-ffp-contract=off): both clones round alike, element for element. */
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__linux__) && !defined(TORCHSGAL_NO_CLONES)
+#define WIDE_LOOPS __attribute__((target_clones("avx2", "default")))
+#else
+#define WIDE_LOOPS
+#endif
+
+#define MAX_TERMS 32
+static int TAYLOR_TERMS = 0;
+static double TAYLOR_C3[MAX_TERMS], TAYLOR_C4[MAX_TERMS], TAYLOR_C5[MAX_TERMS], TAYLOR_C6[MAX_TERMS];
+static double INV_FACT[8];
+static int N_BERNOULLI = 0;
+static double BERNOULLI[MAX_TERMS];
+static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLOR;
+
+typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
+
+typedef struct {
+    range_fn fn;
+    void **args;
+    int64_t lo, hi;
+} job_t;
+
+#define MAX_THREADS 64
+/* Work per thread (elements times their cost) below which a batch runs on the calling thread. */
+#define MIN_PER_THREAD 8192
+
+/* torch's own OpenMP threads, where its runtime is loaded (libgomp, or LLVM's libomp with the
+ * same entry points): work split over them does not compete with their spin-wait after torch's
+ * last parallel operation, as fresh pthreads do (measured: the batched TLS solve, 2 cores,
+ * about 7% of its time in libgomp's spin).  Looked up once, at import (after torch's);
+ * TORCHSGAL_NATIVE_OPENMP=0 in the environment keeps pthreads. */
+typedef void (*gomp_parallel_fn)(void (*)(void *), void *, unsigned, unsigned);
+typedef int (*omp_int_fn)(void);
+static gomp_parallel_fn gomp_parallel = NULL;
+static omp_int_fn omp_thread_num = NULL, omp_num_threads = NULL;
+
+static void find_openmp(void) {
+#ifndef _WIN32
+    const char *off = getenv("TORCHSGAL_NATIVE_OPENMP");
+    if (off && strcmp(off, "0") == 0) return;  /* pthreads instead */
+    const char *names[] = {"libgomp.so.1", "libomp.so", "libomp.dylib", "libiomp5.so", NULL};
+    for (int i = 0; names[i]; ++i) {
+        void *h = dlopen(names[i], RTLD_LAZY | RTLD_NOLOAD);
+        if (!h) continue;
+        gomp_parallel = (gomp_parallel_fn)dlsym(h, "GOMP_parallel");
+        omp_thread_num = (omp_int_fn)dlsym(h, "omp_get_thread_num");
+        omp_num_threads = (omp_int_fn)dlsym(h, "omp_get_num_threads");
+        if (gomp_parallel && omp_thread_num && omp_num_threads) return;
+        gomp_parallel = NULL;
+    }
+#endif
+}
+
+typedef struct {
+    range_fn fn;
+    void **args;
+    int64_t n;
+} omp_job_t;
+
+static void omp_share(void *p) {  /* this thread's share of [0, n), whatever the team's size */
+    const omp_job_t *j = p;
+    int64_t t = omp_thread_num(), nt = omp_num_threads(), step = (j->n + nt - 1) / nt;
+    int64_t lo = t * step, hi = lo + step < j->n ? lo + step : j->n;
+    if (lo < hi) j->fn(j->args, lo, hi);
+}
+
+#ifndef _WIN32
+static void *run_job(void *p) {
+    job_t *j = p;
+    j->fn(j->args, j->lo, j->hi);
+    return NULL;
+}
+#endif
+
+/* fn over [0, n) split over up to ``threads`` threads (torch's OpenMP threads, else pthreads);
+ * ``cost`` is the work of one item in units of one SGal(3) exp (1 for the group kernels, the
+ * samples of a window for the IMU). */
+static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int threads) {
+#ifndef _WIN32
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    if (threads > n) threads = (int)n;
+    if (threads > 1 && n / threads * cost >= MIN_PER_THREAD) {
+        if (gomp_parallel) {
+            omp_job_t job = {fn, args, n};
+            gomp_parallel(omp_share, &job, (unsigned)threads, 0);
+            return;
+        }
+        pthread_t tid[MAX_THREADS];
+        job_t jobs[MAX_THREADS];
+        int started[MAX_THREADS];
+        int64_t step = (n + threads - 1) / threads;
+        for (int t = 0; t < threads; ++t) {
+            int64_t lo = t * step, hi = lo + step < n ? lo + step : n;
+            jobs[t] = (job_t){fn, args, lo, hi};
+            started[t] = t > 0 && pthread_create(&tid[t], NULL, run_job, &jobs[t]) == 0;
+        }
+        for (int t = 0; t < threads; ++t)
+            if (t == 0 || !started[t]) fn(args, jobs[t].lo, jobs[t].hi);  /* own share, or a failed start */
+        for (int t = 1; t < threads; ++t)
+            if (started[t]) pthread_join(tid[t], NULL);
+        return;
+    }
+#endif
+    fn(args, 0, n);
+}
+
+/* Reads a call's ``np`` pointers (addresses of contiguous tensors, or 0) and then ``ni`` integers
+ * (a bool reads as 0 or 1) into ptr and ints; -1 with a Python exception set on failure. */
+static int read_call(PyObject *const *a, Py_ssize_t nargs, int np, void **ptr, int ni, int64_t *ints,
+                     const char *name) {
+    if (nargs != np + ni) {
+        PyErr_Format(PyExc_TypeError, "%s takes %d arguments", name, np + ni);
+        return -1;
+    }
+    if (TAYLOR_TERMS == 0) {
+        PyErr_SetString(PyExc_RuntimeError, "torchsgal native kernels used before set_constants");
+        return -1;
+    }
+    for (int i = 0; i < np; ++i) {
+        ptr[i] = PyLong_AsVoidPtr(a[i]);
+        if (ptr[i] == NULL && PyErr_Occurred()) return -1;
+    }
+    for (int i = 0; i < ni; ++i) ints[i] = PyLong_AsLongLong(a[np + i]);
+    return PyErr_Occurred() ? -1 : 0;
+}
+
+static int read_table(PyObject *seq, double *out, int cap, const char *name) {
+    PyObject *fast = PySequence_Fast(seq, name);
+    if (!fast) return -1;
+    Py_ssize_t len = PySequence_Fast_GET_SIZE(fast);
+    if (len < 1 || len > cap) {
+        Py_DECREF(fast);
+        PyErr_Format(PyExc_ValueError, "%s: %zd entries, expected 1 to %d", name, len, cap);
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < len; ++i) out[i] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(fast, i));
+    Py_DECREF(fast);
+    return PyErr_Occurred() ? -1 : (int)len;
+}
+
+/* set_constants(series_threshold, jinv_threshold, log_symmetric_cos, log_sin_taylor,
+ *               taylor_c3, taylor_c4, taylor_c5, taylor_c6, inv_fact, bernoulli) */
+static PyObject *py_set_constants(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *t3, *t4, *t5, *t6, *inv_fact, *bern;
+    double st, jt, lsc, lst;
+    if (!PyArg_ParseTuple(args, "ddddOOOOOO", &st, &jt, &lsc, &lst, &t3, &t4, &t5, &t6, &inv_fact, &bern))
+        return NULL;
+    int n3 = read_table(t3, TAYLOR_C3, MAX_TERMS, "taylor_c3"), n4 = read_table(t4, TAYLOR_C4, MAX_TERMS, "taylor_c4");
+    int n5 = read_table(t5, TAYLOR_C5, MAX_TERMS, "taylor_c5"), n6 = read_table(t6, TAYLOR_C6, MAX_TERMS, "taylor_c6");
+    int nf = read_table(inv_fact, INV_FACT, 8, "inv_fact"), nb = read_table(bern, BERNOULLI, MAX_TERMS, "bernoulli");
+    if (n3 < 0 || n4 < 0 || n5 < 0 || n6 < 0 || nf < 0 || nb < 0) return NULL;
+    if (n3 != n4 || n3 != n5 || n3 != n6 || nf < 7) {
+        PyErr_SetString(PyExc_ValueError, "the Taylor tables must have equal lengths and inv_fact 7 entries");
+        return NULL;
+    }
+    SERIES_THRESHOLD = st;
+    JINV_THRESHOLD = jt;
+    LOG_SYMMETRIC_COS = lsc;
+    LOG_SIN_TAYLOR = lst;
+    N_BERNOULLI = nb;
+    TAYLOR_TERMS = n3;
+    Py_RETURN_NONE;
+}
+
+/* parallel_backend(): "openmp" (torch's OpenMP threads), "pthreads" or "none" (Windows). */
+static PyObject *py_parallel_backend(PyObject *self, PyObject *unused) {
+    (void)self;
+    (void)unused;
+#ifdef _WIN32
+    return PyUnicode_FromString("none");
+#else
+    return PyUnicode_FromString(gomp_parallel ? "openmp" : "pthreads");
+#endif
+}
+
+#endif /* TORCHSGAL_NATIVE_COMMON_H */
