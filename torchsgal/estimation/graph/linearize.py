@@ -15,11 +15,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ...groups import LieGroup
+from ...groups import SE3, LieGroup
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
 from .robust import correct
+from .se3_terms import se3_log_jacobians
 
 
 @dataclass
@@ -50,6 +51,7 @@ class Block:
     reduced: bool  # every slot uniform: the E factors' blocks are summed by one product
     log_form: str | None = None  # "prior" / "between": r = log(Z^-1 h(x)) (``_log_form``)
     measured_inv: torch.Tensor | None = None  # Z^-1 as a matrix leaf, for ``log_form``
+    measured_inv_adjoint: torch.Tensor | None = None  # Ad(Z^-1), for SE(3) betweens
 
 
 class Problem:
@@ -130,8 +132,10 @@ class Problem:
         L, L_batched = self._noise(factor)
         form = _log_form(factor, [self.variables[k].group for k, _ in slots], data)
         inv = None if form is None else form[1]._f.inverse(data[0].as_matrix())  # Z^-1 once
+        fused_between = form is not None and form == ("between", SE3)
+        adj = SE3._f.adjoint(inv) if fused_between else None  # Ad(Z^-1) once
         return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1),
-                     E, uniform, reduced, None if form is None else form[0], inv)
+                     E, uniform, reduced, None if form is None else form[0], inv, adj)
 
     def _noise(self, factor: Factor) -> tuple[torch.Tensor | None, bool]:
         W, L = factor.information, factor.sqrt_information
@@ -174,12 +178,12 @@ class Problem:
             L = b.sqrt_info
             if L is not None and b.sqrt_info_batched:
                 L = L.index_select(0, rows)
-            inv = b.measured_inv
-            if inv is not None and b.data_batched[0]:
-                inv = inv.index_select(0, rows)
+            inv, adj = b.measured_inv, b.measured_inv_adjoint
+            if b.log_form is not None and b.data_batched[0]:
+                inv, adj = (None if t is None else t.index_select(0, rows) for t in (inv, adj))
             new.blocks.append(Block(b.factor, b.slots, data, b.data_batched, L,
                                     b.sqrt_info_batched, b.dofs, b.h_index, b.g_index, b.size,
-                                    b.uniform, b.reduced, b.log_form, inv))
+                                    b.uniform, b.reduced, b.log_form, inv, adj))
         return new
 
     # ------------------------------------------------------------------ values
@@ -327,8 +331,12 @@ def _whiten(block: Block, r: torch.Tensor, J: torch.Tensor | None, B: int
     r = r.expand((B, block.size) + r.shape[-1:])
     if block.sqrt_info is not None:
         L = block.sqrt_info
-        r = (L @ r.unsqueeze(-1)).squeeze(-1)
-        J = None if J is None else L @ J
+        if L.dim() == 2:  # shared: one (m x m) product over all rows (no batched small products)
+            r = r @ L.mT
+            J = None if J is None else torch.einsum("ij,...jk->...ik", L, J)
+        else:
+            r = (L @ r.unsqueeze(-1)).squeeze(-1)
+            J = None if J is None else L @ J
     return correct(block.factor.loss, r, J)
 
 
@@ -348,7 +356,9 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     ``J_r^-1``; the Jacobians are J_r^-1(r) (prior; between: J_j) and
     J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j, A^-1 = T_j^-1 T_i (the formulas of ``factors``),
     with each variable's inverses computed once and gathered; Z^-1 is the block's
-    ``measured_inv`` (computed once per problem)."""
+    ``measured_inv`` (computed once per problem).  On SE(3), log, J_r^-1 and J_l^-1 come from one
+    pass (``se3_terms``) and J_i = -J_l^-1(r) Ad(Z^-1) (as J_r^-1(r) = J_l^-1(r) Ad(E) and
+    E A^-1 = Z^-1), with Ad(Z^-1) computed once per problem."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
@@ -366,9 +376,11 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                 if v not in inverses:
                     inverses[v] = f.inverse(x[v])
             Ti, Tj = _args(block, x)
-            Ti_inv, Tj_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])
+            Ti_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])[0]
             A = Ti_inv @ Tj  # the group product: the product of the matrices
-            A_inv = Tj_inv @ Ti if want_jacobian else None  # = A^-1, for Ad(A^-1)
+            A_inv = None
+            if want_jacobian and block.measured_inv_adjoint is None:  # A^-1 = T_j^-1 T_i
+                A_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])[1] @ Ti
         err = Z_inv @ A
         stacks.setdefault(group, []).append((n, err.expand((B, block.size) + err.shape[-2:]), A_inv))
     out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
@@ -376,19 +388,32 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
         f = group._f
         sizes = [e.shape[1] for _, e, _ in items]
         errs = torch.cat([e for _, e, _ in items], dim=1) if len(items) > 1 else items[0][1]
-        r_all = f.log(errs)
-        if not want_jacobian:
+        if group is SE3:
+            r_all, jr_all, jl_all = se3_log_jacobians(errs, want_jacobian)
+        else:
+            r_all = f.log(errs)
+            jr_all = f.jr_inv(r_all) if want_jacobian else None
+            jl_all = None
+        if jr_all is None:
             for (n, _, _), r in zip(items, r_all.split(sizes, dim=1)):
                 out[n] = (r, None)
             continue
-        jinv_all = f.jr_inv(r_all)
-        for (n, _, A_inv), r, jinv in zip(items, r_all.split(sizes, dim=1),
-                                          jinv_all.split(sizes, dim=1)):
-            if A_inv is None:
+        jls = [None] * len(items) if jl_all is None else jl_all.split(sizes, dim=1)
+        for (n, _, A_inv), r, jinv, jl in zip(items, r_all.split(sizes, dim=1),
+                                              jr_all.split(sizes, dim=1), jls):
+            block = problem.blocks[n]
+            if block.log_form == "prior":
                 out[n] = (r, jinv)
+                continue
+            if jl is not None and block.measured_inv_adjoint is not None:
+                # [[a, u], [0, a]] [[R, T], [0, R]] = [[a R, a T + u R], [0, a R]]: the top rows'
+                # product, the bottom rows from its left block
+                top = torch.matmul(jl[..., :3, :], block.measured_inv_adjoint).neg_()
+                Ji = torch.cat([top, torch.cat([torch.zeros_like(top[..., :3]), top[..., :3]],
+                                               dim=-1)], dim=-2)
             else:
                 Ji = torch.matmul(jinv, f.adjoint(A_inv)).neg_()
-                out[n] = (r, torch.cat([Ji, jinv], dim=-1))
+            out[n] = (r, torch.cat([Ji, jinv], dim=-1))
     return out
 
 
@@ -421,11 +446,9 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
         model = model + 0.5 * (r * r).sum(dim=(-1, -2))
         if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
             J = J.reshape(B, -1, J.shape[-1])
-            r = r.reshape(B, -1, 1)
-        else:
-            r = r.unsqueeze(-1)
+            r = r.reshape(B, -1)
         h_vals.append((J.mT @ J).reshape(B, -1))
-        g_vals.append((J.mT @ r).reshape(B, -1))
+        g_vals.append((J * r.unsqueeze(-1)).sum(dim=-2).reshape(B, -1))  # J^T r
     g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, _cat(g_vals))
     return Linearization(_cat(h_vals), g, cost, model)
 

@@ -1,0 +1,129 @@
+"""SE(3) residual r = log(E) and both inverse Jacobians J_r^-1(r), J_l^-1(r) in one pass.
+
+The built-in priors and betweens on SE(3) need, per factor, the log of the error E and the
+inverse Jacobians at it.  Here they share one rotation log and one evaluation of the two
+scalar coefficients, and every step is a whole-batch tensor operation (no per-entry
+arithmetic), so that a linearisation costs a fixed, small number of operations.
+
+With xi = [rho, phi] = log(E), theta = |phi|, W = phi^, P = rho^ and ad = ad(xi) =
+[[W, P], [0, W]]: ad satisfies ad^5 + 2 theta^2 ad^3 + theta^4 ad = 0 (Barfoot, "State
+Estimation for Robotics", (7.87)), so the Bernoulli series J_l^-1 = sum_n B_n/n! ad^n reduces to
+
+    J_l^-1(xi) = I - ad/2 + alpha ad^2 + beta ad^4,   J_r^-1(xi) = J_l^-1(-xi) = I + ad/2 + ...
+
+whose blocks are, since W phi = 0 and W^3 = -theta^2 W,
+
+    diagonal      I -+ W/2 + d W^2                          (J^-1 of SO(3), (3.12))
+    upper right   -+ P/2 + d S - 2 beta (phi . rho) W^2,    S = phi rho^T + rho phi^T - 2 (phi . rho) I
+
+with h = (theta/2) cot(theta/2), d = (1 - h)/theta^2 = alpha - beta theta^2 and
+beta = (1 - h + theta h'/2)/theta^4 (the Hermite interpolation of x/2 coth(x/2) at +-i theta).
+The translation part of the log is rho = J^-1(phi) t with the same d.  Below theta = 1 the two
+coefficients come from their Bernoulli series.
+"""
+from __future__ import annotations
+
+from fractions import Fraction
+from math import comb, factorial
+
+import torch
+
+from ...functional import blocks
+
+__all__ = ["se3_log_jacobians", "SERIES_THRESHOLD"]
+
+SERIES_THRESHOLD = 1.0  # theta below which d and beta come from their series
+SERIES_TERMS = 14  # terms of each series: the last is below 1e-20 of the first at theta = 1
+
+
+def _bernoulli(n: int) -> list[Fraction]:
+    """B_0 .. B_n (B_1 = -1/2), by the recurrence sum_k C(m+1, k) B_k = 0."""
+    B = [Fraction(1)]
+    for m in range(1, n + 1):
+        B.append(-sum(comb(m + 1, k) * B[k] for k in range(m)) / (m + 1))
+    return B
+
+
+def _series() -> list[tuple[float, float]]:
+    """Coefficients of theta^(2j) in d and beta: with g_k = B_2k/(2k)!,
+    d = -sum_k>=1 (-1)^k g_k theta^(2k-2), beta = sum_k>=2 (k-1) (-1)^k g_k theta^(2k-4)."""
+    B = _bernoulli(2 * SERIES_TERMS + 2)
+    g = [B[2 * k] / factorial(2 * k) for k in range(SERIES_TERMS + 2)]
+    return [(float(-(-1) ** (j + 1) * g[j + 1]), float((j + 1) * (-1) ** (j + 2) * g[j + 2]))
+            for j in range(SERIES_TERMS)]
+
+
+_SERIES = _series()
+_CONSTANTS: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, ...]] = {}
+# ad(xi) from [0, xi, -xi] (indices into that 13-vector, row-major 6 x 6): [[phi^, rho^], [0, phi^]]
+_AD_INDEX = (0, 12, 5, 0, 9, 2,
+             6, 0, 10, 3, 0, 7,
+             11, 4, 0, 8, 1, 0,
+             0, 0, 0, 0, 12, 5,
+             0, 0, 0, 6, 0, 10,
+             0, 0, 0, 11, 4, 0)
+
+
+def _constants(like: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """(series coefficients (TERMS, 2), ad index (36,), I3), per dtype and device (tensors: no
+    per-call conversion of Python constants)."""
+    key = (like.dtype, like.device)
+    consts = _CONSTANTS.get(key)
+    if consts is None:
+        consts = (torch.tensor(_SERIES, dtype=like.dtype, device=like.device),
+                  torch.tensor(_AD_INDEX, dtype=torch.int64, device=like.device),
+                  torch.eye(3, dtype=like.dtype, device=like.device))
+        if type(like) is torch.Tensor and not like.is_inference():
+            _CONSTANTS[key] = consts
+    return consts
+
+
+def _coefficients(theta2: torch.Tensor, series: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(d, beta) (...) at theta^2 (module docstring); both branches evaluated on safe inputs
+    and selected with ``torch.where`` (finite values and gradients everywhere)."""
+    small = theta2 < SERIES_THRESHOLD ** 2
+    t2s = torch.where(small, theta2, torch.zeros_like(theta2))
+    t2l = torch.where(small, torch.ones_like(theta2), theta2)
+    # 1, t2, t2^2, ... by a running product (one kernel), then both series by one product
+    powers = torch.cat([torch.ones_like(t2s).unsqueeze(-1),
+                        t2s.unsqueeze(-1).expand(t2s.shape + (SERIES_TERMS - 1,))], dim=-1)
+    taylor = powers.cumprod(dim=-1) @ series  # (..., 2): d, beta
+    theta = t2l.sqrt()
+    s, c = torch.sin(0.5 * theta), torch.cos(0.5 * theta)
+    h = theta * c / (2.0 * s)  # (theta/2) cot(theta/2)
+    d = (1.0 - h) / t2l
+    # beta = (1 - theta (theta + sin theta) / (4 (1 - cos theta))) / theta^4, half angles
+    beta = (1.0 - theta * (theta + 2.0 * s * c) / (8.0 * s * s)) / (t2l * t2l)
+    return torch.where(small, taylor[..., 0], d), torch.where(small, taylor[..., 1], beta)
+
+
+def se3_log_jacobians(E: torch.Tensor, want_jacobians: bool
+                      ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """(r = log(E) (..., 6), J_r^-1(r) (..., 6, 6), J_l^-1(r) (..., 6, 6)) for SE(3) matrices
+    E (..., 4, 4); the Jacobians are None unless ``want_jacobians``."""
+    series, ad_index, I3 = _constants(E)
+    t = E[..., :3, 3]
+    phi = blocks.last(blocks.rotation_log(E[..., :3, :3]))  # angle in [0, pi]
+    theta2 = (phi * phi).sum(-1)
+    d, beta = _coefficients(theta2, series)
+    d_, t2_ = d.unsqueeze(-1), theta2.unsqueeze(-1)
+    # rho = J^-1(phi) t = t - phi x t / 2 + d (phi (phi . t) - theta^2 t)
+    rho = (t - 0.5 * torch.linalg.cross(phi, t)
+           + d_ * (phi * (phi * t).sum(-1, keepdim=True) - t2_ * t))
+    r = torch.cat([rho, phi], dim=-1)
+    if not want_jacobians:
+        return r, None, None
+    ad = torch.cat([torch.zeros_like(r[..., :1]), r, -r], dim=-1)[..., ad_index].unflatten(
+        -1, (6, 6))
+    pr = (phi * rho).sum(-1)[..., None, None]
+    outer = phi[..., :, None, None] * torch.stack([phi, rho], dim=-2).unsqueeze(-3)  # (..., 3, 2, 3)
+    W2 = outer[..., 0, :] - t2_.unsqueeze(-1) * I3  # phi phi^T - theta^2 I = W^2
+    S = outer[..., 1, :] + outer[..., 1, :].mT - 2.0 * pr * I3
+    diagonal = I3 + d_.unsqueeze(-1) * W2
+    upper = d_.unsqueeze(-1) * S - (2.0 * beta[..., None, None]) * pr * W2
+    even = E.new_zeros(E.shape[:-2] + (6, 6))
+    even[..., :3, :3] = diagonal
+    even[..., 3:, 3:] = diagonal
+    even[..., :3, 3:] = upper
+    half_ad = 0.5 * ad
+    return r, even + half_ad, even - half_ad
