@@ -6,9 +6,11 @@ its core, and a multi-threaded run can take twice the time of a single-threaded 
 ``threads_for_load`` picks a thread count from the cores that are idle now: every core on an
 idle machine, one fewer for each core another process keeps busy, never fewer than one.  The
 command line (``python -m torchsgal tls``) uses it unless ``--threads`` is given; a program
-calls ``use_threads_for_load()`` once, where it starts, to the same end (docs/guide/threads.md:
-the measurements behind this policy).  It samples the load once, at the call: a load that
-starts later is not seen.
+calls ``use_threads_for_load()`` once, where it starts, to the same end.  It samples the load
+once, at the call: a load that starts later is not seen.  Against that, and against the collapse
+itself, ``OMP_WAIT_POLICY=PASSIVE`` in the environment before torch is loaded makes the threads
+that wait at the end of an operation sleep instead of spinning (docs/guide/threads.md: the
+measurements behind this policy).
 """
 from __future__ import annotations
 
