@@ -89,3 +89,22 @@ def test_gradients_are_correct_and_finite_at_the_identity():
     # d/dxi of the sum of r at 0 is 1 per component (log(exp(xi)) = xi)
     (g_r,) = torch.autograd.grad(fn(zero)[0].sum(), zero)
     torch.testing.assert_close(g_r, torch.ones_like(g_r), rtol=0, atol=1e-12)
+
+
+def test_rotation_log_at_and_near_pi_about_every_kind_of_axis():
+    """Half turns about the coordinate axes, diagonals and random axes (where the axis comes from
+    the symmetric part and ties between diagonal entries occur), and angles just below pi."""
+    axes = torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1],
+                         [1, 1, 1], [1, -1, 1], [-1, 2, 3]], dtype=f64)
+    axes = torch.cat([axes, torch.randn(50, 3, generator=torch.Generator().manual_seed(10),
+                                        dtype=f64)])
+    axes = axes / axes.norm(dim=-1, keepdim=True)
+    for angle in (math.pi, math.pi - 1e-10, math.pi - 1e-5, 0.5 * math.pi + 1e-9,
+                  0.5 * math.pi - 1e-9):
+        xi = torch.cat([torch.ones_like(axes), angle * axes], dim=-1)
+        E = se3.exp(xi)
+        r, Jr, _ = se3_log_jacobians(E, True)
+        ref = se3.log(E)
+        torch.testing.assert_close(r, ref, rtol=0, atol=1e-12)
+        torch.testing.assert_close(se3.exp(r), E, rtol=0, atol=1e-12)
+        torch.testing.assert_close(Jr, se3.jr_inv(ref), rtol=0, atol=1e-10)

@@ -6,14 +6,14 @@ scalar coefficients, and every step is a whole-batch tensor operation (no per-en
 arithmetic), so that a linearisation costs a fixed, small number of operations.
 
 With xi = [rho, phi] = log(E), theta = |phi|, W = phi^, P = rho^ and ad = ad(xi) =
-[[W, P], [0, W]]: ad satisfies ad^5 + 2 theta^2 ad^3 + theta^4 ad = 0 (Barfoot, "State
-Estimation for Robotics", (7.87)), so the Bernoulli series J_l^-1 = sum_n B_n/n! ad^n reduces to
+[[W, P], [0, W]]: ad satisfies its minimal polynomial ad^5 + 2 theta^2 ad^3 + theta^4 ad = 0
+(Barfoot, "Integral Forms", (31)), so the Bernoulli series J_l^-1 = sum_n B_n/n! ad^n reduces to
 
     J_l^-1(xi) = I - ad/2 + alpha ad^2 + beta ad^4,   J_r^-1(xi) = J_l^-1(-xi) = I + ad/2 + ...
 
 whose blocks are, since W phi = 0 and W^3 = -theta^2 W,
 
-    diagonal      I -+ W/2 + d W^2                          (J^-1 of SO(3), (3.12))
+    diagonal      I -+ W/2 + d W^2                          (J^-1 of SO(3), Kelly-Giamou (3.12))
     upper right   -+ P/2 + d S - 2 beta (phi . rho) W^2,    S = phi rho^T + rho phi^T - 2 (phi . rho) I
 
 with h = (theta/2) cot(theta/2), d = (1 - h)/theta^2 = alpha - beta theta^2 and
@@ -25,10 +25,11 @@ from __future__ import annotations
 
 from fractions import Fraction
 from math import comb, factorial
+from typing import NamedTuple
 
 import torch
 
-from ...functional import blocks
+from ...functional import numerics
 
 __all__ = ["se3_log_jacobians", "SERIES_THRESHOLD"]
 
@@ -54,7 +55,7 @@ def _series() -> list[tuple[float, float]]:
 
 
 _SERIES = _series()
-_CONSTANTS: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, ...]] = {}
+_CONSTANTS: dict[tuple[torch.dtype, torch.device], _Constants] = {}
 # ad(xi) from [0, xi, -xi] (indices into that 13-vector, row-major 6 x 6): [[phi^, rho^], [0, phi^]]
 _AD_INDEX = (0, 12, 5, 0, 9, 2,
              6, 0, 10, 3, 0, 7,
@@ -64,15 +65,27 @@ _AD_INDEX = (0, 12, 5, 0, 9, 2,
              0, 0, 0, 11, 4, 0)
 
 
-def _constants(like: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """(series coefficients (TERMS, 2), ad index (36,), I3), per dtype and device (tensors: no
-    per-call conversion of Python constants)."""
+class _Constants(NamedTuple):
+    series: torch.Tensor  # (SERIES_TERMS, 2): d, beta
+    ad_index: torch.Tensor  # (36,)
+    eye: torch.Tensor  # (3, 3)
+    arange: torch.Tensor  # (3,)
+    skew_plus: torch.Tensor  # (3,): flat indices of C21, C02, C10
+    skew_minus: torch.Tensor  # (3,): flat indices of C12, C20, C01
+    diagonal: torch.Tensor  # (3,): flat indices of C00, C11, C22
+
+
+def _constants(like: torch.Tensor) -> _Constants:
+    """The constants per dtype and device (tensors: no per-call conversion of Python values)."""
     key = (like.dtype, like.device)
     consts = _CONSTANTS.get(key)
     if consts is None:
-        consts = (torch.tensor(_SERIES, dtype=like.dtype, device=like.device),
-                  torch.tensor(_AD_INDEX, dtype=torch.int64, device=like.device),
-                  torch.eye(3, dtype=like.dtype, device=like.device))
+        def index(values):
+            return torch.tensor(values, dtype=torch.int64, device=like.device)
+
+        consts = _Constants(torch.tensor(_SERIES, dtype=like.dtype, device=like.device),
+                            index(_AD_INDEX), torch.eye(3, dtype=like.dtype, device=like.device),
+                            index((0, 1, 2)), index((7, 2, 3)), index((5, 6, 1)), index((0, 4, 8)))
         if type(like) is torch.Tensor and not like.is_inference():
             _CONSTANTS[key] = consts
     return consts
@@ -97,15 +110,47 @@ def _coefficients(theta2: torch.Tensor, series: torch.Tensor) -> tuple[torch.Ten
     return torch.where(small, taylor[..., 0], d), torch.where(small, taylor[..., 1], beta)
 
 
+def _rotation_log(C: torch.Tensor, k: _Constants) -> torch.Tensor:
+    """phi (..., 3) = log(C)^vee, angle in [0, pi], as ``functional.blocks.rotation_log`` (the
+    same branches and thresholds) on whole vectors: theta = atan2(|s|, c) with s = vee(C - C^T)/2
+    and c = (tr C - 1)/2; phi = (theta / sin theta) s, by its Taylor series where sin theta is
+    tiny; for c < LOG_SYMMETRIC_COS the axis is the column of (C + C^T)/2 - c I with the largest
+    diagonal entry, signed by s (nothing divides by sin theta near pi)."""
+    flat = C.flatten(-2)
+    s = 0.5 * (flat.index_select(-1, k.skew_plus) - flat.index_select(-1, k.skew_minus))
+    diag = flat.index_select(-1, k.diagonal)
+    cos = 0.5 * (diag.sum(-1) - 1.0)
+    ss = (s * s).sum(-1)
+    positive = ss > 0
+    sin = torch.where(positive, torch.where(positive, ss, torch.ones_like(ss)).sqrt(),
+                      torch.zeros_like(ss))
+    theta = torch.atan2(sin, cos)
+    tiny = sin < numerics.LOG_SIN_TAYLOR
+    t2 = theta * theta
+    ratio = torch.where(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0,
+                        theta / torch.where(tiny, torch.ones_like(sin), sin))
+    # near pi: the column of the symmetric part (C + C^T)/2 - c I with the largest diagonal
+    sym = 0.5 * (C + C.mT)
+    pick = (diag - cos.unsqueeze(-1)).argmax(dim=-1, keepdim=True)  # the first largest, as blocks
+    col = torch.take_along_dim(sym, pick.unsqueeze(-2), dim=-1).squeeze(-1)  # (..., 3)
+    col = col - cos.unsqueeze(-1) * (k.arange == pick)  # minus c I's entry
+    near_pi = cos < numerics.LOG_SYMMETRIC_COS
+    sign = torch.where((col * s).sum(-1) < 0, -torch.ones_like(sin), torch.ones_like(sin))
+    norm = torch.where(near_pi, (col * col).sum(-1), torch.ones_like(sin)).sqrt()
+    return torch.where(near_pi.unsqueeze(-1), (sign * theta / norm).unsqueeze(-1) * col,
+                       ratio.unsqueeze(-1) * s)
+
+
 def se3_log_jacobians(E: torch.Tensor, want_jacobians: bool
                       ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """(r = log(E) (..., 6), J_r^-1(r) (..., 6, 6), J_l^-1(r) (..., 6, 6)) for SE(3) matrices
     E (..., 4, 4); the Jacobians are None unless ``want_jacobians``."""
-    series, ad_index, I3 = _constants(E)
+    k = _constants(E)
+    I3 = k.eye
     t = E[..., :3, 3]
-    phi = blocks.last(blocks.rotation_log(E[..., :3, :3]))  # angle in [0, pi]
+    phi = _rotation_log(E[..., :3, :3], k)  # angle in [0, pi]
     theta2 = (phi * phi).sum(-1)
-    d, beta = _coefficients(theta2, series)
+    d, beta = _coefficients(theta2, k.series)
     d_, t2_ = d.unsqueeze(-1), theta2.unsqueeze(-1)
     # rho = J^-1(phi) t = t - phi x t / 2 + d (phi (phi . t) - theta^2 t)
     rho = (t - 0.5 * torch.linalg.cross(phi, t)
@@ -113,7 +158,7 @@ def se3_log_jacobians(E: torch.Tensor, want_jacobians: bool
     r = torch.cat([rho, phi], dim=-1)
     if not want_jacobians:
         return r, None, None
-    ad = torch.cat([torch.zeros_like(r[..., :1]), r, -r], dim=-1)[..., ad_index].unflatten(
+    ad = torch.cat([torch.zeros_like(r[..., :1]), r, -r], dim=-1)[..., k.ad_index].unflatten(
         -1, (6, 6))
     pr = (phi * rho).sum(-1)[..., None, None]
     outer = phi[..., :, None, None] * torch.stack([phi, rho], dim=-2).unsqueeze(-3)  # (..., 3, 2, 3)
