@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from torchsgal.estimation.graph.se3_terms import SERIES_THRESHOLD, se3_log_jacobians
+from torchsgal.estimation.graph.se3_terms import SERIES_THRESHOLD, se3_inverse, se3_log_jacobians
 from torchsgal.functional import se3
 
 f64 = torch.float64
@@ -108,3 +108,12 @@ def test_rotation_log_at_and_near_pi_about_every_kind_of_axis():
         torch.testing.assert_close(r, ref, rtol=0, atol=1e-12)
         torch.testing.assert_close(se3.exp(r), E, rtol=0, atol=1e-12)
         torch.testing.assert_close(Jr, se3.jr_inv(ref), rtol=0, atol=1e-10)
+
+
+def test_inverse_matches_the_group_module_and_the_matrix_inverse():
+    E = se3.exp(_xi(100, 2.0, seed=11))
+    inv = se3_inverse(E)
+    torch.testing.assert_close(inv, se3.inverse(E), rtol=0, atol=1e-14)
+    torch.testing.assert_close(inv, torch.linalg.inv(E), rtol=0, atol=1e-12)
+    xi = _xi(4, 1.0, seed=12).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda v: se3_inverse(se3.exp(v)), (xi,), eps=1e-6, atol=1e-7)

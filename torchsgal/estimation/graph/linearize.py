@@ -20,7 +20,7 @@ from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
 from .robust import correct
-from .se3_terms import se3_log_jacobians
+from .se3_terms import se3_inverse, se3_log_jacobians
 
 
 @dataclass
@@ -374,7 +374,7 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
         else:
             for v, _ in block.slots:  # T_i and T_j may be elements of two variables
                 if v not in inverses:
-                    inverses[v] = f.inverse(x[v])
+                    inverses[v] = se3_inverse(x[v]) if group is SE3 else f.inverse(x[v])
             Ti, Tj = _args(block, x)
             Ti_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])[0]
             A = Ti_inv @ Tj  # the group product: the product of the matrices

@@ -31,7 +31,7 @@ import torch
 
 from ...functional import numerics
 
-__all__ = ["se3_log_jacobians", "SERIES_THRESHOLD"]
+__all__ = ["se3_log_jacobians", "se3_inverse", "SERIES_THRESHOLD"]
 
 SERIES_THRESHOLD = 1.0  # theta below which d and beta come from their series
 SERIES_TERMS = 14  # terms of each series: the last is below 1e-20 of the first at theta = 1
@@ -172,3 +172,13 @@ def se3_log_jacobians(E: torch.Tensor, want_jacobians: bool
     even[..., :3, 3:] = upper
     half_ad = 0.5 * ad
     return r, even + half_ad, even - half_ad
+
+
+def se3_inverse(M: torch.Tensor) -> torch.Tensor:
+    """[[C^T, -C^T r], [0, 1]] (..., 4, 4) for SE(3) matrices M = [[C, r], [0, 1]]."""
+    Ct = M[..., :3, :3].mT
+    out = torch.zeros_like(M)
+    out[..., :3, :3] = Ct
+    out[..., :3, 3] = -(Ct * M[..., None, :3, 3]).sum(-1)
+    out[..., 3, 3] = 1.0
+    return out
