@@ -36,6 +36,7 @@ import contextlib
 import math
 import os
 import threading
+from types import ModuleType
 
 import torch
 
@@ -55,7 +56,7 @@ _state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0"}
 _thread = threading.local()
 
 
-def set_constants(lib) -> None:
+def set_constants(lib: ModuleType) -> None:
     """Give a compiled kernel module (``functional._native``, ``imu._native``: each holds its own
     copy, _native_common.h) the thresholds and series of ``numerics``, their only source."""
     def taylor(m):  # the series of c_m used by numerics.series_coefficients

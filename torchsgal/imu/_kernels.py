@@ -47,14 +47,14 @@ def available() -> bool:
     return _lib is not None
 
 
-def node_sums(moments: torch.Tensor) -> dict:
+def node_sums(moments: torch.Tensor) -> dict[str, torch.Tensor]:
     """The dict of ``preintegration._node_moments`` (views, each (n, ...)) of the operator's
     packed (n, 117) node sums."""
     n = moments.shape[0]
     return {k: moments[:, o : o + math.prod(shape)].reshape(n, *shape) for k, (o, shape) in MOMENTS.items()}
 
 
-def _pack(sums: dict, n: int) -> torch.Tensor:
+def _pack(sums: dict[str, torch.Tensor], n: int) -> torch.Tensor:
     """The packed (n, 117) node sums of a ``_node_moments`` dict (the inverse of ``node_sums``)."""
     return torch.cat([sums[k].reshape(n, -1) for k in MOMENTS], dim=1)
 
