@@ -25,10 +25,12 @@ DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal d
 
 def _tiny_diagonal(H: torch.Tensor, rcond: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(the diagonal (B, D) of H, (B,) True where an entry is <= rcond times the largest or H
-    has a non-finite entry)."""
+    has a non-finite entry).  A non-finite entry makes the sum of H's entries non-finite (inf,
+    or NaN for inf - inf; so does a sum past the float range, entries no factorisation
+    handles): one reduction instead of an elementwise finiteness test of every entry."""
     d = H.diagonal(dim1=-2, dim2=-1)
-    tiny = (d <= rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(H).all(
-        dim=(-1, -2))
+    tiny = (d <= rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(
+        H.sum(dim=(-1, -2)))
     return d, tiny
 
 
