@@ -441,9 +441,11 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
         else:
             r, J, rho = _block_terms(problem, block, x, True)
         assert J is not None  # asked for
-        cost = cost + 0.5 * rho.sum(dim=-1)
+        half = 0.5 * rho.sum(dim=-1)
+        cost = cost + half
         J = J.expand((B, block.size) + J.shape[-2:])
-        model = model + 0.5 * (r * r).sum(dim=(-1, -2))
+        # 1/2 |r~|^2; without a loss rho(s) = s = |r~|^2 already (``robust.correct``)
+        model = model + (half if block.factor.loss is None else 0.5 * (r * r).sum(dim=(-1, -2)))
         if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
             J = J.reshape(B, -1, J.shape[-1])
             r = r.reshape(B, -1)
