@@ -9,9 +9,6 @@ import torch
 import torchsgal as ts
 from torchsgal.estimation import SolverStatus, gauss_helmert, study, tls
 from torchsgal.estimation import variables as V
-from torchsgal.estimation.gauss_helmert import variant_options as gauss_helmert_variant_options
-from torchsgal.estimation.solver import iterate
-from torchsgal.functional import native
 
 f64 = torch.float64
 
@@ -179,13 +176,13 @@ def test_data_that_require_gradients_solve_as_detached_data(solver, variant, sam
     assert torch.equal(sol.x[0].as_matrix(), ref.x[0].as_matrix())
 
 
-def test_straggler_fraction_is_checked_by_its_own_name():
+def test_solver_options_are_checked_by_their_own_names():
     P, _ = _problem()
-    for bad in (2.0, -0.1, float("nan")):
-        with pytest.raises(ValueError, match=r"straggler_fraction must be a finite number in \[0, 1\]"):
-            tls.solve_sgal3(P, straggler_fraction=bad)
-    with pytest.raises(TypeError, match="stop_below_fraction is set by the TLS solvers; give straggler_fraction"):
-        tls.solve_baseline(P, stop_below_fraction=0.5)
+    with pytest.raises(TypeError, match=r"unknown solver option\(s\) \['straggler_fraction'\]"):
+        tls.solve_sgal3(P, straggler_fraction=0.1)
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="step_tol must be a finite number >= 0"):
+            tls.solve_baseline(P, step_tol=bad)
     for bad in (0, -1):
         with pytest.raises(ValueError, match="reweightings must be an integer >= 1"):
             tls.solve_sgal3_lbfgs(P, reweightings=bad)
@@ -257,8 +254,8 @@ def test_problem_and_unknowns_are_checked():
         tls.solve_sgal3(P, dtau0=torch.ones(3, dtype=f64))
     with pytest.raises(ValueError, match=r"dtau0 must be a scalar or have shape \(B,\)"):
         tls.solve_baseline(P, dtau0=torch.ones(4, 1, dtype=f64))
-    with pytest.raises(ValueError, match="damping must be a finite number >= 0, got -1.0"):
-        tls.solve_sgal3(P, damping=-1.0)
+    with pytest.raises(ValueError, match="lambda_initial must be a finite number > 0, got -1.0"):
+        tls.solve_sgal3(P, lambda_initial=-1.0)
     with pytest.raises(ValueError, match="max_iterations must be an integer >= 0"):
         tls.solve_baseline(P, max_iterations=-1)
     with pytest.raises(ValueError, match="variant must be one of"):
@@ -408,17 +405,15 @@ def _random_covariance(shape, gen, scale):
     return scale * (A @ A.transpose(-1, -2) / 10 + 0.2 * torch.eye(10, dtype=f64))
 
 
-@pytest.mark.parametrize("estimator, kernel", [("sgal3", True), ("sgal3", False), ("baseline", False)],
-                         ids=["sgal3-C", "sgal3-tensor", "baseline"])
+@pytest.mark.parametrize("estimator", ["sgal3", "baseline"])
 @pytest.mark.parametrize("variant", ["iterated", "paper"])
 @pytest.mark.parametrize("covariance", ["paper", "per trial", "per sample"])
-def test_structured_solver_matches_generic_gauss_helmert(estimator, kernel, variant, covariance, monkeypatch):
-    """The solvers' closed-form normal equations (tls._structured, in chunks of trials) give
-    the generic Gauss-Helmert solution of sgal3_condition / baseline_condition: estimates,
-    covariances, residual estimates, costs and iteration counts.  SGal(3) with ``kernel``: the
-    optional C kernel of the linearisation where it was built (tests/test_native.py)."""
-    if not kernel:
-        monkeypatch.setattr(native, "_state", {"on": False})
+def test_engine_solvers_match_generic_gauss_helmert(estimator, variant, covariance):
+    """The solvers on the factor-graph engine (graph.GaussHelmert, one condition per sample)
+    give the generic Gauss-Helmert solution of sgal3_condition / baseline_condition: estimates,
+    covariances, residual estimates and costs.  Measured: paper variant 1e-10 standard
+    deviations; iterated 1e-7 (the engine's Levenberg-Marquardt stops on its cost test at the
+    rounding of the cost, where the generic solver accepts every short step)."""
     cfg = study.StudyConfig(trials=5, samples=13, seed=10)
     trials = study.simulate(cfg)
     P = trials.problem
@@ -437,49 +432,21 @@ def test_structured_solver_matches_generic_gauss_helmert(estimator, kernel, vari
         X0, t0 = tls.baseline_start(F0)  # the solver's start (invariant reading, the default)
         x0 = (X0, t0[:, None], dt)
         cond, cov = tls.baseline_condition(P), tls.baseline_covariance(P)
-    options = {"damping": None if variant == "paper" else 1e-4}
-    ref = gauss_helmert(cond, x0, cov, variant=variant, **dict(options))
-    iterated = gauss_helmert_variant_options(variant, options)
-    linearise, post_step = tls._structured(P, iterated, estimator == "baseline", chunk=2)
-    new = iterate(linearise, x0, None, post_step, **options)
+    ref = gauss_helmert(cond, x0, cov, variant=variant, step_tol=1e-10, max_iterations=100)
+    solve = tls.solve_sgal3 if estimator == "sgal3" else tls.solve_baseline
+    new = solve(P, variant=variant, step_tol=1e-10, max_iterations=100)
+    assert new.report.converged.all() and ref.report.converged.all()
+    tol = 1e-9 if variant == "paper" else 1e-6
     sd = ref.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
     d = torch.cat([new.x[0].rminus(ref.x[0])] + [a - b for a, b in zip(new.x[1:], ref.x[1:])], -1)
-    assert (d / sd).abs().max() < 1e-9
+    assert (d / sd).abs().max() < tol
     outer = sd[:, :, None] * sd[:, None, :]
-    assert ((new.covariance - ref.covariance) / outer).abs().max() < 1e-9
-    assert (new.aux - ref.aux).abs().max() < 1e-9
-    assert torch.allclose(new.report.cost, ref.report.cost, rtol=1e-9)
-    assert torch.equal(new.report.status, ref.report.status)
-    assert torch.equal(new.report.iterations, ref.report.iterations)
-    # And the public solver goes through it.
-    solve = tls.solve_sgal3 if estimator == "sgal3" else tls.solve_baseline
-    sol = solve(P, variant=variant)
-    d = torch.cat([sol.x[0].rminus(ref.x[0])] + [a - b for a, b in zip(sol.x[1:], ref.x[1:])], -1)
-    assert (d / sd).abs().max() < 1e-5
-
-
-@pytest.mark.parametrize("variant", ["iterated", "paper"])
-@pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])
-def test_structured_solver_marks_a_singular_effective_covariance(variant, kernel, monkeypatch):
-    """An effective covariance that is not positive definite (here: zero observation noise in
-    one trial, which the input check would reject) makes that trial NON_FINITE; the others
-    are solved as usual."""
-    import sys
-    if not kernel:
-        monkeypatch.setattr(native, "_state", {"on": False})
-    # the input checks skipped (as where values cannot be read: each block then factorised whole)
-    monkeypatch.setattr(sys.modules["torchsgal.estimation.gauss_helmert"], "values_readable",
-                        lambda S: False)
-    cfg = study.StudyConfig(trials=3, samples=11, seed=12)
-    P = study.simulate(cfg).problem
-    S = P.cov_a.expand(3, 1, 10, 10).clone()
-    S[1] = 0.0
-    Q = tls.TLSProblem.__new__(tls.TLSProblem)
-    Q.indices, Q.M, Q.covariance = P.indices, P.M, (S, S)
-    options = {"damping": None if variant == "paper" else 1e-4}
-    linearise, post_step = tls._structured(Q, gauss_helmert_variant_options(variant, options))
-    sol = iterate(linearise, P.initial_guess(-1.0), None, post_step, **options)
-    assert sol.report.status.tolist() == [0, SolverStatus.NON_FINITE, 0]
+    assert ((new.covariance - ref.covariance) / outer).abs().max() < tol
+    torch.testing.assert_close(new.report.cost, ref.report.cost, rtol=tol, atol=0)
+    if variant == "iterated":
+        assert (new.aux - ref.aux).abs().max() < 1e-7
+    else:
+        assert new.aux is None
 
 
 def _edge_problem():

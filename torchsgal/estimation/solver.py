@@ -217,11 +217,6 @@ def _check_options(max_iterations, damping, max_damping, stop_below_fraction, **
         checks.finite_number(value, name, ">= 0")
 
 
-# The attribute of a ``linearise`` (and its ``post_step``) that take ``active=`` (B,) bool, the
-# problems whose results are used: the others' may be anything (finite or not).
-ACTIVE_SET = "takes_active_set"
-
-
 def iterate(
     linearise: Callable,
     x0,
@@ -241,8 +236,6 @@ def iterate(
 
     ``linearise(x, aux) -> Linearisation`` at the current point; ``post_step(x, aux, lin,
     delta) -> aux`` gives the solver state that goes with the new point (None: unchanged).
-    Where ``linearise`` has the attribute ``ACTIVE_SET`` true, both also receive
-    ``active=``: the running problems (the others' results are not used).
     ``damping=None`` takes plain Gauss-Newton steps (every step accepted); otherwise
     Levenberg-Marquardt with per-problem damping starting at ``damping``.
     ``stop_below_fraction``: leave the loop (the problems still running get MAX_ITERATIONS)
@@ -306,11 +299,9 @@ def iterate(
         delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
         delta = torch.where((running & solvable)[:, None], delta, torch.zeros_like(delta))
         x_new = V.retract(x, delta)
-        # A problem that is not running keeps its point and linearisation whatever the new ones
-        # are: callables that take ``active`` may skip it (ACTIVE_SET below).
-        kw = {"active": running} if getattr(linearise, ACTIVE_SET, False) else {}
-        aux_new = post_step(x, aux, lin, delta, **kw) if post_step is not None else aux
-        lin_new = linearise(x_new, aux_new, **kw)
+        # A problem that is not running keeps its point and linearisation whatever the new ones are.
+        aux_new = post_step(x, aux, lin, delta) if post_step is not None else aux
+        lin_new = linearise(x_new, aux_new)
         finite_new = V.finite(x_new) & lin_new.finite()
         lin_new.normal_equations()
         cost_new = lin_new.cost

@@ -282,8 +282,7 @@ def run(cfg: StudyConfig, chunk: int = DEFAULT_CHUNK, progress: bool = True) -> 
     """Runs the study; returns a dict with the config, the chunk, per-estimator results and
     timings.  ``chunk``: trials simulated and solved per batch (a positive int).  The simulated
     trials do not depend on it (``simulate``); the estimates may, in the last digits: a
-    stopping decision can flip with rounding, and without the C kernel the paper variant takes
-    the generic path for batches below ``tls.STRUCTURED_MIN_CONDITIONS`` conditions."""
+    stopping decision can flip with rounding."""
     if not isinstance(cfg, StudyConfig):
         raise TypeError(f"cfg must be a StudyConfig, got {type(cfg).__name__}")
     checks.boolean(progress, "progress")

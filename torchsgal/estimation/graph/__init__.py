@@ -38,6 +38,9 @@ iterations; ``"none"`` (default) returns detached values.
 Batches of small problems use a dense batched Cholesky; one large problem (more than 1000
 unknowns, or ``linear_solver="sparse"``) the sparse Cholesky of ``estimation.sparse``.
 
+Errors-in-variables conditions f(x, l) = 0 with the observation corrections eliminated per
+condition are ``GaussHelmert`` factors, solved by ``gauss_helmert`` (``gauss_helmert`` module).
+
 Modules: ``factors`` (Factor, Prior, Between, PointObservation), ``robust`` (losses),
 ``graph`` (FactorGraph), ``linearize`` (evaluation and assembly of the normal equations),
 ``linear_system`` (dense and sparse solves, rank test, marginals), ``levenberg_marquardt``
@@ -46,10 +49,11 @@ gradient).  User guide: ``docs/guide/factor_graphs.md``.
 """
 from .dogleg import dogleg
 from .factors import Between, Factor, PointObservation, Prior
+from .gauss_helmert import GaussHelmert, gauss_helmert
 from .graph import FactorGraph
 from .levenberg_marquardt import GraphResult, gauss_newton, levenberg_marquardt
 from .robust import Cauchy, GemanMcClure, Huber, RobustLoss, TrivialLoss, Tukey
 
 __all__ = ["FactorGraph", "Factor", "Prior", "Between", "PointObservation", "RobustLoss",
            "TrivialLoss", "Huber", "Cauchy", "GemanMcClure", "Tukey", "levenberg_marquardt",
-           "gauss_newton", "dogleg", "GraphResult"]
+           "gauss_newton", "dogleg", "GraphResult", "GaussHelmert", "gauss_helmert"]

@@ -1,0 +1,168 @@
+"""graph.GaussHelmert: errors-in-variables conditions in the factor-graph engine, against the
+generic Gauss-Helmert solver, the closed-form total-least-squares line, forward mode against
+the analytic TLS Jacobians, bad input and non-finite data."""
+import pytest
+import torch
+
+from torchsgal.estimation import gauss_helmert as generic_gauss_helmert
+from torchsgal.estimation import graph as fg
+from torchsgal.estimation import study, tls
+from torchsgal.estimation import tls_solvers
+from torchsgal.estimation.graph.gauss_helmert import _forward_jacobians
+from torchsgal.estimation.solver import SolverStatus
+
+f64 = torch.float64
+
+
+def _line_data(B=4, E=30, seed=0, sigma=0.05):
+    """Points (u, v) near lines v = a u + b with noise on both coordinates."""
+    gen = torch.Generator().manual_seed(seed)
+    a = torch.randn(B, 1, generator=gen, dtype=f64)
+    b = torch.randn(B, 1, generator=gen, dtype=f64)
+    u = 4 * torch.rand(B, E, generator=gen, dtype=f64) - 2
+    v = a * u + b
+    obs = torch.stack([u, v], -1) + sigma * torch.randn(B, E, 2, generator=gen, dtype=f64)
+    return obs, torch.cat([a, b], -1)
+
+
+def _line_condition(x, obs, e):
+    """v + e_v - a (u + e_u) - b for x = (a, b)."""
+    u, v = obs[..., 0] + e[..., 0], obs[..., 1] + e[..., 1]
+    return (v - x[..., 0] * u - x[..., 1])[..., None]
+
+
+def _line_graph(obs, cov, iterated, x0):
+    B, E = obs.shape[:2]
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0[:, None, :])
+    factor = fg.GaussHelmert(_line_condition, [("x", torch.zeros(E, dtype=torch.int64))], cov,
+                             data=[obs], dim=1, iterated=iterated)
+    graph.add(factor)
+    return graph, factor
+
+
+def _generic_line(obs, cov, variant, x0):
+    def condition(x, e):
+        e = torch.zeros_like(obs) if e is None else e
+        c = _line_condition(x[:, None, :], obs, e)
+        u = obs[..., 0] + e[..., 0]
+        A = torch.stack([-u, -torch.ones_like(u)], -1)[..., None, :]
+        Bm = torch.stack([-x[:, None, 0].expand_as(u), torch.ones_like(u)], -1)[..., None, :]
+        return c, A, Bm
+    S = cov if cov.dim() == 4 else cov.expand(obs.shape[:2] + cov.shape[-2:])
+    return generic_gauss_helmert(condition, x0, S, variant=variant, step_tol=1e-12,
+                                 max_iterations=100)
+
+
+@pytest.mark.parametrize("iterated", [True, False])
+@pytest.mark.parametrize("covariance", ["shared diagonal", "per point full"])
+def test_line_fit_matches_the_generic_gauss_helmert_solver(iterated, covariance):
+    """Forward-mode Jacobians of a user condition; the estimate, covariance, cost and the
+    corrections equal the generic solver's (estimation.gauss_helmert): the paper-style form to
+    1e-8 standard deviations, the iterated one to 1e-6 (measured 1e-7: it stops on its cost
+    test at the rounding of the cost, the generic solver on its step)."""
+    obs, truth = _line_data()
+    B, E = obs.shape[:2]
+    if covariance == "shared diagonal":
+        cov = torch.diag(torch.tensor([0.05 ** 2, 0.08 ** 2], dtype=f64))
+    else:
+        gen = torch.Generator().manual_seed(3)
+        A = 0.05 * torch.randn(B, E, 2, 2, generator=gen, dtype=f64)
+        cov = A @ A.mT + 1e-3 * torch.eye(2, dtype=f64)
+    x0 = truth + 0.3
+    graph, factor = _line_graph(obs, cov, iterated, x0)
+    result = fg.gauss_helmert(graph, damped=iterated, step_tol=1e-10, cost_tests=iterated,
+                              relative_error_tol=1e-15, absolute_error_tol=0.0)
+    ref = _generic_line(obs, cov, "iterated" if iterated else "paper", x0)
+    assert result.report.converged.all() and ref.report.converged.all()
+    x = result.values["x"][:, 0]
+    sd = ref.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
+    tol = 1e-6 if iterated else 1e-8
+    assert ((x - ref.x) / sd).abs().max() < tol
+    P = torch.linalg.inv(result.information)
+    assert ((P - ref.covariance) / (sd[:, :, None] * sd[:, None, :])).abs().max() < tol
+    torch.testing.assert_close(result.report.cost, ref.report.cost, rtol=tol, atol=0)
+    if iterated:  # in standard deviations of the observations
+        assert (factor.corrections - ref.aux).abs().max() < tol * 0.05
+
+
+def test_iterated_line_fit_with_isotropic_noise_is_the_orthogonal_regression():
+    """Isotropic noise on both coordinates: the errors-in-variables line is the total-least-
+    squares line of the centred points (the principal direction, from an eigendecomposition)."""
+    obs, truth = _line_data(B=3, E=40, seed=4, sigma=0.1)
+    cov = 0.1 ** 2 * torch.eye(2, dtype=f64)
+    graph, factor = _line_graph(obs, cov, True, truth + 0.2)
+    result = fg.gauss_helmert(graph, step_tol=1e-10, relative_error_tol=1e-15,
+                              absolute_error_tol=0.0)
+    assert result.report.converged.all()
+    mean = obs.mean(1, keepdim=True)
+    C = (obs - mean).mT @ (obs - mean)
+    direction = torch.linalg.eigh(C).eigenvectors[..., :, -1]  # (B, 2)
+    a = direction[:, 1] / direction[:, 0]
+    b = mean[:, 0, 1] - a * mean[:, 0, 0]
+    x = result.values["x"][:, 0]
+    torch.testing.assert_close(x, torch.stack([a, b], -1), rtol=0, atol=1e-8)
+    # the corrected points lie on the line, and each correction is orthogonal to it
+    corrected = obs + factor.corrections
+    on_line = corrected[..., 1] - x[:, None, 0] * corrected[..., 0] - x[:, None, 1]
+    assert on_line.abs().max() < 1e-7
+    along = factor.corrections @ direction[:, :, None]
+    assert along.abs().max() < 1e-7
+
+
+@pytest.mark.parametrize("estimator", ["sgal3", "baseline"])
+def test_forward_mode_jacobians_equal_the_analytic_tls_jacobians(estimator):
+    """The TLS conditions' analytic Jacobians (at non-zero corrections: exact derivatives)
+    against the factor's forward mode."""
+    P = study.simulate(study.StudyConfig(trials=3, samples=5, seed=2)).problem
+    F0, dt = P.initial_guess(-1.0)
+    n = P.indices[:, None]
+    e = 0.05 * torch.randn(3, 5, 20, generator=torch.Generator().manual_seed(1), dtype=f64)
+    if estimator == "sgal3":
+        variables, data = [F0.unsqueeze(-1), dt[:, None, :]], [P.M, n]
+        terms, condition = tls_solvers._sgal3_terms, tls_solvers._sgal3_condition
+    else:
+        X0, t0 = tls.baseline_start(F0)
+        M, dclock = tls.baseline_observations(P)
+        variables = [X0.unsqueeze(-1), t0[:, None, None], dt[:, None, :]]
+        data = [M, dclock[..., None], n]
+        terms, condition = tls_solvers._baseline_terms, tls_solvers._baseline_condition
+    c, As, Bm = terms(*variables, *data, e)
+    c2, As2, Bm2 = _forward_jacobians(condition, variables, data, e)
+    torch.testing.assert_close(c, c2, rtol=0, atol=1e-13)
+    for A, A2 in zip(As, As2):
+        torch.testing.assert_close(A.expand_as(A2), A2, rtol=0, atol=1e-12)
+    torch.testing.assert_close(Bm, Bm2, rtol=0, atol=1e-12)
+
+
+def test_non_finite_observation_spoils_only_its_problem():
+    obs, truth = _line_data(B=3)
+    cov = 0.05 ** 2 * torch.eye(2, dtype=f64)
+    bad = obs.clone()
+    bad[1, 4, 0] = float("nan")
+    graph, _ = _line_graph(bad, cov, True, truth + 0.1)
+    result = fg.gauss_helmert(graph, step_tol=1e-10)
+    assert result.report.status.tolist() == [0, SolverStatus.NON_FINITE, 0]
+    alone, _ = _line_graph(obs[2:], cov, True, truth[2:] + 0.1)
+    ref = fg.gauss_helmert(alone, step_tol=1e-10)
+    torch.testing.assert_close(result.values["x"][2], ref.values["x"][0], rtol=0, atol=1e-12)
+
+
+def test_bad_input_names_the_argument():
+    obs, truth = _line_data(B=2, E=5)
+    idx = torch.zeros(5, dtype=torch.int64)
+    cov = 0.05 ** 2 * torch.eye(2, dtype=f64)
+    with pytest.raises(ValueError, match="covariance is not positive definite"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], -cov, data=[obs], dim=1)
+    with pytest.raises(TypeError, match="iterated must be True or False"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], cov, data=[obs], dim=1, iterated=1)
+    with pytest.raises(ValueError, match=r"corrections must have shape \(E, m\) or \(B, E, m\)"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], cov, data=[obs], dim=1,
+                        corrections=torch.zeros(4, 2, dtype=f64))
+    with pytest.raises(TypeError, match="condition must be callable"):
+        fg.GaussHelmert(None, [("x", idx)], cov, data=[obs], dim=1)
+    graph, _ = _line_graph(obs, cov, True, truth)
+    with pytest.raises(ValueError, match="step_tol must be a finite number >= 0"):
+        fg.gauss_helmert(graph, step_tol=-1.0)
+    with pytest.raises(ValueError, match="update_below must be a finite number > 0"):
+        fg.gauss_helmert(graph, update_below=0.0)

@@ -1,0 +1,404 @@
+"""Errors-in-variables (Gauss-Helmert) conditions as factors of the engine.
+
+A condition ``f(x, l) = 0`` ties unknowns x (graph variables) to observations l with
+covariance Sigma.  The observations are corrected, l_hat = l + e (e in the parametrisation the
+condition function reads, e.g. right perturbations of observed group elements), and the cost
+is 1/2 sum e^T Sigma^-1 e subject to the conditions.  Linearising the condition at (x, l_hat)
+
+    f(x exp(d), l + e') ~ c + A d + Bm (e' - e),   c = f(x, l_hat),  A = df/dx,  Bm = df/de,
+
+and eliminating e' per condition (Lagrange multipliers; kelly-giamou (5.23)-(5.24)) leaves the
+reduced, whitened residual and its Jacobian in x
+
+    r = L^-1 w,   J = L^-1 A,   w = c - Bm e,   S = Bm Sigma Bm^T = L L^T,          (5.24)
+
+with the updated corrections e' = -Sigma Bm^T S^-1 (w + A d).  ``GaussHelmert`` is a
+``Factor`` whose residual is r (its cost 1/2 |r|^2 = 1/2 w^T S^-1 w is the linearised
+errors-in-variables cost) and whose Jacobians are J, analytic (``jacobians``) or by
+forward-mode differentiation of the condition (one ``jvp`` per tangent direction, batched over
+every condition and problem under ``vmap``).
+
+Two forms (``iterated``): the iterated form re-linearises at the current corrected
+observations, which the factor carries as state (``corrections``, (B, E, m)) and
+``gauss_helmert`` updates after each accepted step, to e' = -Sigma Bm^T S^-1 w at the new
+point (the classical Gauss-Helmert update; its fixed point is the constrained optimum); the
+paper-style form (kelly-giamou (5.18)) always linearises at the raw observations, e = 0.
+
+``gauss_helmert(graph)`` runs the engine's Levenberg-Marquardt (or Gauss-Newton) rounds with
+that state update: the step is taken with the corrections fixed, the corrections are then
+updated where the step was accepted and the graph is re-linearised there.  A problem converges
+when GTSAM's cost test holds both for the step and for the corrections' update.  For a graph
+without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton``).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+
+from ...functional import checks
+from ...groups import LieGroup
+from ..gauss_helmert import check_covariance
+from ..solver import SolverStatus
+from .factors import Data, Factor
+from .graph import FactorGraph
+from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _full, _solve, _State, _trial, _where
+from .linear_system import LinearSystem
+from .linearize import Problem, linearize
+
+__all__ = ["GaussHelmert", "gauss_helmert"]
+
+
+class GaussHelmert(Factor):
+    """E errors-in-variables conditions ``f(x, l) = 0`` with the observation corrections
+    eliminated per condition (module docstring).
+
+    condition      ``f(*variables, *data, e) -> c (..., k)``: the condition of ONE factor at
+                   the corrected observations (correction ``e`` (..., m)), written on group
+                   elements / tensors, broadcasting over leading batch axes (the engine passes
+                   (B, E)).
+    variables      ``[(name, index), ...]`` as for ``Factor``.
+    covariance     Sigma of the observations: (m, m) shared, (E, m, m) per condition or
+                   (B, E, m, m) per problem and condition; symmetric positive definite
+                   (a diagonal Sigma is detected and used elementwise).
+    data           the observations and other data, as for ``Factor`` ((E, ...) or (B, E, ...)).
+    dim            k, the size of the condition.
+    jacobians      optional ``g(*variables, *data, e) -> (c, [A_1, ...], Bm)``, A_j (..., k, dof_j)
+                   the derivative with respect to the right perturbation of variable j
+                   (additive for Euclidean ones), Bm (..., k, m) with respect to e; the
+                   paper-style form passes e = None (zero corrections).  The iterated form
+                   needs the exact derivatives of c (it holds S and Bm e while x moves); in
+                   the paper-style form any invertible (k, k) factor per condition may
+                   multiply the linearisation (every A_j and Bm, and c's linear part) without
+                   changing the solution.  Default: forward mode (exact).
+    iterated       True (default): re-linearise at the corrected observations, carried in
+                   ``corrections``; False: the paper-style form, always at e = 0.
+    corrections    the initial corrections (E, m) or (B, E, m); default zeros.  After
+                   ``gauss_helmert`` it holds the estimated corrections (B, E, m) (or (E, m)
+                   for an unbatched graph).
+    """
+
+    def __init__(self, condition: Callable, variables: Sequence[tuple[str, object]],
+                 covariance: torch.Tensor, *, data: Sequence[Data] = (), dim: int,
+                 jacobians: Callable | None = None, iterated: bool = True,
+                 corrections: torch.Tensor | None = None):
+        if not callable(condition):
+            raise TypeError(f"condition must be callable, got {type(condition).__name__}")
+        if jacobians is not None and not callable(jacobians):
+            raise TypeError(f"jacobians must be callable or None, got {type(jacobians).__name__}")
+        self.iterated = checks.boolean(iterated, "iterated")
+        self.condition = condition
+        self.condition_jacobians = jacobians
+        check_covariance(covariance, covariance.shape[-1] if isinstance(covariance, torch.Tensor)
+                         and covariance.dim() >= 2 else 0, "covariance")
+        if covariance.dim() > 4:
+            raise ValueError(f"covariance must have shape (m, m), (E, m, m) or (B, E, m, m), got "
+                             f"{tuple(covariance.shape)}")
+        self.m = covariance.shape[-1]
+        off = covariance - torch.diag_embed(covariance.diagonal(dim1=-2, dim2=-1))
+        self.diagonal = not bool(off.any())
+        factor = (covariance.diagonal(dim1=-2, dim2=-1).sqrt() if self.diagonal
+                  else torch.linalg.cholesky(covariance))
+        if covariance.dim() == 2:
+            factor = factor[None]  # one for every condition: leading size 1
+        self.user_data = tuple(data)
+        super().__init__(self._residual, variables, data=(*self.user_data, factor),
+                         dim=dim, jacobians=self._jacobians)
+        self.covariance = covariance
+        if corrections is not None:
+            corrections = checks.floating(corrections, "corrections")
+            if corrections.dim() not in (2, 3) or corrections.shape[-1] != self.m or \
+                    corrections.shape[-2] != self.size:
+                raise ValueError(f"corrections must have shape (E, m) or (B, E, m) = (..., "
+                                 f"{self.size}, {self.m}), got {tuple(corrections.shape)}")
+            corrections = corrections.detach().clone()
+        self.corrections: torch.Tensor | None = corrections
+        self.linearisation: tuple[torch.Tensor, torch.Tensor] | None = None  # (L, Bm e), iterated
+        # between the engine's calls: whether to re-linearise S and Bm e at the current point,
+        # what that gave, and the corrections' update at the last point evaluated
+        self._refresh = True
+        self._fresh: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+        self._point: torch.Tensor | None = None  # the update at the linearisation point
+        self._candidate: torch.Tensor | None = None
+
+    # ------------------------------------------------------------------ evaluation
+    def _split(self, args):
+        """(variables, user data, covariance factor, state) of an engine call; the state is
+        (corrections, L, v) for the iterated form, None for the paper-style one."""
+        nv, nd = len(self.slots), len(self.user_data)
+        variables, rest = args[:nv], args[nv:]
+        state = tuple(rest[nd + 1:nd + 4]) if self.iterated else None
+        return variables, rest[:nd], rest[nd], state
+
+    def _linearise(self, args, want_jacobian: bool):
+        variables, data, factor, state = self._split(args)
+        if state is None:  # paper-style: at the raw observations, S at the current x
+            if self.condition_jacobians is not None:  # the condition may take a cheaper path
+                c, As, Bm = self.condition_jacobians(*variables, *data, None)
+            else:
+                shape = torch.broadcast_shapes(*[_batch(v) for v in variables],
+                                               *[_batch(d) for d in data])
+                c, As, Bm = _forward_jacobians(self.condition, variables, data,
+                                               factor.new_zeros(shape + (self.m,)))
+            w, L, W = c, None, None
+        else:
+            e, L, v = state
+            if self.condition_jacobians is not None:
+                c, As, Bm = self.condition_jacobians(*variables, *data, e)
+            else:
+                c, As, Bm = _forward_jacobians(self.condition, variables, data, e)
+            if self._refresh:  # a new linearisation point: S and Bm e from here on
+                v = (Bm @ e[..., None])[..., 0]
+                L = None
+            w = c - v
+        batch = torch.broadcast_shapes(c.shape[:-1], *([] if state is None else [state[0].shape[:-1]]))
+        c, w, Bm = c.expand(batch + c.shape[-1:]), w.expand(batch + w.shape[-1:]), \
+            Bm.expand(batch + Bm.shape[-2:])
+        W = Bm * factor[..., None, :] if self.diagonal else Bm @ factor  # Bm Sigma^(1/2)
+        if L is None:
+            L, info = torch.linalg.cholesky_ex(W @ W.mT)
+            # a non-positive-definite S (non-finite data) gives NaN, reported NON_FINITE
+            L = torch.where((info == 0)[..., None, None], L, float("nan"))
+        cols = [w[..., None]]
+        if want_jacobian:
+            cols += [A.expand(batch + A.shape[-2:]) for A in As]
+        sol = torch.linalg.solve_triangular(L, torch.cat(cols, -1), upper=False)
+        r = sol[..., 0]
+        if state is not None:  # e' = -Sigma Bm^T S^-1 w = -R W^T L^-T r
+            y = torch.linalg.solve_triangular(L.mT, r[..., None], upper=True)
+            u = (W.mT @ y)[..., 0]
+            self._candidate = -(u * factor if self.diagonal else (factor @ u[..., None])[..., 0])
+            if self._refresh:
+                self._fresh = (L, v.expand(batch + v.shape[-1:]), self._candidate)
+        if not want_jacobian:
+            return r, None
+        Js, start = [], 1
+        for A in As:
+            Js.append(sol[..., start:start + A.shape[-1]])
+            start += A.shape[-1]
+        return r, Js
+
+    def _residual(self, *args):
+        return self._linearise(args, False)[0]
+
+    def _jacobians(self, *args):
+        return self._linearise(args, True)
+
+
+def _batch(v) -> torch.Size:
+    if isinstance(v, LieGroup):
+        return v.batch_shape
+    return v.shape[:-1] if isinstance(v, torch.Tensor) and v.dim() else torch.Size()
+
+
+def _forward_jacobians(condition: Callable, variables, data, e):
+    """(c, [A_j], Bm) by forward mode: the derivatives along every tangent direction of the
+    variables (right perturbations) and of e, one ``jvp`` each, batched under ``vmap``."""
+    sizes = [v.dof if isinstance(v, LieGroup) else v.shape[-1] for v in variables] + [e.shape[-1]]
+    batch = torch.broadcast_shapes(e.shape[:-1], *[_batch(v) for v in variables])
+    zeros = tuple(e.new_zeros(batch + (s,)) for s in sizes)
+    total = sum(sizes)
+    eye = torch.eye(total, dtype=e.dtype, device=e.device)
+    tangents, start = [], 0
+    for s in sizes:  # (total, *batch, s): column j of the basis, restricted to this argument
+        tangents.append(eye[:, start:start + s].reshape((total,) + (1,) * len(batch) + (s,))
+                        .expand((total,) + batch + (s,)))
+        start += s
+
+    def fn(*ds):
+        moved = [v.compose(type(v).exp(d)) if isinstance(v, LieGroup) else v + d
+                 for v, d in zip(variables, ds[:-1])]
+        return condition(*moved, *data, e + ds[-1])
+
+    def column(*ts):
+        return torch.func.jvp(fn, zeros, ts)
+
+    c, dc = torch.func.vmap(column, out_dims=(None, 0))(*tangents)
+    dc = dc.movedim(0, -1)  # (..., k, total)
+    parts, start = [], 0
+    for s in sizes:
+        parts.append(dc[..., start:start + s])
+        start += s
+    return c, parts[:-1], parts[-1]
+
+
+# ---------------------------------------------------------------------------------- solver
+def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool = True,
+                  lambda_initial: float = 1e-5, lambda_factor: float = 10.0,
+                  lambda_upper: float = 1e5, lambda_lower: float = 0.0,
+                  min_model_fidelity: float = 1e-3, diagonal_damping: bool = False,
+                  relative_error_tol: float = 1e-5, absolute_error_tol: float = 1e-5,
+                  error_tol: float = 0.0, step_tol: float = 0.0, cost_tests: bool = True,
+                  update_below: float = 1.0,
+                  linear_solver: str = "auto") -> GraphResult:
+    """Solves a graph with ``GaussHelmert`` conditions (and any other factors) for every
+    problem of its batch: Levenberg-Marquardt (``damped=True``, GTSAM's rules as
+    ``levenberg_marquardt``) or Gauss-Newton (``damped=False``) rounds, the iterated
+    conditions' corrections updated after each accepted step (module docstring).  The paper-
+    style form is a Gauss-Newton fixed point that does not minimise the cost it evaluates (the
+    weights S move with x), so solve it with ``damped=False``.
+
+    Each problem converges when the step's cost decrease and the cost change of the
+    corrections' update are both within ``relative_error_tol`` (relative) or
+    ``absolute_error_tol``, or when an accepted step is shorter than ``step_tol`` standard
+    deviations (sqrt(delta^T H delta); 0: this test off).  ``cost_tests=False`` leaves the
+    step test alone (the paper-style form: its cost is not minimised, and rises and falls as
+    its fixed point is approached).  The corrections are updated after accepted steps shorter
+    than ``update_below`` standard deviations only (far from the solution a large misclosure
+    gives large corrections, where the conditions are far from linear), so a problem starts
+    as the paper-style form and turns iterated as it approaches its solution.  The iterated
+    factors' ``corrections`` hold the estimate afterwards.  The solution carries no gradient."""
+    _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
+           min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol,
+           diagonal_damping, linear_solver, "none")
+    checks.boolean(damped, "damped")
+    checks.finite_number(step_tol, "step_tol", ">= 0")
+    checks.boolean(cost_tests, "cost_tests")
+    checks.finite_number(update_below, "update_below", "> 0")
+    if not isinstance(graph, FactorGraph):
+        raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
+    _prepare_states(graph)
+    o = dict(damped=damped, lambda_initial=lambda_initial if damped else 0.0,
+             lambda_factor=lambda_factor, lambda_upper=lambda_upper, lambda_lower=lambda_lower,
+             min_fidelity=min_model_fidelity, diagonal=diagonal_damping,
+             rel_tol=relative_error_tol, abs_tol=absolute_error_tol, error_tol=error_tol,
+             step_tol=step_tol, cost_tests=cost_tests, update_below=update_below,
+             linear_solver=linear_solver, round=_gauss_helmert_round)
+    return _solve(graph, max_iterations, "none", o)
+
+
+def _prepare_states(graph: FactorGraph) -> None:
+    """The iterated conditions' state as data, owned by the factor: the corrections e
+    (B, E, m), the Cholesky factor L (B, E, k, k) of S and Bm e (B, E, k) at the linearisation
+    point ((E, ...) for an unbatched graph).  The engine's first linearisation computes L and
+    Bm e (``_refresh``); the rounds then update the state in place."""
+    first = next(iter(graph.variables.values()), None)
+    if first is None:
+        return
+    leaf = first.as_matrix() if isinstance(first, LieGroup) else first
+    B = graph.batch_size
+    lead = ((B,) if B is not None else ())
+    for f in graph.factors:
+        if not isinstance(f, GaussHelmert) or not f.iterated:
+            continue
+        k = f.dim
+        assert k is not None  # required by GaussHelmert
+        shape = lead + (f.size, f.m)
+        e = f.corrections
+        e = leaf.new_zeros(shape) if e is None else e.to(leaf).expand(shape).clone()
+        f.corrections = e
+        f.linearisation = (leaf.new_zeros(lead + (f.size, k, k)), leaf.new_zeros(lead + (f.size, k)))
+        f.data = (*f.user_data, f.data[len(f.user_data)], e, *f.linearisation)
+        f._refresh, f._fresh, f._candidate, f._point = True, None, None, torch.zeros_like(e)
+
+
+def _iterated_blocks(problem: Problem) -> list:
+    return [b for b in problem.blocks if isinstance(b.factor, GaussHelmert) and b.factor.iterated]
+
+
+def _store(state: torch.Tensor, rows: torch.Tensor, new: torch.Tensor) -> None:
+    """Writes the working set's rows ``rows`` of a state tensor (``new`` may also hold every
+    problem, as the engine's first linearisation does; unbatched: the one problem)."""
+    if state.dim() != new.dim():
+        state.copy_(new.reshape(state.shape))
+    elif new.shape[0] == state.shape[0]:
+        state.copy_(new)
+    else:
+        state.index_copy_(0, rows, new)
+
+
+def _take_fresh(blocks: list, rows: torch.Tensor) -> None:
+    """The linearisation (L, Bm e) that the last refreshing evaluation computed, into the
+    factors' state; later evaluations use it until the next refresh."""
+    for b in blocks:
+        f = b.factor
+        if f._fresh is not None:
+            for state, new in zip((*f.linearisation, f._point), f._fresh):
+                _store(state, rows, new)
+        f._refresh, f._fresh = False, None
+
+
+def _working_state(blocks: list, rows: torch.Tensor) -> None:
+    """The working set's state (corrections, L, Bm e) as the blocks' data, from the factors."""
+    for b in blocks:
+        f = b.factor
+        for j, state in enumerate((f.corrections, *f.linearisation)):
+            everyone = state.dim() == 2 + (j == 1) or rows.numel() == state.shape[0]
+            b.data[len(b.data) - 3 + j] = state if everyone else state.index_select(0, rows)
+
+
+def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
+                         max_iterations: int, eps: float) -> _State:
+    """One Levenberg-Marquardt trial (``levenberg_marquardt._round``) with the iterated
+    conditions' linearisation point fixed (their corrections e, S and Bm e: a least-squares
+    cost of x whose Jacobian is exact), then, where the step was accepted, the corrections'
+    update and a new linearisation point there."""
+    blocks = _iterated_blocks(problem)
+    _take_fresh(blocks, s.rows)  # the engine's first linearisation, or the last round's
+    _working_state(blocks, s.rows)
+    lam = s.lam if o["damped"] else torch.zeros_like(s.lam)
+    delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
+    lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
+    x_new, lin_new, new_cost = _trial(problem, system, s, delta)
+    candidates = [b.factor._candidate for b in blocks]
+    cost = s.lin.cost
+    cost_change = cost - new_cost
+    if o["damped"]:
+        valid = solved & (lin_change >= 0)
+        fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
+        success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
+                   & torch.isfinite(new_cost))
+        stop_search = valid & ~success & (cost_change.abs() < o["rel_tol"] * cost)
+        lam_up = s.lam * o["lambda_factor"]
+        lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
+                          torch.where(stop_search, s.lam, lam_up))
+        gave_up = ~success & ~stop_search & (lam_up >= o["lambda_upper"])
+        done = success | stop_search | gave_up
+    else:
+        success = solved & torch.isfinite(new_cost)
+        gave_up, done = ~success, torch.ones_like(success)
+    x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
+    short = success & (quad.clamp_min(0).sqrt() <= o["step_tol"])
+    converged = (_converged(s, lin, o) if o["cost_tests"] else torch.zeros_like(short)) | short
+    # far from the solution the corrections' update is not to be trusted (a large misclosure
+    # gives large corrections, where the conditions are far from linear): update after
+    # accepted steps shorter than ``update_below`` standard deviations only
+    # (a round that ends without a step updates them at the current point)
+    update = success & (quad.clamp_min(0).sqrt() <= o["update_below"])
+    in_place = done & ~success & ~gave_up
+    if blocks:
+        for b, cand in zip(blocks, candidates):
+            old = b.data[len(b.data) - 3]
+            point = b.factor._point
+            assert cand is not None and point is not None  # evaluated at the trial point
+            if old.dim() == 3:
+                point = point if point.shape[0] == old.shape[0] else point.index_select(0, s.rows)
+                new = _where(update, cand.reshape(old.shape), _where(in_place, point, old))
+            else:
+                new = torch.where(update[0], cand.reshape(old.shape),
+                                  torch.where(in_place[0], point, old))
+            _store(b.factor.corrections, s.rows, new)
+            b.data[len(b.data) - 3] = new
+            b.factor._refresh = True
+        updated = linearize(problem, x)  # at the new corrections: L and Bm e refreshed
+        # converged where the corrections were updated and the Gauss-Newton step from the new
+        # linearisation point is short (its cost change alone may miss a moved gradient)
+        _, _, quad_next = system.solve(updated.values, updated.g, torch.zeros_like(lam), False)
+        quad_next = quad_next.clamp_min(0)
+        small = quad_next.sqrt() <= o["step_tol"]
+        if o["cost_tests"]:
+            small = small | (0.5 * quad_next <= o["rel_tol"] * updated.cost) | (
+                0.5 * quad_next <= o["abs_tol"])
+        converged = (update | in_place) & small
+        lin = updated
+    iterations = s.iterations + (success | in_place).to(torch.int64) if blocks else \
+        s.iterations + success.to(torch.int64)
+    status = s.status
+    status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
+    status = torch.where(done & ~gave_up & converged, _full(status, SolverStatus.CONVERGED), status)
+    status = torch.where(done & ~gave_up & ~converged & (iterations >= max_iterations),
+                         _full(status, SolverStatus.MAX_ITERATIONS), status)
+    cost_start = torch.where(done, lin.cost, s.cost_start)
+    if blocks:  # the refreshed linearisation into the state now: the working set may shrink
+        _take_fresh(blocks, s.rows)
+    return _State(s.rows, x, lin, cost_start, lam, iterations, quad.clamp_min(0).sqrt(), status)

@@ -1,0 +1,256 @@
+"""The total-least-squares estimators on the factor-graph engine.
+
+Each trial is a graph with the unknowns as variables (SGal(3): F (1 element) and dtau;
+SE_2(3) x R: X', tau0 and dtau) and one ``graph.GaussHelmert`` factor of N + 1 conditions, the
+batch of trials one batched graph.  The conditions are those of ``tls_problem.sgal3_condition``
+and ``tls_baseline.baseline_condition`` written per condition, with their analytic Jacobians,
+and the observation covariance
+blockdiag(Sigma_a, Sigma_b) (the baseline's ``baseline_covariance``).  The iterated variant
+holds each linearisation point while x moves, and needs the exact derivatives (J_r(c)^-1 times
+those); the paper-style one keeps the J_r(c) factor (``GaussHelmert``).  The iterated variant
+runs Levenberg-Marquardt with the corrections updated after each accepted step, the paper
+variant Gauss-Newton at zero corrections (kelly-giamou (5.18)); ``graph.gauss_helmert``.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..groups import SE23, SGal3
+from .gauss_helmert import VARIANTS
+from .graph import FactorGraph, GaussHelmert, gauss_helmert
+from .solver import Solution, SolverReport, SolverStatus, covariance_from_information, information_is_singular
+from .tls_baseline import _drift, baseline_covariance, baseline_observations, baseline_start, check_reading
+from .tls_problem import (
+    E10,
+    TLSProblem,
+    _ad_time_left,
+    _ad_time_right_inverse,
+    _check_unknowns,
+    _drift_sgal3,
+    _empty_solution,
+)
+
+# The options of solve_sgal3 / solve_baseline and their defaults: graph.gauss_helmert's, with
+# convergence on the step (in standard deviations of the estimate) as well as on the cost.
+DEFAULT_OPTIONS = {"max_iterations": 50, "step_tol": 1e-6, "relative_error_tol": 1e-14,
+                   "absolute_error_tol": 0.0, "lambda_initial": 1e-5}
+
+
+def _sgal3_terms(F, dtau, M, n, e):
+    """(c (B, E, 10), [dc/dF (B, E, 10, 10), dc/ddtau (B, E, 10, 1)], Bm (B, E, 10, 20)) of
+    the conditions log(M_n exp(eps_a) A_n exp(-eps_b)) (the formulas of ``sgal3_condition``);
+    F (B, 1), dtau (B, 1, 1), M (B, E), n (E, 1), e (B, E, 20) or None.  At e = None (the
+    paper-style form) the Jacobians are multiplied by J_r(c), which leaves that form's
+    solution unchanged; otherwise they are the exact derivatives."""
+    n = n[..., 0]
+    s = n * dtau[..., 0]  # (B, E)
+    eye = torch.eye(10, dtype=s.dtype, device=s.device)
+    Ad_Finv = F.inverse().adjoint()  # (B, 1, 10, 10)
+    A = _drift_sgal3(F, s)
+    Ad_Ainv = _ad_time_right_inverse(_ad_time_left(s, Ad_Finv), s)
+    d_F = _ad_time_left(s, eye)
+    d_t = n[:, None, None] * (_ad_time_left(s, Ad_Finv[..., E10:E10 + 1]) - eye[E10][:, None])
+    if e is None:
+        c = (M @ A).log()
+        d_a, d_b = Ad_Ainv, -eye.expand(c.shape + (10,))
+    else:
+        ea, eb = e[..., :10], e[..., 10:]
+        Eb = SGal3.exp(eb)
+        c = (M @ SGal3.exp(ea) @ A @ Eb.inverse()).log()
+        left = Eb.adjoint()
+        d_a = left @ Ad_Ainv @ SGal3.jr(ea)
+        d_b = -SGal3.jl(eb)
+        d_F = _ad_time_right_inverse(left, -s)  # left Ad(T^n), elementwise
+        d_t = (left * d_t.transpose(-1, -2)).sum(-1, keepdim=True)
+    Bm = torch.cat([d_a.expand(c.shape + (10,)), d_b.expand(c.shape + (10,))], -1)
+    if e is None:
+        return c, [d_F, d_t], Bm
+    # the exact derivatives (the iterated form holds its linearisation point): J_r(c)^-1 rows
+    G = SGal3.jr_inv(c) @ torch.cat([d_F.expand(c.shape + (10,)), d_t, Bm], -1)
+    return c, [G[..., :10], G[..., 10:11]], G[..., 11:]
+
+
+def _sgal3_condition(F, dtau, M, n, e):
+    return _sgal3_terms(F, dtau, M, n, e)[0]
+
+
+def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
+    """The baseline's conditions (``baseline_condition``) per condition: X (B, 1) SE23,
+    tau0, dtau (B, 1, 1), M (B, E) SE23, dclock (B, E, 1), n (E, 1), e (B, E, 20) or None;
+    the spatial rows' Jacobians multiplied by J_r(c) at e = None, exact otherwise."""
+    n = n[..., 0]
+    s = n * dtau[..., 0]  # (B, E)
+    eye9 = torch.eye(9, dtype=s.dtype, device=s.device)
+    A = _drift(X, s)
+    Ad_Ainv = _ad_time_right_inverse(_ad_time_left(s, X.inverse().adjoint()), s)
+    P = _ad_time_left(s, eye9)
+    Cv = (X.rotation().mT @ X.velocity()[..., None])[..., 0]  # (B, 1, 3)
+    nCv = -n[:, None] * Cv  # (B, E, 3): d rho / d dtau
+    dt_col = torch.cat([nCv, torch.zeros_like(nCv), torch.zeros_like(nCv)], -1)[..., None]
+    if e is None:
+        c9 = (M @ A).log()
+        d_a, d_b = Ad_Ainv, -eye9.expand(c9.shape + (9,))
+        ia = ib = 0.0
+    else:
+        ea, eb = e[..., :9], e[..., 10:19]
+        ia, ib = e[..., 9], e[..., 19]
+        Eb = SE23.exp(eb)
+        c9 = (M @ SE23.exp(ea) @ A @ Eb.inverse()).log()
+        left = Eb.adjoint()
+        d_a = left @ Ad_Ainv @ SE23.jr(ea)
+        d_b = -SE23.jl(eb)
+        # the exact derivatives (the iterated form holds its linearisation point)
+        K = SE23.jr_inv(c9)
+        P, dt_col, d_a, d_b = K @ left @ P, K @ left @ dt_col, K @ d_a, K @ d_b
+    ct = dclock[..., 0] + ia + tau0[..., 0] - ib  # (B, E)
+    c = torch.cat([c9, ct[..., None]], dim=-1)
+    shape = c.shape
+    A_X = c.new_zeros(shape + (9,))
+    A_X[..., :9, :] = P
+    A_t0 = c.new_zeros(shape + (1,))
+    A_t0[..., 9, 0] = 1.0
+    A_dt = c.new_zeros(shape + (1,))
+    A_dt[..., :9, :] = dt_col
+    Bm = c.new_zeros(shape + (20,))  # [eps'_a, iota_a, eps'_b, iota_b]
+    Bm[..., :9, :9] = d_a
+    Bm[..., 9, 9] = 1.0
+    Bm[..., :9, 10:19] = d_b
+    Bm[..., 9, 19] = -1.0
+    return c, [A_X, A_t0, A_dt], Bm
+
+
+def _baseline_condition(X, tau0, dtau, M, dclock, n, e):
+    return _baseline_terms(X, tau0, dtau, M, dclock, n, e)[0]
+
+
+def _observation_covariance(cov_a: torch.Tensor, cov_b: torch.Tensor, B: int, E: int
+                            ) -> torch.Tensor:
+    """blockdiag(cov_a, cov_b) in the factor's layout: (20, 20) shared, (E, 20, 20) per
+    condition or (B, E, 20, 20) per trial and condition."""
+    shape = torch.broadcast_shapes(cov_a.shape[:-2], cov_b.shape[:-2])
+    S = cov_a.new_zeros(shape + (20, 20))
+    S[..., :10, :10] = cov_a
+    S[..., 10:, 10:] = cov_b
+    S = S.reshape((1,) * (4 - S.dim()) + S.shape)  # (b, e, 20, 20), b in (1, B), e in (1, E)
+    if S.shape[0] != 1:
+        return S.expand(B, E, 20, 20)
+    return S[0, 0] if S.shape[1] == 1 else S[0]
+
+
+def _options(options: dict) -> dict:
+    unknown = sorted(set(options) - set(DEFAULT_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown solver option(s) {unknown}; the TLS solvers take "
+                        f"{sorted(DEFAULT_OPTIONS)}")
+    return {**DEFAULT_OPTIONS, **options}
+
+
+def _solve(problem: TLSProblem, graph: FactorGraph, factor: GaussHelmert, names: list,
+           iterated: bool, options: dict) -> Solution:
+    """Solves the graph, then the solution in the layout of ``Solution``: the status SINGULAR
+    (``solver.information_is_singular``) with a NaN covariance where the information at the
+    solution is singular, the corrections (B, N+1, 20) in ``aux`` (iterated variant)."""
+    o = _options(options)
+    result = gauss_helmert(graph, o["max_iterations"], damped=iterated,
+                           lambda_initial=o["lambda_initial"], step_tol=o["step_tol"],
+                           relative_error_tol=o["relative_error_tol"],
+                           absolute_error_tol=o["absolute_error_tol"], cost_tests=iterated)
+    H = result.information
+    report = result.report
+    non_finite = report.status == SolverStatus.NON_FINITE
+    singular = information_is_singular(H) & ~non_finite
+    status = torch.where(singular | (report.status == SolverStatus.CONVERGED_RANK_DEFICIENT),
+                         SolverStatus.SINGULAR, report.status).to(torch.int64)
+    P = covariance_from_information(H, singular | non_finite)
+    x = []
+    for name in names:
+        v = result.values[name]
+        x.append(v[:, 0] if isinstance(v, (SGal3, SE23)) else v[:, 0, :])
+    report = SolverReport(status=status, iterations=report.iterations,
+                          initial_cost=report.initial_cost, cost=report.cost,
+                          step_norm=report.step_norm, gradient_norm=report.gradient_norm)
+    aux = factor.corrections if iterated else None
+    return Solution(x=tuple(x), covariance=P, report=report, aux=aux)
+
+
+def _indices(problem: TLSProblem) -> torch.Tensor:
+    return torch.zeros(problem.F_ga.batch_shape[1], dtype=torch.int64,
+                       device=problem.F_ga.device)
+
+
+def _check_variant(variant: str) -> bool:
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    return variant == "iterated"
+
+
+def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
+                **options) -> Solution:
+    """Estimates (F_a0b0, dtau) on SGal(3); covariance (B, 11, 11) over [dxi (10), ddtau].
+    x0: (F SGal3 (B,), dtau (B, 1)); by default F from the first pair and ``dtau0`` (a scalar
+    or (B,)).  variant: "iterated" (the errors-in-variables optimum; ``aux`` holds the
+    estimated observation corrections (B, N+1, 20) = (eps_a, eps_b)) or "paper" (kelly-giamou
+    (5.18): linearised at the raw observations, Gauss-Newton).  options (``DEFAULT_OPTIONS``):
+    max_iterations, step_tol (a step below this many standard deviations converges),
+    relative_error_tol and absolute_error_tol (GTSAM's cost tests), lambda_initial.  A problem
+    without trials (B = 0) gives an empty solution.
+
+    Use float64.  The information of this problem is badly scaled: its diagonal spans about
+    six decades, below the SINGULAR test's threshold in float32 (1e3 eps relative), so float32
+    problems are reported SINGULAR (with NaN covariances) even where the estimate is fine.
+    Not differentiable."""
+    iterated = _check_variant(variant)
+    x0 = problem.initial_guess(dtau0, "dtau0") if x0 is None else x0
+    x0 = _check_unknowns(problem, x0, baseline=False)
+    if problem.batch_size == 0:
+        return _empty_solution(problem, x0)
+    Bn, N1 = problem.F_ga.batch_shape
+    with torch.no_grad():
+        graph = FactorGraph()
+        graph.add_variable("F", x0[0].detach().unsqueeze(-1))
+        graph.add_variable("dtau", x0[1].detach()[:, None, :])
+        idx = _indices(problem)
+        factor = GaussHelmert(_sgal3_condition, [("F", idx), ("dtau", idx)],
+                              _observation_covariance(problem.cov_a, problem.cov_b, Bn, N1),
+                              data=[problem.M, problem.indices[:, None]], dim=10,
+                              jacobians=_sgal3_terms, iterated=iterated)
+        graph.add(factor)
+        return _solve(problem, graph, factor, ["F", "dtau"], iterated, options)
+
+
+def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterated",
+                   reading: str = "invariant", **options) -> Solution:
+    """Estimates (X' in SE_2(3), tau0, dtau) on SE_2(3) x R; covariance (B, 11, 11) over
+    [dxi' (9), dtau0, ddtau].  ``reading`` (``BASELINE_READINGS``): "invariant" (default) reads
+    the relative transforms F~_gb^-1 F~_ga, composed in SGal(3), in the product group, and is
+    unchanged by a Galilean change of the global frame; "product" composes the observations in
+    the product group, and depends on the global frame's velocity (``baseline_observations``).
+    x0: (X' SE23 (B,), tau0 (B, 1), dtau (B, 1)); by default ``baseline_start`` of the first
+    pair and ``dtau0``.  Variants, options, B = 0 and float32: as ``solve_sgal3``."""
+    iterated = _check_variant(variant)
+    check_reading(reading)
+    if x0 is None:
+        F0, dt = problem.initial_guess(dtau0, "dtau0")
+        X0, t0 = baseline_start(F0, reading)
+        x0 = (X0, t0[:, None], dt)
+    x0 = _check_unknowns(problem, x0, baseline=True)
+    if problem.batch_size == 0:
+        return _empty_solution(problem, x0)
+    Bn, N1 = problem.F_ga.batch_shape
+    with torch.no_grad():
+        M, dclock = baseline_observations(problem, reading)
+        ca, cb = baseline_covariance(problem)
+        graph = FactorGraph()
+        graph.add_variable("X", x0[0].detach().unsqueeze(-1))
+        graph.add_variable("tau0", x0[1].detach()[:, None, :])
+        graph.add_variable("dtau", x0[2].detach()[:, None, :])
+        idx = _indices(problem)
+        factor = GaussHelmert(_baseline_condition, [("X", idx), ("tau0", idx), ("dtau", idx)],
+                              _observation_covariance(ca, cb, Bn, N1),
+                              data=[M, dclock[..., None], problem.indices[:, None]], dim=10,
+                              jacobians=_baseline_terms, iterated=iterated)
+        graph.add(factor)
+        return _solve(problem, graph, factor, ["X", "tau0", "dtau"], iterated, options)
+
+
+__all__ = ["solve_sgal3", "solve_baseline", "DEFAULT_OPTIONS"]
