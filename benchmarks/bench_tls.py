@@ -71,7 +71,7 @@ def main(argv=None) -> int:
            "time_utc": time.strftime("%H:%M", time.gmtime()), "loadavg_at_start": os.getloadavg()}
 
     def batched(solve, variant):
-        xs, covs, status, its, auxs = [], [], [], [], []
+        xs, covs, status, its = [], [], [], []
         t = 0.0
         for s in range(0, K, args.chunk):
             runs = [timed(lambda: solve(tls.subset(P, slice(s, s + args.chunk)), variant=variant,
@@ -82,18 +82,17 @@ def main(argv=None) -> int:
             covs.append(sol.covariance)
             status.append(sol.report.status)
             its.append(sol.report.iterations)
-            auxs.append(sol.aux)
         x = tuple(type(xs[0][i]).stack([c[i] for c in xs]) if hasattr(xs[0][i], "as_matrix")
                   else torch.cat([c[i] for c in xs]) for i in range(len(xs[0])))
         x = tuple(b.reshape(-1) if hasattr(b, "as_matrix") else b for b in x)
-        return x, torch.cat(covs), torch.cat(status), torch.cat(its), t, torch.cat(auxs)
+        return x, torch.cat(covs), torch.cat(status), torch.cat(its), t
 
     print(f"{K} trials, {P.F_ga.batch_shape[1]} samples, {torch.get_num_threads()} threads",
           file=sys.stderr)
     batch = {}
     for name, solve in (("SGal(3)", tls.solve_sgal3), ("SE_2(3) x R", tls.solve_baseline)):
         for variant in ("iterated", "paper"):
-            x, cov, status, its, t, aux = batched(solve, variant)
+            x, cov, status, its, t = batched(solve, variant)
             batch[(name, variant)] = (x, cov, status)
             res.setdefault("batched", {})[f"{name} {variant}"] = {
                 "time_s": t, "per_trial_ms": 1e3 * t / K, "converged": int((status == 0).sum()),

@@ -6,8 +6,7 @@ import torch
 
 from torchsgal.estimation import gauss_helmert as generic_gauss_helmert
 from torchsgal.estimation import graph as fg
-from torchsgal.estimation import study, tls
-from torchsgal.estimation import tls_solvers
+from torchsgal.estimation import study, tls, tls_solvers
 from torchsgal.estimation.graph.gauss_helmert import _forward_jacobians
 from torchsgal.estimation.solver import SolverStatus
 

@@ -95,7 +95,8 @@ def test_iterated_variant_is_the_errors_in_variables_optimum():
     as nuisance variables is stationary in every variable."""
     cfg = study.StudyConfig(trials=4, samples=21, seed=2)
     trials = study.simulate(cfg)
-    sol = tls.solve_sgal3(trials.problem, variant="iterated", step_tol=1e-10, max_iterations=60)
+    sol = tls.solve_sgal3(trials.problem, variant="iterated", step_tol=1e-10, max_iterations=60,
+                          corrections_tol=1e-10)
     assert sol.report.converged.all()
     cost = tls.eiv_cost(trials.problem)
     d = torch.zeros(4, 11, dtype=f64, requires_grad=True)

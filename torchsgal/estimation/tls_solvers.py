@@ -33,7 +33,7 @@ from .tls_problem import (
 # The options of solve_sgal3 / solve_baseline and their defaults: graph.gauss_helmert's, with
 # convergence on the step (in standard deviations of the estimate) as well as on the cost.
 DEFAULT_OPTIONS = {"max_iterations": 50, "step_tol": 1e-6, "relative_error_tol": 1e-14,
-                   "absolute_error_tol": 0.0, "lambda_initial": 1e-5}
+                   "absolute_error_tol": 0.0, "lambda_initial": 1e-5, "corrections_tol": 1e-6}
 
 
 def _sgal3_terms(F, dtau, M, n, e):
@@ -154,7 +154,8 @@ def _solve(problem: TLSProblem, graph: FactorGraph, factor: GaussHelmert, names:
     result = gauss_helmert(graph, o["max_iterations"], damped=iterated,
                            lambda_initial=o["lambda_initial"], step_tol=o["step_tol"],
                            relative_error_tol=o["relative_error_tol"],
-                           absolute_error_tol=o["absolute_error_tol"], cost_tests=iterated)
+                           absolute_error_tol=o["absolute_error_tol"], cost_tests=iterated,
+                           corrections_tol=o["corrections_tol"])
     H = result.information
     report = result.report
     non_finite = report.status == SolverStatus.NON_FINITE
@@ -192,7 +193,9 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
     estimated observation corrections (B, N+1, 20) = (eps_a, eps_b)) or "paper" (kelly-giamou
     (5.18): linearised at the raw observations, Gauss-Newton).  options (``DEFAULT_OPTIONS``):
     max_iterations, step_tol (a step below this many standard deviations converges),
-    relative_error_tol and absolute_error_tol (GTSAM's cost tests), lambda_initial.  A problem
+    relative_error_tol and absolute_error_tol (GTSAM's cost tests), lambda_initial and
+    corrections_tol (iterated: the last update of the corrections below this many standard
+    deviations of the observations; ``graph.gauss_helmert``).  A problem
     without trials (B = 0) gives an empty solution.
 
     Use float64.  The information of this problem is badly scaled: its diagonal spans about

@@ -229,7 +229,7 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
                   min_model_fidelity: float = 1e-3, diagonal_damping: bool = False,
                   relative_error_tol: float = 1e-5, absolute_error_tol: float = 1e-5,
                   error_tol: float = 0.0, step_tol: float = 0.0, cost_tests: bool = True,
-                  update_below: float = 1.0,
+                  update_below: float = 1.0, corrections_tol: float = 1e-6,
                   linear_solver: str = "auto") -> GraphResult:
     """Solves a graph with ``GaussHelmert`` conditions (and any other factors) for every
     problem of its batch: Levenberg-Marquardt (``damped=True``, GTSAM's rules as
@@ -246,7 +246,9 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
     its fixed point is approached).  The corrections are updated after accepted steps shorter
     than ``update_below`` standard deviations only (far from the solution a large misclosure
     gives large corrections, where the conditions are far from linear), so a problem starts
-    as the paper-style form and turns iterated as it approaches its solution.  The iterated
+    as the paper-style form and turns iterated as it approaches its solution.  An iterated
+    problem converges only once its last update moved no correction by more than
+    ``corrections_tol`` standard deviations of its observation (Sigma^(1/2)).  The iterated
     factors' ``corrections`` hold the estimate afterwards.  The solution carries no gradient."""
     _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
            min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol,
@@ -255,6 +257,7 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
     checks.finite_number(step_tol, "step_tol", ">= 0")
     checks.boolean(cost_tests, "cost_tests")
     checks.finite_number(update_below, "update_below", "> 0")
+    checks.finite_number(corrections_tol, "corrections_tol", ">= 0")
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
     _prepare_states(graph)
@@ -263,7 +266,7 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
              min_fidelity=min_model_fidelity, diagonal=diagonal_damping,
              rel_tol=relative_error_tol, abs_tol=absolute_error_tol, error_tol=error_tol,
              step_tol=step_tol, cost_tests=cost_tests, update_below=update_below,
-             linear_solver=linear_solver, round=_gauss_helmert_round)
+             corrections_tol=corrections_tol, linear_solver=linear_solver, round=_gauss_helmert_round)
     return _solve(graph, max_iterations, "none", o)
 
 
@@ -366,6 +369,7 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     # (a round that ends without a step updates them at the current point)
     update = success & (quad.clamp_min(0).sqrt() <= o["update_below"])
     in_place = done & ~success & ~gave_up
+    moved = torch.zeros_like(lam)  # the largest change of a correction, in standard deviations
     if blocks:
         for b, cand in zip(blocks, candidates):
             old = b.data[len(b.data) - 3]
@@ -377,6 +381,12 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
             else:
                 new = torch.where(update[0], cand.reshape(old.shape),
                                   torch.where(in_place[0], point, old))
+            R = b.data[len(b.data) - 4]  # the covariance's square-root diagonal or Cholesky factor
+            change = new - old  # before the store: ``old`` may be the state itself
+            change = change / R if b.factor.diagonal else torch.linalg.solve_triangular(
+                R, change[..., None], upper=False)[..., 0]
+            moved = torch.maximum(moved, change.abs().flatten(1).amax(-1) if change.dim() == 3
+                                  else change.abs().amax().expand_as(moved))
             _store(b.factor.corrections, s.rows, new)
             b.data[len(b.data) - 3] = new
             b.factor._refresh = True
@@ -389,7 +399,7 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
         if o["cost_tests"]:
             small = small | (0.5 * quad_next <= o["rel_tol"] * updated.cost) | (
                 0.5 * quad_next <= o["abs_tol"])
-        converged = (update | in_place) & small
+        converged = (update | in_place) & small & (moved <= o["corrections_tol"])
         lin = updated
     iterations = s.iterations + (success | in_place).to(torch.int64) if blocks else \
         s.iterations + success.to(torch.int64)
