@@ -19,8 +19,10 @@ GTSAM LM's final cost (1e-6 relative) in at most 2x GTSAM LM's time.
 The ``SparseCholesky`` rows time factor + solve of each backend on the Gauss-Newton normal
 equations at the initial guess (assembled by the engine's linearisation).
 
-Usage: python benchmarks/bench_posegraph.py [--repeats 3] [--out benchmarks/results/posegraph_cpu]
-Writes <out>.json and <out>.md.
+Usage: python benchmarks/bench_posegraph.py [--repeats 3] [--problems NAME ...] [--merge]
+[--out benchmarks/results/posegraph_cpu]
+Writes <out>.json and <out>.md; with --merge the problems not run keep their entries from the
+existing <out>.json (marked as such).
 """
 from __future__ import annotations
 
@@ -264,6 +266,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--dense-limit", type=int, default=2000)
     parser.add_argument("--theseus-max-iterations", type=int, default=30)
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "posegraph_cpu"))
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the entries of the problems not run from the existing result "
+                             "file at --out (marked as such)")
     args = parser.parse_args(argv)
     torch.set_default_dtype(torch.float64)
     if not DATA.is_dir():
@@ -273,6 +278,7 @@ def main(argv=None) -> dict:
                    torch=torch.__version__, threads=torch.get_num_threads(), repeats=args.repeats,
                    prior_sigma=PRIOR_SIGMA, theseus=theseus_note,
                    environment={k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")},
+                   command=" ".join(["python benchmarks/bench_posegraph.py", *(argv or sys.argv[1:])]),
                    problems={})
     for name in args.problems:
         graph = read_pose_graph(DATA / name)
@@ -317,6 +323,18 @@ def main(argv=None) -> dict:
                 s["time_vs_gtsam_lm"] = s["time_s"] / lm["time_s"]
         results["problems"][name] = entry
     out = Path(args.out)
+    if args.merge and out.with_suffix(".json").exists():
+        earlier = json.loads(out.with_suffix(".json").read_text())
+        merged = {}
+        for name, entry in earlier.get("problems", {}).items():
+            if name in results["problems"]:
+                merged[name] = results["problems"][name]
+            else:
+                merged[name] = dict(entry, kept=entry.get("kept") or dict(
+                    torch=earlier.get("torch"), repeats=earlier.get("repeats"),
+                    threads=earlier.get("threads")))
+        merged.update({n: e for n, e in results["problems"].items() if n not in merged})
+        results["problems"] = merged
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
     out.with_suffix(".md").write_text(markdown(results))
@@ -325,14 +343,18 @@ def main(argv=None) -> dict:
 
 def markdown(results: dict) -> str:
     lines = ["# Pose-graph optimisation (CPU)", "",
-             f"`python benchmarks/bench_posegraph.py --repeats {results['repeats']}`; torch "
+             f"`{results.get('command', 'python benchmarks/bench_posegraph.py')}`; torch "
              f"{results['torch']}, {results['threads']} threads; median of {results['repeats']} "
              f"runs (5x that for the small problems); cost = 1/2 chi-square by GTSAM's `graph.error` "
              f"on each solution; prior sigma {results['prior_sigma']} on the first pose; "
              f"{results['theseus']}; environment {results['environment']}.", ""]
     for name, e in results["problems"].items():
+        kept = e.get("kept")
+        note = ([f"Not re-run with the other problems (`--merge`): measured by an earlier run of "
+                 f"this script (torch {kept['torch']}, {kept['threads']} threads, --repeats "
+                 f"{kept['repeats']}).", ""] if kept else [])
         lines += [f"## {name}: {e['group']}, {e['vertices']} poses, {e['edges']} edges, "
-                  f"{e['unknowns']} unknowns (initial cost {e['initial_cost']:.6g})", "",
+                  f"{e['unknowns']} unknowns (initial cost {e['initial_cost']:.6g})", "", *note,
                   "| solver | final cost | rel. to GTSAM LM | iterations | time (s) | x GTSAM LM |",
                   "|---|---|---|---|---|---|"]
         for s in e["solvers"]:

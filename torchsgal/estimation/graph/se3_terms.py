@@ -41,7 +41,7 @@ def _bernoulli(n: int) -> list[Fraction]:
     """B_0 .. B_n (B_1 = -1/2), by the recurrence sum_k C(m+1, k) B_k = 0."""
     B = [Fraction(1)]
     for m in range(1, n + 1):
-        B.append(-sum(comb(m + 1, k) * B[k] for k in range(m)) / (m + 1))
+        B.append(-sum((comb(m + 1, k) * B[k] for k in range(m)), Fraction(0)) / (m + 1))
     return B
 
 
