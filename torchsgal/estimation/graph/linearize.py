@@ -19,7 +19,7 @@ from ...groups import SE3, LieGroup
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
-from .robust import correct
+from .robust import correct, corrected
 from .se3_terms import se3_inverse, se3_log_jacobians
 
 
@@ -323,11 +323,13 @@ def _args(block: Block, x: list[torch.Tensor]) -> list[torch.Tensor]:
             for (k, idx), u in zip(block.slots, block.uniform)]
 
 
-def _whiten(block: Block, r: torch.Tensor, J: torch.Tensor | None, B: int
+def _whiten(block: Block, r: torch.Tensor, J: torch.Tensor | None, B: int, built_in: bool = False
             ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """Checks r, applies the square-root information and the robust loss: (r~ (B, E, m),
-    J~ (B, E, m, Dk) or None, rho(s) (B, E))."""
-    _check_residual(block, r, B)
+    """Checks r (unless ``built_in``: the fused priors and betweens, whose shapes are known),
+    applies the square-root information and the robust loss: (r~ (B, E, m), J~ (B, E, m, Dk)
+    or None, rho(s) (B, E))."""
+    if not built_in:
+        _check_residual(block, r, B)
     r = r.expand((B, block.size) + r.shape[-1:])
     if block.sqrt_info is not None:
         L = block.sqrt_info
@@ -337,7 +339,7 @@ def _whiten(block: Block, r: torch.Tensor, J: torch.Tensor | None, B: int
         else:
             r = (L @ r.unsqueeze(-1)).squeeze(-1)
             J = None if J is None else L @ J
-    return correct(block.factor.loss, r, J)
+    return (corrected if built_in else correct)(block.factor.loss, r, J)
 
 
 def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jacobian: bool
@@ -423,7 +425,7 @@ def evaluate_cost(problem: Problem, x: list[torch.Tensor]) -> torch.Tensor:
     fused = _log_form_terms(problem, x, False)
     cost = x[0].new_zeros(B)
     for n, block in enumerate(problem.blocks):
-        terms = (_whiten(block, fused[n][0], None, B) if n in fused
+        terms = (_whiten(block, fused[n][0], None, B, built_in=True) if n in fused
                  else _block_terms(problem, block, x, False))
         cost = cost + 0.5 * terms[2].sum(dim=-1)
     return cost
@@ -437,7 +439,7 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
     fused = _log_form_terms(problem, x, True)
     for n, block in enumerate(problem.blocks):
         if n in fused:
-            r, J, rho = _whiten(block, *fused[n], B)
+            r, J, rho = _whiten(block, *fused[n], B, built_in=True)
         else:
             r, J, rho = _block_terms(problem, block, x, True)
         assert J is not None  # asked for

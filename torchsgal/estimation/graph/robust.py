@@ -131,6 +131,13 @@ def correct(loss: RobustLoss | None, r: torch.Tensor, J: torch.Tensor | None
             raise ValueError(f"J must have shape (..., {r.shape[-1]}, n) (r has shape "
                              f"{tuple(r.shape)}), got {tuple(J.shape)}")
         checks.binary(r, 1, J, 2, "r", "J")
+    return corrected(loss, r, J)
+
+
+def corrected(loss: RobustLoss | None, r: torch.Tensor, J: torch.Tensor | None
+              ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """``correct`` without its argument checks, for residuals and Jacobians whose types and
+    shapes are known (the engine's built-in factors)."""
     s = (r * r).sum(dim=-1)
     if loss is None:
         return r, J, s
