@@ -1,7 +1,7 @@
-"""Build of the optional C kernels (torchsgal/functional/_native.c: the SGal(3) and TLS kernels;
+"""Build of the optional C kernels (torchsgal/functional/_native.c: the SGal(3) kernels;
 torchsgal/imu/_native.c: IMU preintegration); everything else is in pyproject.toml.  Both
 extensions are optional: where they do not compile, the package installs without them and runs
-the same closed forms as tensor operations (torchsgal.functional.native, torchsgal.imu._kernels)."""
+the same closed forms as tensor operations (torchsgal.functional.ops, torchsgal.imu._kernels)."""
 import sys
 
 from setuptools import Extension, setup
@@ -14,7 +14,7 @@ setup(
         Extension(
             "torchsgal.functional._native",
             sources=["torchsgal/functional/_native.c"],
-            depends=common + ["torchsgal/functional/_native_tls.h"],
+            depends=common,
             extra_compile_args=args,
             libraries=libraries,
             optional=True,

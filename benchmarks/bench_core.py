@@ -78,7 +78,8 @@ TENSOR_CODE = " [tensor code]"
 
 def has_native(ts, group, device) -> bool:
     native = ts.functional.native
-    return torch.device(device).type == "cpu" and native.enabled() and native.kernels(group) is not None
+    return (torch.device(device).type == "cpu" and native.available() and native.enabled()
+            and group in ts.functional.ops.GROUPS)
 GTSAM_CLASS = {"SO2": "Rot2", "SE2": "Pose2", "SO3": "Rot3", "SE3": "Pose3", "SE23": "NavState",
                "SGal3": "Gal3", "Sim3": "Similarity3"}
 TANGENT_SCALE = 0.5  # xi ~ N(0, 0.5^2) per component: rotation angles mostly in (0, 2)

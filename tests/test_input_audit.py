@@ -19,7 +19,7 @@ import torchsgal as ts
 from torchsgal import regression
 from torchsgal.estimation import study, tls
 from torchsgal.estimation.gauss_helmert import check_covariance as gh_check_covariance
-from torchsgal.functional import native, numerics
+from torchsgal.functional import native, numerics, ops
 from torchsgal.regression import models
 from torchsgal.uncertainty import events, gaussian
 
@@ -230,8 +230,8 @@ def test_native_disabled_is_local_to_its_thread(monkeypatch):
     seen = {}
     x = torch.zeros(4, 10, dtype=F64)  # a call the kernels may take (plain CPU tensor, no autograd)
 
-    def state():  # the switch, and the decision of the kernels' dispatch for x
-        return native.enabled(), native._eligible((x,))
+    def state():  # the switch, and the decision of the operators' dispatch for x
+        return native.enabled(), ops._kernel("sgal3_exp", (x,), [x.shape[:-1]]) is not None
 
     def switched():
         with native.disabled():

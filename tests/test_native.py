@@ -1,11 +1,10 @@
-"""The C kernels of SGal(3) exp, log and their backward maps (torchsgal/functional/native.py)
-against the tensor closed forms they transcribe, at every angle band and in both dtypes, and the
-rule that decides where they run; the same for the SGal(3) TLS linearisation kernel against its
-tensor code (the IMU preintegration kernel: tests/test_imu_kernels.py).  The tensor code is itself checked against scipy, mpmath and
+"""The C kernels of SGal(3) exp, log and their backward maps (torchsgal/functional/_native.c,
+run by the operators of functional/ops.py) against the tensor closed forms they transcribe, at
+every angle band and in both dtypes, and the rule that decides where they run (the IMU
+preintegration kernel: tests/test_imu_kernels.py; opcheck and transforms: tests/test_ops.py).  The tensor code is itself checked against scipy, mpmath and
 GTSAM elsewhere; the rest of the suite runs through the kernels wherever they are eligible."""
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import subprocess
@@ -25,7 +24,16 @@ pytestmark = [pytest.mark.kernels,
               pytest.mark.skipif(not native.available() and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
                                  reason="the C kernels were not compiled for this installation")]
 
-KERNELS = native.kernels("SGal3")
+
+
+class KERNELS:
+    """The operators, which run the C kernels for CPU inputs of one batch shape and dtype (the
+    ``recorder`` tests check that they do)."""
+    exp = torch.ops.torchsgal.sgal3_exp
+    log = torch.ops.torchsgal.sgal3_log
+    exp_vjp = torch.ops.torchsgal.sgal3_exp_vjp
+    log_vjp = torch.ops.torchsgal.sgal3_log_vjp
+
 # Both branches of every series and threshold: numerics.SERIES_THRESHOLD = 1, JINV_THRESHOLD =
 # 0.5, LOG_SIN_TAYLOR = 1e-4 and the symmetric-part log below cos = 0 (theta > pi/2).
 ANGLES = [0.0, 1e-12, 1e-9, 1e-8, 1e-6, 1e-5, 1e-4, 1.0001e-4, 1e-3, 0.3, 0.5, 0.5 + 1e-9, 0.7,
@@ -155,7 +163,7 @@ import hashlib, torch
 from torchsgal.functional import native
 torch.set_num_threads(2)
 xi = torch.randn(40000, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-out = native.kernels("SGal3").exp(xi)
+out = torch.ops.torchsgal.sgal3_exp(xi)
 print(native._lib.parallel_backend(), hashlib.sha256(out.numpy().tobytes()).hexdigest())
 """
 
@@ -215,32 +223,40 @@ def test_eager_cpu_calls_use_the_kernels(recorder):
     assert recorder.calls[3:] == ["sgal3_exp", "sgal3_log", "sgal3_log_vjp", "sgal3_exp_vjp"]
 
 
-def test_observed_calls_run_the_tensor_code(recorder):
+def test_every_context_runs_the_kernels(recorder):
+    """The operators run the C kernel whatever observes the call: recorded backward passes,
+    vmap, torch.func transforms, forward AD and compiled inference."""
     xi = tangents(torch.float64)[:8]
     x = xi.clone().requires_grad_()
-    # a backward that is itself recorded (create_graph) runs the tensor code ...
     (grad,) = torch.autograd.grad(F.exp(x).sum(), x, create_graph=True)
-    assert recorder.calls == ["sgal3_exp"]  # the forward only
-    # ... whose own backward reaches exp's output again, unrecorded: the kernel
-    grad.sum().backward()
-    assert recorder.calls == ["sgal3_exp", "sgal3_exp_vjp"]
+    assert recorder.calls == ["sgal3_exp", "sgal3_exp_vjp"]  # a recorded backward: the kernel
+    grad.sum().backward()  # its own derivative: the closed form of the backward map, which
+    # reaches exp's output and so exp's backward (the kernel) once more
+    assert recorder.calls == ["sgal3_exp", "sgal3_exp_vjp", "sgal3_exp_vjp"]
     recorder.calls.clear()
-    torch.func.vmap(F.exp)(xi)  # batched tensors: the tensor code
-    assert recorder.calls == []
-    # torch.func.jacrev and forward AD give a Function's forward the plain primal tensors (the
-    # kernel runs, as under ordinary autograd); the vmapped backward and the jvp are tensor code.
+    torch.func.vmap(F.exp)(xi)
     torch.func.jacrev(F.log)(F.exp_impl(xi[0]))
+    torch.func.vmap(torch.func.jacrev(F.exp))(xi)
     with torch.autograd.forward_ad.dual_level():
         F.exp(torch.autograd.forward_ad.make_dual(xi, torch.ones_like(xi)))
-    assert recorder.calls == ["sgal3_log", "sgal3_exp"]
+    assert recorder.calls == ["sgal3_exp", "sgal3_log", "sgal3_log_vjp", "sgal3_exp",
+                              "sgal3_exp_vjp", "sgal3_exp"]
     recorder.calls.clear()
+    with torch.no_grad():
+        torch.compile(F.exp, backend="eager", fullgraph=True)(xi)
+    assert recorder.calls == ["sgal3_exp"]
+
+
+def test_the_tensor_code_runs_where_a_kernel_does_not_apply(recorder):
+    xi = tangents(torch.float64)[:8]
+    M = F.exp_impl(xi)
     with native.disabled():
         F.exp(xi)
-    torch.compile(F.exp, backend="eager", fullgraph=True)(xi)
+    # differing batch shapes or dtypes (not produced by autograd itself): the closed form
+    G = torch.ones(5, 5, dtype=torch.float64)
+    torch.testing.assert_close(KERNELS.exp_vjp(xi, M, G), F._jl_tmv(-xi, F._exp_pullback(M, G.expand(8, 5, 5))))
+    KERNELS.exp_vjp(xi, M, torch.ones(8, 5, 5, dtype=torch.float32))
     assert recorder.calls == []
-    # differing batch shapes in a backward (not produced by autograd itself): the tensor code
-    assert KERNELS.exp_vjp(xi, F.exp_impl(xi), torch.ones(5, 5, dtype=torch.float64)) is None
-    assert KERNELS.exp_vjp(xi, F.exp_impl(xi), torch.ones(8, 5, 5, dtype=torch.float32)) is None
 
 
 def test_gradcheck_through_the_kernels():
@@ -262,160 +278,3 @@ def test_environment_variable_turns_the_kernels_off():
     env = dict(os.environ, TORCHSGAL_NATIVE="0")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
-
-
-# ------------------------------------------------------------- TLS linearisation kernel
-def tls_problem(trials, samples, covariance, seed):
-    from torchsgal.estimation import study, tls
-    P = study.simulate(study.StudyConfig(trials=trials, samples=samples, seed=seed)).problem
-    if covariance == "paper":  # diagonal, shared
-        return P
-    gen = torch.Generator().manual_seed(seed)
-    shape = (trials, 1) if covariance == "per trial" else (trials, samples)
-    scale = study.paper_covariance().diagonal().sqrt()
-    scale = scale[:, None] * scale[None, :]
-
-    def cov():
-        A = torch.randn(*shape, 10, 10, generator=gen, dtype=torch.float64)
-        return scale * (A @ A.mT / 10 + 0.2 * torch.eye(10, dtype=torch.float64))
-    indices = torch.arange(samples, dtype=torch.float64) * 1.5 - 3.0  # not 0..N
-    return tls.TLSProblem(P.F_ga, P.F_gb, cov(), cov(), indices)
-
-
-def tls_linearisations(P, iterated, e, x):
-    from torchsgal.estimation import tls
-    out = []
-    for on in (True, False):
-        with contextlib.nullcontext() if on else native.disabled():
-            linearise, post_step = tls._structured(P, iterated, chunk=3)
-            lin = linearise(x, e)
-            delta = torch.linspace(-1e-3, 1e-3, 11, dtype=torch.float64).expand(lin.g.shape)
-            out.append((lin, post_step(x, e, lin, delta)))
-    return out
-
-
-@pytest.mark.parametrize("covariance", ["paper", "per trial", "per sample"])
-@pytest.mark.parametrize("iterated, e_scale", [(True, 0.05), (True, 1.0), (False, 0.0)],
-                         ids=["iterated", "iterated-large-e", "paper"])
-def test_tls_kernel_matches_the_tensor_code(covariance, iterated, e_scale, recorder):
-    # e_scale 1: rotation angles of eps_a, eps_b up to ~3 rad, past the series threshold of J_r
-    P = tls_problem(7, 9, covariance, seed=3)
-    gen = torch.Generator().manual_seed(4)
-    x = P.initial_guess(-1.0)
-    e = e_scale * torch.randn(7, 9, 20, generator=gen, dtype=torch.float64)
-    if e_scale > 0.5:
-        angles = torch.cat([e[..., 6:9], e[..., 16:19]], -1).unflatten(-1, (2, 3)).norm(dim=-1)
-        assert angles.min() < 0.5 and angles.max() > 2.0
-    (lin_c, step_c), (lin_t, step_t) = tls_linearisations(P, iterated, e, x)
-    # 3 chunks, each linearised and updated in C; nothing in C with the kernels off
-    assert recorder.calls.count("tls_sgal3") == recorder.calls.count("tls_sgal3_step") == 3
-    # The whitened Jacobians W: rounding of the same operations (measured 4e-16).  (The paper
-    # variant with shared covariances has no W in the tensor code: its S is a quadratic in s.)
-    quadratic = len(lin_t.extra.parts[0]) == 3
-    assert quadratic == (not iterated and covariance != "per sample")
-    diagonal = covariance == "paper"
-    for (R_c, W_c), (R_t, *extra) in zip(lin_c.extra.parts, lin_t.extra.parts):
-        # the kernel's R and W are packed (only the entries that can be non-zero, lanes last)
-        assert R_c.shape[1:] == (3, 75, 4) and W_c.shape[1:] == (3, 116 if diagonal else 188, 4)
-        R_c, W_c = native.kernels("tls").unpack(R_c, W_c, 9, diagonal, diagonal)
-        assert R_c.shape == R_t.shape
-        # the rows, relative to each trial's largest entry: measured 7e-15
-        err = ((R_c - R_t).abs().amax((-2, -1)) / R_t.abs().amax((-2, -1))).max()
-        assert err < 5e-14, float(err)
-        if not quadratic:
-            err = ((W_c - extra[0]).abs().amax((-2, -1)) / extra[0].abs().amax((-2, -1))).max()
-            assert err < 4e-15, float(err)
-    # The rows [L^-1, n L^-1 a, L^-1 w] and the normal equations amplify that rounding by the
-    # condition of S = W W^T (up to ~5e6 here): measured 4e-13 on L^-1 (LAPACK's factor of the
-    # same S differs from either by as much), 1e-13 on H, g, cost and the next e.
-    for name in ("H", "g", "cost"):
-        a, b = getattr(lin_c, name), getattr(lin_t, name)
-        assert ((a - b).abs().max() / b.abs().max()) < 1e-11, name
-    assert ((step_c - step_t).abs().max() / step_t.abs().max()) < 1e-11
-
-
-def test_tls_kernel_marks_non_finite_conditions_and_runs_only_where_it_may(recorder):
-    from torchsgal.estimation import tls
-    P = tls_problem(4, 6, "paper", seed=5)
-    x = P.initial_guess(-1.0)
-    e = torch.zeros(4, 6, 20, dtype=torch.float64)
-    e[2, 3, 5] = math.nan  # one condition of trial 2: its Cholesky fails
-    (lin_c, _), (lin_t, _) = tls_linearisations(P, True, e, x)
-    for lin in (lin_c, lin_t):
-        assert torch.isfinite(lin.cost).tolist() == [True, True, False, True]
-    recorder.calls.clear()
-    tls.solve_sgal3(P, variant="iterated")
-    assert "tls_sgal3" in recorder.calls
-    recorder.calls.clear()
-    tls.solve_baseline(P, variant="iterated")  # SE_2(3) x R: tensor code
-    P32 = tls.TLSProblem(P.F_ga.to(torch.float32), P.F_gb.to(torch.float32),
-                         P.cov_a.float(), P.cov_b.float())
-    tls.solve_sgal3(P32, variant="iterated")  # float32: tensor code
-    assert "tls_sgal3" not in recorder.calls
-
-
-@pytest.mark.parametrize("variant", ["iterated", "paper"])
-def test_tls_kernel_skips_the_trials_that_stopped_with_the_same_solution(variant, monkeypatch):
-    # solver.iterate passes the running trials to a linearisation that takes them; the kernel
-    # skips the others (their results are dropped).  Same solution, bit for bit, as without.
-    from torchsgal.estimation import solver, study, tls
-    P = study.simulate(study.StudyConfig(trials=24, seed=8)).problem
-    masks = []
-    linearise = native._TlsKernels.linearise
-
-    def spy(*args):
-        masks.append(args[-1])
-        return linearise(*args)
-    monkeypatch.setattr(native._TlsKernels, "linearise", staticmethod(spy))
-    skipping = tls.solve_sgal3(P, variant=variant, straggler_fraction=0.0)
-    # the first linearisation has no mask; later ones skip the trials that converged earlier
-    assert masks[0] is None and all(m is not None for m in masks[1:])
-    assert any(not bool(m.all()) for m in masks[1:])
-    iterations = skipping.report.iterations
-    assert bool((iterations < iterations.max()).any())  # some trials stop before others
-    monkeypatch.setattr(solver, "ACTIVE_SET", "no such attribute")  # every trial, every time
-    masks.clear()
-    full = tls.solve_sgal3(P, variant=variant, straggler_fraction=0.0)
-    assert all(m is None for m in masks)
-    for a, b in zip(skipping.x, full.x):
-        a, b = (t.as_matrix() if hasattr(t, "as_matrix") else t for t in (a, b))
-        assert torch.equal(a, b)
-    assert torch.equal(skipping.covariance, full.covariance)
-    assert torch.equal(skipping.report.status, full.report.status)
-    assert torch.equal(skipping.report.iterations, full.report.iterations)
-
-
-def test_tls_kernel_state_through_rejected_steps_matches_generic_gauss_helmert(monkeypatch):
-    # From a bad start (rotations off by up to 2.5 rad, dtau by a factor 2) and little damping,
-    # Levenberg-Marquardt rejects steps far from the solution: the kernel's packed state is then
-    # kept for the running trials that rejected (only; _ChunkState.select).  The generic
-    # Gauss-Helmert layer (no packed state) is the reference, iteration by iteration: a wrong
-    # kept state changes the next residual estimates and steps.
-    from torchsgal.estimation import gauss_helmert, study, tls
-    cfg = study.StudyConfig(trials=12, samples=31, seed=4)
-    trials = study.simulate(cfg)
-    P = trials.problem
-    gen = torch.Generator().manual_seed(5)
-    axis = torch.nn.functional.normalize(torch.randn(12, 3, generator=gen, dtype=torch.float64), dim=-1)
-    delta = torch.zeros(12, 10, dtype=torch.float64)
-    delta[:, 6:9] = axis * torch.linspace(0.1, 2.5, 12, dtype=torch.float64)[:, None]
-    x0 = (trials.F_true.rplus(delta), (2.0 * trials.dtau_true)[:, None])
-    kept = []
-    select = tls._ChunkState.select
-
-    def spy(self, mask, other):
-        kept.append(int((~mask & self.active).sum()) if self.active is not None else 0)
-        return select(self, mask, other)
-    monkeypatch.setattr(tls._ChunkState, "select", spy)
-    for k in (3, 5, 8, 12, 20, 100):
-        kept.clear()
-        c = tls.solve_sgal3(P, x0=x0, variant="iterated", max_iterations=k, damping=1e-10,
-                            straggler_fraction=0.0)
-        ref = gauss_helmert(tls.sgal3_condition(P), x0, P.covariance, variant="iterated",
-                            max_iterations=k, damping=1e-10)
-        assert torch.equal(c.report.iterations, ref.report.iterations), k
-        assert torch.equal(c.report.status, ref.report.status), k
-        sd = ref.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
-        assert (c.x[0].rminus(ref.x[0]) / sd[:, :10]).abs().max() < 1e-9, k
-        assert ((c.x[1] - ref.x[1]) / sd[:, 10:]).abs().max() < 1e-9, k
-    assert bool(c.report.converged.all()) and sum(kept) > 0  # rejected steps, state kept

@@ -38,7 +38,7 @@ from __future__ import annotations
 import torch
 
 from .._compat import FastApply, forward_mode_depth
-from . import checks, native
+from . import checks, ops
 from ._blocking import _is_wrapped, is_compiling, run_blocked, run_lifted
 
 
@@ -49,8 +49,56 @@ def _nested_forward_mode(t: torch.Tensor) -> bool:
     return _is_wrapped(t) and forward_mode_depth() >= 2
 
 
+def _compiled_inference() -> bool:
+    """Whether torch.compile traces code that nothing differentiates (grad mode off).  Where
+    grad mode is on, compiled code differentiates the closed forms: torch 2.13 compiles no
+    double backward and no torch.func transform of a custom operator's autograd, and Dynamo
+    cannot tell a torch.func wrapper (its ``requires_grad`` reads False while traced)."""
+    return is_compiling() and not torch.is_grad_enabled()
+
+
+def _differentiable_operator(operator, tensor_code, event_dims: tuple, name: str):
+    """``operator`` as an autograd.Function whose derivatives, reverse and forward mode, are
+    those of ``tensor_code`` (the same map as closed-form tensor operations)."""
+
+    def lifted(*args):
+        # unbatched arguments as a batch of one: functorch's jvp gives a Python number times a
+        # 0-d float32 tensor a float64 tangent (run_lifted, _blocking.py)
+        if all(a.dim() == k for a, k in zip(args, event_dims)):
+            return tensor_code(*(a.unsqueeze(0) for a in args)).squeeze(0)
+        return tensor_code(*args)
+
+    class Function(FastApply, torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(*args):
+            return operator(*args)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(*inputs)
+            ctx.save_for_forward(*inputs)
+
+        @staticmethod
+        def backward(ctx, grad):
+            return torch.func.vjp(lifted, *ctx.saved_tensors)[1](grad)
+
+        @staticmethod
+        def jvp(ctx, *tangents):
+            # make_dual refuses tensors whose elements share memory (an expanded incoming gradient)
+            primals = tuple(p.clone(memory_format=torch.contiguous_format) for p in ctx.saved_tensors)
+            tangents = tuple(torch.zeros_like(p) if t is None else t.clone(memory_format=torch.contiguous_format)
+                             for p, t in zip(primals, tangents))
+            return torch.func.jvp(lifted, primals, tangents)[1]
+
+    Function.__name__ = Function.__qualname__ = name
+    return Function
+
+
 def make_exp_log(mod):
-    kern = native.kernels(mod.NAME)  # C kernels where unobserved (native.py), or None
+    # SGal(3)'s registered operators (ops.py: the C kernels, or the closed forms), or None
+    op = ops.register(mod) if mod.NAME in ops.GROUPS else None
 
     def _exp_backward(xi, M, grad_M):
         return mod._jl_tmv(-xi, mod._exp_pullback(M, grad_M))
@@ -58,9 +106,19 @@ def make_exp_log(mod):
     def _log_backward(M, xi, grad_xi):
         return mod._log_pullback(M, mod._jl_inv_tmv(-xi, grad_xi))
 
-    def _forward(op, impl, args, event_dims):
-        out = None if kern is None else op(*args)
-        return run_blocked(impl, args, event_dims) if out is None else out
+    def _forward(index, impl, args, event_dims):
+        return run_blocked(impl, args, event_dims) if op is None else op[index](*args)
+
+    # The backward maps as operators too, differentiable (higher derivatives, torch.func) through
+    # their closed forms: custom_op's own autograd is not a torch.func transform's in torch 2.13.
+    backward_maps = None if op is None else (
+        _differentiable_operator(op[2], _exp_backward, (1, 2, 2), f"{mod.NAME}ExpBackward"),
+        _differentiable_operator(op[3], _log_backward, (2, 1, 1), f"{mod.NAME}LogBackward"))
+
+    def _backward(index, impl, args, event_dims):
+        if backward_maps is None:
+            return run_blocked(impl, args, event_dims)
+        return backward_maps[index].apply(*args)
 
     def _matvec(A, x):
         return (A @ x.unsqueeze(-1)).squeeze(-1)
@@ -78,7 +136,7 @@ def make_exp_log(mod):
 
         @staticmethod
         def forward(xi):
-            return _forward(kern and kern.exp, mod.exp_impl, (xi,), (1,))
+            return _forward(0, mod.exp_impl, (xi,), (1,))
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -88,14 +146,14 @@ def make_exp_log(mod):
         def backward(ctx, grad_M):
             xi, M = ctx.saved_tensors
             # J_r(xi)^T hat^T(M^T grad_M), with J_r(xi)^T = J_l(-xi)^T
-            return _forward(kern and kern.exp_vjp, _exp_backward, (xi, M, grad_M), (1, 2, 2))
+            return _backward(0, _exp_backward, (xi, M, grad_M), (1, 2, 2))
 
     class Log(FastApply, torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
         def forward(M):
-            return _forward(kern and kern.log, mod.log_impl, (M,), (2,))
+            return _forward(1, mod.log_impl, (M,), (2,))
 
         @staticmethod
         def setup_context(ctx, inputs, output):
@@ -105,7 +163,7 @@ def make_exp_log(mod):
         def backward(ctx, grad_xi):
             M, xi = ctx.saved_tensors
             # M^-T vee^T(J_r(xi)^-T grad_xi)
-            return _forward(kern and kern.log_vjp, _log_backward, (M, xi, grad_xi), (2, 1, 1))
+            return _backward(1, _log_backward, (M, xi, grad_xi), (2, 1, 1))
 
     def _with_jvp(base, tangent_map):
         """``base`` with forward mode: jvp = tangent_map(*saved, tangent) (saved: input, output)."""
@@ -134,6 +192,8 @@ def make_exp_log(mod):
     def exp(xi: torch.Tensor) -> torch.Tensor:
         """Group exponential (..., dof) -> (..., n, n); backward through the closed-form J_r."""
         checks.vector(xi, mod.DOF, "xi")
+        if op is not None and _compiled_inference():
+            return op[0](xi)
         if is_compiling() or _nested_forward_mode(xi):
             return run_lifted(mod.exp_impl, (xi,), (1,))
         return ExpWithJvp.apply(xi)
@@ -141,6 +201,8 @@ def make_exp_log(mod):
     def log(M: torch.Tensor) -> torch.Tensor:
         """Principal logarithm (..., n, n) -> (..., dof); backward through J_r^-1 (see module)."""
         checks.matrix(M, mod.MATRIX_DIM, "M")
+        if op is not None and _compiled_inference():
+            return op[1](M)
         if is_compiling() or _nested_forward_mode(M):
             return run_lifted(mod.log_impl, (M,), (2,))
         return LogWithJvp.apply(M)

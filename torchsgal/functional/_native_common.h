@@ -48,8 +48,8 @@ typedef struct {
 
 /* torch's own OpenMP threads, where its runtime is loaded (libgomp, or LLVM's libomp with the
  * same entry points): work split over them does not compete with their spin-wait after torch's
- * last parallel operation, as fresh pthreads do (measured: the batched TLS solve, 2 cores,
- * about 7% of its time in libgomp's spin).  Looked up once, at import (after torch's);
+ * last parallel operation, as fresh pthreads do (they cost a batched solve about 7% of its
+ * time in libgomp's spin).  Looked up once, at import (after torch's);
  * TORCHSGAL_NATIVE_OPENMP=0 in the environment keeps pthreads. */
 typedef void (*gomp_parallel_fn)(void (*)(void *), void *, unsigned, unsigned);
 typedef int (*omp_int_fn)(void);

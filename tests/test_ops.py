@@ -1,0 +1,158 @@
+"""SGal(3)'s registered operators (torchsgal/functional/ops.py): torch.library.opcheck, the same
+operator under eager autograd, vmap and torch.compile, and their derivatives."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsgal as ts
+from torchsgal.functional import native, sgal3
+
+OPS = ("sgal3_exp", "sgal3_log", "sgal3_exp_vjp", "sgal3_log_vjp")
+BATCHES = [(), (3,), (2, 4), (0,)]
+
+
+def _op(name):
+    return getattr(torch.ops.torchsgal, name).default
+
+
+def _arguments(name, batch, dtype, requires_grad=False):
+    g = torch.Generator().manual_seed(7)
+    xi = (0.8 * torch.randn(*batch, 10, generator=g, dtype=torch.float64)).to(dtype)
+    M = sgal3.exp_impl(xi.double()).to(dtype)
+    G = torch.randn(*batch, 5, 5, generator=g, dtype=torch.float64).to(dtype)
+    w = torch.randn(*batch, 10, generator=g, dtype=torch.float64).to(dtype)
+    args = {"sgal3_exp": (xi,), "sgal3_log": (M,), "sgal3_exp_vjp": (xi, M, G),
+            "sgal3_log_vjp": (M, xi, w)}[name]
+    return tuple(a.clone().requires_grad_(requires_grad) for a in args)
+
+
+@pytest.mark.parametrize("kernels", [True, False], ids=["kernels_on", "kernels_off"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+@pytest.mark.parametrize("batch", BATCHES, ids=str)
+@pytest.mark.parametrize("name", OPS)
+def test_opcheck(name, batch, dtype, kernels):
+    # schema, fake implementation, autograd registration and AOT dispatch (static and dynamic)
+    args = _arguments(name, batch, dtype, requires_grad=dtype is torch.float64)
+    if kernels:
+        torch.library.opcheck(_op(name), args)
+    else:
+        with native.disabled():
+            torch.library.opcheck(_op(name), args)
+
+
+@pytest.mark.kernels
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+@pytest.mark.parametrize("name", OPS)
+def test_the_kernel_and_the_closed_form_agree(name, dtype):
+    args = _arguments(name, (257,), dtype)
+    out = _op(name)(*args)
+    with native.disabled():
+        reference = _op(name)(*args)
+    tol = 1e-12 if dtype is torch.float64 else 2e-5
+    torch.testing.assert_close(out, reference, rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("name", ["sgal3_exp", "sgal3_exp_vjp", "sgal3_log_vjp"])
+def test_first_and_second_derivatives_match_finite_differences(name):
+    args = _arguments(name, (3,), torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(_op(name), args)
+    assert torch.autograd.gradgradcheck(_op(name), args)
+
+
+def test_log_backward_is_the_group_projection():
+    # log's derivative is taken along the group (perturbations M exp(dzeta^)), as _autograd.py
+    xi, = _arguments("sgal3_exp", (4,), torch.float64)
+    M = sgal3.exp_impl(xi)
+    g = torch.randn(4, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    dzeta = torch.randn(4, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    Mr = M.clone().requires_grad_(True)
+    (grad_M,) = torch.autograd.grad((_op("sgal3_log")(Mr) * g).sum(), Mr)
+    h = 1e-6
+    moved = lambda s: sgal3.log_impl(M @ sgal3.exp_impl(s * h * dzeta))  # noqa: E731
+    numeric = ((moved(1) - moved(-1)) * g).sum() / (2 * h)
+    analytic = (grad_M * (M @ sgal3.hat(dzeta))).sum()
+    torch.testing.assert_close(analytic, numeric, rtol=1e-7, atol=1e-8)
+
+
+def _operators_run(fn, *args) -> set:
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        fn(*args)
+    return {e.name for e in prof.events() if e.name.startswith("torchsgal::")}
+
+
+def test_eager_autograd_runs_the_operators():
+    xi = torch.randn(5, 10, dtype=torch.float64, requires_grad=True)
+
+    def f(x):
+        y = ts.SGal3.exp(x).log()
+        y.sum().backward()
+
+    assert _operators_run(f, xi) == {f"torchsgal::{n}" for n in OPS}
+
+
+def test_vmap_runs_the_operators_and_matches_the_loop():
+    xi = torch.randn(6, 10, dtype=torch.float64)
+    f = lambda x: ts.SGal3.exp(x).log()  # noqa: E731
+    out = torch.func.vmap(f)(xi)
+    torch.testing.assert_close(out, torch.stack([f(x) for x in xi]), rtol=0, atol=0)
+    assert {"torchsgal::sgal3_exp", "torchsgal::sgal3_log"} <= _operators_run(torch.func.vmap(f), xi)
+    # jacrev over a vmapped batch: the backward operators under vmap
+    J = torch.func.vmap(torch.func.jacrev(f))(xi)
+    torch.testing.assert_close(J, torch.eye(10, dtype=torch.float64).expand(6, 10, 10),
+                               rtol=1e-10, atol=1e-10)
+    assert {"torchsgal::sgal3_exp_vjp", "torchsgal::sgal3_log_vjp"} <= _operators_run(
+        torch.func.vmap(torch.func.jacrev(f)), xi)
+
+
+def test_vmap_with_an_unbatched_argument():
+    xi, M, G = _arguments("sgal3_exp_vjp", (4,), torch.float64)
+    op = _op("sgal3_exp_vjp")
+    out = torch.func.vmap(op, in_dims=(0, 0, None))(xi, M, G[0])
+    torch.testing.assert_close(out, op(xi, M, G[0].expand(4, 5, 5)), rtol=0, atol=0)
+
+
+def test_compiled_code_runs_the_operators_with_eager_values_and_derivatives():
+    # compiled inference (grad mode off) runs the operators; where grad mode is on, compiled code
+    # differentiates the closed forms (functional/_autograd.py: torch 2.13 compiles no double
+    # backward and no torch.func transform of a custom operator's autograd)
+    def f(x):
+        return ts.SGal3.exp(x).log()
+
+    compiled = torch.compile(f, fullgraph=True, dynamic=False)
+    xi = torch.randn(7, 10, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(xi), f(xi), rtol=1e-13, atol=1e-13)
+        assert {"torchsgal::sgal3_exp", "torchsgal::sgal3_log"} <= _operators_run(compiled, xi)
+
+    w = torch.randn(7, 10, dtype=torch.float64)
+    grads = []
+    for fn in (f, compiled):
+        x = xi.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad((fn(x) * w).sum(), x)
+        grads.append(g)
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-10, atol=1e-10)
+    # second derivatives: torch.func transforms inside the compiled function (aot_autograd has
+    # no double backward); the operators' backward is differentiated
+    hess = lambda x: torch.func.hessian(lambda v: (f(v) * w[0]).sum())(x)  # noqa: E731
+    compiled_hess = torch.compile(hess, fullgraph=True, backend="aot_eager")
+    torch.testing.assert_close(compiled_hess(xi[0]), hess(xi[0]), rtol=1e-9, atol=1e-9)
+
+
+def _aten_trigonometry_runs(fn, *args) -> bool:
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        fn(*args)
+    return any(e.name in ("aten::sin", "aten::cos") for e in prof.events())
+
+
+@pytest.mark.kernels
+def test_the_thread_local_kernel_switch_reaches_compiled_code():
+    compiled = torch.compile(lambda x: ts.SGal3.exp(x).as_matrix(), fullgraph=True, dynamic=False)
+    xi = torch.randn(3, 10, dtype=torch.float64)
+    with torch.no_grad():
+        on = compiled(xi)
+        with native.disabled():
+            off = compiled(xi)
+            assert _aten_trigonometry_runs(compiled, xi)  # the closed form inside the operator
+        assert not _aten_trigonometry_runs(compiled, xi)  # the C kernel
+    torch.testing.assert_close(on, off, rtol=1e-13, atol=1e-13)

@@ -1,0 +1,154 @@
+"""SGal(3)'s exp, log and their backward maps as registered torch operators.
+
+``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp`` and ``sgal3_log_vjp``
+(``torch.library.custom_op``) are the one mechanism that eager code, autograd, ``torch.func`` and
+``torch.compile`` all see:
+
+* the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
+  batch shape, where the kernels are compiled and not switched off for the calling thread, and
+  the closed-form tensor code everywhere else (other devices, broadcast batches, kernels off):
+  the same choice whatever the context (autograd recording, vmap, grad, compile);
+* a fake implementation (shapes only) lets ``torch.compile`` and ``torch.export`` trace them;
+* ``register_autograd`` differentiates exp and log through their closed-form Jacobians
+  (``_autograd.py``: grad_xi = J_r(xi)^T hat^T(M^T G), grad_M = M^-T vee^T(J_r(xi)^-T g)), each
+  backward being the next operator; the backward operators' own derivatives (second order)
+  are those of their closed-form tensor code;
+* ``register_vmap`` maps every vmapped axis into the batch the kernels already loop over.
+
+``tests/test_ops.py`` runs ``torch.library.opcheck`` on all four.  The closed forms
+(``sgal3.exp_impl`` ...) stay the reference implementation.
+
+Why operators rather than compiled closed forms: at 1e3 elements the C kernel behind an operator
+costs about 37 ns per element in eager code, the closed form compiled by ``torch.compile``
+(inductor, CPU) about 110 ns, and eager tensor code about 450 ns; larger batches keep the order
+(``benchmarks/bench_compile.py``, docs/guide/performance.md).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+
+from . import native
+from ._blocking import run_blocked
+
+Tensor = torch.Tensor
+_FLOATS = (torch.float32, torch.float64)
+GROUPS = ("SGal3",)  # the groups with C kernels (native.py)
+
+
+def _kernel(name: str, args: Sequence[Tensor], batch: Sequence[torch.Size]) -> Callable | None:
+    """The C kernel ``name`` if it runs for ``args`` (whose batch shapes are ``batch``), else None."""
+    lib = native._lib
+    if lib is None or not native.enabled():
+        return None
+    dtype = args[0].dtype
+    if dtype not in _FLOATS or any(a.dtype is not dtype or a.device.type != "cpu" for a in args):
+        return None
+    if any(b != batch[0] for b in batch[1:]):
+        return None
+    return getattr(lib, name)
+
+
+def _run_kernel(fn: Callable, args: Sequence[Tensor], batch: torch.Size, event: tuple) -> Tensor:
+    """fn over the batch: contiguous inputs, a fresh (*batch, *event) output of their dtype."""
+    ins = [a.resolve_neg().resolve_conj().contiguous() for a in args]
+    out = torch.empty(tuple(batch) + event, dtype=ins[0].dtype)
+    fn(*(t.data_ptr() for t in ins), out.data_ptr(), math.prod(batch), torch.get_num_threads(),
+       ins[0].dtype is torch.float64)
+    return out
+
+
+def _batch_shape(args: Sequence[Tensor], event_dims: Sequence[int]) -> torch.Size:
+    return torch.broadcast_shapes(*(a.shape[: a.dim() - k] for a, k in zip(args, event_dims)))
+
+
+def _vmap_rule(op, event_dims: Sequence[int]):
+    """vmap of an operator that acts on every batch element alone: the vmapped axis of each
+    argument moved to the front (unbatched arguments expanded), batch shapes broadcast, one call."""
+
+    def rule(info, in_dims, *args):
+        size = info.batch_size
+        moved = []
+        for a, d in zip(args, in_dims):
+            moved.append(a.unsqueeze(0).expand(size, *a.shape) if d is None else a.movedim(d, 0))
+        batch = _batch_shape(moved, event_dims)
+        moved = [a.expand(*batch, *a.shape[a.dim() - k:]) for a, k in zip(moved, event_dims)]
+        return op(*moved), 0
+
+    return rule
+
+
+def register(mod) -> tuple:
+    """Define the four operators of the group module ``mod`` (``functional.sgal3``) and return
+    them as (exp, log, exp_vjp, log_vjp)."""
+    name, n, dof = mod.NAME.lower(), mod.MATRIX_DIM, mod.DOF
+    prefix = f"torchsgal::{name}_"
+
+    def exp_vjp_tensor(xi: Tensor, M: Tensor, G: Tensor) -> Tensor:
+        return mod._jl_tmv(-xi, mod._exp_pullback(M, G))  # J_r(xi)^T hat^T(M^T G)
+
+    def log_vjp_tensor(M: Tensor, xi: Tensor, g: Tensor) -> Tensor:
+        return mod._log_pullback(M, mod._jl_inv_tmv(-xi, g))  # M^-T vee^T(J_r(xi)^-T g)
+
+    def run(kernel: str, tensor_code, args, event_dims, event):
+        batch = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
+        fn = _kernel(f"{name}_{kernel}", args, batch)
+        if fn is None:
+            return run_blocked(tensor_code, tuple(args), tuple(event_dims))
+        return _run_kernel(fn, args, batch[0], event)
+
+    @torch.library.custom_op(prefix + "exp", mutates_args=())
+    def exp(xi: Tensor) -> Tensor:
+        return run("exp", mod.exp_impl, (xi,), (1,), (n, n))
+
+    @torch.library.custom_op(prefix + "log", mutates_args=())
+    def log(M: Tensor) -> Tensor:
+        return run("log", mod.log_impl, (M,), (2,), (dof,))
+
+    @torch.library.custom_op(prefix + "exp_vjp", mutates_args=())
+    def exp_vjp(xi: Tensor, M: Tensor, G: Tensor) -> Tensor:
+        return run("exp_vjp", exp_vjp_tensor, (xi, M, G), (1, 2, 2), (dof,))
+
+    @torch.library.custom_op(prefix + "log_vjp", mutates_args=())
+    def log_vjp(M: Tensor, xi: Tensor, g: Tensor) -> Tensor:
+        return run("log_vjp", log_vjp_tensor, (M, xi, g), (2, 1, 1), (n, n))
+
+    def fake(event_dims, event):
+        def impl(*args):
+            return args[0].new_empty(tuple(_batch_shape(args, event_dims)) + event)
+        return impl
+
+    exp.register_fake(fake((1,), (n, n)))
+    log.register_fake(fake((2,), (dof,)))
+    exp_vjp.register_fake(fake((1, 2, 2), (dof,)))
+    log_vjp.register_fake(fake((2, 1, 1), (n, n)))
+
+    def save_all(ctx, inputs, output):
+        ctx.save_for_backward(*inputs, output)
+
+    def exp_backward(ctx, grad_M):
+        xi, M = ctx.saved_tensors
+        return exp_vjp(xi, M, grad_M)
+
+    def log_backward(ctx, grad_xi):
+        M, xi = ctx.saved_tensors
+        return log_vjp(M, xi, grad_xi)
+
+    def tensor_code_backward(tensor_code):
+        def backward(ctx, grad):  # second order: the closed-form backward differentiated
+            saved = ctx.saved_tensors[:-1]
+            with torch.enable_grad():
+                _, pullback = torch.func.vjp(tensor_code, *saved)
+            return pullback(grad)
+        return backward
+
+    exp.register_autograd(exp_backward, setup_context=save_all)
+    log.register_autograd(log_backward, setup_context=save_all)
+    exp_vjp.register_autograd(tensor_code_backward(exp_vjp_tensor), setup_context=save_all)
+    log_vjp.register_autograd(tensor_code_backward(log_vjp_tensor), setup_context=save_all)
+
+    for op, event_dims in ((exp, (1,)), (log, (2,)), (exp_vjp, (1, 2, 2)), (log_vjp, (2, 1, 1))):
+        op.register_vmap(_vmap_rule(op, event_dims))
+    return exp, log, exp_vjp, log_vjp
