@@ -59,21 +59,28 @@ def test_invariant_reading_does_not_depend_on_the_global_frame(variant):
     product reading's estimate moves by many standard deviations and its ANEES changes."""
     trials = study.simulate(study.StudyConfig(trials=16, samples=31, seed=3))
     frames = _frames(trials)
-    ref = {r: tls.solve_baseline(trials.problem, variant=variant, reading=r) for r in READINGS}
+    # The paper variant's Gauss-Newton iterates are the same up to rounding (1e-10); the
+    # iterated one stops where its Levenberg-Marquardt cost test meets the rounding of the
+    # cost (relative_error_tol 1e-14 of a cost of ~3000: steps of ~1e-6 standard deviations),
+    # so the two frames' estimates agree to that (measured 1.2e-6) and not to 1e-10.
+    tight = {"step_tol": 1e-10, "corrections_tol": 1e-10}
+    tol = 1e-10 if variant == "paper" else 1e-5
+    ref = {r: tls.solve_baseline(trials.problem, variant=variant, reading=r, **tight)
+           for r in READINGS}
     anees = {r: _anees(ref[r], trials, r) for r in READINGS}
     for r in READINGS:
         assert (ref[r].report.status == SolverStatus.CONVERGED).all()
     for name, moved in frames.items():
-        inv = tls.solve_baseline(moved.problem, variant=variant, reading="invariant")
+        inv = tls.solve_baseline(moved.problem, variant=variant, reading="invariant", **tight)
         assert torch.equal(inv.report.status, ref["invariant"].report.status), name
         sd = ref["invariant"].covariance.diagonal(dim1=-2, dim2=-1).sqrt()
         d = torch.cat([inv.x[0].rminus(ref["invariant"].x[0])] +
                       [a - b for a, b in zip(inv.x[1:], ref["invariant"].x[1:])], -1)
         # rounding of the composed relative transforms: measured 4e-13 to 1.3e-12 sd
-        assert (d / sd).abs().max() < 1e-10, name
+        assert (d / sd).abs().max() < tol, name
         outer = sd[:, :, None] * sd[:, None, :]
-        assert ((inv.covariance - ref["invariant"].covariance) / outer).abs().max() < 1e-10, name
-        assert _anees(inv, moved, "invariant") == pytest.approx(anees["invariant"], rel=1e-10)
+        assert ((inv.covariance - ref["invariant"].covariance) / outer).abs().max() < tol, name
+        assert _anees(inv, moved, "invariant") == pytest.approx(anees["invariant"], rel=tol)
         # The product reading changes with the frame (the test would fail if it did not).
         prod = tls.solve_baseline(moved.problem, variant=variant, reading="product")
         X_prod, _ = study.baseline_truth(trials.F_true, moved.F_ga0, "product")

@@ -164,8 +164,13 @@ class GaussHelmert(Factor):
             cols += [A.expand(batch + A.shape[-2:]) for A in As]
         sol = torch.linalg.solve_triangular(L, torch.cat(cols, -1), upper=False)
         r = sol[..., 0]
-        if state is not None:  # e' = -Sigma Bm^T S^-1 w = -R W^T L^-T r
-            y = torch.linalg.solve_triangular(L.mT, r[..., None], upper=True)
+        if state is not None:  # e' = -Sigma Bm^T S^-1 w = -R W^T S^-1 w, all at this point
+            if self._refresh:
+                y = torch.linalg.solve_triangular(L.mT, r[..., None], upper=True)
+            else:  # S and w here (the held linearisation point is elsewhere)
+                w_here = c - (Bm @ state[0][..., None])[..., 0]
+                L_here, _ = torch.linalg.cholesky_ex(W @ W.mT)
+                y = torch.cholesky_solve(w_here[..., None], L_here)
             u = (W.mT @ y)[..., 0]
             self._candidate = -(u * factor if self.diagonal else (factor @ u[..., None])[..., 0])
             if self._refresh:
@@ -391,15 +396,17 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
             b.data[len(b.data) - 3] = new
             b.factor._refresh = True
         updated = linearize(problem, x)  # at the new corrections: L and Bm e refreshed
-        # converged where the corrections were updated and the Gauss-Newton step from the new
-        # linearisation point is short (its cost change alone may miss a moved gradient)
+        # converged where the corrections were updated and hardly moved, and the step was
+        # short (the cost change of the update alone may miss a moved gradient)
         _, _, quad_next = system.solve(updated.values, updated.g, torch.zeros_like(lam), False)
         quad_next = quad_next.clamp_min(0)
         small = quad_next.sqrt() <= o["step_tol"]
         if o["cost_tests"]:
             small = small | (0.5 * quad_next <= o["rel_tol"] * updated.cost) | (
                 0.5 * quad_next <= o["abs_tol"])
-        converged = (update | in_place) & small & (moved <= o["corrections_tol"])
+        # the step just taken (converged as ``levenberg_marquardt``'s tests say) or, where the
+        # round ended without one, the step from the new point
+        converged = ((update & converged) | (in_place & small)) & (moved <= o["corrections_tol"])
         lin = updated
     iterations = s.iterations + (success | in_place).to(torch.int64) if blocks else \
         s.iterations + success.to(torch.int64)
