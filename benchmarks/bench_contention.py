@@ -9,8 +9,9 @@ Every case is timed under four conditions, all in one run:
 (d) beside the busy process, the library's policy: ``torchsgal.load.use_threads_for_load()``,
     called once after the busy process has started (as a program does where it starts).
 
-The busy process is a ``multiprocessing`` process spinning in pure Python, started before the
-busy conditions and stopped after them.  Cases (CPU, inputs built outside the timed calls):
+The busy process is a ``multiprocessing`` process spinning in pure Python: started with the run,
+it spins from before each case's busy conditions until after them and sleeps during the idle
+ones (stopped at the end).  Cases (CPU, inputs built outside the timed calls):
 
 * ``SGal3.exp(xi)``, ``g.log()`` (the C kernels where they apply), ``log(exp(xi)).sum()``
   forward and backward through the custom Functions, and ``SE3.exp(xi)`` (tensor code), at
@@ -19,18 +20,24 @@ busy conditions and stopped after them.  Cases (CPU, inputs built outside the ti
   bias Jacobian, as ``bench_imu.py`` (a), float64 and float32.
 
 Timing: two untimed calls of each case first (the second, on one thread, sets how many
-back-to-back calls make a sample of at least ``--min-sample`` seconds); then ``--blocks`` blocks,
-each timing every case under every condition (``--samples-per`` samples, after an untimed
-parallel operation that starts torch's thread team at the new count), the idle and busy halves
-in alternating order from block to block, so that a slow drift of the machine hits every
-condition alike.  A figure is the median over all samples of a case and condition; a ratio is
-that median over the median of (a).  The share of the machine's CPU used by processes other
-than this one is recorded for each half (the busy process included in (c) and (d)).
+back-to-back calls make a sample of at least ``--min-sample`` seconds); then ``--blocks`` blocks.
+A block first calls ``use_threads_for_load()`` with the busy process running (its count serves
+(d) for the block), then times each case under the four conditions in turn (``--samples-per``
+samples each, after an untimed parallel operation that starts torch's thread team at the new
+count), idle pair and busy pair in alternating order from block to block, so that the load of
+other processes, where there is any, hits the four conditions of a case alike.  A figure is the
+median over all samples of a case and condition; a ratio is that median over the median of (a).
+The share of the machine's CPU used by processes other than this one is recorded for each
+condition (the busy process included in (c) and (d)).
 
 Usage::
 
     python benchmarks/bench_contention.py            # writes benchmarks/results/contention_cpu.*
     python benchmarks/bench_contention.py --quick    # 2 blocks, short samples, no files
+    python benchmarks/bench_contention.py --no-passive --sizes 1e5 --dtypes float64
+
+A second run of the same cases follows in a child process started with ``OMP_WAIT_POLICY=PASSIVE``
+(``--no-passive`` skips it); its table is written after the first, its ratios against its own (a).
 """
 from __future__ import annotations
 
@@ -39,8 +46,11 @@ import gc
 import json
 import math
 import multiprocessing as mp
+import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,30 +79,43 @@ def log(msg: str) -> None:
     print(msg, flush=True)
 
 
-def _spin(stop) -> None:
-    """The competitor: a pure-Python busy loop until ``stop`` is set."""
+def _spin(running, stop) -> None:
+    """The competitor: a pure-Python busy loop while ``running`` is set, until ``stop`` is."""
     x = 0
     while not stop.is_set():
-        for _ in range(100_000):
+        if not running.wait(0.05):
+            continue
+        for _ in range(100_000):  # a few milliseconds
             x += 1
 
 
 class BusyNeighbour:
-    """A process spinning on one core for the duration of the block."""
+    """A process that spins on one core between ``resume()`` and ``pause()`` (paused, it sleeps),
+    started on entering the block and stopped on leaving it."""
 
-    def __init__(self, settle_s: float = 0.5):
+    def __init__(self, settle_s: float = 0.1):
         self.settle_s = settle_s
 
     def __enter__(self):
         ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-        self._stop = ctx.Event()
-        self._proc = ctx.Process(target=_spin, args=(self._stop,), daemon=True)
+        self._running, self._stop = ctx.Event(), ctx.Event()
+        self._proc = ctx.Process(target=_spin, args=(self._running, self._stop), daemon=True)
         self._proc.start()
-        time.sleep(self.settle_s)  # let it reach the loop and the scheduler see it
         return self
+
+    def resume(self) -> None:
+        if not self._running.is_set():
+            self._running.set()
+            time.sleep(self.settle_s)  # let it reach the loop and the scheduler see it
+
+    def pause(self) -> None:
+        if self._running.is_set():
+            self._running.clear()
+            time.sleep(0.02)  # its current loop ends within milliseconds
 
     def __exit__(self, *exc):
         self._stop.set()
+        self._running.set()
         self._proc.join(5.0)
         if self._proc.is_alive():
             self._proc.terminate()
@@ -167,24 +190,19 @@ def sample(fn, number: int, samples: int) -> list[float]:
     return out
 
 
-def run_half(cases, numbers, conditions, threads, args, times, shares) -> None:
-    """Time every case under ``conditions`` (their thread counts in ``threads``); ``numbers``:
-    the calls per sample of each case."""
-    gc.collect()
-    gc_was = gc.isenabled()
-    gc.disable()
-    try:
-        with ForeignLoad() as foreign:
-            for name, fn in cases.items():
-                for c in conditions:
-                    torch.set_num_threads(threads[c])
-                    warm_threads()
-                    times[(name, c)] += sample(fn, numbers[name], args.samples_per)
-    finally:
-        if gc_was:
-            gc.enable()
+def time_conditions(fn, number, conditions, threads, args, times, shares) -> None:
+    """Samples of ``fn`` under each of ``conditions`` (thread counts ``threads``), appended to
+    ``times[c]``; ``shares[c]`` accumulates (other processes' CPU share x seconds, seconds)."""
     for c in conditions:
-        shares[c].append(foreign.share)
+        torch.set_num_threads(threads[c])
+        warm_threads()
+        t0 = time.perf_counter()
+        with ForeignLoad() as foreign:
+            times[c] += sample(fn, number, args.samples_per)
+        seconds = time.perf_counter() - t0
+        if foreign.share is not None:
+            shares[c][0] += foreign.share * seconds
+            shares[c][1] += seconds
 
 
 def run(args) -> dict:
@@ -197,38 +215,51 @@ def run(args) -> dict:
     torch.set_num_threads(1)
     log(f"{len(cases)} cases: warm-up ...")
     numbers = {name: calls_per_sample(fn, args.min_sample) for name, fn in cases.items()}
-    times = {(n, c): [] for n in cases for c in CONDITIONS}
-    shares = {c: [] for c in CONDITIONS}
+    times = {name: {c: [] for c in CONDITIONS} for name in cases}
+    shares = {c: [0.0, 0.0] for c in CONDITIONS}
     chosen = []
-    for block in range(args.blocks):
-        idle_first = block % 2 == 0
-        for half in ((0, 1) if idle_first else (1, 0)):
-            if half == 0:
-                order = ("a", "b") if block % 4 < 2 else ("b", "a")
-                log(f"block {block + 1}/{args.blocks}: idle ({', '.join(order)}) ...")
-                run_half(cases, numbers, order, {"a": 1, "b": default}, args, times, shares)
-            else:
-                with BusyNeighbour():
-                    torch.set_num_threads(default)
-                    policy = load.use_threads_for_load()
-                    chosen.append(policy)
-                    order = ("c", "d") if block % 4 < 2 else ("d", "c")
-                    log(f"block {block + 1}/{args.blocks}: busy neighbour ({', '.join(order)}; "
-                        f"use_threads_for_load() -> {policy}) ...")
-                    run_half(cases, numbers, order, {"c": default, "d": policy}, args, times, shares)
-    torch.set_num_threads(default)
+    gc.collect()
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        with BusyNeighbour() as neighbour:
+            for block in range(args.blocks):
+                idle_first = block % 2 == 0
+                idle = ("a", "b") if block % 4 < 2 else ("b", "a")
+                busy = ("c", "d") if block % 4 < 2 else ("d", "c")
+                # the policy as a program applies it where it starts: once, with the neighbour running
+                neighbour.resume()
+                torch.set_num_threads(default)
+                policy = load.use_threads_for_load()
+                chosen.append(policy)
+                log(f"block {block + 1}/{args.blocks}: use_threads_for_load() beside the busy process -> {policy}")
+                for name, fn in cases.items():
+                    for half in (("idle", "busy") if idle_first else ("busy", "idle")):
+                        if half == "idle":
+                            neighbour.pause()
+                            time_conditions(fn, numbers[name], idle, {"a": 1, "b": default}, args,
+                                            times[name], shares)
+                        else:
+                            neighbour.resume()
+                            time_conditions(fn, numbers[name], busy, {"c": default, "d": policy}, args,
+                                            times[name], shares)
+                neighbour.pause()
+    finally:
+        if gc_was:
+            gc.enable()
+        torch.set_num_threads(default)
     rows = {}
     for name in cases:
-        med = {c: statistics.median(times[(name, c)]) for c in CONDITIONS}
+        med = {c: statistics.median(times[name][c]) for c in CONDITIONS}
         rows[name] = {
             "median_s": med,
             "ratio_to_a": {c: med[c] / med["a"] for c in CONDITIONS},
-            "samples": {c: len(times[(name, c)]) for c in CONDITIONS},
+            "samples": {c: len(times[name][c]) for c in CONDITIONS},
         }
     return {
         "default_threads": default,
         "policy_threads": chosen,
-        "foreign_cpu_share": {c: [None if s is None else round(s, 3) for s in v] for c, v in shares.items()},
+        "foreign_cpu_share": {c: (round(w / s, 3) if s > 0 else None) for c, (w, s) in shares.items()},
         "cases": rows,
     }
 
@@ -252,18 +283,37 @@ def table(res: dict) -> list[str]:
     return out
 
 
+def ratio_table(res: dict, passive: dict | None) -> list[str]:
+    """Ratios to (a) of both runs side by side (the table docs/guide/threads.md quotes), and what
+    the passive wait costs or saves on the idle machine: (b)/(a) of the PASSIVE run over (b)/(a)
+    of the first (ratios, not times, so that a load that changed between the runs cancels)."""
+    head = "| case | (a) idle, 1 thread | (b)/(a) | (c)/(a) | (d)/(a) |"
+    rule = "|---|---:|---:|---:|---:|"
+    if passive is not None:
+        head += " PASSIVE: (a) | (b)/(a) | (c)/(a) | (d)/(a) | idle: PASSIVE (b)/(a) over (b)/(a) |"
+        rule += "---:|---:|---:|---:|---:|"
+    out = [head, rule]
+    for name, r in res["cases"].items():
+        row = f"| {name} | {fmt_time(r['median_s']['a'])} | " + " | ".join(
+            f"{r['ratio_to_a'][c]:.2f}" for c in "bcd") + " |"
+        if passive is not None and name in passive["cases"]:
+            q = passive["cases"][name]
+            row += (f" {fmt_time(q['median_s']['a'])} | " + " | ".join(f"{q['ratio_to_a'][c]:.2f}" for c in "bcd")
+                    + f" | {q['ratio_to_a']['b'] / r['ratio_to_a']['b']:.2f} |")
+        out.append(row)
+    return out
+
+
 def summary(res: dict) -> list[str]:
     worst = {c: max(r["ratio_to_a"][c] for r in res["cases"].values()) for c in ("c", "d")}
     over = {c: [n for n, r in res["cases"].items() if r["ratio_to_a"][c] > LIMIT] for c in ("c", "d")}
     shares = res["foreign_cpu_share"]
-    mean = lambda v: statistics.mean(x for x in v if x is not None) if any(x is not None for x in v) else None  # noqa: E731
-    share_text = ", ".join(f"({c}) {100 * mean(v):.0f}%" if mean(v) is not None else f"({c}) n/a"
-                           for c, v in shares.items())
+    share_text = ", ".join(f"({c}) " + ("n/a" if v is None else f"{100 * v:.0f}%") for c, v in shares.items())
     lines = [f"- default threads {res['default_threads']}; use_threads_for_load() chose "
              f"{res['policy_threads']} beside the busy process",
              f"- CPU share of other processes during each condition (the busy process included in "
              f"(c), (d); one core of {mp.cpu_count()} is {100 / mp.cpu_count():.0f}%): {share_text}"]
-    idle_share = mean(shares["a"] + shares["b"])
+    idle_share = max((v for v in (shares["a"], shares["b"]) if v is not None), default=None)
     if idle_share is not None and idle_share > BUSY:
         lines.append(f"- WARNING: other processes used {100 * idle_share:.0f}% of the CPU during the idle "
                      "conditions (a), (b): the machine was not idle, and every figure is inflated by that "
@@ -275,7 +325,23 @@ def summary(res: dict) -> list[str]:
     return lines
 
 
+def passive_child(argv: list[str], args) -> dict | None:
+    """The same run in a child process started with ``OMP_WAIT_POLICY=PASSIVE`` (OpenMP threads
+    sleep at once at the end of a parallel operation instead of spinning first; the runtime reads
+    it when torch is loaded, so only a new process can have it): its results, or None."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "passive.json"
+        cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--no-passive", "--child-out", str(path)]
+        log("OMP_WAIT_POLICY=PASSIVE: the same cases in a child process ...")
+        done = subprocess.run(cmd, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}, check=False)
+        if done.returncode != 0 or not path.exists():
+            log(f"the OMP_WAIT_POLICY=PASSIVE run failed (exit status {done.returncode})")
+            return None
+        return json.loads(path.read_text())
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     ap.add_argument("--sizes", default="1e3,1e5,1e6", help="batch sizes of the core cases")
     ap.add_argument("--dtypes", default="float64,float32")
@@ -284,32 +350,45 @@ def main(argv=None) -> int:
     ap.add_argument("--blocks", type=int, default=4)
     ap.add_argument("--samples-per", type=int, default=2, help="samples per case, condition and block")
     ap.add_argument("--min-sample", type=float, default=0.05, help="seconds of back-to-back calls per sample")
+    ap.add_argument("--no-passive", action="store_true",
+                    help="skip the second run, in a child process with OMP_WAIT_POLICY=PASSIVE")
+    ap.add_argument("--child-out", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", type=Path, default=_HERE / "results")
-    ap.add_argument("--quick", action="store_true", help="2 blocks, 2 short samples, no result files")
+    ap.add_argument("--quick", action="store_true", help="2 blocks of 1 short sample, no result files")
     args = ap.parse_args(argv)
     args.sizes = [int(float(s)) for s in args.sizes.split(",")]
     if args.quick:
-        args.blocks, args.samples_per, args.min_sample = 2, 2, 0.01
+        args.blocks, args.samples_per, args.min_sample = 2, 1, 0.01
     t0 = time.perf_counter()
     env = environment("bench_contention.py", argv, native_kernels=ts.functional.native.enabled(),
+                      omp_wait_policy=os.environ.get("OMP_WAIT_POLICY", "(not set)"),
                       competitor="one multiprocessing process spinning in pure Python")
     log(f"torch {env['torch']} | {env['cpu_model']} | {env['cpu_count']} CPUs | default threads "
-        f"{env['torch_num_threads']} | load {env['loadavg_at_start']}")
+        f"{env['torch_num_threads']} | OMP_WAIT_POLICY {env['omp_wait_policy']} | load {env['loadavg_at_start']}")
     res = run(args)
+    body, verdict = table(res), summary(res)
+    print("\n" + "\n".join(body) + "\n\n" + "\n".join(verdict), flush=True)
+    if args.child_out is not None:
+        args.child_out.write_text(json.dumps({"env": env, "results": res}) + "\n")
+        return 0
+    passive = None if args.no_passive else passive_child(argv, args)
     env["wall_s"] = round(time.perf_counter() - t0, 1)
     env["loadavg_at_end"] = loadavg()
-    body = table(res)
-    verdict = summary(res)
-    print("\n" + "\n".join(body) + "\n\n" + "\n".join(verdict))
     log(f"wall {env['wall_s']} s")
     if not args.quick:
         md = [f"# Contention benchmark ({env['cpu_model']}, {env['cpu_count']} CPUs, {env['date']})", "",
               "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in env.items()]
         md += ["", __doc__.split("Usage::")[0].split("\n", 2)[2].strip(), "",
-               "Medians per call; ratios to (a); ** marks a ratio above the target "
-               f"{LIMIT}.", ""] + body + ["", "## summary", ""] + verdict + [""]
-        args.out_dir.mkdir(parents=True, exist_ok=True)
+               f"Medians per call; ratios to (a); ** marks a ratio above the target {LIMIT}.", "",
+               f"## OMP_WAIT_POLICY {env['omp_wait_policy']}", ""] + body + ["", "### summary", ""] + verdict + [""]
         out = {"env": env, "results": res}
+        if passive is not None:
+            md += ["## OMP_WAIT_POLICY=PASSIVE (the same cases, in a child process; ratios to its own (a))", ""]
+            md += table(passive["results"]) + ["", "### summary", ""] + summary(passive["results"]) + [""]
+            out["passive"] = passive
+        md += ["## ratios to (a), both runs", ""] + ratio_table(res, None if passive is None else passive["results"])
+        md += [""]
+        args.out_dir.mkdir(parents=True, exist_ok=True)
         (args.out_dir / "contention_cpu.json").write_text(json.dumps(out, indent=2) + "\n")
         (args.out_dir / "contention_cpu.md").write_text("\n".join(md))
         log(f"wrote {args.out_dir / 'contention_cpu.json'} and {args.out_dir / 'contention_cpu.md'}")
