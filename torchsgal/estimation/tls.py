@@ -17,7 +17,6 @@ from .gauss_helmert import gauss_helmert
 from .solver import Solution, SolverReport, SolverStatus
 from .tls_baseline import (
     BASELINE_READINGS,
-    _drift,
     baseline_condition,
     baseline_covariance,
     baseline_observations,
@@ -28,8 +27,6 @@ from .tls_baseline import (
 from .tls_problem import (
     E10,
     TLSProblem,
-    _ad_time_left,
-    _ad_time_right_inverse,
     _check_unknowns,
     _drift_sgal3,
     _empty_solution,
@@ -41,8 +38,7 @@ from .tls_solvers import DEFAULT_OPTIONS, solve_baseline, solve_sgal3
 __all__ = ["TLSProblem", "sgal3_condition", "subset", "E10", "BASELINE_READINGS", "split_clock",
            "check_reading", "baseline_observations", "baseline_start", "baseline_condition",
            "baseline_covariance", "solve_sgal3", "solve_baseline", "DEFAULT_OPTIONS", "eiv_cost",
-           "condition_cost", "solve_sgal3_lbfgs", "_ad_time_left", "_ad_time_right_inverse",
-           "_drift", "_drift_sgal3"]
+           "condition_cost", "solve_sgal3_lbfgs"]
 
 
 def eiv_cost(problem: TLSProblem):

@@ -174,9 +174,12 @@ def _solve(problem: TLSProblem, graph: FactorGraph, factor: GaussHelmert, names:
     return Solution(x=tuple(x), covariance=P, report=report, aux=aux)
 
 
-def _indices(problem: TLSProblem) -> torch.Tensor:
-    return torch.zeros(problem.F_ga.batch_shape[1], dtype=torch.int64,
-                       device=problem.F_ga.device)
+def _indices(problem: TLSProblem) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the variables' element index of every condition, all 0 (E,); the sample indices n as
+    data (E, 1))."""
+    n = problem.indices
+    assert n is not None  # set by TLSProblem
+    return torch.zeros(n.shape[0], dtype=torch.int64, device=n.device), n[:, None]
 
 
 def _check_variant(variant: str) -> bool:
@@ -212,10 +215,10 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
         graph = FactorGraph()
         graph.add_variable("F", x0[0].detach().unsqueeze(-1))
         graph.add_variable("dtau", x0[1].detach()[:, None, :])
-        idx = _indices(problem)
+        idx, n = _indices(problem)
         factor = GaussHelmert(_sgal3_condition, [("F", idx), ("dtau", idx)],
                               _observation_covariance(problem.cov_a, problem.cov_b, Bn, N1),
-                              data=[problem.M, problem.indices[:, None]], dim=10,
+                              data=[problem.M, n], dim=10,
                               jacobians=_sgal3_terms, iterated=iterated)
         graph.add(factor)
         return _solve(problem, graph, factor, ["F", "dtau"], iterated, options)
@@ -247,10 +250,10 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         graph.add_variable("X", x0[0].detach().unsqueeze(-1))
         graph.add_variable("tau0", x0[1].detach()[:, None, :])
         graph.add_variable("dtau", x0[2].detach()[:, None, :])
-        idx = _indices(problem)
+        idx, n = _indices(problem)
         factor = GaussHelmert(_baseline_condition, [("X", idx), ("tau0", idx), ("dtau", idx)],
                               _observation_covariance(ca, cb, Bn, N1),
-                              data=[M, dclock[..., None], problem.indices[:, None]], dim=10,
+                              data=[M, dclock[..., None], n], dim=10,
                               jacobians=_baseline_terms, iterated=iterated)
         graph.add(factor)
         return _solve(problem, graph, factor, ["X", "tau0", "dtau"], iterated, options)

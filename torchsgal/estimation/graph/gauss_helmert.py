@@ -218,7 +218,8 @@ def _forward_jacobians(condition: Callable, variables, data, e):
     def column(*ts):
         return torch.func.jvp(fn, zeros, ts)
 
-    c, dc = torch.func.vmap(column, out_dims=(None, 0))(*tangents)
+    out_dims: tuple = (None, 0)  # the condition once, its derivatives along the basis
+    c, dc = torch.func.vmap(column, out_dims=out_dims)(*tangents)
     dc = dc.movedim(0, -1)  # (..., k, total)
     parts, start = [], 0
     for s in sizes:
