@@ -57,17 +57,16 @@ def _sgal3_terms(F, dtau, M, n, e):
         ea, eb = e[..., :10], e[..., 10:]
         Eb = SGal3.exp(eb)
         c = (M @ SGal3.exp(ea) @ A @ Eb.inverse()).log()
-        left = Eb.adjoint()
+        # the exact derivatives (the iterated form holds its linearisation point): the rows
+        # of ``sgal3_condition`` times J_r(c)^-1
+        K = SGal3.jr_inv(c)
+        left = K @ Eb.adjoint()
         d_a = left @ Ad_Ainv @ SGal3.jr(ea)
-        d_b = -SGal3.jl(eb)
+        d_b = -(K @ SGal3.jl(eb))
         d_F = _ad_time_right_inverse(left, -s)  # left Ad(T^n), elementwise
         d_t = (left * d_t.transpose(-1, -2)).sum(-1, keepdim=True)
     Bm = torch.cat([d_a.expand(c.shape + (10,)), d_b.expand(c.shape + (10,))], -1)
-    if e is None:
-        return c, [d_F, d_t], Bm
-    # the exact derivatives (the iterated form holds its linearisation point): J_r(c)^-1 rows
-    G = SGal3.jr_inv(c) @ torch.cat([d_F.expand(c.shape + (10,)), d_t, Bm], -1)
-    return c, [G[..., :10], G[..., 10:11]], G[..., 11:]
+    return c, [d_F, d_t], Bm
 
 
 def _sgal3_condition(F, dtau, M, n, e):
@@ -96,12 +95,12 @@ def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
         ia, ib = e[..., 9], e[..., 19]
         Eb = SE23.exp(eb)
         c9 = (M @ SE23.exp(ea) @ A @ Eb.inverse()).log()
-        left = Eb.adjoint()
-        d_a = left @ Ad_Ainv @ SE23.jr(ea)
-        d_b = -SE23.jl(eb)
-        # the exact derivatives (the iterated form holds its linearisation point)
+        # the exact derivatives (the iterated form holds its linearisation point): J_r(c)^-1
         K = SE23.jr_inv(c9)
-        P, dt_col, d_a, d_b = K @ left @ P, K @ left @ dt_col, K @ d_a, K @ d_b
+        left = K @ Eb.adjoint()
+        d_a = left @ Ad_Ainv @ SE23.jr(ea)
+        d_b = -(K @ SE23.jl(eb))
+        P, dt_col = _ad_time_right_inverse(left, -s), left @ dt_col  # left P, elementwise
     ct = dclock[..., 0] + ia + tau0[..., 0] - ib  # (B, E)
     c = torch.cat([c9, ct[..., None]], dim=-1)
     shape = c.shape
