@@ -357,7 +357,9 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
         fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
         success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
                    & torch.isfinite(new_cost))
-        stop_search = valid & ~success & (cost_change.abs() < o["rel_tol"] * cost)
+        # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged:
+        # the iteration ends without a step, as GTSAM's below ``relative_error_tol``
+        stop_search = valid & ~success & (cost_change.abs() < max(o["rel_tol"], 1e3 * eps) * cost)
         lam_up = s.lam * o["lambda_factor"]
         lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
                           torch.where(stop_search, s.lam, lam_up))
