@@ -161,6 +161,8 @@ def test_bad_input_names_the_argument():
     with pytest.raises(TypeError, match="condition must be callable"):
         fg.GaussHelmert(None, [("x", idx)], cov, data=[obs], dim=1)
     graph, _ = _line_graph(obs, cov, True, truth)
+    with pytest.raises(RuntimeError, match="solve its graph with graph.gauss_helmert"):
+        fg.levenberg_marquardt(graph)
     with pytest.raises(ValueError, match="step_tol must be a finite number >= 0"):
         fg.gauss_helmert(graph, step_tol=-1.0)
     with pytest.raises(ValueError, match="update_below must be a finite number > 0"):

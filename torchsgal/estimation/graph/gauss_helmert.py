@@ -18,17 +18,23 @@ errors-in-variables cost) and whose Jacobians are J, analytic (``jacobians``) or
 forward-mode differentiation of the condition (one ``jvp`` per tangent direction, batched over
 every condition and problem under ``vmap``).
 
-Two forms (``iterated``): the iterated form re-linearises at the current corrected
-observations, which the factor carries as state (``corrections``, (B, E, m)) and
-``gauss_helmert`` updates after each accepted step, to e' = -Sigma Bm^T S^-1 w at the new
-point (the classical Gauss-Helmert update; its fixed point is the constrained optimum); the
-paper-style form (kelly-giamou (5.18)) always linearises at the raw observations, e = 0.
+Two forms (``iterated``).  The paper-style form (kelly-giamou (5.18)) always linearises at the
+raw observations, e = 0, with S at the current x; its Gauss-Newton fixed point is not the
+minimum of the cost it evaluates, so it is solved undamped and converges on the step.  The
+iterated form linearises at the corrected observations, which the factor carries as state
+(``corrections`` (B, E, m), with S's Cholesky factor and Bm e at the linearisation point):
+between updates the cost 1/2 |L^-1 (c(x, e) - Bm e)|^2 of x, with L and Bm e held, is an
+ordinary least-squares cost whose Jacobian L^-1 A is exact, so Levenberg-Marquardt's tests
+apply (the condition's Jacobians must then be its exact derivatives).
 
 ``gauss_helmert(graph)`` runs the engine's Levenberg-Marquardt (or Gauss-Newton) rounds with
-that state update: the step is taken with the corrections fixed, the corrections are then
-updated where the step was accepted and the graph is re-linearised there.  A problem converges
-when GTSAM's cost test holds both for the step and for the corrections' update.  For a graph
-without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton``).
+the update of that state: after an accepted step shorter than ``update_below`` standard
+deviations the corrections become e' = -Sigma Bm^T S^-1 w at the new point (the classical
+Gauss-Helmert update; its fixed point is the constrained optimum) and the linearisation point
+moves there.  A problem converges when the engine's tests hold for the step and its last
+update moved no correction by more than ``corrections_tol`` standard deviations.  For a graph
+without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton`` with
+``damped=False``), with a step test added.
 """
 from __future__ import annotations
 
@@ -128,6 +134,10 @@ class GaussHelmert(Factor):
         nv, nd = len(self.slots), len(self.user_data)
         variables, rest = args[:nv], args[nv:]
         state = tuple(rest[nd + 1:nd + 4]) if self.iterated else None
+        if state == ():
+            raise RuntimeError("an iterated GaussHelmert factor carries state that "
+                               "graph.gauss_helmert updates after each step: solve its graph "
+                               "with graph.gauss_helmert (or give iterated=False)")
         return variables, rest[:nd], rest[nd], state
 
     def _linearise(self, args, want_jacobian: bool):
