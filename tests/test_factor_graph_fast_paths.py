@@ -78,9 +78,9 @@ def test_act_fast_path_forward_mode_derivatives_match_the_per_point_product(G):
 
 
 def _graph(fused: bool, gen):
-    """Two groups (SE3 poses x and z, SO3 rotations y), priors and betweens with shared and
-    per-factor noise, a robust loss, per-problem and shared measurements, a uniform slot, a
-    between of two variables."""
+    """Three groups (SE3 poses x and z, SO3 rotations y, SE2 poses w), priors and betweens with
+    shared and per-factor noise, robust losses, per-problem and shared measurements, a uniform
+    slot, a between of two variables."""
     B = 4
     x = _elements(ts.SE3, (B, 6), gen)
     y = _elements(ts.SO3, (B, 5), gen)
@@ -96,7 +96,13 @@ def _graph(fused: bool, gen):
     W = torch.diag(torch.tensor([4.0, 4, 4, 9, 9, 9], dtype=f64))
     Zy = _elements(ts.SO3, (3,), gen)  # shared by the problems
     iy, jy = torch.tensor([0, 1, 2]), torch.tensor([1, 2, 4])
+    graph.add_variable("w", _elements(ts.SE2, (B, 4), gen))
+    iw, jw = torch.tensor([0, 1, 2, 3]), torch.tensor([1, 2, 3, 0])
+    Zw, Zw0 = _elements(ts.SE2, (B, 4), gen), _elements(ts.SE2, (1,), gen)
+    Lw = torch.tensor([[3.0, 0.5, 0.1], [0.0, 2.0, 0.3], [0.0, 0.0, 4.0]], dtype=f64)
     if fused:
+        graph.add(fg.Prior("w", 2, Zw0), loss=fg.Huber(0.4))
+        graph.add(fg.Between("w", iw, jw, Zw, sqrt_information=Lw))
         graph.add(fg.Prior("x", 0, Zx[:, :1], information=W))
         graph.add(fg.Between("x", i, j, Zx, sqrt_information=L), loss=fg.Huber(0.5))
         graph.add(fg.Between("x", 5, torch.tensor([1, 2]), Zx[:, :2]))  # a uniform slot
@@ -110,6 +116,11 @@ def _graph(fused: bool, gen):
 
         def prior(*a):
             return F._prior_jacobians(*a)
+
+        graph.add(fg.Factor(F._prior_residual, [("w", 2)], [Zw0], dim=3, jacobians=prior),
+                  loss=fg.Huber(0.4))
+        graph.add(fg.Factor(F._between_residual, [("w", iw), ("w", jw)], [Zw], dim=3,
+                            sqrt_information=Lw, jacobians=between))
 
         graph.add(fg.Factor(F._prior_residual, [("x", 0)], [Zx[:, :1]], dim=6, information=W,
                             jacobians=prior))
@@ -129,8 +140,8 @@ def _graph(fused: bool, gen):
 def test_fused_priors_and_betweens_match_the_blockwise_evaluation():
     graphs = [_graph(fused, torch.Generator().manual_seed(5)) for fused in (True, False)]
     problems = [Problem(g) for g in graphs]
-    assert [b.log_form for b in problems[0].blocks] == ["prior", "between", "between", "prior",
-                                                       "between", "between"]
+    assert [b.log_form for b in problems[0].blocks] == ["prior", "between", "prior", "between",
+                                                       "between", "prior", "between", "between"]
     assert all(b.log_form is None for b in problems[1].blocks)
     rows = torch.tensor([3, 1])
     results = []
@@ -158,7 +169,7 @@ def test_fused_solve_matches_the_blockwise_solve():
     assert torch.equal(a.report.iterations, b.report.iterations)
     assert torch.equal(a.report.status, b.report.status)
     torch.testing.assert_close(a.report.cost, b.report.cost, rtol=1e-10, atol=1e-12)
-    for name in ("x", "y", "z"):
+    for name in ("x", "y", "z", "w"):
         torch.testing.assert_close(a.values[name].as_matrix(), b.values[name].as_matrix(),
                                    rtol=1e-9, atol=1e-9)
 

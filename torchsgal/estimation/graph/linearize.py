@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ...groups import SE3, LieGroup
+from ...groups import SE2, SE3, LieGroup
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
+from .log_terms import se2_log_jacobians, se3_inverse, se3_log_jacobians
 from .robust import correct, corrected
-from .se3_terms import se3_inverse, se3_log_jacobians
 
 
 @dataclass
@@ -132,8 +132,8 @@ class Problem:
         L, L_batched = self._noise(factor)
         form = _log_form(factor, [self.variables[k].group for k, _ in slots], data)
         inv = None if form is None else form[1]._f.inverse(data[0].as_matrix())  # Z^-1 once
-        fused_between = form is not None and form == ("between", SE3)
-        adj = SE3._f.adjoint(inv) if fused_between else None  # Ad(Z^-1) once
+        fused_between = form is not None and form[0] == "between" and form[1] in ONE_PASS
+        adj = form[1]._f.adjoint(inv) if fused_between else None  # Ad(Z^-1) once
         return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1),
                      E, uniform, reduced, None if form is None else form[0], inv, adj)
 
@@ -214,6 +214,10 @@ class Problem:
     def wrap(self, k: int, leaf: torch.Tensor):
         info = self.variables[k]
         return leaf if info.group is None else info.group._from_leaf(leaf)
+
+
+# groups whose log, J_r^-1 and J_l^-1 come from one pass (``log_terms``)
+ONE_PASS = {SE3: se3_log_jacobians, SE2: se2_log_jacobians}
 
 
 def _log_form(factor: Factor, groups: list, data: list) -> tuple[str, type[LieGroup]] | None:
@@ -358,9 +362,9 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     ``J_r^-1``; the Jacobians are J_r^-1(r) (prior; between: J_j) and
     J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j, A^-1 = T_j^-1 T_i (the formulas of ``factors``),
     with each variable's inverses computed once and gathered; Z^-1 is the block's
-    ``measured_inv`` (computed once per problem).  On SE(3), log, J_r^-1 and J_l^-1 come from one
-    pass (``se3_terms``) and J_i = -J_l^-1(r) Ad(Z^-1) (as J_r^-1(r) = J_l^-1(r) Ad(E) and
-    E A^-1 = Z^-1), with Ad(Z^-1) computed once per problem."""
+    ``measured_inv`` (computed once per problem).  On SE(3) and SE(2), log, J_r^-1 and J_l^-1
+    come from one pass (``log_terms``) and J_i = -J_l^-1(r) Ad(Z^-1) (as
+    J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1) computed once per problem."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
@@ -390,8 +394,8 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
         f = group._f
         sizes = [e.shape[1] for _, e, _ in items]
         errs = torch.cat([e for _, e, _ in items], dim=1) if len(items) > 1 else items[0][1]
-        if group is SE3:
-            r_all, jr_all, jl_all = se3_log_jacobians(errs, want_jacobian)
+        if group in ONE_PASS:
+            r_all, jr_all, jl_all = ONE_PASS[group](errs, want_jacobian)
         else:
             r_all = f.log(errs)
             jr_all = f.jr_inv(r_all) if want_jacobian else None
@@ -407,12 +411,14 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
             if block.log_form == "prior":
                 out[n] = (r, jinv)
                 continue
-            if jl is not None and block.measured_inv_adjoint is not None:
+            if jl is not None and block.measured_inv_adjoint is not None and group is SE3:
                 # [[a, u], [0, a]] [[R, T], [0, R]] = [[a R, a T + u R], [0, a R]]: the top rows'
                 # product, the bottom rows from its left block
                 top = torch.matmul(jl[..., :3, :], block.measured_inv_adjoint).neg_()
                 Ji = torch.cat([top, torch.cat([torch.zeros_like(top[..., :3]), top[..., :3]],
                                                dim=-1)], dim=-2)
+            elif jl is not None and block.measured_inv_adjoint is not None:
+                Ji = torch.matmul(jl, block.measured_inv_adjoint).neg_()
             else:
                 Ji = torch.matmul(jinv, f.adjoint(A_inv)).neg_()
             out[n] = (r, torch.cat([Ji, jinv], dim=-1))

@@ -1,4 +1,4 @@
-"""The engine's one-pass SE(3) log and inverse Jacobians (``graph.se3_terms``) against the group
+"""The engine's one-pass SE(3) and SE(2) logs and inverse Jacobians (``graph.log_terms``) against the group
 module's log, J_r^-1 and J_l^-1 (a separate implementation: component-wise Gamma blocks) and
 against the Bernoulli series J_l^-1 = sum_n B_n/n! ad^n of the definition, at small angles,
 around the series threshold, at generic angles and near pi, in float64 and float32; and its
@@ -8,8 +8,13 @@ import math
 import pytest
 import torch
 
-from torchsgal.estimation.graph.se3_terms import SERIES_THRESHOLD, se3_inverse, se3_log_jacobians
-from torchsgal.functional import se3
+from torchsgal.estimation.graph.log_terms import (
+    SERIES_THRESHOLD,
+    se2_log_jacobians,
+    se3_inverse,
+    se3_log_jacobians,
+)
+from torchsgal.functional import se2, se3
 
 f64 = torch.float64
 
@@ -117,3 +122,43 @@ def test_inverse_matches_the_group_module_and_the_matrix_inverse():
     torch.testing.assert_close(inv, torch.linalg.inv(E), rtol=0, atol=1e-12)
     xi = _xi(4, 1.0, seed=12).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda v: se3_inverse(se3.exp(v)), (xi,), eps=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 0.5, SERIES_THRESHOLD * 0.999,
+                                   SERIES_THRESHOLD * 1.001, 2.0, math.pi - 1e-9])
+def test_se2_matches_the_group_module_and_the_bernoulli_series(angle):
+    gen = torch.Generator().manual_seed(13)
+    xi = torch.randn(300, 3, generator=gen, dtype=f64)
+    xi[:, 2] = angle * (2 * torch.rand(300, generator=gen, dtype=f64) - 1)
+    E = se2.exp(xi)
+    r, Jr, Jl = se2_log_jacobians(E, True)
+    ref = se2.log(E)
+    torch.testing.assert_close(r, ref, rtol=0, atol=1e-13)
+    torch.testing.assert_close(Jr, se2.jr_inv(ref), rtol=0, atol=1e-13)
+    torch.testing.assert_close(Jl, se2.jl_inv(ref), rtol=0, atol=1e-13)
+    small = xi[:40] * torch.tensor([0.5, 0.5, 1.0], dtype=f64)  # |ad| < 2 pi: the series converges
+    B = [1.0]
+    for m in range(1, 61):
+        B.append(-sum(math.comb(m + 1, k) * B[k] for k in range(m)) / (m + 1))
+    ad = torch.zeros(40, 3, 3, dtype=f64)
+    ad[:, 0, 1], ad[:, 1, 0] = -small[:, 2], small[:, 2]  # [[theta J, -J rho], [0, 0]]
+    ad[:, 0, 2], ad[:, 1, 2] = small[:, 1], -small[:, 0]
+    series, power = torch.zeros_like(ad), torch.eye(3, dtype=f64).expand_as(ad)
+    for n in range(61):
+        series = series + (B[n] / math.factorial(n)) * power
+        power = power @ ad
+    torch.testing.assert_close(se2_log_jacobians(se2.exp(small), True)[2], series, rtol=0,
+                               atol=1e-11)
+    r_only, none_r, none_l = se2_log_jacobians(E, False)
+    assert none_r is None and none_l is None and torch.equal(r_only, r)
+
+
+def test_se2_gradients_are_correct_and_finite_at_the_identity():
+    xi = torch.tensor([[0.3, -0.2, 0.4], [1.0, 2.0, -2.5], [0.1, 0.0, 1e-3]], dtype=f64,
+                      requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: se2_log_jacobians(se2.exp(v), True), (xi,),
+                                    eps=1e-6, atol=1e-7)
+    zero = torch.zeros(2, 3, dtype=f64, requires_grad=True)
+    r, Jr, Jl = se2_log_jacobians(se2.exp(zero), True)
+    (g,) = torch.autograd.grad(r.sum() + Jr.sum() + Jl.sum(), zero)
+    assert torch.isfinite(g).all()

@@ -1,11 +1,12 @@
-"""SE(3) residual r = log(E) and both inverse Jacobians J_r^-1(r), J_l^-1(r) in one pass.
+"""Residual r = log(E) and both inverse Jacobians J_r^-1(r), J_l^-1(r) in one pass, for SE(3)
+and SE(2).
 
-The built-in priors and betweens on SE(3) need, per factor, the log of the error E and the
-inverse Jacobians at it.  Here they share one rotation log and one evaluation of the two
-scalar coefficients, and every step is a whole-batch tensor operation (no per-entry
-arithmetic), so that a linearisation costs a fixed, small number of operations.
+The built-in priors and betweens need, per factor, the log of the error E and the inverse
+Jacobians at it.  Here they share one rotation log and one evaluation of the scalar
+coefficients, and every step is a whole-batch tensor operation (no per-entry arithmetic), so
+that a linearisation costs a fixed, small number of operations.
 
-With xi = [rho, phi] = log(E), theta = |phi|, W = phi^, P = rho^ and ad = ad(xi) =
+SE(3): with xi = [rho, phi] = log(E), theta = |phi|, W = phi^, P = rho^ and ad = ad(xi) =
 [[W, P], [0, W]]: ad satisfies its minimal polynomial ad^5 + 2 theta^2 ad^3 + theta^4 ad = 0
 (Barfoot, "Integral Forms", (31)), so the Bernoulli series J_l^-1 = sum_n B_n/n! ad^n reduces to
 
@@ -19,7 +20,7 @@ whose blocks are, since W phi = 0 and W^3 = -theta^2 W,
 with h = (theta/2) cot(theta/2), d = (1 - h)/theta^2 = alpha - beta theta^2 and
 beta = (1 - h + theta h'/2)/theta^4 (the Hermite interpolation of x/2 coth(x/2) at +-i theta).
 The translation part of the log is rho = J^-1(phi) t with the same d.  Below theta = 1 the two
-coefficients come from their Bernoulli series.
+coefficients come from their Bernoulli series.  SE(2): ``se2_log_jacobians`` (the same d).
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ import torch
 
 from ...functional import numerics
 
-__all__ = ["se3_log_jacobians", "se3_inverse", "SERIES_THRESHOLD"]
+__all__ = ["se3_log_jacobians", "se2_log_jacobians", "se3_inverse", "SERIES_THRESHOLD"]
 
 SERIES_THRESHOLD = 1.0  # theta below which d and beta come from their series
 SERIES_TERMS = 14  # terms of each series: the last is below 1e-20 of the first at theta = 1
@@ -182,3 +183,34 @@ def se3_inverse(M: torch.Tensor) -> torch.Tensor:
     out[..., :3, 3] = -(Ct * M[..., None, :3, 3]).sum(-1)
     out[..., 3, 3] = 1.0
     return out
+
+
+def se2_log_jacobians(E: torch.Tensor, want_jacobians: bool
+                      ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """(r = log(E) (..., 3), J_r^-1(r), J_l^-1(r) (..., 3, 3)) for SE(2) matrices E (..., 3, 3),
+    tangent [rho, theta].  On se(2) ad = [[theta J, -J rho], [0, 0]] satisfies ad^3 + theta^2 ad
+    = 0, so J_l^-1 = I - ad/2 + d ad^2 with the d of SO(3) (module docstring) and
+    ad^2 = [[-theta^2 I, theta rho], [0, 0]]:
+
+        J_r^-1, J_l^-1 = [[h I +- (theta/2) J, d theta rho -+ (1/2) J rho], [0, 1]],
+
+    h = 1 - d theta^2 = (theta/2) cot(theta/2); rho = V^-1 t = h t - (theta/2) J t (Barfoot,
+    "Integral Forms", Sec. 4.5).  The Jacobians are None unless ``want_jacobians``."""
+    k = _constants(E)
+    theta = torch.atan2(0.5 * (E[..., 1, 0] - E[..., 0, 1]), 0.5 * (E[..., 0, 0] + E[..., 1, 1]))
+    theta2 = theta * theta
+    d, _ = _coefficients(theta2, k.series)
+    h = 1.0 - d * theta2
+    t0, t1 = E[..., 0, 2], E[..., 1, 2]
+    half = 0.5 * theta
+    rho0, rho1 = h * t0 + half * t1, h * t1 - half * t0  # J t = (-t1, t0)
+    r = torch.stack([rho0, rho1, theta], dim=-1)
+    if not want_jacobians:
+        return r, None, None
+    dt = d * theta
+    u0, u1 = dt * rho0, dt * rho1  # d theta rho; (1/2) J rho = (-rho1, rho0) / 2
+    zero, one = torch.zeros_like(theta), torch.ones_like(theta)
+    J = torch.stack([h, -half, u0 + 0.5 * rho1, half, h, u1 - 0.5 * rho0, zero, zero, one,
+                     h, half, u0 - 0.5 * rho1, -half, h, u1 + 0.5 * rho0, zero, zero, one],
+                    dim=-1).unflatten(-1, (2, 3, 3))
+    return r, J[..., 0, :, :], J[..., 1, :, :]
