@@ -131,9 +131,11 @@ class Problem:
             batched.append(per_problem)
         L, L_batched = self._noise(factor)
         form = _log_form(factor, [self.variables[k].group for k, _ in slots], data)
-        inv = None if form is None else form[1]._f.inverse(data[0].as_matrix())  # Z^-1 once
-        fused_between = form is not None and form[0] == "between" and form[1] in ONE_PASS
-        adj = form[1]._f.adjoint(inv) if fused_between else None  # Ad(Z^-1) once
+        inv = adj = None
+        if form is not None:
+            inv = form[1]._f.inverse(data[0].as_matrix())  # Z^-1 once
+            if form[0] == "between" and form[1] in ONE_PASS:
+                adj = form[1]._f.adjoint(inv)  # Ad(Z^-1) once
         return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1),
                      E, uniform, reduced, None if form is None else form[0], inv, adj)
 
