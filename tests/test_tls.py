@@ -435,7 +435,7 @@ def test_engine_solvers_match_generic_gauss_helmert(estimator, variant, covarian
         cond, cov = tls.baseline_condition(P), tls.baseline_covariance(P)
     ref = gauss_helmert(cond, x0, cov, variant=variant, step_tol=1e-10, max_iterations=100)
     solve = tls.solve_sgal3 if estimator == "sgal3" else tls.solve_baseline
-    new = solve(P, variant=variant, step_tol=1e-10, max_iterations=100)
+    new = solve(P, variant=variant, step_tol=1e-10, corrections_tol=1e-10, max_iterations=100)
     assert new.report.converged.all() and ref.report.converged.all()
     tol = 1e-9 if variant == "paper" else 1e-6
     sd = ref.covariance.diagonal(dim1=-2, dim2=-1).sqrt()

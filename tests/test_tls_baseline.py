@@ -187,7 +187,7 @@ def test_engine_solver_matches_generic_gauss_helmert(reading, variant):
     x0 = (X0, t0[:, None], dt)
     ref = gauss_helmert(tls.baseline_condition(P, reading), x0, tls.baseline_covariance(P),
                         variant=variant, step_tol=1e-10, max_iterations=100)
-    new = tls.solve_baseline(P, variant=variant, reading=reading, step_tol=1e-10,
+    new = tls.solve_baseline(P, variant=variant, reading=reading, step_tol=1e-10, corrections_tol=1e-10,
                              max_iterations=100)
     tol = 1e-9 if variant == "paper" else 1e-6
     sd = ref.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
