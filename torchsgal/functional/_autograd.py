@@ -49,12 +49,14 @@ def _nested_forward_mode(t: torch.Tensor) -> bool:
     return _is_wrapped(t) and forward_mode_depth() >= 2
 
 
-def _compiled_inference() -> bool:
-    """Whether torch.compile traces code that nothing differentiates (grad mode off).  Where
-    grad mode is on, compiled code differentiates the closed forms: torch 2.13 compiles no
+def _compiled_inference(t: torch.Tensor) -> bool:
+    """Whether torch.compile traces code that nothing differentiates (grad mode off) on CPU
+    tensors: there compiled code calls the operators (their C kernels).  Elsewhere it fuses the
+    closed forms (on CUDA: inductor's Triton kernels, which an opaque operator would prevent);
+    with grad mode on, compiled code differentiates the closed forms: torch 2.13 compiles no
     double backward and no torch.func transform of a custom operator's autograd, and Dynamo
     cannot tell a torch.func wrapper (its ``requires_grad`` reads False while traced)."""
-    return is_compiling() and not torch.is_grad_enabled()
+    return is_compiling() and not torch.is_grad_enabled() and t.device.type == "cpu"
 
 
 def _differentiable_operator(operator, tensor_code, event_dims: tuple, name: str):
@@ -194,7 +196,7 @@ def make_exp_log(mod):
     def exp(xi: torch.Tensor) -> torch.Tensor:
         """Group exponential (..., dof) -> (..., n, n); backward through the closed-form J_r."""
         checks.vector(xi, mod.DOF, "xi")
-        if op is not None and _compiled_inference():
+        if op is not None and _compiled_inference(xi):
             return op[0](xi)
         if is_compiling() or _nested_forward_mode(xi):
             return run_lifted(mod.exp_impl, (xi,), (1,))
@@ -203,7 +205,7 @@ def make_exp_log(mod):
     def log(M: torch.Tensor) -> torch.Tensor:
         """Principal logarithm (..., n, n) -> (..., dof); backward through J_r^-1 (see module)."""
         checks.matrix(M, mod.MATRIX_DIM, "M")
-        if op is not None and _compiled_inference():
+        if op is not None and _compiled_inference(M):
             return op[1](M)
         if is_compiling() or _nested_forward_mode(M):
             return run_lifted(mod.log_impl, (M,), (2,))
