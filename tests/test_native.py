@@ -33,6 +33,8 @@ class KERNELS:
     log = torch.ops.torchsgal.sgal3_log
     exp_vjp = torch.ops.torchsgal.sgal3_exp_vjp
     log_vjp = torch.ops.torchsgal.sgal3_log_vjp
+    jl = torch.ops.torchsgal.sgal3_jl
+    jl_inv = torch.ops.torchsgal.sgal3_jl_inv
 
 # Both branches of every series and threshold: numerics.SERIES_THRESHOLD = 1, JINV_THRESHOLD =
 # 0.5, LOG_SIN_TAYLOR = 1e-4 and the symmetric-part log below cos = 0 (theta > pi/2).
@@ -92,6 +94,19 @@ def test_backward_maps_match_the_tensor_code_at_every_angle(dtype):
     g = torch.randn(xi.shape, generator=gen, dtype=dtype)
     assert_rowwise_close(KERNELS.exp_vjp(xi, M, G), F._jl_tmv(-xi, F._exp_pullback(M, G)), dtype)
     assert_rowwise_close(KERNELS.log_vjp(M, xi, g), F._log_pullback(M, F._jl_inv_tmv(-xi, g)), dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+def test_jacobians_match_the_tensor_code_at_every_angle(dtype):
+    xi = tangents(dtype, seed=3)
+    assert_rowwise_close(KERNELS.jl(xi), F.jl_impl(xi), dtype)
+    assert_rowwise_close(KERNELS.jl_inv(xi), F.jl_inv_impl(xi), dtype)
+
+
+def test_jacobian_kernels_run_in_eager_code(recorder):
+    xi = tangents(torch.float64)[:8]
+    F.jl(xi), F.jr_inv(xi), SGal3.jr(xi)
+    assert recorder.calls == ["sgal3_jl", "sgal3_jl_inv", "sgal3_jl"]
 
 
 def test_log_at_exactly_pi_and_the_identity():
@@ -238,9 +253,9 @@ def test_every_context_runs_the_kernels(recorder):
     torch.func.jacrev(F.log)(F.exp_impl(xi[0]))
     torch.func.vmap(torch.func.jacrev(F.exp))(xi)
     with torch.autograd.forward_ad.dual_level():
-        F.exp(torch.autograd.forward_ad.make_dual(xi, torch.ones_like(xi)))
+        F.exp(torch.autograd.forward_ad.make_dual(xi, torch.ones_like(xi)))  # jvp: J_r = J_l(-xi)
     assert recorder.calls == ["sgal3_exp", "sgal3_log", "sgal3_log_vjp", "sgal3_exp",
-                              "sgal3_exp_vjp", "sgal3_exp"]
+                              "sgal3_exp_vjp", "sgal3_exp", "sgal3_jl"]
     recorder.calls.clear()
     with torch.no_grad():
         torch.compile(F.exp, backend="eager", fullgraph=True)(xi)

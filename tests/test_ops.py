@@ -8,7 +8,8 @@ import torch
 import torchsgal as ts
 from torchsgal.functional import native, sgal3
 
-OPS = ("sgal3_exp", "sgal3_log", "sgal3_exp_vjp", "sgal3_log_vjp")
+OPS = ("sgal3_exp", "sgal3_log", "sgal3_exp_vjp", "sgal3_log_vjp", "sgal3_jl", "sgal3_jl_inv")
+EXP_LOG_OPS = OPS[:4]
 BATCHES = [(), (3,), (2, 4), (0,)]
 
 
@@ -28,7 +29,7 @@ def _arguments(name, batch, dtype, requires_grad=False):
     G = torch.randn(*batch, 5, 5, generator=g, dtype=torch.float64).to(dtype)
     w = torch.randn(*batch, 10, generator=g, dtype=torch.float64).to(dtype)
     args = {"sgal3_exp": (xi,), "sgal3_log": (M,), "sgal3_exp_vjp": (xi, M, G),
-            "sgal3_log_vjp": (M, xi, w)}[name]
+            "sgal3_log_vjp": (M, xi, w), "sgal3_jl": (xi,), "sgal3_jl_inv": (xi,)}[name]
     return tuple(a.clone().requires_grad_(requires_grad) for a in args)
 
 
@@ -58,7 +59,7 @@ def test_the_kernel_and_the_closed_form_agree(name, dtype):
     torch.testing.assert_close(out, reference, rtol=tol, atol=tol)
 
 
-@pytest.mark.parametrize("name", ["sgal3_exp", "sgal3_exp_vjp", "sgal3_log_vjp"])
+@pytest.mark.parametrize("name", ["sgal3_exp", "sgal3_exp_vjp", "sgal3_log_vjp", "sgal3_jl", "sgal3_jl_inv"])
 def test_first_and_second_derivatives_match_finite_differences(name):
     args = _arguments(name, (3,), torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(_op(name), args)
@@ -93,7 +94,7 @@ def test_eager_autograd_runs_the_operators():
         y = ts.SGal3.exp(x).log()
         y.sum().backward()
 
-    assert _operators_run(f, xi) == {f"torchsgal::{n}" for n in OPS}
+    assert _operators_run(f, xi) == {f"torchsgal::{n}" for n in EXP_LOG_OPS}
 
 
 def test_vmap_runs_the_operators_and_matches_the_loop():
@@ -161,3 +162,19 @@ def test_the_thread_local_kernel_switch_reaches_compiled_code():
             assert _aten_trigonometry_runs(compiled, xi)  # the closed form inside the operator
         assert not _aten_trigonometry_runs(compiled, xi)  # the C kernel
     torch.testing.assert_close(on, off, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["jl", "jl_inv", "jr", "jr_inv"])
+def test_jacobians_run_their_operators_and_differentiate_as_the_closed_form(name):
+    xi = _small(4, 10, seed=16)
+    public = getattr(sgal3, name)
+    sign = -1 if name.startswith("jr") else 1
+    closed = sgal3.jl_impl if name in ("jl", "jr") else sgal3.jl_inv_impl
+    torch.testing.assert_close(public(xi), closed(sign * xi), rtol=1e-13, atol=1e-13)
+    assert _operators_run(public, xi) == {f"torchsgal::sgal3_{name.replace('jr', 'jl')}"}
+    f = lambda x: (public(x) ** 2).sum()  # noqa: E731
+    g = lambda x: (closed(sign * x) ** 2).sum()  # noqa: E731
+    for transform in (torch.func.grad, lambda h: torch.func.jacfwd(torch.func.grad(h)),
+                      lambda h: torch.func.jacrev(torch.func.grad(h))):
+        torch.testing.assert_close(transform(f)(xi[0]), transform(g)(xi[0]), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(torch.func.vmap(public)(xi), closed(sign * xi), rtol=1e-13, atol=1e-13)

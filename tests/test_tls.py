@@ -156,7 +156,14 @@ def test_non_finite_observation_spoils_only_its_trial():
     assert sol.report.status.tolist() == [0, SolverStatus.NON_FINITE, 0, 0]
     ref = tls.solve_sgal3(trials.problem)
     ok = [0, 2, 3]
-    assert ref.x[0][ok].rminus(sol.x[0][ok]).abs().max() < 1e-12
+    # the other trials agree with the clean solve to the solver's stopping tolerance (step_tol,
+    # in standard deviations of the estimate), not to rounding: the tensor code's vectorised
+    # kernels round an element by its position in the batch, and the spoiled trial leaves the
+    # working set after its first evaluation, moving the trials after it (measured 1.2e-7 sd;
+    # through the position-independent C kernels 7e-15 sd)
+    d = torch.cat([ref.x[0][ok].rminus(sol.x[0][ok]), ref.x[1][ok] - sol.x[1][ok]], -1)
+    sd = ref.covariance[ok].diagonal(dim1=-2, dim2=-1).sqrt()
+    assert (d / sd).abs().max() < tls.DEFAULT_OPTIONS["step_tol"]
 
 
 @pytest.mark.parametrize("solver", ["sgal3", "baseline"])

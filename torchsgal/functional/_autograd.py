@@ -216,6 +216,34 @@ def make_exp_log(mod):
     return exp, log
 
 
+def make_jacobians(mod):
+    """``jl`` and ``jl_inv`` of a group module with registered operators (``ops.GROUPS``): the
+    operators (their C kernels where they apply), differentiated, in reverse and forward mode,
+    through the closed forms ``mod.jl_impl`` and ``mod.jl_inv_impl``.  Compiled code calls the
+    operators for inference on CPU tensors and the closed forms otherwise, as exp and log do."""
+    op = ops.register(mod)
+
+    def make(index, impl, name, doc):
+        function = _differentiable_operator(op[index], impl, (1,), f"{mod.NAME}{name.title()}")
+
+        def jacobian(xi: torch.Tensor) -> torch.Tensor:
+            checks.vector(xi, mod.DOF, "xi")
+            if is_compiling():
+                return op[index](xi) if _compiled_inference(xi) else impl(xi)
+            if _nested_forward_mode(xi):
+                return run_lifted(impl, (xi,), (1,))
+            return function.apply(xi)
+
+        jacobian.__name__ = jacobian.__qualname__ = name
+        jacobian.__module__ = mod.__name__
+        jacobian.__doc__ = doc
+        return jacobian
+
+    return (make(4, mod.jl_impl, "jl", "Left Jacobian (3.21)-(3.23) (..., 10) -> (..., 10, 10)."),
+            make(5, mod.jl_inv_impl, "jl_inv", "Inverse of the left Jacobian (3.23), block "
+                 "back-substitution (..., 10) -> (..., 10, 10)."))
+
+
 def checked_backward_parts(mod):
     """The public, checked ``jl_tmv``, ``jl_inv_tmv``, ``exp_pullback`` and ``log_pullback`` of
     ``mod``: the input checks, then the module's unchecked ``_jl_tmv`` etc., which the backward

@@ -48,6 +48,8 @@ WRAP(exp, 2)
 WRAP(log, 2)
 WRAP(exp_vjp, 4)
 WRAP(log_vjp, 4)
+WRAP(jl, 2)
+WRAP(jl_inv, 2)
 
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
@@ -57,6 +59,9 @@ static PyMethodDef methods[] = {
      "exp backward (xi, M, G, out, n, threads, is_double)"},
     {"sgal3_log_vjp", (PyCFunction)(void (*)(void))py_sgal3_log_vjp, METH_FASTCALL,
      "log backward (M, xi, g, out, n, threads, is_double)"},
+    {"sgal3_jl", (PyCFunction)(void (*)(void))py_sgal3_jl, METH_FASTCALL, "J_l (xi, out, n, threads, is_double)"},
+    {"sgal3_jl_inv", (PyCFunction)(void (*)(void))py_sgal3_jl_inv, METH_FASTCALL,
+     "J_l^-1 (xi, out, n, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

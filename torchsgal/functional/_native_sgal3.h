@@ -229,21 +229,18 @@ static void K(jl_tmv_one)(const T *x, T sign, const T *w, T *o) {
     K(jl_tmv_parts)(&P, w, o);
 }
 
-/* _jl_inv_tmv: J_l(xi)^-T g, at xi = sign * x. */
-static void K(jl_inv_tmv_one)(const T *x, T sign, const T *g, T *o) {
-    K(parts_t) P;
-    K(transpose_parts)(x, sign, &P);
-    const T *c = P.c;
-    T mphi[3] = {-P.phi[0], -P.phi[1], -P.phi[2]};
-    T d = K(jinv_coefficient)(K(dot)(P.phi, P.phi));
+/* _jl_inv_tmv: J_l(xi)^-T g, with the parts P of xi and d = jinv_coefficient(|phi|^2). */
+static void K(jl_inv_tmv_parts)(const K(parts_t) *Pp, T d, const T *g, T *o) {
+    const T *c = Pp->c;
+    T mphi[3] = {-Pp->phi[0], -Pp->phi[1], -Pp->phi[2]};
     T y_rho[3], p[3], pp[3], t[3], y_nu[3], S[3], z[3], y_phi[3];
     K(poly)(mphi, g, (T)1, (T)-0.5, d, y_rho);
-    K(cross)(P.phi, y_rho, p);
-    K(cross)(P.phi, p, pp);
+    K(cross)(Pp->phi, y_rho, p);
+    K(cross)(Pp->phi, p, pp);
     for (int i = 0; i < 3; ++i)
-        t[i] = g[3 + i] + P.iota * ((T)0.5 * y_rho[i] - (c[2] - c[3]) * p[i] + (c[3] - c[4]) * pp[i]);
+        t[i] = g[3 + i] + Pp->iota * ((T)0.5 * y_rho[i] - (c[2] - c[3]) * p[i] + (c[3] - c[4]) * pp[i]);
     K(poly)(mphi, t, (T)1, (T)-0.5, d, y_nu);
-    K(coupling_t)(&P, y_rho, y_nu, S, z);
+    K(coupling_t)(Pp, y_rho, y_nu, S, z);
     for (int i = 0; i < 3; ++i) t[i] = g[6 + i] - S[i];
     K(poly)(mphi, t, (T)1, (T)-0.5, d, y_phi);
     for (int i = 0; i < 3; ++i) {
@@ -251,7 +248,37 @@ static void K(jl_inv_tmv_one)(const T *x, T sign, const T *g, T *o) {
         o[3 + i] = y_nu[i];
         o[6 + i] = y_phi[i] - z[i];
     }
-    o[9] = g[9] - K(dot)(P.g2n, y_rho);
+    o[9] = g[9] - K(dot)(Pp->g2n, y_rho);
+}
+
+/* _jl_inv_tmv: J_l(xi)^-T g, at xi = sign * x. */
+static void K(jl_inv_tmv_one)(const T *x, T sign, const T *g, T *o) {
+    K(parts_t) P;
+    K(transpose_parts)(x, sign, &P);
+    K(jl_inv_tmv_parts)(&P, K(jinv_coefficient)(K(dot)(P.phi, P.phi)), g, o);
+}
+
+/* J_l(xi) (3.23), row-major 10x10: row k is (J_l^T e_k)^T, from the transposed product. */
+static void K(jl_one)(const T *x, T *o) {
+    K(parts_t) P;
+    K(transpose_parts)(x, (T)1, &P);
+    for (int k = 0; k < 10; ++k) {
+        T e[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+        e[k] = (T)1;
+        K(jl_tmv_parts)(&P, e, o + 10 * k);
+    }
+}
+
+/* J_l(xi)^-1, row-major 10x10: row k is (J_l^-T e_k)^T. */
+static void K(jl_inv_one)(const T *x, T *o) {
+    K(parts_t) P;
+    K(transpose_parts)(x, (T)1, &P);
+    T d = K(jinv_coefficient)(K(dot)(P.phi, P.phi));
+    for (int k = 0; k < 10; ++k) {
+        T e[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+        e[k] = (T)1;
+        K(jl_inv_tmv_parts)(&P, d, e, o + 10 * k);
+    }
 }
 
 /* exp's backward: J_r(xi)^T hat^T(M^T G) = J_l(-xi)^T (_exp_pullback). */
@@ -313,6 +340,18 @@ static void K(exp_vjp_range)(void **a, int64_t lo, int64_t hi) {
     const T *xi = a[0], *M = a[1], *G = a[2];
     T *out = a[3];
     for (int64_t i = lo; i < hi; ++i) K(exp_vjp_one)(xi + 10 * i, M + 25 * i, G + 25 * i, out + 10 * i);
+}
+
+static void K(jl_range)(void **a, int64_t lo, int64_t hi) {
+    const T *xi = a[0];
+    T *out = a[1];
+    for (int64_t i = lo; i < hi; ++i) K(jl_one)(xi + 10 * i, out + 100 * i);
+}
+
+static void K(jl_inv_range)(void **a, int64_t lo, int64_t hi) {
+    const T *xi = a[0];
+    T *out = a[1];
+    for (int64_t i = lo; i < hi; ++i) K(jl_inv_one)(xi + 10 * i, out + 100 * i);
 }
 
 static void K(log_vjp_range)(void **a, int64_t lo, int64_t hi) {

@@ -1,8 +1,9 @@
-"""SGal(3)'s exp, log and their backward maps as registered torch operators.
+"""SGal(3)'s exp, log, their backward maps and the left Jacobian and its inverse as registered
+torch operators.
 
-``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp`` and ``sgal3_log_vjp``
-(``torch.library.custom_op``) are the one mechanism that eager code, autograd, ``torch.func`` and
-``torch.compile`` all see:
+``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp``, ``sgal3_log_vjp``, ``sgal3_jl`` and
+``sgal3_jl_inv`` (``torch.library.custom_op``) are the one mechanism that eager code, autograd,
+``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
   batch shape, where the kernels are compiled and not switched off for the calling thread, and
@@ -11,11 +12,11 @@
 * a fake implementation (shapes only) lets ``torch.compile`` and ``torch.export`` trace them;
 * ``register_autograd`` differentiates exp and log through their closed-form Jacobians
   (``_autograd.py``: grad_xi = J_r(xi)^T hat^T(M^T G), grad_M = M^-T vee^T(J_r(xi)^-T g)), each
-  backward being the next operator; the backward operators' own derivatives (second order)
-  are those of their closed-form tensor code;
+  backward being the next operator; the backward operators' own derivatives (second order),
+  and those of the Jacobians, are those of their closed-form tensor code;
 * ``register_vmap`` maps every vmapped axis into the batch the kernels already loop over.
 
-``tests/test_ops.py`` runs ``torch.library.opcheck`` on all four.  The closed forms
+``tests/test_ops.py`` runs ``torch.library.opcheck`` on all six.  The closed forms
 (``sgal3.exp_impl`` ...) stay the reference implementation.
 
 Why operators rather than compiled closed forms: at 1e3 elements the C kernel behind an operator
@@ -80,9 +81,18 @@ def _vmap_rule(op, event_dims: Sequence[int]):
     return rule
 
 
+_REGISTERED: dict = {}
+
+
 def register(mod) -> tuple:
-    """Define the four operators of the group module ``mod`` (``functional.sgal3``) and return
-    them as (exp, log, exp_vjp, log_vjp)."""
+    """Define the operators of the group module ``mod`` (``functional.sgal3``) once and return
+    them as (exp, log, exp_vjp, log_vjp, jl, jl_inv)."""
+    if mod.NAME not in _REGISTERED:
+        _REGISTERED[mod.NAME] = _define(mod)
+    return _REGISTERED[mod.NAME]
+
+
+def _define(mod) -> tuple:
     name, n, dof = mod.NAME.lower(), mod.MATRIX_DIM, mod.DOF
     prefix = f"torchsgal::{name}_"
 
@@ -115,6 +125,14 @@ def register(mod) -> tuple:
     def log_vjp(M: Tensor, xi: Tensor, g: Tensor) -> Tensor:
         return run("log_vjp", log_vjp_tensor, (M, xi, g), (2, 1, 1), (n, n))
 
+    @torch.library.custom_op(prefix + "jl", mutates_args=())
+    def jl(xi: Tensor) -> Tensor:
+        return run("jl", mod.jl_impl, (xi,), (1,), (dof, dof))
+
+    @torch.library.custom_op(prefix + "jl_inv", mutates_args=())
+    def jl_inv(xi: Tensor) -> Tensor:
+        return run("jl_inv", mod.jl_inv_impl, (xi,), (1,), (dof, dof))
+
     def fake(event_dims, event):
         def impl(*args):
             return args[0].new_empty(tuple(_batch_shape(args, event_dims)) + event)
@@ -124,6 +142,8 @@ def register(mod) -> tuple:
     log.register_fake(fake((2,), (dof,)))
     exp_vjp.register_fake(fake((1, 2, 2), (dof,)))
     log_vjp.register_fake(fake((2, 1, 1), (n, n)))
+    jl.register_fake(fake((1,), (dof, dof)))
+    jl_inv.register_fake(fake((1,), (dof, dof)))
 
     def save_all(ctx, inputs, output):
         ctx.save_for_backward(*inputs, output)
@@ -148,7 +168,10 @@ def register(mod) -> tuple:
     log.register_autograd(log_backward, setup_context=save_all)
     exp_vjp.register_autograd(tensor_code_backward(exp_vjp_tensor), setup_context=save_all)
     log_vjp.register_autograd(tensor_code_backward(log_vjp_tensor), setup_context=save_all)
+    jl.register_autograd(tensor_code_backward(mod.jl_impl), setup_context=save_all)
+    jl_inv.register_autograd(tensor_code_backward(mod.jl_inv_impl), setup_context=save_all)
 
-    for op, event_dims in ((exp, (1,)), (log, (2,)), (exp_vjp, (1, 2, 2)), (log_vjp, (2, 1, 1))):
+    for op, event_dims in ((exp, (1,)), (log, (2,)), (exp_vjp, (1, 2, 2)), (log_vjp, (2, 1, 1)),
+                           (jl, (1,)), (jl_inv, (1,))):
         op.register_vmap(_vmap_rule(op, event_dims))
-    return exp, log, exp_vjp, log_vjp
+    return exp, log, exp_vjp, log_vjp, jl, jl_inv

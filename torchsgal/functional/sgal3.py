@@ -13,7 +13,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import checked_backward_parts, make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians
 from ._blocking import blocked
 
 NAME = "SGal3"
@@ -177,9 +177,9 @@ def _jl_blocks(xi: torch.Tensor):
 
 
 @blocked(1)
-def jl(xi: torch.Tensor) -> torch.Tensor:
-    """Left Jacobian (3.21)-(3.23)."""
-    checks.vector(xi, DOF, "xi")
+def jl_impl(xi: torch.Tensor) -> torch.Tensor:
+    """Left Jacobian (3.21)-(3.23), as tensor operations (the closed form ``jl`` runs where its
+    operator's C kernel does not apply)."""
     D, L, N, Enu, Mb, i3 = _jl_blocks(xi)
     return B.block_matrix(
         [
@@ -195,9 +195,9 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(1)
-def jl_inv(xi: torch.Tensor) -> torch.Tensor:
-    """Inverse of (3.23) by block back-substitution (the Jacobian is block upper-triangular)."""
-    checks.vector(xi, DOF, "xi")
+def jl_inv_impl(xi: torch.Tensor) -> torch.Tensor:
+    """Inverse of (3.23) by block back-substitution (the Jacobian is block upper-triangular),
+    as tensor operations."""
     D, L, N, Enu, Mb, i3 = _jl_blocks(xi)
     Di = B.jac_inv_mat(_split(xi)[2])
     P = Di @ Mb @ Di
@@ -307,14 +307,15 @@ def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.homogeneous(rot, [B.matvec_entries(Ce, nu), B.matvec_entries(Ce, rho)], bottom)
 
 
-@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
     """J_r(xi) = J_l(-xi)."""
+    checks.vector(xi, DOF, "xi")
     return jl(-xi)
 
 
-@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi)^-1 = J_l(-xi)^-1."""
+    checks.vector(xi, DOF, "xi")
     return jl_inv(-xi)
 
 
@@ -408,4 +409,5 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl, jl_inv = make_jacobians(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])
