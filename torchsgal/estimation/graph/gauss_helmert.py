@@ -48,7 +48,18 @@ from ..gauss_helmert import check_covariance
 from ..solver import SolverStatus
 from .factors import Data, Factor
 from .graph import FactorGraph
-from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _full, _solve, _State, _trial, _where
+from .levenberg_marquardt import (
+    GraphResult,
+    _accept,
+    _check,
+    _converged,
+    _decide,
+    _full,
+    _solve,
+    _State,
+    _trial,
+    _where,
+)
 from .linear_system import LinearSystem
 from .linearize import Problem, linearize
 
@@ -360,24 +371,10 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
     x_new, lin_new, new_cost = _trial(problem, system, s, delta)
     candidates = [b.factor._candidate for b in blocks]
-    cost = s.lin.cost
-    cost_change = cost - new_cost
-    if o["damped"]:
-        valid = solved & (lin_change >= 0)
-        fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
-        success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
-                   & torch.isfinite(new_cost))
-        # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged:
-        # the iteration ends without a step, as GTSAM's below ``relative_error_tol``
-        stop_search = valid & ~success & (cost_change.abs() < max(o["rel_tol"], 1e3 * eps) * cost)
-        lam_up = s.lam * o["lambda_factor"]
-        lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
-                          torch.where(stop_search, s.lam, lam_up))
-        gave_up = ~success & ~stop_search & (lam_up >= o["lambda_upper"])
-        done = success | stop_search | gave_up
-    else:
-        success = solved & torch.isfinite(new_cost)
-        gave_up, done = ~success, torch.ones_like(success)
+    # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged: the
+    # iteration ends without a step, as GTSAM's below ``relative_error_tol``
+    success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps,
+                                          max(o["rel_tol"], 1e3 * eps))
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     short = success & (quad.clamp_min(0).sqrt() <= o["step_tol"])
     converged = (_converged(s, lin, o) if o["cost_tests"] else torch.zeros_like(short)) | short

@@ -287,22 +287,7 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
     delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
     x_new, lin_new, new_cost = _trial(problem, system, s, delta)
-    cost = s.lin.cost
-    cost_change = cost - new_cost
-    if o["damped"]:
-        valid = solved & (lin_change >= 0)
-        fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
-        success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
-                   & torch.isfinite(new_cost))
-        stop_search = valid & ~success & (cost_change.abs() < o["rel_tol"] * cost)
-        lam_up = s.lam * o["lambda_factor"]
-        lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
-                          torch.where(stop_search, s.lam, lam_up))
-        gave_up = ~success & ~stop_search & (lam_up >= o["lambda_upper"])
-        done = success | stop_search | gave_up
-    else:
-        success = solved & torch.isfinite(new_cost)
-        gave_up, done = ~success, torch.ones_like(success)
+    success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps, o["rel_tol"])
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     iterations = s.iterations + success.to(torch.int64)
     converged = _converged(s, lin, o)
@@ -313,6 +298,30 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
                          _full(status, SolverStatus.MAX_ITERATIONS), status)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     return _State(s.rows, x, lin, cost_start, lam, iterations, quad.clamp_min(0).sqrt(), status)
+
+
+def _decide(s: _State, o: dict, solved: torch.Tensor, lin_change: torch.Tensor,
+            new_cost: torch.Tensor, eps: float, judge_tol: float) -> tuple:
+    """GTSAM's verdict on one trial step per problem (module docstring, steps 3-5): (success,
+    gave_up, done, lambda for the next trial).  Damped: a step is taken where the model predicts
+    a decrease that the cost confirms (fidelity); a cost change below ``judge_tol`` times the
+    cost ends the search without a step; lambda grows until ``lambda_upper`` (gave up).
+    Undamped: every finite solved step is taken."""
+    if not o["damped"]:
+        success = solved & torch.isfinite(new_cost)
+        return success, ~success, torch.ones_like(success), torch.zeros_like(s.lam)
+    cost = s.lin.cost
+    cost_change = cost - new_cost
+    valid = solved & (lin_change >= 0)
+    fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
+    success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
+               & torch.isfinite(new_cost))
+    stop_search = valid & ~success & (cost_change.abs() < judge_tol * cost)
+    lam_up = s.lam * o["lambda_factor"]
+    lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
+                      torch.where(stop_search, s.lam, lam_up))
+    gave_up = ~success & ~stop_search & (lam_up >= o["lambda_upper"])
+    return success, gave_up, success | stop_search | gave_up, lam
 
 
 def _trial(problem: Problem, system: LinearSystem, s: _State, delta: torch.Tensor
