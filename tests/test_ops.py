@@ -178,3 +178,19 @@ def test_jacobians_run_their_operators_and_differentiate_as_the_closed_form(name
                       lambda h: torch.func.jacrev(torch.func.grad(h))):
         torch.testing.assert_close(transform(f)(xi[0]), transform(g)(xi[0]), rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(torch.func.vmap(public)(xi), closed(sign * xi), rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("name,args,message", [
+    ("sgal3_exp", (torch.zeros(5, 9, dtype=torch.float64),), r"xi must have shape \(\.\.\., 10\), got \(5, 9\)"),
+    ("sgal3_log", (torch.zeros(5, 4, 4, dtype=torch.float64),), r"M must have shape \(\.\.\., 5, 5\)"),
+    ("sgal3_exp_vjp", (torch.zeros(5, 10, dtype=torch.float64), torch.zeros(5, 5, 5, dtype=torch.float64),
+                       torch.zeros(5, 4, 5, dtype=torch.float64)), r"G must have shape"),
+    ("sgal3_log_vjp", (torch.zeros(5, 5, 5, dtype=torch.float64), torch.zeros(5, 10, dtype=torch.float64),
+                       torch.zeros(5, 9, dtype=torch.float64)), r"g must have shape"),
+    ("sgal3_jl", (torch.zeros(3, 10, dtype=torch.int64),), r"xi must have a floating dtype"),
+    ("sgal3_jl_inv", (torch.zeros(2, 11, dtype=torch.float32),), r"xi must have shape"),
+])
+def test_operators_called_directly_refuse_bad_shapes_by_name(name, args, message):
+    # a C loop given a (..., 9) tensor would read past its end: the operators check first
+    with pytest.raises((ValueError, TypeError), match=message):
+        _op(name)(*args)

@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from . import native
+from . import checks, native
 from ._blocking import run_blocked
 
 Tensor = torch.Tensor
@@ -102,7 +102,16 @@ def _define(mod) -> tuple:
     def log_vjp_tensor(M: Tensor, xi: Tensor, g: Tensor) -> Tensor:
         return mod._log_pullback(M, mod._jl_inv_tmv(-xi, g))  # M^-T vee^T(J_r(xi)^-T g)
 
+    names = {"exp": ("xi",), "log": ("M",), "exp_vjp": ("xi", "M", "G"), "log_vjp": ("M", "xi", "g"),
+             "jl": ("xi",), "jl_inv": ("xi",)}
+
     def run(kernel: str, tensor_code, args, event_dims, event):
+        # the operators are public: shapes checked before a C loop reads the memory
+        for a, k, arg_name in zip(args, event_dims, names[kernel]):
+            if k == 1:
+                checks.vector(a, dof, arg_name)
+            else:
+                checks.matrix(a, n, arg_name)
         batch = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
         fn = _kernel(f"{name}_{kernel}", args, batch)
         if fn is None:
