@@ -23,6 +23,13 @@ Usage: python benchmarks/bench_posegraph.py [--repeats 3] [--problems NAME ...] 
 [--out benchmarks/results/posegraph_cpu]
 Writes <out>.json and <out>.md; with --merge the problems not run keep their entries from the
 existing <out>.json (marked as such).
+
+With ``--device cuda`` (or cpu): the engine on that device and on the host CPU in the same run
+(LM and GN, its own final cost, iterations, status, median wall time with the device
+synchronised around each call), GTSAM and Theseus rows where they import (a note where they do
+not), no SparseCholesky rows; an untimed warm-up solve of the small problems on each device
+first; no timed run starts after ``--time-budget`` seconds.  Writes
+``benchmarks/results/posegraph_<device type>.{json,md}`` by default, never the CPU files.
 """
 from __future__ import annotations
 
@@ -41,8 +48,12 @@ import numpy as np
 import torch
 
 import torchsgal as ts
+from torchsgal.estimation import SolverStatus
 from torchsgal.estimation.g2o import PoseGraph, odometry_initial_guess, read_pose_graph
 from torchsgal.estimation.sparse import SparseCholesky, available_backends
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _timing import cpu_model, resolve_device, synchronize  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 PROBLEMS = ("sphere2500.txt", "pose3example-grid.txt", "w100.graph")
@@ -116,16 +127,24 @@ def run_gtsam(fg, values, method: str, repeats: int) -> dict:
 
 
 # --------------------------------------------------------------------------- torchsgal engine
-def engine_graph(graph: PoseGraph, initial):
+def engine_graph(graph: PoseGraph, initial, device: torch.device | None = None):
+    """The engine's graph of ``graph`` from ``initial``, with every tensor on ``device``
+    (default: where ``initial`` is)."""
     from torchsgal.estimation import graph as fg
 
+    device = initial.device if device is None else device
+    G = graph.group
+
+    def on(x):
+        return G(x.as_matrix().to(device)) if isinstance(x, ts.LieGroup) else x.to(device)
+
     g = fg.FactorGraph()
-    g.add_variable("x", initial)
+    g.add_variable("x", on(initial))
     i, j = graph.edges[:, 0], graph.edges[:, 1]
-    g.add(fg.Between("x", i, j, graph.measurements, information=graph.information))
+    g.add(fg.Between("x", on(i), on(j), on(graph.measurements), information=on(graph.information)))
     dof = graph.group.dof
-    W0 = torch.eye(dof, dtype=torch.float64) / PRIOR_SIGMA**2
-    g.add(fg.Prior("x", torch.tensor([0]), initial[0:1], information=W0))
+    W0 = torch.eye(dof, dtype=torch.float64, device=device) / PRIOR_SIGMA**2
+    g.add(fg.Prior("x", torch.tensor([0], device=device), on(initial[0:1]), information=W0))
     return g
 
 
@@ -258,6 +277,180 @@ def run_sparse(graph: PoseGraph, initial, repeats: int) -> list[dict]:
     return out
 
 
+# --------------------------------------------------------------------------- --device mode
+def gtsam_status() -> tuple[bool, str]:
+    try:
+        import gtsam
+        return True, f"gtsam {getattr(gtsam, '__version__', '')}".strip()
+    except Exception as e:  # any import failure is reported, not raised
+        return False, f"gtsam not importable: {type(e).__name__}: {e}"
+
+
+def timed_runs(fn, repeats: int, device: torch.device, deadline: float, warmup: bool):
+    """(median seconds, runs, last result) of up to ``repeats`` calls of ``fn``, the device
+    synchronised before starting and before stopping each clock; no further call once
+    ``deadline`` (perf_counter) has passed, one at least.  ``warmup``: one untimed call first."""
+    if warmup:
+        fn()
+    times, out = [], None
+    for _ in range(repeats):
+        synchronize(device)
+        t0 = time.perf_counter()
+        out = fn()
+        synchronize(device)
+        times.append(time.perf_counter() - t0)
+        if time.perf_counter() > deadline:
+            break
+    return statistics.median(times), len(times), out
+
+
+def run_engine_on(graph: PoseGraph, initial, method: str, device: torch.device, repeats: int,
+                  deadline: float, warmup: bool, gtsam_fg=None) -> dict:
+    """The engine (linear_solver "auto") on ``device``: its own final cost 1/2 chi-square (and
+    GTSAM's ``graph.error`` of its solution where GTSAM imports)."""
+    from torchsgal.estimation import graph as fg
+
+    solver = fg.levenberg_marquardt if method == "LM" else fg.gauss_newton
+
+    def solve():
+        return solver(engine_graph(graph, initial, device), max_iterations=100)
+
+    t, runs, result = timed_runs(solve, repeats, device, deadline, warmup)
+    poses = result.values["x"]
+    row = dict(solver=f"torchsgal {method}", device=str(device), time_s=t, runs=runs,
+               engine_cost=float(result.report.cost[0]), iterations=int(result.report.iterations[0]),
+               status=SolverStatus(int(result.report.status[0])).name, results_device=str(poses.device),
+               linear_solver=type(result.system).__name__ + (
+                   f" ({result.system.backend})" if hasattr(result.system, "backend") else " (batched Cholesky)"))
+    row["cost"] = gtsam_fg.error(gtsam_values(graph, poses)) if gtsam_fg is not None else row["engine_cost"]
+    return row
+
+
+def warm_up(device: torch.device, graphs: list[PoseGraph]) -> float:
+    """One untimed LM and GN solve of each small graph on ``device`` with the dense and with the
+    sparse linear solver (CUDA context, library handles, kernel loading); returns seconds."""
+    from torchsgal.estimation import graph as fg
+
+    t0 = time.perf_counter()
+    for graph in graphs:
+        initial = graph.poses if graph.poses is not None else odometry_initial_guess(graph)
+        for solver in (fg.levenberg_marquardt, fg.gauss_newton):
+            for linear_solver in ("dense", "sparse"):
+                solver(engine_graph(graph, initial, device), max_iterations=3, linear_solver=linear_solver)
+    synchronize(device)
+    return time.perf_counter() - t0
+
+
+def main_device(args, device: torch.device) -> dict:
+    """The engine on ``device`` and on the host CPU in one run (--device); GTSAM and Theseus
+    rows where they import, a note where they do not."""
+    cpu = torch.device("cpu")
+    start = time.perf_counter()
+    deadline = start + args.time_budget
+    has_gtsam, gtsam_note = gtsam_status()
+    th, theseus_note = theseus_status()
+    small = [read_pose_graph(DATA / n) for n in ("pose3example-grid.txt", "w100.graph")]
+    warm = {str(d): warm_up(d, small) for d in dict.fromkeys([device, cpu])}
+    results = dict(device=str(device), device_name=device_name(device), cpu=cpu_model(),
+                   python=sys.version.split()[0], torch=torch.__version__, cuda=torch.version.cuda,
+                   threads=torch.get_num_threads(), repeats=args.repeats, time_budget_s=args.time_budget,
+                   prior_sigma=PRIOR_SIGMA, gtsam=gtsam_note, theseus=theseus_note,
+                   sparse_backends=list(available_backends()), warm_up_s=warm,
+                   environment={k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")},
+                   command=" ".join(["python benchmarks/bench_posegraph.py", *sys.argv[1:]]), problems={})
+    for name in args.problems:
+        graph = read_pose_graph(DATA / name)
+        initial = graph.poses if graph.poses is not None else odometry_initial_guess(graph)
+        gtsam_fg = values = None
+        if has_gtsam:
+            gtsam_fg, values = gtsam_problem(graph, initial)
+        D = graph.ids.numel() * graph.group.dof
+        small_problem = D <= args.dense_limit
+        repeats = 5 * args.repeats if small_problem else args.repeats
+        entry = dict(group=graph.group.__name__, vertices=graph.ids.numel(), edges=graph.edges.shape[0],
+                     unknowns=D, repeats=repeats, solvers=[])
+        if gtsam_fg is not None:
+            entry["initial_cost_gtsam"] = gtsam_fg.error(values)
+        for method in ("LM", "GN"):
+            for d in dict.fromkeys([device, cpu]):
+                if time.perf_counter() > deadline:
+                    row = dict(solver=f"torchsgal {method}", device=str(d),
+                               skipped=f"time budget of {args.time_budget} s spent")
+                else:
+                    row = run_engine_on(graph, initial, method, d, repeats, deadline, small_problem, gtsam_fg)
+                entry["solvers"].append(row)
+                print(name, row, flush=True)
+        if has_gtsam:
+            for method in ("LM", "GN"):
+                row = dict(run_gtsam(gtsam_fg, values, method, repeats), device="cpu")
+                entry["solvers"].append(row)
+                print(name, row, flush=True)
+        else:
+            entry["solvers"].append(dict(solver="GTSAM LM and GN", device="cpu", skipped=gtsam_note))
+        if th is None or not has_gtsam:
+            entry["solvers"].append(dict(solver="Theseus LM (CHOLMOD)", device="cpu", skipped=(
+                theseus_note if th is None else "needs GTSAM's graph.error for its cost")))
+        elif time.perf_counter() > deadline:
+            entry["solvers"].append(dict(solver="Theseus LM (CHOLMOD)", device="cpu",
+                                         skipped=f"time budget of {args.time_budget} s spent"))
+        else:
+            try:
+                row = run_theseus(th, graph, initial, gtsam_fg, 1, args.theseus_max_iterations)
+                entry["solvers"].append(dict(row, device="cpu", runs=1))
+            except Exception as e:  # reported in the results, not raised
+                entry["solvers"].append(dict(solver="Theseus LM (CHOLMOD)", device="cpu",
+                                             skipped=f"{type(e).__name__}: {e}"))
+        print(name, entry["solvers"][-1], flush=True)
+        for row in entry["solvers"]:
+            if "time_s" in row and row["solver"].startswith("torchsgal"):
+                peer = next((r for r in entry["solvers"] if r["solver"] == row["solver"]
+                             and r.get("device") == "cpu" and "time_s" in r), None)
+                if peer is not None:
+                    row["time_vs_engine_cpu"] = row["time_s"] / peer["time_s"]
+                    row["cost_vs_engine_cpu"] = (row["cost"] - peer["cost"]) / peer["cost"]
+        results["problems"][name] = entry
+    results["total_s"] = time.perf_counter() - start
+    out = Path(args.out or Path(__file__).parent / "results" / f"posegraph_{device.type}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+    out.with_suffix(".md").write_text(markdown_device(results))
+    print(markdown_device(results))
+    return results
+
+
+def device_name(device: torch.device) -> str:
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model()
+
+
+def markdown_device(results: dict) -> str:
+    lines = [f"# Pose-graph optimisation: the engine on {results['device']} ({results['device_name']}) "
+             "and on the host CPU", "",
+             f"`{results['command']}`; torch {results['torch']} (CUDA {results['cuda']}), host CPU "
+             f"{results['cpu']}, {results['threads']} threads; median of up to {results['repeats']} "
+             f"runs (5x that, after an untimed run, for the problems of at most --dense-limit "
+             f"unknowns), the device synchronised before and after each; time budget "
+             f"{results['time_budget_s']} s (a row with fewer runs than asked, or not run, when it "
+             f"was spent); total {results['total_s']:.1f} s. The engine's linear solver is \"auto\" "
+             f"(sparse backends installed: {', '.join(results['sparse_backends'])}); its results "
+             f"stay on the device it ran on. {results['gtsam']}; {results['theseus']}; "
+             f"environment {results['environment']}.", ""]
+    for name, e in results["problems"].items():
+        lines += [f"## {name}: {e['group']}, {e['vertices']} poses, {e['edges']} edges, "
+                  f"{e['unknowns']} unknowns", "",
+                  "| solver | device | linear solver | final cost | iterations | status | runs | time (s) "
+                  "| x engine on CPU |", "|---|---|---|---|---|---|---|---|---|"]
+        for s in e["solvers"]:
+            if "skipped" in s:
+                lines.append(f"| {s['solver']} | {s['device']} | not run: {s['skipped']} | | | | | | |")
+                continue
+            ratio = f"{s['time_vs_engine_cpu']:.2f}" if "time_vs_engine_cpu" in s else ""
+            lines.append(f"| {s['solver']} | {s['device']} | {s.get('linear_solver', '')} | "
+                         f"{s['cost']:.10g} | {s['iterations']} | {s.get('status', '')} | "
+                         f"{s.get('runs', e['repeats'])} | {s['time_s']:.4g} | {ratio} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------- main
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -265,7 +458,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=PROBLEMS)
     parser.add_argument("--dense-limit", type=int, default=2000)
     parser.add_argument("--theseus-max-iterations", type=int, default=30)
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "posegraph_cpu"))
+    parser.add_argument("--out", default=None,
+                        help="output path without suffix (default benchmarks/results/posegraph_cpu, "
+                             "with --device: posegraph_<device type>)")
+    parser.add_argument("--device", default=None,
+                        help="run the engine on this device (cpu or cuda[:i]) and on the host CPU, "
+                             "GTSAM and Theseus where they import (no SparseCholesky rows)")
+    parser.add_argument("--time-budget", type=float, default=100.0,
+                        help="with --device: seconds after which no further timed run starts")
     parser.add_argument("--merge", action="store_true",
                         help="keep the entries of the problems not run from the existing result "
                              "file at --out (marked as such)")
@@ -273,6 +473,14 @@ def main(argv=None) -> dict:
     torch.set_default_dtype(torch.float64)
     if not DATA.is_dir():
         raise SystemExit(f"data folder not found: {DATA}")
+    if args.device is not None:
+        device = resolve_device(args.device)
+        if device.type != "cpu" and args.out and Path(args.out).name.endswith("_cpu"):
+            raise SystemExit(f"--out {args.out}: a {device.type} run does not write the CPU result files")
+        if args.merge:
+            raise SystemExit("--merge is for the CPU benchmark (without --device)")
+        return main_device(args, device)
+    args.out = args.out or str(Path(__file__).parent / "results" / "posegraph_cpu")
     th, theseus_note = theseus_status()
     results = dict(machine=platform.processor() or platform.machine(), python=sys.version.split()[0],
                    torch=torch.__version__, threads=torch.get_num_threads(), repeats=args.repeats,
