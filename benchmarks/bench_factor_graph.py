@@ -22,6 +22,13 @@
    ratio backward / forward, and the largest difference of the implicit and unrolled gradients.
 
 Usage: python benchmarks/bench_factor_graph.py [--repeats 7] [--out benchmarks/results/factor_graph_cpu]
+
+With ``--device cuda`` (or cpu): cases 1 and 5 and the batch scaling with the engine on that
+device and on the host CPU in the same run (alternated, the device synchronised around each
+call), the GTSAM loop where it imports; the device's results against the CPU's (costs,
+iterations, statuses, gradients); no timed round starts after ``--time-budget`` seconds.
+Writes ``benchmarks/results/factor_graph_<device type>.{json,md}`` by default, never the CPU
+files.
 """
 from __future__ import annotations
 
@@ -42,8 +49,11 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 
-from _timing import cpu_model  # noqa: E402
+from _timing import cpu_model, resolve_device, synchronize  # noqa: E402
 from test_factor_graph import (  # noqa: E402
+    EDGES_I,
+    EDGES_J,
+    SIGMA,
     _graph,
     _gtsam_graph,
     _gtsam_values,
@@ -257,13 +267,204 @@ def bench_differentiable(repeats: int) -> dict:
                 / scale)
 
 
+# --------------------------------------------------------------------------- --device mode
+def _on(x, device):
+    return ts.SE3(x.as_matrix().to(device)) if isinstance(x, ts.LieGroup) else x.to(device)
+
+
+def _device_graph(Z, Z0, x0, device):
+    """``test_factor_graph._graph`` with its indices and noise on ``device`` (Z, Z0, x0 there)."""
+    W = torch.diag(SIGMA ** -2).to(device)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0)
+    graph.add(fg.Prior("x", 0, Z0, information=W))
+    graph.add(fg.Between("x", EDGES_I.to(device), EDGES_J.to(device), Z, information=W))
+    return graph
+
+
+def _timed(cases: dict, repeats: int, device, deadline: float) -> tuple[dict, dict]:
+    """Median seconds of each case (name -> zero-arg callable), called in alternation after one
+    untimed round, the device synchronised before starting and before stopping each clock; no
+    new round once ``deadline`` (perf_counter) has passed (one round at least).  Returns
+    (medians, last results)."""
+    out = {k: f() for k, f in cases.items()}  # warm-up, not timed
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(repeats):
+        for k, f in cases.items():
+            synchronize(device)
+            t0 = time.perf_counter()
+            out[k] = f()
+            synchronize(device)
+            times[k].append(time.perf_counter() - t0)
+        if time.perf_counter() > deadline:
+            break
+    return {k: dict(median_s=statistics.median(v), runs=len(v)) for k, v in times.items()}, out
+
+
+def _gtsam_importable() -> tuple[bool, str]:
+    try:
+        import gtsam  # noqa: F401
+        return True, "gtsam imports"
+    except Exception as e:  # any import failure is reported, not raised
+        return False, f"gtsam not importable: {type(e).__name__}: {e}"
+
+
+def device_pose_graphs(device, repeats: int, deadline: float, B=64, seed=0, init_noise=0.3,
+                       with_gtsam=False) -> dict:
+    """The batched LM on ``device`` and on the CPU (inputs on each device before the clock, the
+    graph built inside it), and the GTSAM loop where it imports."""
+    _, Z, Z0, x0 = pose_graphs(B=B, seed=seed, init_noise=init_noise)
+    cpu = torch.device("cpu")
+    inputs = {d: (_on(Z, d), _on(Z0, d), _on(x0, d)) for d in (device, cpu)}
+    cases = {"device": lambda: fg.levenberg_marquardt(_device_graph(*inputs[device], device)),
+             "cpu": lambda: fg.levenberg_marquardt(_device_graph(*inputs[cpu], cpu))}
+    if with_gtsam:
+        import gtsam
+
+        graphs = [_gtsam_graph(Z, Z0, b) for b in range(B)]
+        values = [_gtsam_values(x0, b) for b in range(B)]
+        cases["gtsam_loop"] = lambda: [gtsam.LevenbergMarquardtOptimizer(
+            g, v, gtsam.LevenbergMarquardtParams()).optimize() for g, v in zip(graphs, values)]
+    times, out = _timed(cases, repeats, device, deadline)
+    dev, ref = out["device"].report, out["cpu"].report
+    x_dev, x_cpu = out["device"].values["x"].as_matrix(), out["cpu"].values["x"].as_matrix()
+    row = dict(problems=B, init_noise=init_noise, device_s=times["device"]["median_s"],
+               cpu_s=times["cpu"]["median_s"], runs=times["device"]["runs"],
+               cpu_over_device=times["cpu"]["median_s"] / times["device"]["median_s"],
+               results_device=str(x_dev.device),
+               max_rel_cost_diff_vs_cpu=float(((dev.cost.cpu() - ref.cost).abs() / ref.cost).max()),
+               max_abs_solution_diff_vs_cpu=float((x_dev.cpu() - x_cpu).abs().max()),
+               iterations_equal_to_cpu=int((dev.iterations.cpu() == ref.iterations).sum()),
+               statuses_device=dev.counts(), statuses_cpu=ref.counts(),
+               iterations_max=int(ref.iterations.max()))
+    if "gtsam_loop" in times:
+        row["gtsam_loop_s"] = times["gtsam_loop"]["median_s"]
+    return row
+
+
+def device_differentiable(device, repeats: int, deadline: float) -> dict:
+    """The implicit forward and backward of 64 pose graphs on ``device`` and on the CPU."""
+    _, Z, Z0, x0 = pose_graphs()
+    cpu = torch.device("cpu")
+    weights = torch.randn(x0.batch_shape + (4, 4), generator=torch.Generator().manual_seed(1),
+                          dtype=torch.float64)
+
+    def case(d):
+        Zd, Z0d, x0d, w = _on(Z, d), _on(Z0, d), _on(x0, d), weights.to(d)
+
+        def run():
+            xi = torch.zeros(Z.batch_shape + (6,), dtype=torch.float64, device=d, requires_grad=True)
+            out = fg.levenberg_marquardt(_device_graph(Zd @ ts.SE3.exp(xi), Z0d, x0d, d),
+                                         backward_mode="implicit")
+            loss = (out.values["x"].as_matrix() * w).sum()
+            return torch.autograd.grad(loss, xi)[0]
+        return run
+
+    times, out = _timed({"device": case(device), "cpu": case(cpu)}, repeats, device, deadline)
+    scale = float(out["cpu"].abs().max())
+    return dict(problems=64, device_s=times["device"]["median_s"], cpu_s=times["cpu"]["median_s"],
+                runs=times["device"]["runs"],
+                cpu_over_device=times["cpu"]["median_s"] / times["device"]["median_s"],
+                max_rel_gradient_diff_vs_cpu=float((out["device"].cpu() - out["cpu"]).abs().max()) / scale)
+
+
+def main_device(args) -> None:
+    device = resolve_device(args.device)
+    out_path = args.out or os.path.join(HERE, "results", f"factor_graph_{device.type}")
+    if device.type != "cpu" and os.path.basename(out_path).endswith("_cpu"):
+        raise SystemExit(f"--out {out_path}: a {device.type} run does not write the CPU result files")
+    torch.set_num_threads(args.threads)
+    start = time.perf_counter()
+    deadline = start + args.time_budget
+    has_gtsam, gtsam_note = _gtsam_importable()
+    o = dict(device=str(device), device_name=(torch.cuda.get_device_name(device) if device.type == "cuda"
+                                              else cpu_model()),
+             cpu=cpu_model(), torch=torch.__version__, cuda=torch.version.cuda,
+             threads=torch.get_num_threads(), repeats=args.repeats, time_budget_s=args.time_budget,
+             gtsam=gtsam_note, command=" ".join(["python benchmarks/bench_factor_graph.py", *sys.argv[1:]]))
+    o["pose_graphs"] = device_pose_graphs(device, args.repeats, deadline, with_gtsam=has_gtsam)
+    print(o["pose_graphs"], flush=True)
+    o["pose_graphs_far"] = device_pose_graphs(device, max(1, args.repeats // 2), deadline, seed=2,
+                                              init_noise=1.0, with_gtsam=has_gtsam)
+    print(o["pose_graphs_far"], flush=True)
+    o["differentiable"] = (device_differentiable(device, args.repeats, deadline)
+                           if time.perf_counter() < deadline else dict(skipped="time budget spent"))
+    print(o["differentiable"], flush=True)
+    o["batch_scaling"] = []
+    for B in args.batches:
+        if time.perf_counter() > deadline:
+            o["batch_scaling"].append(dict(problems=B, skipped="time budget spent"))
+        else:
+            o["batch_scaling"].append(device_pose_graphs(device, max(1, args.repeats // 2), deadline,
+                                                         B=B, seed=1))
+        print(o["batch_scaling"][-1], flush=True)
+    o["total_s"] = time.perf_counter() - start
+    os.makedirs(os.path.dirname(out_path) or ".", exist_ok=True)
+    with open(out_path + ".json", "w") as f:
+        json.dump(o, f, indent=2)
+    with open(out_path + ".md", "w") as f:
+        f.write(_markdown_device(o))
+    print(_markdown_device(o))
+
+
+def _markdown_device(o: dict) -> str:
+    def row(name, r):
+        if "skipped" in r:
+            return f"| {name} | not run: {r['skipped']} | | | | | | |"
+        gt = f"{r['gtsam_loop_s']:.4f}" if "gtsam_loop_s" in r else "not importable"
+        return (f"| {name} | {r['device_s']:.4f} | {r['cpu_s']:.4f} | {r['cpu_over_device']:.2f} | {gt} | "
+                f"{r['iterations_equal_to_cpu']} of {r['problems']} | {r['max_rel_cost_diff_vs_cpu']:.1e} | "
+                f"{r['runs']} |")
+
+    d = o["differentiable"]
+    lines = [
+        f"# Factor-graph engine on {o['device']} ({o['device_name']}) and on the host CPU", "",
+        f"`{o['command']}`; torch {o['torch']} (CUDA {o['cuda']}); host CPU {o['cpu']}, {o['threads']} "
+        f"thread(s); medians of up to --repeats {o['repeats']} alternated runs after an untimed one, the "
+        f"device synchronised before and after each; time budget {o['time_budget_s']} s (fewer runs, or "
+        f"rows not run, once spent); total {o['total_s']:.1f} s; {o['gtsam']}.", "",
+        "SE(3) pose graphs (8 poses, 10 edges, a prior; the generator of tests/test_factor_graph.py), "
+        "batched Levenberg-Marquardt, the graph built inside the clock from inputs already on each device; "
+        "results stay on the device.", "",
+        "| problems | device s | CPU s | CPU / device | GTSAM loop s | iterations equal to CPU | "
+        "max rel. cost diff. | runs |", "|---|---|---|---|---|---|---|---|",
+        row(f"{o['pose_graphs']['problems']} (tangent noise 0.3)", o["pose_graphs"]),
+        row(f"{o['pose_graphs_far']['problems']} (tangent noise 1.0)", o["pose_graphs_far"]),
+        *[row(f"{r['problems']} (batch scaling)", r) for r in o["batch_scaling"]], "",
+        f"Statuses (64 graphs): device {o['pose_graphs']['statuses_device']}, CPU "
+        f"{o['pose_graphs']['statuses_cpu']}; largest solution difference "
+        f"{o['pose_graphs']['max_abs_solution_diff_vs_cpu']:.1e}.", "",
+    ]
+    if "skipped" in d:
+        lines += [f"Implicit forward and backward: not run: {d['skipped']}.", ""]
+    else:
+        lines += [f"Implicit forward and backward, {d['problems']} pose graphs: device {d['device_s']:.4f} s, "
+                  f"CPU {d['cpu_s']:.4f} s (CPU / device {d['cpu_over_device']:.2f}); largest gradient "
+                  f"difference relative to its largest entry {d['max_rel_gradient_diff_vs_cpu']:.1e}.", ""]
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "factor_graph_cpu"))
+    ap.add_argument("--out", default=None,
+                    help="output path without suffix (default benchmarks/results/factor_graph_cpu, "
+                         "with --device: factor_graph_<device type>)")
+    ap.add_argument("--device", default=None,
+                    help="the pose-graph batches and the implicit gradient on this device (cpu or "
+                         "cuda[:i]) and on the host CPU, the GTSAM loop where it imports")
+    ap.add_argument("--time-budget", type=float, default=45.0,
+                    help="with --device: seconds after which no further timed round starts")
+    ap.add_argument("--threads", type=int, default=1, help="with --device: torch CPU threads")
+    ap.add_argument("--batches", type=int, nargs="+", default=[256, 1024, 4096, 16384],
+                    help="with --device: batch sizes of the scaling rows")
     ap.add_argument("--only-differentiable", action="store_true",
                     help="run case 5 alone and print it (no result files)")
     args = ap.parse_args()
+    if args.device is not None:
+        main_device(args)
+        return
+    args.out = args.out or os.path.join(HERE, "results", "factor_graph_cpu")
     if args.only_differentiable:
         torch.set_num_threads(1)
         print(json.dumps(bench_differentiable(args.repeats), indent=2))
