@@ -147,3 +147,25 @@ def test_random_checks_dtype(mod):
     for bad in (torch.float16, torch.int64):
         with pytest.raises(TypeError, match=rf"dtype must be torch.float32 or torch.float64, got {bad}"):
             mod.random((2,), bad, "cpu")
+
+
+@pytest.mark.parametrize("mod", MODS, ids=IDS)
+def test_backward_parts_broadcast_batches_of_different_ranks(mod):
+    """A (1,) batch against a (3, 1) one, either way round: each element equals the unbatched
+    call (component-first code once aligned one argument's components with the other's batch)."""
+    n, dof = mod.MATRIX_DIM, mod.DOF
+    gen = torch.Generator().manual_seed(5)
+    xi = 0.5 * torch.randn(1, dof, dtype=D, generator=gen)
+    xi3 = 0.5 * torch.randn(3, 1, dof, dtype=D, generator=gen)
+    w = torch.randn(3, 1, dof, dtype=D, generator=gen)
+    G = torch.randn(3, 1, n, n, dtype=D, generator=gen)
+    M, M3 = mod.exp(xi), mod.exp(xi3)
+    for f, a, b in ((mod.jl_tmv, xi, w), (mod.jl_inv_tmv, xi, w), (mod.exp_pullback, M, G),
+                    (mod.log_pullback, M, w), (mod.jl_tmv, xi3, w[0]), (mod.jl_inv_tmv, xi3, w[0]),
+                    (mod.exp_pullback, M3, G[0]), (mod.log_pullback, M3, w[0])):
+        out = f(a, b)
+        first = [a[0] if a.dim() in (2, 3) and a.shape[0] == 1 else a[i, 0] for i in range(3)]
+        second = [b[0] if b.shape[0] == 1 else b[i, 0] for i in range(3)]
+        expect = torch.stack([f(x, y) for x, y in zip(first, second)])
+        assert out.shape[:2] == (3, 1)
+        torch.testing.assert_close(out[:, 0], expect, rtol=1e-14, atol=1e-14)

@@ -27,6 +27,15 @@ def first(x: torch.Tensor) -> torch.Tensor:
     return x.movedim(-1, 0).contiguous()
 
 
+def same_rank(*pairs: tuple[torch.Tensor, int]) -> list[torch.Tensor]:
+    """(tensor, event dims) pairs -> the tensors with leading unit dimensions added so that
+    their batch parts have one rank: component-first code (``first``) puts the components in
+    front, where broadcasting would otherwise align one argument's components with another's
+    batch."""
+    rank = max(t.dim() - k for t, k in pairs)
+    return [t.reshape((1,) * (rank + k - t.dim()) + t.shape) if t.dim() - k < rank else t for t, k in pairs]
+
+
 def last(*parts: torch.Tensor) -> torch.Tensor:
     """Component-first parts (k_i, ...) -> one contiguous (..., sum k_i) (pass a scalar s as
     s[None])."""

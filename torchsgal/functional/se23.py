@@ -139,6 +139,7 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
 
 def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only: Q^T a = gvdt(1, x, a) + J^T (a x Gamma_1 x)."""
+    xi, w = B.same_rank((xi, 1), (w, 1))
     rho, nu, phi = _split(xi)
     w_rho, w_nu, w_phi = _split(w)
     c = B.coefficients(phi, 5)
@@ -150,6 +151,7 @@ def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks."""
+    xi, g = B.same_rank((xi, 1), (g, 1))
     rho, nu, phi = _split(xi)
     g_rho, g_nu, g_phi = _split(g)
     c = B.coefficients(phi, 5)

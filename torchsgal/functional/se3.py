@@ -125,6 +125,7 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
 
 def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only: (J^T w_rho, Q^T w_rho + J^T w_phi)."""
+    xi, w = B.same_rank((xi, 1), (w, 1))
     rho, phi = _split(xi)
     w_rho, w_phi = _split(w)
     c = B.coefficients(phi, 5)
@@ -135,6 +136,7 @@ def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks."""
+    xi, g = B.same_rank((xi, 1), (g, 1))
     rho, phi = _split(xi)
     g_rho, g_phi = _split(g)
     c = B.coefficients(phi, 5)

@@ -251,6 +251,7 @@ def _coupling_t(parts, a, b):
 
 def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only (the transposed blocks of (3.23))."""
+    xi, w = B.same_rank((xi, 1), (w, 1))
     parts = _transpose_parts(xi)
     phi, iota, c, g2n = parts[2], parts[3], parts[4], parts[10]
     w_rho, w_nu, w_phi, w_iota = _split(w)
@@ -267,6 +268,7 @@ def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by forward substitution on the transposed blocks of (3.23)."""
+    xi, g = B.same_rank((xi, 1), (g, 1))
     parts = _transpose_parts(xi)
     phi, iota, c, g2n = parts[2], parts[3], parts[4], parts[10]
     g_rho, g_nu, g_phi, g_iota = _split(g)
@@ -283,6 +285,7 @@ def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
     """hat^T(M^T G), the tangent vector paired with a matrix cotangent G (exp's backward)."""
+    M, G = B.same_rank((M, 2), (G, 2))
     Ct = B.transpose_entries(M[..., :3, :3])
     g5 = B.first(G[..., :3, 4])
     w_iota = B.dot(B.first(M[..., :3, 3]), g5) + G[..., 3, 4]
@@ -293,6 +296,7 @@ def _exp_pullback(M: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
 def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """M^-T vee^T(w) (log's backward): with M^-T = [[C, 0, 0], [a^T, 1, 0], [b^T, -tau, 1]],
     a = -C^T v, b = -C^T (r - tau v), and vee^T(w) = hat(w with phi halved)."""
+    M, w = B.same_rank((M, 2), (w, 1))
     rho, nu, phi, iota = _split(w)
     half = 0.5 * phi
     C = M[..., :3, :3]

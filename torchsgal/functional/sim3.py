@@ -236,6 +236,7 @@ def _coupling_t(c, m, phi, rho, r, w):
 def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^T w with vector operations only:
     (s M^T w_rho, s coupling^T w_rho + Gamma_1^T w_phi, s lam_col . w_rho + w_lambda)."""
+    xi, w = B.same_rank((xi, 1), (w, 1))
     rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
     s = _scale(lam, m)
     w_rho, w_phi, w_lam = _split(w)
@@ -247,6 +248,7 @@ def _jl_tmv(xi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 def _jl_inv_tmv(xi: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """J_l(xi)^-T g by substitution on the transposed blocks: with y = M^-T g_rho,
     (y / s, Gamma_1^-T (g_phi - coupling^T y), g_lambda - lam_col . y)."""
+    xi, g = B.same_rank((xi, 1), (g, 1))
     rho, phi, lam, c, m, r, lam_col = _tmv_parts(xi)
     g_rho, g_phi, g_lam = _split(g)
     n = _m_inverse(m, phi)

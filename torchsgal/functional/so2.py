@@ -93,7 +93,10 @@ jr = jl_inv = jr_inv = jl
 
 
 def _jl_tmv(theta: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    return w
+    """J_l = 1: w, on the batch that theta and w broadcast to."""
+    if theta.shape == w.shape:
+        return w
+    return w.expand(torch.broadcast_shapes(theta.shape, w.shape)).clone()
 
 
 _jl_inv_tmv = _jl_tmv

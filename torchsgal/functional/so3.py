@@ -90,12 +90,14 @@ def jl_inv(phi: torch.Tensor) -> torch.Tensor:
 
 def _jl_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(phi)^T w = Gamma_1(-phi) w."""
+    phi, w = B.same_rank((phi, 1), (w, 1))
     p = B.first(phi)
     return B.last(B.gamma_vec(B.coefficients(p, 3), 1, -p, B.first(w)))
 
 
 def _jl_inv_tmv(phi: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """J_l(phi)^-T w = D^-1(-phi) w."""
+    phi, w = B.same_rank((phi, 1), (w, 1))
     return B.last(B.jac_inv_vec(-B.first(phi), B.first(w)))
 
 
