@@ -84,9 +84,11 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
     Python scalars, which costs as much as the arithmetic at small batches."""
     key = (order, dtype, device)
     # Under a fake-tensor trace (FakeTensorMode, outside torch.compile) a cached real tensor
-    # cannot be mixed with the fake ones: build fresh constants and leave the cache alone.
+    # cannot be mixed with the fake ones, and under torch.compile a cached one would be a graph
+    # input whose size gets guarded (and, with dynamic shapes, equated with a batch size of the
+    # same length): build fresh constants (compiled: folded into the graph), cache untouched.
     fake = not is_compiling() and fake_tensor_mode_active()
-    consts = None if fake else _CONSTANTS.get(key)
+    consts = None if fake or is_compiling() else _CONSTANTS.get(key)
     if consts is None:
         taylor = [[(-1.0) ** k / math.factorial(2 * k + m) for m in (order - 1, order)]
                   for k in range(TAYLOR_TERMS)]
