@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The GPU checks in one call of a lent GPU machine: the CUDA tests, then the CUDA benchmarks.
 #
-#   bash benchmarks/cuda_session.sh [STEP ...]   STEP: env tests core compile imu gdh suite
-#                                                (default: all but suite)
+#   bash benchmarks/cuda_session.sh [STEP ...]   STEP: env tests ops core compile imu gdh
+#                                                posegraph factor_graph suite
+#                                                (default: env tests ops posegraph factor_graph)
 #
 # Runs the checkout it lives in (PYTHONPATH, no install) with that machine's python3 and
 # torch; extra pure-Python packages (pypose, the peer of bench_core) are read from .gpu_site/
@@ -17,7 +18,10 @@ WORK=$OUT/cuda
 mkdir -p "$WORK"
 export PYTHONPATH=$ROOT:$ROOT/.gpu_site${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 PY=${PYTHON:-python3}
-STEPS=${*:-env tests core compile imu gdh}
+STEPS=${*:-env tests ops posegraph factor_graph}
+# the datasets: tests and benchmarks read ../shared/data; a copy inside the checkout (shared/)
+# travels to the GPU machine where ../shared does not
+if [ ! -d ../shared ] && [ -d shared ]; then ln -s "$ROOT/shared" ../shared; fi
 # suite: the whole CPU test suite under that machine's torch (another version than CI's), on
 # 14 workers of one thread each (with torch's default 16 threads per worker two runs did not
 # finish in 330 s), stopped after $SUITE_TIMEOUT (default 240) s; peers missing there (gtsam,
@@ -41,9 +45,19 @@ for s in $STEPS; do
     env) step env bash -c "nvidia-smi; $PY -c 'import sys, torch, numpy; print(sys.version); \
 print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get_device_name()); \
 print(\"numpy\", numpy.__version__)'; $PY -c 'import pypose; print(\"pypose\", pypose.__version__)'; \
+$PY -c 'import triton; print(\"triton\", triton.__version__)'; \
 nproc; $PY -m pytest --version" ;;
-    tests) step tests $PY -m pytest tests/test_cuda.py -p no:cacheprovider -W ignore::DeprecationWarning \
-             -rA --durations=10 ;;
+    tests) step tests $PY -m pytest tests/test_cuda.py $(ls tests/test_cuda_engine.py 2>/dev/null) \
+             -p no:cacheprovider -W ignore::DeprecationWarning -rA --durations=15 ;;
+    # the operators on CUDA (their compiled closed forms) against eager code and the peers
+    ops) step ops $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" \
+           --cases "operator eager" "closed form eager" "matrix_exp eager" "fwd+bwd custom eager" \
+           "fwd+bwd plain eager" "pypose" ;;
+    # the estimation engine on the device and on the host CPU in the same run
+    posegraph) step posegraph timeout 150 $PY benchmarks/bench_posegraph.py --device cuda --repeats 3 \
+                 --time-budget 80 --out "$WORK/posegraph_cuda" ;;
+    factor_graph) step factor_graph timeout 120 $PY benchmarks/bench_factor_graph.py --device cuda --repeats 5 \
+                    --time-budget 40 --out "$WORK/factor_graph_cuda" ;;
     core) step core $PY benchmarks/bench_core.py --device cuda --skip gtsam --target 0.2 \
             --out "$WORK" --tag core_cuda ;;
     compile) step compile $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" ;;

@@ -147,7 +147,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
 # TORCHSGAL_CUDA_TEST_DEVICE names another device to exercise the harness.  Not a skip: the
 # terminal summary says that it was left out and why.
 _CUDA_FILE_COLLECTED = torch.cuda.is_available() or bool(os.environ.get("TORCHSGAL_CUDA_TEST_DEVICE"))
-collect_ignore = [] if _CUDA_FILE_COLLECTED else ["test_cuda.py"]
+collect_ignore = [] if _CUDA_FILE_COLLECTED else ["test_cuda.py", "test_cuda_engine.py"]
 
 
 def pytest_report_header(config):
@@ -155,6 +155,7 @@ def pytest_report_header(config):
 
 
 def _cuda_header() -> str:
-    return ("tests/test_cuda.py: collected (device "
+    return ("tests/test_cuda.py, test_cuda_engine.py: collected (device "
             + os.environ.get("TORCHSGAL_CUDA_TEST_DEVICE", "cuda") + ")" if _CUDA_FILE_COLLECTED
-            else "tests/test_cuda.py: not collected, no CUDA device (it runs on a GPU machine)")
+            else "tests/test_cuda.py, test_cuda_engine.py: not collected, no CUDA device (they run on a GPU "
+            "machine)")

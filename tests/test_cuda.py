@@ -161,7 +161,6 @@ def test_vmap_and_jacrev_match_cpu(G):
 
 def test_compile_on_device_matches_eager():
     """One compiled function through exp, log and their backward (inductor's device kernels)."""
-    torch._dynamo.reset()
     G = ts.SGal3
 
     def f(x):
@@ -181,6 +180,76 @@ def test_compile_on_device_matches_eager():
         assert val.device.type == DEVICE.type
         assert_close(val, eager_val, dtype, factor=10.0, msg=f"compiled value ({dtype})")
         assert_close(grad, eager_grad, dtype, factor=10.0, msg=f"compiled grad ({dtype})")
+
+
+# ------------------------------------------------- the SGal(3) operators' compiled closed forms
+OPS = ("sgal3_exp", "sgal3_log", "sgal3_exp_vjp", "sgal3_log_vjp", "sgal3_jl", "sgal3_jl_inv")
+
+
+def _op_arguments(name, batch, dtype):
+    """The operator's arguments, every angle band included (conftest.sample_tangent)."""
+    n = 1
+    for b in batch:
+        n *= b
+    xi = sample_tangent(ts.SGal3, (n,), torch.float64, seed=11).reshape(*batch, 10)
+    g = torch.Generator().manual_seed(12)
+    M = ts.functional.sgal3.exp_impl(xi)
+    G = torch.randn(*batch, 5, 5, generator=g, dtype=torch.float64)
+    w = torch.randn(*batch, 10, generator=g, dtype=torch.float64)
+    args = {"sgal3_exp": (xi,), "sgal3_log": (M,), "sgal3_exp_vjp": (xi, M, G),
+            "sgal3_log_vjp": (M, xi, w), "sgal3_jl": (xi,), "sgal3_jl_inv": (xi,)}[name]
+    return tuple(a.to(dtype) for a in args)
+
+
+def _cuda_kernels(fn):
+    """Names of the device kernels one call of ``fn`` launches (torch.profiler)."""
+    activity = torch.profiler.ProfilerActivity
+    with torch.profiler.profile(activities=[activity.CPU, activity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    return [e.name for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=DIDS)
+@pytest.mark.parametrize("name", OPS)
+def test_operators_on_device_match_cpu(name, dtype):
+    """Each operator on DEVICE (on CUDA: the closed form compiled into fused Triton kernels)
+    equals the eager closed form on the CPU, at every angle band, for batches of every size
+    (1 and 0 included) and shape; broadcast batches too."""
+    op = getattr(torch.ops.torchsgal, name).default
+    for batch in [(N_BANDED,), (4, 3), (1,), (), (0,), (N_RANDOM,)]:
+        args = _op_arguments(name, batch, dtype)
+        with ts.functional.native.disabled():
+            expected = op(*args)
+        _same(op(*(a.to(DEVICE) for a in args)), expected, dtype, f"{name} {tuple(batch)}", factor=10.0)
+    args = _op_arguments(name, (3,), dtype)
+    broadcast = tuple(a[:1] if k == 0 else a.unsqueeze(1) for k, a in enumerate(args))  # (1,) vs (3, 1)
+    with ts.functional.native.disabled():
+        expected = op(*broadcast)
+    _same(op(*(a.to(DEVICE) for a in broadcast)), expected, dtype, f"{name} broadcast", factor=10.0)
+
+
+@pytest.mark.parametrize("name", OPS)
+def test_operators_on_cuda_run_fused_kernels(name):
+    """On CUDA an operator call is a few fused (Triton) kernels where the eager closed form
+    launches about a hundred; ``native.disabled()`` brings the eager closed form back."""
+    if DEVICE.type != "cuda":
+        pytest.skip("CUDA kernels are profiled on a CUDA device only (TORCHSGAL_CUDA_TEST_DEVICE=cpu)")
+    op = getattr(torch.ops.torchsgal, name).default
+    args = tuple(a.to(DEVICE) for a in _op_arguments(name, (1000,), torch.float32))
+    op(*args)  # compiles
+    fused = _cuda_kernels(lambda: op(*args))
+    with ts.functional.native.disabled():
+        eager = _cuda_kernels(lambda: op(*args))
+    assert any("triton" in k for k in fused), fused
+    assert len(fused) <= 6 < 30 < len(eager), (len(fused), len(eager))
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=DIDS)
+@pytest.mark.parametrize("name", OPS)
+def test_opcheck_on_device(name, dtype):
+    args = tuple(a.to(DEVICE).requires_grad_(dtype is torch.float64) for a in _op_arguments(name, (3,), dtype))
+    torch.library.opcheck(getattr(torch.ops.torchsgal, name).default, args)
 
 
 # ---------------------------------------------------------------------- no host syncs on CUDA

@@ -18,10 +18,14 @@ own OpenMP threads where torch runs on OpenMP (``parallel_backend()`` of the mod
 "openmp"; fresh threads would compete with their spin-wait after torch's last parallel
 operation), else POSIX threads (``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
 
+On CUDA the operators run their closed forms compiled by ``torch.compile`` (inductor fuses them
+into Triton kernels; ``functional/ops.py``).
+
 The extensions are built by ``pip install`` where a C compiler is found and skipped otherwise
 (``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment turns every kernel off in
-the whole process; the ``disabled()`` context manager turns them off in the calling thread
-only, for the duration of its block (the operators then run the tensor code there).
+the whole process, the compiled CUDA path too; the ``disabled()`` context manager turns them off
+in the calling thread only, for the duration of its block (the operators then run the eager
+tensor code there).
 """
 from __future__ import annotations
 
@@ -40,7 +44,9 @@ except ImportError:  # not compiled: the tensor code runs everywhere
 
 ENV_VAR = "TORCHSGAL_NATIVE"
 # The process-wide setting (compiled, and not turned off by the environment) ...
-_state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0"}
+_state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0",
+          # ... and the same for the compiled closed forms that run the operators on CUDA
+          "compiled": os.environ.get(ENV_VAR, "1") != "0"}
 # ... and the switch of ``disabled()``, per thread: a block in one thread leaves the kernel
 # choice of the others alone.
 _thread = threading.local()
@@ -73,9 +79,17 @@ def enabled() -> bool:
     return _state["on"] and not getattr(_thread, "off", False)
 
 
+def compiled_enabled() -> bool:
+    """Whether the operators of the calling thread run their compiled closed forms on the
+    devices that have them (CUDA, ``functional/ops.py``): not turned off by the environment,
+    and not inside a ``disabled()`` block of this thread."""
+    return _state["compiled"] and not getattr(_thread, "off", False)
+
+
 @contextlib.contextmanager
 def disabled():
-    """Run the tensor code everywhere inside the block, in the calling thread only (other
+    """Run the eager tensor code everywhere inside the block (no C kernel, no compiled closed
+    form), in the calling thread only (other
     threads keep their own choice; a thread started inside the block does not inherit it).
     Blocks nest: leaving one restores the state it found (tests and benchmarks compare the two
     paths)."""

@@ -6,9 +6,12 @@ torch operators.
 ``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
-  batch shape, where the kernels are compiled and not switched off for the calling thread, and
-  the closed-form tensor code everywhere else (other devices, broadcast batches, kernels off):
-  the same choice whatever the context (autograd recording, vmap, grad, compile);
+  batch shape, where the kernels are compiled and not switched off for the calling thread; on
+  CUDA (where Triton is installed) the closed form compiled by ``torch.compile`` (inductor
+  fuses its ~170 tensor operations into Triton kernels), one compilation per operator and
+  dtype, over the flattened batch with a dynamic size; the eager closed-form tensor code
+  everywhere else (other devices, kernels off): the same choice whatever the context
+  (autograd recording, vmap, grad, compile);
 * a fake implementation (shapes only) lets ``torch.compile`` and ``torch.export`` trace them;
 * ``register_autograd`` differentiates exp and log through their closed-form Jacobians
   (``_autograd.py``: grad_xi = J_r(xi)^T hat^T(M^T G), grad_M = M^-T vee^T(J_r(xi)^-T g)), each
@@ -19,13 +22,15 @@ torch operators.
 ``tests/test_ops.py`` runs ``torch.library.opcheck`` on all six.  The closed forms
 (``sgal3.exp_impl`` ...) stay the reference implementation.
 
-Why operators rather than compiled closed forms: at 1e3 elements the C kernel behind an operator
-costs about 37 ns per element in eager code, the closed form compiled by ``torch.compile``
-(inductor, CPU) about 110 ns, and eager tensor code about 450 ns; larger batches keep the order
-(``benchmarks/bench_compile.py``, docs/guide/performance.md).
+Why C kernels on the CPU and compiled closed forms on CUDA: on the CPU the C kernel is 1.4-5.2x
+faster than the closed form compiled by inductor, which is itself faster than eager tensor code;
+on CUDA a compiled closed form is one fused kernel launch where the eager one is ~170, and the
+first call of each operator and dtype pays its compilation (seconds; torch's caches keep it for
+later processes).  Figures: ``benchmarks/bench_compile.py``, docs/guide/acceleration.md.
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 from collections.abc import Callable, Sequence
 
@@ -37,6 +42,10 @@ from ._blocking import run_blocked
 Tensor = torch.Tensor
 _FLOATS = (torch.float32, torch.float64)
 GROUPS = ("SGal3",)  # the groups with C kernels (native.py)
+# devices whose operators run their closed forms through torch.compile, and what that needs
+COMPILED_DEVICE_TYPES = ("cuda",)
+_COMPILER_NEEDS = {"cuda": "triton"}
+COMPILE_BACKEND = "inductor"  # torch.compile's backend for them
 
 
 def _kernel(name: str, args: Sequence[Tensor], batch: Sequence[torch.Size]) -> Callable | None:
@@ -59,6 +68,49 @@ def _run_kernel(fn: Callable, args: Sequence[Tensor], batch: torch.Size, event: 
     fn(*(t.data_ptr() for t in ins), out.data_ptr(), math.prod(batch), torch.get_num_threads(),
        ins[0].dtype is torch.float64)
     return out
+
+
+_COMPILED: dict = {}
+_FOUND: dict = {}
+
+
+def _compiles(args: Sequence[Tensor]) -> bool:
+    """Whether ``args`` run through the compiled closed form: all of one floating dtype on one
+    device of ``COMPILED_DEVICE_TYPES`` whose compiler backend is installed, path not off."""
+    device, dtype = args[0].device, args[0].dtype
+    if device.type not in COMPILED_DEVICE_TYPES or dtype not in _FLOATS:
+        return False
+    if any(a.dtype is not dtype or a.device != device for a in args) or not native.compiled_enabled():
+        return False
+    need = _COMPILER_NEEDS.get(device.type)
+    if need is not None and need not in _FOUND:
+        _FOUND[need] = importlib.util.find_spec(need) is not None
+    return need is None or _FOUND[need]
+
+
+def _run_compiled(key: str, flat_code, args: Sequence[Tensor], event_dims: Sequence[int]) -> Tensor:
+    """The operator's closed form compiled (once per operator; torch.compile adds one graph
+    per dtype), called on the arguments flattened to one dimension each (``flat_code`` views
+    them back): with the batch as the only dynamic size, every batch shape and size reuses the
+    graph, and no batch size is equated with an event size (torch.compile's duck sizing) nor
+    specialised (a batch of one runs as two rows, as torch specialises sizes 0 and 1).  The
+    inputs are passed detached, never as views (torch.compile guards on an input's view base).
+    Each operator has its own ``flat_code`` function: torch.compile keeps its graphs per code
+    object."""
+    fn = _COMPILED.get(key)
+    if fn is None:
+        fn = _COMPILED[key] = torch.compile(flat_code, dynamic=True, fullgraph=True, backend=COMPILE_BACKEND)
+    batch = _batch_shape(args, event_dims)
+    count = math.prod(batch)
+    flat = [a.expand(*batch, *a.shape[a.dim() - k:]).reshape(-1).detach() for a, k in zip(args, event_dims)]
+    if count == 0:
+        out = flat_code(*flat)
+    else:
+        if count == 1:
+            flat = [torch.cat((f, f)) for f in flat]
+        with torch.no_grad():  # the operator's inputs never record (it sits below autograd)
+            out = fn(*flat)[:count]
+    return out.reshape(*batch, *out.shape[1:])
 
 
 def _batch_shape(args: Sequence[Tensor], event_dims: Sequence[int]) -> torch.Size:
@@ -105,6 +157,28 @@ def _define(mod) -> tuple:
     names = {"exp": ("xi",), "log": ("M",), "exp_vjp": ("xi", "M", "G"), "log_vjp": ("M", "xi", "g"),
              "jl": ("xi",), "jl_inv": ("xi",)}
 
+    # the closed forms on arguments flattened to one dimension (_run_compiled): one function each
+    def exp_flat(xi: Tensor) -> Tensor:
+        return mod.exp_impl(xi.view(-1, dof))
+
+    def log_flat(M: Tensor) -> Tensor:
+        return mod.log_impl(M.view(-1, n, n))
+
+    def exp_vjp_flat(xi: Tensor, M: Tensor, G: Tensor) -> Tensor:
+        return exp_vjp_tensor(xi.view(-1, dof), M.view(-1, n, n), G.view(-1, n, n))
+
+    def log_vjp_flat(M: Tensor, xi: Tensor, g: Tensor) -> Tensor:
+        return log_vjp_tensor(M.view(-1, n, n), xi.view(-1, dof), g.view(-1, dof))
+
+    def jl_flat(xi: Tensor) -> Tensor:
+        return mod.jl_impl(xi.view(-1, dof))
+
+    def jl_inv_flat(xi: Tensor) -> Tensor:
+        return mod.jl_inv_impl(xi.view(-1, dof))
+
+    flat_codes = {"exp": exp_flat, "log": log_flat, "exp_vjp": exp_vjp_flat, "log_vjp": log_vjp_flat,
+                  "jl": jl_flat, "jl_inv": jl_inv_flat}
+
     def run(kernel: str, tensor_code, args, event_dims, event):
         # the operators are public: shapes checked before a C loop reads the memory
         for a, k, arg_name in zip(args, event_dims, names[kernel]):
@@ -115,6 +189,8 @@ def _define(mod) -> tuple:
         batch = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
         fn = _kernel(f"{name}_{kernel}", args, batch)
         if fn is None:
+            if _compiles(args):
+                return _run_compiled(f"{name}_{kernel}", flat_codes[kernel], args, event_dims)
             return run_blocked(tensor_code, tuple(args), tuple(event_dims))
         return _run_kernel(fn, args, batch[0], event)
 
