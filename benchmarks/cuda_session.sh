@@ -3,7 +3,7 @@
 #
 #   bash benchmarks/cuda_session.sh [STEP ...]   STEP: env tests ops core compile imu gdh
 #                                                posegraph factor_graph suite
-#                                                (default: env tests ops posegraph factor_graph)
+#                                                (default: env tests ops factor_graph posegraph)
 #
 # Runs the checkout it lives in (PYTHONPATH, no install) with that machine's python3 and
 # torch; extra pure-Python packages (pypose, the peer of bench_core) are read from .gpu_site/
@@ -18,7 +18,7 @@ WORK=$OUT/cuda
 mkdir -p "$WORK"
 export PYTHONPATH=$ROOT:$ROOT/.gpu_site${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 PY=${PYTHON:-python3}
-STEPS=${*:-env tests ops posegraph factor_graph}
+STEPS=${*:-env tests ops factor_graph posegraph}
 # the datasets: tests and benchmarks read ../shared/data; a copy inside the checkout (shared/)
 # travels to the GPU machine where ../shared does not
 if [ ! -d ../shared ] && [ -d shared ]; then ln -s "$ROOT/shared" ../shared; fi
@@ -47,16 +47,16 @@ print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get
 print(\"numpy\", numpy.__version__)'; $PY -c 'import pypose; print(\"pypose\", pypose.__version__)'; \
 $PY -c 'import triton; print(\"triton\", triton.__version__)'; \
 nproc; $PY -m pytest --version" ;;
-    tests) step tests $PY -m pytest tests/test_cuda.py $(ls tests/test_cuda_engine.py 2>/dev/null) \
+    tests) step tests timeout 200 $PY -m pytest tests/test_cuda.py $(ls tests/test_cuda_engine.py 2>/dev/null) \
              -p no:cacheprovider -W ignore::DeprecationWarning -rA --durations=15 ;;
     # the operators on CUDA (their compiled closed forms) against eager code and the peers
-    ops) step ops $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" \
+    ops) step ops timeout 150 $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" \
            --cases "operator eager" "closed form eager" "matrix_exp eager" "fwd+bwd custom eager" \
            "fwd+bwd plain eager" "pypose" ;;
     # the estimation engine on the device and on the host CPU in the same run
-    posegraph) step posegraph timeout 150 $PY benchmarks/bench_posegraph.py --device cuda --repeats 3 \
+    posegraph) step posegraph timeout 120 $PY benchmarks/bench_posegraph.py --device cuda --repeats 3 \
                  --time-budget 80 --out "$WORK/posegraph_cuda" ;;
-    factor_graph) step factor_graph timeout 120 $PY benchmarks/bench_factor_graph.py --device cuda --repeats 5 \
+    factor_graph) step factor_graph timeout 100 $PY benchmarks/bench_factor_graph.py --device cuda --repeats 5 \
                     --time-budget 40 --out "$WORK/factor_graph_cuda" ;;
     core) step core $PY benchmarks/bench_core.py --device cuda --skip gtsam --target 0.2 \
             --out "$WORK" --tag core_cuda ;;
