@@ -40,6 +40,8 @@ def compiled(monkeypatch):
     monkeypatch.setattr(ops, "COMPILE_BACKEND", recorder)
     monkeypatch.setattr(ops, "_COMPILED", {})
     monkeypatch.setattr(ops, "_kernel", lambda *args: None)  # the C kernels would come first
+    monkeypatch.setitem(native._state, "compiled", False)
+    native.use_compiled_cuda(True)  # the opt-in (restored by monkeypatch)
     return recorder
 
 
@@ -126,6 +128,14 @@ def test_the_switch_is_per_thread(compiled):
         thread.join()
         _op("sgal3_exp")(xi)
     assert len(seen) == 1 and len(compiled.runs) == 1  # the other thread's call only
+
+
+def test_the_compiled_path_is_an_opt_in(compiled):
+    native.use_compiled_cuda(False)
+    _op("sgal3_exp")(*_arguments("sgal3_exp", (3,), torch.float64))
+    assert compiled.runs == []
+    with pytest.raises(TypeError, match="enabled must be True or False"):
+        native.use_compiled_cuda(1)
 
 
 def test_a_missing_compiler_leaves_the_eager_closed_form(compiled, monkeypatch):

@@ -18,8 +18,10 @@ own OpenMP threads where torch runs on OpenMP (``parallel_backend()`` of the mod
 "openmp"; fresh threads would compete with their spin-wait after torch's last parallel
 operation), else POSIX threads (``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
 
-On CUDA the operators run their closed forms compiled by ``torch.compile`` (inductor fuses them
-into Triton kernels; ``functional/ops.py``).
+On CUDA the operators can run their closed forms compiled by ``torch.compile`` (inductor's
+Triton kernels; ``functional/ops.py``): an opt-in, ``use_compiled_cuda(True)`` or
+``TORCHSGAL_COMPILED_CUDA=1`` in the environment, as each operator's first call per dtype
+compiles for seconds (docs/guide/acceleration.md has the measured trade-off).
 
 The extensions are built by ``pip install`` where a C compiler is found and skipped otherwise
 (``available()`` tells).  ``TORCHSGAL_NATIVE=0`` in the environment turns every kernel off in
@@ -43,10 +45,11 @@ except ImportError:  # not compiled: the tensor code runs everywhere
     _lib = None
 
 ENV_VAR = "TORCHSGAL_NATIVE"
+COMPILED_CUDA_ENV_VAR = "TORCHSGAL_COMPILED_CUDA"
 # The process-wide setting (compiled, and not turned off by the environment) ...
 _state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0",
-          # ... and the same for the compiled closed forms that run the operators on CUDA
-          "compiled": os.environ.get(ENV_VAR, "1") != "0"}
+          # ... and the opt-in compiled closed forms that run the operators on CUDA
+          "compiled": os.environ.get(ENV_VAR, "1") != "0" and os.environ.get(COMPILED_CUDA_ENV_VAR) == "1"}
 # ... and the switch of ``disabled()``, per thread: a block in one thread leaves the kernel
 # choice of the others alone.
 _thread = threading.local()
@@ -81,9 +84,23 @@ def enabled() -> bool:
 
 def compiled_enabled() -> bool:
     """Whether the operators of the calling thread run their compiled closed forms on the
-    devices that have them (CUDA, ``functional/ops.py``): not turned off by the environment,
-    and not inside a ``disabled()`` block of this thread."""
+    devices that have them (CUDA, ``functional/ops.py``): chosen (``use_compiled_cuda``), and
+    not inside a ``disabled()`` block of this thread."""
     return _state["compiled"] and not getattr(_thread, "off", False)
+
+
+def use_compiled_cuda(enabled: bool) -> None:
+    """Process-wide: whether the SGal(3) operators run their closed forms compiled by
+    ``torch.compile`` on CUDA tensors (default False, or ``TORCHSGAL_COMPILED_CUDA=1``).
+
+    Compiled, an operator call on CUDA launches 14-49 Triton kernels instead of 126-549 (about
+    2x faster per call from 1e3 to 1e6 elements on an H200); each operator's first call per
+    dtype compiles for seconds (up to ~45 s for exp+log with their backward; torch's on-disk
+    caches shorten later processes).  It pays for long jobs.  ``disabled()`` still turns it off
+    per thread."""
+    from .checks import boolean
+
+    _state["compiled"] = boolean(enabled, "enabled")
 
 
 @contextlib.contextmanager

@@ -7,9 +7,9 @@ torch operators.
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
   batch shape, where the kernels are compiled and not switched off for the calling thread; on
-  CUDA (where Triton is installed) the closed form compiled by ``torch.compile`` (inductor
-  fuses its ~170 tensor operations into Triton kernels), one compilation per operator and
-  dtype, over the flattened batch with a dynamic size; the eager closed-form tensor code
+  CUDA, where chosen (``native.use_compiled_cuda(True)``) and Triton is installed, the closed
+  form compiled by ``torch.compile`` (inductor's Triton kernels), one compilation per operator
+  and dtype, over the flattened batch with a dynamic size; the eager closed-form tensor code
   everywhere else (other devices, kernels off): the same choice whatever the context
   (autograd recording, vmap, grad, compile);
 * a fake implementation (shapes only) lets ``torch.compile`` and ``torch.export`` trace them;
@@ -22,11 +22,12 @@ torch operators.
 ``tests/test_ops.py`` runs ``torch.library.opcheck`` on all six.  The closed forms
 (``sgal3.exp_impl`` ...) stay the reference implementation.
 
-Why C kernels on the CPU and compiled closed forms on CUDA: on the CPU the C kernel is 1.4-5.2x
-faster than the closed form compiled by inductor, which is itself faster than eager tensor code;
-on CUDA a compiled closed form is one fused kernel launch where the eager one is ~170, and the
-first call of each operator and dtype pays its compilation (seconds; torch's caches keep it for
-later processes).  Figures: ``benchmarks/bench_compile.py``, docs/guide/acceleration.md.
+Why C kernels on the CPU and compiled closed forms (opt-in) on CUDA: on the CPU the C kernel is
+1.4-5.2x faster than the closed form compiled by inductor, which is itself faster than eager
+tensor code; on CUDA a compiled closed form launches 14-49 kernels where the eager one launches
+126-549, about 2x faster per call, but the first call of each operator and dtype pays its
+compilation (seconds to ~45 s; torch's caches shorten later processes).  Figures:
+``benchmarks/bench_compile.py``, docs/guide/acceleration.md.
 """
 from __future__ import annotations
 
