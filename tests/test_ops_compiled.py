@@ -41,6 +41,7 @@ def compiled(monkeypatch):
     monkeypatch.setattr(ops, "_COMPILED", {})
     monkeypatch.setattr(ops, "_kernel", lambda *args: None)  # the C kernels would come first
     monkeypatch.setitem(native._state, "compiled", False)
+    monkeypatch.setitem(native._state, "env_off", False)
     native.use_compiled_cuda(True)  # the opt-in (restored by monkeypatch)
     return recorder
 
@@ -136,6 +137,12 @@ def test_the_compiled_path_is_an_opt_in(compiled):
     assert compiled.runs == []
     with pytest.raises(TypeError, match="enabled must be True or False"):
         native.use_compiled_cuda(1)
+
+
+def test_the_environment_switch_turns_the_opt_in_off(compiled, monkeypatch):
+    monkeypatch.setitem(native._state, "env_off", True)  # TORCHSGAL_NATIVE=0 at import
+    _op("sgal3_exp")(*_arguments("sgal3_exp", (3,), torch.float64))
+    assert compiled.runs == [] and not native.compiled_enabled()
 
 
 def test_a_missing_compiler_leaves_the_eager_closed_form(compiled, monkeypatch):

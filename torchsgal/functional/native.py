@@ -49,7 +49,8 @@ COMPILED_CUDA_ENV_VAR = "TORCHSGAL_COMPILED_CUDA"
 # The process-wide setting (compiled, and not turned off by the environment) ...
 _state = {"on": _lib is not None and os.environ.get(ENV_VAR, "1") != "0",
           # ... and the opt-in compiled closed forms that run the operators on CUDA
-          "compiled": os.environ.get(ENV_VAR, "1") != "0" and os.environ.get(COMPILED_CUDA_ENV_VAR) == "1"}
+          "compiled": os.environ.get(COMPILED_CUDA_ENV_VAR) == "1",
+          "env_off": os.environ.get(ENV_VAR, "1") == "0"}
 # ... and the switch of ``disabled()``, per thread: a block in one thread leaves the kernel
 # choice of the others alone.
 _thread = threading.local()
@@ -86,7 +87,7 @@ def compiled_enabled() -> bool:
     """Whether the operators of the calling thread run their compiled closed forms on the
     devices that have them (CUDA, ``functional/ops.py``): chosen (``use_compiled_cuda``), and
     not inside a ``disabled()`` block of this thread."""
-    return _state["compiled"] and not getattr(_thread, "off", False)
+    return _state["compiled"] and not _state["env_off"] and not getattr(_thread, "off", False)
 
 
 def use_compiled_cuda(enabled: bool) -> None:
@@ -97,7 +98,7 @@ def use_compiled_cuda(enabled: bool) -> None:
     2x faster per call from 1e3 to 1e6 elements on an H200); each operator's first call per
     dtype compiles for seconds (up to ~45 s for exp+log with their backward; torch's on-disk
     caches shorten later processes).  It pays for long jobs.  ``disabled()`` still turns it off
-    per thread."""
+    per thread, and ``TORCHSGAL_NATIVE=0`` for the whole process."""
     from .checks import boolean
 
     _state["compiled"] = boolean(enabled, "enabled")
