@@ -61,7 +61,7 @@ from .levenberg_marquardt import (
     _where,
 )
 from .linear_system import LinearSystem
-from .linearize import Problem, linearize
+from .linearize import Linearization, Problem, evaluate_cost, linearize
 
 __all__ = ["GaussHelmert", "gauss_helmert"]
 
@@ -369,13 +369,23 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     lam = s.lam if o["damped"] else torch.zeros_like(s.lam)
     delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
-    x_new, lin_new, new_cost = _trial(problem, system, s, delta)
+    if blocks:
+        # the round ends by linearising every problem again (at its new corrections), so the
+        # trial point needs its cost (and the corrections' candidates) only, not its Jacobians
+        x_new = problem.retract(s.x, delta)
+        new_cost = evaluate_cost(problem, x_new)
+    else:
+        x_new, lin_new, new_cost = _trial(problem, system, s, delta)
     candidates = [b.factor._candidate for b in blocks]
     # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged: the
     # iteration ends without a step, as GTSAM's below ``relative_error_tol``
     success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps,
                                           max(o["rel_tol"], 1e3 * eps))
-    x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
+    if blocks:  # only the cost of ``lin`` is read before it is replaced below
+        x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
+        lin = Linearization(s.lin.values, s.lin.g, _where(success, new_cost, s.lin.cost), s.lin.model_cost)
+    else:
+        x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     short = success & (quad.clamp_min(0).sqrt() <= o["step_tol"])
     converged = (_converged(s, lin, o) if o["cost_tests"] else torch.zeros_like(short)) | short
     # far from the solution the corrections' update is not to be trusted (a large misclosure
