@@ -223,9 +223,14 @@ def _cuda_kernels(fn):
 @pytest.mark.parametrize("dtype", DTYPES, ids=DIDS)
 @pytest.mark.parametrize("name", OPS)
 def test_operators_on_device_match_cpu(name, dtype, compiled_cuda):
-    """Each operator on DEVICE (on CUDA: the closed form compiled into fused Triton kernels)
-    equals the eager closed form on the CPU, at every angle band, for batches of every size
-    (1 and 0 included) and shape; broadcast batches too."""
+    """Each operator on DEVICE (on CUDA with the opt-in: float32 through the closed form
+    compiled into Triton kernels, float64 through the eager closed form) equals the eager closed
+    form on the CPU, at every angle band, for batches of every size (1 and 0 included) and
+    shape, and for arguments whose batches broadcast ((1,) against (3, 1); the one-argument
+    operators take the (1,) batch).  Compiled code reorders and fuses the arithmetic, hence the
+    factor 10 of test_compile_on_device_matches_eager."""
+    from torchsgal.functional import ops
+
     op = getattr(torch.ops.torchsgal, name).default
     for batch in [(N_BANDED,), (4, 3), (1,), (), (0,), (N_RANDOM,)]:
         args = _op_arguments(name, batch, dtype)
@@ -233,10 +238,13 @@ def test_operators_on_device_match_cpu(name, dtype, compiled_cuda):
             expected = op(*args)
         _same(op(*(a.to(DEVICE) for a in args)), expected, dtype, f"{name} {tuple(batch)}", factor=10.0)
     args = _op_arguments(name, (3,), dtype)
-    broadcast = tuple(a[:1] if k == 0 else a.unsqueeze(1) for k, a in enumerate(args))  # (1,) vs (3, 1)
+    broadcast = tuple(a[:1] if k == 0 else a.unsqueeze(1) for k, a in enumerate(args))
     with ts.functional.native.disabled():
         expected = op(*broadcast)
     _same(op(*(a.to(DEVICE) for a in broadcast)), expected, dtype, f"{name} broadcast", factor=10.0)
+    if DEVICE.type == "cuda" and dtype in ops.COMPILED_DTYPES:  # the compiled path ran
+        compiled = ops._COMPILED.get(name)
+        assert compiled is not None and compiled is not ops._FAILED, compiled
 
 
 @pytest.mark.parametrize("name", OPS)

@@ -12,8 +12,6 @@ from test_ops import OPS, _arguments, _op
 
 from torchsgal.functional import native, ops, sgal3
 
-pytestmark = pytest.mark.kernels  # the compiled path is off where the kernels are switched off
-
 
 class Recorder:
     """A torch.compile backend: records every graph it compiles and every run of one."""
@@ -37,6 +35,7 @@ class Recorder:
 def compiled(monkeypatch):
     recorder = Recorder()
     monkeypatch.setattr(ops, "COMPILED_DEVICE_TYPES", ("cpu",))
+    monkeypatch.setattr(ops, "COMPILED_DTYPES", (torch.float32, torch.float64))
     monkeypatch.setattr(ops, "COMPILE_BACKEND", recorder)
     monkeypatch.setattr(ops, "_COMPILED", {})
     monkeypatch.setattr(ops, "_kernel", lambda *args: None)  # the C kernels would come first
@@ -150,3 +149,39 @@ def test_a_missing_compiler_leaves_the_eager_closed_form(compiled, monkeypatch):
     monkeypatch.setattr(ops, "_FOUND", {})
     _op("sgal3_exp")(*_arguments("sgal3_exp", (3,), torch.float64))
     assert compiled.runs == []
+
+
+def test_float64_is_left_to_the_eager_closed_form(compiled, monkeypatch):
+    monkeypatch.setattr(ops, "COMPILED_DTYPES", (torch.float32,))  # the default
+    _op("sgal3_exp")(*_arguments("sgal3_exp", (3,), torch.float64))
+    assert compiled.runs == []
+    _op("sgal3_exp")(*_arguments("sgal3_exp", (3,), torch.float32))
+    assert len(compiled.runs) == 1
+
+
+def test_a_failing_compilation_warns_once_and_runs_the_eager_closed_form(compiled, monkeypatch):
+    def failing_backend(gm, example_inputs):
+        raise RuntimeError("no code for this device")
+
+    monkeypatch.setattr(ops, "COMPILE_BACKEND", failing_backend)
+    args = _arguments("sgal3_log", (4,), torch.float64)
+    with pytest.warns(RuntimeWarning, match="torchsgal::sgal3_log: compiling its closed form failed"):
+        out = _op("sgal3_log")(*args)
+    torch.testing.assert_close(out, _eager("sgal3_log", args), rtol=0, atol=0)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once: the next call runs the eager code quietly
+        torch.testing.assert_close(_op("sgal3_log")(*args), out, rtol=0, atol=0)
+
+
+def test_compiled_closed_forms_keep_one_graph_whatever_the_batch_size():
+    """The series constants are built inside a compiled graph, not read from the cache as
+    inputs: a batch as long as a constant table (numerics.TAYLOR_TERMS) once recompiled."""
+    recorder = Recorder()
+    sgal3.exp_impl(torch.zeros(3, 10, dtype=torch.float64))  # the constants cache is filled
+    fn = torch.compile(sgal3.exp_impl, dynamic=True, backend=recorder)
+    for n in (5, 7, 11, 2, 9):
+        xi = 0.5 * torch.randn(n, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(n))
+        torch.testing.assert_close(fn(xi), sgal3.exp_impl(xi), rtol=1e-14, atol=1e-14)
+    assert len(recorder.graphs) == 1 and len(recorder.runs) == 5

@@ -92,13 +92,15 @@ def compiled_enabled() -> bool:
 
 def use_compiled_cuda(enabled: bool) -> None:
     """Process-wide: whether the SGal(3) operators run their closed forms compiled by
-    ``torch.compile`` on CUDA tensors (default False, or ``TORCHSGAL_COMPILED_CUDA=1``).
+    ``torch.compile`` on CUDA float32 tensors (default False; ``TORCHSGAL_COMPILED_CUDA=1`` in
+    the environment turns it on at import).  float64 stays on the eager closed forms.
 
-    Compiled, an operator call on CUDA launches 14-49 Triton kernels instead of 126-549 (about
-    2x faster per call from 1e3 to 1e6 elements on an H200); each operator's first call per
-    dtype compiles for seconds (up to ~45 s for exp+log with their backward; torch's on-disk
-    caches shorten later processes).  It pays for long jobs.  ``disabled()`` still turns it off
-    per thread, and ``TORCHSGAL_NATIVE=0`` for the whole process."""
+    Compiled, an operator call on CUDA launches 14-49 Triton kernels instead of 126-549, and
+    ``SGal3.exp`` is 2.1-2.4x faster per call from 1e3 to 1e6 float32 elements on an H200; each
+    operator's first call per dtype compiles for seconds (up to ~46 s for exp+log with their
+    backward; torch's on-disk caches shorten later processes).  It pays for long jobs.
+    ``disabled()`` still turns it off per thread, and ``TORCHSGAL_NATIVE=0`` for the whole
+    process."""
     from .checks import boolean
 
     _state["compiled"] = boolean(enabled, "enabled")
