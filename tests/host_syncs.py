@@ -101,3 +101,30 @@ class HostSyncs:
         for mode in reversed(self._modes):
             mode.__exit__(*exc)
         return False
+
+
+def solve_loop_reads(solve):
+    """Runs ``solve()`` (a Levenberg-Marquardt solve of the factor-graph engine) under
+    ``HostSyncs`` and sorts its reads: (result, reads inside the hot functions (linearisation,
+    retraction, the dense solve, one LM round), reads by the solve loop itself)."""
+    import importlib
+    import inspect
+
+    lm, linear_system, lz = (importlib.import_module(f"torchsgal.estimation.graph.{m}")
+                             for m in ("levenberg_marquardt", "linear_system", "linearize"))
+
+    def lines(fn):
+        src, start = inspect.getsourcelines(fn)
+        return range(start, start + len(src))
+
+    with HostSyncs() as syncs:
+        result = solve()
+    hot = {lz.__file__: [lines(f) for f in (lz.linearize, lz.evaluate_cost, lz._block_terms,
+                                            lz.Problem.retract, lz._residual_and_jacobian)],
+           linear_system.__file__: [lines(linear_system.DenseSystem.solve)],
+           lm.__file__: [lines(lm._round)]}
+    in_hot = [(why, where) for why, where in syncs.events
+              for path, ranges in hot.items()
+              if where.rsplit(":", 1)[0] == path and any(int(where.rsplit(":", 1)[1]) in r for r in ranges)]
+    loop = [e for e in syncs.events if e[1].rsplit(":", 1)[0] == lm.__file__]
+    return result, in_hot, loop

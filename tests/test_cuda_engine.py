@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 from conftest import tol
-from host_syncs import HostSyncs
+from host_syncs import HostSyncs, solve_loop_reads
 from test_cuda import CPU, DEVICE, _no_sync, _same
 from test_factor_graph import EDGES_I, EDGES_J, SIGMA, pose_graphs, rigid_fit_problem
 
@@ -220,29 +220,10 @@ def test_solve_loop_reads_once_per_round_on_device():
     """The whole solve on DEVICE: the only host reads are the loop's, one per round (how many
     problems still run) and the active set's indices when it shrinks (the engine's documented
     reads; test_factor_graph.test_host_syncs_are_one_per_round_outside_the_setup on the CPU)."""
-    import importlib
-    import inspect
-
-    lm, linear_system, lz = (importlib.import_module(f"torchsgal.estimation.graph.{m}")
-                             for m in ("levenberg_marquardt", "linear_system", "linearize"))
-
-    def lines(fn):
-        src, start = inspect.getsourcelines(fn)
-        return range(start, start + len(src))
-
     _, Z, Z0, x0 = pose_graphs(B=16, seed=11)
     graph = _pose_graph(Z, Z0, x0, DEVICE)
-    with HostSyncs() as syncs:
-        result = fg.levenberg_marquardt(graph)
-    hot = {lz.__file__: [lines(f) for f in (lz.linearize, lz.evaluate_cost, lz._block_terms,
-                                            lz.Problem.retract, lz._residual_and_jacobian)],
-           linear_system.__file__: [lines(linear_system.DenseSystem.solve)],
-           lm.__file__: [lines(lm._round)]}
-    in_hot = [(why, where) for why, where in syncs.events
-              for path, ranges in hot.items()
-              if where.rsplit(":", 1)[0] == path and any(int(where.rsplit(":", 1)[1]) in r for r in ranges)]
+    result, in_hot, loop = solve_loop_reads(lambda: fg.levenberg_marquardt(graph))
     assert not in_hot, in_hot
-    loop = [e for e in syncs.events if e[1].rsplit(":", 1)[0] == lm.__file__]
     rounds = int(result.report.iterations.max()) + 2
     assert 0 < len(loop) <= 2 * rounds, loop
     _same(result.report.cost, fg.levenberg_marquardt(_pose_graph(Z, Z0, x0, CPU)).report.cost, f64,

@@ -6,6 +6,7 @@ shared with that file and ``benchmarks/bench_factor_graph.py``."""
 import numpy as np
 import pytest
 import torch
+from host_syncs import solve_loop_reads
 from peers import gtsam_map
 
 import torchsgal as ts
@@ -382,31 +383,10 @@ def test_residual_shape_is_checked():
 def test_host_syncs_are_one_per_round_outside_the_setup():
     """The solve loop reads one value per round (how many problems still run) and the active
     set's indices when it shrinks; linearisation, retraction and the dense solves read none."""
-    import importlib
-    import inspect
-
-    from host_syncs import HostSyncs
-
-    lm, linear_system, lz = (importlib.import_module(f"torchsgal.estimation.graph.{m}")
-                             for m in ("levenberg_marquardt", "linear_system", "linearize"))
-
-    def lines(fn):
-        src, start = inspect.getsourcelines(fn)
-        return range(start, start + len(src))
-
     _, Z, Z0, x0 = pose_graphs(B=16, seed=11)
     graph = _graph(Z, Z0, x0)
-    with HostSyncs() as syncs:
-        result = fg.levenberg_marquardt(graph)
-    hot = {lz.__file__: [lines(f) for f in (lz.linearize, lz.evaluate_cost, lz._block_terms,
-                                            lz.Problem.retract, lz._residual_and_jacobian)],
-           linear_system.__file__: [lines(linear_system.DenseSystem.solve)],
-           lm.__file__: [lines(lm._round)]}
-    in_hot = [(why, where) for why, where in syncs.events
-              for path, ranges in hot.items()
-              if where.rsplit(":", 1)[0] == path and any(int(where.rsplit(":", 1)[1]) in r for r in ranges)]
+    result, in_hot, loop = solve_loop_reads(lambda: fg.levenberg_marquardt(graph))
     assert not in_hot, in_hot
-    loop = [e for e in syncs.events if e[1].rsplit(":", 1)[0] == lm.__file__]
     rounds = int(result.report.iterations.max()) + 2
     assert 0 < len(loop) <= 2 * rounds, loop
 
