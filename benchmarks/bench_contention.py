@@ -14,7 +14,8 @@ it spins from before each case's busy conditions until after them and sleeps dur
 ones (stopped at the end).  Cases (CPU, inputs built outside the timed calls):
 
 * ``SGal3.exp(xi)``, ``g.log()`` (the C kernels where they apply), ``log(exp(xi)).sum()``
-  forward and backward through the custom Functions, and ``SE3.exp(xi)`` (tensor code), at
+  forward and backward through the custom Functions, and ``SE3.exp(xi)`` as tensor code (its
+  kernel switched off: torch's own operations), at
   batch sizes ``--sizes``, float64 and float32;
 * IMU: ``preintegrate`` of ``--windows`` windows x ``--samples`` samples with the covariance and
   bias Jacobian, as ``bench_imu.py`` (a), float64 and float32.
@@ -63,6 +64,7 @@ from _timing import ForeignLoad, environment, loadavg  # noqa: E402
 
 import torchsgal as ts  # noqa: E402
 from torchsgal import load  # noqa: E402
+from torchsgal.functional import native  # noqa: E402
 
 CONDITIONS = {
     "a": "idle, 1 thread",
@@ -123,8 +125,15 @@ class BusyNeighbour:
         return False
 
 
+def _tensor_code(fn, *args):
+    """fn with the kernels off in this thread: torch's own operations (SE(3)'s closed form)."""
+    with native.disabled():
+        return fn(*args)
+
+
 def core_cases(sizes, dtypes, gen) -> dict:
-    """name -> zero-argument callable: SGal3 exp, log, backward and SE3 exp per size and dtype."""
+    """name -> zero-argument callable: SGal3 exp, log, backward and SE3 exp (its closed form as
+    tensor code, the kernels off) per size and dtype."""
     F = ts.functional.sgal3
     cases = {}
     for dtype in dtypes:
@@ -143,7 +152,7 @@ def core_cases(sizes, dtypes, gen) -> dict:
             cases[f"SGal3 exp {tag} {dt}"] = (lambda xi=xi: ts.SGal3.exp(xi))
             cases[f"SGal3 log {tag} {dt}"] = (lambda g=g: g.log())
             cases[f"SGal3 log(exp) fwd+bwd {tag} {dt}"] = backward
-            cases[f"SE3 exp (tensor code) {tag} {dt}"] = (lambda xs=xs: ts.SE3.exp(xs))
+            cases[f"SE3 exp (tensor code) {tag} {dt}"] = (lambda xs=xs: _tensor_code(ts.SE3.exp, xs))
     return cases
 
 

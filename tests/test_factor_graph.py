@@ -160,12 +160,15 @@ def test_gauge_freedom_converges_rank_deficient_not_failure():
     result = fg.levenberg_marquardt(_graph(Z, Z0, x0, prior=False), **tight)
     rep = result.report
     assert (rep.status == SolverStatus.CONVERGED_RANK_DEFICIENT).all(), rep.status
-    # the relative poses are still estimated: the same as with the prior
+    # the relative poses are still estimated: the same as with the prior.  Each solve stops where
+    # a step changes the cost by a few eps of itself (~1e-14 here), and rounding decides whether
+    # that last step is taken: it moves the poses by up to ~1e-8 at these costs' curvature, the
+    # resolution of a float64 cost, so the two solutions are compared to 1e-7.
     anchored = fg.levenberg_marquardt(_graph(Z, Z0, x0), **tight).values["x"]
     free = result.values["x"]
     rel_free = free[:, :1].inverse() @ free
     rel_anchored = anchored[:, :1].inverse() @ anchored
-    torch.testing.assert_close(rel_free.as_matrix(), rel_anchored.as_matrix(), rtol=0, atol=1e-8)
+    torch.testing.assert_close(rel_free.as_matrix(), rel_anchored.as_matrix(), rtol=0, atol=1e-7)
     assert torch.isnan(result.marginal_covariance("x", 0)).all()
     assert rep.cost.lt(rep.initial_cost).all()
 
@@ -392,10 +395,15 @@ def test_host_syncs_are_one_per_round_outside_the_setup():
 
 
 def test_float32_and_inputs_that_require_grad():
-    """float32 graphs solve to the float64 solution within float32 accuracy; inputs that require
-    gradients give detached results and are left as they were (values, the factor's loss)."""
+    """float32 graphs solve to the float64 optimum within float32 accuracy; inputs that require
+    gradients give detached results and are left as they were (values, the factor's loss).
+    float32 residuals resolve the cost to about 1e-6 of itself, so where a float32 solve stops
+    inside the relative tolerance 1e-5 is decided by rounding: the cost is the quantity held to
+    that tolerance (in float64, at the float32 solution), and the poses then lie within
+    sqrt(2 dcost / lambda_min(H)) of the optimum (up to 3e-4 here)."""
     _, Z, Z0, x0 = pose_graphs(B=4, seed=12)
-    ref = fg.levenberg_marquardt(_graph(Z, Z0, x0)).values["x"]
+    solved = fg.levenberg_marquardt(_graph(Z, Z0, x0))
+    ref = solved.values["x"]
     W = torch.diag(SIGMA ** -2).float()
     graph = fg.FactorGraph()
     graph.add_variable("x", ts.SE3(x0.as_matrix().float()))
@@ -406,7 +414,10 @@ def test_float32_and_inputs_that_require_grad():
     assert between.loss is None
     assert (result.report.status == SolverStatus.CONVERGED).all()
     assert result.values["x"].dtype == torch.float32
-    torch.testing.assert_close(result.values["x"].as_matrix().double(), ref.as_matrix(), rtol=0, atol=1e-4)
+    at_f32 = ts.SE3(result.values["x"].as_matrix().double())
+    cost = fg.levenberg_marquardt(_graph(Z, Z0, at_f32), max_iterations=0).report.cost
+    assert ((cost - solved.report.cost) / solved.report.cost).abs().max() < 1e-5
+    torch.testing.assert_close(at_f32.as_matrix(), ref.as_matrix(), rtol=0, atol=5e-4)
     m = x0.as_matrix().clone().requires_grad_(True)
     before = m.detach().clone()
     graph = fg.FactorGraph()

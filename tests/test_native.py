@@ -177,7 +177,7 @@ _SPLIT_EXP = """
 import hashlib, torch
 from torchsgal.functional import native
 torch.set_num_threads(2)
-xi = torch.randn(40000, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+xi = torch.randn(40001, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
 out = torch.ops.torchsgal.sgal3_exp(xi)
 print(native._lib.parallel_backend(), hashlib.sha256(out.numpy().tobytes()).hexdigest())
 """
@@ -191,12 +191,15 @@ def test_large_batches_run_on_torchs_openmp_threads_or_on_pthreads_alike():
                 if "ATen parallel backend: OpenMP" in torch.__config__.parallel_info() else "pthreads")
     assert native._lib.parallel_backend() == expected
     before = torch.get_num_threads()
+    xi = torch.randn(40001, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     try:
-        torch.set_num_threads(2)
-        xi = torch.randn(40000, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        torch.set_num_threads(1)
+        alone = hashlib.sha256(KERNELS.exp(xi).numpy().tobytes()).hexdigest()
+        torch.set_num_threads(2)  # handed out in chunks of 2,501 (the last one shorter)
         here = hashlib.sha256(KERNELS.exp(xi).numpy().tobytes()).hexdigest()
     finally:
         torch.set_num_threads(before)
+    assert here == alone
     env = dict(os.environ, TORCHSGAL_NATIVE_OPENMP="0")
     backend, digest = subprocess.run([sys.executable, "-c", _SPLIT_EXP], env=env, capture_output=True,
                                      text=True, check=True).stdout.split()

@@ -239,9 +239,11 @@ def make_jacobians(mod):
         jacobian.__doc__ = doc
         return jacobian
 
-    return (make(4, mod.jl_impl, "jl", "Left Jacobian (3.21)-(3.23) (..., 10) -> (..., 10, 10)."),
-            make(5, mod.jl_inv_impl, "jl_inv", "Inverse of the left Jacobian (3.23), block "
-                 "back-substitution (..., 10) -> (..., 10, 10)."))
+    d = mod.DOF
+    return (make(4, mod.jl_impl, "jl", f"Left Jacobian (..., {d}) -> (..., {d}, {d}) "
+                 "(SGal(3): (3.21)-(3.23))."),
+            make(5, mod.jl_inv_impl, "jl_inv", f"Inverse of the left Jacobian (..., {d}) -> "
+                 f"(..., {d}, {d}) (SGal(3): (3.23), block back-substitution)."))
 
 
 def checked_backward_parts(mod):

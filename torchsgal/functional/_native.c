@@ -1,5 +1,6 @@
-/* torchsgal.functional._native: the SGal(3) exp, log and their backward maps as plain C loops,
- * the CPU implementations of the operators torchsgal::sgal3_* (functional/ops.py; the IMU
+/* torchsgal.functional._native: the SGal(3) exp, log, their backward maps and Jacobians, and the
+ * exp, log and Jacobians of its subgroups SE(3) and SE_2(3), as plain C loops: the CPU
+ * implementations of the operators torchsgal::sgal3_*, se3_* and se23_* (functional/ops.py; the IMU
  * preintegration kernel is torchsgal.imu._native, built from imu/_native.c on the same code).
  *
  * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
@@ -51,6 +52,21 @@ WRAP(log_vjp, 4)
 WRAP(jl, 2)
 WRAP(jl_inv, 2)
 
+/* The subgroups' one-argument kernels (xi or M -> out). */
+#define WRAP_SUB(op)                                                                      \
+    static PyObject *py_##op(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {     \
+        (void)self;                                                                       \
+        return dispatch(a, nargs, 2, op##_range_f64, op##_range_f32, #op);                \
+    }
+WRAP_SUB(se3_exp)
+WRAP_SUB(se3_log)
+WRAP_SUB(se3_jl)
+WRAP_SUB(se3_jl_inv)
+WRAP_SUB(se23_exp)
+WRAP_SUB(se23_log)
+WRAP_SUB(se23_jl)
+WRAP_SUB(se23_jl_inv)
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"sgal3_exp", (PyCFunction)(void (*)(void))py_sgal3_exp, METH_FASTCALL, "exp (xi, out, n, threads, is_double)"},
@@ -62,11 +78,17 @@ static PyMethodDef methods[] = {
     {"sgal3_jl", (PyCFunction)(void (*)(void))py_sgal3_jl, METH_FASTCALL, "J_l (xi, out, n, threads, is_double)"},
     {"sgal3_jl_inv", (PyCFunction)(void (*)(void))py_sgal3_jl_inv, METH_FASTCALL,
      "J_l^-1 (xi, out, n, threads, is_double)"},
+#define SUB_ENTRY(op, doc) {#op, (PyCFunction)(void (*)(void))py_##op, METH_FASTCALL, doc " (in, out, n, threads, is_double)"},
+    SUB_ENTRY(se3_exp, "SE(3) exp") SUB_ENTRY(se3_log, "SE(3) log")
+    SUB_ENTRY(se3_jl, "SE(3) J_l") SUB_ENTRY(se3_jl_inv, "SE(3) J_l^-1")
+    SUB_ENTRY(se23_exp, "SE_2(3) exp") SUB_ENTRY(se23_log, "SE_2(3) log")
+    SUB_ENTRY(se23_jl, "SE_2(3) J_l") SUB_ENTRY(se23_jl_inv, "SE_2(3) J_l^-1")
+#undef SUB_ENTRY
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3) CPU kernels", -1, methods};
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3), SE(3) and SE_2(3) CPU kernels", -1, methods};
 
 PyMODINIT_FUNC PyInit__native(void) {
     find_openmp();

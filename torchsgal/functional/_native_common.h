@@ -36,25 +36,17 @@ static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLO
 
 typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
 
-typedef struct {
-    range_fn fn;
-    void **args;
-    int64_t lo, hi;
-} job_t;
-
 #define MAX_THREADS 64
 /* Work per thread (elements times their cost) below which a batch runs on the calling thread. */
 #define MIN_PER_THREAD 8192
 
 /* torch's own OpenMP threads, where its runtime is loaded (libgomp, or LLVM's libomp with the
- * same entry points): work split over them does not compete with their spin-wait after torch's
+ * same entry point): work split over them does not compete with their spin-wait after torch's
  * last parallel operation, as fresh pthreads do (they cost a batched solve about 7% of its
  * time in libgomp's spin).  Looked up once, at import (after torch's);
  * TORCHSGAL_NATIVE_OPENMP=0 in the environment keeps pthreads. */
 typedef void (*gomp_parallel_fn)(void (*)(void *), void *, unsigned, unsigned);
-typedef int (*omp_int_fn)(void);
 static gomp_parallel_fn gomp_parallel = NULL;
-static omp_int_fn omp_thread_num = NULL, omp_num_threads = NULL;
 
 static void find_openmp(void) {
 #ifndef _WIN32
@@ -65,31 +57,37 @@ static void find_openmp(void) {
         void *h = dlopen(names[i], RTLD_LAZY | RTLD_NOLOAD);
         if (!h) continue;
         gomp_parallel = (gomp_parallel_fn)dlsym(h, "GOMP_parallel");
-        omp_thread_num = (omp_int_fn)dlsym(h, "omp_get_thread_num");
-        omp_num_threads = (omp_int_fn)dlsym(h, "omp_get_num_threads");
-        if (gomp_parallel && omp_thread_num && omp_num_threads) return;
-        gomp_parallel = NULL;
+        if (gomp_parallel) return;
     }
 #endif
 }
 
+/* A batch split over threads is handed out in chunks from a shared counter (about
+ * CHUNKS_PER_THREAD per thread): a thread that loses its core to another process takes fewer
+ * chunks and the others take the rest, so a call waits at most for the chunk in hand of the
+ * slowest thread, not for a fixed share of the batch (a collapse on a shared machine).  Every
+ * item is computed alone, so the split does not change any result. */
+#define CHUNKS_PER_THREAD 8
+
 typedef struct {
     range_fn fn;
     void **args;
-    int64_t n;
-} omp_job_t;
-
-static void omp_share(void *p) {  /* this thread's share of [0, n), whatever the team's size */
-    const omp_job_t *j = p;
-    int64_t t = omp_thread_num(), nt = omp_num_threads(), step = (j->n + nt - 1) / nt;
-    int64_t lo = t * step, hi = lo + step < j->n ? lo + step : j->n;
-    if (lo < hi) j->fn(j->args, lo, hi);
-}
+    int64_t n, chunk;
+    int64_t next;  /* the first item not yet handed out (atomic) */
+} shared_job_t;
 
 #ifndef _WIN32
-static void *run_job(void *p) {
-    job_t *j = p;
-    j->fn(j->args, j->lo, j->hi);
+static void take_chunks(void *p) {
+    shared_job_t *j = p;
+    for (;;) {
+        int64_t lo = __atomic_fetch_add(&j->next, j->chunk, __ATOMIC_RELAXED);
+        if (lo >= j->n) return;
+        j->fn(j->args, lo, lo + j->chunk < j->n ? lo + j->chunk : j->n);
+    }
+}
+
+static void *run_chunks(void *p) {
+    take_chunks(p);
     return NULL;
 }
 #endif
@@ -102,22 +100,17 @@ static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int 
     if (threads > MAX_THREADS) threads = MAX_THREADS;
     if (threads > n) threads = (int)n;
     if (threads > 1 && n / threads * cost >= MIN_PER_THREAD) {
+        int64_t chunk = (n + threads * CHUNKS_PER_THREAD - 1) / (threads * CHUNKS_PER_THREAD);
+        shared_job_t job = {fn, args, n, chunk, 0};
         if (gomp_parallel) {
-            omp_job_t job = {fn, args, n};
-            gomp_parallel(omp_share, &job, (unsigned)threads, 0);
+            gomp_parallel(take_chunks, &job, (unsigned)threads, 0);
             return;
         }
         pthread_t tid[MAX_THREADS];
-        job_t jobs[MAX_THREADS];
         int started[MAX_THREADS];
-        int64_t step = (n + threads - 1) / threads;
-        for (int t = 0; t < threads; ++t) {
-            int64_t lo = t * step, hi = lo + step < n ? lo + step : n;
-            jobs[t] = (job_t){fn, args, lo, hi};
-            started[t] = t > 0 && pthread_create(&tid[t], NULL, run_job, &jobs[t]) == 0;
-        }
-        for (int t = 0; t < threads; ++t)
-            if (t == 0 || !started[t]) fn(args, jobs[t].lo, jobs[t].hi);  /* own share, or a failed start */
+        for (int t = 1; t < threads; ++t)
+            started[t] = pthread_create(&tid[t], NULL, run_chunks, &job) == 0;
+        take_chunks(&job);  /* the calling thread takes chunks too (all of them if none started) */
         for (int t = 1; t < threads; ++t)
             if (started[t]) pthread_join(tid[t], NULL);
         return;

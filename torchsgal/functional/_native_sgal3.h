@@ -62,10 +62,11 @@ static inline void K(poly)(const T *phi, const T *x, T x_scale, T a, T b, T *o) 
     for (int i = 0; i < 3; ++i) o[i] = x_scale * x[i] + a * p[i] + b * pp[i];
 }
 
-/* blocks.rotation_log: phi = log(C)^vee, accurate near 0 and near pi. */
-static inline void K(rotation_log)(const T *M, T *phi) {  /* M: row-major 5x5, C = M[:3, :3] */
-    T c00 = M[0], c01 = M[1], c02 = M[2], c10 = M[5], c11 = M[6], c12 = M[7];
-    T c20 = M[10], c21 = M[11], c22 = M[12];
+/* blocks.rotation_log: phi = log(C)^vee, accurate near 0 and near pi.  M: row-major n x n,
+ * C = M[:3, :3] (n = 5 for SGal(3), 4 for SE(3)). */
+static inline void K(rotation_log)(const T *M, int n, T *phi) {
+    T c00 = M[0], c01 = M[1], c02 = M[2], c10 = M[n], c11 = M[n + 1], c12 = M[n + 2];
+    T c20 = M[2 * n], c21 = M[2 * n + 1], c22 = M[2 * n + 2];
     T s[3] = {(T)0.5 * (c21 - c12), (T)0.5 * (c02 - c20), (T)0.5 * (c10 - c01)};
     T cs = (T)0.5 * (c00 + c11 + c22 - (T)1);
     T ss = K(dot)(s, s);
@@ -129,7 +130,7 @@ static void K(exp_one)(const T *x, T *o) {
 static void K(log_one)(const T *M, T *x) {
     T *rho = x, *nu = x + 3, *phi = x + 6;
     T v[3] = {M[3], M[8], M[13]}, r[3] = {M[4], M[9], M[14]}, tau = M[19], c[7];
-    K(rotation_log)(M, phi);
+    K(rotation_log)(M, 5, phi);
     T t2 = K(dot)(phi, phi);
     T d = K(jinv_coefficient)(t2);
     K(poly)(phi, v, (T)1, (T)-0.5, d, nu);
@@ -321,6 +322,122 @@ static void K(log_vjp_one)(const T *M, const T *xi, const T *g, T *O) {
     K(cross)(b, half, bh);
     O[15] = ah[0]; O[16] = ah[1]; O[17] = ah[2]; O[18] = K(dot)(a, nu); O[19] = K(dot)(a, rho) + iota;
     O[20] = bh[0]; O[21] = bh[1]; O[22] = bh[2]; O[23] = K(dot)(b, nu); O[24] = K(dot)(b, rho) - tau * iota;
+}
+
+/* SE(3) (se3.py; Barfoot, Table 1), tangent (6) = [rho, phi], matrices (4, 4) row-major
+ * [[C, r], [0, 1]]: a subgroup of SGal(3), with the same series.
+ * exp: C = Gamma_0(phi), r = Gamma_1(phi) rho (se3.exp_impl). */
+static void K(se3_exp_one)(const T *x, T *o) {
+    const T *rho = x, *phi = x + 3;
+    T c[7], pr[3], ppr[3], C[9];
+    K(coefficients)(K(dot)(phi, phi), 4, c);
+    K(cross)(phi, rho, pr);
+    K(cross)(phi, pr, ppr);
+    K(sym_skew)(c[0], c[1], c[2], phi, C);  /* Gamma_0(phi) */
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) o[4 * i + j] = C[3 * i + j];
+        o[4 * i + 3] = rho[i] + c[2] * pr[i] + c[3] * ppr[i];
+    }
+    o[12] = 0; o[13] = 0; o[14] = 0; o[15] = 1;
+}
+
+/* log: phi = log(C), rho = Gamma_1(phi)^-1 r (se3.log_impl, blocks.jac_inv_vec). */
+static void K(se3_log_one)(const T *M, T *x) {
+    T *rho = x, *phi = x + 3;
+    T r[3] = {M[3], M[7], M[11]};
+    K(rotation_log)(M, 4, phi);
+    K(poly)(phi, r, (T)1, (T)-0.5, K(jinv_coefficient)(K(dot)(phi, phi)), rho);
+}
+
+/* SE_2(3) (se23.py), tangent (9) = [rho, nu, phi], matrices (5, 5) row-major
+ * [[C, v, r], [0, 1, 0], [0, 0, 1]]: the subgroup iota = 0 of SGal(3).
+ * exp: C = Gamma_0(phi), v = Gamma_1(phi) nu, r = Gamma_1(phi) rho (se23.exp_impl). */
+static void K(se23_exp_one)(const T *x, T *o) {
+    const T *rho = x, *nu = x + 3, *phi = x + 6;
+    T c[7], pn[3], ppn[3], pr[3], ppr[3], C[9];
+    K(coefficients)(K(dot)(phi, phi), 4, c);
+    K(cross)(phi, nu, pn);
+    K(cross)(phi, pn, ppn);
+    K(cross)(phi, rho, pr);
+    K(cross)(phi, pr, ppr);
+    K(sym_skew)(c[0], c[1], c[2], phi, C);  /* Gamma_0(phi) */
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) o[5 * i + j] = C[3 * i + j];
+        o[5 * i + 3] = nu[i] + c[2] * pn[i] + c[3] * ppn[i];
+        o[5 * i + 4] = rho[i] + c[2] * pr[i] + c[3] * ppr[i];
+    }
+    o[15] = 0; o[16] = 0; o[17] = 0; o[18] = 1; o[19] = 0;
+    o[20] = 0; o[21] = 0; o[22] = 0; o[23] = 0; o[24] = 1;
+}
+
+/* log: phi = log(C), nu = Gamma_1(phi)^-1 v, rho = Gamma_1(phi)^-1 r (se23.log_impl). */
+static void K(se23_log_one)(const T *M, T *x) {
+    T *rho = x, *nu = x + 3, *phi = x + 6;
+    T v[3] = {M[3], M[8], M[13]}, r[3] = {M[4], M[9], M[14]};
+    K(rotation_log)(M, 5, phi);
+    T d = K(jinv_coefficient)(K(dot)(phi, phi));
+    K(poly)(phi, r, (T)1, (T)-0.5, d, rho);
+    K(poly)(phi, v, (T)1, (T)-0.5, d, nu);
+}
+
+/* J_l (inverse = 0) or J_l^-1 (inverse = 1), k x k row-major, of the subgroup of SGal(3) whose
+ * tangent is the k components ``idx`` of SGal(3)'s ten (SE(3): rho, phi; SE_2(3): rho, nu, phi):
+ * the rows and columns idx of (3.23) at the tangent embedded with zeros.  ad(xi) maps the
+ * subalgebra into itself, so the series of J_l and J_l^-1 do too: those rows and columns are the
+ * subgroup's own Jacobian (the rows come from the transposed products, as jl_one). */
+static void K(sub_jacobian_one)(const T *x, int k, const int *idx, int inverse, T *o) {
+    T x10[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0}, row[10];
+    for (int i = 0; i < k; ++i) x10[idx[i]] = x[i];
+    K(parts_t) P;
+    K(transpose_parts)(x10, (T)1, &P);
+    T d = inverse ? K(jinv_coefficient)(K(dot)(P.phi, P.phi)) : (T)0;
+    for (int i = 0; i < k; ++i) {
+        T e[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+        e[idx[i]] = (T)1;
+        if (inverse)
+            K(jl_inv_tmv_parts)(&P, d, e, row);
+        else
+            K(jl_tmv_parts)(&P, e, row);
+        for (int j = 0; j < k; ++j) o[k * i + j] = row[idx[j]];
+    }
+}
+
+#define SUB_JACOBIAN_RANGE(group, k, inverse, ...)                                        \
+    static void K(group##_range)(void **a, int64_t lo, int64_t hi) {                     \
+        static const int idx[k] = {__VA_ARGS__};                                          \
+        const T *xi = a[0];                                                               \
+        T *out = a[1];                                                                    \
+        for (int64_t i = lo; i < hi; ++i)                                                 \
+            K(sub_jacobian_one)(xi + (k) * i, k, idx, inverse, out + (k) * (k) * i);      \
+    }
+SUB_JACOBIAN_RANGE(se3_jl, 6, 0, 0, 1, 2, 6, 7, 8)
+SUB_JACOBIAN_RANGE(se3_jl_inv, 6, 1, 0, 1, 2, 6, 7, 8)
+SUB_JACOBIAN_RANGE(se23_jl, 9, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8)
+SUB_JACOBIAN_RANGE(se23_jl_inv, 9, 1, 0, 1, 2, 3, 4, 5, 6, 7, 8)
+#undef SUB_JACOBIAN_RANGE
+
+static void K(se23_exp_range)(void **a, int64_t lo, int64_t hi) {
+    const T *xi = a[0];
+    T *out = a[1];
+    for (int64_t i = lo; i < hi; ++i) K(se23_exp_one)(xi + 9 * i, out + 25 * i);
+}
+
+static void K(se23_log_range)(void **a, int64_t lo, int64_t hi) {
+    const T *M = a[0];
+    T *out = a[1];
+    for (int64_t i = lo; i < hi; ++i) K(se23_log_one)(M + 25 * i, out + 9 * i);
+}
+
+static void K(se3_exp_range)(void **a, int64_t lo, int64_t hi) {
+    const T *xi = a[0];
+    T *out = a[1];
+    for (int64_t i = lo; i < hi; ++i) K(se3_exp_one)(xi + 6 * i, out + 16 * i);
+}
+
+static void K(se3_log_range)(void **a, int64_t lo, int64_t hi) {
+    const T *M = a[0];
+    T *out = a[1];
+    for (int64_t i = lo; i < hi; ++i) K(se3_log_one)(M + 16 * i, out + 6 * i);
 }
 
 /* Batch loops over [lo, hi). */

@@ -1,7 +1,8 @@
 """The package's optional C kernels: their switches and constants.
 
-``torchsgal.functional._native`` holds SGal(3) exp, log and their backward maps, the CPU
-implementations of the torch operators ``torchsgal::sgal3_*`` (``functional/ops.py``);
+``torchsgal.functional._native`` holds SGal(3) exp, log, their backward maps and Jacobians, and
+the exp, log and Jacobians of SE(3) and SE_2(3): the CPU implementations of the torch operators
+``torchsgal::sgal3_*``, ``se3_*`` and ``se23_*`` (``functional/ops.py``);
 ``torchsgal.imu._native`` holds IMU preintegration, the CPU implementation of
 ``torchsgal::imu_preintegrate`` (``imu/_kernels.py``).
 
@@ -13,9 +14,10 @@ time in one call: the same thresholds and series (passed from ``numerics`` at im
 term, the same arithmetic, so the two agree to rounding (tests/test_native.py compares them at
 every angle band, both dtypes).  The tensor code remains the reference implementation, and the
 operators run it wherever a kernel does not apply (other devices, kernels off or not built).
-Batches of at least 16,384 elements are split over ``torch.get_num_threads()`` threads: torch's
-own OpenMP threads where torch runs on OpenMP (``parallel_backend()`` of the module says
-"openmp"; fresh threads would compete with their spin-wait after torch's last parallel
+Batches of at least 16,384 elements are handed out in chunks to ``torch.get_num_threads()``
+threads (a thread that loses its core to another process takes fewer; _native_common.h):
+torch's own OpenMP threads where torch runs on OpenMP (``parallel_backend()`` of the module
+says "openmp"; fresh threads would compete with their spin-wait after torch's last parallel
 operation), else POSIX threads (``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
 
 On CUDA the operators can run their closed forms compiled by ``torch.compile`` (inductor's

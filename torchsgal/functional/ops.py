@@ -1,13 +1,15 @@
-"""SGal(3)'s exp, log, their backward maps and the left Jacobian and its inverse as registered
-torch operators.
+"""The exp, log, their backward maps and the left Jacobian and its inverse of SGal(3) and of its
+subgroups SE(3) and SE_2(3) as registered torch operators.
 
 ``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp``, ``sgal3_log_vjp``, ``sgal3_jl`` and
-``sgal3_jl_inv`` (``torch.library.custom_op``) are the one mechanism that eager code, autograd,
-``torch.func`` and ``torch.compile`` all see:
+``sgal3_jl_inv`` (``torch.library.custom_op``), and the same six of ``se3_`` and ``se23_``, are
+the one mechanism that eager code, autograd, ``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
-  batch shape, where the kernels are compiled and not switched off for the calling thread; on
-  CUDA, where chosen (``native.use_compiled_cuda(True)``) and Triton is installed, the closed
+  batch shape, where the kernels are compiled and not switched off for the calling thread (every
+  SGal(3) operator; exp, log, jl and jl_inv of the subgroups, whose backward maps run their
+  closed forms); on CUDA, for SGal(3), where chosen (``native.use_compiled_cuda(True)``) and
+  Triton is installed, the closed
   form compiled by ``torch.compile`` (inductor's Triton kernels), one compilation per operator
   and dtype, over the flattened batch with a dynamic size (float32: float64 stays eager); the
   eager closed-form tensor code everywhere else (other devices, broadcast batches on the CPU,
@@ -20,8 +22,8 @@ torch operators.
   and those of the Jacobians, are those of their closed-form tensor code;
 * ``register_vmap`` maps every vmapped axis into the batch the kernels already loop over.
 
-``tests/test_ops.py`` runs ``torch.library.opcheck`` on all six.  The closed forms
-(``sgal3.exp_impl`` ...) stay the reference implementation.
+``tests/test_ops.py`` and ``tests/test_native_subgroups.py`` run ``torch.library.opcheck`` on
+them.  The closed forms (``sgal3.exp_impl`` ...) stay the reference implementation.
 
 Why C kernels on the CPU and compiled closed forms (opt-in) on CUDA: on the CPU the C kernel is
 1.4-5.2x faster than the closed form compiled by inductor, which is itself faster than eager
@@ -45,7 +47,9 @@ from ._blocking import run_blocked
 
 Tensor = torch.Tensor
 _FLOATS = (torch.float32, torch.float64)
-GROUPS = ("SGal3",)  # the groups with C kernels (native.py)
+GROUPS = ("SGal3", "SE3", "SE23")  # the groups whose exp, log and J_l are operators, with C kernels
+# the groups whose operators may run compiled closed forms (``_compiles``; measured on CUDA for these)
+COMPILED_GROUPS = ("SGal3",)
 # devices whose operators run their closed forms through torch.compile, and what that needs
 COMPILED_DEVICE_TYPES = ("cuda",)
 # float64 stays on the eager closed forms: compiled for CUDA, sgal3_log_vjp was 1.6e-3 off the
@@ -65,7 +69,7 @@ def _kernel(name: str, args: Sequence[Tensor], batch: Sequence[torch.Size]) -> C
         return None
     if any(b != batch[0] for b in batch[1:]):
         return None
-    return getattr(lib, name)
+    return getattr(lib, name, None)  # an operator without a kernel runs its closed form
 
 
 def _run_kernel(fn: Callable, args: Sequence[Tensor], batch: torch.Size, event: tuple) -> Tensor:
@@ -157,8 +161,8 @@ _REGISTERED: dict = {}
 
 
 def register(mod) -> tuple:
-    """Define the operators of the group module ``mod`` (``functional.sgal3``) once and return
-    them as (exp, log, exp_vjp, log_vjp, jl, jl_inv)."""
+    """Define the operators of the group module ``mod`` (``functional.sgal3``, ``se3``, ``se23``)
+    once and return them as (exp, log, exp_vjp, log_vjp, jl, jl_inv)."""
     if mod.NAME not in _REGISTERED:
         _REGISTERED[mod.NAME] = _define(mod)
     return _REGISTERED[mod.NAME]
@@ -167,6 +171,7 @@ def register(mod) -> tuple:
 def _define(mod) -> tuple:
     name, n, dof = mod.NAME.lower(), mod.MATRIX_DIM, mod.DOF
     prefix = f"torchsgal::{name}_"
+    compiled_group = mod.NAME in COMPILED_GROUPS
 
     def exp_vjp_tensor(xi: Tensor, M: Tensor, G: Tensor) -> Tensor:
         return mod._jl_tmv(-xi, mod._exp_pullback(M, G))  # J_r(xi)^T hat^T(M^T G)
@@ -209,7 +214,7 @@ def _define(mod) -> tuple:
         batch = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
         fn = _kernel(f"{name}_{kernel}", args, batch)
         if fn is None:
-            if _compiles(args):
+            if compiled_group and _compiles(args):
                 return _run_compiled(f"{name}_{kernel}", flat_codes[kernel], args, event_dims)
             return run_blocked(tensor_code, tuple(args), tuple(event_dims))
         return _run_kernel(fn, args, batch[0], event)

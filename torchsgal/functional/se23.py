@@ -10,7 +10,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import checked_backward_parts, make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians
 from ._blocking import blocked
 
 NAME = "SE23"
@@ -118,7 +118,7 @@ def _jl_blocks(xi: torch.Tensor):
 
 
 @blocked(1)
-def jl(xi: torch.Tensor) -> torch.Tensor:
+def jl_impl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     J, Q_rho, Q_nu = _jl_blocks(xi)
     return B.block_matrix(
@@ -127,7 +127,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(1)
-def jl_inv(xi: torch.Tensor) -> torch.Tensor:
+def jl_inv_impl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     _, Q_rho, Q_nu = _jl_blocks(xi)
     Ji = B.jac_inv_mat(_split(xi)[2])
@@ -187,13 +187,15 @@ def _log_pullback(M: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return B.homogeneous(rot, [B.matvec_entries(Ce, nu), B.matvec_entries(Ce, rho)], bottom)
 
 
-@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi) = J_l(-xi)."""
+    checks.vector(xi, DOF, "xi")
     return jl(-xi)
 
 
-@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi)^-1 = J_l(-xi)^-1."""
+    checks.vector(xi, DOF, "xi")
     return jl_inv(-xi)
 
 
@@ -222,4 +224,5 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl, jl_inv = make_jacobians(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

@@ -2,9 +2,10 @@
 and SE(2).
 
 The built-in priors and betweens need, per factor, the log of the error E and the inverse
-Jacobians at it.  Here they share one rotation log and one evaluation of the scalar
-coefficients, and every step is a whole-batch tensor operation (no per-entry arithmetic), so
-that a linearisation costs a fixed, small number of operations.
+Jacobians at it.  On SE(3) the log is the group's operator (``torchsgal::se3_log``, a C kernel
+on the CPU); both Jacobians share one evaluation of the scalar coefficients at it, and every
+step is a whole-batch tensor operation (no per-entry arithmetic), so that a linearisation costs
+a fixed, small number of operations.
 
 SE(3): with xi = [rho, phi] = log(E), theta = |phi|, W = phi^, P = rho^ and ad = ad(xi) =
 [[W, P], [0, W]]: ad satisfies its minimal polynomial ad^5 + 2 theta^2 ad^3 + theta^4 ad = 0
@@ -19,7 +20,7 @@ whose blocks are, since W phi = 0 and W^3 = -theta^2 W,
 
 with h = (theta/2) cot(theta/2), d = (1 - h)/theta^2 = alpha - beta theta^2 and
 beta = (1 - h + theta h'/2)/theta^4 (the Hermite interpolation of x/2 coth(x/2) at +-i theta).
-The translation part of the log is rho = J^-1(phi) t with the same d.  Below theta = 1 the two
+(The log, rho = J^-1(phi) t, uses the d of ``numerics``.)  Below theta = 1 the two
 coefficients come from their Bernoulli series.  SE(2): ``se2_log_jacobians`` (the same d).
 """
 from __future__ import annotations
@@ -30,7 +31,7 @@ from typing import NamedTuple
 
 import torch
 
-from ...functional import numerics
+from ...functional import se3
 
 __all__ = ["se3_log_jacobians", "se2_log_jacobians", "se3_inverse", "SERIES_THRESHOLD"]
 
@@ -70,10 +71,6 @@ class _Constants(NamedTuple):
     series: torch.Tensor  # (SERIES_TERMS, 2): d, beta
     ad_index: torch.Tensor  # (36,)
     eye: torch.Tensor  # (3, 3)
-    arange: torch.Tensor  # (3,)
-    skew_plus: torch.Tensor  # (3,): flat indices of C21, C02, C10
-    skew_minus: torch.Tensor  # (3,): flat indices of C12, C20, C01
-    diagonal: torch.Tensor  # (3,): flat indices of C00, C11, C22
 
 
 def _constants(like: torch.Tensor) -> _Constants:
@@ -85,8 +82,7 @@ def _constants(like: torch.Tensor) -> _Constants:
             return torch.tensor(values, dtype=torch.int64, device=like.device)
 
         consts = _Constants(torch.tensor(_SERIES, dtype=like.dtype, device=like.device),
-                            index(_AD_INDEX), torch.eye(3, dtype=like.dtype, device=like.device),
-                            index((0, 1, 2)), index((7, 2, 3)), index((5, 6, 1)), index((0, 4, 8)))
+                            index(_AD_INDEX), torch.eye(3, dtype=like.dtype, device=like.device))
         if type(like) is torch.Tensor and not like.is_inference():
             _CONSTANTS[key] = consts
     return consts
@@ -111,54 +107,19 @@ def _coefficients(theta2: torch.Tensor, series: torch.Tensor) -> tuple[torch.Ten
     return torch.where(small, taylor[..., 0], d), torch.where(small, taylor[..., 1], beta)
 
 
-def _rotation_log(C: torch.Tensor, k: _Constants) -> torch.Tensor:
-    """phi (..., 3) = log(C)^vee, angle in [0, pi], as ``functional.blocks.rotation_log`` (the
-    same branches and thresholds) on whole vectors: theta = atan2(|s|, c) with s = vee(C - C^T)/2
-    and c = (tr C - 1)/2; phi = (theta / sin theta) s, by its Taylor series where sin theta is
-    tiny; for c < LOG_SYMMETRIC_COS the axis is the column of (C + C^T)/2 - c I with the largest
-    diagonal entry, signed by s (nothing divides by sin theta near pi)."""
-    flat = C.flatten(-2)
-    s = 0.5 * (flat.index_select(-1, k.skew_plus) - flat.index_select(-1, k.skew_minus))
-    diag = flat.index_select(-1, k.diagonal)
-    cos = 0.5 * (diag.sum(-1) - 1.0)
-    ss = (s * s).sum(-1)
-    positive = ss > 0
-    sin = torch.where(positive, torch.where(positive, ss, torch.ones_like(ss)).sqrt(),
-                      torch.zeros_like(ss))
-    theta = torch.atan2(sin, cos)
-    tiny = sin < numerics.LOG_SIN_TAYLOR
-    t2 = theta * theta
-    ratio = torch.where(tiny, 1.0 + t2 / 6.0 + 7.0 * t2 * t2 / 360.0,
-                        theta / torch.where(tiny, torch.ones_like(sin), sin))
-    # near pi: the column of the symmetric part (C + C^T)/2 - c I with the largest diagonal
-    sym = 0.5 * (C + C.mT)
-    pick = (diag - cos.unsqueeze(-1)).argmax(dim=-1, keepdim=True)  # the first largest, as blocks
-    col = torch.take_along_dim(sym, pick.unsqueeze(-2), dim=-1).squeeze(-1)  # (..., 3)
-    col = col - cos.unsqueeze(-1) * (k.arange == pick)  # minus c I's entry
-    near_pi = cos < numerics.LOG_SYMMETRIC_COS
-    sign = torch.where((col * s).sum(-1) < 0, -torch.ones_like(sin), torch.ones_like(sin))
-    norm = torch.where(near_pi, (col * col).sum(-1), torch.ones_like(sin)).sqrt()
-    return torch.where(near_pi.unsqueeze(-1), (sign * theta / norm).unsqueeze(-1) * col,
-                       ratio.unsqueeze(-1) * s)
-
-
 def se3_log_jacobians(E: torch.Tensor, want_jacobians: bool
                       ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """(r = log(E) (..., 6), J_r^-1(r) (..., 6, 6), J_l^-1(r) (..., 6, 6)) for SE(3) matrices
     E (..., 4, 4); the Jacobians are None unless ``want_jacobians``."""
+    r = se3.log(E)  # the operator torchsgal::se3_log: its C kernel on the CPU
+    if not want_jacobians:
+        return r, None, None
     k = _constants(E)
     I3 = k.eye
-    t = E[..., :3, 3]
-    phi = _rotation_log(E[..., :3, :3], k)  # angle in [0, pi]
+    rho, phi = r[..., :3], r[..., 3:]
     theta2 = (phi * phi).sum(-1)
     d, beta = _coefficients(theta2, k.series)
     d_, t2_ = d.unsqueeze(-1), theta2.unsqueeze(-1)
-    # rho = J^-1(phi) t = t - phi x t / 2 + d (phi (phi . t) - theta^2 t)
-    rho = (t - 0.5 * torch.linalg.cross(phi, t)
-           + d_ * (phi * (phi * t).sum(-1, keepdim=True) - t2_ * t))
-    r = torch.cat([rho, phi], dim=-1)
-    if not want_jacobians:
-        return r, None, None
     ad = torch.cat([torch.zeros_like(r[..., :1]), r, -r], dim=-1)[..., k.ad_index].unflatten(
         -1, (6, 6))
     pr = (phi * rho).sum(-1)[..., None, None]

@@ -1,0 +1,181 @@
+"""The operators of SGal(3)'s subgroups SE(3) and SE_2(3) (``torchsgal::se3_*``, ``se23_*``,
+functional/ops.py) and their C kernels (functional/_native_sgal3.h: exp and log of each, and J_l,
+J_l^-1 as rows and columns of SGal(3)'s (3.23)) against the tensor closed forms of
+functional/se3.py and se23.py at every angle band, in both dtypes; opcheck of the six operators
+of each; where the kernels run.  The tensor code is itself checked against its definitions and
+peers elsewhere (tests/test_definitions.py, tests/test_gtsam.py)."""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+from test_native import ANGLES, _Recorder, assert_rowwise_close
+
+from torchsgal import SE3, SE23
+from torchsgal.functional import native, se3, se23
+
+GROUPS = {"se3": (SE3, se3), "se23": (SE23, se23)}
+
+
+def _op(name):
+    return getattr(torch.ops.torchsgal, name).default
+
+
+def tangents(F, dtype, seed=0, copies=4):
+    """Tangents with |phi| (the last three components) at every angle of ``ANGLES`` (both branches
+    of every series and threshold, the near-pi symmetric-part log), the rest standard normal x 3."""
+    rng = np.random.default_rng(seed)
+    ang = np.repeat(ANGLES, copies)
+    xi = 3.0 * rng.standard_normal((ang.size, F.DOF))
+    axis = rng.standard_normal((ang.size, 3))
+    xi[:, -3:] = axis / np.linalg.norm(axis, axis=-1, keepdims=True) * ang[:, None]
+    return torch.tensor(xi, dtype=dtype)
+
+
+def kernel_test(fn):
+    """A test of the C kernels themselves: left out of the run with the kernels switched off
+    (TORCHSGAL_NATIVE=0, the second test run of .ci/run), as tests/test_native.py."""
+    built = pytest.mark.skipif(not native.available() and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
+                               reason="the C kernels were not compiled for this installation")
+    return pytest.mark.kernels(built(fn))
+
+
+@kernel_test
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
+@pytest.mark.parametrize("name", GROUPS)
+def test_kernels_match_the_tensor_code_at_every_angle(name, dtype):
+    _, F = GROUPS[name]
+    xi = tangents(F, dtype)
+    M = _op(f"{name}_exp")(xi)
+    M_ref = F.exp_impl(xi)
+    assert_rowwise_close(M, M_ref, dtype)
+    assert torch.equal(M[:, 3:, :], M_ref[:, 3:, :])  # the bottom rows exactly
+    assert_rowwise_close(_op(f"{name}_log")(M_ref), F.log_impl(M_ref), dtype)
+    assert_rowwise_close(_op(f"{name}_jl")(xi), F.jl_impl(xi), dtype)
+    assert_rowwise_close(_op(f"{name}_jl_inv")(xi), F.jl_inv_impl(xi), dtype)
+
+
+@kernel_test
+@pytest.mark.parametrize("name", GROUPS)
+def test_log_at_exactly_pi_and_the_identity(name):
+    _, F = GROUPS[name]
+    n = F.MATRIX_DIM
+    M = torch.eye(n, dtype=torch.float64).repeat(4, 1, 1)
+    for k, d in enumerate(([1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0])):
+        M[k + 1, :3, :3] = torch.diag(torch.tensor(d, dtype=torch.float64))
+    M[:, :3, 3:] = torch.randn(4, 3, n - 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    out = _op(f"{name}_log")(M)
+    assert torch.equal(out[:, -3:], F.log_impl(M)[:, -3:])
+    assert_rowwise_close(out, F.log_impl(M), torch.float64)
+    assert torch.equal(out[0, -3:], torch.zeros(3, dtype=torch.float64))
+
+
+@pytest.fixture
+def recorder(monkeypatch):
+    rec = _Recorder(native._lib)
+    monkeypatch.setattr(native, "_lib", rec)
+    return rec
+
+
+@kernel_test
+@pytest.mark.parametrize("name", GROUPS)
+def test_eager_calls_run_the_kernels_and_the_backward_its_closed_form(recorder, name):
+    G, F = GROUPS[name]
+    xi = tangents(F, torch.float64)[:8]
+    g = G.exp(xi)
+    g.log()
+    g.rplus(xi)
+    G.jr(xi), G.jl_inv(xi)
+    assert recorder.calls == [f"{name}_{k}" for k in ("exp", "log", "exp", "jl", "jl_inv")]
+    recorder.calls.clear()
+    x = xi.clone().requires_grad_()
+    (grad,) = torch.autograd.grad(F.log(F.exp(x)).sum(), x)
+    # the backward operators have no kernel: they run the closed forms (nothing recorded)
+    assert recorder.calls == [f"{name}_exp", f"{name}_log"]
+    with native.disabled():
+        (expected,) = torch.autograd.grad(F.log(F.exp(x)).sum(), x)
+    torch.testing.assert_close(grad, expected, rtol=0, atol=1e-12)
+    recorder.calls.clear()
+    with native.disabled():
+        G.exp(xi)
+    G.exp(xi.float()[None].expand(2, 8, F.DOF))  # broadcast views are read by value
+    assert recorder.calls == [f"{name}_exp"]
+
+
+@pytest.mark.parametrize("name", GROUPS)
+def test_gradients_through_the_operators(name):
+    G, F = GROUPS[name]
+    xi = tangents(F, torch.float64, copies=1)[::3].clone().requires_grad_()
+    assert torch.autograd.gradcheck(F.exp, (xi,))
+    assert torch.autograd.gradcheck(F.jl, (xi[:4],))
+    assert torch.autograd.gradcheck(F.jl_inv, (xi[:4],))
+    d = torch.randn(xi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    x0 = xi.detach()
+
+    def log_along(t):  # log's backward projects onto the group: checked along the group
+        return F.log(F.exp_impl(x0) @ F.exp_impl(t * d))
+
+    t = torch.zeros(xi.shape[:-1], dtype=torch.float64)[..., None].requires_grad_()
+    assert torch.autograd.gradcheck(log_along, (t,))
+
+
+def _arguments(name, op, batch, dtype):
+    F = GROUPS[name][1]
+    n, dof = F.MATRIX_DIM, F.DOF
+    g = torch.Generator().manual_seed(7)
+    xi = (0.8 * torch.randn(*batch, dof, generator=g, dtype=torch.float64)).to(dtype)
+    M = F.exp_impl(xi.double()).to(dtype)
+    G = torch.randn(*batch, n, n, generator=g, dtype=torch.float64).to(dtype)
+    w = torch.randn(*batch, dof, generator=g, dtype=torch.float64).to(dtype)
+    args = {"exp": (xi,), "log": (M,), "exp_vjp": (xi, M, G), "log_vjp": (M, xi, w), "jl": (xi,),
+            "jl_inv": (xi,)}[op]
+    return tuple(a.clone().requires_grad_(dtype is torch.float64) for a in args)
+
+
+# (the shared registration code is opchecked over more batches for SGal(3): tests/test_ops.py)
+@pytest.mark.parametrize("kernels", [True, False], ids=["kernels_on", "kernels_off"])
+@pytest.mark.parametrize("dtype,batch", [(torch.float64, (2, 3)), (torch.float64, (0,)), (torch.float32, ())],
+                         ids=["f64", "f64-empty", "f32-scalar"])
+@pytest.mark.parametrize("op", ("exp", "log", "jl", "jl_inv"))
+@pytest.mark.parametrize("name", GROUPS)
+def test_opcheck(name, op, dtype, batch, kernels):
+    args = _arguments(name, op, batch, dtype)
+    if kernels:
+        torch.library.opcheck(_op(f"{name}_{op}"), args)
+    else:
+        with native.disabled():
+            torch.library.opcheck(_op(f"{name}_{op}"), args)
+
+
+@pytest.mark.parametrize("dtype,batch", [(torch.float64, (2, 3)), (torch.float32, ())], ids=["f64", "f32"])
+@pytest.mark.parametrize("op", ("exp_vjp", "log_vjp"))
+@pytest.mark.parametrize("name", GROUPS)
+def test_opcheck_of_the_backward_operators(name, op, dtype, batch):
+    # no kernel: the closed form whatever the switch (test_eager_calls_run_the_kernels...)
+    torch.library.opcheck(_op(f"{name}_{op}"), _arguments(name, op, batch, dtype))
+
+
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3, 1), (0,)])
+@pytest.mark.parametrize("name", GROUPS)
+def test_batch_shapes(name, shape):
+    G, F = GROUPS[name]
+    xi = tangents(F, torch.float64)[: math.prod(shape)].reshape(*shape, F.DOF)
+    M = G.exp(xi).as_matrix()
+    assert M.shape == (*shape, F.MATRIX_DIM, F.MATRIX_DIM)
+    torch.testing.assert_close(M, F.exp_impl(xi), rtol=0, atol=1e-13)
+    assert G(M).log().shape == (*shape, F.DOF)
+    assert G.jl(xi).shape == (*shape, F.DOF, F.DOF)
+
+
+@pytest.mark.parametrize("name", GROUPS)
+def test_operators_refuse_bad_shapes_by_name(name):
+    F = GROUPS[name][1]
+    with pytest.raises(ValueError, match=rf"xi must have shape \(\.\.\., {F.DOF}\), got \(5, 10\)"):
+        _op(f"{name}_exp")(torch.zeros(5, 10, dtype=torch.float64))
+    with pytest.raises(ValueError, match=rf"M must have shape \(\.\.\., {F.MATRIX_DIM}, {F.MATRIX_DIM}\)"):
+        _op(f"{name}_log")(torch.zeros(5, 6, 6, dtype=torch.float64))
+    with pytest.raises(ValueError, match=rf"xi must have shape \(\.\.\., {F.DOF}\)"):
+        _op(f"{name}_jl_inv")(torch.zeros(2, 11, dtype=torch.float32))
