@@ -29,6 +29,7 @@ import time
 import torch
 
 from torchsgal.estimation import study, tls
+from torchsgal.load import keep_freed_memory
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
@@ -60,7 +61,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=os.path.join(HERE, "results"),
                     help="folder for tls_cpu.{json,md} (default benchmarks/results)")
+    ap.add_argument("--release-memory", action="store_true",
+                    help="leave the C allocator's defaults (as the command line, the process "
+                         "keeps the large blocks it frees: torchsgal.load.keep_freed_memory)")
     args = ap.parse_args(argv)
+    kept = False if args.release_memory else keep_freed_memory()
 
     cfg = study.StudyConfig(trials=args.trials, seed=args.seed)
     trials = study.simulate(cfg)
@@ -68,7 +73,8 @@ def main(argv=None) -> int:
     K = args.trials
     res = {"config": vars(args), "threads": torch.get_num_threads(), "torch": torch.__version__,
            "cpu": cpu_model(), "date": time.strftime("%Y-%m-%d"),
-           "time_utc": time.strftime("%H:%M", time.gmtime()), "loadavg_at_start": os.getloadavg()}
+           "time_utc": time.strftime("%H:%M", time.gmtime()), "loadavg_at_start": os.getloadavg(),
+           "keep_freed_memory": kept}
 
     def batched(solve, variant):
         xs, covs, status, its = [], [], [], []
@@ -213,7 +219,9 @@ def main(argv=None) -> int:
           "`python -m torchsgal tls`).  Started at "
           f"{res['time_utc']} UTC; load average (1, 5, 15 min) at start "
           f"{tuple(round(x, 2) for x in res['loadavg_at_start'])}, at end "
-          f"{tuple(round(x, 2) for x in res['loadavg_at_end'])}.", "",
+          f"{tuple(round(x, 2) for x in res['loadavg_at_end'])}.  Freed large blocks "
+          + ("kept for reuse (`torchsgal.load.keep_freed_memory()`, as the command line)." if kept
+             else "returned to the system (the C allocator's defaults)."), "",
           "| solver | trials | time | per trial | converged | median iterations |",
           "|---|---|---|---|---|---|"]
     for k, v in res["batched"].items():

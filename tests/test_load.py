@@ -97,3 +97,52 @@ def test_use_threads_for_load_checks_interval_first(restore_threads, bad, error)
     with pytest.raises(error, match="interval must be a finite number > 0"):
         load.use_threads_for_load(bad)
     assert torch.get_num_threads() == restore_threads
+
+
+def test_keep_freed_memory_sets_the_allocator_where_it_is_glibc(monkeypatch):
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, param, value):
+            calls.append((param.value, value.value))
+            return 1
+
+    monkeypatch.setattr(load.platform, "system", lambda: "Linux")
+    monkeypatch.setattr(load.platform, "libc_ver", lambda: ("glibc", "2.36"))
+    monkeypatch.setattr(load.ctypes, "CDLL", lambda name: FakeLibc())
+    assert load.keep_freed_memory() is True
+    # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, M_TOP_PAD (malloc.h) to 1 GiB, 2 GiB - 1, 256 MB
+    assert calls == [(-3, 1 << 30), (-1, 2**31 - 1), (-2, 256 << 20)]
+    monkeypatch.setattr(load.platform, "libc_ver", lambda: ("musl", ""))
+    calls.clear()
+    assert load.keep_freed_memory() is False and calls == []
+    monkeypatch.setattr(load.platform, "libc_ver", lambda: ("glibc", "2.36"))
+    monkeypatch.setattr(load.ctypes, "CDLL", lambda name: type("Refuses", (), {
+        "mallopt": lambda self, p, v: 0})())
+    assert load.keep_freed_memory() is False  # a value the C library refuses
+
+
+def test_keep_freed_memory_in_this_process_keeps_large_blocks_in_the_heap():
+    import platform
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc only: elsewhere keep_freed_memory changes nothing (tested above)")
+    import subprocess
+    import sys
+    code = """
+import resource, torch
+from torchsgal import load
+keep = {keep}
+if keep:
+    assert load.keep_freed_memory()
+for _ in range(2):  # 64 MB blocks, touched: the heap grows to hold them (kept: twice)
+    x = torch.empty(8 << 20, dtype=torch.float64); x.fill_(1.0); del x
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(5):
+    x = torch.empty(8 << 20, dtype=torch.float64); x.fill_(1.0); del x
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+    faults = {keep: int(subprocess.run([sys.executable, "-c", code.format(keep=keep)], capture_output=True,
+                                       text=True, check=True).stdout) for keep in (False, True)}
+    # glibc's defaults map and unmap each 64 MB block: 16,384 faults of 4 kB pages per block
+    assert faults[False] >= 5 * 10_000, faults
+    assert faults[True] < 1_000, faults

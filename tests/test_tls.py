@@ -371,11 +371,14 @@ def test_gtsam_factor_graph_agrees():
         assert rel.abs().max() < 1e-8
 
 
-def test_command_line_writes_the_study(tmp_path):
+def test_command_line_writes_the_study(tmp_path, monkeypatch):
+    from torchsgal import load
     from torchsgal.__main__ import main
+    kept = []
+    monkeypatch.setattr(load, "keep_freed_memory", lambda: kept.append(True) or True)
     rc = main(["tls", "--trials", "6", "--samples", "11", "--out", str(tmp_path), "--quiet",
                "--no-plot", "--seed", "3"])
-    assert rc == 0
+    assert rc == 0 and kept == [True]  # the process keeps freed blocks unless --release-memory
     out = json.loads((tmp_path / "tls_study.json").read_text())
     assert out["config"]["trials"] == 6
     assert out["chunk"] == study.DEFAULT_CHUNK  # recorded, and the same default as study.run
@@ -391,7 +394,7 @@ def test_command_line_writes_the_study(tmp_path):
 def test_command_line_warns_that_frames_at_rest_hide_dtau(tmp_path, capsys):
     from torchsgal.__main__ import main
     assert main(["tls", "--trials", "2", "--samples", "11", "--speed", "0", "--out", str(tmp_path),
-                 "--quiet", "--no-plot", "--variants", "iterated"]) == 0
+                 "--quiet", "--no-plot", "--variants", "iterated", "--release-memory"]) == 0
     assert "dtau is not observable" in capsys.readouterr().err
 
 

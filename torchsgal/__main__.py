@@ -81,10 +81,12 @@ def demo(args) -> int:
 def tls(args) -> int:
     """Monte Carlo study of kelly-giamou Section 5(c): SGal(3) versus SE_2(3) x R."""
     from torchsgal.estimation import study
-    from torchsgal.load import threads_for_load
+    from torchsgal.load import keep_freed_memory, threads_for_load
 
     chosen = "" if args.threads else " (for the current load; --threads sets it)"
     torch.set_num_threads(args.threads or threads_for_load())
+    if not args.release_memory:
+        keep_freed_memory()
     cfg = study.StudyConfig(trials=args.trials, samples=args.samples, speed=args.speed,
                             separation=args.separation, clock_offset=args.clock_offset,
                             dtau_sigma=args.dtau_sigma, seed=args.seed,
@@ -215,6 +217,9 @@ def main(argv=None) -> int:
     t.add_argument("--threads", type=_threads, default=None,
                    help=f"torch threads, at most the CPUs available ({_max_threads()}; default: "
                         f"the cores idle at the start, see torchsgal.load)")
+    t.add_argument("--release-memory", action="store_true",
+                   help="leave the C allocator's defaults (by default the process keeps the large "
+                        "blocks it frees for reuse: torchsgal.load.keep_freed_memory)")
     t.add_argument("--out", default="tls_output", help="output folder (tls_output)")
     t.add_argument("--no-plot", action="store_true", help="skip the NEES plot")
     t.add_argument("--quiet", action="store_true", help="no progress bar")

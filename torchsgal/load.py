@@ -1,4 +1,5 @@
-"""Thread counts for a shared machine.
+"""Process settings for long batched runs: thread counts for a shared machine, and the C
+allocator's handling of large blocks.
 
 torch's intra-op threads wait for each other at the end of every parallel operation: where
 another busy process holds one of the cores, each such operation waits for the thread that lost
@@ -11,10 +12,18 @@ once, at the call: a load that starts later is not seen.  Against that, and agai
 itself, ``OMP_WAIT_POLICY=PASSIVE`` in the environment before torch is loaded makes the threads
 that wait at the end of an operation sleep instead of spinning (docs/guide/threads.md: the
 measurements behind this policy).
+
+``keep_freed_memory`` is the other process setting a batched solve benefits from: on Linux with
+glibc the allocator returns every freed block of 32 MB or more to the system, and the next block
+of that size is paid again in page faults (docs/guide/estimation.md: a fifth of the TLS study's
+time).  The command line calls it unless ``--release-memory`` is given.
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
+import platform
 import time
 
 import torch
@@ -83,3 +92,30 @@ def use_threads_for_load(interval: float = 0.2) -> int:
     threads = threads_for_load(interval)
     torch.set_num_threads(threads)
     return threads
+
+
+# glibc's mallopt parameters (malloc.h) and the values ``keep_freed_memory`` sets
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+_KEEP = ((_M_MMAP_THRESHOLD, 1 << 30), (_M_TRIM_THRESHOLD, 2**31 - 1), (_M_TOP_PAD, 256 << 20))
+
+
+def keep_freed_memory() -> bool:
+    """Where the C library is glibc (Linux), make this process keep the large blocks it frees
+    for reuse instead of returning them to the system, and return True; elsewhere change
+    nothing and return False.
+
+    glibc serves a block of 32 MB or more (its largest mmap threshold) by a fresh mapping and
+    unmaps it when freed, so a loop over large batches (a batched solve's per-condition blocks
+    are 30-65 MB at 400 TLS trials) pays page faults for every block of every iteration.  This
+    sets ``mallopt``'s M_MMAP_THRESHOLD to 1 GiB, M_TRIM_THRESHOLD to 2 GiB - 1 and M_TOP_PAD
+    to 256 MB (what ``MALLOC_MMAP_THRESHOLD_`` etc. in the environment set at start-up): freed
+    blocks stay in the heap and the next ones reuse them.  The price is memory: the process
+    holds on to its peak heap instead of returning it.  A process setting, for a program where
+    it starts; the library never calls it on its own."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    for param, value in _KEEP:
+        if not libc.mallopt(ctypes.c_int(param), ctypes.c_int(value)):
+            return False
+    return True
