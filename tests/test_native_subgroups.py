@@ -1,6 +1,6 @@
 """The operators of SGal(3)'s subgroups SE(3) and SE_2(3) (``torchsgal::se3_*``, ``se23_*``,
-functional/ops.py) and their C kernels (functional/_native_sgal3.h: exp and log of each, and J_l,
-J_l^-1 as rows and columns of SGal(3)'s (3.23)) against the tensor closed forms of
+functional/ops.py) and their C kernels (functional/_native_sgal3.h: exp, log, J_l and J_l^-1 of
+each) against the tensor closed forms of
 functional/se3.py and se23.py at every angle band, in both dtypes; opcheck of the six operators
 of each; where the kernels run.  The tensor code is itself checked against its definitions and
 peers elsewhere (tests/test_definitions.py, tests/test_gtsam.py)."""

@@ -259,29 +259,6 @@ static void K(jl_inv_tmv_one)(const T *x, T sign, const T *g, T *o) {
     K(jl_inv_tmv_parts)(&P, K(jinv_coefficient)(K(dot)(P.phi, P.phi)), g, o);
 }
 
-/* J_l(xi) (3.23), row-major 10x10: row k is (J_l^T e_k)^T, from the transposed product. */
-static void K(jl_one)(const T *x, T *o) {
-    K(parts_t) P;
-    K(transpose_parts)(x, (T)1, &P);
-    for (int k = 0; k < 10; ++k) {
-        T e[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-        e[k] = (T)1;
-        K(jl_tmv_parts)(&P, e, o + 10 * k);
-    }
-}
-
-/* J_l(xi)^-1, row-major 10x10: row k is (J_l^-T e_k)^T. */
-static void K(jl_inv_one)(const T *x, T *o) {
-    K(parts_t) P;
-    K(transpose_parts)(x, (T)1, &P);
-    T d = K(jinv_coefficient)(K(dot)(P.phi, P.phi));
-    for (int k = 0; k < 10; ++k) {
-        T e[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-        e[k] = (T)1;
-        K(jl_inv_tmv_parts)(&P, d, e, o + 10 * k);
-    }
-}
-
 /* exp's backward: J_r(xi)^T hat^T(M^T G) = J_l(-xi)^T (_exp_pullback). */
 static void K(exp_vjp_one)(const T *xi, const T *M, const T *G, T *o) {
     T w[10];
@@ -380,41 +357,179 @@ static void K(se23_log_one)(const T *M, T *x) {
     K(poly)(phi, v, (T)1, (T)-0.5, d, nu);
 }
 
-/* J_l (inverse = 0) or J_l^-1 (inverse = 1), k x k row-major, of the subgroup of SGal(3) whose
- * tangent is the k components ``idx`` of SGal(3)'s ten (SE(3): rho, phi; SE_2(3): rho, nu, phi):
- * the rows and columns idx of (3.23) at the tangent embedded with zeros.  ad(xi) maps the
- * subalgebra into itself, so the series of J_l and J_l^-1 do too: those rows and columns are the
- * subgroup's own Jacobian (the rows come from the transposed products, as jl_one). */
-static void K(sub_jacobian_one)(const T *x, int k, const int *idx, int inverse, T *o) {
-    T x10[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0}, row[10];
-    for (int i = 0; i < k; ++i) x10[idx[i]] = x[i];
-    K(parts_t) P;
-    K(transpose_parts)(x10, (T)1, &P);
-    T d = inverse ? K(jinv_coefficient)(K(dot)(P.phi, P.phi)) : (T)0;
-    for (int i = 0; i < k; ++i) {
-        T e[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-        e[idx[i]] = (T)1;
-        if (inverse)
-            K(jl_inv_tmv_parts)(&P, d, e, row);
-        else
-            K(jl_tmv_parts)(&P, e, row);
-        for (int j = 0; j < k; ++j) o[k * i + j] = row[idx[j]];
+/* ----- the left Jacobians and their inverses in block form (the tensor code's _jl_blocks) ----- */
+
+/* 3x3 row-major helpers. */
+static inline void K(mat3_mul)(const T *A, const T *Bm, T *o) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            o[3 * i + j] = A[3 * i] * Bm[j] + A[3 * i + 1] * Bm[3 + j] + A[3 * i + 2] * Bm[6 + j];
+}
+
+/* Gamma_l(phi) x (blocks.gamma_vec): x / l! + c_(l+1) phi^x + c_(l+2) phi^phi^x. */
+static inline void K(gamma_vec)(const T *c, int l, const T *phi, const T *x, T *o) {
+    T p[3], pp[3];
+    K(cross)(phi, x, p);
+    K(cross)(phi, p, pp);
+    for (int i = 0; i < 3; ++i) o[i] = (l < 2 ? x[i] : x[i] / (T)2) + c[l + 1] * p[i] + c[l + 2] * pp[i];
+}
+
+/* d/dphi [Gamma_l(phi) x] (blocks.gamma_vec_derivative), e_m = m c_(m+2) - c_(m+1):
+ * (e_(l+1) phi^x + e_(l+2) phi^phi^x - 2 b x) phi^T + b phi x^T + b (phi . x) I - a x^. */
+static inline void K(gamma_vec_derivative)(const T *c, int l, const T *phi, const T *x, T *o) {
+    T p[3], pp[3], u[3];
+    K(cross)(phi, x, p);
+    K(cross)(phi, p, pp);
+    T a = c[l + 1], b = c[l + 2];
+    T ea = (T)(l + 1) * c[l + 3] - c[l + 2], eb = (T)(l + 2) * c[l + 4] - c[l + 3];
+    for (int i = 0; i < 3; ++i) u[i] = ea * p[i] + eb * pp[i] - (T)2 * b * x[i];
+    T bd = b * K(dot)(phi, x);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) o[3 * i + j] = u[i] * phi[j] + b * phi[i] * x[j] + (i == j ? bd : (T)0);
+    o[1] += a * x[2]; o[2] -= a * x[1];  /* - a x^ */
+    o[3] -= a * x[2]; o[5] += a * x[0];
+    o[6] += a * x[1]; o[7] -= a * x[0];
+}
+
+/* r^ M, column by column (blocks.skew_times). */
+static inline void K(skew_times)(const T *r, const T *M, T *o) {
+    for (int j = 0; j < 3; ++j) {
+        T col[3] = {M[j], M[3 + j], M[6 + j]}, out[3];
+        K(cross)(r, col, out);
+        o[j] = out[0]; o[3 + j] = out[1]; o[6 + j] = out[2];
     }
 }
 
-#define SUB_JACOBIAN_RANGE(group, k, inverse, ...)                                        \
-    static void K(group##_range)(void **a, int64_t lo, int64_t hi) {                     \
-        static const int idx[k] = {__VA_ARGS__};                                          \
+/* Q(x, phi) = d(Gamma_1 x)/dphi + (Gamma_1 x)^ Gamma_1 (blocks.q_block; J = Gamma_1(phi)). */
+static inline void K(q_block)(const T *c, const T *phi, const T *x, const T *J, T *o) {
+    T g[3], S[9];
+    K(gamma_vec_derivative)(c, 1, phi, x, o);
+    K(gamma_vec)(c, 1, phi, x, g);
+    K(skew_times)(g, J, S);
+    for (int i = 0; i < 9; ++i) o[i] += S[i];
+}
+
+/* D^-1(phi) = (1 - d theta^2) I - phi^/2 + d phi phi^T (blocks.jac_inv_mat, (3.12)). */
+static inline void K(jac_inv_mat)(const T *phi, T *o) {
+    T t2 = K(dot)(phi, phi), d = K(jinv_coefficient)(t2);
+    K(sym_skew)((T)1 - d * t2, (T)-0.5, d, phi, o);
+}
+
+/* -A Q A for 3x3 A, Q (the off-diagonal blocks of the subgroups' J_l^-1). */
+static inline void K(neg_sandwich)(const T *A, const T *Q, T *o) {
+    T t[9];
+    K(mat3_mul)(A, Q, t);
+    K(mat3_mul)(t, A, o);
+    for (int i = 0; i < 9; ++i) o[i] = -o[i];
+}
+
+/* Writes the 3x3 block Bk at block (bi, bj) of an n x n row-major matrix (3-sized blocks). */
+static inline void K(put3)(T *o, int n, int bi, int bj, const T *Bk) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) o[n * (3 * bi + i) + 3 * bj + j] = Bk[3 * i + j];
+}
+
+/* SE(3), [rho, phi]: J_l = [[J, Q], [0, J]], J_l^-1 = [[J^-1, -J^-1 Q J^-1], [0, J^-1]]
+ * (se3.jl_impl, jl_inv_impl; Barfoot, Table 1). */
+static void K(se3_jl_one)(const T *x, int inverse, T *o) {
+    const T *rho = x, *phi = x + 3;
+    T c[7], J[9], Q[9], Ji[9], R[9];
+    for (int i = 0; i < 36; ++i) o[i] = 0;
+    K(coefficients)(K(dot)(phi, phi), 6, c);
+    K(sym_skew)(c[1], c[2], c[3], phi, J);  /* Gamma_1(phi) */
+    K(q_block)(c, phi, rho, J, Q);
+    if (!inverse) {
+        K(put3)(o, 6, 0, 0, J); K(put3)(o, 6, 1, 1, J); K(put3)(o, 6, 0, 1, Q);
+        return;
+    }
+    K(jac_inv_mat)(phi, Ji);
+    K(neg_sandwich)(Ji, Q, R);
+    K(put3)(o, 6, 0, 0, Ji); K(put3)(o, 6, 1, 1, Ji); K(put3)(o, 6, 0, 1, R);
+}
+
+/* SE_2(3), [rho, nu, phi]: J_l = [[J, 0, Q_rho], [0, J, Q_nu], [0, 0, J]] and its inverse
+ * (se23.jl_impl, jl_inv_impl). */
+static void K(se23_jl_one)(const T *x, int inverse, T *o) {
+    const T *rho = x, *nu = x + 3, *phi = x + 6;
+    T c[7], J[9], Qr[9], Qn[9], Ji[9], R[9];
+    for (int i = 0; i < 81; ++i) o[i] = 0;
+    K(coefficients)(K(dot)(phi, phi), 6, c);
+    K(sym_skew)(c[1], c[2], c[3], phi, J);
+    K(q_block)(c, phi, rho, J, Qr);
+    K(q_block)(c, phi, nu, J, Qn);
+    if (!inverse) {
+        for (int k = 0; k < 3; ++k) K(put3)(o, 9, k, k, J);
+        K(put3)(o, 9, 0, 2, Qr); K(put3)(o, 9, 1, 2, Qn);
+        return;
+    }
+    K(jac_inv_mat)(phi, Ji);
+    for (int k = 0; k < 3; ++k) K(put3)(o, 9, k, k, Ji);
+    K(neg_sandwich)(Ji, Qr, R); K(put3)(o, 9, 0, 2, R);
+    K(neg_sandwich)(Ji, Qn, R); K(put3)(o, 9, 1, 2, R);
+}
+
+/* SGal(3), [rho, nu, phi, iota]: (3.23) from the blocks of sgal3._jl_blocks, D = Gamma_1,
+ * E = Gamma_2, L = D - E (3.24), M (3.25), N (3.26):
+ *   J_l    = [[D, -iota L, N, E nu], [0, D, M, 0], [0, 0, D, 0], [0, 0, 0, 1]],
+ *   J_l^-1 = [[D^-1, iota D^-1 L D^-1, Y, -D^-1 E nu], [0, D^-1, -P, 0], [0, 0, D^-1, 0], [0, 0, 0, 1]]
+ * with P = D^-1 M D^-1 and Y = -D^-1 (iota L P + N D^-1) (sgal3.jl_impl, jl_inv_impl). */
+static void K(sgal3_jl_one)(const T *x, int inverse, T *o) {
+    const T *rho = x, *nu = x + 3, *phi = x + 6;
+    T iota = x[9], c[7], D[9], E[9], L[9], Mb[9], N[9], g2n[3], r[3], dr[9], dn[9], S[9];
+    for (int i = 0; i < 100; ++i) o[i] = 0;
+    K(coefficients)(K(dot)(phi, phi), 6, c);
+    K(sym_skew)(c[1], c[2], c[3], phi, D);
+    K(sym_skew)(c[2], c[3], c[4], phi, E);
+    for (int i = 0; i < 9; ++i) L[i] = D[i] - E[i];
+    K(q_block)(c, phi, nu, D, Mb);
+    K(gamma_vec)(c, 2, phi, nu, g2n);
+    K(gamma_vec)(c, 1, phi, rho, r);
+    for (int i = 0; i < 3; ++i) r[i] += iota * g2n[i];
+    K(gamma_vec_derivative)(c, 1, phi, rho, dr);
+    K(gamma_vec_derivative)(c, 2, phi, nu, dn);
+    K(skew_times)(r, D, S);
+    for (int i = 0; i < 9; ++i) N[i] = (dr[i] + iota * dn[i]) + S[i] - iota * Mb[i];
+    o[99] = 1;
+    if (!inverse) {
+        T mL[9];
+        for (int i = 0; i < 9; ++i) mL[i] = -iota * L[i];
+        K(put3)(o, 10, 0, 0, D); K(put3)(o, 10, 1, 1, D); K(put3)(o, 10, 2, 2, D);
+        K(put3)(o, 10, 0, 1, mL); K(put3)(o, 10, 0, 2, N); K(put3)(o, 10, 1, 2, Mb);
+        for (int i = 0; i < 3; ++i) o[10 * i + 9] = g2n[i];
+        return;
+    }
+    T Di[9], P[9], t[9], LP[9], ND[9], Y[9], DLD[9], mP[9];
+    K(jac_inv_mat)(phi, Di);
+    K(mat3_mul)(Di, Mb, t);
+    K(mat3_mul)(t, Di, P);
+    K(mat3_mul)(L, P, LP);
+    K(mat3_mul)(N, Di, ND);
+    for (int i = 0; i < 9; ++i) t[i] = iota * LP[i] + ND[i];
+    K(mat3_mul)(Di, t, Y);
+    for (int i = 0; i < 9; ++i) Y[i] = -Y[i];
+    K(mat3_mul)(Di, L, t);
+    K(mat3_mul)(t, Di, DLD);
+    for (int i = 0; i < 9; ++i) { DLD[i] = iota * DLD[i]; mP[i] = -P[i]; }
+    K(put3)(o, 10, 0, 0, Di); K(put3)(o, 10, 1, 1, Di); K(put3)(o, 10, 2, 2, Di);
+    K(put3)(o, 10, 0, 1, DLD); K(put3)(o, 10, 0, 2, Y); K(put3)(o, 10, 1, 2, mP);
+    for (int i = 0; i < 3; ++i)
+        o[10 * i + 9] = -(Di[3 * i] * g2n[0] + Di[3 * i + 1] * g2n[1] + Di[3 * i + 2] * g2n[2]);
+}
+
+#define JACOBIAN_RANGE(group, dof, inverse, name)                                        \
+    static void K(name##_range)(void **a, int64_t lo, int64_t hi) {                      \
         const T *xi = a[0];                                                               \
         T *out = a[1];                                                                    \
         for (int64_t i = lo; i < hi; ++i)                                                 \
-            K(sub_jacobian_one)(xi + (k) * i, k, idx, inverse, out + (k) * (k) * i);      \
+            K(group##_jl_one)(xi + (dof) * i, inverse, out + (dof) * (dof) * i);          \
     }
-SUB_JACOBIAN_RANGE(se3_jl, 6, 0, 0, 1, 2, 6, 7, 8)
-SUB_JACOBIAN_RANGE(se3_jl_inv, 6, 1, 0, 1, 2, 6, 7, 8)
-SUB_JACOBIAN_RANGE(se23_jl, 9, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8)
-SUB_JACOBIAN_RANGE(se23_jl_inv, 9, 1, 0, 1, 2, 3, 4, 5, 6, 7, 8)
-#undef SUB_JACOBIAN_RANGE
+JACOBIAN_RANGE(se3, 6, 0, se3_jl)
+JACOBIAN_RANGE(se3, 6, 1, se3_jl_inv)
+JACOBIAN_RANGE(se23, 9, 0, se23_jl)
+JACOBIAN_RANGE(se23, 9, 1, se23_jl_inv)
+JACOBIAN_RANGE(sgal3, 10, 0, jl)
+JACOBIAN_RANGE(sgal3, 10, 1, jl_inv)
+#undef JACOBIAN_RANGE
 
 static void K(se23_exp_range)(void **a, int64_t lo, int64_t hi) {
     const T *xi = a[0];
@@ -457,18 +572,6 @@ static void K(exp_vjp_range)(void **a, int64_t lo, int64_t hi) {
     const T *xi = a[0], *M = a[1], *G = a[2];
     T *out = a[3];
     for (int64_t i = lo; i < hi; ++i) K(exp_vjp_one)(xi + 10 * i, M + 25 * i, G + 25 * i, out + 10 * i);
-}
-
-static void K(jl_range)(void **a, int64_t lo, int64_t hi) {
-    const T *xi = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(jl_one)(xi + 10 * i, out + 100 * i);
-}
-
-static void K(jl_inv_range)(void **a, int64_t lo, int64_t hi) {
-    const T *xi = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(jl_inv_one)(xi + 10 * i, out + 100 * i);
 }
 
 static void K(log_vjp_range)(void **a, int64_t lo, int64_t hi) {
