@@ -65,7 +65,7 @@ def main(argv=None) -> int:
                     help="leave the C allocator's defaults (as the command line, the process "
                          "keeps the large blocks it frees: torchsgal.load.keep_freed_memory)")
     args = ap.parse_args(argv)
-    kept = False if args.release_memory else keep_freed_memory()
+    kept = 0 if args.release_memory else keep_freed_memory()  # glibc's mmap threshold set, or 0
 
     cfg = study.StudyConfig(trials=args.trials, seed=args.seed)
     trials = study.simulate(cfg)

@@ -94,28 +94,39 @@ def use_threads_for_load(interval: float = 0.2) -> int:
     return threads
 
 
-# glibc's mallopt parameters (malloc.h) and the values ``keep_freed_memory`` sets
+# glibc's mallopt parameters (malloc.h) and the values ``keep_freed_memory`` sets: the mmap
+# threshold (1 GiB; 32 MiB, the largest older glibc accepts on 64-bit, where it refuses more),
+# then the trim threshold and the top pad
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
-_KEEP = ((_M_MMAP_THRESHOLD, 1 << 30), (_M_TRIM_THRESHOLD, 2**31 - 1), (_M_TOP_PAD, 256 << 20))
+_MMAP_THRESHOLDS = (1 << 30, 32 << 20)
+_KEEP = ((_M_TRIM_THRESHOLD, 2**31 - 1), (_M_TOP_PAD, 256 << 20))
 
 
-def keep_freed_memory() -> bool:
+def keep_freed_memory() -> int:
     """Where the C library is glibc (Linux), make this process keep the large blocks it frees
-    for reuse instead of returning them to the system, and return True; elsewhere change
-    nothing and return False.
+    for reuse instead of returning them to the system; returns the block size from which glibc
+    still maps and unmaps blocks (1 GiB, or 32 MiB where glibc refuses larger), or 0 where
+    nothing was changed (another C library, or glibc refusing the settings).
 
-    glibc serves a block of 32 MB or more (its largest mmap threshold) by a fresh mapping and
-    unmaps it when freed, so a loop over large batches (a batched solve's per-condition blocks
-    are 30-65 MB at 400 TLS trials) pays page faults for every block of every iteration.  This
-    sets ``mallopt``'s M_MMAP_THRESHOLD to 1 GiB, M_TRIM_THRESHOLD to 2 GiB - 1 and M_TOP_PAD
-    to 256 MB (what ``MALLOC_MMAP_THRESHOLD_`` etc. in the environment set at start-up): freed
+    By default glibc serves a block of 32 MiB or more by a fresh mapping and unmaps it when
+    freed, so a loop over large batches (a batched solve's per-condition blocks are 30-65 MB at
+    400 TLS trials) pays page faults for every block of every iteration.  This sets
+    ``mallopt``'s M_MMAP_THRESHOLD to 1 GiB, M_TRIM_THRESHOLD to 2 GiB - 1 and M_TOP_PAD to
+    256 MiB (what ``MALLOC_MMAP_THRESHOLD_`` etc. in the environment set at start-up): freed
     blocks stay in the heap and the next ones reuse them.  The price is memory: the process
     holds on to its peak heap instead of returning it.  A process setting, for a program where
     it starts; the library never calls it on its own."""
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return 0
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return 0
+    for threshold in _MMAP_THRESHOLDS:
+        if libc.mallopt(ctypes.c_int(_M_MMAP_THRESHOLD), ctypes.c_int(threshold)):
+            break
+    else:
+        return 0
     for param, value in _KEEP:
-        if not libc.mallopt(ctypes.c_int(param), ctypes.c_int(value)):
-            return False
-    return True
+        libc.mallopt(ctypes.c_int(param), ctypes.c_int(value))
+    return threshold

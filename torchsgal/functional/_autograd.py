@@ -29,9 +29,9 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
   than the projection above.
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev), and
-their backward is itself differentiable (higher derivatives).  Where nothing records them,
-SGal(3)'s forward and backward run as C kernels (native.py, if compiled) and large CPU batches
-of the other groups in blocks (_blocking).
+their backward is itself differentiable (higher derivatives).  The forward and backward of
+SGal(3), SE(3) and SE_2(3) run their registered operators (ops.py: C kernels on the CPU where
+compiled, native.py); large CPU batches of the other groups run in blocks (_blocking).
 """
 from __future__ import annotations
 
