@@ -135,10 +135,12 @@ def _arguments(name, op, batch, dtype):
     return tuple(a.clone().requires_grad_(dtype is torch.float64) for a in args)
 
 
-# (the shared registration code is opchecked over more batches for SGal(3): tests/test_ops.py)
-@pytest.mark.parametrize("kernels", [True, False], ids=["kernels_on", "kernels_off"])
-@pytest.mark.parametrize("dtype,batch", [(torch.float64, (2, 3)), (torch.float64, (0,)), (torch.float32, ())],
-                         ids=["f64", "f64-empty", "f32-scalar"])
+# The registration code is ops._define, shared with SGal(3), whose operators tests/test_ops.py
+# opchecks over every batch shape, dtype and kernel switch; here each operator once with
+# gradients (float64, the kernel on) and once without (float32, the closed form), and the
+# backward operators (closed forms only) with second derivatives for SE(3), without for SE_2(3).
+@pytest.mark.parametrize("dtype,batch,kernels", [(torch.float64, (2, 3), True), (torch.float32, (), False)],
+                         ids=["f64-kernels_on", "f32-kernels_off"])
 @pytest.mark.parametrize("op", ("exp", "log", "jl", "jl_inv"))
 @pytest.mark.parametrize("name", GROUPS)
 def test_opcheck(name, op, dtype, batch, kernels):
@@ -150,11 +152,10 @@ def test_opcheck(name, op, dtype, batch, kernels):
             torch.library.opcheck(_op(f"{name}_{op}"), args)
 
 
-@pytest.mark.parametrize("dtype,batch", [(torch.float64, (2, 3)), (torch.float32, ())], ids=["f64", "f32"])
 @pytest.mark.parametrize("op", ("exp_vjp", "log_vjp"))
-@pytest.mark.parametrize("name", GROUPS)
-def test_opcheck_of_the_backward_operators(name, op, dtype, batch):
-    # no kernel: the closed form whatever the switch (test_eager_calls_run_the_kernels...)
+@pytest.mark.parametrize("name,dtype,batch", [("se3", torch.float64, (2, 3)), ("se23", torch.float32, (2,))],
+                         ids=["se3-f64", "se23-f32"])
+def test_opcheck_of_the_backward_operators(name, dtype, batch, op):
     torch.library.opcheck(_op(f"{name}_{op}"), _arguments(name, op, batch, dtype))
 
 
