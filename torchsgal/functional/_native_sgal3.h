@@ -531,42 +531,20 @@ JACOBIAN_RANGE(sgal3, 10, 0, jl)
 JACOBIAN_RANGE(sgal3, 10, 1, jl_inv)
 #undef JACOBIAN_RANGE
 
-static void K(se23_exp_range)(void **a, int64_t lo, int64_t hi) {
-    const T *xi = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se23_exp_one)(xi + 9 * i, out + 25 * i);
-}
-
-static void K(se23_log_range)(void **a, int64_t lo, int64_t hi) {
-    const T *M = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se23_log_one)(M + 25 * i, out + 9 * i);
-}
-
-static void K(se3_exp_range)(void **a, int64_t lo, int64_t hi) {
-    const T *xi = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se3_exp_one)(xi + 6 * i, out + 16 * i);
-}
-
-static void K(se3_log_range)(void **a, int64_t lo, int64_t hi) {
-    const T *M = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se3_log_one)(M + 16 * i, out + 6 * i);
-}
-
-/* Batch loops over [lo, hi). */
-static void K(exp_range)(void **a, int64_t lo, int64_t hi) {
-    const T *xi = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(exp_one)(xi + 10 * i, out + 25 * i);
-}
-
-static void K(log_range)(void **a, int64_t lo, int64_t hi) {
-    const T *M = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(log_one)(M + 25 * i, out + 10 * i);
-}
+/* Batch loops over [lo, hi): the one-argument maps, one(in + in_size i, out + out_size i). */
+#define RANGE(name, one, in_size, out_size)                                               \
+    static void K(name##_range)(void **a, int64_t lo, int64_t hi) {                      \
+        const T *in = a[0];                                                               \
+        T *out = a[1];                                                                    \
+        for (int64_t i = lo; i < hi; ++i) K(one)(in + (in_size) * i, out + (out_size) * i); \
+    }
+RANGE(exp, exp_one, 10, 25)
+RANGE(log, log_one, 25, 10)
+RANGE(se23_exp, se23_exp_one, 9, 25)
+RANGE(se23_log, se23_log_one, 25, 9)
+RANGE(se3_exp, se3_exp_one, 6, 16)
+RANGE(se3_log, se3_log_one, 16, 6)
+#undef RANGE
 
 static void K(exp_vjp_range)(void **a, int64_t lo, int64_t hi) {
     const T *xi = a[0], *M = a[1], *G = a[2];
