@@ -109,6 +109,69 @@ def test_iterated_line_fit_with_isotropic_noise_is_the_orthogonal_regression():
     assert along.abs().max() < 1e-7
 
 
+@pytest.mark.parametrize("batched", [True, False])
+@pytest.mark.parametrize("covariance", ["shared diagonal", "per point full"])
+def test_corrections_update_is_that_of_the_linearised_problem(covariance, batched):
+    """A linearisation leaves the corrections' update of the linearised problem for a step d,
+    e'(d) = -Sigma Bm^T S^-1 (w + A d) (kelly-giamou (5.23)), as ``point + gain d``: against
+    the formula with the line's derivatives written out and a dense solve; and the cost at a
+    trial point, which evaluates the condition alone with S and Bm e of the linearisation point
+    held, against the same quantities written out."""
+    from torchsgal.estimation.graph.gauss_helmert import (_candidate, _iterated_blocks,
+                                                         _prepare_states, _take_fresh,
+                                                         _working_state)
+    from torchsgal.estimation.graph.linearize import Problem, evaluate_cost, linearize
+
+    gen = torch.Generator().manual_seed(7)
+    obs, truth = _line_data(B=3, E=6, seed=5)
+    if covariance == "shared diagonal":
+        cov = torch.diag(torch.tensor([0.05 ** 2, 0.08 ** 2], dtype=f64))
+    else:
+        R = 0.05 * torch.randn(3, 6, 2, 2, generator=gen, dtype=f64)
+        cov = R @ R.mT + 1e-3 * torch.eye(2, dtype=f64)
+    e0 = 0.03 * torch.randn(3, 6, 2, generator=gen, dtype=f64)
+    x0 = truth + 0.2 * torch.randn(3, 2, generator=gen, dtype=f64)
+    if not batched:  # one problem: its (E, ...) data
+        obs, e0, x0 = obs[0], e0[0], x0[:1]
+        cov = cov if cov.dim() == 2 else cov[0]
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x0[:, None, :] if batched else x0)
+    factor = fg.GaussHelmert(_line_condition, [("x", torch.zeros(6, dtype=torch.int64))], cov,
+                             data=[obs], dim=1, corrections=e0)
+    graph.add(factor)
+    _prepare_states(graph)
+    problem = Problem(graph)
+    x = problem.initial(graph)
+    linearize(problem, x)  # a new linearisation point: S, Bm e, point and gain
+    blocks = _iterated_blocks(problem)
+    rows = torch.arange(problem.B)
+    _take_fresh(blocks, rows)  # as a round starts
+    _working_state(blocks, rows)
+    d = 0.1 * torch.randn(problem.B, 2, generator=gen, dtype=f64)
+    # the line v + e_v - a (u + e_u) - b: A = [-(u + e_u), -1], Bm = [-a, 1] (rows of one)
+    a, b = (x0[:, None, 0], x0[:, None, 1]) if batched else (x0[0, 0], x0[0, 1])
+    u = obs[..., 0] + e0[..., 0]
+    c = obs[..., 1] + e0[..., 1] - a * u - b
+    Bm = torch.stack([-a.expand_as(u), torch.ones_like(u)], -1)[..., None, :]  # (..., 1, 2)
+    A = torch.stack([-u, -torch.ones_like(u)], -1)[..., None, :]  # (..., 1, 2)
+    w = c[..., None] - (Bm @ e0[..., None])[..., 0]
+    S = Bm @ cov @ Bm.mT
+    step = d[:, None, :, None] if batched else d[0, :, None]
+    expected = -(cov @ Bm.mT @ torch.linalg.solve(S, w[..., None] + A @ step))[..., 0]
+    point, got = _candidate(blocks[0], rows, d, batched)
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=0)
+    torch.testing.assert_close(point, -(cov @ Bm.mT @ torch.linalg.solve(S, w[..., None]))[..., 0],
+                               rtol=1e-12, atol=0)
+    # the cost at x + d with S and Bm e held: 1/2 sum (c(x + d, e) - Bm e)^2 / S
+    x_new = problem.retract(x, d)
+    xn = x_new[0].reshape(problem.B, 2)
+    an, bn = (xn[:, None, 0], xn[:, None, 1]) if batched else (xn[0, 0], xn[0, 1])
+    c_new = obs[..., 1] + e0[..., 1] - an * u - bn
+    r = (c_new[..., None] - (Bm @ e0[..., None])[..., 0]) / S[..., 0].sqrt()
+    cost = 0.5 * (r ** 2).flatten(-2).sum(-1)
+    torch.testing.assert_close(evaluate_cost(problem, x_new), cost.reshape(-1), rtol=1e-13, atol=0)
+
+
 @pytest.mark.parametrize("estimator", ["sgal3", "baseline"])
 def test_forward_mode_jacobians_equal_the_analytic_tls_jacobians(estimator):
     """The TLS conditions' analytic Jacobians (at non-zero corrections: exact derivatives)
@@ -127,6 +190,9 @@ def test_forward_mode_jacobians_equal_the_analytic_tls_jacobians(estimator):
         data = [M, dclock[..., None], n]
         terms, condition = tls_solvers._baseline_terms, tls_solvers._baseline_condition
     c, As, Bm = terms(*variables, *data, e)
+    # the condition alone (the cost at trial points) gives the very same values as the terms
+    assert torch.equal(condition(*variables, *data, e), c)
+    assert torch.equal(condition(*variables, *data, None), terms(*variables, *data, None)[0])
     c2, As2, Bm2 = _forward_jacobians(condition, variables, data, e)
     torch.testing.assert_close(c, c2, rtol=0, atol=1e-13)
     for A, A2 in zip(As, As2):

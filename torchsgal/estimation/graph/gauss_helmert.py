@@ -25,13 +25,15 @@ iterated form linearises at the corrected observations, which the factor carries
 (``corrections`` (B, E, m), with S's Cholesky factor and Bm e at the linearisation point):
 between updates the cost 1/2 |L^-1 (c(x, e) - Bm e)|^2 of x, with L and Bm e held, is an
 ordinary least-squares cost whose Jacobian L^-1 A is exact, so Levenberg-Marquardt's tests
-apply (the condition's Jacobians must then be its exact derivatives).
+apply (the condition's Jacobians must then be its exact derivatives).  A trial point's cost
+needs the condition alone (``condition``, not ``jacobians``).
 
 ``gauss_helmert(graph)`` runs the engine's Levenberg-Marquardt (or Gauss-Newton) rounds with
-the update of that state: after an accepted step shorter than ``update_below`` standard
-deviations the corrections become e' = -Sigma Bm^T S^-1 w at the new point (the classical
-Gauss-Helmert update; its fixed point is the constrained optimum) and the linearisation point
-moves there.  A problem converges when the engine's tests hold for the step and its last
+the update of that state: after an accepted step d shorter than ``update_below`` standard
+deviations the corrections become those of the linearised problem, e' = -Sigma Bm^T S^-1
+(w + A d) (the classical Gauss-Helmert update, (5.23); its fixed point is the constrained
+optimum), and the linearisation point moves to the new x and e'.  Each linearisation keeps
+this update as ``point + gain d``, so a round evaluates the conditions' Jacobians once.  A problem converges when the engine's tests hold for the step and its last
 update moved no correction by more than ``corrections_tol`` standard deviations.  For a graph
 without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton`` with
 ``damped=False``), with a step test added.
@@ -73,7 +75,8 @@ class GaussHelmert(Factor):
     condition      ``f(*variables, *data, e) -> c (..., k)``: the condition of ONE factor at
                    the corrected observations (correction ``e`` (..., m)), written on group
                    elements / tensors, broadcasting over leading batch axes (the engine passes
-                   (B, E)).
+                   (B, E)).  The iterated form evaluates it alone for the cost of trial
+                   points: with ``jacobians`` given, it must give the same c.
     variables      ``[(name, index), ...]`` as for ``Factor``.
     covariance     Sigma of the observations: (m, m) shared, (E, m, m) per condition or
                    (B, E, m, m) per problem and condition; symmetric positive definite
@@ -134,9 +137,11 @@ class GaussHelmert(Factor):
         # between the engine's calls: whether to re-linearise S and Bm e at the current point,
         # what that gave, and the corrections' update at the last point evaluated
         self._refresh = True
-        self._fresh: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
-        self._point: torch.Tensor | None = None  # the update at the linearisation point
-        self._candidate: torch.Tensor | None = None
+        self._fresh: tuple[torch.Tensor, ...] | None = None
+        # the corrections' update of the linearised problem at the linearisation point,
+        # e'(d) = point + gain d for a step d of the slots ((B, E, m), (B, E, m, Dk))
+        self._point: torch.Tensor | None = None
+        self._gain: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ evaluation
     def _split(self, args):
@@ -153,6 +158,17 @@ class GaussHelmert(Factor):
 
     def _linearise(self, args, want_jacobian: bool):
         variables, data, factor, state = self._split(args)
+        if state is not None and not self._refresh and not want_jacobian:
+            # the cost at a trial point, with the linearisation point's L and Bm e held:
+            # the condition alone
+            e, L, v = state
+            w = self.condition(*variables, *data, e) - v
+            batch = torch.broadcast_shapes(w.shape[:-1], L.shape[:-2])
+            r = torch.linalg.solve_triangular(L.expand(batch + L.shape[-2:]),
+                                              w.expand(batch + w.shape[-1:])[..., None],
+                                              upper=False)[..., 0]
+            return r, None
+        refresh = state is not None and self._refresh
         if state is None:  # paper-style: at the raw observations, S at the current x
             if self.condition_jacobians is not None:  # the condition may take a cheaper path
                 c, As, Bm = self.condition_jacobians(*variables, *data, None)
@@ -161,41 +177,36 @@ class GaussHelmert(Factor):
                                                *[_batch(d) for d in data])
                 c, As, Bm = _forward_jacobians(self.condition, variables, data,
                                                factor.new_zeros(shape + (self.m,)))
-            w, L, W = c, None, None
+            w, L = c, None
         else:
             e, L, v = state
             if self.condition_jacobians is not None:
                 c, As, Bm = self.condition_jacobians(*variables, *data, e)
             else:
                 c, As, Bm = _forward_jacobians(self.condition, variables, data, e)
-            if self._refresh:  # a new linearisation point: S and Bm e from here on
+            if refresh:  # a new linearisation point: S and Bm e from here on
                 v = (Bm @ e[..., None])[..., 0]
                 L = None
             w = c - v
         batch = torch.broadcast_shapes(c.shape[:-1], *([] if state is None else [state[0].shape[:-1]]))
-        c, w, Bm = c.expand(batch + c.shape[-1:]), w.expand(batch + w.shape[-1:]), \
-            Bm.expand(batch + Bm.shape[-2:])
+        w, Bm = w.expand(batch + w.shape[-1:]), Bm.expand(batch + Bm.shape[-2:])
         W = Bm * factor[..., None, :] if self.diagonal else Bm @ factor  # Bm Sigma^(1/2)
         if L is None:
             L, info = torch.linalg.cholesky_ex(W @ W.mT)
             # a non-positive-definite S (non-finite data) gives NaN, reported NON_FINITE
             L = torch.where((info == 0)[..., None, None], L, float("nan"))
         cols = [w[..., None]]
-        if want_jacobian:
+        if want_jacobian or refresh:
             cols += [A.expand(batch + A.shape[-2:]) for A in As]
         sol = torch.linalg.solve_triangular(L, torch.cat(cols, -1), upper=False)
         r = sol[..., 0]
-        if state is not None:  # e' = -Sigma Bm^T S^-1 w = -R W^T S^-1 w, all at this point
-            if self._refresh:
-                y = torch.linalg.solve_triangular(L.mT, r[..., None], upper=True)
-            else:  # S and w here (the held linearisation point is elsewhere)
-                w_here = c - (Bm @ state[0][..., None])[..., 0]
-                L_here, _ = torch.linalg.cholesky_ex(W @ W.mT)
-                y = torch.cholesky_solve(w_here[..., None], L_here)
-            u = (W.mT @ y)[..., 0]
-            self._candidate = -(u * factor if self.diagonal else (factor @ u[..., None])[..., 0])
-            if self._refresh:
-                self._fresh = (L, v.expand(batch + v.shape[-1:]), self._candidate)
+        if refresh:
+            # the corrections of the linearised problem for a step d of the slots (5.23):
+            # e'(d) = -Sigma Bm^T S^-1 (w + A d) = point + gain d, with
+            # -Sigma Bm^T S^-1 [w | A] = -R W^T L^-T L^-1 [w | A] (Sigma = R R^T)
+            Wr = W * -factor[..., None, :] if self.diagonal else -(W @ factor.mT)  # -Bm Sigma
+            G = Wr.mT @ torch.linalg.solve_triangular(L.mT, sol, upper=True)
+            self._fresh = (L, v.expand(batch + v.shape[-1:]), G[..., 0], G[..., 1:])
         if not want_jacobian:
             return r, None
         Js, start = [], 1
@@ -319,7 +330,9 @@ def _prepare_states(graph: FactorGraph) -> None:
         f.corrections = e
         f.linearisation = (leaf.new_zeros(lead + (f.size, k, k)), leaf.new_zeros(lead + (f.size, k)))
         f.data = (*f.user_data, f.data[len(f.user_data)], e, *f.linearisation)
-        f._refresh, f._fresh, f._candidate, f._point = True, None, None, torch.zeros_like(e)
+        Dk = sum(graph.dof(name) for name, _ in f.slots)
+        f._refresh, f._fresh, f._point = True, None, torch.zeros_like(e)
+        f._gain = leaf.new_zeros(shape + (Dk,))
 
 
 def _iterated_blocks(problem: Problem) -> list:
@@ -337,14 +350,26 @@ def _store(state: torch.Tensor, rows: torch.Tensor, new: torch.Tensor) -> None:
         state.index_copy_(0, rows, new)
 
 
+def _kept(state: torch.Tensor, rows: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+    """``state`` with the working set's rows from ``new``: ``new`` itself where it holds
+    every problem (no copy), else ``state`` written in place."""
+    if state.dim() != new.dim():
+        return new.reshape(state.shape)
+    if new.shape == state.shape:
+        return new.contiguous()
+    return state.index_copy_(0, rows, new)
+
+
 def _take_fresh(blocks: list, rows: torch.Tensor) -> None:
-    """The linearisation (L, Bm e) that the last refreshing evaluation computed, into the
-    factors' state; later evaluations use it until the next refresh."""
+    """The linearisation (L, Bm e, the corrections' update) that the last refreshing
+    evaluation computed, into the factors' state; later evaluations use it until the next
+    refresh."""
     for b in blocks:
         f = b.factor
         if f._fresh is not None:
-            for state, new in zip((*f.linearisation, f._point), f._fresh):
-                _store(state, rows, new)
+            L, v, f._point, f._gain = (_kept(state, rows, new) for state, new in
+                                       zip((*f.linearisation, f._point, f._gain), f._fresh))
+            f.linearisation = (L, v)
         f._refresh, f._fresh = False, None
 
 
@@ -355,6 +380,22 @@ def _working_state(blocks: list, rows: torch.Tensor) -> None:
         for j, state in enumerate((f.corrections, *f.linearisation)):
             everyone = state.dim() == 2 + (j == 1) or rows.numel() == state.shape[0]
             b.data[len(b.data) - 3 + j] = state if everyone else state.index_select(0, rows)
+
+
+def _candidate(block, rows: torch.Tensor, delta: torch.Tensor, batched: bool
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the corrections' update at the linearisation point, and after the step ``delta``
+    (B, D)) for the working set's rows: e' = point + gain d, d the step of the block's slots
+    (``Block.g_index``: each condition's, or every condition's one for a reduced block)."""
+    f = block.factor
+    point, gain = f._point, f._gain
+    assert point is not None and gain is not None  # set by the first linearisation
+    if batched and point.shape[0] != rows.numel():
+        point, gain = point.index_select(0, rows), gain.index_select(0, rows)
+    d = delta[:, block.g_index].unflatten(1, (-1, gain.shape[-1]))  # (B, E or 1, Dk)
+    if not batched:
+        d = d[0]
+    return point, point + (gain @ d[..., None])[..., 0]
 
 
 def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
@@ -371,12 +412,11 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
     if blocks:
         # the round ends by linearising every problem again (at its new corrections), so the
-        # trial point needs its cost (and the corrections' candidates) only, not its Jacobians
+        # trial point needs its cost only (the condition, with L and Bm e held)
         x_new = problem.retract(s.x, delta)
         new_cost = evaluate_cost(problem, x_new)
     else:
         x_new, lin_new, new_cost = _trial(problem, system, s, delta)
-    candidates = [b.factor._candidate for b in blocks]
     # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged: the
     # iteration ends without a step, as GTSAM's below ``relative_error_tol``
     success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps,
@@ -396,16 +436,13 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     in_place = done & ~success & ~gave_up
     moved = torch.zeros_like(lam)  # the largest change of a correction, in standard deviations
     if blocks:
-        for b, cand in zip(blocks, candidates):
+        for b in blocks:
             old = b.data[len(b.data) - 3]
-            point = b.factor._point
-            assert cand is not None and point is not None  # evaluated at the trial point
+            point, cand = _candidate(b, s.rows, delta, old.dim() == 3)
             if old.dim() == 3:
-                point = point if point.shape[0] == old.shape[0] else point.index_select(0, s.rows)
-                new = _where(update, cand.reshape(old.shape), _where(in_place, point, old))
+                new = _where(update, cand, _where(in_place, point, old))
             else:
-                new = torch.where(update[0], cand.reshape(old.shape),
-                                  torch.where(in_place[0], point, old))
+                new = torch.where(update[0], cand, torch.where(in_place[0], point, old))
             R = b.data[len(b.data) - 4]  # the covariance's square-root diagonal or Cholesky factor
             change = new - old  # before the store: ``old`` may be the state itself
             change = change / R if b.factor.diagonal else torch.linalg.solve_triangular(
