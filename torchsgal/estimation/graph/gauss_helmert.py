@@ -139,9 +139,8 @@ class GaussHelmert(Factor):
         self._refresh = True
         self._fresh: tuple[torch.Tensor, ...] | None = None
         # the corrections' update of the linearised problem at the linearisation point,
-        # e'(d) = point + gain d for a step d of the slots ((B, E, m), (B, E, m, Dk))
-        self._point: torch.Tensor | None = None
-        self._gain: torch.Tensor | None = None
+        # e'(d) = -U [1, d] for a step d of the slots (U (B, E, m, 1 + Dk))
+        self._update: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ evaluation
     def _split(self, args):
@@ -190,9 +189,10 @@ class GaussHelmert(Factor):
             w = c - v
         batch = torch.broadcast_shapes(c.shape[:-1], *([] if state is None else [state[0].shape[:-1]]))
         w, Bm = w.expand(batch + w.shape[-1:]), Bm.expand(batch + Bm.shape[-2:])
-        W = Bm * factor[..., None, :] if self.diagonal else Bm @ factor  # Bm Sigma^(1/2)
+        if L is None or refresh:  # Bm Sigma (Sigma = R R^T, R the diagonal root or Cholesky factor)
+            P = Bm * (factor * factor)[..., None, :] if self.diagonal else Bm @ (factor @ factor.mT)
         if L is None:
-            L, info = torch.linalg.cholesky_ex(W @ W.mT)
+            L, info = torch.linalg.cholesky_ex(P @ Bm.mT)  # S = Bm Sigma Bm^T
             # a non-positive-definite S (non-finite data) gives NaN, reported NON_FINITE
             L = torch.where((info == 0)[..., None, None], L, float("nan"))
         cols = [w[..., None]]
@@ -202,11 +202,9 @@ class GaussHelmert(Factor):
         r = sol[..., 0]
         if refresh:
             # the corrections of the linearised problem for a step d of the slots (5.23):
-            # e'(d) = -Sigma Bm^T S^-1 (w + A d) = point + gain d, with
-            # -Sigma Bm^T S^-1 [w | A] = -R W^T L^-T L^-1 [w | A] (Sigma = R R^T)
-            Wr = W * -factor[..., None, :] if self.diagonal else -(W @ factor.mT)  # -Bm Sigma
-            G = Wr.mT @ torch.linalg.solve_triangular(L.mT, sol, upper=True)
-            self._fresh = (L, v.expand(batch + v.shape[-1:]), G[..., 0], G[..., 1:])
+            # e'(d) = -Sigma Bm^T S^-1 (w + A d) = -U [1, d] with U = Sigma Bm^T S^-1 [w | A]
+            U = P.mT @ torch.linalg.solve_triangular(L.mT, sol, upper=True)
+            self._fresh = (L, v.expand(batch + v.shape[-1:]), U)
         if not want_jacobian:
             return r, None
         Js, start = [], 1
@@ -331,8 +329,8 @@ def _prepare_states(graph: FactorGraph) -> None:
         f.linearisation = (leaf.new_zeros(lead + (f.size, k, k)), leaf.new_zeros(lead + (f.size, k)))
         f.data = (*f.user_data, f.data[len(f.user_data)], e, *f.linearisation)
         Dk = sum(graph.dof(name) for name, _ in f.slots)
-        f._refresh, f._fresh, f._point = True, None, torch.zeros_like(e)
-        f._gain = leaf.new_zeros(shape + (Dk,))
+        f._refresh, f._fresh = True, None
+        f._update = leaf.new_zeros(lead + (f.size, f.m, 1 + Dk))
 
 
 def _iterated_blocks(problem: Problem) -> list:
@@ -367,8 +365,8 @@ def _take_fresh(blocks: list, rows: torch.Tensor) -> None:
     for b in blocks:
         f = b.factor
         if f._fresh is not None:
-            L, v, f._point, f._gain = (_kept(state, rows, new) for state, new in
-                                       zip((*f.linearisation, f._point, f._gain), f._fresh))
+            L, v, f._update = (_kept(state, rows, new) for state, new in
+                               zip((*f.linearisation, f._update), f._fresh))
             f.linearisation = (L, v)
         f._refresh, f._fresh = False, None
 
@@ -385,17 +383,17 @@ def _working_state(blocks: list, rows: torch.Tensor) -> None:
 def _candidate(block, rows: torch.Tensor, delta: torch.Tensor, batched: bool
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """(the corrections' update at the linearisation point, and after the step ``delta``
-    (B, D)) for the working set's rows: e' = point + gain d, d the step of the block's slots
+    (B, D)) for the working set's rows: e'(d) = -U [1, d], d the step of the block's slots
     (``Block.g_index``: each condition's, or every condition's one for a reduced block)."""
-    f = block.factor
-    point, gain = f._point, f._gain
-    assert point is not None and gain is not None  # set by the first linearisation
-    if batched and point.shape[0] != rows.numel():
-        point, gain = point.index_select(0, rows), gain.index_select(0, rows)
-    d = delta[:, block.g_index].unflatten(1, (-1, gain.shape[-1]))  # (B, E or 1, Dk)
+    U = block.factor._update
+    assert U is not None  # set by the first linearisation
+    if batched and U.shape[0] != rows.numel():
+        U = U.index_select(0, rows)
+    d = delta[:, block.g_index].unflatten(1, (-1, U.shape[-1] - 1))  # (B, E or 1, Dk)
     if not batched:
         d = d[0]
-    return point, point + (gain @ d[..., None])[..., 0]
+    point = -U[..., 0]
+    return point, point - (U[..., 1:] @ d[..., None])[..., 0]
 
 
 def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
