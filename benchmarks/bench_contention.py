@@ -38,7 +38,9 @@ Usage::
     python benchmarks/bench_contention.py --no-passive --sizes 1e5 --dtypes float64
 
 A second run of the same cases follows in a child process started with ``OMP_WAIT_POLICY=PASSIVE``
-(``--no-passive`` skips it); its table is written after the first, its ratios against its own (a).
+(``--no-passive`` skips it), and a third with ``TORCHSGAL_NATIVE_OPENMP=0`` (the C kernels on
+their own thread pool instead of torch's OpenMP threads; ``--no-pthreads`` skips it); their tables
+are written after the first, their ratios against their own (a).
 """
 from __future__ import annotations
 
@@ -334,17 +336,27 @@ def summary(res: dict) -> list[str]:
     return lines
 
 
-def passive_child(argv: list[str], args) -> dict | None:
-    """The same run in a child process started with ``OMP_WAIT_POLICY=PASSIVE`` (OpenMP threads
-    sleep at once at the end of a parallel operation instead of spinning first; the runtime reads
-    it when torch is loaded, so only a new process can have it): its results, or None."""
+def native_threads() -> str:
+    """How the C kernels split a batch over threads: torch's OpenMP threads or their own pool."""
+    lib = ts.functional.native._lib
+    return "none (kernels not built)" if lib is None else lib.parallel_backend()
+
+
+def child_run(argv: list[str], name: str, value: str) -> dict | None:
+    """The same run in a child process started with the environment variable ``name`` set to
+    ``value`` (read when torch or the kernels load, so only a new process can have it): its
+    results, or None.  ``OMP_WAIT_POLICY=PASSIVE``: OpenMP threads sleep at once at the end of a
+    parallel operation instead of spinning first; ``TORCHSGAL_NATIVE_OPENMP=0``: the C kernels
+    split batches over their own pool of threads (``_native_common.h``) instead of torch's
+    OpenMP threads."""
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "passive.json"
-        cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--no-passive", "--child-out", str(path)]
-        log("OMP_WAIT_POLICY=PASSIVE: the same cases in a child process ...")
-        done = subprocess.run(cmd, env={**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}, check=False)
+        path = Path(tmp) / "child.json"
+        cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--no-passive", "--no-pthreads",
+               "--child-out", str(path)]
+        log(f"{name}={value}: the same cases in a child process ...")
+        done = subprocess.run(cmd, env={**os.environ, name: value}, check=False)
         if done.returncode != 0 or not path.exists():
-            log(f"the OMP_WAIT_POLICY=PASSIVE run failed (exit status {done.returncode})")
+            log(f"the {name}={value} run failed (exit status {done.returncode})")
             return None
         return json.loads(path.read_text())
 
@@ -361,6 +373,8 @@ def main(argv=None) -> int:
     ap.add_argument("--min-sample", type=float, default=0.05, help="seconds of back-to-back calls per sample")
     ap.add_argument("--no-passive", action="store_true",
                     help="skip the second run, in a child process with OMP_WAIT_POLICY=PASSIVE")
+    ap.add_argument("--no-pthreads", action="store_true",
+                    help="skip the third run, in a child process with TORCHSGAL_NATIVE_OPENMP=0")
     ap.add_argument("--child-out", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--out-dir", type=Path, default=_HERE / "results")
     ap.add_argument("--quick", action="store_true", help="2 blocks of 1 short sample, no result files")
@@ -371,6 +385,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     env = environment("bench_contention.py", argv, native_kernels=ts.functional.native.enabled(),
                       omp_wait_policy=os.environ.get("OMP_WAIT_POLICY", "(not set)"),
+                      kernel_threads=native_threads(),
                       competitor="one multiprocessing process spinning in pure Python")
     log(f"torch {env['torch']} | {env['cpu_model']} | {env['cpu_count']} CPUs | default threads "
         f"{env['torch_num_threads']} | OMP_WAIT_POLICY {env['omp_wait_policy']} | load {env['loadavg_at_start']}")
@@ -380,7 +395,8 @@ def main(argv=None) -> int:
     if args.child_out is not None:
         args.child_out.write_text(json.dumps({"env": env, "results": res}) + "\n")
         return 0
-    passive = None if args.no_passive else passive_child(argv, args)
+    passive = None if args.no_passive else child_run(argv, "OMP_WAIT_POLICY", "PASSIVE")
+    pool = None if args.no_pthreads else child_run(argv, "TORCHSGAL_NATIVE_OPENMP", "0")
     env["wall_s"] = round(time.perf_counter() - t0, 1)
     env["loadavg_at_end"] = loadavg()
     log(f"wall {env['wall_s']} s")
@@ -395,7 +411,13 @@ def main(argv=None) -> int:
             md += ["## OMP_WAIT_POLICY=PASSIVE (the same cases, in a child process; ratios to its own (a))", ""]
             md += table(passive["results"]) + ["", "### summary", ""] + summary(passive["results"]) + [""]
             out["passive"] = passive
-        md += ["## ratios to (a), both runs", ""] + ratio_table(res, None if passive is None else passive["results"])
+        if pool is not None:
+            md += ["## The C kernels on their own thread pool (TORCHSGAL_NATIVE_OPENMP=0, the same cases, in "
+                   "a child process; ratios to its own (a))", ""]
+            md += table(pool["results"]) + ["", "### summary", ""] + summary(pool["results"]) + [""]
+            out["pthreads"] = pool
+        md += ["## ratios to (a), the first two runs", ""]
+        md += ratio_table(res, None if passive is None else passive["results"])
         md += [""]
         args.out_dir.mkdir(parents=True, exist_ok=True)
         (args.out_dir / "contention_cpu.json").write_text(json.dumps(out, indent=2) + "\n")

@@ -117,9 +117,13 @@ def test_corrections_update_is_that_of_the_linearised_problem(covariance, batche
     the formula with the line's derivatives written out and a dense solve; and the cost at a
     trial point, which evaluates the condition alone with S and Bm e of the linearisation point
     held, against the same quantities written out."""
-    from torchsgal.estimation.graph.gauss_helmert import (_candidate, _iterated_blocks,
-                                                         _prepare_states, _take_fresh,
-                                                         _working_state)
+    from torchsgal.estimation.graph.gauss_helmert import (
+        _candidate,
+        _iterated_blocks,
+        _prepare_states,
+        _take_fresh,
+        _working_state,
+    )
     from torchsgal.estimation.graph.linearize import Problem, evaluate_cost, linearize
 
     gen = torch.Generator().manual_seed(7)

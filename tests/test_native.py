@@ -207,6 +207,46 @@ def test_large_batches_run_on_torchs_openmp_threads_or_on_pthreads_alike():
     assert digest == here
 
 
+_POOL = """
+import hashlib, os, sys, threading, torch
+from torchsgal.functional import native
+assert native._lib.parallel_backend() == "pthreads"
+xi = torch.randn(40001, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+def digest(out):
+    return hashlib.sha256(out.numpy().tobytes()).hexdigest()
+torch.set_num_threads(1)
+alone = digest(torch.ops.torchsgal.sgal3_exp(xi))
+seen = set()
+for threads in (2, 4, 3, 2):  # the pool grows to 3 helpers; fewer take part where fewer are asked
+    torch.set_num_threads(threads)
+    seen |= {digest(torch.ops.torchsgal.sgal3_exp(xi)) for _ in range(20)}
+results = []
+def calls():  # calls from several threads at once: one job on the pool, the others alone
+    results.extend(digest(torch.ops.torchsgal.sgal3_exp(xi)) for _ in range(20))
+workers = [threading.Thread(target=calls) for _ in range(4)]
+for w in workers:
+    w.start()
+for w in workers:
+    w.join()
+seen |= set(results)
+pid = os.fork()  # the child starts helpers of its own
+if pid == 0:
+    os._exit(0 if digest(torch.ops.torchsgal.sgal3_exp(xi)) == alone else 1)
+_, status = os.waitpid(pid, 0)
+print(len(results), status, seen == {alone})
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX threads and fork")
+def test_the_pthreads_pool_gives_the_same_bits_from_many_threads_and_after_fork():
+    # TORCHSGAL_NATIVE_OPENMP=0: the helper threads' pool (_native_common.h), with 2 to 4
+    # threads, calls from four Python threads at once, and a forked child's own helpers
+    env = dict(os.environ, TORCHSGAL_NATIVE_OPENMP="0")
+    out = subprocess.run([sys.executable, "-c", _POOL], env=env, capture_output=True, text=True,
+                         check=True, timeout=300).stdout.split()
+    assert out == ["80", "0", "True"]
+
+
 class _Recorder:
     """Stands in for the compiled module and records which kernels were called."""
 

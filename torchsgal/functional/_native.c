@@ -8,7 +8,7 @@
  * overhead.  No torch headers: the Python side passes data pointers of contiguous CPU tensors
  * it allocated and checked.  The constants (thresholds, series) are set once from numerics.py,
  * which stays their only source.  Large batches are split over threads (torch's OpenMP threads
- * where its runtime is loaded, else pthreads: run_parallel, in _native_common.h).
+ * where its runtime is loaded, else a pool of POSIX threads: run_parallel, in _native_common.h).
  */
 #include "_native_common.h"  /* includes, constants, threads, argument reading */
 

@@ -15,6 +15,8 @@
 #ifndef _WIN32
 #include <dlfcn.h>
 #include <pthread.h>
+#include <sched.h>
+#include <time.h>
 #endif
 
 /* Loops worth vectorising wider than SSE2 get an AVX2 clone, picked at load time by the CPU
@@ -69,6 +71,138 @@ static void find_openmp(void) {
  * item is computed alone, so the split does not change any result. */
 #define CHUNKS_PER_THREAD 8
 
+#ifndef _WIN32
+/* The pthreads backend: a pool of helper threads that sleep between calls.  A call publishes its
+ * job (a new generation); the helpers that wake in time take chunks alongside the calling thread,
+ * which takes chunks until none is left and then waits only for the chunks already taken.  A
+ * helper that has not woken by then (its core taken by another process) finds the job over and
+ * takes nothing: a call never waits for a thread that never ran, so a lost core costs its share
+ * and no more.  A chunk is claimed by one compare-and-swap of a word holding the generation and
+ * the next index, so a late helper cannot take a chunk of a later job with an earlier job's
+ * arguments. */
+#define GEN_SHIFT 40
+#define INDEX_MASK ((((uint64_t)1) << GEN_SHIFT) - 1)
+
+typedef struct {
+    pthread_mutex_t busy;  /* held by the calling thread of the job in progress */
+    pthread_mutex_t lock;
+    pthread_cond_t wake;
+    uint64_t generation;   /* of the job published last (written under lock, atomic) */
+    range_fn fn;           /* the job (under lock) */
+    void **args;
+    int64_t n, chunk;
+    int helpers_wanted;    /* helpers that may take part in the job */
+    uint64_t word;         /* generation << GEN_SHIFT | next index (atomic) */
+    int64_t done;          /* items finished (atomic) */
+    int tickets;           /* helpers that joined the job (atomic) */
+    int helpers;           /* helper threads started */
+} pool_t;
+
+static pool_t pool = {PTHREAD_MUTEX_INITIALIZER, PTHREAD_MUTEX_INITIALIZER, PTHREAD_COND_INITIALIZER,
+                      0, NULL, NULL, 0, 0, 0, 0, 0, 0, 0};
+
+/* Takes chunks of generation ``gen`` until none is left; returns the items it finished. */
+static int64_t pool_take(uint64_t gen, range_fn fn, void **args, int64_t n, int64_t chunk) {
+    int64_t finished = 0;
+    uint64_t tag = (gen & (UINT64_MAX >> GEN_SHIFT)) << GEN_SHIFT;
+    for (;;) {
+        uint64_t w = __atomic_load_n(&pool.word, __ATOMIC_ACQUIRE);
+        if ((w & ~INDEX_MASK) != tag) return finished;  /* a later job: this one is over */
+        int64_t lo = (int64_t)(w & INDEX_MASK);
+        if (lo >= n) return finished;
+        int64_t hi = lo + chunk < n ? lo + chunk : n;
+        if (!__atomic_compare_exchange_n(&pool.word, &w, tag | (uint64_t)hi, 0, __ATOMIC_ACQ_REL,
+                                         __ATOMIC_ACQUIRE))
+            continue;
+        fn(args, lo, hi);
+        __atomic_add_fetch(&pool.done, hi - lo, __ATOMIC_RELEASE);
+        finished += hi - lo;
+    }
+}
+
+/* After a job a helper watches for the next one for SPIN_NS before it sleeps (back-to-back calls
+ * find it awake, as torch's OpenMP threads spin after a parallel region). */
+#define SPIN_NS 100000
+
+static int64_t now_ns(void) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (int64_t)t.tv_sec * 1000000000 + t.tv_nsec;
+}
+
+/* A helper started before the job of generation ``before`` + 1 is published takes part in it. */
+static void *pool_helper(void *before) {
+    uint64_t seen = (uint64_t)(uintptr_t)before;
+    for (;;) {
+        int64_t until = now_ns() + SPIN_NS;
+        for (int i = 1; __atomic_load_n(&pool.generation, __ATOMIC_ACQUIRE) == seen; ++i) {
+#if defined(__x86_64__) || defined(__i386__)
+            __builtin_ia32_pause();
+#endif
+            if (i % 256 == 0 && now_ns() > until) break;
+        }
+        pthread_mutex_lock(&pool.lock);
+        while (pool.generation == seen) pthread_cond_wait(&pool.wake, &pool.lock);
+        seen = pool.generation;
+        range_fn fn = pool.fn;
+        void **args = pool.args;
+        int64_t n = pool.n, chunk = pool.chunk;
+        int wanted = pool.helpers_wanted;
+        pthread_mutex_unlock(&pool.lock);
+        if (__atomic_fetch_add(&pool.tickets, 1, __ATOMIC_RELAXED) < wanted)
+            pool_take(seen, fn, args, n, chunk);
+    }
+    return NULL;
+}
+
+/* After fork() the child has no helper threads: it starts its own when it needs them. */
+static void pool_after_fork(void) {
+    pthread_mutex_init(&pool.busy, NULL);
+    pthread_mutex_init(&pool.lock, NULL);
+    pthread_cond_init(&pool.wake, NULL);
+    pool.helpers = 0;
+}
+
+/* The job on the pool; a call made while another thread's job runs runs on its own thread. */
+static void pool_run(range_fn fn, void **args, int64_t n, int64_t chunk, int threads) {
+    static int registered = 0;
+    if (pthread_mutex_trylock(&pool.busy) != 0) {
+        fn(args, 0, n);
+        return;
+    }
+    pthread_mutex_lock(&pool.lock);
+    if (!registered) {
+        pthread_atfork(NULL, NULL, pool_after_fork);
+        registered = 1;
+    }
+    while (pool.helpers < threads - 1) {  /* helpers are started once and kept */
+        pthread_t tid;
+        pthread_attr_t attr;
+        pthread_attr_init(&attr);
+        pthread_attr_setdetachstate(&attr, PTHREAD_CREATE_DETACHED);
+        int failed = pthread_create(&tid, &attr, pool_helper, (void *)(uintptr_t)pool.generation);
+        pthread_attr_destroy(&attr);
+        if (failed) break;
+        pool.helpers++;
+    }
+    uint64_t gen = pool.generation + 1;
+    pool.fn = fn;
+    pool.args = args;
+    pool.n = n;
+    pool.chunk = chunk;
+    pool.helpers_wanted = threads - 1;
+    __atomic_store_n(&pool.tickets, 0, __ATOMIC_RELAXED);
+    __atomic_store_n(&pool.done, 0, __ATOMIC_RELAXED);
+    __atomic_store_n(&pool.word, (gen & (UINT64_MAX >> GEN_SHIFT)) << GEN_SHIFT, __ATOMIC_RELEASE);
+    __atomic_store_n(&pool.generation, gen, __ATOMIC_RELEASE);  /* the job, for spinning helpers */
+    pthread_cond_broadcast(&pool.wake);
+    pthread_mutex_unlock(&pool.lock);
+    pool_take(gen, fn, args, n, chunk);  /* all of the chunks where no helper wakes in time */
+    while (__atomic_load_n(&pool.done, __ATOMIC_ACQUIRE) < n) sched_yield();  /* chunks in hand */
+    pthread_mutex_unlock(&pool.busy);
+}
+#endif
+
 typedef struct {
     range_fn fn;
     void **args;
@@ -77,7 +211,7 @@ typedef struct {
 } shared_job_t;
 
 #ifndef _WIN32
-static void take_chunks(void *p) {
+static void take_chunks_openmp(void *p) {
     shared_job_t *j = p;
     for (;;) {
         int64_t lo = __atomic_fetch_add(&j->next, j->chunk, __ATOMIC_RELAXED);
@@ -85,14 +219,9 @@ static void take_chunks(void *p) {
         j->fn(j->args, lo, lo + j->chunk < j->n ? lo + j->chunk : j->n);
     }
 }
-
-static void *run_chunks(void *p) {
-    take_chunks(p);
-    return NULL;
-}
 #endif
 
-/* fn over [0, n) split over up to ``threads`` threads (torch's OpenMP threads, else pthreads);
+/* fn over [0, n) split over up to ``threads`` threads (torch's OpenMP threads, else the pool);
  * ``cost`` is the work of one item in units of one SGal(3) exp (1 for the group kernels, the
  * samples of a window for the IMU). */
 static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int threads) {
@@ -101,18 +230,12 @@ static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int 
     if (threads > n) threads = (int)n;
     if (threads > 1 && n / threads * cost >= MIN_PER_THREAD) {
         int64_t chunk = (n + threads * CHUNKS_PER_THREAD - 1) / (threads * CHUNKS_PER_THREAD);
-        shared_job_t job = {fn, args, n, chunk, 0};
         if (gomp_parallel) {
-            gomp_parallel(take_chunks, &job, (unsigned)threads, 0);
+            shared_job_t job = {fn, args, n, chunk, 0};
+            gomp_parallel(take_chunks_openmp, &job, (unsigned)threads, 0);
             return;
         }
-        pthread_t tid[MAX_THREADS];
-        int started[MAX_THREADS];
-        for (int t = 1; t < threads; ++t)
-            started[t] = pthread_create(&tid[t], NULL, run_chunks, &job) == 0;
-        take_chunks(&job);  /* the calling thread takes chunks too (all of them if none started) */
-        for (int t = 1; t < threads; ++t)
-            if (started[t]) pthread_join(tid[t], NULL);
+        pool_run(fn, args, n, chunk, threads);
         return;
     }
 #endif

@@ -17,8 +17,11 @@ operators run it wherever a kernel does not apply (other devices, kernels off or
 Batches of at least 16,384 elements are handed out in chunks to ``torch.get_num_threads()``
 threads (a thread that loses its core to another process takes fewer; _native_common.h):
 torch's own OpenMP threads where torch runs on OpenMP (``parallel_backend()`` of the module
-says "openmp"; fresh threads would compete with their spin-wait after torch's last parallel
-operation), else POSIX threads (``TORCHSGAL_NATIVE_OPENMP=0`` in the environment forces them).
+says "openmp"; other threads would compete with their spin-wait after torch's last parallel
+operation), else the kernels' own pool of POSIX threads (``TORCHSGAL_NATIVE_OPENMP=0`` in the
+environment chooses it): helpers that sleep between calls, of which a call waits only for those
+that took a chunk (a helper whose core another process holds takes none; docs/guide/threads.md
+compares the two beside a busy process).
 
 On CUDA the operators can run their closed forms compiled by ``torch.compile`` (inductor's
 Triton kernels; ``functional/ops.py``): an opt-in, ``use_compiled_cuda(True)`` or

@@ -33,9 +33,10 @@ the update of that state: after an accepted step d shorter than ``update_below``
 deviations the corrections become those of the linearised problem, e' = -Sigma Bm^T S^-1
 (w + A d) (the classical Gauss-Helmert update, (5.23); its fixed point is the constrained
 optimum), and the linearisation point moves to the new x and e'.  Each linearisation keeps
-this update as ``point + gain d``, so a round evaluates the conditions' Jacobians once.  A problem converges when the engine's tests hold for the step and its last
-update moved no correction by more than ``corrections_tol`` standard deviations.  For a graph
-without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton`` with
+this update as a matrix U per condition, e'(d) = -U [1, d], so a round evaluates the
+conditions' Jacobians once.  A problem converges when the engine's tests hold for the step and
+its last update moved no correction by more than ``corrections_tol`` standard deviations.
+For a graph without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton`` with
 ``damped=False``), with a step test added.
 """
 from __future__ import annotations
