@@ -1,5 +1,5 @@
 """The engine's SE(3) and SE(2) logs and inverse Jacobians (``graph.log_terms``; on SE(3) the
-group's operators, C kernels on the CPU) against the closed forms as tensor code (``log_impl``,
+group's operators, C kernels on the CPU, or its one-pass form where autograd records) against the closed forms as tensor code (``log_impl``,
 ``jl_inv_impl``: component-wise Gamma blocks) and against the Bernoulli series
 J_l^-1 = sum_n B_n/n! ad^n of the definition, at small angles, around the series threshold, at
 generic angles and near pi, in float64 and float32; and their gradients (gradcheck, finite at
@@ -11,6 +11,7 @@ import torch
 
 from torchsgal.estimation.graph.log_terms import (
     SERIES_THRESHOLD,
+    _se3_one_pass,
     se2_log_jacobians,
     se3_inverse,
     se3_log_jacobians,
@@ -41,6 +42,9 @@ def test_matches_the_group_module_float64(angle):
     torch.testing.assert_close(r, ref, rtol=0, atol=1e-13)
     torch.testing.assert_close(Jr, se3.jl_inv_impl(-ref), rtol=0, atol=1e-12)
     torch.testing.assert_close(Jl, se3.jl_inv_impl(ref), rtol=0, atol=1e-12)
+    Jr1, Jl1 = _se3_one_pass(r)  # the form taken where autograd records
+    torch.testing.assert_close(Jr1, se3.jl_inv_impl(-ref), rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jl1, se3.jl_inv_impl(ref), rtol=0, atol=1e-12)
     r_only, none_r, none_l = se3_log_jacobians(E, False)
     assert none_r is None and none_l is None
     assert torch.equal(r_only, r)
@@ -78,9 +82,13 @@ def test_inverse_jacobians_equal_the_bernoulli_series(angle):
     torch.testing.assert_close(r, xi, rtol=0, atol=1e-13)
     torch.testing.assert_close(Jl, _bernoulli_series(xi), rtol=0, atol=1e-11)
     torch.testing.assert_close(Jr, _bernoulli_series(-xi), rtol=0, atol=1e-11)
+    Jr1, Jl1 = _se3_one_pass(r)
+    torch.testing.assert_close(Jl1, _bernoulli_series(xi), rtol=0, atol=1e-11)
+    torch.testing.assert_close(Jr1, _bernoulli_series(-xi), rtol=0, atol=1e-11)
 
 
 def test_gradients_are_correct_and_finite_at_the_identity():
+    """Under autograd: the one-pass form (``_se3_one_pass``), checked by finite differences."""
     xi = torch.cat([_xi(3, 0.3, seed=4), _xi(3, 1.5, seed=5)]).requires_grad_(True)
 
     def fn(v):
