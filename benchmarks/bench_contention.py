@@ -396,7 +396,9 @@ def main(argv=None) -> int:
         args.child_out.write_text(json.dumps({"env": env, "results": res}) + "\n")
         return 0
     passive = None if args.no_passive else child_run(argv, "OMP_WAIT_POLICY", "PASSIVE")
-    pool = None if args.no_pthreads else child_run(argv, "TORCHSGAL_NATIVE_OPENMP", "0")
+    # the pool's run only where the kernels otherwise run on torch's OpenMP threads
+    pool = (None if args.no_pthreads or native_threads() != "openmp"
+            else child_run(argv, "TORCHSGAL_NATIVE_OPENMP", "0"))
     env["wall_s"] = round(time.perf_counter() - t0, 1)
     env["loadavg_at_end"] = loadavg()
     log(f"wall {env['wall_s']} s")

@@ -80,7 +80,7 @@ static void find_openmp(void) {
  * and no more.  A chunk is claimed by one compare-and-swap of a word holding the generation and
  * the next index, so a late helper cannot take a chunk of a later job with an earlier job's
  * arguments. */
-#define GEN_SHIFT 40
+#define GEN_SHIFT 32  /* 2^32 jobs before a generation tag repeats, batches below 2^32 items */
 #define INDEX_MASK ((((uint64_t)1) << GEN_SHIFT) - 1)
 
 typedef struct {
@@ -227,6 +227,7 @@ static void take_chunks_openmp(void *p) {
 static void run_parallel(range_fn fn, void **args, int64_t n, int64_t cost, int threads) {
 #ifndef _WIN32
     if (threads > MAX_THREADS) threads = MAX_THREADS;
+    if (!gomp_parallel && n >= (int64_t)INDEX_MASK) threads = 1;  /* beyond the pool's index */
     if (threads > n) threads = (int)n;
     if (threads > 1 && n / threads * cost >= MIN_PER_THREAD) {
         int64_t chunk = (n + threads * CHUNKS_PER_THREAD - 1) / (threads * CHUNKS_PER_THREAD);

@@ -31,7 +31,7 @@ needs the condition alone (``condition``, not ``jacobians``).
 ``gauss_helmert(graph)`` runs the engine's Levenberg-Marquardt (or Gauss-Newton) rounds with
 the update of that state: after an accepted step d shorter than ``update_below`` standard
 deviations the corrections become those of the linearised problem, e' = -Sigma Bm^T S^-1
-(w + A d) (the classical Gauss-Helmert update, (5.23); its fixed point is the constrained
+(w + A d) (the classical Gauss-Helmert update, S as in (5.23); its fixed point is the constrained
 optimum), and the linearisation point moves to the new x and e'.  Each linearisation keeps
 this update as a matrix U per condition, e'(d) = -U [1, d], so a round evaluates the
 conditions' Jacobians once.  A problem converges when the engine's tests hold for the step and
@@ -136,7 +136,7 @@ class GaussHelmert(Factor):
         self.corrections: torch.Tensor | None = corrections
         self.linearisation: tuple[torch.Tensor, torch.Tensor] | None = None  # (L, Bm e), iterated
         # between the engine's calls: whether to re-linearise S and Bm e at the current point,
-        # what that gave, and the corrections' update at the last point evaluated
+        # and what that gave
         self._refresh = True
         self._fresh: tuple[torch.Tensor, ...] | None = None
         # the corrections' update of the linearised problem at the linearisation point,
@@ -202,7 +202,7 @@ class GaussHelmert(Factor):
         sol = torch.linalg.solve_triangular(L, torch.cat(cols, -1), upper=False)
         r = sol[..., 0]
         if refresh:
-            # the corrections of the linearised problem for a step d of the slots (5.23):
+            # the corrections of the linearised problem for a step d of the slots (S of (5.23)):
             # e'(d) = -Sigma Bm^T S^-1 (w + A d) = -U [1, d] with U = Sigma Bm^T S^-1 [w | A]
             U = P.mT @ torch.linalg.solve_triangular(L.mT, sol, upper=True)
             self._fresh = (L, v.expand(batch + v.shape[-1:]), U)
@@ -311,7 +311,8 @@ def _prepare_states(graph: FactorGraph) -> None:
     """The iterated conditions' state as data, owned by the factor: the corrections e
     (B, E, m), the Cholesky factor L (B, E, k, k) of S and Bm e (B, E, k) at the linearisation
     point ((E, ...) for an unbatched graph).  The engine's first linearisation computes L and
-    Bm e (``_refresh``); the rounds then update the state in place."""
+    Bm e (``_refresh``); the rounds then update the state (in place where only part of the
+    batch is still running, by replacing the tensors where all of it is)."""
     first = next(iter(graph.variables.values()), None)
     if first is None:
         return
