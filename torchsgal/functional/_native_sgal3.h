@@ -306,14 +306,13 @@ static void K(log_vjp_one)(const T *M, const T *xi, const T *g, T *O) {
  * exp: C = Gamma_0(phi), r = Gamma_1(phi) rho (se3.exp_impl). */
 static void K(se3_exp_one)(const T *x, T *o) {
     const T *rho = x, *phi = x + 3;
-    T c[7], pr[3], ppr[3], C[9];
+    T c[7], r[3], C[9];
     K(coefficients)(K(dot)(phi, phi), 4, c);
-    K(cross)(phi, rho, pr);
-    K(cross)(phi, pr, ppr);
     K(sym_skew)(c[0], c[1], c[2], phi, C);  /* Gamma_0(phi) */
+    K(poly)(phi, rho, (T)1, c[2], c[3], r);  /* Gamma_1(phi) rho */
     for (int i = 0; i < 3; ++i) {
         for (int j = 0; j < 3; ++j) o[4 * i + j] = C[3 * i + j];
-        o[4 * i + 3] = rho[i] + c[2] * pr[i] + c[3] * ppr[i];
+        o[4 * i + 3] = r[i];
     }
     o[12] = 0; o[13] = 0; o[14] = 0; o[15] = 1;
 }
@@ -331,17 +330,15 @@ static void K(se3_log_one)(const T *M, T *x) {
  * exp: C = Gamma_0(phi), v = Gamma_1(phi) nu, r = Gamma_1(phi) rho (se23.exp_impl). */
 static void K(se23_exp_one)(const T *x, T *o) {
     const T *rho = x, *nu = x + 3, *phi = x + 6;
-    T c[7], pn[3], ppn[3], pr[3], ppr[3], C[9];
+    T c[7], v[3], r[3], C[9];
     K(coefficients)(K(dot)(phi, phi), 4, c);
-    K(cross)(phi, nu, pn);
-    K(cross)(phi, pn, ppn);
-    K(cross)(phi, rho, pr);
-    K(cross)(phi, pr, ppr);
     K(sym_skew)(c[0], c[1], c[2], phi, C);  /* Gamma_0(phi) */
+    K(poly)(phi, nu, (T)1, c[2], c[3], v);  /* Gamma_1(phi) nu */
+    K(poly)(phi, rho, (T)1, c[2], c[3], r);  /* Gamma_1(phi) rho */
     for (int i = 0; i < 3; ++i) {
         for (int j = 0; j < 3; ++j) o[5 * i + j] = C[3 * i + j];
-        o[5 * i + 3] = nu[i] + c[2] * pn[i] + c[3] * ppn[i];
-        o[5 * i + 4] = rho[i] + c[2] * pr[i] + c[3] * ppr[i];
+        o[5 * i + 3] = v[i];
+        o[5 * i + 4] = r[i];
     }
     o[15] = 0; o[16] = 0; o[17] = 0; o[18] = 1; o[19] = 0;
     o[20] = 0; o[21] = 0; o[22] = 0; o[23] = 0; o[24] = 1;

@@ -340,11 +340,9 @@ def _iterated_blocks(problem: Problem) -> list:
 
 
 def _store(state: torch.Tensor, rows: torch.Tensor, new: torch.Tensor) -> None:
-    """Writes the working set's rows ``rows`` of a state tensor (``new`` may also hold every
-    problem, as the engine's first linearisation does; unbatched: the one problem)."""
-    if state.dim() != new.dim():
-        state.copy_(new.reshape(state.shape))
-    elif new.shape[0] == state.shape[0]:
+    """Writes the working set's rows ``rows`` of a state tensor in place (``new`` holds every
+    problem where the whole batch runs, and for an unbatched graph)."""
+    if new.shape == state.shape:
         state.copy_(new)
     else:
         state.index_copy_(0, rows, new)
