@@ -1,7 +1,9 @@
 """Build of the optional C kernels (torchsgal/functional/_native.c: the SGal(3) kernels;
-torchsgal/imu/_native.c: IMU preintegration); everything else is in pyproject.toml.  Both
+torchsgal/estimation/_native.c: batched Cholesky solves of small systems;
+torchsgal/imu/_native.c: IMU preintegration); everything else is in pyproject.toml.  The
 extensions are optional: where they do not compile, the package installs without them and runs
-the same closed forms as tensor operations (torchsgal.functional.ops, torchsgal.imu._kernels)."""
+the same operations as tensor code (torchsgal.functional.ops, torchsgal.estimation.dense_solve,
+torchsgal.imu._kernels)."""
 import sys
 
 from setuptools import Extension, setup
@@ -15,6 +17,14 @@ setup(
             "torchsgal.functional._native",
             sources=["torchsgal/functional/_native.c"],
             depends=common,
+            extra_compile_args=args,
+            libraries=libraries,
+            optional=True,
+        ),
+        Extension(
+            "torchsgal.estimation._native",
+            sources=["torchsgal/estimation/_native.c"],
+            depends=["torchsgal/functional/_native_common.h", "torchsgal/estimation/_native_cholesky.h"],
             extra_compile_args=args,
             libraries=libraries,
             optional=True,

@@ -132,8 +132,12 @@ def _graph(fused: bool, gen):
                             [_elements(ts.SO3, (B, 2), gen)], dim=3, jacobians=prior))
         graph.add(fg.Factor(F._between_residual, [("y", iy), ("y", jy)], [Zy], dim=3,
                             jacobians=between), loss=fg.Cauchy(0.3))
+        def between_side_by_side(*a):  # the one-tensor form of ``jacobians``
+            r, (Ji, Jj) = F._between_jacobians(*a)
+            return r, torch.cat([Ji, Jj], dim=-1)
+
         graph.add(fg.Factor(F._between_residual, [("x", iz), ("z", jz)], [Zxz], dim=6,
-                            jacobians=between))
+                            jacobians=between_side_by_side))
     return graph
 
 

@@ -113,7 +113,7 @@ def test_iterated_line_fit_with_isotropic_noise_is_the_orthogonal_regression():
 @pytest.mark.parametrize("covariance", ["shared diagonal", "per point full"])
 def test_corrections_update_is_that_of_the_linearised_problem(covariance, batched):
     """A linearisation leaves the corrections' update of the linearised problem for a step d,
-    e'(d) = -Sigma Bm^T S^-1 (w + A d) (S as in kelly-giamou (5.23)), as -U [1, d]: against
+    e'(d) = -Sigma Bm^T S^-1 (w + A d) (S as in kelly-giamou (5.23)), from Bm and S^-1 [w | A]: against
     the formula with the line's derivatives written out and a dense solve; and the cost at a
     trial point, which evaluates the condition alone with S and Bm e of the linearisation point
     held, against the same quantities written out."""

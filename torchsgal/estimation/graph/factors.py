@@ -76,7 +76,9 @@ class Factor:
     loss           a ``RobustLoss`` or None (plain least squares).
     jacobians      optional ``g(*variables, *data) -> (r, [J_1, ...])``, J_k (..., dim, dof_k)
                    the derivative of r with respect to the right perturbation of variable k
-                   (additive for Euclidean variables); default: forward-mode autodiff.
+                   (additive for Euclidean variables), or ``(r, J)`` with the J_k side by side
+                   in one tensor (..., dim, dof_1 + dof_2 + ...); default: forward-mode
+                   autodiff.
     """
 
     def __init__(self, residual: Callable, variables: Sequence[tuple[str, object]],

@@ -33,8 +33,8 @@ the update of that state: after an accepted step d shorter than ``update_below``
 deviations the corrections become those of the linearised problem, e' = -Sigma Bm^T S^-1
 (w + A d) (the classical Gauss-Helmert update, S as in (5.23); its fixed point is the constrained
 optimum), and the linearisation point moves to the new x and e'.  Each linearisation keeps
-this update as a matrix U per condition, e'(d) = -U [1, d], so a round evaluates the
-conditions' Jacobians once.  A problem converges when the engine's tests hold for the step and
+what this update needs per condition, Bm and F = S^-1 [w | A] (e'(d) = -Sigma Bm^T F [1, d]),
+so a round evaluates the conditions' Jacobians once.  A problem converges when the engine's tests hold for the step and
 its last update moved no correction by more than ``corrections_tol`` standard deviations.
 For a graph without iterated conditions it is ``levenberg_marquardt`` (``gauss_newton`` with
 ``damped=False``), with a step test added.
@@ -47,6 +47,7 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
+from ..dense_solve import cholesky_solve, triangular_solve
 from ..gauss_helmert import check_covariance
 from ..solver import SolverStatus
 from .factors import Data, Factor
@@ -140,8 +141,9 @@ class GaussHelmert(Factor):
         self._refresh = True
         self._fresh: tuple[torch.Tensor, ...] | None = None
         # the corrections' update of the linearised problem at the linearisation point,
-        # e'(d) = -U [1, d] for a step d of the slots (U (B, E, m, 1 + Dk))
-        self._update: torch.Tensor | None = None
+        # e'(d) = -Sigma Bm^T F [1, d] for a step d of the slots: (Bm (B, E, k, m),
+        # F = S^-1 [w | A] (B, E, k, 1 + Dk))
+        self._update: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------ evaluation
     def _split(self, args):
@@ -164,10 +166,7 @@ class GaussHelmert(Factor):
             e, L, v = state
             w = self.condition(*variables, *data, e) - v
             batch = torch.broadcast_shapes(w.shape[:-1], L.shape[:-2])
-            r = torch.linalg.solve_triangular(L.expand(batch + L.shape[-2:]),
-                                              w.expand(batch + w.shape[-1:])[..., None],
-                                              upper=False)[..., 0]
-            return r, None
+            return triangular_solve(L, w[..., None])[..., 0], None
         refresh = state is not None and self._refresh
         if state is None:  # paper-style: at the raw observations, S at the current x
             if self.condition_jacobians is not None:  # the condition may take a cheaper path
@@ -192,27 +191,25 @@ class GaussHelmert(Factor):
         w, Bm = w.expand(batch + w.shape[-1:]), Bm.expand(batch + Bm.shape[-2:])
         if L is None or refresh:  # Bm Sigma (Sigma = R R^T, R the diagonal root or Cholesky factor)
             P = Bm * (factor * factor)[..., None, :] if self.diagonal else Bm @ (factor @ factor.mT)
-        if L is None:
-            L, info = torch.linalg.cholesky_ex(P @ Bm.mT)  # S = Bm Sigma Bm^T
-            # a non-positive-definite S (non-finite data) gives NaN, reported NON_FINITE
-            L = torch.where((info == 0)[..., None, None], L, float("nan"))
         cols = [w[..., None]]
         if want_jacobian or refresh:
             cols += [A.expand(batch + A.shape[-2:]) for A in As]
-        sol = torch.linalg.solve_triangular(L, torch.cat(cols, -1), upper=False)
+        rhs = torch.cat(cols, -1)
+        if L is None:
+            # S = Bm Sigma Bm^T = L L^T; sol = L^-1 [w | A], full = S^-1 [w | A] at a refresh;
+            # a non-positive-definite S (non-finite data) gives NaN, reported NON_FINITE
+            L, sol, full, _ = cholesky_solve(P @ Bm.mT, rhs, back=refresh)
+        else:
+            sol, full = triangular_solve(L, rhs), None
         r = sol[..., 0]
         if refresh:
             # the corrections of the linearised problem for a step d of the slots (S of (5.23)):
-            # e'(d) = -Sigma Bm^T S^-1 (w + A d) = -U [1, d] with U = Sigma Bm^T S^-1 [w | A]
-            U = P.mT @ torch.linalg.solve_triangular(L.mT, sol, upper=True)
-            self._fresh = (L, v.expand(batch + v.shape[-1:]), U)
+            # e'(d) = -Sigma Bm^T S^-1 (w + A d) = -Sigma Bm^T F [1, d] with F = S^-1 [w | A]
+            assert full is not None  # back substitution at a refresh
+            self._fresh = (L, v.expand(batch + v.shape[-1:]), Bm, full)
         if not want_jacobian:
             return r, None
-        Js, start = [], 1
-        for A in As:
-            Js.append(sol[..., start:start + A.shape[-1]])
-            start += A.shape[-1]
-        return r, Js
+        return r, sol[..., 1:]  # the slots' Jacobians side by side
 
     def _residual(self, *args):
         return self._linearise(args, False)[0]
@@ -332,7 +329,7 @@ def _prepare_states(graph: FactorGraph) -> None:
         f.data = (*f.user_data, f.data[len(f.user_data)], e, *f.linearisation)
         Dk = sum(graph.dof(name) for name, _ in f.slots)
         f._refresh, f._fresh = True, None
-        f._update = leaf.new_zeros(lead + (f.size, f.m, 1 + Dk))
+        f._update = (leaf.new_zeros(lead + (f.size, k, f.m)), leaf.new_zeros(lead + (f.size, k, 1 + Dk)))
 
 
 def _iterated_blocks(problem: Problem) -> list:
@@ -365,9 +362,10 @@ def _take_fresh(blocks: list, rows: torch.Tensor) -> None:
     for b in blocks:
         f = b.factor
         if f._fresh is not None:
-            L, v, f._update = (_kept(state, rows, new) for state, new in
-                               zip((*f.linearisation, f._update), f._fresh))
-            f.linearisation = (L, v)
+            assert f._update is not None  # _prepare_states
+            L, v, Bm, F = (_kept(state, rows, new) for state, new in
+                           zip((*f.linearisation, *f._update), f._fresh))
+            f.linearisation, f._update = (L, v), (Bm, F)
         f._refresh, f._fresh = False, None
 
 
@@ -383,17 +381,24 @@ def _working_state(blocks: list, rows: torch.Tensor) -> None:
 def _candidate(block, rows: torch.Tensor, delta: torch.Tensor, batched: bool
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """(the corrections' update at the linearisation point, and after the step ``delta``
-    (B, D)) for the working set's rows: e'(d) = -U [1, d], d the step of the block's slots
-    (``Block.g_index``: each condition's, or every condition's one for a reduced block)."""
-    U = block.factor._update
-    assert U is not None  # set by the first linearisation
-    if batched and U.shape[0] != rows.numel():
-        U = U.index_select(0, rows)
-    d = delta[:, block.g_index].unflatten(1, (-1, U.shape[-1] - 1))  # (B, E or 1, Dk)
+    (B, D)) for the working set's rows: e'(d) = -Sigma Bm^T F [1, d], d the step of the block's
+    slots (``Block.g_index``: each condition's, or every condition's one for a reduced block),
+    as two matrix-vector products per condition."""
+    f = block.factor
+    assert f._update is not None  # set by the first linearisation
+    Bm, F = f._update
+    if batched and F.shape[0] != rows.numel():
+        Bm, F = Bm.index_select(0, rows), F.index_select(0, rows)
+    d = delta[:, block.g_index].unflatten(1, (-1, F.shape[-1] - 1))  # (B, E or 1, Dk)
     if not batched:
         d = d[0]
-    point = -U[..., 0]
-    return point, point - (U[..., 1:] @ d[..., None])[..., 0]
+    R = block.data[len(block.data) - 4]  # the covariance's square-root diagonal or Cholesky factor
+
+    # Sigma Bm^T y for y = F [1, 0] and F [0, d] side by side (Sigma = R R^T)
+    z = Bm.mT @ torch.stack([F[..., 0], (F[..., 1:] @ d[..., None])[..., 0]], -1)
+    z = z * (R * R)[..., None] if f.diagonal else R @ (R.mT @ z)
+    point = -z[..., 0]
+    return point, point - z[..., 1]
 
 
 def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: dict,

@@ -1,10 +1,11 @@
 """The damped normal equations (H + lambda D) delta = -g of a linearised graph.
 
 ``DenseSystem``: a batch of small problems; H (B, D, D) assembled from the factors' blocks
-(``linearize.dense``) and factored by a batched ``torch.linalg.cholesky_ex`` (no host sync per
-problem).  ``SparseSystem``: one large problem; the lower triangle of H's block pattern is
-analysed once by ``estimation.sparse.SparseCholesky`` (fill-reducing ordering) and refactored
-numerically at each step.
+(``linearize.dense``) and solved by a batched Cholesky (no host sync per problem): the kernel of
+``estimation.dense_solve`` where it runs (small systems), LAPACK's ``cholesky_ex`` otherwise.
+``SparseSystem``: one large problem; the lower triangle of H's block pattern is analysed once by
+``estimation.sparse.SparseCholesky`` (fill-reducing ordering) and refactored numerically at each
+step.
 
 Both answer the same questions: ``solve(values, g, lam, diagonal)`` -> (delta, solved),
 ``quadratic(values, delta)`` = delta^T H delta, ``singular(values)`` and ``marginal_blocks``
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import torch
 
+from ..dense_solve import cholesky_solve, uses_kernel
 from .linearize import Problem, dense
 
 RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
@@ -52,9 +54,9 @@ class DenseSystem:
         return DenseSystem(problem, self._work)
 
     def _workspace(self, B: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(H (B, D * D), L (B, D, D), info (B,) int32): the damped matrix and its Cholesky
-        factor, allocated once per solve and reused by every step (fresh (B, D, D) temporaries
-        cost more than their arithmetic at these sizes)."""
+        """(H (B, D * D), L (B, D, D), info (B,) int32): the damped matrix and, for LAPACK, its
+        Cholesky factor, allocated once per solve and reused by every step (fresh (B, D, D)
+        temporaries cost more than their arithmetic at these sizes)."""
         D = self.problem.D
         if self._work is None or self._work[0].shape[0] < B:
             like = self.eye
@@ -73,10 +75,14 @@ class DenseSystem:
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
         damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
         diag.add_(damp)
-        torch.linalg.cholesky_ex(Hd, out=(L, info))
-        # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
-        y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
-        delta = torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
+        if uses_kernel(Hd):  # small systems: the batched kernel, one pass per system
+            delta, info = cholesky_solve(Hd, -g.unsqueeze(-1), back=True)[2:]
+        else:  # LAPACK's blocked factorisation, in the work buffers
+            torch.linalg.cholesky_ex(Hd, out=(L, info))
+            # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
+            y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
+            delta = torch.linalg.solve_triangular(L.mT, y, upper=True)
+        delta = delta.squeeze(-1)  # type: ignore[union-attr]
         solved = (info == 0) & torch.isfinite(delta).all(dim=-1)
         delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
         # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta

@@ -278,6 +278,8 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
         return f.residual(*elements, *block.data), None
     if f.jacobians is not None:
         r, Js = f.jacobians(*elements, *block.data)
+        if isinstance(Js, torch.Tensor):  # the slots' Jacobians side by side already
+            return r, Js.expand(r.shape + Js.shape[-1:])
         if len(Js) == 1:
             return r, Js[0]
         return r, torch.cat([J.expand(r.shape + J.shape[-1:]) for J in Js], dim=-1)

@@ -1,0 +1,71 @@
+/* torchsgal.estimation._native: batched Cholesky factorisations and triangular solves of small
+ * dense systems (_native_cholesky.h), the CPU kernels of the torch operators
+ * torchsgal::cholesky_solve and torchsgal::triangular_solve (estimation/_cholesky.py).
+ *
+ * No torch headers: the Python side passes data pointers of contiguous CPU tensors it allocated
+ * and checked.  The splitting of a batch over threads is the core kernels' (_native_common.h).
+ */
+#include "../functional/_native_common.h"
+
+#define T double
+#define SFX f64
+#define SQRT sqrt
+#include "_native_cholesky.h"
+#define T float
+#define SFX f32
+#define SQRT sqrtf
+#include "_native_cholesky.h"
+
+/* work of one m x m system with k right-hand sides, in units of one SGal(3) exp (~400 flops) */
+static int64_t solve_cost(int64_t m, int64_t k, int back) {
+    int64_t flops = m * m * m / 3 + (back ? 2 : 1) * m * m * k;
+    return flops / 400 + 1;
+}
+
+/* cholesky_solve(A, R, L, X, Y, info, n, m, k, lanes, threads, is_double): Y 0 (a null pointer)
+ * for the factor and the forward solve only; lanes 1 runs systems of up to LANE_MAX_M unknowns
+ * LANES at a time */
+static PyObject *py_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[6];
+    int64_t ints[6]; /* n, m, k, lanes, threads, is_double */
+    if (read_call(a, nargs, 6, ptr, 6, ints, "cholesky_solve") < 0) return NULL;
+    void *args[9] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], &ints[1], &ints[2], &ints[3]};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[5] ? cholesky_solve_range_f64 : cholesky_solve_range_f32, args, ints[0],
+                 solve_cost(ints[1], ints[2], ptr[4] != NULL), (int)ints[4]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+/* triangular_solve(L, R, X, n, m, k, transpose, lanes, threads, is_double) */
+static PyObject *py_triangular_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[3];
+    int64_t ints[7]; /* n, m, k, transpose, lanes, threads, is_double */
+    if (read_call(a, nargs, 3, ptr, 7, ints, "triangular_solve") < 0) return NULL;
+    void *args[7] = {ptr[0], ptr[1], ptr[2], &ints[1], &ints[2], &ints[3], &ints[4]};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[6] ? triangular_solve_range_f64 : triangular_solve_range_f32, args, ints[0],
+                 ints[1] * ints[1] * ints[2] / 400 + 1, (int)ints[5]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
+    {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
+     "batched Cholesky and solves (A, R, L, X, Y, info, n, m, k, lanes, threads, is_double)"},
+    {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,
+     "batched triangular solves (L, R, X, n, m, k, transpose, lanes, threads, is_double)"},
+    {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native",
+                                    "batched small Cholesky solves, CPU kernels", -1, methods};
+
+PyMODINIT_FUNC PyInit__native(void) {
+    find_openmp();
+    return PyModule_Create(&module);
+}

@@ -1,0 +1,250 @@
+/* Batched Cholesky factorisation and triangular solves of small dense systems, one matrix at a
+ * time (included by estimation/_native.c once per element type T with suffix SFX).
+ *
+ * Row-major storage throughout.  A (m, m) symmetric positive definite (its lower triangle is
+ * read), L its lower Cholesky factor (A = L L^T, the strict upper triangle written as zeros),
+ * R (m, k) right-hand sides.  The factor is the right-looking (outer-product) form and the
+ * solves forward and back substitution, all by contiguous row operations.  A pivot that is not positive (or not finite) stops the factorisation
+ * of that matrix: info = its row + 1 (LAPACK's potrf convention) and the matrix's outputs are
+ * NaN; info = 0 otherwise.
+ */
+#define CAT_(a, b) a##_##b
+#define CAT(a, b) CAT_(a, b)
+
+/* L of A; 0, or the row + 1 of the first pivot that is not positive.  Right-looking, on the
+ * upper factor U = L^T in L's memory: after each pivot the rows below it are updated by
+ * contiguous row operations (they vectorise), then U is transposed into L. */
+static inline int32_t CAT(cholesky_one, SFX)(const T *A, T *L, int64_t m) {
+    for (int64_t i = 0; i < m; ++i)  /* the lower triangle of A, transposed: U's start */
+        for (int64_t j = 0; j <= i; ++j) L[j * m + i] = A[i * m + j];
+    for (int64_t k = 0; k < m; ++k) {
+        T *Uk = L + k * m;
+        const T d = Uk[k];
+        if (!(d > 0) || !(d < INFINITY)) return (int32_t)(k + 1);
+        Uk[k] = SQRT(d);
+        const T r = 1 / Uk[k];
+        for (int64_t j = k + 1; j < m; ++j) Uk[j] *= r;
+        for (int64_t i = k + 1; i < m; ++i) {
+            T *Ui = L + i * m;
+            const T u = Uk[i];
+            for (int64_t j = i; j < m; ++j) Ui[j] -= u * Uk[j];
+        }
+    }
+    for (int64_t i = 0; i < m; ++i)
+        for (int64_t j = i + 1; j < m; ++j) {
+            L[j * m + i] = L[i * m + j];
+            L[i * m + j] = 0;
+        }
+    return 0;
+}
+
+/* X = L^-1 R (forward substitution); X may be R */
+static inline void CAT(forward_one, SFX)(const T *L, const T *R, T *X, int64_t m, int64_t k) {
+    for (int64_t i = 0; i < m; ++i) {
+        T *xi = X + i * k;
+        if (X != R) memcpy(xi, R + i * k, (size_t)k * sizeof(T));
+        for (int64_t j = 0; j < i; ++j) {
+            const T l = L[i * m + j], *xj = X + j * k;
+            for (int64_t c = 0; c < k; ++c) xi[c] -= l * xj[c];
+        }
+        const T r = 1 / L[i * m + i];
+        for (int64_t c = 0; c < k; ++c) xi[c] *= r;
+    }
+}
+
+/* Y = L^-T X (back substitution); Y may be X */
+static inline void CAT(back_one, SFX)(const T *L, const T *X, T *Y, int64_t m, int64_t k) {
+    for (int64_t i = m - 1; i >= 0; --i) {
+        T *yi = Y + i * k;
+        if (Y != X) memcpy(yi, X + i * k, (size_t)k * sizeof(T));
+        for (int64_t j = i + 1; j < m; ++j) {
+            const T l = L[j * m + i], *yj = Y + j * k;
+            for (int64_t c = 0; c < k; ++c) yi[c] -= l * yj[c];
+        }
+        const T r = 1 / L[i * m + i];
+        for (int64_t c = 0; c < k; ++c) yi[c] *= r;
+    }
+}
+
+static void CAT(fill_nan, SFX)(T *p, int64_t n) {
+    for (int64_t i = 0; i < n; ++i) p[i] = (T)NAN;
+}
+
+/* Systems of at most LANE_MAX_M unknowns go LANES at a time, lane w of every array holding
+ * system w: each step of the factor and the solves is one operation on LANES values (vector
+ * instructions, and LANES independent chains where one system's steps wait on each other).
+ * Every lane runs the same operations, so a system's result does not depend on its group. */
+#ifndef LANES
+#define LANES 8
+#define LANE_MAX_M 64
+#define LANE_COLS 16 /* right-hand-side columns per pass */
+#endif
+
+/* rows m of the lanes' factors l (lower triangle used), pivots' reciprocals r; bad[w] = the row
+ * + 1 of lane w's first pivot that is not positive (0 if none; the lane goes on with pivot 1) */
+static inline void CAT(lanes_factor, SFX)(T (*restrict l)[LANES], T (*restrict r)[LANES], int32_t *restrict bad,
+                                         int64_t m) {
+    for (int w = 0; w < LANES; ++w) bad[w] = 0;
+    for (int64_t j = 0; j < m; ++j) {
+        T d[LANES];
+        for (int w = 0; w < LANES; ++w) d[w] = l[j * m + j][w];
+        for (int64_t p = 0; p < j; ++p)
+            for (int w = 0; w < LANES; ++w) d[w] -= l[j * m + p][w] * l[j * m + p][w];
+        for (int w = 0; w < LANES; ++w) {
+            const int ok = d[w] > 0 && d[w] < INFINITY;
+            if (!ok && !bad[w]) bad[w] = (int32_t)(j + 1);
+            d[w] = ok ? d[w] : 1;
+        }
+        for (int w = 0; w < LANES; ++w) {
+            l[j * m + j][w] = SQRT(d[w]);
+            r[j][w] = 1 / l[j * m + j][w];
+        }
+        for (int64_t i = j + 1; i < m; ++i) {
+            T t[LANES];
+            for (int w = 0; w < LANES; ++w) t[w] = l[i * m + j][w];
+            for (int64_t p = 0; p < j; ++p)
+                for (int w = 0; w < LANES; ++w) t[w] -= l[i * m + p][w] * l[j * m + p][w];
+            for (int w = 0; w < LANES; ++w) l[i * m + j][w] = t[w] * r[j][w];
+        }
+    }
+}
+
+/* x (m rows of kc columns) = l^-1 x, or l^-T x with ``back`` */
+static inline void CAT(lanes_solve, SFX)(T (*restrict l)[LANES], T (*restrict r)[LANES], T (*restrict x)[LANES], int64_t m,
+                                        int64_t kc, int back) {
+    for (int64_t s = 0; s < m; ++s) {
+        const int64_t i = back ? m - 1 - s : s;
+        T(*xi)[LANES] = x + i * kc;
+        const int64_t p0 = back ? i + 1 : 0, p1 = back ? m : i;
+        for (int64_t p = p0; p < p1; ++p) {
+            const T *lp = back ? l[p * m + i] : l[i * m + p];
+            T(*xp)[LANES] = x + p * kc;
+            for (int64_t c = 0; c < kc; ++c)
+                for (int w = 0; w < LANES; ++w) xi[c][w] -= lp[w] * xp[c][w];
+        }
+        for (int64_t c = 0; c < kc; ++c)
+            for (int w = 0; w < LANES; ++w) xi[c][w] *= r[i][w];
+    }
+}
+
+/* lanes <- columns [c0, c0 + kc) of n systems' (m, k) blocks at src (the last system repeated) */
+static inline void CAT(lanes_load, SFX)(T (*restrict x)[LANES], const T *restrict src, int64_t n, int64_t m, int64_t k,
+                                       int64_t c0, int64_t kc) {
+    for (int w = 0; w < LANES; ++w) {
+        const T *b = src + (w < n ? w : n - 1) * m * k;
+        for (int64_t i = 0; i < m; ++i)
+            for (int64_t c = 0; c < kc; ++c) x[i * kc + c][w] = b[i * k + c0 + c];
+    }
+}
+
+static inline void CAT(lanes_store, SFX)(T (*restrict x)[LANES], T *restrict dst, int64_t n, int64_t m, int64_t k,
+                                        int64_t c0, int64_t kc) {
+    for (int64_t w = 0; w < n; ++w) {
+        T *b = dst + w * m * k;
+        for (int64_t i = 0; i < m; ++i)
+            for (int64_t c = 0; c < kc; ++c) b[i * k + c0 + c] = x[i * kc + c][w];
+    }
+}
+
+/* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range */
+static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T *Y, int32_t *info,
+                                          int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
+                                          T (*r)[LANES], T (*x)[LANES]) {
+    int32_t bad[LANES];
+    CAT(lanes_load, SFX)(l, A + b0 * m * m, n, m, m, 0, m);
+    CAT(lanes_factor, SFX)(l, r, bad, m);
+    for (int64_t w = 0; w < n; ++w) {
+        T *Lb = L + (b0 + w) * m * m;
+        info[b0 + w] = bad[w];
+        for (int64_t i = 0; i < m; ++i)
+            for (int64_t j = 0; j < m; ++j) Lb[i * m + j] = bad[w] ? (T)NAN : j <= i ? l[i * m + j][w] : 0;
+    }
+    for (int64_t c0 = 0; c0 < k; c0 += LANE_COLS) {
+        const int64_t kc = k - c0 < LANE_COLS ? k - c0 : LANE_COLS;
+        CAT(lanes_load, SFX)(x, R + b0 * m * k, n, m, k, c0, kc);
+        CAT(lanes_solve, SFX)(l, r, x, m, kc, 0);
+        CAT(lanes_store, SFX)(x, X + b0 * m * k, n, m, k, c0, kc);
+        if (Y) {
+            CAT(lanes_solve, SFX)(l, r, x, m, kc, 1);
+            CAT(lanes_store, SFX)(x, Y + b0 * m * k, n, m, k, c0, kc);
+        }
+    }
+    for (int64_t w = 0; w < n; ++w)
+        if (bad[w]) {
+            CAT(fill_nan, SFX)(X + (b0 + w) * m * k, m * k);
+            if (Y) CAT(fill_nan, SFX)(Y + (b0 + w) * m * k, m * k);
+        }
+}
+
+/* the systems [b0, b0 + n) (n <= LANES) of triangular_solve_range */
+static void CAT(lanes_triangular_solve, SFX)(const T *Lin, const T *R, T *X, int64_t b0, int64_t n,
+                                            int64_t m, int64_t k, int transpose, T (*l)[LANES],
+                                            T (*r)[LANES], T (*x)[LANES]) {
+    CAT(lanes_load, SFX)(l, Lin + b0 * m * m, n, m, m, 0, m);
+    for (int64_t i = 0; i < m; ++i)
+        for (int w = 0; w < LANES; ++w) r[i][w] = 1 / l[i * m + i][w];
+    for (int64_t c0 = 0; c0 < k; c0 += LANE_COLS) {
+        const int64_t kc = k - c0 < LANE_COLS ? k - c0 : LANE_COLS;
+        CAT(lanes_load, SFX)(x, R + b0 * m * k, n, m, k, c0, kc);
+        CAT(lanes_solve, SFX)(l, r, x, m, kc, transpose);
+        CAT(lanes_store, SFX)(x, X + b0 * m * k, n, m, k, c0, kc);
+    }
+}
+
+/* args: A, R, L, X, Y (null: not wanted), info, and m, k, lanes as int64 (lanes 0: one system at
+ * a time, also where the lanes' workspace cannot be allocated) */
+WIDE_LOOPS static void CAT(cholesky_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
+    const T *A = args[0], *R = args[1];
+    T *L = args[2], *X = args[3], *Y = args[4];
+    int32_t *info = args[5];
+    const int64_t m = *(const int64_t *)args[6], k = *(const int64_t *)args[7];
+    T(*lanes)[LANES] = *(const int64_t *)args[8] && m <= LANE_MAX_M ? malloc((size_t)(m * m + m + m * LANE_COLS) * sizeof(T[LANES])) : NULL;
+    if (lanes) {
+        for (int64_t b = lo; b < hi; b += LANES)
+            CAT(lanes_cholesky_solve, SFX)(A, R, L, X, Y, info, b, hi - b < LANES ? hi - b : LANES, m, k,
+                                           lanes, lanes + m * m, lanes + m * m + m);
+        free(lanes);
+        return;
+    }
+    for (int64_t b = lo; b < hi; ++b) {
+        T *Lb = L + b * m * m, *Xb = X + b * m * k, *Yb = Y ? Y + b * m * k : NULL;
+        int32_t f = CAT(cholesky_one, SFX)(A + b * m * m, Lb, m);
+        info[b] = f;
+        if (f) {
+            CAT(fill_nan, SFX)(Lb, m * m);
+            CAT(fill_nan, SFX)(Xb, m * k);
+            if (Yb) CAT(fill_nan, SFX)(Yb, m * k);
+            continue;
+        }
+        CAT(forward_one, SFX)(Lb, R + b * m * k, Xb, m, k);
+        if (Yb) CAT(back_one, SFX)(Lb, Xb, Yb, m, k);
+    }
+}
+
+/* args: L, R, X, and m, k, transpose, lanes as int64: X = L^-1 R, or L^-T R */
+WIDE_LOOPS static void CAT(triangular_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
+    const T *L = args[0], *R = args[1];
+    T *X = args[2];
+    const int64_t m = *(const int64_t *)args[3], k = *(const int64_t *)args[4];
+    const int64_t transpose = *(const int64_t *)args[5];
+    T(*lanes)[LANES] = *(const int64_t *)args[6] && m <= LANE_MAX_M ? malloc((size_t)(m * m + m + m * LANE_COLS) * sizeof(T[LANES])) : NULL;
+    if (lanes) {
+        for (int64_t b = lo; b < hi; b += LANES)
+            CAT(lanes_triangular_solve, SFX)(L, R, X, b, hi - b < LANES ? hi - b : LANES, m, k, (int)transpose,
+                                             lanes, lanes + m * m, lanes + m * m + m);
+        free(lanes);
+        return;
+    }
+    for (int64_t b = lo; b < hi; ++b) {
+        if (transpose)
+            CAT(back_one, SFX)(L + b * m * m, R + b * m * k, X + b * m * k, m, k);
+        else
+            CAT(forward_one, SFX)(L + b * m * m, R + b * m * k, X + b * m * k, m, k);
+    }
+}
+
+#undef CAT
+#undef CAT_
+#undef T
+#undef SFX
+#undef SQRT

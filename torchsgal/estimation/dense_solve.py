@@ -1,0 +1,246 @@
+"""Batched Cholesky solves of small dense systems as torch operators.
+
+``cholesky_solve(A, R, back)`` factors every symmetric positive definite A = L L^T of a batch
+and solves with it: X = L^-1 R, and with ``back`` also Y = L^-T X = A^-1 R.
+``triangular_solve(L, R, transpose)`` solves with a factor already at hand: L^-1 R, or L^-T R.
+A failed factorisation (a pivot that is not positive: A not positive definite, or not finite)
+reports info = the pivot's row + 1 (LAPACK's ``potrf`` convention; 0 when it succeeds) and
+NaN in that matrix's L, X and Y, so a caller tests ``info`` once, without a host read.
+
+The estimation engine solves many small systems at once: the normal equations of a batch of
+small graphs (``graph.linear_system.DenseSystem``), and the covariance S = B Sigma B^T of every
+condition of a Gauss-Helmert factor (``graph.gauss_helmert``).  torch's
+``linalg.cholesky_ex`` and ``linalg.solve_triangular`` run LAPACK one matrix at a time on
+one thread and copy every batch into column-major order and back; below ``KERNEL_MAX_SIZE``
+unknowns the C kernel of ``_native_cholesky.h`` factors and solves each system in one pass
+over its rows, with the batch split over ``torch.get_num_threads()`` threads
+(``benchmarks/bench_factor_graph.py`` and ``bench_tls.py`` measure the solvers with it).
+
+One registration (``torch.library.custom_op``) that autograd, ``torch.func`` and
+``torch.compile`` all see:
+
+* CPU, float32 or float64, m <= ``KERNEL_MAX_SIZE``, kernels built and on
+  (``functional.native.enabled()``): the C kernel;
+* otherwise (other devices, larger systems, kernels off): the tensor code below, torch's
+  ``linalg.cholesky_ex`` and ``linalg.solve_triangular`` (the reference the tests compare the
+  kernel with);
+* autograd: the backward of the tensor code (``torch.func.vjp``), so gradients and their
+  derivatives are those of torch's own Cholesky and triangular solves;
+* vmap: the systems are independent, the vmapped axis joins the batch;
+* fake tensors (torch.compile, meta): shapes only.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..functional import checks, native
+
+try:
+    from . import _native as _lib  # type: ignore[attr-defined]  # compiled: mypy reads no .so
+except ImportError:  # not compiled: the tensor code runs everywhere
+    _lib = None
+
+if _lib is not None:
+    native.set_constants(_lib)
+
+# The kernel runs systems of up to SMALL_SIZE unknowns, and of up to KERNEL_MAX_SIZE where a batch
+# holds at least MIN_BATCH of them (the C loop factors eight systems at once, one per vector
+# lane); LAPACK's blocked factorisation is faster for larger systems and for a few mid-sized ones.
+SMALL_SIZE, KERNEL_MAX_SIZE, MIN_BATCH = 16, 64, 4
+
+__all__ = ["cholesky_solve", "triangular_solve", "uses_kernel", "available"]
+
+
+def available() -> bool:
+    """Whether the C kernel of the dense solves was compiled for this installation."""
+    return _lib is not None
+
+
+def cholesky_solve(A: torch.Tensor, R: torch.Tensor, back: bool = False
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """(L, X, Y, info) of a batch of symmetric positive definite A (..., m, m) and right-hand
+    sides R (..., m, k), batch shapes broadcast: A = L L^T (L lower, its strict upper triangle
+    zero), X = L^-1 R, Y = A^-1 R with ``back`` (else None), info (...,) int32 (0, or the row + 1
+    of the first pivot that is not positive; that system's L, X and Y are NaN).  Only the lower
+    triangle of A is read."""
+    checks.boolean(back, "back")
+    A, R = _broadcast(A, R, "A", "R")
+    L, X, Y, info = torch.ops.torchsgal.cholesky_solve(A, R, back)
+    return L, X, Y if back else None, info
+
+
+def triangular_solve(L: torch.Tensor, R: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+    """L^-1 R, or L^-T R with ``transpose``, for lower triangular L (..., m, m) with a nonzero
+    diagonal and R (..., m, k), batch shapes broadcast (only the lower triangle of L is read)."""
+    checks.boolean(transpose, "transpose")
+    L, R = _broadcast(L, R, "L", "R")
+    return torch.ops.torchsgal.triangular_solve(L, R, transpose)
+
+
+def _broadcast(M: torch.Tensor, R: torch.Tensor, m_name: str, r_name: str
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    _check(M, R, m_name, r_name, same_batch=False)
+    batch = torch.broadcast_shapes(M.shape[:-2], R.shape[:-2])
+    return M.expand(batch + M.shape[-2:]), R.expand(batch + R.shape[-2:])
+
+
+def _check(M, R, m_name: str, r_name: str, same_batch: bool = True) -> None:
+    checks.floating(M, m_name)
+    checks.floating(R, r_name)
+    checks.same_device_dtype(**{m_name: M, r_name: R})
+    if M.dim() < 2 or M.shape[-1] != M.shape[-2]:
+        raise ValueError(f"{m_name} must have shape (..., m, m), got {tuple(M.shape)}")
+    if R.dim() < 2 or R.shape[-2] != M.shape[-1]:
+        raise ValueError(f"{r_name} must have shape (..., m, k) with m = {M.shape[-1]} "
+                         f"({m_name} is {tuple(M.shape)}), got {tuple(R.shape)}")
+    if same_batch and M.shape[:-2] != R.shape[:-2]:
+        raise ValueError(f"{m_name} and {r_name} must have the same batch shape, got "
+                         f"{tuple(M.shape[:-2])} and {tuple(R.shape[:-2])}")
+
+
+# ---------------------------------------------------------------------------- tensor code
+def _cholesky_solve_tensor(A, R, back: bool):
+    L, info = torch.linalg.cholesky_ex(A)
+    # LAPACK takes an infinite pivot (sqrt(inf) = inf): a failure here, as in the kernel
+    infinite = torch.isinf(L.diagonal(dim1=-2, dim2=-1))
+    first = torch.where(infinite.any(-1), infinite.to(torch.int32).argmax(-1) + 1, 0)
+    info = torch.where(info != 0, info, first.to(info.dtype))
+    L = torch.where((info == 0)[..., None, None], L, float("nan")).contiguous()  # row-major
+    X = torch.linalg.solve_triangular(L, R, upper=False).contiguous()
+    Y = (torch.linalg.solve_triangular(L.mT, X, upper=True).contiguous() if back
+         else R.new_empty(R.shape[:-1] + (0,)))
+    return L, X, Y, info.to(torch.int32)
+
+
+def _triangular_solve_tensor(L, R, transpose: bool):
+    return torch.linalg.solve_triangular(L.mT if transpose else L, R, upper=transpose).contiguous()
+
+
+def uses_kernel(M: torch.Tensor) -> bool:
+    """Whether the operators run the C kernel for systems M (..., m, m) on the CPU now: float32 or
+    float64, the size rule above, kernels built and on in the calling thread."""
+    m = M.shape[-1]
+    return (_lib is not None and native.enabled() and M.device.type == "cpu"
+            and M.dtype in (torch.float32, torch.float64)
+            and (m <= SMALL_SIZE or m <= KERNEL_MAX_SIZE and math.prod(M.shape[:-2]) >= MIN_BATCH))
+
+
+# ---------------------------------------------------------------------------- cholesky_solve
+@torch.library.custom_op("torchsgal::cholesky_solve", mutates_args=(),
+                         schema="(Tensor A, Tensor R, bool back) -> (Tensor, Tensor, Tensor, Tensor)")
+def _cholesky_solve_op(A: torch.Tensor, R: torch.Tensor, back: bool):
+    """(L, X, Y, info); Y (..., m, 0) without ``back`` (module docstring)."""
+    _check(A, R, "A", "R")
+    return _cholesky_solve_tensor(A, R, back)
+
+
+@_cholesky_solve_op.register_kernel("cpu")
+def _cholesky_solve_cpu(A, R, back):
+    _check(A, R, "A", "R")
+    if not uses_kernel(A):
+        return _cholesky_solve_tensor(A, R, back)
+    batch, m, k = A.shape[:-2], A.shape[-1], R.shape[-1]
+    A, R = A.resolve_neg().contiguous(), R.resolve_neg().contiguous()
+    L, X = torch.empty_like(A), torch.empty_like(R)
+    Y = torch.empty_like(R) if back else R.new_empty(batch + (m, 0))
+    info = torch.empty(batch, dtype=torch.int32)
+    _lib.cholesky_solve(A.data_ptr(), R.data_ptr(), L.data_ptr(), X.data_ptr(),
+                        Y.data_ptr() if back else 0, info.data_ptr(), info.numel(), m, k, True,
+                        torch.get_num_threads(), A.dtype is torch.float64)
+    return L, X, Y, info
+
+
+@_cholesky_solve_op.register_fake
+def _cholesky_solve_fake(A, R, back):
+    _check(A, R, "A", "R")
+    Y = torch.empty_like(R) if back else R.new_empty(R.shape[:-1] + (0,))
+    return (torch.empty_like(A), torch.empty_like(R), Y,
+            A.new_empty(A.shape[:-2], dtype=torch.int32))
+
+
+def _cholesky_solve_setup(ctx, inputs, output):
+    A, R, back = inputs
+    ctx.back = back
+    ctx.mark_non_differentiable(output[3])
+    ctx.save_for_backward(A, R)
+
+
+def _cholesky_solve_backward(ctx, gL, gX, gY, _ginfo):
+    A, R = ctx.saved_tensors
+    with torch.enable_grad():
+        _, pullback = torch.func.vjp(lambda a, r: _cholesky_solve_tensor(a, r, ctx.back)[:3], A, R)
+    gA, gR = pullback((gL, gX, gY))
+    return gA, gR, None
+
+
+_cholesky_solve_op.register_autograd(_cholesky_solve_backward, setup_context=_cholesky_solve_setup)
+
+
+@_cholesky_solve_op.register_vmap
+def _cholesky_solve_vmap(info, in_dims, A, R, back):
+    A, R = _batched_front(info.batch_size, (A, R), in_dims[:2])
+    return _cholesky_solve_op(A, R, back), (0, 0, 0, 0)
+
+
+# ---------------------------------------------------------------------------- triangular_solve
+@torch.library.custom_op("torchsgal::triangular_solve", mutates_args=(),
+                         schema="(Tensor L, Tensor R, bool transpose) -> Tensor")
+def _triangular_solve_op(L: torch.Tensor, R: torch.Tensor, transpose: bool) -> torch.Tensor:
+    """L^-1 R or L^-T R (module docstring)."""
+    _check(L, R, "L", "R")
+    return _triangular_solve_tensor(L, R, transpose)
+
+
+@_triangular_solve_op.register_kernel("cpu")
+def _triangular_solve_cpu(L, R, transpose):
+    _check(L, R, "L", "R")
+    if not uses_kernel(L):
+        return _triangular_solve_tensor(L, R, transpose)
+    m, k = L.shape[-1], R.shape[-1]
+    L, R = L.resolve_neg().contiguous(), R.resolve_neg().contiguous()
+    X = torch.empty_like(R)
+    _lib.triangular_solve(L.data_ptr(), R.data_ptr(), X.data_ptr(), math.prod(L.shape[:-2]), m, k,
+                          transpose, True, torch.get_num_threads(), L.dtype is torch.float64)
+    return X
+
+
+@_triangular_solve_op.register_fake
+def _triangular_solve_fake(L, R, transpose):
+    _check(L, R, "L", "R")
+    return torch.empty_like(R)
+
+
+def _triangular_solve_setup(ctx, inputs, output):
+    L, R, transpose = inputs
+    ctx.transpose = transpose
+    ctx.save_for_backward(L, R)
+
+
+def _triangular_solve_backward(ctx, gX):
+    L, R = ctx.saved_tensors
+    with torch.enable_grad():
+        _, pullback = torch.func.vjp(lambda l, r: _triangular_solve_tensor(l, r, ctx.transpose),
+                                     L, R)
+    gL, gR = pullback(gX)
+    return gL, gR, None
+
+
+_triangular_solve_op.register_autograd(_triangular_solve_backward,
+                                       setup_context=_triangular_solve_setup)
+
+
+@_triangular_solve_op.register_vmap
+def _triangular_solve_vmap(info, in_dims, L, R, transpose):
+    L, R = _batched_front(info.batch_size, (L, R), in_dims[:2])
+    return _triangular_solve_op(L, R, transpose), 0
+
+
+def _batched_front(size: int, args, in_dims):
+    """The arguments with the vmapped axis in front (unbatched ones expanded) and their batch
+    shapes broadcast."""
+    moved = [a.unsqueeze(0).expand(size, *a.shape) if d is None else a.movedim(d, 0)
+             for a, d in zip(args, in_dims)]
+    batch = torch.broadcast_shapes(*(a.shape[:-2] for a in moved))
+    return [a.expand(batch + a.shape[-2:]) for a in moved]
