@@ -2,7 +2,8 @@
 
 ``DenseSystem``: a batch of small problems; H (B, D, D) assembled from the factors' blocks
 (``linearize.dense``) and solved by a batched Cholesky (no host sync per problem): the kernel of
-``estimation.dense_solve`` where it runs (small systems), LAPACK's ``cholesky_ex`` otherwise.
+``estimation.dense_solve`` where it runs (batches of small systems), LAPACK's ``cholesky_ex``
+otherwise.
 ``SparseSystem``: one large problem; the lower triangle of H's block pattern is analysed once by
 ``estimation.sparse.SparseCholesky`` (fill-reducing ordering) and refactored numerically at each
 step.
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from ..dense_solve import cholesky_solve, uses_kernel
+from ..dense_solve import MIN_BATCH, cholesky_solve, uses_kernel
 from .linearize import Problem, dense
 
 RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
@@ -75,9 +76,9 @@ class DenseSystem:
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
         damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
         diag.add_(damp)
-        if uses_kernel(Hd):  # small systems: the batched kernel, one pass per system
+        if B >= MIN_BATCH and uses_kernel(Hd):  # batches of small systems: the kernel
             delta, info = cholesky_solve(Hd, -g.unsqueeze(-1), back=True)[2:]
-        else:  # LAPACK's blocked factorisation, in the work buffers
+        else:  # LAPACK in the work buffers (larger systems; a few systems: no operator call)
             torch.linalg.cholesky_ex(Hd, out=(L, info))
             # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
             y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
