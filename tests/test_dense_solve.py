@@ -187,7 +187,7 @@ def _failures(m, bad):
 @needs_kernel
 @pytest.mark.parametrize("m", [10, 40])
 def test_results_do_not_depend_on_the_batch_or_the_threads(m):
-    n = 3001 if m == 10 else 203  # enough work to split over two threads
+    n = 6001 if m == 10 else 203  # enough work to split over two threads (MIN_PER_THREAD)
     A, R = spd(n, m, torch.float64, seed=4), torch.randn(n, m, 4, dtype=torch.float64)
     before = torch.get_num_threads()
     try:
@@ -238,14 +238,19 @@ def test_batch_shapes_broadcast_and_empty_batches():
 
 
 def test_opcheck():
+    """Contiguous and transposed (non-contiguous) inputs: the outputs are contiguous either way."""
     A, R = spd(5, 6, torch.float64, seed=8), torch.randn(5, 6, 3, dtype=torch.float64)
+    Rt = torch.randn(5, 3, 6, dtype=torch.float64).mT
     for back in (True, False):
-        opcheck(torch.ops.torchsgal.cholesky_solve.default,
-                (A.clone().requires_grad_(), R.clone().requires_grad_(), back))
+        for r in (R, Rt):
+            opcheck(torch.ops.torchsgal.cholesky_solve.default,
+                    (A.clone().requires_grad_(), r.clone().requires_grad_(), back))
+        opcheck(torch.ops.torchsgal.cholesky_solve.default, (A.mT, Rt, back))
     L = torch.linalg.cholesky(A)
     for transpose in (True, False):
         opcheck(torch.ops.torchsgal.triangular_solve.default,
                 (L.clone().requires_grad_(), R.clone().requires_grad_(), transpose))
+        opcheck(torch.ops.torchsgal.triangular_solve.default, (L.mT.contiguous().mT, Rt, transpose))
 
 
 def test_gradients_are_those_of_torchs_cholesky():
@@ -272,6 +277,57 @@ def test_gradients_are_those_of_torchs_cholesky():
     ref = torch.autograd.grad(sum((o * c).sum() for o, c in zip(ref_out, w)), (S, R))
     for a, b in zip(got, ref):
         assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_forward_mode_and_torch_func_derivatives_are_torchs():
+    """jvp, jacfwd, grad and jacfwd(jacfwd) through the operators equal those through
+    torch.linalg (forward mode was zero and torch.func.grad raised through the bare operators)."""
+    A = spd(3, 4, torch.float64, seed=12, cond=10.0)
+    R = torch.randn(3, 4, 2, dtype=torch.float64)
+    tA = torch.randn_like(A)
+    tA, tR = tA + tA.mT, torch.randn_like(R)
+
+    def ours(a, r):
+        L, X, Y, _ = cholesky_solve(a, r, back=True)
+        return L, X, Y, triangular_solve(L, r * r, transpose=True)
+
+    def ref(a, r):
+        L = torch.linalg.cholesky(a)
+        X = torch.linalg.solve_triangular(L, r, upper=False)
+        return (L, X, torch.linalg.solve_triangular(L.mT, X, upper=True),
+                torch.linalg.solve_triangular(L.mT, r * r, upper=True))
+
+    for a, b in zip(torch.func.jvp(ours, (A, R), (tA, tR))[1], torch.func.jvp(ref, (A, R), (tA, tR))[1]):
+        assert float(b.abs().amax()) > 0
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    with torch.autograd.forward_ad.dual_level():
+        dual = torch.autograd.forward_ad.make_dual(R, tR)
+        tangent = torch.autograd.forward_ad.unpack_dual(ours(A, dual)[2]).tangent
+    torch.testing.assert_close(tangent, torch.func.jvp(lambda r: ref(A, r)[2], (R,), (tR,))[1])
+    def loss(f):
+        return lambda a, r: sum((o * o).sum() for o in f(a, r)[1:])
+    for a, b in zip(torch.func.grad(loss(ours), argnums=(0, 1))(A, R),
+                    torch.func.grad(loss(ref), argnums=(0, 1))(A, R)):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+    second = torch.func.jacfwd(torch.func.jacfwd(lambda r: loss(ours)(A, r)))(R)
+    torch.testing.assert_close(second, torch.func.jacfwd(torch.func.jacfwd(lambda r: loss(ref)(A, r)))(R),
+                               rtol=1e-9, atol=1e-11)
+
+
+def test_inductor_compiles_them():
+    """torch.compile with its default backend on transposed inputs (the fake outputs' strides are
+    the operators')."""
+    A = spd(4, 5, torch.float64, seed=13)
+    Rt = torch.randn(4, 2, 5, dtype=torch.float64).mT
+
+    def fn(A, R):
+        L, X, Y, info = cholesky_solve(A, R, back=True)
+        return Y + triangular_solve(L, X, transpose=True), info
+
+    compiled = torch.compile(fn, fullgraph=True)(A.mT, Rt)
+    eager = fn(A.mT, Rt)
+    torch.testing.assert_close(compiled[0], eager[0], rtol=1e-13, atol=1e-14)
+    assert torch.equal(compiled[1], eager[1])
 
 
 def test_vmap_and_compile():

@@ -1,6 +1,6 @@
 /* torchsgal.estimation._native: batched Cholesky factorisations and triangular solves of small
  * dense systems (_native_cholesky.h), the CPU kernels of the torch operators
- * torchsgal::cholesky_solve and torchsgal::triangular_solve (estimation/_cholesky.py).
+ * torchsgal::cholesky_solve and torchsgal::triangular_solve (estimation/dense_solve.py).
  *
  * No torch headers: the Python side passes data pointers of contiguous CPU tensors it allocated
  * and checked.  The splitting of a batch over threads is the core kernels' (_native_common.h).

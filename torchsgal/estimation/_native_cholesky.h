@@ -8,6 +8,9 @@
  * of that matrix: info = its row + 1 (LAPACK's potrf convention) and the matrix's outputs are
  * NaN; info = 0 otherwise.
  */
+#if defined(_MSC_VER) && !defined(restrict)
+#define restrict __restrict /* C99's restrict, as MSVC spells it */
+#endif
 #define CAT_(a, b) a##_##b
 #define CAT(a, b) CAT_(a, b)
 

@@ -6,6 +6,7 @@ and solves with it: X = L^-1 R, and with ``back`` also Y = L^-T X = A^-1 R.
 A failed factorisation (a pivot that is not positive: A not positive definite, or not finite)
 reports info = the pivot's row + 1 (LAPACK's ``potrf`` convention; 0 when it succeeds) and
 NaN in that matrix's L, X and Y, so a caller tests ``info`` once, without a host read.
+Arguments are float32 or float64 tensors of one dtype and device (others: a TypeError).
 
 The estimation engine solves many small systems at once: the normal equations of a batch of
 small graphs (``graph.linear_system.DenseSystem``), and the covariance S = B Sigma B^T of every
@@ -24,8 +25,14 @@ One registration (``torch.library.custom_op``) that autograd, ``torch.func`` and
 * otherwise (other devices, larger systems, kernels off): the tensor code below, torch's
   ``linalg.cholesky_ex`` and ``linalg.solve_triangular`` (the reference the tests compare the
   kernel with);
-* autograd: the backward of the tensor code (``torch.func.vjp``), so gradients and their
-  derivatives are those of torch's own Cholesky and triangular solves;
+* derivatives: those of the tensor code (``torch.func.vjp`` and ``jvp``), so gradients, forward
+  derivatives and their derivatives are those of torch's own Cholesky and triangular solves;
+  ``cholesky_solve`` and ``triangular_solve`` call the operators through an autograd.Function
+  that carries them in reverse and forward mode and under ``torch.func`` transforms (where torch
+  2.13 does not apply a custom operator's registered autograd), and the operators directly
+  under ``torch.compile`` (their registered autograd); inside two or more forward-mode
+  transforms they run the tensor code (torch 2.13 gives an autograd.Function's higher forward
+  derivatives wrong, pytorch/pytorch#197867);
 * vmap: the systems are independent, the vmapped axis joins the batch;
 * fake tensors (torch.compile, meta): shapes only.
 """
@@ -35,7 +42,10 @@ import math
 
 import torch
 
+from .._compat import FastApply
 from ..functional import checks, native
+from ..functional._autograd import _nested_forward_mode
+from ..functional._blocking import is_compiling
 
 try:
     from . import _native as _lib  # type: ignore[attr-defined]  # compiled: mypy reads no .so
@@ -67,7 +77,12 @@ def cholesky_solve(A: torch.Tensor, R: torch.Tensor, back: bool = False
     triangle of A is read."""
     checks.boolean(back, "back")
     A, R = _broadcast(A, R, "A", "R")
-    L, X, Y, info = torch.ops.torchsgal.cholesky_solve(A, R, back)
+    if is_compiling():
+        L, X, Y, info = torch.ops.torchsgal.cholesky_solve(A, R, back)
+    elif _nested_forward_mode(A) or _nested_forward_mode(R):
+        L, X, Y, info = _cholesky_solve_tensor(A, R, back)
+    else:
+        L, X, Y, info = _CholeskySolve.apply(A, R, back)
     return L, X, Y if back else None, info
 
 
@@ -76,7 +91,11 @@ def triangular_solve(L: torch.Tensor, R: torch.Tensor, transpose: bool = False) 
     diagonal and R (..., m, k), batch shapes broadcast (only the lower triangle of L is read)."""
     checks.boolean(transpose, "transpose")
     L, R = _broadcast(L, R, "L", "R")
-    return torch.ops.torchsgal.triangular_solve(L, R, transpose)
+    if is_compiling():
+        return torch.ops.torchsgal.triangular_solve(L, R, transpose)
+    if _nested_forward_mode(L) or _nested_forward_mode(R):
+        return _triangular_solve_tensor(L, R, transpose)
+    return _TriangularSolve.apply(L, R, transpose)
 
 
 def _broadcast(M: torch.Tensor, R: torch.Tensor, m_name: str, r_name: str
@@ -103,10 +122,11 @@ def _check(M, R, m_name: str, r_name: str, same_batch: bool = True) -> None:
 # ---------------------------------------------------------------------------- tensor code
 def _cholesky_solve_tensor(A, R, back: bool):
     L, info = torch.linalg.cholesky_ex(A)
-    # LAPACK takes an infinite pivot (sqrt(inf) = inf): a failure here, as in the kernel
-    infinite = torch.isinf(L.diagonal(dim1=-2, dim2=-1))
-    first = torch.where(infinite.any(-1), infinite.to(torch.int32).argmax(-1) + 1, 0)
-    info = torch.where(info != 0, info, first.to(info.dtype))
+    # LAPACK takes an infinite pivot (sqrt(inf) = inf) and fails, if at all, at a later row: the
+    # first pivot that is not finite is the failure here, as in the kernel
+    bad = ~torch.isfinite(L.diagonal(dim1=-2, dim2=-1))
+    first = torch.where(bad.any(-1), bad.to(torch.int32).argmax(-1) + 1, 0).to(info.dtype)
+    info = torch.where((first != 0) & ((info == 0) | (first < info)), first, info)
     L = torch.where((info == 0)[..., None, None], L, float("nan")).contiguous()  # row-major
     X = torch.linalg.solve_triangular(L, R, upper=False).contiguous()
     Y = (torch.linalg.solve_triangular(L.mT, X, upper=True).contiguous() if back
@@ -154,10 +174,9 @@ def _cholesky_solve_cpu(A, R, back):
 
 @_cholesky_solve_op.register_fake
 def _cholesky_solve_fake(A, R, back):
-    _check(A, R, "A", "R")
-    Y = torch.empty_like(R) if back else R.new_empty(R.shape[:-1] + (0,))
-    return (torch.empty_like(A), torch.empty_like(R), Y,
-            A.new_empty(A.shape[:-2], dtype=torch.int32))
+    _check(A, R, "A", "R")  # contiguous outputs, whatever the inputs' strides
+    Y = R.new_empty(R.shape) if back else R.new_empty(R.shape[:-1] + (0,))
+    return A.new_empty(A.shape), R.new_empty(R.shape), Y, A.new_empty(A.shape[:-2], dtype=torch.int32)
 
 
 def _cholesky_solve_setup(ctx, inputs, output):
@@ -209,7 +228,7 @@ def _triangular_solve_cpu(L, R, transpose):
 @_triangular_solve_op.register_fake
 def _triangular_solve_fake(L, R, transpose):
     _check(L, R, "L", "R")
-    return torch.empty_like(R)
+    return R.new_empty(R.shape)  # contiguous, whatever the inputs' strides
 
 
 def _triangular_solve_setup(ctx, inputs, output):
@@ -244,3 +263,84 @@ def _batched_front(size: int, args, in_dims):
              for a, d in zip(args, in_dims)]
     batch = torch.broadcast_shapes(*(a.shape[:-2] for a in moved))
     return [a.expand(batch + a.shape[-2:]) for a in moved]
+
+
+# ---------------------------------------------------------------------------- autograd.Functions
+def _solve_lower(L, B, transpose: bool = False):
+    return torch.linalg.solve_triangular(L.mT if transpose else L, B, upper=transpose)
+
+
+def _cholesky_jvp(L, X, Y, dA, dR):
+    """(dL, dX, dY) of L = chol(A), X = L^-1 R, Y = L^-T X: torch's forward derivative of the
+    Cholesky factor, dL = L Phi(L^-1 dA L^-T) (Phi: the lower triangle, half the diagonal),
+    then L dX = dR - dL X and L^T dY = dX - dL^T Y."""
+    P = torch.linalg.solve_triangular(L.mT, _solve_lower(L, dA), upper=True, left=False)
+    P = P.tril() - 0.5 * torch.diag_embed(P.diagonal(dim1=-2, dim2=-1))
+    dL = L @ P
+    dX = _solve_lower(L, dR - dL @ X)
+    dY = _solve_lower(L, dX - dL.mT @ Y, transpose=True) if Y.shape[-1] else torch.zeros_like(Y)
+    return dL, dX, dY
+
+
+class _CholeskySolve(FastApply, torch.autograd.Function):
+    """``torchsgal::cholesky_solve`` with the tensor code's derivatives (module docstring)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(A, R, back):
+        return torch.ops.torchsgal.cholesky_solve(A, R, back)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        A, R, back = inputs
+        ctx.back = back
+        ctx.mark_non_differentiable(output[3])
+        ctx.save_for_backward(A, R)
+        ctx.save_for_forward(*output[:3])
+
+    @staticmethod
+    def backward(ctx, gL, gX, gY, _ginfo):
+        _, pullback = torch.func.vjp(lambda a, r: _cholesky_solve_tensor(a, r, ctx.back)[:3],
+                                     *ctx.saved_tensors)
+        return (*pullback((gL, gX, gY)), None)
+
+    @staticmethod
+    def jvp(ctx, tA, tR, _tback):
+        L, X, Y = ctx.saved_tensors
+        tA = torch.zeros_like(L) if tA is None else tA
+        tR = torch.zeros_like(X) if tR is None else tR
+        return (*_cholesky_jvp(L, X, Y, tA, tR), None)
+
+
+class _TriangularSolve(FastApply, torch.autograd.Function):
+    """``torchsgal::triangular_solve`` with the tensor code's derivatives."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(L, R, transpose):
+        return torch.ops.torchsgal.triangular_solve(L, R, transpose)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        L, R, transpose = inputs
+        ctx.transpose = transpose
+        ctx.save_for_backward(L, R)
+        ctx.save_for_forward(L, output)
+
+    @staticmethod
+    def backward(ctx, gX):
+        _, pullback = torch.func.vjp(lambda l, r: _triangular_solve_tensor(l, r, ctx.transpose),
+                                     *ctx.saved_tensors)
+        return (*pullback(gX), None)
+
+    @staticmethod
+    def jvp(ctx, tL, tR, _ttranspose):
+        # L X = R (or L^T X = R), only L's lower triangle read: dX = L^-1 (dR - tril(dL) X)
+        L, X = ctx.saved_tensors
+        dR = torch.zeros_like(X) if tR is None else tR
+        if tL is not None:
+            dL = tL.tril()
+            dR = dR - (dL.mT if ctx.transpose else dL) @ X
+        return _solve_lower(L, dR, ctx.transpose)

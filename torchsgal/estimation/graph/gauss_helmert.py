@@ -165,7 +165,6 @@ class GaussHelmert(Factor):
             # the condition alone
             e, L, v = state
             w = self.condition(*variables, *data, e) - v
-            batch = torch.broadcast_shapes(w.shape[:-1], L.shape[:-2])
             return triangular_solve(L, w[..., None])[..., 0], None
         refresh = state is not None and self._refresh
         if state is None:  # paper-style: at the raw observations, S at the current x

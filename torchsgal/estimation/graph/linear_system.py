@@ -80,6 +80,8 @@ class DenseSystem:
             delta, info = cholesky_solve(Hd, -g.unsqueeze(-1), back=True)[2:]
         else:  # LAPACK in the work buffers (larger systems; a few systems: no operator call)
             torch.linalg.cholesky_ex(Hd, out=(L, info))
+            # an infinite pivot, which LAPACK takes, fails here as in the kernel
+            info = info.masked_fill(~torch.isfinite(L.diagonal(dim1=-2, dim2=-1)).all(-1), 1)
             # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
             y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
             delta = torch.linalg.solve_triangular(L.mT, y, upper=True)
