@@ -1,19 +1,46 @@
-/* torchsgal.estimation._native: batched Cholesky factorisations and triangular solves of small
- * dense systems (_native_cholesky.h), the CPU kernels of the torch operators
- * torchsgal::cholesky_solve and torchsgal::triangular_solve (estimation/dense_solve.py).
+/* torchsgal.estimation._native: the estimation engine's CPU kernels: batched Cholesky
+ * factorisations and triangular solves of small dense systems (_native_cholesky.h; the operators
+ * torchsgal::cholesky_solve and torchsgal::triangular_solve, estimation/dense_solve.py), and the
+ * residuals and Jacobians of the built-in SE(3) priors and betweens (_native_factors.h, on the
+ * SE(3) closed forms of functional/_native_sgal3.h; torchsgal::se3_factor_terms,
+ * estimation/graph/log_terms.py).
  *
  * No torch headers: the Python side passes data pointers of contiguous CPU tensors it allocated
  * and checked.  The splitting of a batch over threads is the core kernels' (_native_common.h).
  */
 #include "../functional/_native_common.h"
 
+#if defined(__GNUC__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wunused-function"  /* only SE(3)'s closed forms are used here */
+#endif
+#define T double
+#define SFX f64
+#define SIN sin
+#define COS cos
+#define SQRT sqrt
+#define ATAN2 atan2
+#include "../functional/_native_sgal3.h"  /* undefines T, SFX and the math macros */
+#define T float
+#define SFX f32
+#define SIN sinf
+#define COS cosf
+#define SQRT sqrtf
+#define ATAN2 atan2f
+#include "../functional/_native_sgal3.h"
+#if defined(__GNUC__)
+#pragma GCC diagnostic pop
+#endif
+
 #define T double
 #define SFX f64
 #define SQRT sqrt
-#include "_native_cholesky.h"
+#include "_native_factors.h"
+#include "_native_cholesky.h"  /* undefines T, SFX and SQRT */
 #define T float
 #define SFX f32
 #define SQRT sqrtf
+#include "_native_factors.h"
 #include "_native_cholesky.h"
 
 /* work of one m x m system with k right-hand sides, in units of one SGal(3) exp (~400 flops) */
@@ -52,12 +79,27 @@ static PyObject *py_triangular_solve(PyObject *self, PyObject *const *a, Py_ssiz
     Py_RETURN_NONE;
 }
 
+/* se3_factor_terms(Zinv, Ti, Tj, r, J, n, threads, is_double): Ti 0 for priors, J 0 for the
+ * residuals alone (_native_factors.h) */
+static PyObject *py_se3_factor_terms(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[5];
+    int64_t ints[3]; /* n, threads, is_double */
+    if (read_call(a, nargs, 5, ptr, 3, ints, "se3_factor_terms") < 0) return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[2] ? se3_factor_range_f64 : se3_factor_range_f32, ptr, ints[0], 2, (int)ints[1]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
      "batched Cholesky and solves (A, R, L, X, Y, info, n, m, k, lanes, threads, is_double)"},
     {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,
      "batched triangular solves (L, R, X, n, m, k, transpose, lanes, threads, is_double)"},
+    {"se3_factor_terms", (PyCFunction)(void (*)(void))py_se3_factor_terms, METH_FASTCALL,
+     "SE(3) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, n, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from ...groups import SE2, SE3, LieGroup
+from . import factor_kernels
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
@@ -366,18 +367,29 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     ``J_r^-1``; the Jacobians are J_r^-1(r) (prior; between: J_j) and
     J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j, A^-1 = T_j^-1 T_i (the formulas of ``factors``),
     with each variable's inverses computed once and gathered; Z^-1 is the block's
-    ``measured_inv`` (computed once per problem).  On SE(3) and SE(2), log, J_r^-1 and J_l^-1
+    ``measured_inv`` (computed once per problem).  SE(3) blocks that nothing differentiates go
+    through ``torchsgal::se3_factor_terms`` instead (``factor_kernels``: one C pass per factor
+    on the CPU), one call per block.  On SE(3) and SE(2), log, J_r^-1 and J_l^-1
     come from one pass (``log_terms``) and J_i = -J_l^-1(r) Ad(Z^-1) (as
     J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1) computed once per problem."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
+    out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
     for n, block in enumerate(problem.blocks):
         if block.log_form is None:
             continue
         group = problem.variables[block.slots[0][0]].group
         Z_inv = block.measured_inv
         assert group is not None and Z_inv is not None  # set with log_form (``_log_form``)
+        if group is SE3 and factor_kernels.usable(Z_inv, *x):  # one operator call per block
+            shape = (B, block.size, 4, 4)
+            Ts = [T.expand(shape) for T in _args(block, x)]
+            r, J = torch.ops.torchsgal.se3_factor_terms(
+                Z_inv.expand(shape), None if block.log_form == "prior" else Ts[0], Ts[-1],
+                want_jacobian)
+            out[n] = (r, J if want_jacobian else None)
+            continue
         f = group._f
         if block.log_form == "prior":
             A, A_inv = _args(block, x)[0], None
@@ -393,7 +405,6 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                 A_inv = _args(block, [inverses.get(v, x[v]) for v in range(len(x))])[1] @ Ti
         err = Z_inv @ A
         stacks.setdefault(group, []).append((n, err.expand((B, block.size) + err.shape[-2:]), A_inv))
-    out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
     for group, items in stacks.items():
         f = group._f
         sizes = [e.shape[1] for _, e, _ in items]

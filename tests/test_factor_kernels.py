@@ -1,0 +1,160 @@
+"""The built-in SE(3) priors' and betweens' residuals and Jacobians as one operator
+(``torch.ops.torchsgal.se3_factor_terms``, ``graph.factor_kernels``; its C kernel
+``estimation/_native_factors.h``): against the formulas written out with the group's closed forms
+as tensor code (``se3.log_impl``, ``jl_inv_impl``, ``adjoint``) and against central differences
+of the residual along right perturbations, at small angles, around the series threshold and
+near pi, in float64 and float32; the engine's choice of it; fake tensors; bad arguments."""
+from __future__ import annotations
+
+import math
+import os
+
+import pytest
+import torch
+from torch.library import opcheck
+
+from torchsgal.estimation import dense_solve
+from torchsgal.estimation.graph import factor_kernels
+from torchsgal.functional import native, se3
+
+f64 = torch.float64
+OP = torch.ops.torchsgal.se3_factor_terms
+ANGLES = [0.0, 1e-9, 1e-4, 0.3, 0.999, 1.001, 2.0, 3.0, math.pi - 1e-6]
+
+_no_kernel = pytest.mark.skipif(not dense_solve.available()
+                                and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
+                                reason="the estimation C kernels were not compiled")
+
+
+def needs_kernel(test):
+    """Tests of the C kernel itself: left out of the run with the kernels off (.ci/run)."""
+    return pytest.mark.kernels(_no_kernel(test))
+
+
+def elements(n, angle, seed, dtype=f64):
+    """n SE(3) matrices with rotation angles in [angle / 2, angle]."""
+    gen = torch.Generator().manual_seed(seed)
+    xi = torch.randn(n, 6, generator=gen, dtype=f64)
+    phi = xi[:, 3:] / xi[:, 3:].norm(dim=-1, keepdim=True)
+    scale = angle * (0.5 + 0.5 * torch.rand(n, 1, generator=gen, dtype=f64))
+    return se3.exp_impl(torch.cat([xi[:, :3], phi * scale], dim=-1)).to(dtype)
+
+
+def written_out(Zinv, Ti, Tj):
+    """r and J from the definitions (factors.py), in float64 tensor code."""
+    Zinv, Tj = Zinv.double(), Tj.double()
+    if Ti is None:
+        E = Zinv @ Tj
+        r = se3.log_impl(E)
+        return r, se3.jl_inv_impl(-r)
+    Ti = Ti.double()
+    A = torch.linalg.inv(Ti) @ Tj
+    r = se3.log_impl(Zinv @ A)
+    Jj = se3.jl_inv_impl(-r)
+    Ji = -Jj @ se3.adjoint(torch.linalg.inv(A))
+    return r, torch.cat([Ji, Jj], dim=-1)
+
+
+def _pair(angle, n=40, seed=0, dtype=f64):
+    """Ti, Tj with an error E = Z^-1 Ti^-1 Tj whose angle is about ``angle``."""
+    Ti = elements(n, 2.0, seed, dtype)
+    E = elements(n, angle, seed + 1, dtype)
+    Z = elements(n, 1.0, seed + 2, dtype)
+    Tj = (Ti.double() @ Z.double() @ E.double()).to(dtype)
+    return torch.linalg.inv(Z.double()).to(dtype), Ti, Tj
+
+
+@pytest.mark.parametrize("kernel", [True, False])
+@pytest.mark.parametrize("angle", ANGLES)
+def test_betweens_and_priors_match_their_definitions(angle, kernel):
+    Zinv, Ti, Tj = _pair(angle)
+    with (native.disabled() if not kernel else _nothing()):
+        rb, Jb = OP(Zinv, Ti, Tj, True)
+        rp, Jp = OP(Zinv, None, Tj, True)
+        r_only, empty = OP(Zinv, Ti, Tj, False)
+    rb_ref, Jb_ref = written_out(Zinv, Ti, Tj)
+    rp_ref, Jp_ref = written_out(Zinv, None, Tj)
+    assert Jb.shape == (40, 6, 12) and Jp.shape == (40, 6, 6) and empty.shape == (40, 6, 0)
+    torch.testing.assert_close(rb, rb_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jb, Jb_ref, rtol=0, atol=1e-10)
+    torch.testing.assert_close(rp, rp_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jp, Jp_ref, rtol=0, atol=1e-10)
+    assert torch.equal(r_only, rb)
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+@pytest.mark.parametrize("angle", [1e-3, 0.5, 2.5])
+def test_jacobians_are_the_residuals_derivatives(angle):
+    """Central differences of r along right perturbations T exp(eps e_k) of T_i and T_j."""
+    Zinv, Ti, Tj = _pair(angle, n=6, seed=3)
+    _, J = OP(Zinv, Ti, Tj, True)
+    h = 1e-6
+    numeric = []
+    for which in (0, 1):
+        for k in range(6):
+            e = torch.zeros(6, dtype=f64)
+            e[k] = h
+            plus, minus = [Ti, Tj], [Ti, Tj]
+            plus[which] = plus[which] @ se3.exp_impl(e)
+            minus[which] = minus[which] @ se3.exp_impl(-e)
+            numeric.append((OP(Zinv, *plus, False)[0] - OP(Zinv, *minus, False)[0]) / (2 * h))
+    torch.testing.assert_close(J, torch.stack(numeric, -1), rtol=0, atol=1e-7)
+
+
+@needs_kernel
+@pytest.mark.parametrize("angle", [1e-4, 0.5, 3.0])
+def test_float32_kernel(angle):
+    Zinv, Ti, Tj = (t.float() for t in _pair(angle, seed=4))
+    r, J = OP(Zinv, Ti, Tj, True)
+    assert r.dtype == J.dtype == torch.float32
+    r_ref, J_ref = written_out(Zinv, Ti, Tj)
+    torch.testing.assert_close(r.double(), r_ref, rtol=0, atol=2e-5)
+    torch.testing.assert_close(J.double(), J_ref, rtol=0, atol=2e-4)
+
+
+@needs_kernel
+def test_kernel_and_tensor_code_agree_to_rounding_and_threads_change_nothing():
+    Zinv, Ti, Tj = _pair(1.3, n=20000, seed=5)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = OP(Zinv, Ti, Tj, True)
+        torch.set_num_threads(2)
+        two = OP(Zinv, Ti, Tj, True)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+    tensor = factor_kernels._tensor_code(Zinv, Ti, Tj, True)
+    torch.testing.assert_close(one[0], tensor[0], rtol=0, atol=1e-13)
+    torch.testing.assert_close(one[1], tensor[1], rtol=0, atol=1e-12)
+
+
+def test_the_engine_calls_it_only_where_nothing_differentiates():
+    T = elements(3, 1.0, 6)
+    assert factor_kernels.usable(T) == (dense_solve.available() and native.enabled())
+    assert not factor_kernels.usable(T.clone().requires_grad_())
+    with torch.no_grad():
+        assert factor_kernels.usable(T.clone().requires_grad_()) == (
+            dense_solve.available() and native.enabled())
+    with native.disabled():
+        assert not factor_kernels.usable(T)
+    assert not factor_kernels.usable(T.half())
+
+
+def test_fake_tensors_and_bad_arguments():
+    Zinv, Ti, Tj = _pair(0.5, n=4, seed=7)
+    opcheck(OP.default, (Zinv, Ti, Tj, True))
+    opcheck(OP.default, (Zinv, None, Tj, False))
+    with pytest.raises(ValueError, match="one shape"):
+        OP(Zinv[:2], Ti, Tj, True)
+    with pytest.raises(ValueError, match="Tj"):
+        OP(Zinv, Ti, Tj[..., :3], True)
+    with pytest.raises((TypeError, ValueError), match="float64|dtype"):
+        OP(Zinv, Ti.float(), Tj, True)

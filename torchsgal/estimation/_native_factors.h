@@ -1,0 +1,80 @@
+/* The residuals and Jacobians of the factor-graph engine's built-in SE(3) priors and betweens,
+ * one factor at a time (included by estimation/_native.c once per element type T with suffix SFX,
+ * after functional/_native_sgal3.h, whose SE(3) closed forms it calls: se3_log_one_f64 ...).
+ *
+ * Matrices are row-major (4, 4) [[C, t], [0, 1]].  Prior: E = Z^-1 T; between: E = Z^-1 T_i^-1
+ * T_j.  r = log(E) (6) = [rho, phi] (se3_log_one), and the Jacobians with respect to right
+ * perturbations (estimation/graph/factors.py): J = J_r^-1(r) = J_l^-1(-r) for the prior and for
+ * T_j; J_i = -J_l^-1(r) Ad(Z^-1) for T_i (J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1, A =
+ * T_i^-1 T_j), J written as [J_i | J_j] (6, 12) for a between.
+ */
+
+/* o (3, 4) = the top rows of A B, A and B (4, 4) with bottom row [0, 0, 0, 1] (A's top rows
+ * given as a (3, 4) block with row stride sa) */
+#define KF_(name, sfx) name##_##sfx
+#define KF__(name, sfx) KF_(name, sfx)
+#define K(name) KF__(name, SFX)
+
+static inline void K(se3_top_product)(const T *A, int sa, const T *Bm, T *o) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 4; ++j)
+            o[4 * i + j] = A[sa * i] * Bm[j] + A[sa * i + 1] * Bm[4 + j] + A[sa * i + 2] * Bm[8 + j]
+                           + (j == 3 ? A[sa * i + 3] : (T)0);
+}
+
+/* r and, unless J is null, its Jacobian; Ti null for a prior (E = Z^-1 Tj) */
+static void K(se3_factor_one)(const T *Zinv, const T *Ti, const T *Tj, T *r, T *J) {
+    T A[12], E[16], neg[6], Jl[36], Jr[36];
+    if (Ti) {
+        T inv[12];  /* T_i^-1 = [C^T, -C^T t] */
+        for (int i = 0; i < 3; ++i) {
+            for (int j = 0; j < 3; ++j) inv[4 * i + j] = Ti[4 * j + i];
+            inv[4 * i + 3] = -(Ti[i] * Ti[3] + Ti[4 + i] * Ti[7] + Ti[8 + i] * Ti[11]);
+        }
+        K(se3_top_product)(inv, 4, Tj, A);
+        T A16[16];
+        for (int i = 0; i < 12; ++i) A16[i] = A[i];
+        A16[12] = 0; A16[13] = 0; A16[14] = 0; A16[15] = 1;
+        K(se3_top_product)(Zinv, 4, A16, E);
+    } else {
+        K(se3_top_product)(Zinv, 4, Tj, E);
+    }
+    E[12] = 0; E[13] = 0; E[14] = 0; E[15] = 1;
+    K(se3_log_one)(E, r);
+    if (!J) return;
+    for (int i = 0; i < 6; ++i) neg[i] = -r[i];
+    K(se3_jl_one)(neg, 1, Jr);  /* J_r^-1(r) = J_l^-1(-r) */
+    if (!Ti) {
+        for (int i = 0; i < 36; ++i) J[i] = Jr[i];
+        return;
+    }
+    K(se3_jl_one)(r, 1, Jl);
+    /* Ad(Z^-1) = [[C, t^ C], [0, C]]; J_i = -J_l^-1 Ad(Z^-1) */
+    T C[9], tC[9], Ad[36];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) C[3 * i + j] = Zinv[4 * i + j];
+    const T t[3] = {Zinv[3], Zinv[7], Zinv[11]};
+    K(skew_times)(t, C, tC);
+    for (int i = 0; i < 36; ++i) Ad[i] = 0;
+    K(put3)(Ad, 6, 0, 0, C); K(put3)(Ad, 6, 1, 1, C); K(put3)(Ad, 6, 0, 1, tC);
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j < 6; ++j) {
+            T s = 0;
+            for (int k = 0; k < 6; ++k) s += Jl[6 * i + k] * Ad[6 * k + j];
+            J[12 * i + j] = -s;
+            J[12 * i + 6 + j] = Jr[6 * i + j];
+        }
+}
+
+/* args: Zinv, Ti (null for priors), Tj, r, J (null: residuals only), each (n, ...) contiguous */
+static void K(se3_factor_range)(void **a, int64_t lo, int64_t hi) {
+    const T *Zinv = a[0], *Ti = a[1], *Tj = a[2];
+    T *r = a[3], *J = a[4];
+    const int64_t width = Ti ? 72 : 36;
+    for (int64_t b = lo; b < hi; ++b)
+        K(se3_factor_one)(Zinv + 16 * b, Ti ? Ti + 16 * b : NULL, Tj + 16 * b, r + 6 * b, J ? J + width * b : NULL);
+}
+
+#undef K
+#undef KF__
+#undef KF_

@@ -1,0 +1,100 @@
+"""The residuals and Jacobians of the built-in SE(3) priors and betweens as one torch operator.
+
+``torch.ops.torchsgal.se3_factor_terms(Zinv, Ti, Tj, jacobians)`` -> (r (..., 6), J): for
+priors (``Ti`` None) E = Z^-1 T_j and J = J_r^-1(r) (..., 6, 6); for betweens E = Z^-1 T_i^-1
+T_j and J = [J_i | J_j] (..., 6, 12) with J_j = J_r^-1(r) and J_i = -J_l^-1(r) Ad(Z^-1)
+(the formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E); J is
+(..., 6, 0) without ``jacobians``.  All arguments (..., 4, 4) of one batch shape, dtype and
+device.
+
+The engine's linearisation of a pose graph otherwise runs some thirty tensor operations and
+three operator calls per block of factors (the inverses, two products, the log, both inverse
+Jacobians, Ad(Z^-1) and the products that assemble J), a fixed cost per step that dominates
+small problems.  On the CPU the C kernel of ``estimation/_native_factors.h`` evaluates a factor
+in one pass on the SE(3) closed forms of ``functional/_native_sgal3.h`` (the kernels of
+``torchsgal::se3_log`` and ``se3_jl_inv``), the batch split over ``torch.get_num_threads()``
+threads; elsewhere, or with the kernels off, the tensor code below (the reference the tests
+compare the kernel with).  No autograd formula is registered: the engine calls the operator
+only where nothing records a derivative (``usable``), and its differentiable solves take the
+tensor path of ``_log_form_terms``.
+"""
+from __future__ import annotations
+
+import torch
+
+from ...functional import checks, native, se3
+from .. import dense_solve
+from .log_terms import se3_inverse, se3_log_jacobians
+
+__all__ = ["se3_factor_terms", "usable"]
+
+
+def usable(*tensors: torch.Tensor) -> bool:
+    """Whether ``se3_factor_terms`` runs its C kernel for these (CPU float32/float64 tensors that
+    nothing differentiates, kernels built and on in the calling thread)."""
+    lib = dense_solve._lib
+    if lib is None or not native.enabled():
+        return False
+    first = tensors[0]
+    if first.device.type != "cpu" or first.dtype not in (torch.float32, torch.float64):
+        return False
+    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
+
+def _check(Zinv, Ti, Tj) -> None:
+    for name, t in (("Zinv", Zinv), ("Ti", Ti), ("Tj", Tj)):
+        if t is not None:
+            checks.matrix(t, 4, name)
+    given = {k: v for k, v in (("Zinv", Zinv), ("Ti", Ti), ("Tj", Tj)) if v is not None}
+    checks.same_device_dtype(**given)
+    shapes = [v.shape for v in given.values()]
+    if any(shape != shapes[0] for shape in shapes[1:]):
+        raise ValueError(f"Zinv, Ti and Tj must have one shape (..., 4, 4), got "
+                         f"{ {k: tuple(v.shape) for k, v in given.items()} }")
+
+
+def _tensor_code(Zinv, Ti, Tj, jacobians: bool):
+    E = Zinv @ (Tj if Ti is None else se3_inverse(Ti) @ Tj)
+    r, jr, jl = se3_log_jacobians(E, jacobians)
+    if not jacobians:
+        return r, r.new_empty(r.shape[:-1] + (6, 0))
+    assert jr is not None and jl is not None
+    if Ti is None:
+        return r, jr
+    Ji = -(jl @ se3.adjoint(Zinv))
+    return r, torch.cat([Ji, jr], dim=-1)
+
+
+@torch.library.custom_op("torchsgal::se3_factor_terms", mutates_args=(),
+                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, bool jacobians) -> (Tensor, Tensor)")
+def se3_factor_terms(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
+                     jacobians: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """(r, J) of SE(3) priors (``Ti`` None) or betweens (module docstring)."""
+    _check(Zinv, Ti, Tj)
+    return _tensor_code(Zinv, Ti, Tj, jacobians)
+
+
+@se3_factor_terms.register_kernel("cpu")
+def _cpu(Zinv, Ti, Tj, jacobians):
+    _check(Zinv, Ti, Tj)
+    lib = dense_solve._lib
+    if lib is None or not native.enabled() or Tj.dtype not in (torch.float32, torch.float64):
+        return _tensor_code(Zinv, Ti, Tj, jacobians)
+    batch = Tj.shape[:-2]
+    Zinv, Tj = Zinv.resolve_neg().contiguous(), Tj.resolve_neg().contiguous()
+    Ti = None if Ti is None else Ti.resolve_neg().contiguous()
+    r = Tj.new_empty(batch + (6,))
+    J = Tj.new_empty(batch + (6, (6 if Ti is None else 12) if jacobians else 0))
+    n = r.numel() // 6
+    lib.se3_factor_terms(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
+                         r.data_ptr(), J.data_ptr() if jacobians else 0, n,
+                         torch.get_num_threads(), Tj.dtype is torch.float64)
+    return r, J
+
+
+@se3_factor_terms.register_fake
+def _fake(Zinv, Ti, Tj, jacobians):
+    _check(Zinv, Ti, Tj)
+    batch = Tj.shape[:-2]
+    width = (6 if Ti is None else 12) if jacobians else 0
+    return Tj.new_empty(batch + (6,)), Tj.new_empty(batch + (6, width))
