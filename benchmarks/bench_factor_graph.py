@@ -11,9 +11,9 @@
    The same from far initial poses (most problems stop after 5-7 iterations, a few run to
    100), then for larger batches (64, 256, 1024 graphs).
 3. Where the engine's time goes: cProfile of one pose-graph solve, cumulative seconds of the
-   linearisation (residuals, Jacobians, assembly; of which the fused prior and between
-   residuals and Jacobians, and within them the one SE(3) pass of ``log_terms``: log, J_r^-1
-   and J_l^-1), the linear solves and the rest.
+   linearisation (residuals, Jacobians, assembly; of which the prior and between residuals and
+   Jacobians, and within them the operator ``torchsgal::se3_factor_terms``), the linear solves
+   and the rest.
 4. Native batching against ``torch.func.vmap`` over factors for the Between residual and its
    analytic Jacobians (64 x 10 factors): medians and ratio.
 5. Differentiable solves of the 64 pose graphs of 1. (measurements Z exp(xi), xi requiring
@@ -197,7 +197,7 @@ def profile_pose_graphs() -> dict:
 
     parts = dict(linearize=cum("linearize.py", "linearize"),
                  prior_between_log_terms=cum("linearize.py", "_log_form_terms"),
-                 se3_log_and_jacobians=cum("log_terms.py", "se3_log_jacobians"),
+                 se3_factor_terms_kernel=cum("factor_kernels.py", "_cpu"),
                  linear_solve=cum("linear_system.py", "solve"),
                  retract=cum("linearize.py", "retract"),
                  final_rank_test=cum("linear_system.py", "set_solution") + cum("linear_system.py", "singular"),
