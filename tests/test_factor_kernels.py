@@ -1,7 +1,8 @@
-"""The built-in SE(3) priors' and betweens' residuals and Jacobians as one operator
-(``torch.ops.torchsgal.se3_factor_terms``, ``graph.factor_kernels``; its C kernel
-``estimation/_native_factors.h``): against the formulas written out with the group's closed forms
-as tensor code (``se3.log_impl``, ``jl_inv_impl``, ``adjoint``) and against central differences
+"""The built-in SE(3) and SE(2) priors' and betweens' residuals and Jacobians as operators
+(``torch.ops.torchsgal.se3_factor_terms``, ``se2_factor_terms``, ``graph.factor_kernels``; their
+C kernels ``estimation/_native_factors.h``): against the formulas written out with the groups'
+closed forms as tensor code (``log_impl``, ``jl_inv_impl`` / ``jr_inv``, ``adjoint``) and
+against central differences
 of the residual along right perturbations, at small angles, around the series threshold and
 near pi, in float64 and float32; the engine's choice of it; fake tensors; bad arguments."""
 from __future__ import annotations
@@ -15,7 +16,7 @@ from torch.library import opcheck
 
 from torchsgal.estimation import dense_solve
 from torchsgal.estimation.graph import factor_kernels
-from torchsgal.functional import native, se3
+from torchsgal.functional import native, se2, se3
 
 f64 = torch.float64
 OP = torch.ops.torchsgal.se3_factor_terms
@@ -158,3 +159,99 @@ def test_fake_tensors_and_bad_arguments():
         OP(Zinv, Ti, Tj[..., :3], True)
     with pytest.raises((TypeError, ValueError), match="float64|dtype"):
         OP(Zinv, Ti.float(), Tj, True)
+
+
+# ---------------------------------------------------------------------------- SE(2)
+OP2 = torch.ops.torchsgal.se2_factor_terms
+
+
+def elements2(n, angle, seed, dtype=f64):
+    gen = torch.Generator().manual_seed(seed)
+    xi = torch.randn(n, 3, generator=gen, dtype=f64)
+    sign = torch.where(torch.rand(n, generator=gen, dtype=f64) < 0.5, -1.0, 1.0)
+    xi[:, 2] = sign * angle * (0.5 + 0.5 * torch.rand(n, generator=gen, dtype=f64))
+    return se2.exp_impl(xi).to(dtype)
+
+
+def _pair2(angle, n=40, seed=0, dtype=f64):
+    Ti, E, Z = elements2(n, 2.0, seed), elements2(n, angle, seed + 1), elements2(n, 1.0, seed + 2)
+    return (torch.linalg.inv(Z).to(dtype), Ti.to(dtype), (Ti @ Z @ E).to(dtype))
+
+
+def written_out2(Zinv, Ti, Tj):
+    Zinv, Tj = Zinv.double(), Tj.double()
+    if Ti is None:
+        r = se2.log_impl(Zinv @ Tj)
+        return r, se2.jr_inv(r)
+    A = torch.linalg.inv(Ti.double()) @ Tj
+    r = se2.log_impl(Zinv @ A)
+    Jj = se2.jr_inv(r)
+    return r, torch.cat([-Jj @ se2.adjoint(torch.linalg.inv(A)), Jj], dim=-1)
+
+
+@pytest.mark.parametrize("kernel", [True, False])
+@pytest.mark.parametrize("angle", ANGLES)
+def test_se2_betweens_and_priors_match_their_definitions(angle, kernel):
+    Zinv, Ti, Tj = _pair2(angle)
+    with (native.disabled() if not kernel else _nothing()):
+        rb, Jb = OP2(Zinv, Ti, Tj, True)
+        rp, Jp = OP2(Zinv, None, Tj, True)
+        r_only, empty = OP2(Zinv, Ti, Tj, False)
+    rb_ref, Jb_ref = written_out2(Zinv, Ti, Tj)
+    rp_ref, Jp_ref = written_out2(Zinv, None, Tj)
+    assert Jb.shape == (40, 3, 6) and Jp.shape == (40, 3, 3) and empty.shape == (40, 3, 0)
+    torch.testing.assert_close(rb, rb_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jb, Jb_ref, rtol=0, atol=1e-10)
+    torch.testing.assert_close(rp, rp_ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(Jp, Jp_ref, rtol=0, atol=1e-10)
+    assert torch.equal(r_only, rb)
+
+
+@pytest.mark.parametrize("angle", [1e-3, 0.5, 2.5])
+def test_se2_jacobians_are_the_residuals_derivatives(angle):
+    Zinv, Ti, Tj = _pair2(angle, n=6, seed=3)
+    _, J = OP2(Zinv, Ti, Tj, True)
+    h = 1e-6
+    numeric = []
+    for which in (0, 1):
+        for k in range(3):
+            e = torch.zeros(3, dtype=f64)
+            e[k] = h
+            plus, minus = [Ti, Tj], [Ti, Tj]
+            plus[which] = plus[which] @ se2.exp_impl(e)
+            minus[which] = minus[which] @ se2.exp_impl(-e)
+            numeric.append((OP2(Zinv, *plus, False)[0] - OP2(Zinv, *minus, False)[0]) / (2 * h))
+    torch.testing.assert_close(J, torch.stack(numeric, -1), rtol=0, atol=1e-7)
+
+
+@needs_kernel
+def test_se2_kernel_float32_threads_and_tensor_code():
+    Zinv, Ti, Tj = (t.float() for t in _pair2(0.7, seed=4))
+    r, J = OP2(Zinv, Ti, Tj, True)
+    r_ref, J_ref = written_out2(Zinv, Ti, Tj)
+    assert r.dtype == J.dtype == torch.float32
+    torch.testing.assert_close(r.double(), r_ref, rtol=0, atol=2e-5)
+    torch.testing.assert_close(J.double(), J_ref, rtol=0, atol=2e-4)
+    Zinv, Ti, Tj = _pair2(1.3, n=40000, seed=5)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = OP2(Zinv, Ti, Tj, True)
+        torch.set_num_threads(2)
+        two = OP2(Zinv, Ti, Tj, True)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+    tensor = factor_kernels._se2_tensor_code(Zinv, Ti, Tj, True)
+    torch.testing.assert_close(one[0], tensor[0], rtol=0, atol=1e-13)
+    torch.testing.assert_close(one[1], tensor[1], rtol=0, atol=1e-12)
+
+
+def test_se2_fake_tensors_and_bad_arguments():
+    Zinv, Ti, Tj = _pair2(0.5, n=4, seed=7)
+    opcheck(OP2.default, (Zinv, Ti, Tj, True))
+    opcheck(OP2.default, (Zinv, None, Tj, False))
+    with pytest.raises(ValueError, match="one shape"):
+        OP2(Zinv[:2], Ti, Tj, True)
+    with pytest.raises(ValueError, match="Tj"):
+        OP2(Zinv, Ti, Tj[..., :2], True)

@@ -1,9 +1,9 @@
 /* torchsgal.estimation._native: the estimation engine's CPU kernels: batched Cholesky
  * factorisations and triangular solves of small dense systems (_native_cholesky.h; the operators
  * torchsgal::cholesky_solve and torchsgal::triangular_solve, estimation/dense_solve.py), and the
- * residuals and Jacobians of the built-in SE(3) priors and betweens (_native_factors.h, on the
- * SE(3) closed forms of functional/_native_sgal3.h; torchsgal::se3_factor_terms,
- * estimation/graph/log_terms.py).
+ * residuals and Jacobians of the built-in SE(3) and SE(2) priors and betweens (_native_factors.h,
+ * SE(3) on the closed forms of functional/_native_sgal3.h; torchsgal::se3_factor_terms and
+ * se2_factor_terms, estimation/graph/factor_kernels.py).
  *
  * No torch headers: the Python side passes data pointers of contiguous CPU tensors it allocated
  * and checked.  The splitting of a batch over threads is the core kernels' (_native_common.h).
@@ -35,13 +35,25 @@
 #define T double
 #define SFX f64
 #define SQRT sqrt
+#define SIN sin
+#define COS cos
+#define ATAN2 atan2
 #include "_native_factors.h"
 #include "_native_cholesky.h"  /* undefines T, SFX and SQRT */
+#undef SIN
+#undef COS
+#undef ATAN2
 #define T float
 #define SFX f32
 #define SQRT sqrtf
+#define SIN sinf
+#define COS cosf
+#define ATAN2 atan2f
 #include "_native_factors.h"
 #include "_native_cholesky.h"
+#undef SIN
+#undef COS
+#undef ATAN2
 
 /* work of one m x m system with k right-hand sides, in units of one SGal(3) exp (~400 flops) */
 static int64_t solve_cost(int64_t m, int64_t k, int back) {
@@ -92,6 +104,19 @@ static PyObject *py_se3_factor_terms(PyObject *self, PyObject *const *a, Py_ssiz
     Py_RETURN_NONE;
 }
 
+/* se2_factor_terms(Zinv, Ti, Tj, r, J, series, n, threads, is_double): as se3_factor_terms;
+ * series (1 + SE2_SERIES doubles): the squared threshold of the series, then its coefficients */
+static PyObject *py_se2_factor_terms(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[6];
+    int64_t ints[3]; /* n, threads, is_double */
+    if (read_call(a, nargs, 6, ptr, 3, ints, "se2_factor_terms") < 0) return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[2] ? se2_factor_range_f64 : se2_factor_range_f32, ptr, ints[0], 1, (int)ints[1]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
@@ -100,6 +125,8 @@ static PyMethodDef methods[] = {
      "batched triangular solves (L, R, X, n, m, k, transpose, lanes, threads, is_double)"},
     {"se3_factor_terms", (PyCFunction)(void (*)(void))py_se3_factor_terms, METH_FASTCALL,
      "SE(3) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, n, threads, is_double)"},
+    {"se2_factor_terms", (PyCFunction)(void (*)(void))py_se2_factor_terms, METH_FASTCALL,
+     "SE(2) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, series, n, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

@@ -66,6 +66,73 @@ static void K(se3_factor_one)(const T *Zinv, const T *Ti, const T *Tj, T *r, T *
         }
 }
 
+/* SE(2), matrices (3, 3) [[C, t], [0, 1]], tangent [rho, theta] (graph/log_terms.py,
+ * se2_log_jacobians): theta = atan2 of E's rotation, d = (1 - h) / theta^2 with
+ * h = (theta/2) cot(theta/2) (below theta^2 = series[0] the series series[1..SERIES] in theta^2),
+ * rho = h t - (theta/2) J t, J_r^-1, J_l^-1 = [[h I +- (theta/2) J, d theta rho -+ (1/2) J rho],
+ * [0, 1]]; a between's J_i = -J_l^-1(r) Ad(Z^-1), Ad(M) = [[C, -J t], [0, 1]]. */
+#define SE2_SERIES 14
+
+static inline void K(se2_product)(const T *A, const T *Bm, T *o) {  /* top rows of A B */
+    for (int i = 0; i < 2; ++i)
+        for (int j = 0; j < 3; ++j)
+            o[3 * i + j] = A[3 * i] * Bm[j] + A[3 * i + 1] * Bm[3 + j] + (j == 2 ? A[3 * i + 2] : (T)0);
+    o[6] = 0; o[7] = 0; o[8] = 1;
+}
+
+static void K(se2_factor_one)(const T *Zinv, const T *Ti, const T *Tj, const double *series, T *r,
+                              T *J) {
+    T E[9], A[9];
+    if (Ti) {
+        T inv[9] = {Ti[0], Ti[3], -(Ti[0] * Ti[2] + Ti[3] * Ti[5]),
+                    Ti[1], Ti[4], -(Ti[1] * Ti[2] + Ti[4] * Ti[5]), 0, 0, 1};
+        K(se2_product)(inv, Tj, A);
+        K(se2_product)(Zinv, A, E);
+    } else {
+        K(se2_product)(Zinv, Tj, E);
+    }
+    const T theta = ATAN2((T)0.5 * (E[3] - E[1]), (T)0.5 * (E[0] + E[4]));
+    const T t2 = theta * theta;
+    T d;
+    if (t2 < (T)series[0]) {
+        T p = 1, acc = 0;
+        for (int k = 0; k < SE2_SERIES; ++k) {
+            acc += p * (T)series[1 + k];
+            p *= t2;
+        }
+        d = acc;
+    } else {
+        const T sh = SIN((T)0.5 * theta), ch = COS((T)0.5 * theta);
+        const T h = theta * ch / (2 * sh);
+        d = (1 - h) / t2;
+    }
+    const T h = 1 - d * t2, half = (T)0.5 * theta;
+    const T rho0 = h * E[2] + half * E[5], rho1 = h * E[5] - half * E[2];
+    r[0] = rho0; r[1] = rho1; r[2] = theta;
+    if (!J) return;
+    const T u0 = d * theta * rho0, u1 = d * theta * rho1;
+    const T Jr[9] = {h, -half, u0 + (T)0.5 * rho1, half, h, u1 - (T)0.5 * rho0, 0, 0, 1};
+    const int w = Ti ? 6 : 3;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) J[w * i + (Ti ? 3 : 0) + j] = Jr[3 * i + j];
+    if (!Ti) return;
+    const T Jl[9] = {h, half, u0 - (T)0.5 * rho1, -half, h, u1 + (T)0.5 * rho0, 0, 0, 1};
+    const T Ad[9] = {Zinv[0], Zinv[1], Zinv[5], Zinv[3], Zinv[4], -Zinv[2], 0, 0, 1};
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            J[6 * i + j] = -(Jl[3 * i] * Ad[j] + Jl[3 * i + 1] * Ad[3 + j] + Jl[3 * i + 2] * Ad[6 + j]);
+}
+
+static void K(se2_factor_range)(void **a, int64_t lo, int64_t hi) {
+    const T *Zinv = a[0], *Ti = a[1], *Tj = a[2];
+    T *r = a[3], *J = a[4];
+    const double *series = a[5];
+    const int64_t width = Ti ? 18 : 9;
+    for (int64_t b = lo; b < hi; ++b)
+        K(se2_factor_one)(Zinv + 9 * b, Ti ? Ti + 9 * b : NULL, Tj + 9 * b, series, r + 3 * b,
+                          J ? J + width * b : NULL);
+}
+
 /* args: Zinv, Ti (null for priors), Tj, r, J (null: residuals only), each (n, ...) contiguous */
 static void K(se3_factor_range)(void **a, int64_t lo, int64_t hi) {
     const T *Zinv = a[0], *Ti = a[1], *Tj = a[2];

@@ -1,32 +1,34 @@
-"""The residuals and Jacobians of the built-in SE(3) priors and betweens as one torch operator.
+"""The residuals and Jacobians of the built-in SE(3) and SE(2) priors and betweens as torch
+operators.
 
-``torch.ops.torchsgal.se3_factor_terms(Zinv, Ti, Tj, jacobians)`` -> (r (..., 6), J): for
-priors (``Ti`` None) E = Z^-1 T_j and J = J_r^-1(r) (..., 6, 6); for betweens E = Z^-1 T_i^-1
-T_j and J = [J_i | J_j] (..., 6, 12) with J_j = J_r^-1(r) and J_i = -J_l^-1(r) Ad(Z^-1)
-(the formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E); J is
-(..., 6, 0) without ``jacobians``.  All arguments (..., 4, 4) of one batch shape, dtype and
-device.
+``torch.ops.torchsgal.se3_factor_terms(Zinv, Ti, Tj, jacobians)`` -> (r (..., 6), J), and
+``se2_factor_terms`` the same with (..., 3, 3) matrices and r (..., 3): for priors (``Ti``
+None) E = Z^-1 T_j and J = J_r^-1(r) (..., dof, dof); for betweens E = Z^-1 T_i^-1 T_j and
+J = [J_i | J_j] (..., dof, 2 dof) with J_j = J_r^-1(r) and J_i = -J_l^-1(r) Ad(Z^-1) (the
+formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E); J is
+(..., dof, 0) without ``jacobians``.  All arguments of one batch shape, dtype and device.
 
-The engine's linearisation of a pose graph otherwise runs some thirty tensor operations and
-three operator calls per block of factors (the inverses, two products, the log, both inverse
-Jacobians, Ad(Z^-1) and the products that assemble J), a fixed cost per step that dominates
-small problems.  On the CPU the C kernel of ``estimation/_native_factors.h`` evaluates a factor
-in one pass on the SE(3) closed forms of ``functional/_native_sgal3.h`` (the kernels of
-``torchsgal::se3_log`` and ``se3_jl_inv``), the batch split over ``torch.get_num_threads()``
-threads; elsewhere, or with the kernels off, the tensor code below (the reference the tests
-compare the kernel with).  No autograd formula is registered: the engine calls the operator
-only where nothing records a derivative (``usable``), and its differentiable solves take the
-tensor path of ``_log_form_terms``.
+The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
+on SE(3), three operator calls) per block of factors: the inverses, two products, the log,
+both inverse Jacobians, Ad(Z^-1) and the products that assemble J, a fixed cost per step that
+dominates small problems.  On the CPU the C kernel of ``estimation/_native_factors.h``
+evaluates a factor in one pass (SE(3) on the closed forms of ``functional/_native_sgal3.h``, the
+kernels of ``torchsgal::se3_log`` and ``se3_jl_inv``; SE(2) on the formulas and series of
+``log_terms.se2_log_jacobians``), the batch split over ``torch.get_num_threads()`` threads;
+elsewhere, or with the kernels off, the tensor code below (the reference the tests compare the
+kernel with).  No autograd formula is registered: the engine calls the operators only where
+nothing records a derivative (``usable``), and its differentiable solves take the tensor path
+of ``_log_form_terms``.
 """
 from __future__ import annotations
 
 import torch
 
-from ...functional import checks, native, se3
+from ...functional import checks, native, se2, se3
 from .. import dense_solve
-from .log_terms import se3_inverse, se3_log_jacobians
+from .log_terms import _SERIES, SERIES_THRESHOLD, se2_log_jacobians, se3_inverse, se3_log_jacobians
 
-__all__ = ["se3_factor_terms", "usable"]
+__all__ = ["se3_factor_terms", "se2_factor_terms", "usable"]
 
 
 def usable(*tensors: torch.Tensor) -> bool:
@@ -41,15 +43,15 @@ def usable(*tensors: torch.Tensor) -> bool:
     return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
 
-def _check(Zinv, Ti, Tj) -> None:
+def _check(Zinv, Ti, Tj, n: int = 4) -> None:
     for name, t in (("Zinv", Zinv), ("Ti", Ti), ("Tj", Tj)):
         if t is not None:
-            checks.matrix(t, 4, name)
+            checks.matrix(t, n, name)
     given = {k: v for k, v in (("Zinv", Zinv), ("Ti", Ti), ("Tj", Tj)) if v is not None}
     checks.same_device_dtype(**given)
     shapes = [v.shape for v in given.values()]
     if any(shape != shapes[0] for shape in shapes[1:]):
-        raise ValueError(f"Zinv, Ti and Tj must have one shape (..., 4, 4), got "
+        raise ValueError(f"Zinv, Ti and Tj must have one shape (..., {n}, {n}), got "
                          f"{ {k: tuple(v.shape) for k, v in given.items()} }")
 
 
@@ -98,3 +100,52 @@ def _fake(Zinv, Ti, Tj, jacobians):
     batch = Tj.shape[:-2]
     width = (6 if Ti is None else 12) if jacobians else 0
     return Tj.new_empty(batch + (6,)), Tj.new_empty(batch + (6, width))
+
+
+# ---------------------------------------------------------------------------- SE(2)
+# the squared series threshold, then the series of d in theta^2 (``log_terms``), for the kernel
+_SE2_SERIES = torch.tensor([SERIES_THRESHOLD ** 2] + [d for d, _ in _SERIES], dtype=torch.float64)
+
+
+def _se2_tensor_code(Zinv, Ti, Tj, jacobians: bool):
+    E = Zinv @ (Tj if Ti is None else se2.inverse(Ti) @ Tj)
+    r, jr, jl = se2_log_jacobians(E, jacobians)
+    if not jacobians:
+        return r, r.new_empty(r.shape[:-1] + (3, 0))
+    assert jr is not None and jl is not None
+    if Ti is None:
+        return r, jr
+    return r, torch.cat([-(jl @ se2.adjoint(Zinv)), jr], dim=-1)
+
+
+@torch.library.custom_op("torchsgal::se2_factor_terms", mutates_args=(),
+                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, bool jacobians) -> (Tensor, Tensor)")
+def se2_factor_terms(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
+                     jacobians: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """(r, J) of SE(2) priors (``Ti`` None) or betweens (module docstring)."""
+    _check(Zinv, Ti, Tj, 3)
+    return _se2_tensor_code(Zinv, Ti, Tj, jacobians)
+
+
+@se2_factor_terms.register_kernel("cpu")
+def _se2_cpu(Zinv, Ti, Tj, jacobians):
+    _check(Zinv, Ti, Tj, 3)
+    lib = dense_solve._lib
+    if lib is None or not native.enabled() or Tj.dtype not in (torch.float32, torch.float64):
+        return _se2_tensor_code(Zinv, Ti, Tj, jacobians)
+    batch = Tj.shape[:-2]
+    Zinv, Tj = Zinv.resolve_neg().contiguous(), Tj.resolve_neg().contiguous()
+    Ti = None if Ti is None else Ti.resolve_neg().contiguous()
+    r = Tj.new_empty(batch + (3,))
+    J = Tj.new_empty(batch + (3, (3 if Ti is None else 6) if jacobians else 0))
+    lib.se2_factor_terms(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
+                         r.data_ptr(), J.data_ptr() if jacobians else 0, _SE2_SERIES.data_ptr(),
+                         r.numel() // 3, torch.get_num_threads(), Tj.dtype is torch.float64)
+    return r, J
+
+
+@se2_factor_terms.register_fake
+def _se2_fake(Zinv, Ti, Tj, jacobians):
+    _check(Zinv, Ti, Tj, 3)
+    width = (3 if Ti is None else 6) if jacobians else 0
+    return Tj.new_empty(Tj.shape[:-2] + (3,)), Tj.new_empty(Tj.shape[:-2] + (3, width))

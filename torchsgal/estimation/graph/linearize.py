@@ -367,9 +367,9 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     ``J_r^-1``; the Jacobians are J_r^-1(r) (prior; between: J_j) and
     J_i = -J_r^-1(r) Ad(A^-1), A = T_i^-1 T_j, A^-1 = T_j^-1 T_i (the formulas of ``factors``),
     with each variable's inverses computed once and gathered; Z^-1 is the block's
-    ``measured_inv`` (computed once per problem).  SE(3) blocks that nothing differentiates go
-    through ``torchsgal::se3_factor_terms`` instead (``factor_kernels``: one C pass per factor
-    on the CPU), one call per block.  On SE(3) and SE(2), log, J_r^-1 and J_l^-1
+    ``measured_inv`` (computed once per problem).  SE(3) and SE(2) blocks that nothing
+    differentiates go through ``torchsgal::se3_factor_terms`` or ``se2_factor_terms`` instead
+    (``factor_kernels``: one C pass per factor on the CPU), one call per block.  On SE(3) and SE(2), log, J_r^-1 and J_l^-1
     come from one pass (``log_terms``) and J_i = -J_l^-1(r) Ad(Z^-1) (as
     J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1) computed once per problem."""
     B = x[0].shape[0]
@@ -382,12 +382,14 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
         group = problem.variables[block.slots[0][0]].group
         Z_inv = block.measured_inv
         assert group is not None and Z_inv is not None  # set with log_form (``_log_form``)
-        if group is SE3 and factor_kernels.usable(Z_inv, *x):  # one operator call per block
-            shape = (B, block.size, 4, 4)
+        if group in (SE3, SE2) and factor_kernels.usable(Z_inv, *x):  # one call per block
+            n_ = 4 if group is SE3 else 3
+            shape = (B, block.size, n_, n_)
             Ts = [T.expand(shape) for T in _args(block, x)]
-            r, J = torch.ops.torchsgal.se3_factor_terms(
-                Z_inv.expand(shape), None if block.log_form == "prior" else Ts[0], Ts[-1],
-                want_jacobian)
+            op = (torch.ops.torchsgal.se3_factor_terms if group is SE3
+                  else torch.ops.torchsgal.se2_factor_terms)
+            r, J = op(Z_inv.expand(shape), None if block.log_form == "prior" else Ts[0], Ts[-1],
+                      want_jacobian)
             out[n] = (r, J if want_jacobian else None)
             continue
         f = group._f
