@@ -369,9 +369,10 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     with each variable's inverses computed once and gathered; Z^-1 is the block's
     ``measured_inv`` (computed once per problem).  SE(3) and SE(2) blocks that nothing
     differentiates go through ``torchsgal::se3_factor_terms`` or ``se2_factor_terms`` instead
-    (``factor_kernels``: one C pass per factor on the CPU), one call per block.  On SE(3) and SE(2), log, J_r^-1 and J_l^-1
-    come from one pass (``log_terms``) and J_i = -J_l^-1(r) Ad(Z^-1) (as
-    J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1) computed once per problem."""
+    (``factor_kernels``: one C pass per factor on the CPU), one call per block.  Otherwise, on
+    SE(3) and SE(2), log, J_r^-1 and J_l^-1 come from one pass (``log_terms``) and
+    J_i = -J_l^-1(r) Ad(Z^-1) (as J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1)
+    computed once per problem."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
