@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 
 from ...functional import checks, native, se2, se3
+from ...functional._blocking import unobserved
 from .. import dense_solve
 from .log_terms import _SERIES, SERIES_THRESHOLD, se2_log_jacobians, se3_inverse, se3_log_jacobians
 
@@ -32,15 +33,15 @@ __all__ = ["se3_factor_terms", "se2_factor_terms", "usable"]
 
 
 def usable(*tensors: torch.Tensor) -> bool:
-    """Whether ``se3_factor_terms`` runs its C kernel for these (CPU float32/float64 tensors that
-    nothing differentiates, kernels built and on in the calling thread)."""
-    lib = dense_solve._lib
-    if lib is None or not native.enabled():
+    """Whether the engine may call the operators' C kernels for these: plain CPU float32/float64
+    tensors that nothing observes (no autograd recording in reverse or forward mode, no
+    torch.func transform, not compiling: ``functional._blocking.unobserved``), kernels built and
+    on in the calling thread."""
+    if dense_solve._lib is None or not native.enabled():
         return False
-    first = tensors[0]
-    if first.device.type != "cpu" or first.dtype not in (torch.float32, torch.float64):
+    if any(t.dtype not in (torch.float32, torch.float64) for t in tensors):
         return False
-    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+    return unobserved(tensors)
 
 
 def _check(Zinv, Ti, Tj, n: int = 4) -> None:
