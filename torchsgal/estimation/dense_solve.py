@@ -12,21 +12,23 @@ The estimation engine solves many small systems at once: the normal equations of
 small graphs (``graph.linear_system.DenseSystem``), and the covariance S = B Sigma B^T of every
 condition of a Gauss-Helmert factor (``graph.gauss_helmert``).  torch's
 ``linalg.cholesky_ex`` and ``linalg.solve_triangular`` run LAPACK one matrix at a time on
-one thread and copy every batch into column-major order and back; below ``KERNEL_MAX_SIZE``
-unknowns the C kernel of ``_native_cholesky.h`` factors and solves each system in one pass
-over its rows, with the batch split over ``torch.get_num_threads()`` threads
-(``benchmarks/bench_factor_graph.py`` and ``bench_tls.py`` measure the solvers with it).
+one thread and copy every batch into column-major order and back; the C kernel of
+``_native_cholesky.h`` factors and solves eight systems per pass, one per vector lane, with the
+batch split over ``torch.get_num_threads()`` threads (``benchmarks/bench_factor_graph.py``, case
+6, times it against torch.linalg).
 
 One registration (``torch.library.custom_op``) that autograd, ``torch.func`` and
 ``torch.compile`` all see:
 
-* CPU, float32 or float64, m <= ``KERNEL_MAX_SIZE``, kernels built and on
-  (``functional.native.enabled()``): the C kernel;
+* CPU, float32 or float64, systems of up to ``SMALL_SIZE`` unknowns, or up to
+  ``KERNEL_MAX_SIZE`` in batches of at least ``MIN_BATCH``, kernels built and on
+  (``functional.native.enabled()``): the C kernel (``uses_kernel``);
 * otherwise (other devices, larger systems, kernels off): the tensor code below, torch's
   ``linalg.cholesky_ex`` and ``linalg.solve_triangular`` (the reference the tests compare the
   kernel with);
-* derivatives: those of the tensor code (``torch.func.vjp`` and ``jvp``), so gradients, forward
-  derivatives and their derivatives are those of torch's own Cholesky and triangular solves;
+* derivatives: those of the tensor code, so gradients, forward derivatives and their
+  derivatives are those of torch's own Cholesky and triangular solves (the backward is the
+  tensor code's ``torch.func.vjp``; the forward derivative its closed form, as torch's);
   ``cholesky_solve`` and ``triangular_solve`` call the operators through an autograd.Function
   that carries them in reverse and forward mode and under ``torch.func`` transforms (where torch
   2.13 does not apply a custom operator's registered autograd), and the operators directly
