@@ -197,7 +197,7 @@ def profile_pose_graphs() -> dict:
 
     parts = dict(linearize=cum("linearize.py", "linearize"),
                  prior_between_log_terms=cum("linearize.py", "_log_form_terms"),
-                 se3_factor_terms_kernel=cum("factor_kernels.py", "_cpu"),
+                 se3_factor_terms_kernel=cum("factor_kernels.py", "_run"),
                  linear_solve=cum("linear_system.py", "solve"),
                  retract=cum("linearize.py", "retract"),
                  final_rank_test=cum("linear_system.py", "set_solution") + cum("linear_system.py", "singular"),

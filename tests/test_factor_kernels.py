@@ -7,8 +7,11 @@ of the residual along right perturbations, at small angles, around the series th
 near pi, in float64 and float32; the engine's choice of it; fake tensors; bad arguments."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+from collections.abc import Callable
+from typing import NamedTuple
 
 import pytest
 import torch
@@ -19,7 +22,6 @@ from torchsgal.estimation.graph import factor_kernels
 from torchsgal.functional import native, se2, se3
 
 f64 = torch.float64
-OP = torch.ops.torchsgal.se3_factor_terms
 ANGLES = [0.0, 1e-9, 1e-4, 0.3, 0.999, 1.001, 2.0, 3.0, math.pi - 1e-6]
 
 _no_kernel = pytest.mark.skipif(not dense_solve.available()
@@ -65,17 +67,60 @@ def _pair(angle, n=40, seed=0, dtype=f64):
     return torch.linalg.inv(Z.double()).to(dtype), Ti, Tj
 
 
+def elements2(n, angle, seed, dtype=f64):
+    gen = torch.Generator().manual_seed(seed)
+    xi = torch.randn(n, 3, generator=gen, dtype=f64)
+    sign = torch.where(torch.rand(n, generator=gen, dtype=f64) < 0.5, -1.0, 1.0)
+    xi[:, 2] = sign * angle * (0.5 + 0.5 * torch.rand(n, generator=gen, dtype=f64))
+    return se2.exp_impl(xi).to(dtype)
+
+
+def _pair2(angle, n=40, seed=0, dtype=f64):
+    Ti, E, Z = elements2(n, 2.0, seed), elements2(n, angle, seed + 1), elements2(n, 1.0, seed + 2)
+    return (torch.linalg.inv(Z).to(dtype), Ti.to(dtype), (Ti @ Z @ E).to(dtype))
+
+
+def written_out2(Zinv, Ti, Tj):
+    """r and J of SE(2) from the definitions, in float64 tensor code."""
+    Zinv, Tj = Zinv.double(), Tj.double()
+    if Ti is None:
+        r = se2.log_impl(Zinv @ Tj)
+        return r, se2.jr_inv(r)
+    A = torch.linalg.inv(Ti.double()) @ Tj
+    r = se2.log_impl(Zinv @ A)
+    Jj = se2.jr_inv(r)
+    return r, torch.cat([-Jj @ se2.adjoint(torch.linalg.inv(A)), Jj], dim=-1)
+
+
+class Group(NamedTuple):
+    op: object
+    dof: int
+    pair: Callable
+    written_out: Callable
+    exp: Callable
+    tensor_code: Callable
+
+
+GROUPS = {"SE3": Group(torch.ops.torchsgal.se3_factor_terms, 6, _pair, written_out, se3.exp_impl,
+                       factor_kernels._tensor_code),
+          "SE2": Group(torch.ops.torchsgal.se2_factor_terms, 3, _pair2, written_out2, se2.exp_impl,
+                       factor_kernels._se2_tensor_code)}
+
+
+@pytest.mark.parametrize("group", GROUPS)
 @pytest.mark.parametrize("kernel", [True, False])
 @pytest.mark.parametrize("angle", ANGLES)
-def test_betweens_and_priors_match_their_definitions(angle, kernel):
-    Zinv, Ti, Tj = _pair(angle)
-    with (native.disabled() if not kernel else _nothing()):
-        rb, Jb = OP(Zinv, Ti, Tj, True)
-        rp, Jp = OP(Zinv, None, Tj, True)
-        r_only, empty = OP(Zinv, Ti, Tj, False)
-    rb_ref, Jb_ref = written_out(Zinv, Ti, Tj)
-    rp_ref, Jp_ref = written_out(Zinv, None, Tj)
-    assert Jb.shape == (40, 6, 12) and Jp.shape == (40, 6, 6) and empty.shape == (40, 6, 0)
+def test_betweens_and_priors_match_their_definitions(angle, kernel, group):
+    g = GROUPS[group]
+    Zinv, Ti, Tj = g.pair(angle)
+    with native.disabled() if not kernel else contextlib.nullcontext():
+        rb, Jb = g.op(Zinv, Ti, Tj, True)
+        rp, Jp = g.op(Zinv, None, Tj, True)
+        r_only, empty = g.op(Zinv, Ti, Tj, False)
+    rb_ref, Jb_ref = g.written_out(Zinv, Ti, Tj)
+    rp_ref, Jp_ref = g.written_out(Zinv, None, Tj)
+    d = g.dof
+    assert Jb.shape == (40, d, 2 * d) and Jp.shape == (40, d, d) and empty.shape == (40, d, 0)
     torch.testing.assert_close(rb, rb_ref, rtol=0, atol=1e-12)
     torch.testing.assert_close(Jb, Jb_ref, rtol=0, atol=1e-10)
     torch.testing.assert_close(rp, rp_ref, rtol=0, atol=1e-12)
@@ -83,57 +128,55 @@ def test_betweens_and_priors_match_their_definitions(angle, kernel):
     assert torch.equal(r_only, rb)
 
 
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
+@pytest.mark.parametrize("group", GROUPS)
 @pytest.mark.parametrize("angle", [1e-3, 0.5, 2.5])
-def test_jacobians_are_the_residuals_derivatives(angle):
+def test_jacobians_are_the_residuals_derivatives(angle, group):
     """Central differences of r along right perturbations T exp(eps e_k) of T_i and T_j."""
-    Zinv, Ti, Tj = _pair(angle, n=6, seed=3)
-    _, J = OP(Zinv, Ti, Tj, True)
+    g = GROUPS[group]
+    Zinv, Ti, Tj = g.pair(angle, n=6, seed=3)
+    _, J = g.op(Zinv, Ti, Tj, True)
     h = 1e-6
     numeric = []
     for which in (0, 1):
-        for k in range(6):
-            e = torch.zeros(6, dtype=f64)
+        for k in range(g.dof):
+            e = torch.zeros(g.dof, dtype=f64)
             e[k] = h
             plus, minus = [Ti, Tj], [Ti, Tj]
-            plus[which] = plus[which] @ se3.exp_impl(e)
-            minus[which] = minus[which] @ se3.exp_impl(-e)
-            numeric.append((OP(Zinv, *plus, False)[0] - OP(Zinv, *minus, False)[0]) / (2 * h))
+            plus[which] = plus[which] @ g.exp(e)
+            minus[which] = minus[which] @ g.exp(-e)
+            numeric.append((g.op(Zinv, *plus, False)[0] - g.op(Zinv, *minus, False)[0]) / (2 * h))
     torch.testing.assert_close(J, torch.stack(numeric, -1), rtol=0, atol=1e-7)
 
 
 @needs_kernel
+@pytest.mark.parametrize("group", GROUPS)
 @pytest.mark.parametrize("angle", [1e-4, 0.5, 3.0])
-def test_float32_kernel(angle):
-    Zinv, Ti, Tj = (t.float() for t in _pair(angle, seed=4))
-    r, J = OP(Zinv, Ti, Tj, True)
+def test_float32_kernel(angle, group):
+    g = GROUPS[group]
+    Zinv, Ti, Tj = (t.float() for t in g.pair(angle, seed=4))
+    r, J = g.op(Zinv, Ti, Tj, True)
     assert r.dtype == J.dtype == torch.float32
-    r_ref, J_ref = written_out(Zinv, Ti, Tj)
+    r_ref, J_ref = g.written_out(Zinv, Ti, Tj)
     torch.testing.assert_close(r.double(), r_ref, rtol=0, atol=2e-5)
     torch.testing.assert_close(J.double(), J_ref, rtol=0, atol=2e-4)
 
 
 @needs_kernel
-def test_kernel_and_tensor_code_agree_to_rounding_and_threads_change_nothing():
-    Zinv, Ti, Tj = _pair(1.3, n=20000, seed=5)
+@pytest.mark.parametrize("group", GROUPS)
+def test_kernel_and_tensor_code_agree_to_rounding_and_threads_change_nothing(group):
+    g = GROUPS[group]
+    Zinv, Ti, Tj = g.pair(1.3, n=40000, seed=5)
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = OP(Zinv, Ti, Tj, True)
+        one = g.op(Zinv, Ti, Tj, True)
         torch.set_num_threads(2)
-        two = OP(Zinv, Ti, Tj, True)
+        two = g.op(Zinv, Ti, Tj, True)
     finally:
         torch.set_num_threads(before)
     assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
     with native.disabled():  # the closed forms as tensor code, no kernel inside
-        tensor = factor_kernels._tensor_code(Zinv, Ti, Tj, True)
+        tensor = g.tensor_code(Zinv, Ti, Tj, True)
     torch.testing.assert_close(one[0], tensor[0], rtol=0, atol=1e-13)
     torch.testing.assert_close(one[1], tensor[1], rtol=0, atol=1e-12)
 
@@ -150,113 +193,18 @@ def test_the_engine_calls_it_only_where_nothing_differentiates():
     assert not factor_kernels.usable(T.half())
 
 
-def test_fake_tensors_and_bad_arguments():
-    Zinv, Ti, Tj = _pair(0.5, n=4, seed=7)
-    opcheck(OP.default, (Zinv, Ti, Tj, True))
-    opcheck(OP.default, (Zinv, None, Tj, False))
+@pytest.mark.parametrize("group", GROUPS)
+def test_fake_tensors_and_bad_arguments(group):
+    g = GROUPS[group]
+    Zinv, Ti, Tj = g.pair(0.5, n=4, seed=7)
+    opcheck(g.op.default, (Zinv, Ti, Tj, True))
+    opcheck(g.op.default, (Zinv, None, Tj, False))
     with pytest.raises(ValueError, match="one shape"):
-        OP(Zinv[:2], Ti, Tj, True)
+        g.op(Zinv[:2], Ti, Tj, True)
     with pytest.raises(ValueError, match="Tj"):
-        OP(Zinv, Ti, Tj[..., :3], True)
+        g.op(Zinv, Ti, Tj[..., :2], True)
     with pytest.raises((TypeError, ValueError), match="float64|dtype"):
-        OP(Zinv, Ti.float(), Tj, True)
-
-
-# ---------------------------------------------------------------------------- SE(2)
-OP2 = torch.ops.torchsgal.se2_factor_terms
-
-
-def elements2(n, angle, seed, dtype=f64):
-    gen = torch.Generator().manual_seed(seed)
-    xi = torch.randn(n, 3, generator=gen, dtype=f64)
-    sign = torch.where(torch.rand(n, generator=gen, dtype=f64) < 0.5, -1.0, 1.0)
-    xi[:, 2] = sign * angle * (0.5 + 0.5 * torch.rand(n, generator=gen, dtype=f64))
-    return se2.exp_impl(xi).to(dtype)
-
-
-def _pair2(angle, n=40, seed=0, dtype=f64):
-    Ti, E, Z = elements2(n, 2.0, seed), elements2(n, angle, seed + 1), elements2(n, 1.0, seed + 2)
-    return (torch.linalg.inv(Z).to(dtype), Ti.to(dtype), (Ti @ Z @ E).to(dtype))
-
-
-def written_out2(Zinv, Ti, Tj):
-    Zinv, Tj = Zinv.double(), Tj.double()
-    if Ti is None:
-        r = se2.log_impl(Zinv @ Tj)
-        return r, se2.jr_inv(r)
-    A = torch.linalg.inv(Ti.double()) @ Tj
-    r = se2.log_impl(Zinv @ A)
-    Jj = se2.jr_inv(r)
-    return r, torch.cat([-Jj @ se2.adjoint(torch.linalg.inv(A)), Jj], dim=-1)
-
-
-@pytest.mark.parametrize("kernel", [True, False])
-@pytest.mark.parametrize("angle", ANGLES)
-def test_se2_betweens_and_priors_match_their_definitions(angle, kernel):
-    Zinv, Ti, Tj = _pair2(angle)
-    with (native.disabled() if not kernel else _nothing()):
-        rb, Jb = OP2(Zinv, Ti, Tj, True)
-        rp, Jp = OP2(Zinv, None, Tj, True)
-        r_only, empty = OP2(Zinv, Ti, Tj, False)
-    rb_ref, Jb_ref = written_out2(Zinv, Ti, Tj)
-    rp_ref, Jp_ref = written_out2(Zinv, None, Tj)
-    assert Jb.shape == (40, 3, 6) and Jp.shape == (40, 3, 3) and empty.shape == (40, 3, 0)
-    torch.testing.assert_close(rb, rb_ref, rtol=0, atol=1e-12)
-    torch.testing.assert_close(Jb, Jb_ref, rtol=0, atol=1e-10)
-    torch.testing.assert_close(rp, rp_ref, rtol=0, atol=1e-12)
-    torch.testing.assert_close(Jp, Jp_ref, rtol=0, atol=1e-10)
-    assert torch.equal(r_only, rb)
-
-
-@pytest.mark.parametrize("angle", [1e-3, 0.5, 2.5])
-def test_se2_jacobians_are_the_residuals_derivatives(angle):
-    Zinv, Ti, Tj = _pair2(angle, n=6, seed=3)
-    _, J = OP2(Zinv, Ti, Tj, True)
-    h = 1e-6
-    numeric = []
-    for which in (0, 1):
-        for k in range(3):
-            e = torch.zeros(3, dtype=f64)
-            e[k] = h
-            plus, minus = [Ti, Tj], [Ti, Tj]
-            plus[which] = plus[which] @ se2.exp_impl(e)
-            minus[which] = minus[which] @ se2.exp_impl(-e)
-            numeric.append((OP2(Zinv, *plus, False)[0] - OP2(Zinv, *minus, False)[0]) / (2 * h))
-    torch.testing.assert_close(J, torch.stack(numeric, -1), rtol=0, atol=1e-7)
-
-
-@needs_kernel
-def test_se2_kernel_float32_threads_and_tensor_code():
-    Zinv, Ti, Tj = (t.float() for t in _pair2(0.7, seed=4))
-    r, J = OP2(Zinv, Ti, Tj, True)
-    r_ref, J_ref = written_out2(Zinv, Ti, Tj)
-    assert r.dtype == J.dtype == torch.float32
-    torch.testing.assert_close(r.double(), r_ref, rtol=0, atol=2e-5)
-    torch.testing.assert_close(J.double(), J_ref, rtol=0, atol=2e-4)
-    Zinv, Ti, Tj = _pair2(1.3, n=40000, seed=5)
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = OP2(Zinv, Ti, Tj, True)
-        torch.set_num_threads(2)
-        two = OP2(Zinv, Ti, Tj, True)
-    finally:
-        torch.set_num_threads(before)
-    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
-    with native.disabled():
-        tensor = factor_kernels._se2_tensor_code(Zinv, Ti, Tj, True)
-    torch.testing.assert_close(one[0], tensor[0], rtol=0, atol=1e-13)
-    torch.testing.assert_close(one[1], tensor[1], rtol=0, atol=1e-12)
-
-
-def test_se2_fake_tensors_and_bad_arguments():
-    Zinv, Ti, Tj = _pair2(0.5, n=4, seed=7)
-    opcheck(OP2.default, (Zinv, Ti, Tj, True))
-    opcheck(OP2.default, (Zinv, None, Tj, False))
-    with pytest.raises(ValueError, match="one shape"):
-        OP2(Zinv[:2], Ti, Tj, True)
-    with pytest.raises(ValueError, match="Tj"):
-        OP2(Zinv, Ti, Tj[..., :2], True)
+        g.op(Zinv, Ti.float(), Tj, True)
 
 
 @pytest.mark.parametrize("group", ["SE3", "SE2"])

@@ -95,26 +95,14 @@ static PyObject *py_triangular_solve(PyObject *self, PyObject *const *a, Py_ssiz
  * residuals alone (_native_factors.h) */
 static PyObject *py_se3_factor_terms(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    void *ptr[5];
-    int64_t ints[3]; /* n, threads, is_double */
-    if (read_call(a, nargs, 5, ptr, 3, ints, "se3_factor_terms") < 0) return NULL;
-    Py_BEGIN_ALLOW_THREADS
-    run_parallel(ints[2] ? se3_factor_range_f64 : se3_factor_range_f32, ptr, ints[0], 2, (int)ints[1]);
-    Py_END_ALLOW_THREADS
-    Py_RETURN_NONE;
+    return dispatch(a, nargs, 5, se3_factor_range_f64, se3_factor_range_f32, 3, "se3_factor_terms");
 }
 
 /* se2_factor_terms(Zinv, Ti, Tj, r, J, series, n, threads, is_double): as se3_factor_terms;
  * series (1 + SE2_SERIES doubles): the squared threshold of the series, then its coefficients */
 static PyObject *py_se2_factor_terms(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    void *ptr[6];
-    int64_t ints[3]; /* n, threads, is_double */
-    if (read_call(a, nargs, 6, ptr, 3, ints, "se2_factor_terms") < 0) return NULL;
-    Py_BEGIN_ALLOW_THREADS
-    run_parallel(ints[2] ? se2_factor_range_f64 : se2_factor_range_f32, ptr, ints[0], 1, (int)ints[1]);
-    Py_END_ALLOW_THREADS
-    Py_RETURN_NONE;
+    return dispatch(a, nargs, 6, se2_factor_range_f64, se2_factor_range_f32, 1, "se2_factor_terms");
 }
 
 static PyMethodDef methods[] = {

@@ -1,12 +1,15 @@
-/* Batched Cholesky factorisation and triangular solves of small dense systems, one matrix at a
- * time (included by estimation/_native.c once per element type T with suffix SFX).
+/* Batched Cholesky factorisation and triangular solves of small dense systems (included by
+ * estimation/_native.c once per element type T with suffix SFX): eight systems per pass, one per
+ * vector lane (below), or, where the lanes' workspace is not wanted or not allocated, one system
+ * at a time.
  *
  * Row-major storage throughout.  A (m, m) symmetric positive definite (its lower triangle is
  * read), L its lower Cholesky factor (A = L L^T, the strict upper triangle written as zeros),
- * R (m, k) right-hand sides.  The factor is the right-looking (outer-product) form and the
- * solves forward and back substitution, all by contiguous row operations.  A pivot that is not positive (or not finite) stops the factorisation
- * of that matrix: info = its row + 1 (LAPACK's potrf convention) and the matrix's outputs are
- * NaN; info = 0 otherwise.
+ * R (m, k) right-hand sides.  One system at a time, the factor is the right-looking
+ * (outer-product) form and the solves forward and back substitution, all by contiguous row
+ * operations.  A pivot that is not positive (or not finite) stops the factorisation of that
+ * matrix: info = its row + 1 (LAPACK's potrf convention) and the matrix's outputs are NaN;
+ * info = 0 otherwise.
  */
 #if defined(_MSC_VER) && !defined(restrict)
 #define restrict __restrict /* C99's restrict, as MSVC spells it */

@@ -28,22 +28,10 @@
 #define ATAN2 atan2f
 #include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
-/* fn(pointers..., n, threads, is_double) over the batch, the GIL released. */
-static PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npointers, range_fn f64, range_fn f32,
-                          const char *name) {
-    void *ptr[8];
-    int64_t ints[3];  /* n, threads, is_double */
-    if (read_call(a, nargs, npointers, ptr, 3, ints, name) < 0) return NULL;
-    Py_BEGIN_ALLOW_THREADS
-    run_parallel(ints[2] ? f64 : f32, ptr, ints[0], 1, (int)ints[1]);
-    Py_END_ALLOW_THREADS
-    Py_RETURN_NONE;
-}
-
 #define WRAP(op, np)                                                                      \
     static PyObject *py_sgal3_##op(PyObject *self, PyObject *const *a, Py_ssize_t nargs) { \
         (void)self;                                                                       \
-        return dispatch(a, nargs, np, op##_range_f64, op##_range_f32, "sgal3_" #op);      \
+        return dispatch(a, nargs, np, op##_range_f64, op##_range_f32, 1, "sgal3_" #op);      \
     }
 WRAP(exp, 2)
 WRAP(log, 2)
@@ -56,7 +44,7 @@ WRAP(jl_inv, 2)
 #define WRAP_SUB(op)                                                                      \
     static PyObject *py_##op(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {     \
         (void)self;                                                                       \
-        return dispatch(a, nargs, 2, op##_range_f64, op##_range_f32, #op);                \
+        return dispatch(a, nargs, 2, op##_range_f64, op##_range_f32, 1, #op);                \
     }
 WRAP_SUB(se3_exp)
 WRAP_SUB(se3_log)

@@ -1,7 +1,8 @@
 /* What the C extensions of torchsgal share (included once by each: functional/_native.c and
  * imu/_native.c, every definition static to its module): the includes, the thresholds and series
  * (each module holds its own copy, set from numerics.py by native.set_constants), the splitting
- * of a batch over threads (run_parallel), the reading of a call's arguments (read_call) and the
+ * of a batch over threads (run_parallel), the reading of a call's arguments (read_call), the
+ * call of a batch loop with the GIL released (dispatch) and the
  * module functions set_constants and parallel_backend.  Include it before _native_sgal3.h.
  */
 #ifndef TORCHSGAL_NATIVE_COMMON_H
@@ -275,6 +276,19 @@ static int read_table(PyObject *seq, double *out, int cap, const char *name) {
     for (Py_ssize_t i = 0; i < len; ++i) out[i] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(fast, i));
     Py_DECREF(fast);
     return PyErr_Occurred() ? -1 : (int)len;
+}
+
+/* fn(pointers..., n, threads, is_double) over the batch, the GIL released; at most 8 pointers,
+ * ``cost`` as run_parallel's. */
+static inline PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npointers, range_fn f64,
+                                 range_fn f32, int64_t cost, const char *name) {
+    void *ptr[8];
+    int64_t ints[3]; /* n, threads, is_double */
+    if (read_call(a, nargs, npointers, ptr, 3, ints, name) < 0) return NULL;
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[2] ? f64 : f32, ptr, ints[0], cost, (int)ints[1]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
 }
 
 /* set_constants(series_threshold, jinv_threshold, log_symmetric_cos, log_sin_taylor,

@@ -77,30 +77,36 @@ def se3_factor_terms(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tens
     return _tensor_code(Zinv, Ti, Tj, jacobians)
 
 
-@se3_factor_terms.register_kernel("cpu")
-def _cpu(Zinv, Ti, Tj, jacobians):
-    _check(Zinv, Ti, Tj)
+def _run(name: str, n: int, tensor_code, Zinv, Ti, Tj, jacobians: bool, *extra: torch.Tensor):
+    """The operator ``name``'s CPU kernel (matrices (..., n, n), tangent dimension
+    ``n * (n - 1) // 2``) where it runs, else ``tensor_code``; ``extra`` pointers follow J."""
+    _check(Zinv, Ti, Tj, n)
     lib = dense_solve._lib
     if lib is None or not native.enabled() or Tj.dtype not in (torch.float32, torch.float64):
-        return _tensor_code(Zinv, Ti, Tj, jacobians)
-    batch = Tj.shape[:-2]
+        return tensor_code(Zinv, Ti, Tj, jacobians)
+    dof, batch = n * (n - 1) // 2, Tj.shape[:-2]
     Zinv, Tj = Zinv.resolve_neg().contiguous(), Tj.resolve_neg().contiguous()
     Ti = None if Ti is None else Ti.resolve_neg().contiguous()
-    r = Tj.new_empty(batch + (6,))
-    J = Tj.new_empty(batch + (6, (6 if Ti is None else 12) if jacobians else 0))
-    n = r.numel() // 6
-    lib.se3_factor_terms(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
-                         r.data_ptr(), J.data_ptr() if jacobians else 0, n,
-                         torch.get_num_threads(), Tj.dtype is torch.float64)
+    r = Tj.new_empty(batch + (dof,))
+    J = Tj.new_empty(batch + (dof, (dof if Ti is None else 2 * dof) if jacobians else 0))
+    getattr(lib, name)(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
+                       r.data_ptr(), J.data_ptr() if jacobians else 0, *(e.data_ptr() for e in extra),
+                       r.numel() // dof, torch.get_num_threads(), Tj.dtype is torch.float64)
     return r, J
 
 
-@se3_factor_terms.register_fake
-def _fake(Zinv, Ti, Tj, jacobians):
-    _check(Zinv, Ti, Tj)
-    batch = Tj.shape[:-2]
-    width = (6 if Ti is None else 12) if jacobians else 0
-    return Tj.new_empty(batch + (6,)), Tj.new_empty(batch + (6, width))
+def _fake(n: int):
+    def fake(Zinv, Ti, Tj, jacobians):
+        _check(Zinv, Ti, Tj, n)
+        dof = n * (n - 1) // 2
+        width = (dof if Ti is None else 2 * dof) if jacobians else 0
+        return Tj.new_empty(Tj.shape[:-2] + (dof,)), Tj.new_empty(Tj.shape[:-2] + (dof, width))
+    return fake
+
+
+se3_factor_terms.register_kernel("cpu")(
+    lambda Zinv, Ti, Tj, jacobians: _run("se3_factor_terms", 4, _tensor_code, Zinv, Ti, Tj, jacobians))
+se3_factor_terms.register_fake(_fake(4))
 
 
 # ---------------------------------------------------------------------------- SE(2)
@@ -128,25 +134,7 @@ def se2_factor_terms(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tens
     return _se2_tensor_code(Zinv, Ti, Tj, jacobians)
 
 
-@se2_factor_terms.register_kernel("cpu")
-def _se2_cpu(Zinv, Ti, Tj, jacobians):
-    _check(Zinv, Ti, Tj, 3)
-    lib = dense_solve._lib
-    if lib is None or not native.enabled() or Tj.dtype not in (torch.float32, torch.float64):
-        return _se2_tensor_code(Zinv, Ti, Tj, jacobians)
-    batch = Tj.shape[:-2]
-    Zinv, Tj = Zinv.resolve_neg().contiguous(), Tj.resolve_neg().contiguous()
-    Ti = None if Ti is None else Ti.resolve_neg().contiguous()
-    r = Tj.new_empty(batch + (3,))
-    J = Tj.new_empty(batch + (3, (3 if Ti is None else 6) if jacobians else 0))
-    lib.se2_factor_terms(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
-                         r.data_ptr(), J.data_ptr() if jacobians else 0, _SE2_SERIES.data_ptr(),
-                         r.numel() // 3, torch.get_num_threads(), Tj.dtype is torch.float64)
-    return r, J
-
-
-@se2_factor_terms.register_fake
-def _se2_fake(Zinv, Ti, Tj, jacobians):
-    _check(Zinv, Ti, Tj, 3)
-    width = (3 if Ti is None else 6) if jacobians else 0
-    return Tj.new_empty(Tj.shape[:-2] + (3,)), Tj.new_empty(Tj.shape[:-2] + (3, width))
+se2_factor_terms.register_kernel("cpu")(
+    lambda Zinv, Ti, Tj, jacobians: _run("se2_factor_terms", 3, _se2_tensor_code, Zinv, Ti, Tj,
+                                         jacobians, _SE2_SERIES))
+se2_factor_terms.register_fake(_fake(3))

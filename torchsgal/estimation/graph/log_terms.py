@@ -1,7 +1,10 @@
 """Residual r = log(E) and both inverse Jacobians J_r^-1(r), J_l^-1(r), for SE(3) and SE(2).
 
 The built-in priors and betweens need, per factor, the log of the error E and the inverse
-Jacobians at it.  On SE(3) these are the group's operators (``torchsgal::se3_log``,
+Jacobians at it.  Where nothing observes the tensors the engine takes them, with the products
+around them, from one operator per block (``factor_kernels``); the forms here serve the other
+cases (autograd recording, torch.func transforms, other devices, kernels off) and are the
+tensor code of those operators.  On SE(3) they are the group's operators (``torchsgal::se3_log``,
 ``torchsgal::se3_jl_inv``: C kernels on the CPU), r = log(E), J_l^-1(r) and J_r^-1(r) =
 J_l^-1(-r), three calls whatever the batch.  Where autograd records (a differentiable solve)
 the Jacobians come instead from one pass of whole-batch tensor operations sharing one
