@@ -85,14 +85,16 @@ def test_line_fit_matches_the_generic_gauss_helmert_solver(iterated, covariance)
         assert (factor.corrections - ref.aux).abs().max() < tol * 0.05
 
 
-def test_iterated_line_fit_with_isotropic_noise_is_the_orthogonal_regression():
+@pytest.mark.parametrize("update_below", [None, 1.0])
+def test_iterated_line_fit_with_isotropic_noise_is_the_orthogonal_regression(update_below):
     """Isotropic noise on both coordinates: the errors-in-variables line is the total-least-
-    squares line of the centred points (the principal direction, from an eigendecomposition)."""
+    squares line of the centred points (the principal direction, from an eigendecomposition),
+    with the corrections updated after every step (default) or after short steps only."""
     obs, truth = _line_data(B=3, E=40, seed=4, sigma=0.1)
     cov = 0.1 ** 2 * torch.eye(2, dtype=f64)
     graph, factor = _line_graph(obs, cov, True, truth + 0.2)
     result = fg.gauss_helmert(graph, step_tol=1e-10, relative_error_tol=1e-15,
-                              absolute_error_tol=0.0)
+                              absolute_error_tol=0.0, update_below=update_below)
     assert result.report.converged.all()
     mean = obs.mean(1, keepdim=True)
     C = (obs - mean).mT @ (obs - mean)

@@ -423,7 +423,7 @@ def test_engine_solvers_match_generic_gauss_helmert(estimator, variant, covarian
     """The solvers on the factor-graph engine (graph.GaussHelmert, one condition per sample)
     give the generic Gauss-Helmert solution of sgal3_condition / baseline_condition: estimates,
     covariances, residual estimates and costs.  Measured: paper variant 1e-10 standard
-    deviations; iterated 2.4e-7 with the engine stopping on its step test at 3e-7 standard
+    deviations; iterated 1.5e-7 with the engine stopping on its step test at 3e-7 standard
     deviations (``relative_error_tol=0``), about the agreement of the two solvers' fixed points
     when both run on.  Its default cost test would stop where the next step's predicted decrease
     is below 1e-14 of the cost: up to sqrt(2e-14 cost), ~3e-6 standard deviations here, from
