@@ -246,6 +246,57 @@ def make_jacobians(mod):
                  f"(..., {d}, {d}) (SGal(3): (3.23), block back-substitution)."))
 
 
+# Batches below this many elements compose as tensor code (A @ B): there the operator's call
+# (~15 us) costs more than torch's batched matmul (crossing over at 150-250 elements).
+COMPOSE_MIN_BATCH = 256
+
+
+def make_products(mod):
+    """``compose`` (the group product A B of matrices) and ``adjoint`` of a group module with
+    registered operators (``ops.GROUPS``): the operators (C kernels on the CPU; compose for
+    batches of ``COMPOSE_MIN_BATCH`` elements or more, smaller ones run ``A @ B``), differentiated,
+    in reverse and forward mode, through the tensor code (``A @ B``, ``mod.adjoint_impl``).
+    Compiled code calls the operators for inference on CPU tensors, as exp and log do."""
+    op = ops.register(mod)
+    n = mod.MATRIX_DIM
+
+    def product(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+        return A @ Bm
+
+    compose_function = _differentiable_operator(op[6], product, (2, 2), f"{mod.NAME}Compose")
+    adjoint_function = _differentiable_operator(op[7], mod.adjoint_impl, (2,), f"{mod.NAME}Adjoint")
+
+    def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
+        checks.matrix_pair(A, Bm, n, "A", "B")
+        batch = A.shape[:-2] if A.shape[:-2] == Bm.shape[:-2] else torch.broadcast_shapes(
+            A.shape[:-2], Bm.shape[:-2])
+        if batch.numel() < COMPOSE_MIN_BATCH:
+            return A @ Bm
+        if is_compiling():
+            return op[6](A, Bm) if _compiled_inference(A) else A @ Bm
+        if _nested_forward_mode(A) or _nested_forward_mode(Bm):
+            return A @ Bm
+        if A.shape[:-2] != batch or Bm.shape[:-2] != batch:  # one batch shape for the kernel
+            A, Bm = A.expand(*batch, n, n), Bm.expand(*batch, n, n)
+        return compose_function.apply(A, Bm)
+
+    def adjoint(M: torch.Tensor) -> torch.Tensor:
+        checks.matrix(M, n, "M")
+        if is_compiling():
+            return op[7](M) if _compiled_inference(M) else mod.adjoint_impl(M)
+        if _nested_forward_mode(M):
+            return run_lifted(mod.adjoint_impl, (M,), (2,))
+        return adjoint_function.apply(M)
+
+    compose.__doc__ = (f"The {mod.NAME} product A B of (..., {n}, {n}) matrices (batch shapes "
+                       "broadcast); a registered operator for batches of COMPOSE_MIN_BATCH or more.")
+    adjoint.__doc__ = "The adjoint matrix " + (mod.adjoint_impl.__doc__ or "").strip() + (
+        "; a registered operator.")
+    for f in (compose, adjoint):
+        f.__module__ = mod.__name__
+    return compose, adjoint
+
+
 def checked_backward_parts(mod):
     """The public, checked ``jl_tmv``, ``jl_inv_tmv``, ``exp_pullback`` and ``log_pullback`` of
     ``mod``: the input checks, then the module's unchecked ``_jl_tmv`` etc., which the backward

@@ -1,5 +1,6 @@
 /* torchsgal.functional._native: the SGal(3) exp, log, their backward maps and Jacobians, and the
- * exp, log and Jacobians of its subgroups SE(3) and SE_2(3), as plain C loops: the CPU
+ * exp, log and Jacobians of its subgroups SE(3) and SE_2(3), and the three groups' products and
+ * adjoints (_native_products.h), as plain C loops: the CPU
  * implementations of the operators torchsgal::sgal3_*, se3_* and se23_* (functional/ops.py; the IMU
  * preintegration kernel is torchsgal.imu._native, built from imu/_native.c on the same code).
  *
@@ -28,6 +29,13 @@
 #define ATAN2 atan2f
 #include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
+#define T double
+#define SFX f64
+#include "_native_products.h"  /* compose and adjoint; undefines T and SFX */
+#define T float
+#define SFX f32
+#include "_native_products.h"
+
 #define WRAP(op, np)                                                                      \
     static PyObject *py_sgal3_##op(PyObject *self, PyObject *const *a, Py_ssize_t nargs) { \
         (void)self;                                                                       \
@@ -54,6 +62,20 @@ WRAP_SUB(se23_exp)
 WRAP_SUB(se23_log)
 WRAP_SUB(se23_jl)
 WRAP_SUB(se23_jl_inv)
+WRAP_SUB(sgal3_adjoint)
+WRAP_SUB(se3_adjoint)
+WRAP_SUB(se23_adjoint)
+
+/* The products A B of n x n group matrices (A, B, out, n, threads, is_double). */
+#define WRAP_COMPOSE(group, n)                                                             \
+    static PyObject *py_##group##_compose(PyObject *self, PyObject *const *a, Py_ssize_t nargs) { \
+        (void)self;                                                                        \
+        return dispatch(a, nargs, 3, compose##n##_range_f64, compose##n##_range_f32, 1,     \
+                        #group "_compose");                                                \
+    }
+WRAP_COMPOSE(sgal3, 5)
+WRAP_COMPOSE(se3, 4)
+WRAP_COMPOSE(se23, 5)
 
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
@@ -71,6 +93,14 @@ static PyMethodDef methods[] = {
     SUB_ENTRY(se3_jl, "SE(3) J_l") SUB_ENTRY(se3_jl_inv, "SE(3) J_l^-1")
     SUB_ENTRY(se23_exp, "SE_2(3) exp") SUB_ENTRY(se23_log, "SE_2(3) log")
     SUB_ENTRY(se23_jl, "SE_2(3) J_l") SUB_ENTRY(se23_jl_inv, "SE_2(3) J_l^-1")
+    SUB_ENTRY(sgal3_adjoint, "SGal(3) adjoint") SUB_ENTRY(se3_adjoint, "SE(3) adjoint")
+    SUB_ENTRY(se23_adjoint, "SE_2(3) adjoint")
+    {"sgal3_compose", (PyCFunction)(void (*)(void))py_sgal3_compose, METH_FASTCALL,
+     "SGal(3) product (A, B, out, n, threads, is_double)"},
+    {"se3_compose", (PyCFunction)(void (*)(void))py_se3_compose, METH_FASTCALL,
+     "SE(3) product (A, B, out, n, threads, is_double)"},
+    {"se23_compose", (PyCFunction)(void (*)(void))py_se23_compose, METH_FASTCALL,
+     "SE_2(3) product (A, B, out, n, threads, is_double)"},
 #undef SUB_ENTRY
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},

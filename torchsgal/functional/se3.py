@@ -11,7 +11,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import checked_backward_parts, make_exp_log, make_jacobians
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians, make_products
 from ._blocking import blocked
 
 NAME = "SE3"
@@ -72,11 +72,6 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
     return B.last(B.jac_inv_vec(phi, B.first(M[..., :3, 3])), phi)
 
 
-def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
-    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
-    return A @ Bm
-
-
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
@@ -85,7 +80,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(2)
-def adjoint(M: torch.Tensor) -> torch.Tensor:
+def adjoint_impl(M: torch.Tensor) -> torch.Tensor:
     """[[C, r^ C], [0, C]]."""
     checks.matrix(M, MATRIX_DIM, "M")
     C, r = _components(M)
@@ -197,4 +192,5 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 exp, log = make_exp_log(sys.modules[__name__])
 jl, jl_inv = make_jacobians(sys.modules[__name__])
+compose, adjoint = make_products(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

@@ -13,7 +13,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import checked_backward_parts, make_exp_log, make_jacobians
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians, make_products
 from ._blocking import blocked
 
 NAME = "SGal3"
@@ -104,11 +104,6 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
     return B.last(rho, nu, phi, tau[None])
 
 
-def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
-    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
-    return A @ Bm
-
-
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -C^T v, -C^T (r - tau v)], [0, 1, -tau], [0, 0, 1]]."""
@@ -119,7 +114,7 @@ def inverse(M: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(2)
-def adjoint(M: torch.Tensor) -> torch.Tensor:
+def adjoint_impl(M: torch.Tensor) -> torch.Tensor:
     """(3.16)."""
     checks.matrix(M, MATRIX_DIM, "M")
     C, v, r, tau = _components(M)
@@ -414,4 +409,5 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 exp, log = make_exp_log(sys.modules[__name__])
 jl, jl_inv = make_jacobians(sys.modules[__name__])
+compose, adjoint = make_products(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

@@ -1,0 +1,164 @@
+"""The product and adjoint operators of SGal(3), SE(3) and SE_2(3) (``torchsgal::<group>_compose``,
+``<group>_adjoint``; functional/ops.py, C kernels in functional/_native_products.h): against the
+tensor code (``A @ B`` and the adjoint's block closed form, itself checked against its definition
+Ad(M) xi = vee(M xi^ M^-1) in tests/test_definitions.py), opcheck, derivatives in reverse and
+forward mode, vmap, torch.compile, where the operators run, and bad arguments."""
+from __future__ import annotations
+
+import pytest
+import torch
+from test_native_subgroups import kernel_test
+from test_ops import _operators_run
+
+import torchsgal as ts
+from torchsgal.functional import _autograd, native, se3, se23, sgal3
+
+GROUPS = {"sgal3": (ts.SGal3, sgal3), "se3": (ts.SE3, se3), "se23": (ts.SE23, se23)}
+f64 = torch.float64
+
+
+def _op(name):
+    return getattr(torch.ops.torchsgal, name).default
+
+
+def _elements(group, batch, dtype=f64, seed=0):
+    G, mod = GROUPS[group]
+    gen = torch.Generator().manual_seed(seed)
+    xi = 2.0 * torch.randn(*batch, mod.DOF, generator=gen, dtype=f64)
+    return G.exp(xi).as_matrix().to(dtype)
+
+
+def _adjoint_definition(mod, M, xi):
+    """Ad(M) xi = vee(M xi^ M^-1), the adjoint's definition."""
+    return mod.vee(M @ mod.hat(xi) @ torch.linalg.inv(M))
+
+
+@pytest.mark.parametrize("kernels", [True, False], ids=["kernels_on", "kernels_off"])
+@pytest.mark.parametrize("dtype", [torch.float32, f64], ids=["f32", "f64"])
+@pytest.mark.parametrize("batch", [(), (2, 3), (0,)], ids=str)
+@pytest.mark.parametrize("group", GROUPS)
+def test_opcheck(group, batch, dtype, kernels):
+    A, B = _elements(group, batch, dtype, 1), _elements(group, batch, dtype, 2)
+    grad = dtype is f64
+    for name, args in ((f"{group}_compose", (A, B)), (f"{group}_adjoint", (A,))):
+        args = tuple(a.clone().requires_grad_(grad) for a in args)
+        if kernels:
+            torch.library.opcheck(_op(name), args)
+        else:
+            with native.disabled():
+                torch.library.opcheck(_op(name), args)
+
+
+@kernel_test
+@pytest.mark.parametrize("dtype", [torch.float32, f64], ids=["f32", "f64"])
+@pytest.mark.parametrize("group", GROUPS)
+def test_kernels_match_the_tensor_code_and_the_definition(group, dtype):
+    # 261 products: 32 passes of the lanes and a tail of 5; the identity among them
+    _, mod = GROUPS[group]
+    A, B = _elements(group, (261,), dtype, 3), _elements(group, (261,), dtype, 4)
+    A[7] = torch.eye(mod.MATRIX_DIM, dtype=dtype)
+    eps = torch.finfo(dtype).eps
+    product = _op(f"{group}_compose")(A, B)
+    scale = A.abs().amax((-2, -1), keepdim=True) * B.abs().amax((-2, -1), keepdim=True)
+    assert ((product - A @ B).abs() / scale).max() <= 8 * eps
+    torch.testing.assert_close(product[7], B[7], rtol=0, atol=0)
+    Ad = _op(f"{group}_adjoint")(A)
+    reference = mod.adjoint_impl(A)
+    assert ((Ad - reference).abs() / (1 + A.abs().amax((-2, -1), keepdim=True))).max() <= 8 * eps
+    xi = torch.randn(261, mod.DOF, dtype=f64, generator=torch.Generator().manual_seed(5))
+    definition = _adjoint_definition(mod, A.double(), xi)
+    tol = 1e-11 if dtype is f64 else 1e-3
+    torch.testing.assert_close((Ad.double() @ xi[..., None])[..., 0], definition, rtol=tol, atol=tol)
+
+
+@kernel_test
+@pytest.mark.parametrize("group", GROUPS)
+def test_kernel_bits_do_not_depend_on_the_batch_or_the_threads(group):
+    A, B = _elements(group, (70_001,), f64, 5), _elements(group, (70_001,), f64, 6)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        many = _op(f"{group}_compose")(A, B), _op(f"{group}_adjoint")(A)
+        torch.set_num_threads(1)
+        one = _op(f"{group}_compose")(A, B), _op(f"{group}_adjoint")(A)
+    finally:
+        torch.set_num_threads(threads)
+    for m, o in zip(many, one):
+        assert torch.equal(m, o)
+    for i in (0, 13, 70_000):  # in the lanes, and the last element (the tail)
+        single = _op(f"{group}_compose")(A[i:i + 1], B[i:i + 1])
+        assert torch.equal(single[0], many[0][i])
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_first_and_second_derivatives_match_finite_differences(group):
+    A = _elements(group, (3,), f64, 7).requires_grad_(True)
+    B = _elements(group, (3,), f64, 8).requires_grad_(True)
+    assert torch.autograd.gradcheck(_op(f"{group}_compose"), (A, B))
+    assert torch.autograd.gradgradcheck(_op(f"{group}_compose"), (A, B))
+    assert torch.autograd.gradcheck(_op(f"{group}_adjoint"), (A,))
+    assert torch.autograd.gradgradcheck(_op(f"{group}_adjoint"), (A,))
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_public_functions_run_the_operators_and_differentiate_as_the_tensor_code(group):
+    _, mod = GROUPS[group]
+    n = _autograd.COMPOSE_MIN_BATCH
+    A, B = _elements(group, (n,), f64, 9), _elements(group, (n,), f64, 10)
+    assert _operators_run(mod.compose, A, B) == {f"torchsgal::{group}_compose"}
+    assert _operators_run(mod.compose, A[: n - 1], B[: n - 1]) == set()  # below: A @ B
+    assert _operators_run(mod.adjoint, A[:1]) == {f"torchsgal::{group}_adjoint"}
+    W = torch.randn(n, mod.DOF, mod.DOF, dtype=f64, generator=torch.Generator().manual_seed(11))
+
+    def f(a, b):
+        return (mod.compose(a, b) ** 2).sum() + (mod.adjoint(a) * W).sum()
+
+    def g(a, b):
+        return ((a @ b) ** 2).sum() + (mod.adjoint_impl(a) * W).sum()
+
+    dA, dB = torch.randn_like(A), torch.randn_like(B)
+    for transform in (lambda h: torch.func.grad(h, argnums=(0, 1))(A, B),
+                      lambda h: torch.func.jvp(h, (A, B), (dA, dB))[1],
+                      lambda h: torch.func.jvp(torch.func.grad(h), (A, B), (dA, dB))[1]):
+        torch.testing.assert_close(transform(f), transform(g), rtol=1e-11, atol=1e-11)
+    # vmap over a leading axis (the operators' vmap rule), one argument unbatched
+    batched = torch.func.vmap(mod.compose, in_dims=(0, None))(A.unflatten(0, (2, -1)), B[: n // 2])
+    torch.testing.assert_close(batched, A.unflatten(0, (2, -1)) @ B[: n // 2], rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_broadcast_batches(group):
+    _, mod = GROUPS[group]
+    n = _autograd.COMPOSE_MIN_BATCH
+    A, B = _elements(group, (n,), f64, 12), _elements(group, (1,), f64, 13)
+    torch.testing.assert_close(mod.compose(A, B), A @ B, rtol=1e-15, atol=1e-15)
+    torch.testing.assert_close(mod.compose(B, A), B @ A, rtol=1e-15, atol=1e-15)
+    C = _elements(group, (2, 1, 3), f64, 14)
+    D = _elements(group, (1, 200, 1), f64, 15)
+    torch.testing.assert_close(mod.compose(C, D), C @ D, rtol=1e-15, atol=1e-15)
+
+
+def test_compiled_inference_runs_the_operators():
+    A, B = _elements("sgal3", (300,), f64, 16), _elements("sgal3", (300,), f64, 17)
+
+    def f(a, b):
+        g, h = ts.SGal3(a), ts.SGal3(b)
+        return g.compose(h).adjoint()
+
+    compiled = torch.compile(f, fullgraph=True, dynamic=False)
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(A, B), f(A, B), rtol=1e-14, atol=1e-14)
+        assert {"torchsgal::sgal3_compose", "torchsgal::sgal3_adjoint"} <= _operators_run(compiled, A, B)
+
+
+@pytest.mark.parametrize("name,args,message", [
+    ("sgal3_compose", (torch.zeros(3, 5, 5, dtype=f64), torch.zeros(3, 4, 4, dtype=f64)),
+     r"B must have shape \(\.\.\., 5, 5\), got \(3, 4, 4\)"),
+    ("se3_compose", (torch.zeros(3, 4, 4, dtype=f64), torch.zeros(3, 4, 4, dtype=torch.float32)),
+     r"B has dtype torch.float32 but A has dtype torch.float64"),
+    ("se23_adjoint", (torch.zeros(3, 4, 4, dtype=f64),), r"M must have shape \(\.\.\., 5, 5\)"),
+    ("se3_adjoint", (torch.zeros(3, 4, 4, dtype=torch.int64),), r"M must have a floating dtype"),
+])
+def test_operators_refuse_bad_arguments_by_name(name, args, message):
+    with pytest.raises((ValueError, TypeError), match=message):
+        _op(name)(*args)
