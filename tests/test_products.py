@@ -1,12 +1,16 @@
-"""The product and adjoint operators of SGal(3), SE(3) and SE_2(3) (``torchsgal::<group>_compose``,
-``<group>_adjoint``; functional/ops.py, C kernels in functional/_native_products.h): against the
-tensor code (``A @ B`` and the adjoint's block closed form, itself checked against its definition
-Ad(M) xi = vee(M xi^ M^-1) in tests/test_definitions.py), opcheck, derivatives in reverse and
-forward mode, vmap, torch.compile, where the operators run, and bad arguments."""
+"""The product, inverse and adjoint operators of SGal(3), SE(3) and SE_2(3)
+(``torchsgal::<group>_compose``, ``<group>_inverse``, ``<group>_adjoint``; functional/ops.py, C
+kernels in functional/_native_products.h): against the tensor code (``A @ B`` and the block
+closed forms ``inverse_impl`` and ``adjoint_impl``) and the definitions (A A^-1 = I,
+Ad(M) xi = vee(M xi^ M^-1)), opcheck, derivatives in reverse and forward mode, vmap,
+torch.compile, where the operators run, and bad arguments."""
 from __future__ import annotations
+
+import pickle
 
 import pytest
 import torch
+import torch.autograd.forward_ad as fwAD
 from test_native_subgroups import kernel_test
 from test_ops import _operators_run
 
@@ -40,7 +44,7 @@ def _adjoint_definition(mod, M, xi):
 def test_opcheck(group, batch, dtype, kernels):
     A, B = _elements(group, batch, dtype, 1), _elements(group, batch, dtype, 2)
     grad = dtype is f64
-    for name, args in ((f"{group}_compose", (A, B)), (f"{group}_adjoint", (A,))):
+    for name, args in ((f"{group}_compose", (A, B)), (f"{group}_adjoint", (A,)), (f"{group}_inverse", (A,))):
         args = tuple(a.clone().requires_grad_(grad) for a in args)
         if kernels:
             torch.library.opcheck(_op(name), args)
@@ -65,6 +69,10 @@ def test_kernels_match_the_tensor_code_and_the_definition(group, dtype):
     Ad = _op(f"{group}_adjoint")(A)
     reference = mod.adjoint_impl(A)
     assert ((Ad - reference).abs() / (1 + A.abs().amax((-2, -1), keepdim=True))).max() <= 8 * eps
+    inverse = _op(f"{group}_inverse")(A)
+    torch.testing.assert_close(inverse, mod.inverse_impl(A), rtol=0, atol=0)  # the same operations
+    eye = torch.eye(mod.MATRIX_DIM, dtype=dtype)
+    assert ((A @ inverse - eye).abs() / scale).max() <= 64 * eps
     xi = torch.randn(261, mod.DOF, dtype=f64, generator=torch.Generator().manual_seed(5))
     definition = _adjoint_definition(mod, A.double(), xi)
     tol = 1e-11 if dtype is f64 else 1e-3
@@ -78,9 +86,9 @@ def test_kernel_bits_do_not_depend_on_the_batch_or_the_threads(group):
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(2)
-        many = _op(f"{group}_compose")(A, B), _op(f"{group}_adjoint")(A)
+        many = _op(f"{group}_compose")(A, B), _op(f"{group}_adjoint")(A), _op(f"{group}_inverse")(A)
         torch.set_num_threads(1)
-        one = _op(f"{group}_compose")(A, B), _op(f"{group}_adjoint")(A)
+        one = _op(f"{group}_compose")(A, B), _op(f"{group}_adjoint")(A), _op(f"{group}_inverse")(A)
     finally:
         torch.set_num_threads(threads)
     for m, o in zip(many, one):
@@ -98,6 +106,8 @@ def test_first_and_second_derivatives_match_finite_differences(group):
     assert torch.autograd.gradgradcheck(_op(f"{group}_compose"), (A, B))
     assert torch.autograd.gradcheck(_op(f"{group}_adjoint"), (A,))
     assert torch.autograd.gradgradcheck(_op(f"{group}_adjoint"), (A,))
+    assert torch.autograd.gradcheck(_op(f"{group}_inverse"), (A,))
+    assert torch.autograd.gradgradcheck(_op(f"{group}_inverse"), (A,))
 
 
 @pytest.mark.parametrize("group", GROUPS)
@@ -108,13 +118,20 @@ def test_public_functions_run_the_operators_and_differentiate_as_the_tensor_code
     assert _operators_run(mod.compose, A, B) == {f"torchsgal::{group}_compose"}
     assert _operators_run(mod.compose, A[: n - 1], B[: n - 1]) == set()  # below: A @ B
     assert _operators_run(mod.adjoint, A[:1]) == {f"torchsgal::{group}_adjoint"}
+    assert _operators_run(mod.inverse, A[:1]) == {f"torchsgal::{group}_inverse"}
+    # differentiated, the inverse and adjoint run their tensor code (its backward is cheaper than
+    # a second evaluation), the product its operator (the product rule's products)
+    a, b = A.clone().requires_grad_(True), B.clone().requires_grad_(True)
+    assert _operators_run(lambda x: (mod.inverse(x), mod.adjoint(x)), a) == set()
+    assert _operators_run(lambda x, y: mod.compose(x, y).sum().backward(), a, b) == {
+        f"torchsgal::{group}_compose"}
     W = torch.randn(n, mod.DOF, mod.DOF, dtype=f64, generator=torch.Generator().manual_seed(11))
 
     def f(a, b):
-        return (mod.compose(a, b) ** 2).sum() + (mod.adjoint(a) * W).sum()
+        return (mod.compose(a, b) ** 2).sum() + (mod.adjoint(a) * W).sum() + (mod.inverse(b) ** 3).sum()
 
     def g(a, b):
-        return ((a @ b) ** 2).sum() + (mod.adjoint_impl(a) * W).sum()
+        return ((a @ b) ** 2).sum() + (mod.adjoint_impl(a) * W).sum() + (mod.inverse_impl(b) ** 3).sum()
 
     dA, dB = torch.randn_like(A), torch.randn_like(B)
     for transform in (lambda h: torch.func.grad(h, argnums=(0, 1))(A, B),
@@ -124,6 +141,26 @@ def test_public_functions_run_the_operators_and_differentiate_as_the_tensor_code
     # vmap over a leading axis (the operators' vmap rule), one argument unbatched
     batched = torch.func.vmap(mod.compose, in_dims=(0, None))(A.unflatten(0, (2, -1)), B[: n // 2])
     torch.testing.assert_close(batched, A.unflatten(0, (2, -1)) @ B[: n // 2], rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_dual_tensors_autocast_and_pickling(group):
+    # torch.autograd.forward_ad: the product rule's jvp and the tensor code's
+    _, mod = GROUPS[group]
+    n = _autograd.COMPOSE_MIN_BATCH
+    A, B = _elements(group, (n,), f64, 18), _elements(group, (n,), f64, 19)
+    dA, dB = torch.randn_like(A), torch.randn_like(B)
+    with fwAD.dual_level():
+        a, b = fwAD.make_dual(A, dA), fwAD.make_dual(B, dB)
+        tangents = [fwAD.unpack_dual(out).tangent for out in (mod.compose(a, b), mod.inverse(a), mod.adjoint(a))]
+    torch.testing.assert_close(tangents[0], dA @ B + A @ dB, rtol=1e-14, atol=1e-14)
+    for t, impl in zip(tangents[1:], (mod.inverse_impl, mod.adjoint_impl)):
+        torch.testing.assert_close(t, torch.func.jvp(impl, (A,), (dA,))[1], rtol=1e-14, atol=1e-14)
+    # under autocast the product is torch's (lower precision), whatever the batch size
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert mod.compose(A.float(), B.float()).dtype == torch.bfloat16
+    for f in (mod.compose, mod.inverse, mod.adjoint):
+        assert pickle.loads(pickle.dumps(f)) is f
 
 
 @pytest.mark.parametrize("group", GROUPS)
@@ -143,12 +180,13 @@ def test_compiled_inference_runs_the_operators():
 
     def f(a, b):
         g, h = ts.SGal3(a), ts.SGal3(b)
-        return g.compose(h).adjoint()
+        return g.compose(h.inverse()).adjoint()
 
     compiled = torch.compile(f, fullgraph=True, dynamic=False)
     with torch.no_grad():
         torch.testing.assert_close(compiled(A, B), f(A, B), rtol=1e-14, atol=1e-14)
-        assert {"torchsgal::sgal3_compose", "torchsgal::sgal3_adjoint"} <= _operators_run(compiled, A, B)
+        assert {"torchsgal::sgal3_compose", "torchsgal::sgal3_adjoint",
+                "torchsgal::sgal3_inverse"} <= _operators_run(compiled, A, B)
 
 
 @pytest.mark.parametrize("name,args,message", [
@@ -158,6 +196,9 @@ def test_compiled_inference_runs_the_operators():
      r"B has dtype torch.float32 but A has dtype torch.float64"),
     ("se23_adjoint", (torch.zeros(3, 4, 4, dtype=f64),), r"M must have shape \(\.\.\., 5, 5\)"),
     ("se3_adjoint", (torch.zeros(3, 4, 4, dtype=torch.int64),), r"M must have a floating dtype"),
+    ("sgal3_inverse", (torch.zeros(2, 4, 5, dtype=f64),), r"M must have shape \(\.\.\., 5, 5\)"),
+    ("se23_compose", (torch.zeros(3, 5, 5, dtype=f64), torch.zeros(2, 5, 5, dtype=f64)),
+     r"batch shapes do not broadcast: A \(3,\), B \(2,\)"),
 ])
 def test_operators_refuse_bad_arguments_by_name(name, args, message):
     with pytest.raises((ValueError, TypeError), match=message):

@@ -39,7 +39,7 @@ import torch
 
 from .._compat import FastApply, forward_mode_depth
 from . import checks, ops
-from ._blocking import _is_wrapped, is_compiling, run_blocked, run_lifted
+from ._blocking import _is_wrapped, is_compiling, run_blocked, run_lifted, unobserved
 
 
 def _nested_forward_mode(t: torch.Tensor) -> bool:
@@ -252,25 +252,53 @@ COMPOSE_MIN_BATCH = 256
 
 
 def make_products(mod):
-    """``compose`` (the group product A B of matrices) and ``adjoint`` of a group module with
-    registered operators (``ops.GROUPS``): the operators (C kernels on the CPU; compose for
-    batches of ``COMPOSE_MIN_BATCH`` elements or more, smaller ones run ``A @ B``), differentiated,
-    in reverse and forward mode, through the tensor code (``A @ B``, ``mod.adjoint_impl``).
-    Compiled code calls the operators for inference on CPU tensors, as exp and log do."""
+    """``compose`` (the group product A B of matrices), ``adjoint`` and ``inverse`` of a group
+    module with registered operators (``ops.GROUPS``), running the operators (C kernels on the
+    CPU) where they pay:
+
+    * compose, for batches of ``COMPOSE_MIN_BATCH`` elements or more (smaller ones, and autocast
+      regions, run ``A @ B``), through an autograd.Function whose derivatives are the product
+      rule's (backward G B^T and A^T G, jvp dA B + A dB, each a product again);
+    * inverse and adjoint, where nothing differentiates them (no autograd recording in either
+      mode, no torch.func transform: ``_blocking.unobserved``) and in compiled inference; where
+      something does, their tensor code (``mod.inverse_impl``, ``mod.adjoint_impl``) runs and is
+      differentiated, whose backward costs less than a second evaluation of it would."""
     op = ops.register(mod)
     n = mod.MATRIX_DIM
 
-    def product(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
-        return A @ Bm
+    class Compose(FastApply, torch.autograd.Function):
+        generate_vmap_rule = True
 
-    compose_function = _differentiable_operator(op[6], product, (2, 2), f"{mod.NAME}Compose")
-    adjoint_function = _differentiable_operator(op[7], mod.adjoint_impl, (2,), f"{mod.NAME}Adjoint")
+        @staticmethod
+        def forward(A, Bm):
+            return op[6](A, Bm)
+
+        @staticmethod
+        def setup_context(ctx, inputs, output):
+            ctx.save_for_backward(*inputs)
+            ctx.save_for_forward(*inputs)
+
+        @staticmethod
+        def backward(ctx, grad):
+            A, Bm = ctx.saved_tensors
+            return compose(grad, Bm.mT), compose(A.mT, grad)
+
+        @staticmethod
+        def jvp(ctx, dA, dB):
+            A, Bm = ctx.saved_tensors
+            if dA is None and dB is None:
+                return torch.zeros_like(A)
+            if dB is None:
+                return compose(dA, Bm)
+            return compose(A, dB) if dA is None else compose(dA, Bm) + compose(A, dB)
+
+    Compose.__name__ = Compose.__qualname__ = f"{mod.NAME}Compose"
 
     def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
         checks.matrix_pair(A, Bm, n, "A", "B")
         batch = A.shape[:-2] if A.shape[:-2] == Bm.shape[:-2] else torch.broadcast_shapes(
             A.shape[:-2], Bm.shape[:-2])
-        if batch.numel() < COMPOSE_MIN_BATCH:
+        if batch.numel() < COMPOSE_MIN_BATCH or torch.is_autocast_enabled(A.device.type):
             return A @ Bm
         if is_compiling():
             return op[6](A, Bm) if _compiled_inference(A) else A @ Bm
@@ -278,23 +306,30 @@ def make_products(mod):
             return A @ Bm
         if A.shape[:-2] != batch or Bm.shape[:-2] != batch:  # one batch shape for the kernel
             A, Bm = A.expand(*batch, n, n), Bm.expand(*batch, n, n)
-        return compose_function.apply(A, Bm)
+        return Compose.apply(A, Bm)
 
-    def adjoint(M: torch.Tensor) -> torch.Tensor:
-        checks.matrix(M, n, "M")
-        if is_compiling():
-            return op[7](M) if _compiled_inference(M) else mod.adjoint_impl(M)
-        if _nested_forward_mode(M):
-            return run_lifted(mod.adjoint_impl, (M,), (2,))
-        return adjoint_function.apply(M)
+    def unary(index, impl, name):
+        def apply(M: torch.Tensor) -> torch.Tensor:
+            checks.matrix(M, n, "M")
+            if is_compiling():
+                return op[index](M) if _compiled_inference(M) else impl(M)
+            return op[index](M) if unobserved((M,)) else impl(M)
 
+        apply.__name__ = apply.__qualname__ = name
+        return apply
+
+    adjoint = unary(7, mod.adjoint_impl, "adjoint")
+    inverse = unary(8, mod.inverse_impl, "inverse")
     compose.__doc__ = (f"The {mod.NAME} product A B of (..., {n}, {n}) matrices (batch shapes "
                        "broadcast); a registered operator for batches of COMPOSE_MIN_BATCH or more.")
     adjoint.__doc__ = "The adjoint matrix " + (mod.adjoint_impl.__doc__ or "").strip() + (
-        "; a registered operator.")
-    for f in (compose, adjoint):
+        "; a registered operator where nothing differentiates it.")
+    inverse.__doc__ = (f"The {mod.NAME} inverse (..., {n}, {n}); a registered operator where nothing "
+                       "differentiates it.")
+    compose.__qualname__ = "compose"
+    for f in (compose, adjoint, inverse):
         f.__module__ = mod.__name__
-    return compose, adjoint
+    return compose, adjoint, inverse
 
 
 def checked_backward_parts(mod):

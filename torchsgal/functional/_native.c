@@ -1,6 +1,6 @@
 /* torchsgal.functional._native: the SGal(3) exp, log, their backward maps and Jacobians, and the
- * exp, log and Jacobians of its subgroups SE(3) and SE_2(3), and the three groups' products and
- * adjoints (_native_products.h), as plain C loops: the CPU
+ * exp, log and Jacobians of its subgroups SE(3) and SE_2(3), and the three groups' products,
+ * inverses and adjoints (_native_products.h), as plain C loops: the CPU
  * implementations of the operators torchsgal::sgal3_*, se3_* and se23_* (functional/ops.py; the IMU
  * preintegration kernel is torchsgal.imu._native, built from imu/_native.c on the same code).
  *
@@ -31,7 +31,7 @@
 
 #define T double
 #define SFX f64
-#include "_native_products.h"  /* compose and adjoint; undefines T and SFX */
+#include "_native_products.h"  /* compose, inverse and adjoint; undefines T and SFX */
 #define T float
 #define SFX f32
 #include "_native_products.h"
@@ -65,6 +65,9 @@ WRAP_SUB(se23_jl_inv)
 WRAP_SUB(sgal3_adjoint)
 WRAP_SUB(se3_adjoint)
 WRAP_SUB(se23_adjoint)
+WRAP_SUB(sgal3_inverse)
+WRAP_SUB(se3_inverse)
+WRAP_SUB(se23_inverse)
 
 /* The products A B of n x n group matrices (A, B, out, n, threads, is_double). */
 #define WRAP_COMPOSE(group, n)                                                             \
@@ -95,6 +98,8 @@ static PyMethodDef methods[] = {
     SUB_ENTRY(se23_jl, "SE_2(3) J_l") SUB_ENTRY(se23_jl_inv, "SE_2(3) J_l^-1")
     SUB_ENTRY(sgal3_adjoint, "SGal(3) adjoint") SUB_ENTRY(se3_adjoint, "SE(3) adjoint")
     SUB_ENTRY(se23_adjoint, "SE_2(3) adjoint")
+    SUB_ENTRY(sgal3_inverse, "SGal(3) inverse") SUB_ENTRY(se3_inverse, "SE(3) inverse")
+    SUB_ENTRY(se23_inverse, "SE_2(3) inverse")
     {"sgal3_compose", (PyCFunction)(void (*)(void))py_sgal3_compose, METH_FASTCALL,
      "SGal(3) product (A, B, out, n, threads, is_double)"},
     {"se3_compose", (PyCFunction)(void (*)(void))py_se3_compose, METH_FASTCALL,

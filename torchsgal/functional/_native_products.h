@@ -1,4 +1,4 @@
-/* Products and adjoints of SGal(3), SE(3) and SE_2(3) matrices for one scalar type T (included
+/* Products, inverses and adjoints of SGal(3), SE(3) and SE_2(3) matrices for one scalar type T (included
  * twice by _native.c, after _native_sgal3.h, whose skew_times it uses; undefines T and SFX).
  *
  * compose: the matrix product A B of n x n row-major matrices (n = 4: SE(3); n = 5: SGal(3),
@@ -8,8 +8,8 @@
  * + ... in that order, in the lanes and in the tail alike: the bits do not depend on where an
  * element falls in the batch.
  *
- * adjoint: the closed forms of sgal3.adjoint_impl (3.16), se3.adjoint_impl and
- * se23.adjoint_impl, the blocks written directly.
+ * inverse and adjoint: the closed forms of sgal3.inverse_impl and adjoint_impl (3.16), and of
+ * se3's and se23's, the blocks written directly.
  */
 
 #define K_(name, sfx) name##_##sfx
@@ -104,6 +104,59 @@ static void K(se23_adjoint_one)(const T *M, T *o) {
     K(skew_times)(v, C, S);
     K(put3)(o, 9, 1, 2, S);
 }
+
+/* C^T and -C^T x (x a column of M) into the n x n inverse o (sgal3.inverse_impl: the same
+ * order of operations, -((C^T)_i0 x_0 + (C^T)_i1 x_1 + (C^T)_i2 x_2)). */
+static inline void K(inverse_rotation)(const T *M, int n, T *o) {
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) o[n * i + j] = M[n * j + i];
+}
+
+static inline void K(inverse_column)(const T *M, int n, const T *x, T *o, int col) {
+    for (int i = 0; i < 3; ++i) o[n * i + col] = -(M[i] * x[0] + M[n + i] * x[1] + M[2 * n + i] * x[2]);
+}
+
+/* SGal(3): [[C^T, -C^T v, -C^T (r - tau v)], [0, 1, -tau], [0, 0, 1]]. */
+static void K(sgal3_inverse_one)(const T *M, T *o) {
+    T tau = M[19];
+    T v[3] = {M[3], M[8], M[13]};
+    T w[3] = {M[4] - tau * v[0], M[9] - tau * v[1], M[14] - tau * v[2]};
+    for (int i = 0; i < 25; ++i) o[i] = 0;
+    K(inverse_rotation)(M, 5, o);
+    K(inverse_column)(M, 5, v, o, 3);
+    K(inverse_column)(M, 5, w, o, 4);
+    o[18] = 1; o[19] = -tau; o[24] = 1;
+}
+
+/* SE(3): [[C^T, -C^T r], [0, 1]]. */
+static void K(se3_inverse_one)(const T *M, T *o) {
+    T r[3] = {M[3], M[7], M[11]};
+    for (int i = 0; i < 16; ++i) o[i] = 0;
+    K(inverse_rotation)(M, 4, o);
+    K(inverse_column)(M, 4, r, o, 3);
+    o[15] = 1;
+}
+
+/* SE_2(3): [[C^T, -C^T v, -C^T r], [0, 1, 0], [0, 0, 1]]. */
+static void K(se23_inverse_one)(const T *M, T *o) {
+    T v[3] = {M[3], M[8], M[13]}, r[3] = {M[4], M[9], M[14]};
+    for (int i = 0; i < 25; ++i) o[i] = 0;
+    K(inverse_rotation)(M, 5, o);
+    K(inverse_column)(M, 5, v, o, 3);
+    K(inverse_column)(M, 5, r, o, 4);
+    o[18] = 1; o[24] = 1;
+}
+
+#define INVERSE_RANGE(group, n)                                                           \
+    static void K(group##_inverse_range)(void **a, int64_t lo, int64_t hi) {             \
+        const T *M = a[0];                                                               \
+        T *out = a[1];                                                                   \
+        for (int64_t i = lo; i < hi; ++i) K(group##_inverse_one)(M + (n) * (n) * i, out + (n) * (n) * i); \
+    }
+INVERSE_RANGE(sgal3, 5)
+INVERSE_RANGE(se3, 4)
+INVERSE_RANGE(se23, 5)
+#undef INVERSE_RANGE
 
 #define ADJOINT_RANGE(group, n, dof)                                                      \
     static void K(group##_adjoint_range)(void **a, int64_t lo, int64_t hi) {             \

@@ -1,15 +1,16 @@
-"""The exp, log, their backward maps, the left Jacobian and its inverse, the product and the
-adjoint of SGal(3) and of its subgroups SE(3) and SE_2(3) as registered torch operators.
+"""The exp, log, their backward maps, the left Jacobian and its inverse, the product, the
+inverse and the adjoint of SGal(3) and of its subgroups SE(3) and SE_2(3) as registered torch
+operators.
 
 ``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp``, ``sgal3_log_vjp``, ``sgal3_jl``,
-``sgal3_jl_inv``, ``sgal3_compose`` and ``sgal3_adjoint`` (``torch.library.custom_op``), and the
-same eight of ``se3_`` and ``se23_``, are the one mechanism that eager code, autograd,
-``torch.func`` and ``torch.compile`` all see:
+``sgal3_jl_inv``, ``sgal3_compose``, ``sgal3_inverse`` and ``sgal3_adjoint``
+(``torch.library.custom_op``), and the same nine of ``se3_`` and ``se23_``, are the one
+mechanism that eager code, autograd, ``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
   batch shape, where the kernels are compiled and not switched off for the calling thread (every
-  SGal(3) operator; exp, log, jl, jl_inv, compose and adjoint of the subgroups, whose backward
-  maps run their closed forms); on CUDA, for SGal(3), where chosen (``native.use_compiled_cuda(True)``) and
+  SGal(3) operator; exp, log, jl, jl_inv, compose, inverse and adjoint of the subgroups, whose
+  backward maps run their closed forms); on CUDA, for SGal(3), where chosen (``native.use_compiled_cuda(True)``) and
   Triton is installed, the closed
   form compiled by ``torch.compile`` (inductor's Triton kernels), one compilation per operator
   and dtype, over the flattened batch with a dynamic size (float32: float64 stays eager); the
@@ -20,7 +21,8 @@ same eight of ``se3_`` and ``se23_``, are the one mechanism that eager code, aut
 * ``register_autograd`` differentiates exp and log through their closed-form Jacobians
   (``_autograd.py``: grad_xi = J_r(xi)^T hat^T(M^T G), grad_M = M^-T vee^T(J_r(xi)^-T g)), each
   backward being the next operator; the backward operators' own derivatives (second order),
-  and those of the Jacobians, the product and the adjoint, are those of their tensor code;
+  and those of the Jacobians, the product, the inverse and the adjoint, are those of their
+  tensor code;
 * ``register_vmap`` maps every vmapped axis into the batch the kernels already loop over.
 
 ``tests/test_ops.py`` and ``tests/test_native_subgroups.py`` run ``torch.library.opcheck`` on
@@ -163,7 +165,7 @@ _REGISTERED: dict = {}
 
 def register(mod) -> tuple:
     """Define the operators of the group module ``mod`` (``functional.sgal3``, ``se3``, ``se23``)
-    once and return them as (exp, log, exp_vjp, log_vjp, jl, jl_inv, compose, adjoint)."""
+    once and return them as (exp, log, exp_vjp, log_vjp, jl, jl_inv, compose, adjoint, inverse)."""
     if mod.NAME not in _REGISTERED:
         _REGISTERED[mod.NAME] = _define(mod)
     return _REGISTERED[mod.NAME]
@@ -184,7 +186,7 @@ def _define(mod) -> tuple:
         return A @ Bm
 
     names = {"exp": ("xi",), "log": ("M",), "exp_vjp": ("xi", "M", "G"), "log_vjp": ("M", "xi", "g"),
-             "jl": ("xi",), "jl_inv": ("xi",), "compose": ("A", "B"), "adjoint": ("M",)}
+             "jl": ("xi",), "jl_inv": ("xi",), "compose": ("A", "B"), "adjoint": ("M",), "inverse": ("M",)}
 
     # the closed forms on arguments flattened to one dimension (_run_compiled): one function each
     def exp_flat(xi: Tensor) -> Tensor:
@@ -211,8 +213,12 @@ def _define(mod) -> tuple:
     def adjoint_flat(M: Tensor) -> Tensor:
         return mod.adjoint_impl(M.view(-1, n, n))
 
+    def inverse_flat(M: Tensor) -> Tensor:
+        return mod.inverse_impl(M.view(-1, n, n))
+
     flat_codes = {"exp": exp_flat, "log": log_flat, "exp_vjp": exp_vjp_flat, "log_vjp": log_vjp_flat,
-                  "jl": jl_flat, "jl_inv": jl_inv_flat, "compose": compose_flat, "adjoint": adjoint_flat}
+                  "jl": jl_flat, "jl_inv": jl_inv_flat, "compose": compose_flat, "adjoint": adjoint_flat,
+                  "inverse": inverse_flat}
 
     def run(kernel: str, tensor_code, args, event_dims, event):
         # the operators are public: shapes checked before a C loop reads the memory
@@ -221,9 +227,11 @@ def _define(mod) -> tuple:
                 checks.vector(a, dof, arg_name)
             else:
                 checks.matrix(a, n, arg_name)
-        if len(args) > 1:
-            checks.same_device_dtype(**dict(zip(names[kernel], args)))
         batch = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
+        if kernel == "compose":  # A @ B promotes no dtype: name the mismatch
+            checks.same_device_dtype(**dict(zip(names[kernel], args)))
+        if any(b != batch[0] for b in batch[1:]):
+            checks.broadcast_batch(**dict(zip(names[kernel], batch)))
         fn = _kernel(f"{name}_{kernel}", args, batch)
         if fn is None:
             if compiled_group and _compiles(args):
@@ -263,6 +271,10 @@ def _define(mod) -> tuple:
     def adjoint(M: Tensor) -> Tensor:
         return run("adjoint", mod.adjoint_impl, (M,), (2,), (dof, dof))
 
+    @torch.library.custom_op(prefix + "inverse", mutates_args=())
+    def inverse(M: Tensor) -> Tensor:
+        return run("inverse", mod.inverse_impl, (M,), (2,), (n, n))
+
     def fake(event_dims, event):
         def impl(*args):
             return args[0].new_empty(tuple(_batch_shape(args, event_dims)) + event)
@@ -276,6 +288,7 @@ def _define(mod) -> tuple:
     jl_inv.register_fake(fake((1,), (dof, dof)))
     compose.register_fake(fake((2, 2), (n, n)))
     adjoint.register_fake(fake((2,), (dof, dof)))
+    inverse.register_fake(fake((2,), (n, n)))
 
     def save_all(ctx, inputs, output):
         ctx.save_for_backward(*inputs, output)
@@ -304,8 +317,9 @@ def _define(mod) -> tuple:
     jl_inv.register_autograd(tensor_code_backward(mod.jl_inv_impl), setup_context=save_all)
     compose.register_autograd(tensor_code_backward(compose_tensor), setup_context=save_all)
     adjoint.register_autograd(tensor_code_backward(mod.adjoint_impl), setup_context=save_all)
+    inverse.register_autograd(tensor_code_backward(mod.inverse_impl), setup_context=save_all)
 
     for op, event_dims in ((exp, (1,)), (log, (2,)), (exp_vjp, (1, 2, 2)), (log_vjp, (2, 1, 1)),
-                           (jl, (1,)), (jl_inv, (1,)), (compose, (2, 2)), (adjoint, (2,))):
+                           (jl, (1,)), (jl_inv, (1,)), (compose, (2, 2)), (adjoint, (2,)), (inverse, (2,))):
         op.register_vmap(_vmap_rule(op, event_dims))
-    return exp, log, exp_vjp, log_vjp, jl, jl_inv, compose, adjoint
+    return exp, log, exp_vjp, log_vjp, jl, jl_inv, compose, adjoint, inverse

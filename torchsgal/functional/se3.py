@@ -73,7 +73,7 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(2)
-def inverse(M: torch.Tensor) -> torch.Tensor:
+def inverse_impl(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
     Ct = B.transpose_entries(M[..., :3, :3])
     return _matrix(Ct, -B.matvec_entries(Ct, B.first(M[..., :3, 3])))
@@ -192,5 +192,5 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 exp, log = make_exp_log(sys.modules[__name__])
 jl, jl_inv = make_jacobians(sys.modules[__name__])
-compose, adjoint = make_products(sys.modules[__name__])
+compose, adjoint, inverse = make_products(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])

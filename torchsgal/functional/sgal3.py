@@ -105,7 +105,7 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(2)
-def inverse(M: torch.Tensor) -> torch.Tensor:
+def inverse_impl(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -C^T v, -C^T (r - tau v)], [0, 1, -tau], [0, 0, 1]]."""
     checks.matrix(M, MATRIX_DIM, "M")
     Ct = B.transpose_entries(M[..., :3, :3])
@@ -409,5 +409,5 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 exp, log = make_exp_log(sys.modules[__name__])
 jl, jl_inv = make_jacobians(sys.modules[__name__])
-compose, adjoint = make_products(sys.modules[__name__])
+compose, adjoint, inverse = make_products(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])
