@@ -194,3 +194,15 @@ def test_operators_called_directly_refuse_bad_shapes_by_name(name, args, message
     # a C loop given a (..., 9) tensor would read past its end: the operators check first
     with pytest.raises((ValueError, TypeError), match=message):
         _op(name)(*args)
+
+
+@pytest.mark.parametrize("name", ["jl", "jl_inv"])
+def test_jacobians_take_dual_tensors(name):
+    # torch.autograd.forward_ad: the closed form's tangent (the Function's jvp, torch.func.jvp,
+    # cannot nest inside a dual level)
+    import torch.autograd.forward_ad as fwAD
+    xi, d = _small(4, 10, seed=17), _small(4, 10, seed=18)
+    closed = sgal3.jl_impl if name == "jl" else sgal3.jl_inv_impl
+    with fwAD.dual_level():
+        tangent = fwAD.unpack_dual(getattr(sgal3, name)(fwAD.make_dual(xi, d))).tangent
+    torch.testing.assert_close(tangent, torch.func.jvp(closed, (xi,), (d,))[1], rtol=1e-13, atol=1e-13)

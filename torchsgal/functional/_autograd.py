@@ -36,6 +36,7 @@ compiled, native.py); large CPU batches of the other groups run in blocks (_bloc
 from __future__ import annotations
 
 import torch
+from torch.autograd import forward_ad as _forward_ad
 
 from .._compat import FastApply, forward_mode_depth
 from . import checks, ops
@@ -230,7 +231,9 @@ def make_jacobians(mod):
             checks.vector(xi, mod.DOF, "xi")
             if is_compiling():
                 return op[index](xi) if _compiled_inference(xi) else impl(xi)
-            if _nested_forward_mode(xi):
+            if _nested_forward_mode(xi) or _forward_ad.unpack_dual(xi).tangent is not None:
+                # jacfwd(jacfwd), or a dual tensor of torch.autograd.forward_ad, inside whose
+                # level the Function's jvp (torch.func.jvp) cannot nest: the closed form
                 return run_lifted(impl, (xi,), (1,))
             return function.apply(xi)
 
