@@ -173,6 +173,10 @@ def test_broadcast_batches(group):
     C = _elements(group, (2, 1, 3), f64, 14)
     D = _elements(group, (1, 200, 1), f64, 15)
     torch.testing.assert_close(mod.compose(C, D), C @ D, rtol=1e-15, atol=1e-15)
+    # shapes only (meta tensors: the tensor code's shape rules)
+    meta = torch.empty(n, mod.MATRIX_DIM, mod.MATRIX_DIM, dtype=f64, device="meta")
+    assert mod.compose(meta, meta).shape == meta.shape and mod.inverse(meta).shape == meta.shape
+    assert mod.adjoint(meta).shape == (n, mod.DOF, mod.DOF)
 
 
 def test_compiled_inference_runs_the_operators():

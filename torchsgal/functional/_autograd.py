@@ -259,8 +259,8 @@ def make_products(mod):
     module with registered operators (``ops.GROUPS``), running the operators (C kernels on the
     CPU) where they pay:
 
-    * compose, for batches of ``COMPOSE_MIN_BATCH`` elements or more (smaller ones, and autocast
-      regions, run ``A @ B``), through an autograd.Function whose derivatives are the product
+    * compose, for CPU batches of ``COMPOSE_MIN_BATCH`` elements or more (smaller ones, other
+      devices and autocast regions run ``A @ B``), through an autograd.Function whose derivatives are the product
       rule's (backward G B^T and A^T G, jvp dA B + A dB, each a product again);
     * inverse and adjoint, where nothing differentiates them (no autograd recording in either
       mode, no torch.func transform: ``_blocking.unobserved``) and in compiled inference; where
@@ -301,7 +301,8 @@ def make_products(mod):
         checks.matrix_pair(A, Bm, n, "A", "B")
         batch = A.shape[:-2] if A.shape[:-2] == Bm.shape[:-2] else torch.broadcast_shapes(
             A.shape[:-2], Bm.shape[:-2])
-        if batch.numel() < COMPOSE_MIN_BATCH or torch.is_autocast_enabled(A.device.type):
+        # the kernel runs on the CPU only; under autocast the product is torch's (lower precision)
+        if batch.numel() < COMPOSE_MIN_BATCH or A.device.type != "cpu" or torch.is_autocast_enabled("cpu"):
             return A @ Bm
         if is_compiling():
             return op[6](A, Bm) if _compiled_inference(A) else A @ Bm
