@@ -24,7 +24,8 @@ setup(
         Extension(
             "torchsgal.estimation._native",
             sources=["torchsgal/estimation/_native.c"],
-            depends=common + ["torchsgal/estimation/_native_cholesky.h",
+            depends=common + ["torchsgal/functional/_native_products.h",
+                              "torchsgal/estimation/_native_cholesky.h",
                               "torchsgal/estimation/_native_factors.h"],
             extra_compile_args=args,
             libraries=libraries,

@@ -21,6 +21,9 @@
 #define SQRT sqrt
 #define ATAN2 atan2
 #include "../functional/_native_sgal3.h"  /* undefines T, SFX and the math macros */
+#define T double
+#define SFX f64
+#include "../functional/_native_products.h"  /* SE(3)'s inverse and adjoint; undefines T, SFX */
 #define T float
 #define SFX f32
 #define SIN sinf
@@ -28,6 +31,9 @@
 #define SQRT sqrtf
 #define ATAN2 atan2f
 #include "../functional/_native_sgal3.h"
+#define T float
+#define SFX f32
+#include "../functional/_native_products.h"
 #if defined(__GNUC__)
 #pragma GCC diagnostic pop
 #endif

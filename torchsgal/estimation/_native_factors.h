@@ -26,11 +26,8 @@ static inline void K(se3_top_product)(const T *A, int sa, const T *Bm, T *o) {
 static void K(se3_factor_one)(const T *Zinv, const T *Ti, const T *Tj, T *r, T *J) {
     T A[12], E[16], neg[6], Jl[36], Jr[36];
     if (Ti) {
-        T inv[12];  /* T_i^-1 = [C^T, -C^T t] */
-        for (int i = 0; i < 3; ++i) {
-            for (int j = 0; j < 3; ++j) inv[4 * i + j] = Ti[4 * j + i];
-            inv[4 * i + 3] = -(Ti[i] * Ti[3] + Ti[4 + i] * Ti[7] + Ti[8 + i] * Ti[11]);
-        }
+        T inv[16];
+        K(se3_inverse_one)(Ti, inv);  /* T_i^-1 = [C^T, -C^T t] (_native_products.h) */
         K(se3_top_product)(inv, 4, Tj, A);
         T A16[16];
         for (int i = 0; i < 12; ++i) A16[i] = A[i];
@@ -49,14 +46,9 @@ static void K(se3_factor_one)(const T *Zinv, const T *Ti, const T *Tj, T *r, T *
         return;
     }
     K(se3_jl_one)(r, 1, Jl);
-    /* Ad(Z^-1) = [[C, t^ C], [0, C]]; J_i = -J_l^-1 Ad(Z^-1) */
-    T C[9], tC[9], Ad[36];
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) C[3 * i + j] = Zinv[4 * i + j];
-    const T t[3] = {Zinv[3], Zinv[7], Zinv[11]};
-    K(skew_times)(t, C, tC);
-    for (int i = 0; i < 36; ++i) Ad[i] = 0;
-    K(put3)(Ad, 6, 0, 0, C); K(put3)(Ad, 6, 1, 1, C); K(put3)(Ad, 6, 0, 1, tC);
+    /* J_i = -J_l^-1 Ad(Z^-1), Ad = [[C, t^ C], [0, C]] (_native_products.h) */
+    T Ad[36];
+    K(se3_adjoint_one)(Zinv, Ad);
     for (int i = 0; i < 6; ++i)
         for (int j = 0; j < 6; ++j) {
             T s = 0;

@@ -1,5 +1,7 @@
-/* Products, inverses and adjoints of SGal(3), SE(3) and SE_2(3) matrices for one scalar type T (included
- * twice by _native.c, after _native_sgal3.h, whose skew_times it uses; undefines T and SFX).
+/* Products, inverses and adjoints of SGal(3), SE(3) and SE_2(3) matrices for one scalar type T
+ * (included per dtype by functional/_native.c, and by estimation/_native.c for the factor kernels'
+ * SE(3) inverse and adjoint, after _native_sgal3.h, whose skew_times and put3 it uses;
+ * undefines T and SFX).
  *
  * compose: the matrix product A B of n x n row-major matrices (n = 4: SE(3); n = 5: SGal(3),
  * SE_2(3)), PRODUCT_LANES products per pass with lane w of every array holding product w, so

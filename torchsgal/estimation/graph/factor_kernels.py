@@ -56,16 +56,24 @@ def _check(Zinv, Ti, Tj, n: int = 4) -> None:
                          f"{ {k: tuple(v.shape) for k, v in given.items()} }")
 
 
-def _tensor_code(Zinv, Ti, Tj, jacobians: bool):
-    E = Zinv @ (Tj if Ti is None else se3_inverse(Ti) @ Tj)
-    r, jr, jl = se3_log_jacobians(E, jacobians)
-    if not jacobians:
-        return r, r.new_empty(r.shape[:-1] + (6, 0))
-    assert jr is not None and jl is not None
-    if Ti is None:
-        return r, jr
-    Ji = -(jl @ se3.adjoint(Zinv))
-    return r, torch.cat([Ji, jr], dim=-1)
+def _log_form_code(inverse, log_jacobians, adjoint, dof: int):
+    """The operator's tensor code for one group: r = log(Z^-1 T_i^-1 T_j) and [J_i | J_j]
+    (J_j = J_r^-1(r), J_i = -J_l^-1(r) Ad(Z^-1))."""
+
+    def code(Zinv, Ti, Tj, jacobians: bool):
+        E = Zinv @ (Tj if Ti is None else inverse(Ti) @ Tj)
+        r, jr, jl = log_jacobians(E, jacobians)
+        if not jacobians:
+            return r, r.new_empty(r.shape[:-1] + (dof, 0))
+        assert jr is not None and jl is not None
+        if Ti is None:
+            return r, jr
+        return r, torch.cat([-(jl @ adjoint(Zinv)), jr], dim=-1)
+
+    return code
+
+
+_tensor_code = _log_form_code(se3_inverse, se3_log_jacobians, se3.adjoint, 6)
 
 
 @torch.library.custom_op("torchsgal::se3_factor_terms", mutates_args=(),
@@ -114,15 +122,7 @@ se3_factor_terms.register_fake(_fake(4))
 _SE2_SERIES = torch.tensor([SERIES_THRESHOLD ** 2] + [d for d, _ in _SERIES], dtype=torch.float64)
 
 
-def _se2_tensor_code(Zinv, Ti, Tj, jacobians: bool):
-    E = Zinv @ (Tj if Ti is None else se2.inverse(Ti) @ Tj)
-    r, jr, jl = se2_log_jacobians(E, jacobians)
-    if not jacobians:
-        return r, r.new_empty(r.shape[:-1] + (3, 0))
-    assert jr is not None and jl is not None
-    if Ti is None:
-        return r, jr
-    return r, torch.cat([-(jl @ se2.adjoint(Zinv)), jr], dim=-1)
+_se2_tensor_code = _log_form_code(se2.inverse, se2_log_jacobians, se2.adjoint, 3)
 
 
 @torch.library.custom_op("torchsgal::se2_factor_terms", mutates_args=(),

@@ -429,14 +429,15 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
         x_new, lin_new, new_cost = _trial(problem, system, s, delta)
     # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged: the
     # iteration ends without a step, as GTSAM's below ``relative_error_tol``
+    rounding = 1e3 * eps
     success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps,
-                                          max(o["rel_tol"], 1e3 * eps))
+                                          max(o["rel_tol"], rounding))
     in_place = done & ~success & ~gave_up
     if blocks:  # only the cost of ``lin`` is read before it is replaced below
         # a step whose predicted decrease is itself within the cost's rounding is taken
         # unjudged (Gauss-Newton at the fixed point: the cost cannot tell it apart, the step
         # and corrections tests can)
-        unjudged = in_place & (lin_change <= 1e3 * eps * s.lin.cost)
+        unjudged = in_place & (lin_change <= rounding * s.lin.cost)
         success, in_place = success | unjudged, in_place & ~unjudged
         x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
         lin = Linearization(s.lin.values, s.lin.g, _where(success, new_cost, s.lin.cost), s.lin.model_cost)
