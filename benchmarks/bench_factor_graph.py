@@ -22,7 +22,7 @@
    ratio backward / forward, and the largest difference of the implicit and unrolled gradients.
 6. The batched Cholesky solves of ``estimation.dense_solve`` (the C kernel where its size rule
    picks it) against ``torch.linalg.cholesky_ex`` and ``solve_triangular`` on the same systems:
-   medians, ratio and the largest relative difference.
+   medians, ratio and the largest relative difference; then forward and backward of both.
 7. Cases 1 and 2 again with the process keeping its freed memory
    (``torchsgal.load.keep_freed_memory()``; last, as it cannot be undone).
 
@@ -249,10 +249,31 @@ def bench_dense_solves(repeats: int) -> list[dict]:
         t_op, a = median_time(lambda: dense_solve.cholesky_solve(A, R, back=True), repeats)
         t_lapack, b = median_time(lapack, repeats)
         dev = max(float((x - y).abs().max() / y.abs().max()) for x, y in zip(a[:3], b[:3]))
+        # forward and backward of sum(Y^2) + sum(X) with respect to A (its symmetric part) and R
+        Ag, Rg = A.clone().requires_grad_(), R.clone().requires_grad_()
+
+        def grads(solve):
+            def run():
+                A_sym = (Ag + Ag.mT) / 2
+                _, X, Y, _ = solve(A_sym)
+                return torch.autograd.grad((Y * Y).sum() + X.sum(), (Ag, Rg))
+            return run
+
+        t_op_grad, ga = median_time(grads(lambda S: dense_solve.cholesky_solve(S, Rg, back=True)), repeats)
+        t_lapack_grad, gb = median_time(grads(lambda S: _lapack_solve(S, Rg)), repeats)
+        dev_grad = max(float((x - y).abs().max() / y.abs().max()) for x, y in zip(ga, gb))
         rows.append(dict(systems=n, unknowns=m, rhs=k, kernel=dense_solve.uses_kernel(A),
                          operator_s=t_op, lapack_s=t_lapack, lapack_over_operator=t_lapack / t_op,
-                         max_rel_difference=dev))
+                         max_rel_difference=dev, operator_grad_s=t_op_grad, lapack_grad_s=t_lapack_grad,
+                         lapack_over_operator_grad=t_lapack_grad / t_op_grad,
+                         max_rel_difference_grad=dev_grad))
     return rows
+
+
+def _lapack_solve(A, R):
+    L = torch.linalg.cholesky(A)
+    X = torch.linalg.solve_triangular(L, R, upper=False)
+    return L, X, torch.linalg.solve_triangular(L.mT, X, upper=True), None
 
 
 def bench_kept_memory(repeats: int) -> dict:
@@ -610,6 +631,18 @@ def _markdown(o: dict) -> str:
           f"{r['operator_s'] * 1e3:.3f} | {r['lapack_s'] * 1e3:.3f} | "
           f"{r['lapack_over_operator']:.2f} | {r['max_rel_difference']:.1e} |"
           for r in o.get("dense_solves", [])],
+        "",
+        "Forward and backward (the gradient of sum(Y^2) + sum(X) with respect to A and R; the "
+        "operators' backward is the closed form of `dense_solve._cholesky_solve_vjp` from the "
+        "saved factor) against autograd through `torch.linalg.cholesky` and `solve_triangular`:",
+        "",
+        "| systems | unknowns | right-hand sides | operator ms | torch.linalg ms | "
+        "torch.linalg / operator | largest relative difference |",
+        "|---|---|---|---|---|---|---|",
+        *[f"| {r['systems']} | {r['unknowns']} | {r['rhs']} | {r['operator_grad_s'] * 1e3:.3f} | "
+          f"{r['lapack_grad_s'] * 1e3:.3f} | {r['lapack_over_operator_grad']:.2f} | "
+          f"{r['max_rel_difference_grad']:.1e} |"
+          for r in o.get("dense_solves", []) if "operator_grad_s" in r],
         *_markdown_kept(o.get("kept_memory")),
     ]
     return "\n".join(lines)

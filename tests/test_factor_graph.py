@@ -188,6 +188,18 @@ def test_unbatched_graph_returns_unbatched_values():
     assert x0.as_matrix().equal(_graph(Z, Z0, x0).variables["x"].as_matrix())  # input not mutated
 
 
+def test_dense_marginals_are_the_blocks_of_the_inverse_information():
+    """The batched marginals (solves with the needed unit columns) against the diagonal blocks
+    of inv(H), for indices in any order and repeated."""
+    _, Z, Z0, x0 = pose_graphs(B=3, seed=7)
+    result = fg.levenberg_marquardt(_graph(Z, Z0, x0))
+    P = torch.linalg.inv(result.information)
+    index = torch.tensor([6, 1, 1, 7])
+    expected = torch.stack([P[:, 6 * n:6 * n + 6, 6 * n:6 * n + 6] for n in index.tolist()], dim=1)
+    torch.testing.assert_close(result.marginal_covariance("x", index), expected, rtol=1e-10, atol=0)
+    assert result.marginal_covariance("x", torch.zeros(0, dtype=torch.int64)).shape == (3, 0, 6, 6)
+
+
 # ----------------------------------------------------------------- a user factor
 def _kabsch(p, q):
     """Closed-form argmin_T sum |T p - q|^2 (Umeyama without scale)."""

@@ -27,8 +27,9 @@ One registration (``torch.library.custom_op``) that autograd, ``torch.func`` and
   ``linalg.cholesky_ex`` and ``linalg.solve_triangular`` (the reference the tests compare the
   kernel with);
 * derivatives: those of the tensor code, so gradients, forward derivatives and their
-  derivatives are those of torch's own Cholesky and triangular solves (the backward is the
-  tensor code's ``torch.func.vjp``; the forward derivative its closed form, as torch's);
+  derivatives are those of torch's own Cholesky and triangular solves, in closed form from the
+  saved outputs (the backward: ``_cholesky_solve_vjp``, torch's Cholesky backward without a
+  second factorisation; the forward derivative: ``_cholesky_jvp``), differentiable again;
   ``cholesky_solve`` and ``triangular_solve`` call the operators through an autograd.Function
   that carries them in reverse and forward mode and under ``torch.func`` transforms (where torch
   2.13 does not apply a custom operator's registered autograd), and the operators directly
@@ -182,18 +183,12 @@ def _cholesky_solve_fake(A, R, back):
 
 
 def _cholesky_solve_setup(ctx, inputs, output):
-    A, R, back = inputs
-    ctx.back = back
     ctx.mark_non_differentiable(output[3])
-    ctx.save_for_backward(A, R)
+    ctx.save_for_backward(*output[:3])
 
 
 def _cholesky_solve_backward(ctx, gL, gX, gY, _ginfo):
-    A, R = ctx.saved_tensors
-    with torch.enable_grad():
-        _, pullback = torch.func.vjp(lambda a, r: _cholesky_solve_tensor(a, r, ctx.back)[:3], A, R)
-    gA, gR = pullback((gL, gX, gY))
-    return gA, gR, None
+    return (*_cholesky_solve_vjp(*ctx.saved_tensors, gL, gX, gY), None)
 
 
 _cholesky_solve_op.register_autograd(_cholesky_solve_backward, setup_context=_cholesky_solve_setup)
@@ -234,18 +229,12 @@ def _triangular_solve_fake(L, R, transpose):
 
 
 def _triangular_solve_setup(ctx, inputs, output):
-    L, R, transpose = inputs
-    ctx.transpose = transpose
-    ctx.save_for_backward(L, R)
+    ctx.transpose = inputs[2]
+    ctx.save_for_backward(inputs[0], output)
 
 
 def _triangular_solve_backward(ctx, gX):
-    L, R = ctx.saved_tensors
-    with torch.enable_grad():
-        _, pullback = torch.func.vjp(lambda l, r: _triangular_solve_tensor(l, r, ctx.transpose),
-                                     L, R)
-    gL, gR = pullback(gX)
-    return gL, gR, None
+    return (*_triangular_solve_vjp(*ctx.saved_tensors, gX, ctx.transpose), None)
 
 
 _triangular_solve_op.register_autograd(_triangular_solve_backward,
@@ -270,6 +259,45 @@ def _batched_front(size: int, args, in_dims):
 # ---------------------------------------------------------------------------- autograd.Functions
 def _solve_lower(L, B, transpose: bool = False):
     return torch.linalg.solve_triangular(L.mT if transpose else L, B, upper=transpose)
+
+
+def _solve_small(L, B, transpose: bool = False):
+    """L^-1 B or L^-T B in a backward: ``triangular_solve`` (its kernel; differentiable, so
+    second derivatives follow) for systems of up to SMALL_SIZE unknowns, torch's solves for
+    larger ones, where the backward's m right-hand sides make LAPACK's blocked solves faster
+    (``benchmarks/bench_factor_graph.py``, case 6)."""
+    if L.shape[-1] <= SMALL_SIZE:
+        return triangular_solve(L, B, transpose)
+    return _solve_lower(L, B, transpose)
+
+
+def _cholesky_solve_vjp(L, X, Y, gL, gX, gY):
+    """(gA, gR) of (L, X, Y) = (chol(A), L^-1 R, L^-T X) from the outputs, the gradients of the
+    tensor code (torch's Cholesky and triangular solves) without factoring A again:
+    Y: u = L^-1 gY joins gX, gL -= Y u^T; X: gR = L^-T gX, gL -= gR X^T; L: torch's
+    cholesky_backward, gA = L^-T sym(tril(L^T gL)) L^-1 (sym: half the diagonal, the strict lower
+    triangle mirrored), symmetric (Murray 2016, arXiv:1602.07527).  None stands for zero."""
+    gL = torch.zeros_like(L) if gL is None else gL
+    gX = torch.zeros_like(X) if gX is None else gX
+    if gY is not None and Y.shape[-1]:
+        u = _solve_small(L, gY)
+        gX = gX + u
+        gL = gL - Y @ u.mT
+    gR = _solve_small(L, gX, transpose=True)
+    gL = gL - gR @ X.mT
+    P = (L.mT @ gL).tril()
+    P = 0.5 * (P + P.tril(-1).mT)
+    gA = _solve_small(L, P, transpose=True)  # L^-T P, then (L^-T (L^-T P)^T)^T = . L^-1
+    return _solve_small(L, gA.mT, transpose=True).mT, gR
+
+
+def _triangular_solve_vjp(L, X, gX, transpose: bool):
+    """(gL, gR) of X = L^-1 R (or L^-T R) from L and X, torch's solve_triangular backward:
+    gR = L^-T gX (or L^-1 gX) and gL = -tril(gR X^T) (or -tril(X gR^T)).  None: zero."""
+    if gX is None:
+        return torch.zeros_like(L), torch.zeros_like(X)
+    gR = _solve_small(L, gX, not transpose)
+    return (-(X @ gR.mT if transpose else gR @ X.mT)).tril(), gR
 
 
 def _cholesky_jvp(L, X, Y, dA, dR):
@@ -298,14 +326,12 @@ class _CholeskySolve(FastApply, torch.autograd.Function):
         A, R, back = inputs
         ctx.back = back
         ctx.mark_non_differentiable(output[3])
-        ctx.save_for_backward(A, R)
+        ctx.save_for_backward(*output[:3])
         ctx.save_for_forward(*output[:3])
 
     @staticmethod
     def backward(ctx, gL, gX, gY, _ginfo):
-        _, pullback = torch.func.vjp(lambda a, r: _cholesky_solve_tensor(a, r, ctx.back)[:3],
-                                     *ctx.saved_tensors)
-        return (*pullback((gL, gX, gY)), None)
+        return (*_cholesky_solve_vjp(*ctx.saved_tensors, gL, gX, gY), None)
 
     @staticmethod
     def jvp(ctx, tA, tR, _tback):
@@ -328,14 +354,12 @@ class _TriangularSolve(FastApply, torch.autograd.Function):
     def setup_context(ctx, inputs, output):
         L, R, transpose = inputs
         ctx.transpose = transpose
-        ctx.save_for_backward(L, R)
+        ctx.save_for_backward(L, output)
         ctx.save_for_forward(L, output)
 
     @staticmethod
     def backward(ctx, gX):
-        _, pullback = torch.func.vjp(lambda l, r: _triangular_solve_tensor(l, r, ctx.transpose),
-                                     *ctx.saved_tensors)
-        return (*pullback(gX), None)
+        return (*_triangular_solve_vjp(*ctx.saved_tensors, gX, ctx.transpose), None)
 
     @staticmethod
     def jvp(ctx, tL, tR, _ttranspose):

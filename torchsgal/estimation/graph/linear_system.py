@@ -144,13 +144,20 @@ class DenseSystem:
         return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
 
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
-        """(B, K, block, block) diagonal blocks of H^-1; NaN where H is singular."""
+        """(B, K, block, block) diagonal blocks of H^-1, from solves with the K * block unit
+        columns they need (never the whole inverse); NaN where H is singular."""
         singular = self.singular()
         L, info = torch.linalg.cholesky_ex(torch.where(singular[:, None, None], self.eye,
                                                        self._solution()))
-        P = torch.cholesky_inverse(L)
-        pos = starts[:, None] + torch.arange(block, device=starts.device)
-        out = P[:, pos[:, :, None], pos[:, None, :]]
+        B, K = L.shape[0], starts.numel()
+        offsets = torch.arange(block, device=starts.device)
+        pos = starts[:, None] + offsets  # (K, block)
+        # the columns H^-1 e_c for c in pos, (B, D, K, block); out[b, k, i, j] = their entry
+        # (s_k + i, column s_k + j), i.e. (H^-1)[s_k + i, s_k + j]
+        cols = torch.cholesky_solve(self.eye[:, pos.reshape(-1)].expand(B, -1, -1), L)
+        cols = cols.reshape(B, self.problem.D, K, block)
+        k = torch.arange(K, device=starts.device)
+        out = cols[:, pos[:, :, None], k[:, None, None], offsets]
         nan = (singular | (info != 0))[:, None, None, None]
         return torch.where(nan, torch.full_like(out, float("nan")), out)
 
