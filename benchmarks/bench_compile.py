@@ -11,6 +11,8 @@ closed form.  This script times, per batch size and dtype (medians, ns per eleme
   code calls the operator), the closed form (``exp_impl``) eager and compiled,
   ``torch.linalg.matrix_exp`` of the hat matrix (eager, and compiled), pypose
   ``se3(x).Exp()`` (SE3, eager);
+- ``xi * 2`` eager and compiled: torch.compile's own cost per call (guards and wrappers around
+  one cheap operation), the floor under every compiled case at small batches;
 - exp then log, forward + backward of the summed output: the custom autograd.Function (the
   operators and their closed-form backward maps) and plain autograd through the closed forms,
   eager, and plain autograd compiled (where autograd records, compiled code differentiates the
@@ -104,6 +106,7 @@ def main(argv=None) -> int:
     mexp_c = torch.compile(torch.linalg.matrix_exp)
     custom, plain = fwd_bwd(F.exp, F.log), fwd_bwd(F.exp_impl, F.log_impl)
     plain_c = torch.compile(plain)
+    double_c = torch.compile(lambda x: x * 2)
     rows, compile_s = [], {}
     gen = torch.Generator().manual_seed(0)
     for dt_name in args.dtypes:
@@ -120,7 +123,10 @@ def main(argv=None) -> int:
                      "matrix_exp compiled": lambda: mexp_c(X),
                      "exp+log fwd+bwd custom eager": lambda: custom(xi),
                      "exp+log fwd+bwd plain eager": lambda: plain(xi),
-                     "exp+log fwd+bwd plain compiled": lambda: plain_c(xi)}
+                     "exp+log fwd+bwd plain compiled": lambda: plain_c(xi),
+                     # torch.compile's fixed cost per call (guards, wrappers) on one cheap operation
+                     "xi * 2 eager": lambda: xi * 2,
+                     "xi * 2 compiled": lambda: double_c(xi)}
             if pp is not None:
                 x6 = torch.cat([xi[:, :3], xi[:, 6:9]], -1)
                 lie = pp.se3(x6)
@@ -159,6 +165,8 @@ def main(argv=None) -> int:
                   ("operator vs closed form compiled (the choice)", "exp closed form compiled",
                    "exp operator eager"),
                   ("compiled vs eager, the operator (>= 1x)", "exp operator eager", "exp operator compiled"),
+                  ("compiled vs eager, xi * 2 (torch.compile's own cost per call)", "xi * 2 eager",
+                   "xi * 2 compiled"),
                   ("operator vs closed form, eager", "exp closed form eager", "exp operator eager"),
                   ("SGal3.exp compiled vs matrix_exp compiled", "matrix_exp compiled", "exp operator compiled"),
                   ("custom vs plain autograd, eager", "exp+log fwd+bwd plain eager",
