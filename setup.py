@@ -26,6 +26,7 @@ setup(
             sources=["torchsgal/estimation/_native.c"],
             depends=common + ["torchsgal/functional/_native_products.h",
                               "torchsgal/estimation/_native_cholesky.h",
+                              "torchsgal/estimation/_native_block_cholesky.h",
                               "torchsgal/estimation/_native_factors.h"],
             extra_compile_args=args,
             libraries=libraries,

@@ -1,6 +1,8 @@
 /* torchsgal.estimation._native: the estimation engine's CPU kernels: batched Cholesky
  * factorisations and triangular solves of small dense systems (_native_cholesky.h; the operators
  * torchsgal::cholesky_solve and torchsgal::triangular_solve, estimation/dense_solve.py), and the
+ * batched Cholesky solves of block-sparse systems sharing one pattern (_native_block_cholesky.h;
+ * torchsgal::block_cholesky_solve, estimation/block_cholesky.py), and the
  * residuals and Jacobians of the built-in SE(3) and SE(2) priors and betweens (_native_factors.h,
  * SE(3) on the closed forms of functional/_native_sgal3.h; torchsgal::se3_factor_terms and
  * se2_factor_terms, estimation/graph/factor_kernels.py).
@@ -45,6 +47,7 @@
 #define COS cos
 #define ATAN2 atan2
 #include "_native_factors.h"
+#include "_native_block_cholesky.h"
 #include "_native_cholesky.h"  /* undefines T, SFX and SQRT */
 #undef SIN
 #undef COS
@@ -56,6 +59,7 @@
 #define COS cosf
 #define ATAN2 atan2f
 #include "_native_factors.h"
+#include "_native_block_cholesky.h"
 #include "_native_cholesky.h"
 #undef SIN
 #undef COS
@@ -97,6 +101,22 @@ static PyObject *py_triangular_solve(PyObject *self, PyObject *const *a, Py_ssiz
     Py_RETURN_NONE;
 }
 
+/* block_cholesky_solve(values, rhs, structure, L, X, Q, info, n, k, cost, threads, is_double):
+ * n systems of one block pattern (_native_block_cholesky.h); cost: the work of one system in
+ * units of one SGal(3) exp */
+static PyObject *py_block_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[7];
+    int64_t ints[5]; /* n, k, cost, threads, is_double */
+    if (read_call(a, nargs, 7, ptr, 5, ints, "block_cholesky_solve") < 0) return NULL;
+    void *args[8] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], &ints[1]};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[4] ? block_cholesky_range_f64 : block_cholesky_range_f32, args, ints[0],
+                 ints[2], (int)ints[3]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 /* se3_factor_terms(Zinv, Ti, Tj, r, J, n, threads, is_double): Ti 0 for priors, J 0 for the
  * residuals alone (_native_factors.h) */
 static PyObject *py_se3_factor_terms(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
@@ -117,6 +137,8 @@ static PyMethodDef methods[] = {
      "batched Cholesky and solves (A, R, L, X, Y, info, n, m, k, lanes, threads, is_double)"},
     {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,
      "batched triangular solves (L, R, X, n, m, k, transpose, lanes, threads, is_double)"},
+    {"block_cholesky_solve", (PyCFunction)(void (*)(void))py_block_cholesky_solve, METH_FASTCALL,
+     "batched block-sparse Cholesky solves (values, rhs, structure, L, X, Q, info, n, k, cost, threads, is_double)"},
     {"se3_factor_terms", (PyCFunction)(void (*)(void))py_se3_factor_terms, METH_FASTCALL,
      "SE(3) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, n, threads, is_double)"},
     {"se2_factor_terms", (PyCFunction)(void (*)(void))py_se2_factor_terms, METH_FASTCALL,

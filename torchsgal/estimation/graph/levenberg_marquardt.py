@@ -18,9 +18,9 @@ state's ``increaseLambda``/``decreaseLambda`` and ``NonlinearOptimizer::defaultO
 
 ``iterations`` counts accepted steps, as GTSAM's ``optimizer.iterations()``.  Problems that
 have stopped leave the working set (index_select once per change), so they cost nothing more;
-the dense (batched) path reads one value per round on the host (how many problems still
-run).  The sparse path (one problem) runs its factorisation on the host and linearises a
-trial point only once its step is accepted.
+the dense and block-sparse (batched) paths read one value per round on the host (how many
+problems still run).  The sparse path (one problem) runs its factorisation on the host and
+linearises a trial point only once its step is accepted.
 
 Differentiable solves (``backward_mode``): "none" (default) returns values without gradient;
 "implicit" attaches the gradient of the solution with respect to every tensor the residuals
@@ -35,17 +35,21 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
+from ..block_cholesky import uses_kernel as uses_block_kernel
 from ..solver import SolverReport, SolverStatus
 from .graph import FactorGraph
 from .implicit import attach_implicit
-from .linear_system import DenseSystem, LinearSystem, SparseSystem
+from .linear_system import BlockSparseSystem, DenseSystem, LinearSystem, SparseSystem, block_layout
 from .linearize import Linearization, Problem, evaluate_cost, linearize
 
 __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 
 RUNNING = int(SolverStatus.RUNNING)
 SPARSE_ABOVE = 1000  # linear_solver="auto": one problem with more unknowns takes SparseCholesky
-LINEAR_SOLVERS = ("auto", "dense", "sparse", "cholmod", "cholespy", "scipy")
+# linear_solver="auto": the block-sparse factorisation where its multiply-adds are at most this
+# share of the dense one's (and its kernel runs)
+BLOCK_BELOW = 0.5
+LINEAR_SOLVERS = ("auto", "dense", "block", "sparse", "cholmod", "cholespy", "scipy")
 BACKWARD_MODES = ("none", "implicit", "unroll")
 
 
@@ -103,7 +107,7 @@ def _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_l
            linear_solver, backward_mode):
     if backward_mode not in BACKWARD_MODES:
         raise ValueError(f"backward_mode must be one of {BACKWARD_MODES}, got {backward_mode!r}")
-    if backward_mode == "unroll" and linear_solver not in ("auto", "dense"):
+    if backward_mode == "unroll" and linear_solver not in ("auto", "dense", "block"):
         raise ValueError(f"backward_mode='unroll' needs the dense linear solver, got "
                          f"linear_solver={linear_solver!r}")
     checks.integer(max_iterations, "max_iterations", 0)
@@ -139,10 +143,13 @@ def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
                    exact at zero residual); "unroll": autograd through every iteration (dense
                    solver only; memory grows with the iterations).
 
-    linear_solver  "dense" (batched Cholesky of H (B, D, D)), "sparse" (one problem:
-                   ``estimation.sparse.SparseCholesky``, its first available backend), a
-                   ``SparseCholesky`` backend name, or "auto": sparse for one problem with more
-                   than ``SPARSE_ABOVE`` unknowns, dense otherwise."""
+    linear_solver  "dense" (batched Cholesky of H (B, D, D)), "block" (batched block-sparse
+                   Cholesky: ``estimation.block_cholesky``, one analysis of H's pattern for the
+                   batch), "sparse" (one problem: ``estimation.sparse.SparseCholesky``, its first
+                   available backend), a ``SparseCholesky`` backend name, or "auto": sparse for
+                   one problem with more than ``SPARSE_ABOVE`` unknowns; otherwise block where
+                   its kernel runs and the pattern's factorisation costs at most ``BLOCK_BELOW``
+                   of the dense one, dense elsewhere."""
     _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
            min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping,
            linear_solver, backward_mode)
@@ -264,8 +271,16 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
 
 
 def _system(problem: Problem, linear_solver: str) -> LinearSystem:
-    if linear_solver == "dense" or (linear_solver == "auto" and (
-            problem.B > 1 or problem.D <= SPARSE_ABOVE)):
+    if linear_solver == "block":
+        return BlockSparseSystem(problem)
+    if linear_solver == "auto" and (problem.B > 1 or problem.D <= SPARSE_ABOVE):
+        like = torch.empty(0, dtype=problem.dtype, device=problem.device)
+        if uses_block_kernel(like):
+            structure, maps = block_layout(problem)
+            if structure.flops <= BLOCK_BELOW * structure.dense_flops:
+                return BlockSparseSystem(problem, structure, maps)
+        return DenseSystem(problem)
+    if linear_solver == "dense":
         return DenseSystem(problem)
     return SparseSystem(problem, "auto" if linear_solver in ("auto", "sparse") else linear_solver)
 

@@ -17,8 +17,12 @@ come from the Cholesky factor of H itself (chol(S H S) = S chol(H)).
 """
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import torch
 
+from ..block_cholesky import Structure, analyse, block_cholesky_solve
 from ..dense_solve import MIN_BATCH, cholesky_solve, uses_kernel
 from .linearize import Problem, dense
 
@@ -162,6 +166,138 @@ class DenseSystem:
         return torch.where(nan, torch.full_like(out, float("nan")), out)
 
 
+def block_pattern(problem: Problem) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The block pattern of H: (sizes (N,), rows, cols) with one block per variable element (its
+    tangent's size) and the block pairs that the factors' entries touch."""
+    sizes, node_of = [], []
+    first = 0
+    for info in problem.variables:
+        sizes += [info.dof] * info.size
+        node_of.append(first + torch.arange(info.size * info.dof) // info.dof)
+        first += info.size
+    node = torch.cat(node_of)
+    h = problem.h_index.cpu()
+    return torch.tensor(sizes, dtype=torch.int64), node[h // problem.D], node[h % problem.D]
+
+
+LAYOUT_CACHE = 32  # block layouts kept (the analysis and index maps of a graph's pattern)
+_layouts: OrderedDict = OrderedDict()
+_layouts_lock = threading.Lock()
+
+
+def block_layout(problem: Problem) -> tuple[Structure, tuple[torch.Tensor, ...]]:
+    """The analysis of H's block pattern and the index maps of ``BlockSparseSystem``: (each
+    entry's position in the stored triangle, or the spare position P past it, the elimination
+    order, the diagonal's positions).  Kept by the layout (variables' sizes and the entries'
+    indices), so a graph built again with the same pattern reuses them."""
+    h = problem.h_index.cpu()
+    key = (problem.D, tuple((v.size, v.dof) for v in problem.variables), str(problem.device),
+           h.numpy().tobytes())
+    with _layouts_lock:
+        hit = _layouts.get(key)
+        if hit is not None:
+            _layouts.move_to_end(key)
+            return hit
+    st = analyse(*block_pattern(problem))
+    pos = st.scatter_index(h)
+    maps = tuple(t.to(problem.device) for t in (pos, st.order, st.diagonal))
+    with _layouts_lock:
+        _layouts[key] = (st, maps)
+        while len(_layouts) > LAYOUT_CACHE:
+            _layouts.popitem(last=False)
+    return st, maps
+
+
+class BlockSparseSystem:
+    """Block-sparse batched normal equations (``estimation.block_cholesky``): the pattern of H,
+    one block per variable element, is analysed once (minimum-degree order, the fill of L) and
+    every problem of the batch is factored and solved on it by one operator call per step.  The
+    information at the solution is factored the same way for ``singular``; the marginals, the
+    implicit backward and the dense information use the dense system."""
+
+    cost_first = False  # as DenseSystem: a batch linearises every trial point
+
+    def __init__(self, problem: Problem, structure: Structure | None = None,
+                 maps: tuple[torch.Tensor, ...] | None = None):
+        self.problem = problem
+        if structure is None or maps is None:
+            structure, maps = block_layout(problem)
+        self.structure, self._maps = structure, maps
+        self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
+        self._dense = DenseSystem(problem)
+        self._values: torch.Tensor | None = None
+
+    def select(self, problem: Problem) -> BlockSparseSystem:
+        """The system of a subset of the problems (one pattern: the analysis is shared)."""
+        return BlockSparseSystem(problem, self.structure, self._maps)
+
+    def _panels(self, values: torch.Tensor) -> torch.Tensor:
+        """H's stored triangle (B, P) in the structure's layout (the other entries go to a spare
+        column P, cut off)."""
+        P = self.structure.panels
+        v = values.new_zeros(values.shape[0], P + 1).index_add_(1, self._maps[0], values)
+        return v[:, :P].contiguous()
+
+    def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """As ``DenseSystem.solve``, on the block-sparse factorisation."""
+        if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
+            return self._dense._solve_differentiable(values, g, lam, diagonal)
+        _, order, diag = self._maps
+        v = self._panels(values)
+        d = v.index_select(1, diag)
+        damp = lam[:, None] * (d.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(d))
+        v.index_add_(1, diag, damp)
+        _, X, Q, info = block_cholesky_solve(v, g.index_select(1, order).neg_().unsqueeze(-1),
+                                             self.structure)
+        x = X.squeeze(-1)
+        solved = (info == 0) & torch.isfinite(x).all(dim=-1)
+        x = torch.where(solved[:, None], x, torch.zeros_like(x))
+        # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta (elimination order)
+        quad = torch.where(solved, Q.squeeze(-1), torch.zeros_like(Q[:, 0])) - (damp * x * x).sum(-1)
+        return torch.empty_like(g).index_copy_(1, order, x), solved, quad
+
+    def _dense_solution(self) -> DenseSystem:
+        """The dense system at the solution, built when first asked (marginals, the implicit
+        backward, the dense information)."""
+        if self._values is None:
+            raise RuntimeError("set_solution(values) first")
+        if self._dense._H is None:
+            self._dense.set_solution(self._values)
+        return self._dense
+
+    def solve_information(self, rhs: torch.Tensor) -> torch.Tensor:
+        """As ``DenseSystem.solve_information``."""
+        return self._dense_solution().solve_information(rhs)
+
+    def set_solution(self, values: torch.Tensor) -> None:
+        """Keeps H's entries at the solution for ``singular`` and the dense questions."""
+        self._values = values
+        self._dense._H = None
+
+    def dense_information(self) -> torch.Tensor:
+        """(B, D, D) H at the solution."""
+        return self._dense_solution().dense_information()
+
+    def singular(self) -> torch.Tensor:
+        """(B,) True where H at the solution is numerically rank-deficient (``DenseSystem``'s
+        test, on the block-sparse factor: the scaled pivots L_ii^2 / H_ii)."""
+        if self._values is None:
+            raise RuntimeError("set_solution(values) first")
+        v = self._panels(self._values)
+        d = v.index_select(1, self._maps[2])
+        tiny = (d <= self.rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(
+            v.sum(dim=-1))
+        L, _, _, info = block_cholesky_solve(v, v.new_zeros(v.shape[0], self.problem.D, 0),
+                                             self.structure)
+        pivots = L.index_select(1, self._maps[2]) ** 2 / torch.where(d > 0, d, torch.ones_like(d))
+        return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
+
+    def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
+        """As ``DenseSystem.marginal_blocks``."""
+        return self._dense_solution().marginal_blocks(starts, block)
+
+
 class SparseSystem:
     """Sparse normal equations of one problem (B = 1), through ``SparseCholesky``."""
 
@@ -257,4 +393,4 @@ class SparseSystem:
         return self.factorization.marginal_blocks(starts, block)[None]
 
 
-LinearSystem = DenseSystem | SparseSystem
+LinearSystem = DenseSystem | BlockSparseSystem | SparseSystem
