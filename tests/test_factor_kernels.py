@@ -242,3 +242,62 @@ def test_forward_mode_through_a_linearisation_is_the_tensor_codes(group):
         torch.testing.assert_close(torch.func.jvp(fn, (zero,), (torch.ones_like(zero),))[1], numeric,
                                    rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(torch.func.jacfwd(fn)(zero), numeric, rtol=1e-6, atol=1e-6)
+
+
+NORMAL_OPS = {"SE3": torch.ops.torchsgal.se3_factor_normal, "SE2": torch.ops.torchsgal.se2_factor_normal}
+
+
+@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("kernel", [True, False])
+@pytest.mark.parametrize("noise", ["shared", "per factor", "none"])
+def test_normal_blocks_are_the_whitened_terms_products(noise, kernel, group):
+    """se3/se2_factor_normal: r~ = L r, H = (L J)^T (L J), g = (L J)^T r~ with (r, J) written
+    out from the definitions, for a shared L, one per factor and none, priors and betweens."""
+    g = GROUPS[group]
+    d = g.dof
+    Zinv, Ti, Tj = g.pair(0.7, n=30, seed=11)
+    gen = torch.Generator().manual_seed(12)
+    L = {"shared": torch.randn(d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64),
+         "per factor": torch.randn(30, d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64),
+         "none": None}[noise]
+    for ti in (Ti, None):
+        with native.disabled() if not kernel else contextlib.nullcontext():
+            r, H, gv = NORMAL_OPS[group](Zinv, ti, Tj, L)
+        r0, J0 = g.written_out(Zinv, ti, Tj)
+        Lm = torch.eye(d, dtype=f64) if L is None else L
+        rw, Jw = (Lm @ r0.unsqueeze(-1)).squeeze(-1), Lm @ J0
+        Dk = d if ti is None else 2 * d
+        assert r.shape == (30, d) and H.shape == (30, Dk, Dk) and gv.shape == (30, Dk)
+        torch.testing.assert_close(r, rw, rtol=0, atol=1e-11)
+        torch.testing.assert_close(H, Jw.mT @ Jw, rtol=1e-11, atol=1e-10)
+        torch.testing.assert_close(gv, (Jw.mT @ rw.unsqueeze(-1)).squeeze(-1), rtol=1e-11, atol=1e-10)
+    opcheck(NORMAL_OPS[group].default, (Zinv[:3], Ti[:3], Tj[:3], None if L is None else L[..., :d, :d]
+                                        if L.dim() == 2 else L[:3]))
+    with pytest.raises(ValueError, match="L must have shape"):
+        NORMAL_OPS[group](Zinv, Ti, Tj, torch.eye(d + 1, dtype=f64))
+
+
+@needs_kernel
+def test_the_engine_linearises_unweighted_built_in_factors_through_the_normal_blocks():
+    """The engine's normal equations of a pose graph with the normal operators equal those
+    assembled from the residuals and Jacobians (the kernels off)."""
+    import torchsgal as ts
+    from torchsgal.estimation import graph as fg
+    from torchsgal.estimation.graph.linearize import Problem, linearize
+
+    gen = torch.Generator().manual_seed(13)
+    poses = ts.SE3.exp(0.5 * torch.randn(3, 6, 6, generator=gen, dtype=f64))
+    Z = ts.SE3.exp(0.5 * torch.randn(3, 7, 6, generator=gen, dtype=f64))
+    graph = fg.FactorGraph()
+    graph.add_variable("x", poses)
+    graph.add(fg.Prior("x", 0, poses[:, :1], information=torch.eye(6, dtype=f64) * 4))
+    graph.add(fg.Between("x", torch.tensor([0, 1, 2, 3, 4, 0, 2]), torch.tensor([1, 2, 3, 4, 5, 3, 5]),
+                         Z, sqrt_information=torch.rand(7, 6, 6, generator=gen, dtype=f64).tril()
+                         + torch.eye(6, dtype=f64)))
+    problem = Problem(graph)
+    x = problem.initial(graph)
+    fused = linearize(problem, x)
+    with native.disabled():
+        plain = linearize(problem, x)
+    for name in ("values", "g", "cost", "model_cost"):
+        torch.testing.assert_close(getattr(fused, name), getattr(plain, name), rtol=1e-12, atol=1e-9)

@@ -131,6 +131,35 @@ static PyObject *py_se2_factor_terms(PyObject *self, PyObject *const *a, Py_ssiz
     return dispatch(a, nargs, 6, se2_factor_range_f64, se2_factor_range_f32, 1, "se2_factor_terms");
 }
 
+/* se3_factor_normal(Zinv, Ti, Tj, L, rw, H, g, n, shared, threads, is_double) and
+ * se2_factor_normal(Zinv, Ti, Tj, L, rw, H, g, series, n, shared, threads, is_double): the whitened
+ * residuals and each factor's normal-equation blocks (_native_factors.h); Ti 0 for priors, L 0 for
+ * none, shared 1 for one L (m, m) for all factors */
+static PyObject *factor_normal(PyObject *const *a, Py_ssize_t nargs, int npointers, range_fn f64,
+                               range_fn f32, int64_t cost, const char *name) {
+    void *ptr[8];
+    int64_t ints[4]; /* n, shared, threads, is_double */
+    if (read_call(a, nargs, npointers, ptr, 4, ints, name) < 0) return NULL;
+    void *args[9] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], &ints[1],
+                     npointers > 7 ? ptr[7] : NULL};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[3] ? f64 : f32, args, ints[0], cost, (int)ints[2]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_se3_factor_normal(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    return factor_normal(a, nargs, 7, se3_factor_normal_range_f64, se3_factor_normal_range_f32, 4,
+                         "se3_factor_normal");
+}
+
+static PyObject *py_se2_factor_normal(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    return factor_normal(a, nargs, 8, se2_factor_normal_range_f64, se2_factor_normal_range_f32, 1,
+                         "se2_factor_normal");
+}
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
@@ -143,6 +172,10 @@ static PyMethodDef methods[] = {
      "SE(3) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, n, threads, is_double)"},
     {"se2_factor_terms", (PyCFunction)(void (*)(void))py_se2_factor_terms, METH_FASTCALL,
      "SE(2) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, series, n, threads, is_double)"},
+    {"se3_factor_normal", (PyCFunction)(void (*)(void))py_se3_factor_normal, METH_FASTCALL,
+     "SE(3) whitened residuals and normal-equation blocks (Zinv, Ti, Tj, L, rw, H, g, n, shared, threads, is_double)"},
+    {"se2_factor_normal", (PyCFunction)(void (*)(void))py_se2_factor_normal, METH_FASTCALL,
+     "SE(2) whitened residuals and normal-equation blocks (Zinv, Ti, Tj, L, rw, H, g, series, n, shared, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

@@ -134,6 +134,67 @@ static void K(se3_factor_range)(void **a, int64_t lo, int64_t hi) {
         K(se3_factor_one)(Zinv + 16 * b, Ti ? Ti + 16 * b : NULL, Tj + 16 * b, r + 6 * b, J ? J + width * b : NULL);
 }
 
+/* The whitened terms and their normal-equation blocks of one factor: r~ = L r, J~ = L J (L (m, m)
+ * row-major; null: the identity), H = J~^T J~ (Dk, Dk) and g = J~^T r~ (Dk) */
+static void K(whitened_normal)(const T *r, const T *J, const T *L, int m, int Dk, T *rw, T *H, T *g) {
+    T Jw[6 * 12];
+    for (int i = 0; i < m; ++i) {
+        if (L) {
+            T acc = 0;
+            for (int k = 0; k < m; ++k) acc += L[m * i + k] * r[k];
+            rw[i] = acc;
+            for (int c = 0; c < Dk; ++c) {
+                T v = 0;
+                for (int k = 0; k < m; ++k) v += L[m * i + k] * J[Dk * k + c];
+                Jw[Dk * i + c] = v;
+            }
+        } else {
+            rw[i] = r[i];
+            for (int c = 0; c < Dk; ++c) Jw[Dk * i + c] = J[Dk * i + c];
+        }
+    }
+    for (int a = 0; a < Dk; ++a) {
+        for (int b = 0; b <= a; ++b) {
+            T acc = 0;
+            for (int i = 0; i < m; ++i) acc += Jw[Dk * i + a] * Jw[Dk * i + b];
+            H[Dk * a + b] = acc;
+            H[Dk * b + a] = acc;
+        }
+        T acc = 0;
+        for (int i = 0; i < m; ++i) acc += Jw[Dk * i + a] * rw[i];
+        g[a] = acc;
+    }
+}
+
+/* args: Zinv, Ti (null for priors), Tj, L (null: none), rw, H, g, series (SE(2) only; see
+ * se2_factor_range), each (n, ...) contiguous; L (n, m, m), or (m, m) for all with L_shared */
+static void K(se3_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
+    const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
+    T *rw = a[4], *H = a[5], *g = a[6];
+    const int64_t shared = *(const int64_t *)a[7];
+    const int Dk = Ti ? 12 : 6;
+    for (int64_t b = lo; b < hi; ++b) {
+        T r[6], J[72];
+        K(se3_factor_one)(Zinv + 16 * b, Ti ? Ti + 16 * b : NULL, Tj + 16 * b, r, J);
+        K(whitened_normal)(r, J, L ? L + (shared ? 0 : 36 * b) : NULL, 6, Dk, rw + 6 * b,
+                           H + Dk * Dk * b, g + Dk * b);
+    }
+}
+
+static void K(se2_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
+    const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
+    T *rw = a[4], *H = a[5], *g = a[6];
+    const int64_t shared = *(const int64_t *)a[7];
+    const double *series = a[8];
+    const int Dk = Ti ? 6 : 3;
+    for (int64_t b = lo; b < hi; ++b) {
+        T r[3], J[18];
+        K(se2_factor_one)(Zinv + 9 * b, Ti ? Ti + 9 * b : NULL, Tj + 9 * b, series, r, J);
+        K(whitened_normal)(r, J, L ? L + (shared ? 0 : 9 * b) : NULL, 3, Dk, rw + 3 * b,
+                           H + Dk * Dk * b, g + Dk * b);
+    }
+}
+
 #undef K
 #undef KF__
 #undef KF_

@@ -8,6 +8,12 @@ J = [J_i | J_j] (..., dof, 2 dof) with J_j = J_r^-1(r) and J_i = -J_l^-1(r) Ad(Z
 formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E); J is
 (..., dof, 0) without ``jacobians``.  All arguments of one batch shape, dtype and device.
 
+``se3_factor_normal(Zinv, Ti, Tj, L)`` and ``se2_factor_normal`` go one step further for the
+engine's linearisation of factors without a robust loss: the whitened residual r~ = L r and the
+factor's blocks of the normal equations, H = J~^T J~ and g = J~^T r~ with J~ = L J (L shared
+(dof, dof), per factor (..., dof, dof), or None), so that whitening and the products of small
+matrices are part of the same C pass.
+
 The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
 on SE(3), three operator calls) per block of factors: the inverses, two products, the log,
 both inverse Jacobians, Ad(Z^-1) and the products that assemble J, a fixed cost per step that
@@ -29,7 +35,8 @@ from ...functional._blocking import unobserved
 from .. import dense_solve
 from .log_terms import _SERIES, SERIES_THRESHOLD, se2_log_jacobians, se3_inverse, se3_log_jacobians
 
-__all__ = ["se3_factor_terms", "se2_factor_terms", "usable"]
+__all__ = ["se3_factor_terms", "se2_factor_terms", "se3_factor_normal", "se2_factor_normal",
+           "usable"]
 
 
 def usable(*tensors: torch.Tensor) -> bool:
@@ -138,3 +145,97 @@ se2_factor_terms.register_kernel("cpu")(
     lambda Zinv, Ti, Tj, jacobians: _run("se2_factor_terms", 3, _se2_tensor_code, Zinv, Ti, Tj,
                                          jacobians, _SE2_SERIES))
 se2_factor_terms.register_fake(_fake(3))
+
+
+# ---------------------------------------------------------------------------- normal blocks
+def _normal_code(terms, dof: int):
+    """The tensor code of ``<group>_factor_normal``: the terms, whitened, and their products."""
+
+    def code(Zinv, Ti, Tj, L):
+        r, J = terms(Zinv, Ti, Tj, True)
+        if L is not None:
+            r = (L @ r.unsqueeze(-1)).squeeze(-1)
+            J = L @ J
+        return r, J.mT @ J, (J.mT @ r.unsqueeze(-1)).squeeze(-1)
+
+    return code
+
+
+def _check_noise(L, Tj, dof: int) -> None:
+    if L is None:
+        return
+    checks.same_device_dtype(L=L, Tj=Tj)
+    if L.shape not in ((dof, dof), Tj.shape[:-2] + (dof, dof)):
+        raise ValueError(f"L must have shape ({dof}, {dof}) or {tuple(Tj.shape[:-2]) + (dof, dof)}, "
+                         f"got {tuple(L.shape)}")
+
+
+def _run_normal(name: str, n: int, code, Zinv, Ti, Tj, L, *extra: torch.Tensor):
+    """The operator ``name``'s CPU kernel where it runs, else ``code``."""
+    _check(Zinv, Ti, Tj, n)
+    dof = n * (n - 1) // 2
+    _check_noise(L, Tj, dof)
+    lib = dense_solve._lib
+    if lib is None or not native.enabled() or Tj.dtype not in (torch.float32, torch.float64):
+        return code(Zinv, Ti, Tj, L)
+    batch, Dk = Tj.shape[:-2], dof if Ti is None else 2 * dof
+    Zinv, Tj = Zinv.resolve_neg().contiguous(), Tj.resolve_neg().contiguous()
+    Ti = None if Ti is None else Ti.resolve_neg().contiguous()
+    L = None if L is None else L.resolve_neg().contiguous()
+    r, H, g = Tj.new_empty(batch + (dof,)), Tj.new_empty(batch + (Dk, Dk)), Tj.new_empty(batch + (Dk,))
+    getattr(lib, name)(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
+                       0 if L is None else L.data_ptr(), r.data_ptr(), H.data_ptr(), g.data_ptr(),
+                       *(e.data_ptr() for e in extra), r.numel() // dof,
+                       L is not None and L.dim() == 2, torch.get_num_threads(),
+                       Tj.dtype is torch.float64)
+    return r, H, g
+
+
+def _normal_fake(n: int):
+    def fake(Zinv, Ti, Tj, L):
+        _check(Zinv, Ti, Tj, n)
+        dof = n * (n - 1) // 2
+        _check_noise(L, Tj, dof)
+        Dk = dof if Ti is None else 2 * dof
+        batch = Tj.shape[:-2]
+        return Tj.new_empty(batch + (dof,)), Tj.new_empty(batch + (Dk, Dk)), Tj.new_empty(batch + (Dk,))
+    return fake
+
+
+_se3_normal_code = _normal_code(_tensor_code, 6)
+_se2_normal_code = _normal_code(_se2_tensor_code, 3)
+
+
+@torch.library.custom_op("torchsgal::se3_factor_normal", mutates_args=(),
+                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L) -> (Tensor, Tensor, Tensor)")
+def se3_factor_normal(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
+                      L: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(r~ = L r (..., 6), H = J~^T J~ (..., Dk, Dk), g = J~^T r~ (..., Dk)) of SE(3) priors
+    (``Ti`` None, Dk = 6) or betweens (Dk = 12), J~ = L J, with (r, J) those of
+    ``se3_factor_terms`` and L (6, 6) for all factors, (..., 6, 6) per factor, or None (the
+    identity): the factors' whitened residuals and their blocks of the normal equations in one
+    pass (the engine's linearisation of unweighted built-in factors)."""
+    _check(Zinv, Ti, Tj)
+    _check_noise(L, Tj, 6)
+    return _se3_normal_code(Zinv, Ti, Tj, L)
+
+
+se3_factor_normal.register_kernel("cpu")(
+    lambda Zinv, Ti, Tj, L: _run_normal("se3_factor_normal", 4, _se3_normal_code, Zinv, Ti, Tj, L))
+se3_factor_normal.register_fake(_normal_fake(4))
+
+
+@torch.library.custom_op("torchsgal::se2_factor_normal", mutates_args=(),
+                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L) -> (Tensor, Tensor, Tensor)")
+def se2_factor_normal(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
+                      L: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """As ``se3_factor_normal`` for SE(2) (matrices (..., 3, 3), r (..., 3), Dk 3 or 6)."""
+    _check(Zinv, Ti, Tj, 3)
+    _check_noise(L, Tj, 3)
+    return _se2_normal_code(Zinv, Ti, Tj, L)
+
+
+se2_factor_normal.register_kernel("cpu")(
+    lambda Zinv, Ti, Tj, L: _run_normal("se2_factor_normal", 3, _se2_normal_code, Zinv, Ti, Tj, L,
+                                        _SE2_SERIES))
+se2_factor_normal.register_fake(_normal_fake(3))

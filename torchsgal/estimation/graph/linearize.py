@@ -359,8 +359,8 @@ def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jac
     return _whiten(block, r, J, x[0].shape[0])
 
 
-def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
-                    ) -> dict[int, tuple[torch.Tensor, torch.Tensor | None]]:
+def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool,
+                    normal: bool = False) -> dict[int, tuple]:
     """{block number: (r (B, E, dof), J (B, E, dof, Dk) or None)} for the blocks of built-in
     priors and betweens, r = log(E) with E = Z^-1 T (prior) or Z^-1 T_i^-1 T_j (between).
     The E of every such block of a group are stacked and go through one ``log`` and one
@@ -372,7 +372,9 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     (``factor_kernels``: one C pass per factor on the CPU), one call per block.  Otherwise, on
     SE(3) and SE(2), log, J_r^-1 and J_l^-1 come from one pass (``log_terms``) and
     J_i = -J_l^-1(r) Ad(Z^-1) (as J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1)
-    computed once per problem."""
+    computed once per problem.  With ``normal``, the kernels' blocks of factors without a robust
+    loss come whitened with their normal-equation blocks instead: (r~, H, g) (``se3_factor_normal``,
+    ``se2_factor_normal``)."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
@@ -387,10 +389,18 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
             n_ = 4 if group is SE3 else 3
             shape = (B, block.size, n_, n_)
             Ts = [T.expand(shape) for T in _args(block, x)]
+            Ti = None if block.log_form == "prior" else Ts[0]
+            if normal and block.factor.loss is None:  # whitened, with the blocks of H and g
+                L = block.sqrt_info
+                if L is not None and L.dim() > 2:
+                    L = L.expand(shape[:2] + L.shape[-2:])
+                op = (torch.ops.torchsgal.se3_factor_normal if group is SE3
+                      else torch.ops.torchsgal.se2_factor_normal)
+                out[n] = op(Z_inv.expand(shape), Ti, Ts[-1], L)
+                continue
             op = (torch.ops.torchsgal.se3_factor_terms if group is SE3
                   else torch.ops.torchsgal.se2_factor_terms)
-            r, J = op(Z_inv.expand(shape), None if block.log_form == "prior" else Ts[0], Ts[-1],
-                      want_jacobian)
+            r, J = op(Z_inv.expand(shape), Ti, Ts[-1], want_jacobian)
             out[n] = (r, J if want_jacobian else None)
             continue
         f = group._f
@@ -460,10 +470,20 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
     B, D = x[0].shape[0], problem.D
     cost, model = x[0].new_zeros(B), x[0].new_zeros(B)
     h_vals, g_vals = [], []
-    fused = _log_form_terms(problem, x, True)
+    fused = _log_form_terms(problem, x, True, normal=True)
     for n, block in enumerate(problem.blocks):
+        if n in fused and len(fused[n]) == 3:  # whitened, with its blocks of H and g
+            r, H, gb = fused[n]
+            half = 0.5 * (r * r).sum(dim=(-1, -2))
+            cost, model = cost + half, model + half
+            if block.reduced:  # the factors' blocks summed
+                H, gb = H.sum(dim=1), gb.sum(dim=1)
+            h_vals.append(H.reshape(B, -1))
+            g_vals.append(gb.reshape(B, -1))
+            continue
         if n in fused:
-            r, J, rho = _whiten(block, *fused[n], B, built_in=True)
+            r, J = fused[n]
+            r, J, rho = _whiten(block, r, J, B, built_in=True)
         else:
             r, J, rho = _block_terms(problem, block, x, True)
         assert J is not None  # asked for
