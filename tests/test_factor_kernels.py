@@ -301,3 +301,24 @@ def test_the_engine_linearises_unweighted_built_in_factors_through_the_normal_bl
         plain = linearize(problem, x)
     for name in ("values", "g", "cost", "model_cost"):
         torch.testing.assert_close(getattr(fused, name), getattr(plain, name), rtol=1e-12, atol=1e-9)
+
+
+def test_a_noise_that_requires_grad_keeps_the_differentiable_whitening():
+    """A square-root information that requires grad (a learned noise) is applied by tensor
+    operations after the kernel's terms, so the normal equations carry its gradient."""
+    import torchsgal as ts
+    from torchsgal.estimation import graph as fg
+    from torchsgal.estimation.graph.linearize import Problem, linearize
+
+    gen = torch.Generator().manual_seed(14)
+    poses = ts.SE3.exp(0.5 * torch.randn(2, 4, 6, generator=gen, dtype=f64))
+    scale = torch.tensor(2.0, dtype=f64, requires_grad=True)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", poses)
+    graph.add(fg.Between("x", torch.arange(3), torch.arange(1, 4), poses[:, 1:],
+                         sqrt_information=scale * torch.eye(6, dtype=f64)))
+    problem = Problem(graph, attach=True)
+    lin = linearize(problem, problem.initial(graph))
+    (grad,) = torch.autograd.grad(lin.values.sum(), scale)
+    # H = scale^2 J^T J: d(sum H)/d(scale) = 2 sum(H) / scale
+    torch.testing.assert_close(grad, 2 * lin.values.sum().detach() / scale.detach())

@@ -390,8 +390,10 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
             shape = (B, block.size, n_, n_)
             Ts = [T.expand(shape) for T in _args(block, x)]
             Ti = None if block.log_form == "prior" else Ts[0]
-            if normal and block.factor.loss is None:  # whitened, with the blocks of H and g
-                L = block.sqrt_info
+            L = block.sqrt_info
+            if normal and block.factor.loss is None and (L is None or factor_kernels.usable(L)):
+                # whitened, with the blocks of H and g (a noise that something differentiates
+                # is applied below instead)
                 if L is not None and L.dim() > 2:
                     L = L.expand(shape[:2] + L.shape[-2:])
                 op = (torch.ops.torchsgal.se3_factor_normal if group is SE3
