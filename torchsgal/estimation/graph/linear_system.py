@@ -212,8 +212,8 @@ class BlockSparseSystem:
     """Block-sparse batched normal equations (``estimation.block_cholesky``): the pattern of H,
     one block per variable element, is analysed once (minimum-degree order, the fill of L) and
     every problem of the batch is factored and solved on it by one operator call per step.  The
-    information at the solution is factored the same way for ``singular``; the marginals, the
-    implicit backward and the dense information use the dense system."""
+    information at the solution is factored the same way for ``singular`` and the implicit
+    backward; the marginals and the dense information use the dense system."""
 
     cost_first = False  # as DenseSystem: a batch linearises every trial point
 
@@ -267,8 +267,19 @@ class BlockSparseSystem:
         return self._dense
 
     def solve_information(self, rhs: torch.Tensor) -> torch.Tensor:
-        """As ``DenseSystem.solve_information``."""
-        return self._dense_solution().solve_information(rhs)
+        """As ``DenseSystem.solve_information``, on the block-sparse factorisation (the dense
+        system's where something differentiates ``rhs``: a second derivative)."""
+        if self._values is None:
+            raise RuntimeError("set_solution(values) first")
+        if torch.is_grad_enabled() and rhs.requires_grad:
+            return self._dense_solution().solve_information(rhs)
+        order = self._maps[1]
+        _, X, _, info = block_cholesky_solve(self._panels(self._values),
+                                             rhs.index_select(1, order).unsqueeze(-1), self.structure)
+        if bool((info != 0).any()):
+            raise ValueError("the information at the solution is not positive definite: "
+                             "no implicit gradient (add priors that fix the gauge)")
+        return torch.empty_like(rhs).index_copy_(1, order, X.squeeze(-1))
 
     def set_solution(self, values: torch.Tensor) -> None:
         """Keeps H's entries at the solution for ``singular`` and the dense questions."""
