@@ -260,3 +260,68 @@ def test_second_derivatives_through_the_implicit_solve_match_dense():
     torch.testing.assert_close(out[0][0], out[1][0], rtol=1e-7, atol=1e-9)
     torch.testing.assert_close(out[0][1], out[1][1], rtol=1e-6, atol=1e-8)
     assert float(out[0][1].abs().max()) > 0
+
+
+@pytest.mark.kernels
+def test_q_reads_the_lower_triangle_only_as_the_factorisation():
+    """Values whose diagonal blocks hold only their lower triangle (the upper zeroed): the
+    kernel's x^T A x is that of the symmetric matrix, as the tensor code's."""
+    sizes, pairs = MIXED
+    st = analysed(sizes, pairs)
+    A, _ = pattern_matrix(sizes, pairs, B=9, seed=21)
+    v = stored(st, A)
+    node = st._node_of
+    upper = (node[:, None] == node[None, :]) & torch.ones_like(A[0], dtype=torch.bool).triu(1)
+    lower = stored(st, A.masked_fill(upper, 0.0))  # the diagonal blocks' upper triangles zero
+    R = torch.randn(9, st.size, 2, dtype=f64)
+    _, X, Q, _ = bc.block_cholesky_solve(lower, R, st)
+    with native.disabled():
+        _, X0, Q0, _ = bc.block_cholesky_solve(lower, R, st)
+    Ap = A[:, st.order][:, :, st.order]
+    torch.testing.assert_close(Q, (X * (Ap @ X)).sum(-2), rtol=1e-10, atol=0)
+    torch.testing.assert_close(Q, Q0, rtol=1e-10, atol=0)
+    torch.testing.assert_close(Q, bc.block_cholesky_solve(v, R, st)[2], rtol=1e-10, atol=0)
+
+
+def test_a_malformed_structure_is_refused():
+    st = analysed(*CHAIN)
+    v = torch.eye(6, dtype=f64).flatten().repeat(1, st.panels // 36)
+    R = torch.ones(1, st.size, 1, dtype=f64)
+    short = st.packed.clone()
+    short[0] = 100000  # blocks claimed with no arrays behind them
+    with pytest.raises(ValueError, match="consistent block pattern"):
+        torch.ops.torchsgal.block_cholesky_solve(v, R, short)
+    if bc.uses_kernel(v):
+        tampered = st.packed.clone()
+        tampered[-1] = 10 ** 9  # a row map entry past its panel
+        with pytest.raises(ValueError, match="consistent block pattern"):
+            torch.ops.torchsgal.block_cholesky_solve(v, R, tampered)
+
+
+def test_a_pattern_that_fills_in_is_not_analysed_for_auto():
+    """``max_share``: a dense pattern is refused at once, and one whose elimination passes the
+    bound is refused (None, cached); without the bound it is analysed."""
+    n = 30
+    dense_pairs = [(i, j) for i in range(n) for j in range(i, n)]
+    assert analysed([3] * n, dense_pairs) is not None
+    rows = torch.tensor([a for a, _ in dense_pairs])
+    cols = torch.tensor([b for _, b in dense_pairs])
+    assert bc.analyse(torch.full((n,), 3), rows, cols, max_share=0.5) is None
+    # a ring with chords every 3 blocks: sparse enough to try, too much fill for 1% of dense
+    ring = [(i, (i + 1) % n) for i in range(n)] + [(i, (i + n // 2) % n) for i in range(0, n, 3)]
+    rows = torch.tensor([a for a, _ in ring])
+    cols = torch.tensor([b for _, b in ring])
+    assert bc.analyse(torch.full((n,), 3), rows, cols, max_share=0.01) is None
+    full = bc.analyse(torch.full((n,), 3), rows, cols)
+    assert full is not None and full.flops > 0.01 * full.dense_flops
+    assert bc.analyse(torch.full((n,), 3), rows, cols, max_share=0.9) is not None
+
+
+@pytest.mark.kernels
+def test_the_block_system_builds_no_dense_matrix_to_solve():
+    from torchsgal.estimation.graph import linear_system as ls
+
+    result = fg_solve("levenberg_marquardt", _engine_case(B=3), "auto")
+    assert isinstance(result.system, ls.BlockSparseSystem) and result.system._dense is None
+    result.marginal_covariance("x", 0)  # the dense questions build it when asked
+    assert result.system._dense is not None

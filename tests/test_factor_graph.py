@@ -470,18 +470,22 @@ def test_one_pose_read_by_every_factor_beside_per_factor_points():
             torch.testing.assert_close(H[:, 6:, k], (up.g - down.g)[:, 6:] / (2 * eps), rtol=1e-6, atol=1e-6)
 
 
-def test_rank_test_flags_non_finite_information_per_problem():
-    """``DenseSystem.singular`` at a solution whose H has one infinite or NaN off-diagonal entry
-    (its diagonal and Cholesky pivots untouched in the other problems): exactly those problems
-    are flagged."""
-    from torchsgal.estimation.graph.linear_system import DenseSystem
+@pytest.mark.parametrize("kind", ["DenseSystem", "BlockSparseSystem"])
+def test_rank_test_flags_non_finite_information_per_problem(kind):
+    """``singular`` at a solution whose H has one infinite or NaN off-diagonal entry (its
+    diagonal and Cholesky pivots untouched in the other problems): exactly those problems are
+    flagged, whichever triangle the entry is in (the block system stores one)."""
+    from torchsgal.estimation.graph import linear_system
 
     _, Z, Z0, x0 = pose_graphs(B=4, seed=13)
     problem = Problem(_graph(Z, Z0, x0))
     values = linearize(problem, problem.initial(_graph(Z, Z0, x0))).values.clone()
     rows, cols = problem.h_index // problem.D, problem.h_index % problem.D
-    k = int(((rows - cols).abs() > 6).nonzero()[0, 0])  # an entry off the diagonal blocks
-    values[1, k], values[2, k], values[3, k] = float("inf"), float("nan"), -float("inf")
-    system = DenseSystem(problem)
-    system.set_solution(values)
-    assert system.singular().tolist() == [False, True, True, True]
+    for upper in (True, False):  # an entry off the diagonal blocks, in either triangle
+        far = ((rows - cols).abs() > 6) & ((rows < cols) if upper else (rows > cols))
+        k = int(far.nonzero()[0, 0])
+        v = values.clone()
+        v[1, k], v[2, k], v[3, k] = float("inf"), float("nan"), -float("inf")
+        system = getattr(linear_system, kind)(problem)
+        system.set_solution(v)
+        assert system.singular().tolist() == [False, True, True, True], upper

@@ -101,14 +101,19 @@ static PyObject *py_triangular_solve(PyObject *self, PyObject *const *a, Py_ssiz
     Py_RETURN_NONE;
 }
 
-/* block_cholesky_solve(values, rhs, structure, L, X, Q, info, n, k, cost, threads, is_double):
- * n systems of one block pattern (_native_block_cholesky.h); cost: the work of one system in
- * units of one SGal(3) exp */
+/* block_cholesky_solve(values, rhs, structure, L, X, Q, info, n, k, cost, threads, is_double,
+ * structure_numel): n systems of one block pattern (_native_block_cholesky.h); cost: the work of
+ * one system in units of one SGal(3) exp.  A malformed structure raises ValueError. */
 static PyObject *py_block_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
     void *ptr[7];
-    int64_t ints[5]; /* n, k, cost, threads, is_double */
-    if (read_call(a, nargs, 7, ptr, 5, ints, "block_cholesky_solve") < 0) return NULL;
+    int64_t ints[6]; /* n, k, cost, threads, is_double, structure_numel */
+    if (read_call(a, nargs, 7, ptr, 6, ints, "block_cholesky_solve") < 0) return NULL;
+    if (!block_structure_valid((const int64_t *)ptr[2], ints[5])) {
+        PyErr_SetString(PyExc_ValueError, "structure is not a consistent block pattern "
+                                          "(block_cholesky.analyse makes one)");
+        return NULL;
+    }
     void *args[8] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], &ints[1]};
     Py_BEGIN_ALLOW_THREADS
     run_parallel(ints[4] ? block_cholesky_range_f64 : block_cholesky_range_f32, args, ints[0],
@@ -167,7 +172,7 @@ static PyMethodDef methods[] = {
     {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,
      "batched triangular solves (L, R, X, n, m, k, transpose, lanes, threads, is_double)"},
     {"block_cholesky_solve", (PyCFunction)(void (*)(void))py_block_cholesky_solve, METH_FASTCALL,
-     "batched block-sparse Cholesky solves (values, rhs, structure, L, X, Q, info, n, k, cost, threads, is_double)"},
+     "batched block-sparse Cholesky solves (values, rhs, structure, L, X, Q, info, n, k, cost, threads, is_double, structure_numel)"},
     {"se3_factor_terms", (PyCFunction)(void (*)(void))py_se3_factor_terms, METH_FASTCALL,
      "SE(3) prior and between residuals and Jacobians (Zinv, Ti, Tj, r, J, n, threads, is_double)"},
     {"se2_factor_terms", (PyCFunction)(void (*)(void))py_se2_factor_terms, METH_FASTCALL,

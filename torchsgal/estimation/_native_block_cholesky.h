@@ -13,12 +13,70 @@
  * rows below in elimination order.  Left-looking: column t subtracts, for every earlier column k
  * whose panel reaches block t, the product of k's rows from block t on with L_tk^T (scattered by
  * the row map into panel t), then factors its diagonal block and solves the rows below by it.
- * The solves run forward and back over the panels; Q holds each solution column's x^T A x.  A
+ * The solves run forward and back over the panels; Q holds each solution column's x^T A x (from
+ * A's lower triangle, as the factorisation).  A
  * pivot that is not positive (or not finite) stops that system: info = its row + 1 in
  * elimination order, L, X and Q NaN.
  */
 #define CAT_(a, b) a##_##b
 #define CAT(a, b) CAT_(a, b)
+
+#ifndef BLOCK_STRUCTURE_VALID
+#define BLOCK_STRUCTURE_VALID
+/* 1 if the pattern S of ``numel`` entries is consistent (every index the kernel follows lies in
+ * its array), else 0: the operator is public, so a malformed structure is refused, not run. */
+static int block_structure_valid(const int64_t *S, int64_t numel) {
+    if (numel < 7) return 0;
+    const int64_t n = S[0], D = S[1], P = S[2], U = S[3], M = S[4], Rt = S[5];
+    if (n < 1 || D < 1 || P < 0 || U < 0 || M < 0 || Rt < 0 || S[6] < 0) return 0;
+    if (numel != 7 + 5 * n + Rt + (n + 1) + 3 * U + M) return 0;
+    const int64_t *size = S + 7, *eoff = size + n, *poff = eoff + n, *prows = poff + n;
+    const int64_t *rbase = prows + n, *rindex = rbase + n, *uptr = rindex + Rt, *uk = uptr + n + 1;
+    const int64_t *ustart = uk + U, *umap = ustart + U, *maps = umap + U;
+    for (int64_t t = 0; t < n; ++t) {
+        const int64_t s = size[t];
+        if (s < 1 || eoff[t] < 0 || eoff[t] + s > D || prows[t] < s || poff[t] < 0
+            || poff[t] + prows[t] * s > P || rbase[t] < 0 || rbase[t] + prows[t] > Rt)
+            return 0;
+        if (uptr[t] < 0 || uptr[t] > uptr[t + 1]) return 0;
+    }
+    if (uptr[0] != 0 || uptr[n] != U) return 0;
+    for (int64_t i = 0; i < Rt; ++i)
+        if (rindex[i] < 0 || rindex[i] >= D) return 0;
+    for (int64_t t = 0; t < n; ++t)
+        for (int64_t u = uptr[t]; u < uptr[t + 1]; ++u) {
+            const int64_t src = uk[u], first = ustart[u];
+            if (src < 0 || src >= t || first < size[src] || first + size[t] > prows[src]) return 0;
+            if (umap[u] < 0 || umap[u] + (prows[src] - first) > M) return 0;
+            for (int64_t r = 0; r < prows[src] - first; ++r)
+                if (maps[umap[u] + r] < 0 || maps[umap[u] + r] >= prows[t]) return 0;
+        }
+    return 1;
+}
+#endif
+
+/* Q_c = x_c^T A x_c (k columns) from A's stored lower triangle: each diagonal block's lower
+ * triangle (its diagonal once, the rest twice), twice the blocks below */
+static void CAT(block_quadratic, SFX)(const int64_t *S, const T *A, const T *X, T *Q, int64_t k) {
+    const int64_t n = S[0], Rt = S[5];
+    const int64_t *size = S + 7, *eoff = size + n, *poff = eoff + n, *prows = poff + n;
+    const int64_t *rbase = prows + n, *rindex = rbase + n;
+    (void)Rt;
+    for (int64_t c = 0; c < k; ++c) Q[c] = 0;
+    for (int64_t t = 0; t < n; ++t) {
+        const int64_t s = size[t];
+        const T *At = A + poff[t], *xt = X + eoff[t] * k;
+        for (int64_t r = 0; r < prows[t]; ++r) {
+            const T *xr = X + rindex[rbase[t] + r] * k;
+            const int64_t width = r < s ? r : s; /* the diagonal block: left of its diagonal */
+            for (int64_t c = 0; c < k; ++c) {
+                T acc = 0;
+                for (int64_t j = 0; j < width; ++j) acc += At[r * s + j] * xt[j * k + c];
+                Q[c] += 2 * xr[c] * acc + (r < s ? At[r * s + r] * xr[c] * xr[c] : 0);
+            }
+        }
+    }
+}
 
 static void CAT(block_cholesky_one, SFX)(const int64_t *S, const T *A, const T *R, T *L, T *X,
                                          T *Q, int32_t *info, int64_t k) {
@@ -110,21 +168,7 @@ static void CAT(block_cholesky_one, SFX)(const int64_t *S, const T *A, const T *
             for (int64_t c = 0; c < k; ++c) xt[j * k + c] /= Pt[j * s + j];
         }
     }
-    /* Q_c = x_c^T A x_c from A's stored triangle: the diagonal blocks whole, twice the rest */
-    for (int64_t c = 0; c < k; ++c) Q[c] = 0;
-    for (int64_t t = 0; t < n; ++t) {
-        const int64_t s = size[t];
-        const T *At = A + poff[t], *xt = X + eoff[t] * k;
-        for (int64_t r = 0; r < prows[t]; ++r) {
-            const T *xr = X + rindex[rbase[t] + r] * k;
-            const T w = r < s ? 1 : 2;
-            for (int64_t c = 0; c < k; ++c) {
-                T acc = 0;
-                for (int64_t j = 0; j < s; ++j) acc += At[r * s + j] * xt[j * k + c];
-                Q[c] += w * xr[c] * acc;
-            }
-        }
-    }
+    CAT(block_quadratic, SFX)(S, A, X, Q, k);
 }
 
 /* The same on BC_LANES systems at once, lane w of every array holding system w (the last system
@@ -248,21 +292,7 @@ static void CAT(block_cholesky_lanes, SFX)(const int64_t *S, const T *A, const T
         }
         for (int64_t i = 0; i < P; ++i) Lw[i] = l[i][w];
         for (int64_t i = 0; i < D * k; ++i) Xw[i] = x[i][w];
-        const T *Aw = A + w * P;
-        for (int64_t c = 0; c < k; ++c) Qw[c] = 0;
-        for (int64_t t = 0; t < n; ++t) {
-            const int64_t s = size[t];
-            const T *At = Aw + poff[t], *xt = Xw + eoff[t] * k;
-            for (int64_t r = 0; r < prows[t]; ++r) {
-                const T *xr = Xw + rindex[rbase[t] + r] * k;
-                const T wt = r < s ? 1 : 2;
-                for (int64_t c = 0; c < k; ++c) {
-                    T acc = 0;
-                    for (int64_t j = 0; j < s; ++j) acc += At[r * s + j] * xt[j * k + c];
-                    Qw[c] += wt * xr[c] * acc;
-                }
-            }
-        }
+        CAT(block_quadratic, SFX)(S, A + w * P, Xw, Qw, k);
     }
 }
 

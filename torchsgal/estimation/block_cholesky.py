@@ -35,6 +35,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ..functional import checks, native
@@ -92,15 +93,19 @@ class Structure:
         return torch.where(found, pos, torch.full_like(pos, self.panels))
 
 
-def _minimum_degree(adjacency: list[set]) -> tuple[list[int], list[list[int]]]:
+def _minimum_degree(adjacency: list[set], size: list[int], max_flops: float | None
+                    ) -> tuple[list[int], list[list[int]]] | None:
     """Elimination order by minimum degree (exact degrees of the elimination graph, ties to the
-    lowest block), and each eliminated block's neighbours at that moment (L's column pattern)."""
+    lowest block), and each eliminated block's neighbours at that moment (L's column pattern);
+    None once the factorisation's multiply-adds pass ``max_flops`` (column k with s unknowns and
+    R below: s^3/6 + s^2 R/2 + s (R^2 + sum of its blocks' s_t^2)/2)."""
     n = len(adjacency)
     adj = [set(a) for a in adjacency]
     heap = [(len(a), v) for v, a in enumerate(adj)]
     heapq.heapify(heap)
     done = [False] * n
     order, columns = [], []
+    flops = 0.0
     while heap:
         d, v = heapq.heappop(heap)
         if done[v] or d != len(adj[v]):
@@ -109,6 +114,12 @@ def _minimum_degree(adjacency: list[set]) -> tuple[list[int], list[list[int]]]:
         nbrs = adj[v]
         order.append(v)
         columns.append(list(nbrs))
+        if max_flops is not None:
+            s, below = size[v], [size[u] for u in nbrs]
+            R = sum(below)
+            flops += s ** 3 / 6 + s * s * R / 2 + s * (R * R + sum(b * b for b in below)) / 2
+            if flops > max_flops:
+                return None
         for u in nbrs:  # the neighbours become a clique
             a = adj[u]
             a.discard(v)
@@ -119,10 +130,16 @@ def _minimum_degree(adjacency: list[set]) -> tuple[list[int], list[list[int]]]:
     return order, columns
 
 
-def analyse(sizes: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> Structure:
+def analyse(sizes: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor,
+            max_share: float | None = None) -> Structure | None:
     """The symbolic analysis (module docstring) of the symmetric block pattern with block sizes
     ``sizes`` (N,) and nonzero blocks (rows[i], cols[i]) (int64 block indices; either triangle,
-    duplicates allowed; the diagonal blocks are always stored).  Cached by the pattern."""
+    duplicates allowed; the diagonal blocks are always stored).  Cached by the pattern.
+
+    With ``max_share``, None where the factorisation would cost more than that share of the
+    dense one's multiply-adds: at once where more than half the block pairs are nonzero (such
+    a pattern fills in), else as soon as the elimination passes the bound (a pattern with much
+    fill is not analysed to its end)."""
     for name, t in (("sizes", sizes), ("rows", rows), ("cols", cols)):
         if not isinstance(t, torch.Tensor) or t.dtype != torch.int64 or t.dim() != 1:
             raise TypeError(f"{name} must be an int64 tensor of shape (n,), got "
@@ -137,14 +154,20 @@ def analyse(sizes: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> Stru
     if rows.numel() and (int(torch.minimum(rows, cols).min()) < 0
                          or int(torch.maximum(rows, cols).max()) >= n):
         raise ValueError(f"block indices must lie in [0, {n})")
+    if max_share is not None:
+        checks.finite_number(max_share, "max_share", "> 0")
     keys = torch.unique(torch.minimum(rows, cols) * n + torch.maximum(rows, cols)).cpu()
-    key = (tuple(sizes.tolist()), keys.numpy().tobytes())
+    key = (tuple(sizes.tolist()), keys.numpy().tobytes(), max_share)
     with _cache_lock:
-        hit = _cache.get(key)
-        if hit is not None:
+        if key in _cache:
             _cache.move_to_end(key)
-            return hit
-    structure = _analyse(sizes.cpu(), keys, n)
+            return _cache[key]
+    D = int(sizes.sum())
+    if max_share is not None and 2 * keys.numel() > n * (n + 1) // 2:
+        structure = None
+    else:
+        structure = _analyse(sizes.cpu(), keys, n,
+                             None if max_share is None else max_share * D ** 3 / 6)
     with _cache_lock:
         _cache[key] = structure
         while len(_cache) > CACHE_SIZE:
@@ -152,7 +175,18 @@ def analyse(sizes: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> Stru
     return structure
 
 
-def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int) -> Structure:
+def _ranges(starts, lengths) -> np.ndarray:
+    """The concatenated ranges [starts[i], starts[i] + lengths[i]) (int64)."""
+    starts, lengths = np.asarray(starts, dtype=np.int64), np.asarray(lengths, dtype=np.int64)
+    total = int(lengths.sum())
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    first = np.cumsum(lengths) - lengths
+    return np.arange(total, dtype=np.int64) + np.repeat(starts - first, lengths)
+
+
+def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int, max_flops: float | None
+             ) -> Structure | None:
     size = [int(s) for s in sizes.tolist()]
     adjacency: list[set] = [set() for _ in range(n)]
     for k in keys.tolist():
@@ -160,32 +194,32 @@ def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int) -> Structure:
         if a != b:
             adjacency[a].add(b)
             adjacency[b].add(a)
-    order, columns = _minimum_degree(adjacency)
+    elimination = _minimum_degree(adjacency, size, max_flops)
+    if elimination is None:
+        return None
+    order, columns = elimination
     pos = [0] * n
     for t, v in enumerate(order):
         pos[v] = t
-    elim_off, acc = [0] * n, 0  # per elimination step t
-    for t, v in enumerate(order):
-        elim_off[t] = acc
-        acc += size[v]
-    D = acc
-    start, acc = [0] * n, 0  # per block, system order
-    for v in range(n):
-        start[v] = acc
-        acc += size[v]
+    sizes_elim = [size[v] for v in order]
+    elim_off = np.concatenate([[0], np.cumsum(sizes_elim)[:-1]]).astype(np.int64).tolist()
+    D = sum(size)
+    start = np.concatenate([[0], np.cumsum(size)[:-1]]).astype(np.int64)  # per block, system order
     # panel t: rows of block order[t], then of its column's blocks in elimination order
     panel_nodes = [[order[t]] + sorted(columns[t], key=pos.__getitem__) for t in range(n)]
     panel_rows: list[int] = []
     panel_off: list[int] = []
     row_base: list[int] = []
-    row_index: list[int] = []
     row_of: list[dict] = []  # per panel: block -> its first row
+    node_rows: list[int] = []  # per (panel, block): the block's first unknown (elimination order)
+    node_len: list[int] = []
     off = rbase = 0
     for t in range(n):
-        s, r, offsets = size[order[t]], 0, {}
+        s, r, offsets = sizes_elim[t], 0, {}
         for u in panel_nodes[t]:
             offsets[u] = r
-            row_index.extend(range(elim_off[pos[u]], elim_off[pos[u]] + size[u]))
+            node_rows.append(elim_off[pos[u]])
+            node_len.append(size[u])
             r += size[u]
         row_of.append(offsets)
         panel_rows.append(r)
@@ -194,6 +228,7 @@ def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int) -> Structure:
         off += r * s
         rbase += r
     P = off
+    row_index = _ranges(node_rows, node_len)  # each panel row's unknown
     # updates: column t gathers L_{i k} L_{t k}^T from every earlier column k that reaches t
     updates: list[list[int]] = [[] for _ in range(n)]
     for k in range(n):
@@ -203,45 +238,53 @@ def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int) -> Structure:
     upd_k: list[int] = []  # per update: the source column
     upd_start: list[int] = []  # its first row in the source panel
     upd_map: list[int] = []  # the offset of its row map
-    maps: list[int] = []
-    flops = 0
+    map_starts: list[int] = []  # the row map, as ranges of panel t's rows
+    map_lens: list[int] = []
+    mapped = flops = 0
     for t in range(n):
-        s = size[order[t]]
+        s, target = sizes_elim[t], row_of[t]
         for k in updates[t]:
             first = row_of[k][order[t]]  # block t's first row in panel k
             upd_k.append(k)
             upd_start.append(first)
-            upd_map.append(len(maps))
+            upd_map.append(mapped)
             for u in panel_nodes[k]:
                 if pos[u] >= t:  # rows from block t on, into panel t
-                    maps.extend(range(row_of[t][u], row_of[t][u] + size[u]))
-            flops += (panel_rows[k] - first) * s * size[order[k]]
+                    map_starts.append(target[u])
+                    map_lens.append(size[u])
+            mapped += panel_rows[k] - first
+            flops += (panel_rows[k] - first) * s * sizes_elim[k]
         flops += s ** 3 // 6 + (panel_rows[t] - s) * s * s // 2
         upd_ptr.append(len(upd_k))
-    sizes_elim = [size[v] for v in order]
-    header = [n, D, P, len(upd_k), len(maps), rbase, flops]
-    packed = torch.tensor(header + sizes_elim + elim_off + panel_off + panel_rows + row_base
-                          + row_index + upd_ptr + upd_k + upd_start + upd_map + maps,
-                          dtype=torch.int64)
+    maps = _ranges(map_starts, map_lens)
+    header = [n, D, P, len(upd_k), int(maps.size), rbase, flops]
+    packed = torch.from_numpy(np.concatenate([
+        np.asarray(header + sizes_elim + elim_off + panel_off + panel_rows + row_base, dtype=np.int64),
+        row_index, np.asarray(upd_ptr + upd_k + upd_start + upd_map, dtype=np.int64), maps]))
     # the stored blocks: (row block, column block) -> position of (0, 0) and row stride
     pair_keys, pair_base, pair_stride = [], [], []
-    diagonal = [0] * D
     for t in range(n):
-        v, s = order[t], size[order[t]]
+        v, s = order[t], sizes_elim[t]
         for u in panel_nodes[t]:
             pair_keys.append(u * n + v)
             pair_base.append(panel_off[t] + row_of[t][u] * s)
             pair_stride.append(s)
-        for c in range(s):
-            diagonal[elim_off[t] + c] = panel_off[t] + c * s + c
-    sort = sorted(range(len(pair_keys)), key=pair_keys.__getitem__)
-    scalar_order = [start[v] + i for v in order for i in range(size[v])]
-    node_of = [v for v in range(n) for _ in range(size[v])]
-    as_long = lambda xs: torch.tensor(xs, dtype=torch.int64)  # noqa: E731
+    # the diagonal's positions: entry c of block t at panel_off[t] + c (s + 1)
+    sizes_np = np.asarray(sizes_elim, dtype=np.int64)
+    c = _ranges(np.zeros(n, dtype=np.int64), sizes_np)
+    diagonal = np.repeat(np.asarray(panel_off, dtype=np.int64), sizes_np) + c * (np.repeat(sizes_np, sizes_np) + 1)
+    sort = np.argsort(np.asarray(pair_keys, dtype=np.int64), kind="stable")
+    scalar_order = _ranges(start[np.asarray(order, dtype=np.int64)], sizes_np)
+    node_of = np.repeat(np.arange(n, dtype=np.int64), np.asarray(size, dtype=np.int64))
+
+    def as_long(xs) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(np.asarray(xs, dtype=np.int64)))
+
     return Structure(D, as_long(scalar_order), P, packed, as_long(diagonal), flops, D ** 3 // 6,
                      as_long(node_of), as_long(start),
-                     as_long([pair_keys[i] for i in sort]), as_long([pair_base[i] for i in sort]),
-                     as_long([pair_stride[i] for i in sort]))
+                     as_long(np.asarray(pair_keys, dtype=np.int64)[sort]),
+                     as_long(np.asarray(pair_base, dtype=np.int64)[sort]),
+                     as_long(np.asarray(pair_stride, dtype=np.int64)[sort]))
 
 
 def uses_kernel(values: torch.Tensor) -> bool:
@@ -279,7 +322,10 @@ def _check(values, rhs, packed, read: bool = True) -> tuple[int, int, int, int]:
                          f"and {tuple(rhs.shape)}")
     if not read:
         return rhs.shape[1], values.shape[1], rhs.shape[2], 0
-    _, D, P, _, _, _, flops = packed[:HEADER].tolist()
+    n, D, P, U, M, Rt, flops = packed[:HEADER].tolist()
+    if packed.numel() != HEADER + 5 * n + Rt + (n + 1) + 3 * U + M:
+        raise ValueError("structure is not a consistent block pattern (block_cholesky.analyse "
+                         "makes one)")
     if values.shape[1] != P:
         raise ValueError(f"values must have shape (B, {P}), got {tuple(values.shape)}")
     if rhs.dim() != 3 or rhs.shape[0] != values.shape[0] or rhs.shape[1] != D:
@@ -346,7 +392,8 @@ def _block_cholesky_solve_cpu(values, rhs, structure):
     cost = (flops + 3 * P * k) // 400 + 1  # one system's work in SGal(3) exps (~400 flops)
     _lib.block_cholesky_solve(values.data_ptr(), rhs.data_ptr(), structure.data_ptr(), L.data_ptr(),
                               X.data_ptr(), Q.data_ptr(), info.data_ptr(), B, k, cost,
-                              torch.get_num_threads(), values.dtype is torch.float64)
+                              torch.get_num_threads(), values.dtype is torch.float64,
+                              structure.numel())
     return L, X, Q, info
 
 

@@ -275,11 +275,8 @@ def _system(problem: Problem, linear_solver: str) -> LinearSystem:
         return BlockSparseSystem(problem)
     if linear_solver == "auto" and (problem.B > 1 or problem.D <= SPARSE_ABOVE):
         like = torch.empty(0, dtype=problem.dtype, device=problem.device)
-        if uses_block_kernel(like):
-            structure, maps = block_layout(problem)
-            if structure.flops <= BLOCK_BELOW * structure.dense_flops:
-                return BlockSparseSystem(problem, structure, maps)
-        return DenseSystem(problem)
+        layout = block_layout(problem, max_share=BLOCK_BELOW) if uses_block_kernel(like) else None
+        return DenseSystem(problem) if layout is None else BlockSparseSystem(problem, *layout)
     if linear_solver == "dense":
         return DenseSystem(problem)
     return SparseSystem(problem, "auto" if linear_solver in ("auto", "sparse") else linear_solver)

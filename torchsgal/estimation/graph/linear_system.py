@@ -185,20 +185,26 @@ _layouts: OrderedDict = OrderedDict()
 _layouts_lock = threading.Lock()
 
 
-def block_layout(problem: Problem) -> tuple[Structure, tuple[torch.Tensor, ...]]:
+def block_layout(problem: Problem, max_share: float | None = None
+                 ) -> tuple[Structure, tuple[torch.Tensor, ...]] | None:
     """The analysis of H's block pattern and the index maps of ``BlockSparseSystem``: (each
     entry's position in the stored triangle, or the spare position P past it, the elimination
     order, the diagonal's positions).  Kept by the layout (variables' sizes and the entries'
-    indices), so a graph built again with the same pattern reuses them."""
+    indices), so a graph built again with the same pattern reuses them.  With ``max_share``:
+    None where the factorisation costs more than that share of the dense one
+    (``block_cholesky.analyse``)."""
     h = problem.h_index.cpu()
     key = (problem.D, tuple((v.size, v.dof) for v in problem.variables), str(problem.device),
-           h.numpy().tobytes())
+           h.numpy().tobytes(), max_share)
     with _layouts_lock:
-        hit = _layouts.get(key)
-        if hit is not None:
+        if key in _layouts:
             _layouts.move_to_end(key)
-            return hit
-    st = analyse(*block_pattern(problem))
+            return _layouts[key]
+    st = analyse(*block_pattern(problem), max_share=max_share)
+    if st is None:
+        with _layouts_lock:
+            _layouts[key] = None
+        return None
     pos = st.scatter_index(h)
     maps = tuple(t.to(problem.device) for t in (pos, st.order, st.diagonal))
     with _layouts_lock:
@@ -221,10 +227,12 @@ class BlockSparseSystem:
                  maps: tuple[torch.Tensor, ...] | None = None):
         self.problem = problem
         if structure is None or maps is None:
-            structure, maps = block_layout(problem)
+            layout = block_layout(problem)
+            assert layout is not None  # no bound: always analysed
+            structure, maps = layout
         self.structure, self._maps = structure, maps
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
-        self._dense = DenseSystem(problem)
+        self._dense: DenseSystem | None = None  # built when a dense question is asked
         self._values: torch.Tensor | None = None
 
     def select(self, problem: Problem) -> BlockSparseSystem:
@@ -242,7 +250,7 @@ class BlockSparseSystem:
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """As ``DenseSystem.solve``, on the block-sparse factorisation."""
         if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
-            return self._dense._solve_differentiable(values, g, lam, diagonal)
+            return DenseSystem(self.problem)._solve_differentiable(values, g, lam, diagonal)
         _, order, diag = self._maps
         v = self._panels(values)
         d = v.index_select(1, diag)
@@ -262,7 +270,8 @@ class BlockSparseSystem:
         backward, the dense information)."""
         if self._values is None:
             raise RuntimeError("set_solution(values) first")
-        if self._dense._H is None:
+        if self._dense is None:
+            self._dense = DenseSystem(self.problem)
             self._dense.set_solution(self._values)
         return self._dense
 
@@ -284,7 +293,7 @@ class BlockSparseSystem:
     def set_solution(self, values: torch.Tensor) -> None:
         """Keeps H's entries at the solution for ``singular`` and the dense questions."""
         self._values = values
-        self._dense._H = None
+        self._dense = None
 
     def dense_information(self) -> torch.Tensor:
         """(B, D, D) H at the solution."""
@@ -298,7 +307,7 @@ class BlockSparseSystem:
         v = self._panels(self._values)
         d = v.index_select(1, self._maps[2])
         tiny = (d <= self.rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(
-            v.sum(dim=-1))
+            self._values.sum(dim=-1))  # every entry of H, both triangles
         L, _, _, info = block_cholesky_solve(v, v.new_zeros(v.shape[0], self.problem.D, 0),
                                              self.structure)
         pivots = L.index_select(1, self._maps[2]) ** 2 / torch.where(d > 0, d, torch.ones_like(d))
