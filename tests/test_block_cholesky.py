@@ -217,6 +217,20 @@ def fg_solve(name, graph, linear_solver, **kw):
     return getattr(fg, name)(graph, linear_solver=linear_solver, **kw)
 
 
+def _implicit_solve(solver, seed):
+    """LM with ``backward_mode="implicit"`` on two pose graphs whose Between measurements'
+    matrices are a leaf that requires grad: (result, leaf)."""
+    leaves = []
+
+    def keep(M):
+        leaves.append(M.detach().clone().requires_grad_())
+        return leaves[0]
+
+    result = fg_solve("levenberg_marquardt", _engine_case(B=2, seed=seed, measured=keep), solver,
+                      backward_mode="implicit")
+    return result, leaves[0]
+
+
 @pytest.mark.kernels
 def test_block_solver_reports_rank_deficiency_and_differentiates_as_dense():
     from torchsgal.estimation import SolverStatus
@@ -226,15 +240,8 @@ def test_block_solver_reports_rank_deficiency_and_differentiates_as_dense():
     assert torch.isnan(free.marginal_covariance("x", 0)).all()
     grads = []
     for solver in ("block", "dense"):
-        leaves = []
-
-        def keep(M):
-            leaves.append(M.detach().clone().requires_grad_())
-            return leaves[0]
-
-        out = fg_solve("levenberg_marquardt", _engine_case(B=2, measured=keep), solver,
-                       backward_mode="implicit")
-        grads.append(torch.autograd.grad(out.values["x"].as_matrix().sum(), leaves[0])[0])
+        out, leaf = _implicit_solve(solver, seed=3)
+        grads.append(torch.autograd.grad(out.values["x"].as_matrix().sum(), leaf)[0])
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-7, atol=1e-9)
     assert float(grads[0].abs().max()) > 0
 
@@ -245,17 +252,10 @@ def test_second_derivatives_through_the_implicit_solve_match_dense():
     right-hand side to the dense solve, so second derivatives are the dense system's."""
     out = []
     for solver in ("block", "dense"):
-        leaves = []
-
-        def keep(M):
-            leaves.append(M.detach().clone().requires_grad_())
-            return leaves[0]
-
-        res = fg_solve("levenberg_marquardt", _engine_case(B=2, seed=5, measured=keep), solver,
-                       backward_mode="implicit")
-        (g,) = torch.autograd.grad(res.values["x"].as_matrix()[..., :3, 3].square().sum(), leaves[0],
+        res, leaf = _implicit_solve(solver, seed=5)
+        (g,) = torch.autograd.grad(res.values["x"].as_matrix()[..., :3, 3].square().sum(), leaf,
                                    create_graph=True)
-        (gg,) = torch.autograd.grad(g.square().sum(), leaves[0])
+        (gg,) = torch.autograd.grad(g.square().sum(), leaf)
         out.append((g.detach(), gg))
     torch.testing.assert_close(out[0][0], out[1][0], rtol=1e-7, atol=1e-9)
     torch.testing.assert_close(out[0][1], out[1][1], rtol=1e-6, atol=1e-8)
