@@ -318,10 +318,14 @@ def test_a_pattern_that_fills_in_is_not_analysed_for_auto():
 
 
 @pytest.mark.kernels
-def test_the_block_system_builds_no_dense_matrix_to_solve():
+def test_the_block_system_builds_no_dense_matrix_to_solve_or_for_marginals():
     from torchsgal.estimation.graph import linear_system as ls
 
     result = fg_solve("levenberg_marquardt", _engine_case(B=3), "auto")
     assert isinstance(result.system, ls.BlockSparseSystem) and result.system._dense is None
-    result.marginal_covariance("x", 0)  # the dense questions build it when asked
+    cov = result.marginal_covariance("x", torch.tensor([4, 0, 4]))  # on the block factorisation
+    assert result.system._dense is None
+    P = torch.linalg.inv(result.information)  # the dense information, built when asked
     assert result.system._dense is not None
+    expected = torch.stack([P[:, 6 * n:6 * n + 6, 6 * n:6 * n + 6] for n in (4, 0, 4)], dim=1)
+    torch.testing.assert_close(cov, expected, rtol=1e-9, atol=1e-12 * float(expected.abs().max()))

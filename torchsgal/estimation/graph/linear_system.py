@@ -218,8 +218,8 @@ class BlockSparseSystem:
     """Block-sparse batched normal equations (``estimation.block_cholesky``): the pattern of H,
     one block per variable element, is analysed once (minimum-degree order, the fill of L) and
     every problem of the batch is factored and solved on it by one operator call per step.  The
-    information at the solution is factored the same way for ``singular`` and the implicit
-    backward; the marginals and the dense information use the dense system."""
+    information at the solution is factored the same way for ``singular``, the implicit
+    backward and the marginals; ``dense_information`` builds the dense matrix."""
 
     cost_first = False  # as DenseSystem: a batch linearises every trial point
 
@@ -314,8 +314,24 @@ class BlockSparseSystem:
         return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
 
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
-        """As ``DenseSystem.marginal_blocks``."""
-        return self._dense_solution().marginal_blocks(starts, block)
+        """As ``DenseSystem.marginal_blocks``: solves with the K * block unit columns on the
+        block-sparse factorisation at the solution (no dense matrix)."""
+        if self._values is None:
+            raise RuntimeError("set_solution(values) first")
+        singular = self.singular()
+        order = self._maps[1]
+        B, K, D = self._values.shape[0], starts.numel(), self.problem.D
+        place = torch.empty_like(order).index_copy_(0, order, torch.arange(D, device=order.device))
+        offsets = torch.arange(block, device=starts.device)
+        rows = place[starts[:, None] + offsets]  # (K, block): the unknowns in elimination order
+        unit = self._values.new_zeros(D, K * block)
+        unit[rows.reshape(-1), torch.arange(K * block, device=unit.device)] = 1.0
+        _, X, _, _ = block_cholesky_solve(self._panels(self._values),
+                                          unit.expand(B, D, K * block).contiguous(), self.structure)
+        X = X.reshape(B, D, K, block)
+        k = torch.arange(K, device=starts.device)
+        out = X[:, rows[:, :, None], k[:, None, None], offsets]  # (H^-1)[s_k + i, s_k + j]
+        return torch.where(singular[:, None, None, None], torch.full_like(out, float("nan")), out)
 
 
 class SparseSystem:
