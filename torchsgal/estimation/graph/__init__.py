@@ -35,8 +35,10 @@ residual closes over) by implicit differentiation at the solution (``implicit``:
 the Gauss-Newton information, exact at zero residual); ``"unroll"`` differentiates through the
 iterations; ``"none"`` (default) returns detached values.
 
-Batches of small problems use a dense batched Cholesky; one large problem (more than 1000
-unknowns, or ``linear_solver="sparse"``) the sparse Cholesky of ``estimation.sparse``.
+Batches and problems of up to 1000 unknowns use the batched block-sparse Cholesky of
+``estimation.block_cholesky`` where their pattern pays (``linear_solver="block"``), else a
+dense batched Cholesky (``"dense"``); one large problem (more than 1000 unknowns, or
+``linear_solver="sparse"``) the sparse Cholesky of ``estimation.sparse``.
 
 Errors-in-variables conditions f(x, l) = 0 with the observation corrections eliminated per
 condition are ``GaussHelmert`` factors, solved by ``gauss_helmert`` (``gauss_helmert`` module).
