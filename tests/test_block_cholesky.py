@@ -329,3 +329,18 @@ def test_the_block_system_builds_no_dense_matrix_to_solve_or_for_marginals():
     assert result.system._dense is not None
     expected = torch.stack([P[:, 6 * n:6 * n + 6, 6 * n:6 * n + 6] for n in (4, 0, 4)], dim=1)
     torch.testing.assert_close(cov, expected, rtol=1e-9, atol=1e-12 * float(expected.abs().max()))
+
+
+def test_vmap_joins_the_mapped_axis_to_the_batch():
+    sizes, pairs = MIXED
+    st = analysed(sizes, pairs)
+    A, _ = pattern_matrix(sizes, pairs, B=6, seed=22)
+    v = stored(st, A).reshape(2, 3, -1)
+    R = torch.randn(2, 3, st.size, 2, dtype=f64)
+    got = torch.vmap(lambda a, r: bc.block_cholesky_solve(a, r, st))(v, R)
+    want = bc.block_cholesky_solve(v.reshape(6, -1), R.reshape(6, st.size, 2), st)
+    for a, b in zip(got, want):
+        assert torch.equal(a.reshape(b.shape), b)
+    with pytest.raises(ValueError, match="cannot be vmapped"):
+        torch.vmap(lambda p: torch.ops.torchsgal.block_cholesky_solve(v[0], R[0], p))(
+            st.packed.expand(2, -1))

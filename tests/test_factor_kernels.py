@@ -322,3 +322,23 @@ def test_a_noise_that_requires_grad_keeps_the_differentiable_whitening():
     (grad,) = torch.autograd.grad(lin.values.sum(), scale)
     # H = scale^2 J^T J: d(sum H)/d(scale) = 2 sum(H) / scale
     torch.testing.assert_close(grad, 2 * lin.values.sum().detach() / scale.detach())
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_vmap_of_the_normal_operators_is_a_loop_over_the_mapped_axis(group):
+    g = GROUPS[group]
+    d = g.dof
+    Zinv, Ti, Tj = g.pair(0.4, n=12, seed=15)
+    Zinv, Ti = Zinv.reshape(3, 4, *Zinv.shape[1:]), Ti.reshape(3, 4, *Ti.shape[1:])
+    Tj = Tj[:4]
+    gen = torch.Generator().manual_seed(16)
+    L = torch.randn(d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64)
+    Lv = torch.randn(3, d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64)
+    op = NORMAL_OPS[group]
+    for args, dims in (((Zinv, Ti, Tj, L), (0, 0, None, None)), ((Zinv, Ti, Tj, Lv), (0, 0, None, 0)),
+                       ((Zinv, None, Tj, None), (0, None, None, None))):
+        got = torch.vmap(op, in_dims=dims)(*args)
+        loop = [op(*[t if dim is None or t is None else t[v] for t, dim in zip(args, dims)])
+                for v in range(3)]
+        for k in range(3):
+            torch.testing.assert_close(got[k], torch.stack([out[k] for out in loop]), rtol=0, atol=0)

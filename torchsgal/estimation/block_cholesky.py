@@ -23,6 +23,8 @@ of a batched graph has the same pattern, so one symbolic analysis serves the who
   devices, kernels off): the tensor code below, the dense factorisation of the same matrix
   (torch.linalg), the reference the tests compare the kernel with.  No autograd formula: the
   engine calls it where nothing differentiates (the dense path serves differentiable solves).
+  Under vmap the mapped axis joins the systems' batch (the structure is not mapped); a fake
+  implementation gives torch.compile the shapes.
 
 Cost: a minimum-degree order leaves a chain or a tree without fill, and a pose graph's loops
 with a few fill blocks, so the factorisation costs a small fraction of the dense one
@@ -403,3 +405,19 @@ def _block_cholesky_solve_fake(values, rhs, structure):
     return (values.new_empty(values.shape), rhs.new_empty(rhs.shape),
             values.new_empty(values.shape[0], rhs.shape[2]),
             values.new_empty(values.shape[:1], dtype=torch.int32))
+
+
+@_block_cholesky_solve_op.register_vmap
+def _block_cholesky_solve_vmap(info, in_dims, values, rhs, structure):
+    """The vmapped axis joins the systems' batch (one pattern for all)."""
+    if in_dims[2] is not None:
+        raise ValueError("block_cholesky_solve: the structure cannot be vmapped (one pattern)")
+    V = info.batch_size
+    moved = [t.unsqueeze(0).expand(V, *t.shape) if d is None else t.movedim(d, 0)
+             for t, d in zip((values, rhs), in_dims[:2])]
+    values, rhs = moved[0], moved[1]
+    B = values.shape[1]
+    L, X, Q, status = _block_cholesky_solve_op(values.reshape(V * B, -1),
+                                               rhs.reshape((V * B,) + rhs.shape[2:]), structure)
+    return ((L.reshape(V, B, -1), X.reshape((V, B) + X.shape[1:]), Q.reshape(V, B, -1),
+             status.reshape(V, B)), (0, 0, 0, 0))

@@ -12,7 +12,7 @@ formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E)
 engine's linearisation of factors without a robust loss: the whitened residual r~ = L r and the
 factor's blocks of the normal equations, H = J~^T J~ and g = J~^T r~ with J~ = L J (L shared
 (dof, dof), per factor (..., dof, dof), or None), so that whitening and the products of small
-matrices are part of the same C pass.
+matrices are part of the same C pass.  Under vmap the mapped axis joins the factors' batch.
 
 The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
 on SE(3), three operator calls) per block of factors: the inverses, two products, the log,
@@ -239,3 +239,30 @@ se2_factor_normal.register_kernel("cpu")(
     lambda Zinv, Ti, Tj, L: _run_normal("se2_factor_normal", 3, _se2_normal_code, Zinv, Ti, Tj, L,
                                         _SE2_SERIES))
 se2_factor_normal.register_fake(_normal_fake(3))
+
+
+def _normal_vmap(op, dof: int):
+    """The vmapped axis joins the factors' batch; a shared L stays shared unless vmapped."""
+
+    def rule(info, in_dims, Zinv, Ti, Tj, L):
+        V = info.batch_size
+
+        def front(t, d):
+            return None if t is None else (t.unsqueeze(0).expand(V, *t.shape) if d is None
+                                           else t.movedim(d, 0))
+
+        Zinv, Ti, Tj = (front(t, d) for t, d in zip((Zinv, Ti, Tj), in_dims[:3]))
+        batch = torch.broadcast_shapes(*(t.shape[:-2] for t in (Zinv, Ti, Tj) if t is not None))
+        Zinv, Ti, Tj = (None if t is None else t.expand(batch + t.shape[-2:]) for t in (Zinv, Ti, Tj))
+        if L is not None and (in_dims[3] is not None or L.dim() > 2):
+            L = front(L, in_dims[3])  # (V, ..., dof, dof), its batch aligned to the right
+            if L.dim() < len(batch) + 2:
+                L = L.reshape((V,) + (1,) * (len(batch) + 2 - L.dim()) + L.shape[1:])
+            L = L.expand(batch + (dof, dof))
+        return op(Zinv, Ti, Tj, L), (0, 0, 0)
+
+    return rule
+
+
+se3_factor_normal.register_vmap(_normal_vmap(se3_factor_normal, 6))
+se2_factor_normal.register_vmap(_normal_vmap(se2_factor_normal, 3))
