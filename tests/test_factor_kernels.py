@@ -342,3 +342,16 @@ def test_vmap_of_the_normal_operators_is_a_loop_over_the_mapped_axis(group):
                 for v in range(3)]
         for k in range(3):
             torch.testing.assert_close(got[k], torch.stack([out[k] for out in loop]), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_vmap_of_the_terms_operators_is_a_loop_over_the_mapped_axis(group):
+    g = GROUPS[group]
+    Zinv, Ti, Tj = g.pair(0.4, n=12, seed=17)
+    Zinv, Ti = Zinv.reshape(3, 4, *Zinv.shape[1:]), Ti.reshape(3, 4, *Ti.shape[1:])
+    Tj = Tj[:4]
+    for ti, dims in ((Ti, (0, 0, None)), (None, (0, None, None))):
+        got = torch.vmap(lambda z, a, b: g.op(z, a, b, True), in_dims=dims)(Zinv, ti, Tj)
+        loop = [g.op(Zinv[v], None if ti is None else ti[v], Tj, True) for v in range(3)]
+        for k in range(2):
+            torch.testing.assert_close(got[k], torch.stack([out[k] for out in loop]), rtol=0, atol=0)

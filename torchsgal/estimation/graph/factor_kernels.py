@@ -12,7 +12,8 @@ formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E)
 engine's linearisation of factors without a robust loss: the whitened residual r~ = L r and the
 factor's blocks of the normal equations, H = J~^T J~ and g = J~^T r~ with J~ = L J (L shared
 (dof, dof), per factor (..., dof, dof), or None), so that whitening and the products of small
-matrices are part of the same C pass.  Under vmap the mapped axis joins the factors' batch.
+matrices are part of the same C pass.  Under vmap the mapped axis of any of these operators
+joins the factors' batch.
 
 The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
 on SE(3), three operator calls) per block of factors: the inverses, two products, the log,
@@ -266,3 +267,22 @@ def _normal_vmap(op, dof: int):
 
 se3_factor_normal.register_vmap(_normal_vmap(se3_factor_normal, 6))
 se2_factor_normal.register_vmap(_normal_vmap(se2_factor_normal, 3))
+
+
+def _terms_vmap(op):
+    """The vmapped axis joins the factors' batch."""
+
+    def rule(info, in_dims, Zinv, Ti, Tj, jacobians):
+        V = info.batch_size
+        moved = [None if t is None else (t.unsqueeze(0).expand(V, *t.shape) if d is None
+                                          else t.movedim(d, 0))
+                 for t, d in zip((Zinv, Ti, Tj), in_dims[:3])]
+        batch = torch.broadcast_shapes(*(t.shape[:-2] for t in moved if t is not None))
+        Zinv, Ti, Tj = (None if t is None else t.expand(batch + t.shape[-2:]) for t in moved)
+        return op(Zinv, Ti, Tj, jacobians), (0, 0)
+
+    return rule
+
+
+se3_factor_terms.register_vmap(_terms_vmap(se3_factor_terms))
+se2_factor_terms.register_vmap(_terms_vmap(se2_factor_terms))
