@@ -16,10 +16,11 @@ of a batched graph has the same pattern, so one symbolic analysis serves the who
   panels (B, P), X = A^-1 rhs (B, D, k) with rhs and X in elimination order
   (``Structure.order``), Q (B, k) the quadratic forms x^T A x of X's columns (a solver's model
   decrease), and info (B,) int32: 0, or the (elimination-order) row + 1 of the first pivot that
-  is not positive, as LAPACK's potrf, with that system's L, X and Q NaN.  On the CPU with the kernels built and on:
-  the C kernel of ``_native_block_cholesky.h``, left-looking by block column (each column
-  gathers the updates of the columns that reach it, then factors its diagonal block and solves
-  the blocks below), the batch split over ``torch.get_num_threads()`` threads.  Elsewhere (other
+  is not positive, as LAPACK's potrf, with that system's L, X and Q NaN.  On the CPU with the
+  kernels built and on: the C kernel of ``_native_block_cholesky.h``, left-looking by block
+  column (each column gathers the updates of the columns that reach it, then factors its
+  diagonal block and solves the blocks below), eight systems per pass, the batch split over
+  ``torch.get_num_threads()`` threads.  Elsewhere (other
   devices, kernels off): the tensor code below, the dense factorisation of the same matrix
   (torch.linalg), the reference the tests compare the kernel with.  No autograd formula: the
   engine calls it where nothing differentiates (the dense path serves differentiable solves).
@@ -28,7 +29,9 @@ of a batched graph has the same pattern, so one symbolic analysis serves the who
 
 Cost: a minimum-degree order leaves a chain or a tree without fill, and a pose graph's loops
 with a few fill blocks, so the factorisation costs a small fraction of the dense one
-(``flops`` gives both); ``benchmarks/bench_factor_graph.py`` measures it.
+(``Structure.flops`` and ``dense_flops`` give both; ``analyse(..., max_share=)`` refuses a
+pattern that would cost more than a share of the dense one without finishing its analysis).
+``benchmarks/bench_posegraph.py`` times it against ``SparseCholesky``'s backends.
 """
 from __future__ import annotations
 
@@ -58,6 +61,7 @@ _cache_lock = threading.Lock()
 class Structure:
     """The symbolic analysis of one block pattern (``analyse``).
 
+    size           D, the number of unknowns.
     order          (D,) int64: scalar e of the elimination order is scalar ``order[e]`` of the
                    system (permute a right-hand side by ``rhs[..., order, :]``).
     panels         P, the number of stored values of L per system.
