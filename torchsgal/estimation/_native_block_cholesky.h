@@ -58,10 +58,9 @@ static int block_structure_valid(const int64_t *S, int64_t numel) {
 /* Q_c = x_c^T A x_c (k columns) from A's stored lower triangle: each diagonal block's lower
  * triangle (its diagonal once, the rest twice), twice the blocks below */
 static void CAT(block_quadratic, SFX)(const int64_t *S, const T *A, const T *X, T *Q, int64_t k) {
-    const int64_t n = S[0], Rt = S[5];
+    const int64_t n = S[0];
     const int64_t *size = S + 7, *eoff = size + n, *poff = eoff + n, *prows = poff + n;
     const int64_t *rbase = prows + n, *rindex = rbase + n;
-    (void)Rt;
     for (int64_t c = 0; c < k; ++c) Q[c] = 0;
     for (int64_t t = 0; t < n; ++t) {
         const int64_t s = size[t];

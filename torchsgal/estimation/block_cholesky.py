@@ -100,11 +100,12 @@ class Structure:
 
 
 def _minimum_degree(adjacency: list[set], size: list[int], max_flops: float | None
-                    ) -> tuple[list[int], list[list[int]]] | None:
+                    ) -> tuple[list[int], list[list[int]], int] | None:
     """Elimination order by minimum degree (exact degrees of the elimination graph, ties to the
-    lowest block), and each eliminated block's neighbours at that moment (L's column pattern);
-    None once the factorisation's multiply-adds pass ``max_flops`` (column k with s unknowns and
-    R below: s^3/6 + s^2 R/2 + s (R^2 + sum of its blocks' s_t^2)/2)."""
+    lowest block), each eliminated block's neighbours at that moment (L's column pattern) and the
+    factorisation's multiply-adds (column k with s unknowns and R below: s^3/6 + s^2 R/2 for
+    its own block and rows, s (R^2 + sum of its blocks' s_t^2)/2 for its updates of the later
+    columns); None once they pass ``max_flops``."""
     n = len(adjacency)
     adj = [set(a) for a in adjacency]
     heap = [(len(a), v) for v, a in enumerate(adj)]
@@ -120,12 +121,11 @@ def _minimum_degree(adjacency: list[set], size: list[int], max_flops: float | No
         nbrs = adj[v]
         order.append(v)
         columns.append(list(nbrs))
-        if max_flops is not None:
-            s, below = size[v], [size[u] for u in nbrs]
-            R = sum(below)
-            flops += s ** 3 / 6 + s * s * R / 2 + s * (R * R + sum(b * b for b in below)) / 2
-            if flops > max_flops:
-                return None
+        s, below = size[v], [size[u] for u in nbrs]
+        R = sum(below)
+        flops += s ** 3 / 6 + s * s * R / 2 + s * (R * R + sum(b * b for b in below)) / 2
+        if max_flops is not None and flops > max_flops:
+            return None
         for u in nbrs:  # the neighbours become a clique
             a = adj[u]
             a.discard(v)
@@ -133,7 +133,7 @@ def _minimum_degree(adjacency: list[set], size: list[int], max_flops: float | No
             a.discard(u)
             heapq.heappush(heap, (len(a), u))
         adj[v] = set()
-    return order, columns
+    return order, columns, int(flops)
 
 
 def analyse(sizes: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor,
@@ -203,7 +203,7 @@ def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int, max_flops: float |
     elimination = _minimum_degree(adjacency, size, max_flops)
     if elimination is None:
         return None
-    order, columns = elimination
+    order, columns, flops = elimination
     pos = [0] * n
     for t, v in enumerate(order):
         pos[v] = t
@@ -246,9 +246,9 @@ def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int, max_flops: float |
     upd_map: list[int] = []  # the offset of its row map
     map_starts: list[int] = []  # the row map, as ranges of panel t's rows
     map_lens: list[int] = []
-    mapped = flops = 0
+    mapped = 0
     for t in range(n):
-        s, target = sizes_elim[t], row_of[t]
+        target = row_of[t]
         for k in updates[t]:
             first = row_of[k][order[t]]  # block t's first row in panel k
             upd_k.append(k)
@@ -259,8 +259,6 @@ def _analyse(sizes: torch.Tensor, keys: torch.Tensor, n: int, max_flops: float |
                     map_starts.append(target[u])
                     map_lens.append(size[u])
             mapped += panel_rows[k] - first
-            flops += (panel_rows[k] - first) * s * sizes_elim[k]
-        flops += s ** 3 // 6 + (panel_rows[t] - s) * s * s // 2
         upd_ptr.append(len(upd_k))
     maps = _ranges(map_starts, map_lens)
     header = [n, D, P, len(upd_k), int(maps.size), rbase, flops]

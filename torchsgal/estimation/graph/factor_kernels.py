@@ -149,7 +149,7 @@ se2_factor_terms.register_fake(_fake(3))
 
 
 # ---------------------------------------------------------------------------- normal blocks
-def _normal_code(terms, dof: int):
+def _normal_code(terms):
     """The tensor code of ``<group>_factor_normal``: the terms, whitened, and their products."""
 
     def code(Zinv, Ti, Tj, L):
@@ -203,8 +203,8 @@ def _normal_fake(n: int):
     return fake
 
 
-_se3_normal_code = _normal_code(_tensor_code, 6)
-_se2_normal_code = _normal_code(_se2_tensor_code, 3)
+_se3_normal_code = _normal_code(_tensor_code)
+_se2_normal_code = _normal_code(_se2_tensor_code)
 
 
 @torch.library.custom_op("torchsgal::se3_factor_normal", mutates_args=(),
@@ -242,22 +242,24 @@ se2_factor_normal.register_kernel("cpu")(
 se2_factor_normal.register_fake(_normal_fake(3))
 
 
+def _matrices_in_front(V: int, tensors, in_dims):
+    """The operators' matrices with the vmapped axis in front (unmapped ones expanded) and
+    their batch shapes broadcast; and that batch."""
+    moved = [None if t is None else (t.unsqueeze(0).expand(V, *t.shape) if d is None
+                                      else t.movedim(d, 0)) for t, d in zip(tensors, in_dims)]
+    batch = torch.broadcast_shapes(*(t.shape[:-2] for t in moved if t is not None))
+    return [None if t is None else t.expand(batch + t.shape[-2:]) for t in moved], batch
+
+
 def _normal_vmap(op, dof: int):
     """The vmapped axis joins the factors' batch; a shared L stays shared unless vmapped."""
 
     def rule(info, in_dims, Zinv, Ti, Tj, L):
         V = info.batch_size
-
-        def front(t, d):
-            return None if t is None else (t.unsqueeze(0).expand(V, *t.shape) if d is None
-                                           else t.movedim(d, 0))
-
-        Zinv, Ti, Tj = (front(t, d) for t, d in zip((Zinv, Ti, Tj), in_dims[:3]))
-        batch = torch.broadcast_shapes(*(t.shape[:-2] for t in (Zinv, Ti, Tj) if t is not None))
-        Zinv, Ti, Tj = (None if t is None else t.expand(batch + t.shape[-2:]) for t in (Zinv, Ti, Tj))
+        (Zinv, Ti, Tj), batch = _matrices_in_front(V, (Zinv, Ti, Tj), in_dims[:3])
         if L is not None and (in_dims[3] is not None or L.dim() > 2):
-            L = front(L, in_dims[3])  # (V, ..., dof, dof), its batch aligned to the right
-            if L.dim() < len(batch) + 2:
+            L = L.unsqueeze(0).expand(V, *L.shape) if in_dims[3] is None else L.movedim(in_dims[3], 0)
+            if L.dim() < len(batch) + 2:  # (V, ..., dof, dof), its batch aligned to the right
                 L = L.reshape((V,) + (1,) * (len(batch) + 2 - L.dim()) + L.shape[1:])
             L = L.expand(batch + (dof, dof))
         return op(Zinv, Ti, Tj, L), (0, 0, 0)
@@ -273,12 +275,7 @@ def _terms_vmap(op):
     """The vmapped axis joins the factors' batch."""
 
     def rule(info, in_dims, Zinv, Ti, Tj, jacobians):
-        V = info.batch_size
-        moved = [None if t is None else (t.unsqueeze(0).expand(V, *t.shape) if d is None
-                                          else t.movedim(d, 0))
-                 for t, d in zip((Zinv, Ti, Tj), in_dims[:3])]
-        batch = torch.broadcast_shapes(*(t.shape[:-2] for t in moved if t is not None))
-        Zinv, Ti, Tj = (None if t is None else t.expand(batch + t.shape[-2:]) for t in moved)
+        (Zinv, Ti, Tj), _ = _matrices_in_front(info.batch_size, (Zinv, Ti, Tj), in_dims[:3])
         return op(Zinv, Ti, Tj, jacobians), (0, 0)
 
     return rule
