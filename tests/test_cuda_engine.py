@@ -205,7 +205,7 @@ def test_hot_path_reads_nothing_from_the_device():
     lam = torch.full((16,), 1e-5, dtype=f64, device=DEVICE)
 
     def one_round():
-        lin = linearize(problem, x)
+        lin = linearize(problem, x, system.layout)
         delta, solved, _ = system.solve(lin.values, lin.g, lam, False)
         return lin, solved, evaluate_cost(problem, problem.retract(x, delta))
 

@@ -16,7 +16,8 @@ import torch
 import torchsgal as ts
 from torchsgal.estimation import graph as fg
 from torchsgal.estimation.graph import factors as F
-from torchsgal.estimation.graph.linearize import Problem, dense, evaluate_cost, linearize
+from torchsgal.estimation.graph.layout import dense
+from torchsgal.estimation.graph.linearize import Problem, evaluate_cost, linearize
 
 f64 = torch.float64
 
@@ -157,8 +158,8 @@ def test_fused_priors_and_betweens_match_the_blockwise_evaluation():
         lin = linearize(p, x)
         sub = p.select(rows)
         lin_sub = linearize(sub, [v.index_select(0, rows) for v in x])
-        results.append((dense(p, lin.values), lin.g, lin.cost, lin.model_cost, evaluate_cost(p, x),
-                        dense(sub, lin_sub.values), lin_sub.g, lin_sub.cost))
+        results.append((dense(p.layout, lin.values), lin.g, lin.cost, lin.model_cost, evaluate_cost(p, x),
+                        dense(sub.layout, lin_sub.values), lin_sub.g, lin_sub.cost))
     for a, b in zip(*results):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     H, cost, H_sub = results[0][0], results[0][2], results[0][5]

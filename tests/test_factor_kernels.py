@@ -13,6 +13,7 @@ import os
 from collections.abc import Callable
 from typing import NamedTuple
 
+import numpy as np
 import pytest
 import torch
 from torch.library import opcheck
@@ -355,3 +356,114 @@ def test_vmap_of_the_terms_operators_is_a_loop_over_the_mapped_axis(group):
         loop = [g.op(Zinv[v], None if ti is None else ti[v], Tj, True) for v in range(3)]
         for k in range(2):
             torch.testing.assert_close(got[k], torch.stack([out[k] for out in loop]), rtol=0, atol=0)
+
+
+ASSEMBLE_OPS = {"SE3": torch.ops.torchsgal.se3_factor_assemble,
+                "SE2": torch.ops.torchsgal.se2_factor_assemble}
+
+
+def _assemble_case(group, B=3, E=5, size=40, D=9, seed=21):
+    """Matrices (B, E, n, n), slots drawn with repeats, random bases to add into."""
+    g = GROUPS[group]
+    Zinv, Ti, Tj = (t.reshape(B, E, *t.shape[1:]) for t in g.pair(0.8, n=B * E, seed=seed))
+    gen = torch.Generator().manual_seed(seed + 1)
+    values = torch.randn(B, size, generator=gen, dtype=f64)
+    gvec = torch.randn(B, D, generator=gen, dtype=f64)
+    return g, Zinv, Ti, Tj, values, gvec, gen
+
+
+@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("kernel", [True, False])
+@pytest.mark.parametrize("noise", ["shared", "per factor", "none"])
+def test_assembled_blocks_are_the_normal_blocks_added_at_their_slots(noise, kernel, group):
+    """se3/se2_factor_assemble: each factor's whitened blocks written out from the definitions,
+    added in place at its slots into the values and g (repeated slots sum), priors and
+    betweens; one or two threads give the same bits."""
+    g, Zinv, Ti, Tj, values, gvec, gen = _assemble_case(group)
+    B, E, d = Zinv.shape[0], Zinv.shape[1], g.dof
+    L = {"shared": torch.randn(d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64),
+         "per factor": torch.randn(B, E, d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64),
+         "none": None}[noise]
+    for ti in (Ti, None):
+        Dk = d if ti is None else 2 * d
+        slots = torch.randint(0, values.shape[1], (E, Dk * Dk), generator=gen)
+        g_slots = torch.randint(0, gvec.shape[1], (E, Dk), generator=gen)
+        v, gv = values.clone(), gvec.clone()
+        with native.disabled() if not kernel else contextlib.nullcontext():
+            r = ASSEMBLE_OPS[group](Zinv, ti, Tj, L, slots, v, g_slots, gv)
+        r0, J0 = g.written_out(Zinv.flatten(0, 1), None if ti is None else ti.flatten(0, 1),
+                               Tj.flatten(0, 1))
+        Lm = torch.eye(d, dtype=f64) if L is None else (L if L.dim() == 2 else L.flatten(0, 1))
+        rw, Jw = (Lm @ r0.unsqueeze(-1)).squeeze(-1), Lm @ J0
+        H = (Jw.mT @ Jw).reshape(B, E * Dk * Dk).numpy()
+        gf = (Jw.mT @ rw.unsqueeze(-1)).reshape(B, E * Dk).numpy()
+        want_v, want_g = values.numpy().copy(), gvec.numpy().copy()
+        rows = np.arange(B)[:, None]
+        np.add.at(want_v, (rows, slots.reshape(1, -1).numpy()), H)
+        np.add.at(want_g, (rows, g_slots.reshape(1, -1).numpy()), gf)
+        torch.testing.assert_close(r, rw.reshape(B, E, d), rtol=0, atol=1e-11)
+        torch.testing.assert_close(v, torch.from_numpy(want_v), rtol=1e-11, atol=1e-9)
+        torch.testing.assert_close(gv, torch.from_numpy(want_g), rtol=1e-11, atol=1e-9)
+        if kernel:
+            threads = torch.get_num_threads()
+            try:
+                torch.set_num_threads(1 if threads > 1 else 2)
+                again = (values.clone(), gvec.clone())
+                r2 = ASSEMBLE_OPS[group](Zinv, ti, Tj, L, slots, again[0], g_slots, again[1])
+            finally:
+                torch.set_num_threads(threads)
+            assert torch.equal(r2, r) and torch.equal(again[0], v) and torch.equal(again[1], gv)
+    opcheck(ASSEMBLE_OPS[group].default, (Zinv[:2, :2], None, Tj[:2, :2],  # the priors' slots
+                                          None if L is None else L if L.dim() == 2 else L[:2, :2],
+                                          slots[:2], values[:2].clone(), g_slots[:2], gvec[:2].clone()))
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_assemble_rejects_bad_index_maps(group):
+    g, Zinv, Ti, Tj, values, gvec, _ = _assemble_case(group)
+    E, Dk = Zinv.shape[1], 2 * g.dof
+    slots, g_slots = torch.zeros(E, Dk * Dk, dtype=torch.int64), torch.zeros(E, Dk, dtype=torch.int64)
+    op = ASSEMBLE_OPS[group]
+    with pytest.raises(ValueError, match="slots must be int64 of shape"):
+        op(Zinv, Ti, Tj, None, slots[:, :-1], values, g_slots, gvec)
+    with pytest.raises(ValueError, match="g_slots must be int64"):
+        op(Zinv, Ti, Tj, None, slots, values, g_slots.int(), gvec)
+    with pytest.raises(ValueError, match="values must be a contiguous tensor"):
+        op(Zinv, Ti, Tj, None, slots, values[:1], g_slots, gvec)
+    with pytest.raises(ValueError, match="g must be a contiguous tensor"):
+        op(Zinv, Ti, Tj, None, slots, values, g_slots, gvec.mT.contiguous().mT)
+
+
+@needs_kernel
+@pytest.mark.parametrize("group", GROUPS)
+def test_the_assemble_kernel_rejects_an_index_out_of_range(group):
+    g, Zinv, Ti, Tj, values, gvec, _ = _assemble_case(group)
+    E, Dk = Zinv.shape[1], 2 * g.dof
+    slots, g_slots = torch.zeros(E, Dk * Dk, dtype=torch.int64), torch.zeros(E, Dk, dtype=torch.int64)
+    with pytest.raises(ValueError, match="slots must lie in"):
+        ASSEMBLE_OPS[group](Zinv, Ti, Tj, None, slots + values.shape[1], values, g_slots, gvec)
+    with pytest.raises(ValueError, match="g_slots must lie in"):
+        ASSEMBLE_OPS[group](Zinv, Ti, Tj, None, slots, values, g_slots - 1, gvec)
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_vmap_of_the_assemble_operators_is_a_loop_over_the_mapped_axis(group):
+    g, Zinv, Ti, Tj, values, gvec, gen = _assemble_case(group, B=6)
+    V, d, E = 2, g.dof, Zinv.shape[1]
+    Zinv, Ti, Tj, values, gvec = (t.unflatten(0, (V, -1)) for t in (Zinv, Ti, Tj, values, gvec))
+    Lv = torch.randn(V, 3, E, d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64)
+    slots = torch.randint(0, values.shape[-1], (E, 4 * d * d), generator=gen)
+    g_slots = torch.randint(0, gvec.shape[-1], (E, 2 * d), generator=gen)
+    op = ASSEMBLE_OPS[group]
+    for L, ldim in ((None, None), (Lv, 0)):
+        dims = (0, 0, 0, ldim, None, 0, None, 0)
+        mapped = (values.clone(), gvec.clone())
+        got = torch.vmap(op, in_dims=dims)(Zinv, Ti, Tj, L, slots, *mapped[:1], g_slots, mapped[1])
+        for v in range(V):  # each slice of the mapped values and g written as by one call
+            vals, gg = values[v].clone(), gvec[v].clone()
+            r = op(Zinv[v], Ti[v], Tj[v], None if L is None else L[v], slots, vals, g_slots, gg)
+            assert torch.equal(got[v], r) and torch.equal(mapped[0][v], vals)
+            assert torch.equal(mapped[1][v], gg)
+    with pytest.raises(ValueError, match="cannot be vmapped"):
+        torch.vmap(op, in_dims=(0, 0, 0, None, 0, 0, None, 0))(
+            Zinv, Ti, Tj, None, slots.expand(V, *slots.shape), values.clone(), g_slots, gvec.clone())

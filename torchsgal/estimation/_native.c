@@ -165,6 +165,50 @@ static PyObject *py_se2_factor_normal(PyObject *self, PyObject *const *a, Py_ssi
                          "se2_factor_normal");
 }
 
+/* se3_factor_assemble(Zinv, Ti, Tj, L, rw, values, g, slots, g_slots, B, E, size, D, shared,
+ * threads, is_double) and se2_factor_assemble(..., g_slots, series, B, ...): the factors' whitened
+ * residuals, their blocks added into each problem's values (B, size) and g (B, D) at slots (E,
+ * Dk * Dk) and g_slots (E, Dk) (_native_factors.h); an index out of range raises ValueError. */
+static PyObject *factor_assemble(PyObject *const *a, Py_ssize_t nargs, int npointers, int m,
+                                 range_fn f64, range_fn f32, int64_t cost, const char *name) {
+    void *ptr[10];
+    int64_t ints[7]; /* B, E, size, D, shared, threads, is_double */
+    if (read_call(a, nargs, npointers, ptr, 7, ints, name) < 0) return NULL;
+    const int64_t Dk = (ptr[1] ? 2 : 1) * m, E = ints[1];
+    const int64_t *slots = ptr[7], *g_slots = ptr[8];
+    for (int64_t i = 0; i < E * Dk * Dk; ++i)
+        if (slots[i] < 0 || slots[i] >= ints[2]) {
+            PyErr_Format(PyExc_ValueError, "%s: slots must lie in [0, %lld), got %lld", name,
+                         (long long)ints[2], (long long)slots[i]);
+            return NULL;
+        }
+    for (int64_t i = 0; i < E * Dk; ++i)
+        if (g_slots[i] < 0 || g_slots[i] >= ints[3]) {
+            PyErr_Format(PyExc_ValueError, "%s: g_slots must lie in [0, %lld), got %lld", name,
+                         (long long)ints[3], (long long)g_slots[i]);
+            return NULL;
+        }
+    int64_t dims[3] = {E, ints[2], ints[3]};
+    void *args[12] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], &ints[4], ptr[7],
+                      ptr[8], dims, npointers > 9 ? ptr[9] : NULL};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[6] ? f64 : f32, args, ints[0], cost * (E > 0 ? E : 1), (int)ints[5]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *py_se3_factor_assemble(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    return factor_assemble(a, nargs, 9, 6, se3_factor_assemble_range_f64,
+                           se3_factor_assemble_range_f32, 4, "se3_factor_assemble");
+}
+
+static PyObject *py_se2_factor_assemble(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    return factor_assemble(a, nargs, 10, 3, se2_factor_assemble_range_f64,
+                           se2_factor_assemble_range_f32, 1, "se2_factor_assemble");
+}
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
@@ -181,6 +225,10 @@ static PyMethodDef methods[] = {
      "SE(3) whitened residuals and normal-equation blocks (Zinv, Ti, Tj, L, rw, H, g, n, shared, threads, is_double)"},
     {"se2_factor_normal", (PyCFunction)(void (*)(void))py_se2_factor_normal, METH_FASTCALL,
      "SE(2) whitened residuals and normal-equation blocks (Zinv, Ti, Tj, L, rw, H, g, series, n, shared, threads, is_double)"},
+    {"se3_factor_assemble", (PyCFunction)(void (*)(void))py_se3_factor_assemble, METH_FASTCALL,
+     "SE(3) normal-equation blocks added into the problems' values (Zinv, Ti, Tj, L, rw, values, g, slots, g_slots, B, E, size, D, shared, threads, is_double)"},
+    {"se2_factor_assemble", (PyCFunction)(void (*)(void))py_se2_factor_assemble, METH_FASTCALL,
+     "SE(2) normal-equation blocks added into the problems' values (Zinv, Ti, Tj, L, rw, values, g, slots, g_slots, series, B, E, size, D, shared, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

@@ -195,6 +195,54 @@ static void K(se2_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
     }
 }
 
+/* The same terms added into a batch of problems' normal equations: args Zinv, Ti (null for
+ * priors), Tj, L (null: none), rw, values, g, &shared, slots, g_slots, dims = {E, size, D},
+ * series (SE(2) only).  Problem b owns factors b * E .. b * E + E - 1 of the matrices; factor e
+ * adds its H (Dk * Dk, row-major) into values[b, slots[e, k]] and its g into g[b, g_slots[e, k]]
+ * (every index checked by the caller).  One problem per work item: no two threads share a row. */
+static void K(se3_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
+    const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
+    T *rw = a[4], *values = a[5], *g = a[6];
+    const int64_t shared = *(const int64_t *)a[7];
+    const int64_t *slots = a[8], *g_slots = a[9], *dims = a[10];
+    const int64_t E = dims[0], size = dims[1], D = dims[2];
+    const int Dk = Ti ? 12 : 6;
+    for (int64_t b = lo; b < hi; ++b) {
+        T *vb = values + size * b, *gb = g + D * b;
+        for (int64_t e = 0; e < E; ++e) {
+            const int64_t f = E * b + e;
+            const int64_t *s = slots + Dk * Dk * e, *t = g_slots + Dk * e;
+            T r[6], J[72], H[144], gf[12];
+            K(se3_factor_one)(Zinv + 16 * f, Ti ? Ti + 16 * f : NULL, Tj + 16 * f, r, J);
+            K(whitened_normal)(r, J, L ? L + (shared ? 0 : 36 * f) : NULL, 6, Dk, rw + 6 * f, H, gf);
+            for (int k = 0; k < Dk * Dk; ++k) vb[s[k]] += H[k];
+            for (int k = 0; k < Dk; ++k) gb[t[k]] += gf[k];
+        }
+    }
+}
+
+static void K(se2_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
+    const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
+    T *rw = a[4], *values = a[5], *g = a[6];
+    const int64_t shared = *(const int64_t *)a[7];
+    const int64_t *slots = a[8], *g_slots = a[9], *dims = a[10];
+    const double *series = a[11];
+    const int64_t E = dims[0], size = dims[1], D = dims[2];
+    const int Dk = Ti ? 6 : 3;
+    for (int64_t b = lo; b < hi; ++b) {
+        T *vb = values + size * b, *gb = g + D * b;
+        for (int64_t e = 0; e < E; ++e) {
+            const int64_t f = E * b + e;
+            const int64_t *s = slots + Dk * Dk * e, *t = g_slots + Dk * e;
+            T r[3], J[18], H[36], gf[6];
+            K(se2_factor_one)(Zinv + 9 * f, Ti ? Ti + 9 * f : NULL, Tj + 9 * f, series, r, J);
+            K(whitened_normal)(r, J, L ? L + (shared ? 0 : 9 * f) : NULL, 3, Dk, rw + 3 * f, H, gf);
+            for (int k = 0; k < Dk * Dk; ++k) vb[s[k]] += H[k];
+            for (int k = 0; k < Dk; ++k) gb[t[k]] += gf[k];
+        }
+    }
+}
+
 #undef K
 #undef KF__
 #undef KF_

@@ -36,6 +36,7 @@ import torch
 from ...functional import checks
 from ..solver import SolverStatus
 from .graph import FactorGraph
+from .layout import diagonal, times
 from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _full, _solve, _State, _trial, _where
 from .linear_system import LinearSystem
 from .linearize import Linearization, Problem
@@ -65,21 +66,6 @@ def dogleg(graph: FactorGraph, max_iterations: int = 100, *, delta_initial: floa
         abs_tol=absolute_error_tol, error_tol=error_tol, linear_solver=linear_solver))
 
 
-def _h_times(problem: Problem, values: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """H v (B, D) from H's entries ``values`` (B, nnz) at ``problem.h_index`` (flat, D * D)."""
-    D = problem.D
-    rows, cols = problem.h_index // D, problem.h_index % D
-    return v.new_zeros(v.shape).index_add(1, rows, values * v[:, cols])
-
-
-def _diagonal(problem: Problem, values: torch.Tensor) -> torch.Tensor:
-    """The diagonal (B, D) of H from its entries (no data-dependent shapes: no host sync)."""
-    D = problem.D
-    rows = problem.h_index // D
-    on = (rows == problem.h_index % D).to(values.dtype)
-    return values.new_zeros(values.shape[0], D).index_add(1, rows, values * on)
-
-
 @dataclass
 class _DoglegState(_State):
     """The solver state and, per problem, whether its H had no Cholesky factor (then damped)."""
@@ -92,21 +78,21 @@ class _DoglegState(_State):
                             b.status, self.damped.index_select(0, keep))
 
 
-def _steps(problem: Problem, system: LinearSystem, lin: Linearization, damped: torch.Tensor
+def _steps(system: LinearSystem, lin: Linearization, damped: torch.Tensor
            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(dx_u, dx_n, damped): the Cauchy and Gauss-Newton points (module docstring, step 1).
     Where H has no Cholesky factor (a gauge freedom) the Gauss-Newton point is that of
     H + RCOND max diag(H) I: at once for one problem on the host; in a batch, from the next
     round on (``damped``), this round taking the Cauchy point."""
     g, values = lin.g, lin.values
-    damping = system.rcond * _diagonal(problem, values).amax(dim=-1).clamp_min(0)
+    damping = system.rcond * diagonal(system.layout, values).amax(dim=-1).clamp_min(0)
     dx_n, solved, _ = system.solve(values, g, torch.where(damped, damping, torch.zeros_like(damping)),
                                    False)
     if system.cost_first and not bool(solved[0]):
         dx_n, solved, _ = system.solve(values, g, damping, False)
     damped = damped | ~solved
     gg = (g * g).sum(-1)
-    gHg = (g * _h_times(problem, values, g)).sum(-1)
+    gHg = (g * times(system.layout, values, g)).sum(-1)
     curved = gHg > 0
     alpha = gg / torch.where(curved, gHg, torch.ones_like(gHg))
     dx_u = -torch.where(curved, alpha, torch.zeros_like(alpha))[:, None] * g
@@ -138,9 +124,9 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
     """One trial per running problem (module docstring, steps 1-5); ``s.lam`` holds Delta."""
     delta = s.lam
     damped = s.damped if isinstance(s, _DoglegState) else torch.zeros_like(s.status, dtype=torch.bool)
-    dx_u, dx_n, damped = _steps(problem, system, s.lin, damped)
+    dx_u, dx_n, damped = _steps(system, s.lin, damped)
     dx = _dogleg_point(delta, dx_u, dx_n)
-    quad = (dx * _h_times(problem, s.lin.values, dx)).sum(-1)
+    quad = (dx * times(system.layout, s.lin.values, dx)).sum(-1)
     model_change = -((s.lin.g * dx).sum(-1) + 0.5 * quad)
     x_new, lin_new, new_cost = _trial(problem, system, s, dx)
     cost = s.lin.cost

@@ -12,7 +12,10 @@ formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E)
 engine's linearisation of factors without a robust loss: the whitened residual r~ = L r and the
 factor's blocks of the normal equations, H = J~^T J~ and g = J~^T r~ with J~ = L J (L shared
 (dof, dof), per factor (..., dof, dof), or None), so that whitening and the products of small
-matrices are part of the same C pass.  Under vmap the mapped axis of any of these operators
+matrices are part of the same C pass.  ``se3_factor_assemble`` and ``se2_factor_assemble`` add
+those blocks straight into each problem's normal equations, in the layout of the linear system
+(``layout.EntryLayout``: each factor's entries of H at its ``slots``, of g at its ``g_slots``),
+so that no (B, E, Dk, Dk) intermediate is written and read back.  Under vmap the mapped axis of any of these operators
 joins the factors' batch.
 
 The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
@@ -37,7 +40,7 @@ from .. import dense_solve
 from .log_terms import _SERIES, SERIES_THRESHOLD, se2_log_jacobians, se3_inverse, se3_log_jacobians
 
 __all__ = ["se3_factor_terms", "se2_factor_terms", "se3_factor_normal", "se2_factor_normal",
-           "usable"]
+           "se3_factor_assemble", "se2_factor_assemble", "usable"]
 
 
 def usable(*tensors: torch.Tensor) -> bool:
@@ -283,3 +286,130 @@ def _terms_vmap(op):
 
 se3_factor_terms.register_vmap(_terms_vmap(se3_factor_terms))
 se2_factor_terms.register_vmap(_terms_vmap(se2_factor_terms))
+
+
+# ---------------------------------------------------------------------------- assembled
+def _assemble_code(normal):
+    """The tensor code of ``<group>_factor_assemble``: the normal blocks, added at the slots."""
+
+    def code(Zinv, Ti, Tj, L, slots, values, g_slots, g):
+        r, H, gb = normal(Zinv, Ti, Tj, L)
+        B = values.shape[0]
+        values.index_add_(1, slots.reshape(-1), H.reshape(B, -1))
+        g.index_add_(1, g_slots.reshape(-1), gb.reshape(B, -1))
+        return r
+
+    return code
+
+
+def _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, n: int) -> None:
+    _check(Zinv, Ti, Tj, n)
+    dof = n * (n - 1) // 2
+    _check_noise(L, Tj, dof)
+    Dk = dof if Ti is None else 2 * dof
+    if Tj.dim() != 4:
+        raise ValueError(f"Tj must have shape (B, E, {n}, {n}), got {tuple(Tj.shape)}")
+    B, E = Tj.shape[:2]
+    checks.same_device_dtype(values=values, g=g, Tj=Tj)
+    for name, t, shape in (("slots", slots, (E, Dk * Dk)), ("g_slots", g_slots, (E, Dk))):
+        if t.dtype != torch.int64 or t.device != Tj.device or tuple(t.shape) != shape:
+            raise ValueError(f"{name} must be int64 of shape {shape} on {Tj.device}, got "
+                             f"{t.dtype} of shape {tuple(t.shape)} on {t.device}")
+    for name, t in (("values", values), ("g", g)):
+        if t.dim() != 2 or t.shape[0] != B or not t.is_contiguous():
+            raise ValueError(f"{name} must be a contiguous tensor of shape ({B}, n), got "
+                             f"{tuple(t.shape)} with strides {t.stride()}")
+
+
+def _run_assemble(name: str, n: int, code, Zinv, Ti, Tj, L, slots, values, g_slots, g,
+                  *extra: torch.Tensor):
+    """The operator ``name``'s CPU kernel where it runs, else ``code``."""
+    _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, n)
+    lib = dense_solve._lib
+    if lib is None or not native.enabled() or Tj.dtype not in (torch.float32, torch.float64):
+        return code(Zinv, Ti, Tj, L, slots, values, g_slots, g)
+    dof, (B, E) = n * (n - 1) // 2, Tj.shape[:2]
+    Zinv, Tj = Zinv.resolve_neg().contiguous(), Tj.resolve_neg().contiguous()
+    Ti = None if Ti is None else Ti.resolve_neg().contiguous()
+    L = None if L is None else L.resolve_neg().contiguous()
+    slots, g_slots = slots.contiguous(), g_slots.contiguous()
+    r = Tj.new_empty(B, E, dof)
+    getattr(lib, name)(Zinv.data_ptr(), 0 if Ti is None else Ti.data_ptr(), Tj.data_ptr(),
+                       0 if L is None else L.data_ptr(), r.data_ptr(), values.data_ptr(),
+                       g.data_ptr(), slots.data_ptr(), g_slots.data_ptr(),
+                       *(e.data_ptr() for e in extra), B, E, values.shape[1], g.shape[1],
+                       L is not None and L.dim() == 2, torch.get_num_threads(),
+                       Tj.dtype is torch.float64)
+    return r
+
+
+def _assemble_fake(n: int):
+    def fake(Zinv, Ti, Tj, L, slots, values, g_slots, g):
+        _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, n)
+        return Tj.new_empty(Tj.shape[:2] + (n * (n - 1) // 2,))
+    return fake
+
+
+_se3_assemble_code = _assemble_code(_se3_normal_code)
+_se2_assemble_code = _assemble_code(_se2_normal_code)
+_ASSEMBLE_SCHEMA = ("(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L, Tensor slots, Tensor(a!) values, "
+                    "Tensor g_slots, Tensor(b!) g) -> Tensor")
+
+
+@torch.library.custom_op("torchsgal::se3_factor_assemble", mutates_args=("values", "g"),
+                         schema=_ASSEMBLE_SCHEMA)
+def se3_factor_assemble(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
+                        L: torch.Tensor | None, slots: torch.Tensor, values: torch.Tensor,
+                        g_slots: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """r~ (B, E, 6) of ``se3_factor_normal`` for the factors (B, E, 4, 4) of B problems, with
+    each factor e's H (Dk, Dk) added in place into its problem's ``values`` (B, size) at
+    ``slots[e]`` (Dk * Dk,) and its g (Dk,) into ``g`` (B, D) at ``g_slots[e]`` (both
+    contiguous): the blocks go straight into a linear system's layout
+    (``layout.EntryLayout``), with no (B, E, Dk, Dk) intermediate and no copy of the values."""
+    _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, 4)
+    return _se3_assemble_code(Zinv, Ti, Tj, L, slots, values, g_slots, g)
+
+
+se3_factor_assemble.register_kernel("cpu")(
+    lambda *a: _run_assemble("se3_factor_assemble", 4, _se3_assemble_code, *a))
+se3_factor_assemble.register_fake(_assemble_fake(4))
+
+
+@torch.library.custom_op("torchsgal::se2_factor_assemble", mutates_args=("values", "g"),
+                         schema=_ASSEMBLE_SCHEMA)
+def se2_factor_assemble(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
+                        L: torch.Tensor | None, slots: torch.Tensor, values: torch.Tensor,
+                        g_slots: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """As ``se3_factor_assemble`` for SE(2) (matrices (B, E, 3, 3), r~ (B, E, 3))."""
+    _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, 3)
+    return _se2_assemble_code(Zinv, Ti, Tj, L, slots, values, g_slots, g)
+
+
+se2_factor_assemble.register_kernel("cpu")(
+    lambda *a: _run_assemble("se2_factor_assemble", 3, _se2_assemble_code, *a, _SE2_SERIES))
+se2_factor_assemble.register_fake(_assemble_fake(3))
+
+
+def _assemble_vmap(op, dof: int):
+    """The vmapped axis joins the problems' axis of the matrices and of ``values`` and ``g``
+    (mapped, contiguous: they are written in place); the index maps are shared."""
+
+    def rule(info, in_dims, Zinv, Ti, Tj, L, slots, values, g_slots, g):
+        if in_dims[4] is not None or in_dims[6] is not None:
+            raise ValueError("slots and g_slots are shared by the problems: they cannot be vmapped")
+        if in_dims[5] != 0 or in_dims[7] != 0:
+            raise ValueError("values and g are written in place: vmap them along their first axis")
+        V = info.batch_size
+        (Zinv, Ti, Tj), batch = _matrices_in_front(V, (Zinv, Ti, Tj), in_dims[:3])
+        if L is not None and (in_dims[3] is not None or L.dim() > 2):
+            L = L.unsqueeze(0).expand(V, *L.shape) if in_dims[3] is None else L.movedim(in_dims[3], 0)
+            L = L.expand(batch + (dof, dof)).flatten(0, 1)
+        r = op(*(None if t is None else t.flatten(0, 1) for t in (Zinv, Ti, Tj)), L, slots,
+               values.view(-1, values.shape[-1]), g_slots, g.view(-1, g.shape[-1]))
+        return r.unflatten(0, (V, -1)), 0
+
+    return rule
+
+
+se3_factor_assemble.register_vmap(_assemble_vmap(se3_factor_assemble, 6))
+se2_factor_assemble.register_vmap(_assemble_vmap(se2_factor_assemble, 3))

@@ -467,7 +467,7 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
             _store(b.factor.corrections, s.rows, new)
             b.data[len(b.data) - 3] = new
             b.factor._refresh = True
-        updated = linearize(problem, x)  # at the new corrections: L and Bm e refreshed
+        updated = linearize(problem, x, system.layout)  # at the new corrections: L, Bm e refreshed
         # converged where the corrections hardly moved and either the step just taken passed
         # ``levenberg_marquardt``'s tests or the round ended without a step (its cost change
         # was within the cost tolerance: with the corrections unchanged, the next round would

@@ -226,7 +226,7 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
     B = full.B
     system = _system(full, o["linear_solver"])
     x0 = full.initial(graph)
-    lin = linearize(full, x0)
+    lin = linearize(full, x0, system.layout)
     dev, dt = x0[0].device, x0[0].dtype
     finite = (torch.isfinite(lin.cost) & torch.isfinite(lin.values).all(dim=-1)
               & torch.isfinite(lin.g).all(dim=-1))
@@ -344,7 +344,7 @@ def _trial(problem: Problem, system: LinearSystem, s: _State, delta: torch.Tenso
     x_new = problem.retract(s.x, delta)
     if system.cost_first:
         return x_new, None, evaluate_cost(problem, x_new)
-    lin_new = linearize(problem, x_new)
+    lin_new = linearize(problem, x_new, system.layout)
     return x_new, lin_new, lin_new.cost
 
 
@@ -354,12 +354,22 @@ def _accept(problem: Problem, system: LinearSystem, s: _State, success: torch.Te
     """The unknowns and linearisation after a trial: the trial's where ``success``, else the
     current ones."""
     if lin_new is None:  # cost_first: one problem
-        lin_new = linearize(problem, x_new) if bool(success[0]) else s.lin
-    x = [_where(success, a, b) for a, b in zip(x_new, s.x)]
-    lin = Linearization(*[_where(success, a, b) for a, b in
+        lin_new = linearize(problem, x_new, system.layout) if bool(success[0]) else s.lin
+    x = [_take_trial(success, a, b) for a, b in zip(x_new, s.x)]
+    lin = Linearization(*[_take_trial(success, a, b) for a, b in
                           ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
                            (new_cost, s.lin.cost), (lin_new.model_cost, s.lin.model_cost))])
     return x, lin
+
+
+def _take_trial(success: torch.Tensor, trial: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """``trial`` where ``success``, else ``current``: written into ``trial`` (the trial's own
+    tensor, or ``current`` itself) where nothing records gradients, so that a round allocates
+    no further copy of the normal equations."""
+    if torch.is_grad_enabled() and (trial.requires_grad or current.requires_grad):
+        return _where(success, trial, current)
+    mask = success.reshape(success.shape + (1,) * (trial.dim() - 1))
+    return torch.where(mask, trial, current, out=trial)
 
 
 def _converged(s: _State, lin: Linearization, o: dict) -> torch.Tensor:

@@ -24,7 +24,8 @@ import torch
 
 from ..block_cholesky import Structure, analyse, block_cholesky_solve
 from ..dense_solve import MIN_BATCH, cholesky_solve, uses_kernel
-from .linearize import Problem, dense
+from .layout import EntryLayout, dense, dense_layout, times
+from .linearize import Problem
 
 RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
@@ -48,6 +49,7 @@ class DenseSystem:
 
     def __init__(self, problem: Problem, workspace: tuple[torch.Tensor, ...] | None = None):
         self.problem = problem
+        self.layout = dense_layout(problem.h_index, _block_sizes(problem), problem.D)
         self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._H: torch.Tensor | None = None
@@ -71,12 +73,13 @@ class DenseSystem:
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(delta (B, D), solved (B,) bool, delta^T H delta (B,)); lam (B,) (0: undamped)."""
+        """(delta (B, D), solved (B,) bool, delta^T H delta (B,)); lam (B,) (0: undamped);
+        ``values`` (B, D * D) in ``layout``: H itself."""
         B, D = values.shape[0], self.problem.D
         if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
             return self._solve_differentiable(values, g, lam, diagonal)
         flat, L, info = self._workspace(B)
-        Hd = flat.zero_().index_add_(1, self.problem.h_index, values).view(B, D, D)
+        Hd = flat.copy_(values).view(B, D, D)
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
         damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
         diag.add_(damp)
@@ -100,7 +103,7 @@ class DenseSystem:
                               diagonal: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``solve`` without work buffers or in-place steps (autograd through the iterations:
         ``backward_mode="unroll"``)."""
-        H = dense(self.problem, values)
+        H = dense(self.layout, values)
         diag = H.diagonal(dim1=-2, dim2=-1)
         damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
         L, info = torch.linalg.cholesky_ex(H + torch.diag_embed(damp))
@@ -124,7 +127,7 @@ class DenseSystem:
     def set_solution(self, values: torch.Tensor) -> None:
         """Keeps H at the solution for ``singular``, ``marginal_blocks``, ``dense_information``
         (and frees the work buffers of the steps)."""
-        self._H = dense(self.problem, values)
+        self._H = dense(self.layout, values)
         self._work = None
 
     def _solution(self) -> torch.Tensor:
@@ -224,33 +227,35 @@ class BlockSparseSystem:
     cost_first = False  # as DenseSystem: a batch linearises every trial point
 
     def __init__(self, problem: Problem, structure: Structure | None = None,
-                 maps: tuple[torch.Tensor, ...] | None = None):
+                 maps: tuple[torch.Tensor, ...] | None = None, layout: EntryLayout | None = None):
         self.problem = problem
         if structure is None or maps is None:
-            layout = block_layout(problem)
-            assert layout is not None  # no bound: always analysed
-            structure, maps = layout
+            analysed = block_layout(problem)
+            assert analysed is not None  # no bound: always analysed
+            structure, maps = analysed
         self.structure, self._maps = structure, maps
+        self.layout = layout if layout is not None else EntryLayout(
+            problem.h_index, _block_sizes(problem), problem.D, maps[0], structure.panels + 1,
+            spare=structure.panels)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._dense: DenseSystem | None = None  # built when a dense question is asked
         self._values: torch.Tensor | None = None
 
     def select(self, problem: Problem) -> BlockSparseSystem:
         """The system of a subset of the problems (one pattern: the analysis is shared)."""
-        return BlockSparseSystem(problem, self.structure, self._maps)
+        return BlockSparseSystem(problem, self.structure, self._maps, self.layout)
 
     def _panels(self, values: torch.Tensor) -> torch.Tensor:
-        """H's stored triangle (B, P) in the structure's layout (the other entries go to a spare
-        column P, cut off)."""
-        P = self.structure.panels
-        v = values.new_zeros(values.shape[0], P + 1).index_add_(1, self._maps[0], values)
-        return v[:, :P].contiguous()
+        """H's stored triangle (B, P), a copy of the values (B, P + 1) in ``layout`` without
+        their spare column."""
+        return values[:, :self.structure.panels].contiguous()
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """As ``DenseSystem.solve``, on the block-sparse factorisation."""
         if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
-            return DenseSystem(self.problem)._solve_differentiable(values, g, lam, diagonal)
+            H = dense(self.layout, values).flatten(1)
+            return DenseSystem(self.problem)._solve_differentiable(H, g, lam, diagonal)
         _, order, diag = self._maps
         v = self._panels(values)
         d = v.index_select(1, diag)
@@ -272,7 +277,7 @@ class BlockSparseSystem:
             raise RuntimeError("set_solution(values) first")
         if self._dense is None:
             self._dense = DenseSystem(self.problem)
-            self._dense.set_solution(self._values)
+            self._dense.set_solution(dense(self.layout, self._values).flatten(1))
         return self._dense
 
     def solve_information(self, rhs: torch.Tensor) -> torch.Tensor:
@@ -346,14 +351,19 @@ class SparseSystem:
             raise ValueError(f"the sparse linear solver takes one problem (B = 1), got B = "
                              f"{problem.B}: use linear_solver='dense' for batches")
         self.problem = problem
-        D = problem.D
-        rows, cols = problem.h_index // D, problem.h_index % D
-        self.rows, self.cols = rows, cols
-        self.lower = (rows >= cols).nonzero().squeeze(-1)  # the pattern, once
+        D, h = problem.D, problem.h_index
+        # the layout: H's lower triangle, each position once, and a spare column for the rest
+        lower = torch.unique(h[((h // D) >= (h % D)).nonzero().squeeze(-1)])
+        n = lower.numel()
+        at = torch.searchsorted(lower, h).clamp_max(n - 1)
+        slots = torch.where(lower[at] == h, at, torch.full_like(at, n))
+        self.layout = EntryLayout(h, _block_sizes(problem), D, slots, n + 1, spare=n)
+        rows, cols = lower // D, lower % D
+        self.rows, self.stored = rows, n
         self.on_diagonal = (rows == cols).nonzero().squeeze(-1)
         diag = torch.arange(D, device=problem.device)
-        self.factorization = SparseCholesky(torch.cat([rows[self.lower], diag]),
-                                            torch.cat([cols[self.lower], diag]), D, backend)
+        self.factorization = SparseCholesky(torch.cat([rows, diag]), torch.cat([cols, diag]), D,
+                                            backend)
         self.backend = self.factorization.backend
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._values: torch.Tensor | None = None
@@ -371,7 +381,7 @@ class SparseSystem:
         from ..sparse import NotPositiveDefiniteError
 
         try:
-            self.factorization.factor(torch.cat([v[self.lower], damping]))
+            self.factorization.factor(torch.cat([v[:self.stored], damping]))
         except (NotPositiveDefiniteError, ValueError):
             return False
         return True
@@ -387,8 +397,7 @@ class SparseSystem:
         ok = ok and bool(torch.isfinite(delta).all())
         if not ok:
             delta = torch.zeros_like(delta)
-        Hdelta = v.new_zeros(D).index_add_(0, self.rows, v * delta[self.cols])
-        quad = (delta * Hdelta).sum()
+        quad = (delta * times(self.layout, values, delta[None])[0]).sum()
         return delta[None], torch.tensor([ok], device=v.device), quad[None]
 
     def set_solution(self, values: torch.Tensor) -> None:
@@ -415,7 +424,7 @@ class SparseSystem:
 
     def dense_information(self) -> torch.Tensor:
         """(1, D, D) H at the solution (dense: for small problems and checks)."""
-        return dense(self.problem, self._solution()[0])
+        return dense(self.layout, self._solution()[0])
 
     def singular(self) -> torch.Tensor:
         """(1,) True where H at the solution is not positive definite (``SparseCholesky``)."""
@@ -430,3 +439,8 @@ class SparseSystem:
 
 
 LinearSystem = DenseSystem | BlockSparseSystem | SparseSystem
+
+
+def _block_sizes(problem: Problem) -> list[int]:
+    """The number of entries of H each factor block contributes (``EntryLayout``)."""
+    return [b.h_index.numel() for b in problem.blocks]

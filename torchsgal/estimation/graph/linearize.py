@@ -6,8 +6,9 @@ each factor block's data and noise with a problem axis, and the flat indices tha
 every factor's Jacobian blocks ``J_a^T J_b`` into the (D x D) normal equations and ``J_a^T r``
 into the gradient.  ``linearize`` evaluates all factors of a block together, whitens, applies
 the robust loss (``robust.correct``) and assembles H = sum J~^T J~, g = sum J~^T r~ with one
-``index_add_`` each; ``H`` may be dense (B, D, D) or the values of a sparse lower-triangular
-pattern (for ``SparseCholesky``).
+``index_add_`` per block each, H in the layout of the linear system that solves it
+(``layout.EntryLayout``: the dense matrix, or the stored triangle of the block and sparse
+factorisations).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from . import factor_kernels
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
+from .layout import EntryLayout, raw_layout
 from .log_terms import se2_log_jacobians, se3_inverse, se3_log_jacobians
 from .robust import correct, corrected
 
@@ -83,6 +85,7 @@ class Problem:
         self.blocks = [self._block(f) for f in graph.factors]
         self.h_index = torch.cat([b.h_index for b in self.blocks])  # (nnz,) flat into (D * D)
         self.g_index = torch.cat([b.g_index for b in self.blocks])
+        self.layout = raw_layout(self.h_index, [b.h_index.numel() for b in self.blocks], self.D)
 
     def _block(self, factor: Factor) -> Block:
         E, B = factor.size, self.B
@@ -251,9 +254,18 @@ def _take(d, rows: torch.Tensor):
 
 
 @dataclass
+class Assembly:
+    """The normal equations being assembled: values (B, layout.size) and g (B, D)."""
+
+    values: torch.Tensor
+    g: torch.Tensor
+    layout: EntryLayout
+
+
+@dataclass
 class Linearization:
-    """values (B, nnz) of the normal equations' entries at ``Problem.h_index`` (duplicates
-    summed: ``dense`` gives H (B, D, D)), g (B, D), cost (B,) = 1/2 sum rho(s), model_cost (B,)
+    """values (B, size) of the normal equations' entries in an ``EntryLayout`` (``layout.dense``
+    gives H (B, D, D)), g (B, D), cost (B,) = 1/2 sum rho(s), model_cost (B,)
     = 1/2 |r~|^2 (the linear model's error at zero)."""
 
     values: torch.Tensor
@@ -360,7 +372,7 @@ def _block_terms(problem: Problem, block: Block, x: list[torch.Tensor], want_jac
 
 
 def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool,
-                    normal: bool = False) -> dict[int, tuple]:
+                    normal: Assembly | None = None) -> dict[int, tuple]:
     """{block number: (r (B, E, dof), J (B, E, dof, Dk) or None)} for the blocks of built-in
     priors and betweens, r = log(E) with E = Z^-1 T (prior) or Z^-1 T_i^-1 T_j (between).
     The E of every such block of a group are stacked and go through one ``log`` and one
@@ -373,12 +385,12 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     SE(3) and SE(2), log, J_r^-1 and J_l^-1 come from one pass (``log_terms``) and
     J_i = -J_l^-1(r) Ad(Z^-1) (as J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1)
     computed once per problem.  With ``normal``, the kernels' blocks of factors without a robust
-    loss come whitened with their normal-equation blocks instead: (r~, H, g) (``se3_factor_normal``,
-    ``se2_factor_normal``)."""
+    loss are whitened and their blocks of H and g added in place into its values and g
+    (``se3_factor_assemble``, ``se2_factor_assemble``); such a block gives (r~,)."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
-    out: dict[int, tuple[torch.Tensor, torch.Tensor | None]] = {}
+    out: dict[int, tuple] = {}
     for n, block in enumerate(problem.blocks):
         if block.log_form is None:
             continue
@@ -392,13 +404,17 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
             Ti = None if block.log_form == "prior" else Ts[0]
             L = block.sqrt_info
             if normal and block.factor.loss is None and (L is None or factor_kernels.usable(L)):
-                # whitened, with the blocks of H and g (a noise that something differentiates
-                # is applied below instead)
+                # whitened, its blocks of H and g added into ``normal`` (a noise that something
+                # differentiates is applied below instead)
                 if L is not None and L.dim() > 2:
                     L = L.expand(shape[:2] + L.shape[-2:])
-                op = (torch.ops.torchsgal.se3_factor_normal if group is SE3
-                      else torch.ops.torchsgal.se2_factor_normal)
-                out[n] = op(Z_inv.expand(shape), Ti, Ts[-1], L)
+                op = (torch.ops.torchsgal.se3_factor_assemble if group is SE3
+                      else torch.ops.torchsgal.se2_factor_assemble)
+                Dk = block.g_index.numel() // (1 if block.reduced else block.size)
+                slots = normal.layout.block_slots[n].reshape(-1, Dk * Dk).expand(block.size, -1)
+                g_slots = block.g_index.reshape(-1, Dk).expand(block.size, -1)
+                out[n] = (op(Z_inv.expand(shape), Ti, Ts[-1], L, slots, normal.values, g_slots,
+                             normal.g),)
                 continue
             op = (torch.ops.torchsgal.se3_factor_terms if group is SE3
                   else torch.ops.torchsgal.se2_factor_terms)
@@ -467,21 +483,20 @@ def evaluate_cost(problem: Problem, x: list[torch.Tensor]) -> torch.Tensor:
     return cost
 
 
-def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
-    """The normal equations' entries, gradient, cost and model cost at x (``Linearization``)."""
+def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | None = None
+              ) -> Linearization:
+    """The normal equations' entries (in ``layout``, by default the problem's raw layout),
+    gradient, cost and model cost at x (``Linearization``)."""
     B, D = x[0].shape[0], problem.D
+    layout = problem.layout if layout is None else layout
     cost, model = x[0].new_zeros(B), x[0].new_zeros(B)
-    h_vals, g_vals = [], []
-    fused = _log_form_terms(problem, x, True, normal=True)
+    normal = Assembly(x[0].new_zeros(B, layout.size), x[0].new_zeros(B, D), layout)
+    fused = _log_form_terms(problem, x, True, normal=normal)
+    values, g = normal.values, normal.g  # with the blocks the kernels added
     for n, block in enumerate(problem.blocks):
-        if n in fused and len(fused[n]) == 3:  # whitened, with its blocks of H and g
-            r, H, gb = fused[n]
-            half = 0.5 * (r * r).sum(dim=(-1, -2))
+        if n in fused and len(fused[n]) == 1:  # whitened, its blocks of H and g assembled
+            half = 0.5 * (fused[n][0] ** 2).sum(dim=(-1, -2))
             cost, model = cost + half, model + half
-            if block.reduced:  # the factors' blocks summed
-                H, gb = H.sum(dim=1), gb.sum(dim=1)
-            h_vals.append(H.reshape(B, -1))
-            g_vals.append(gb.reshape(B, -1))
             continue
         if n in fused:
             r, J = fused[n]
@@ -497,18 +512,7 @@ def linearize(problem: Problem, x: list[torch.Tensor]) -> Linearization:
         if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
             J = J.reshape(B, -1, J.shape[-1])
             r = r.reshape(B, -1)
-        h_vals.append((J.mT @ J).reshape(B, -1))
-        g_vals.append((J * r.unsqueeze(-1)).sum(dim=-2).reshape(B, -1))  # J^T r
-    g = x[0].new_zeros(B, D).index_add_(1, problem.g_index, _cat(g_vals))
-    return Linearization(_cat(h_vals), g, cost, model)
-
-
-def _cat(parts: list[torch.Tensor]) -> torch.Tensor:
-    """The blocks' entries side by side (B, n); one block's as they are (no copy)."""
-    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
-
-
-def dense(problem: Problem, values: torch.Tensor) -> torch.Tensor:
-    """H (B, D, D) from the entries (B, nnz) of ``linearize``."""
-    B, D = values.shape[0], problem.D
-    return values.new_zeros(B, D * D).index_add_(1, problem.h_index, values).reshape(B, D, D)
+        H, gb = J.mT @ J, (J * r.unsqueeze(-1)).sum(dim=-2)  # J^T J, J^T r
+        values.index_add_(1, layout.block_slots[n], H.reshape(B, -1))
+        g.index_add_(1, block.g_index, gb.reshape(B, -1))
+    return Linearization(values, g, cost, model)
