@@ -24,7 +24,7 @@ static inline void K(se3_top_product)(const T *A, int sa, const T *Bm, T *o) {
 
 /* r and, unless J is null, its Jacobian; Ti null for a prior (E = Z^-1 Tj) */
 static void K(se3_factor_one)(const T *Zinv, const T *Ti, const T *Tj, T *r, T *J) {
-    T A[12], E[16], neg[6], Jl[36], Jr[36];
+    T A[12], E[16], Jl[36];
     if (Ti) {
         T inv[16];
         K(se3_inverse_one)(Ti, inv);  /* T_i^-1 = [C^T, -C^T t] (_native_products.h) */
@@ -39,22 +39,30 @@ static void K(se3_factor_one)(const T *Zinv, const T *Ti, const T *Tj, T *r, T *
     E[12] = 0; E[13] = 0; E[14] = 0; E[15] = 1;
     K(se3_log_one)(E, r);
     if (!J) return;
-    for (int i = 0; i < 6; ++i) neg[i] = -r[i];
-    K(se3_jl_one)(neg, 1, Jr);  /* J_r^-1(r) = J_l^-1(-r) */
-    if (!Ti) {
-        for (int i = 0; i < 36; ++i) J[i] = Jr[i];
-        return;
-    }
+    /* J_l^-1(r) = [[A, B], [0, A]]; J_r^-1(r) = J_l^-1(-r) = [[A^T, B^T], [0, A^T]] (each 3 x 3
+     * block transposed: J(-phi) = J(phi)^T and Q(-rho, -phi) = Q(rho, phi)^T term by term) */
     K(se3_jl_one)(r, 1, Jl);
-    /* J_i = -J_l^-1 Ad(Z^-1), Ad = [[C, t^ C], [0, C]] (_native_products.h) */
+    const int w = Ti ? 12 : 6, off = Ti ? 6 : 0;
+    for (int bi = 0; bi < 2; ++bi)
+        for (int bj = 0; bj < 2; ++bj)
+            for (int i = 0; i < 3; ++i)
+                for (int j = 0; j < 3; ++j)
+                    J[w * (3 * bi + i) + off + 3 * bj + j] = Jl[6 * (3 * bi + j) + 3 * bj + i];
+    if (!Ti) return;
+    /* J_i = -J_l^-1 Ad(Z^-1), Ad = [[C, t^ C], [0, C]]: [[-A C, -(A t^C + B C)], [0, -A C]] */
     T Ad[36];
     K(se3_adjoint_one)(Zinv, Ad);
-    for (int i = 0; i < 6; ++i)
-        for (int j = 0; j < 6; ++j) {
-            T s = 0;
-            for (int k = 0; k < 6; ++k) s += Jl[6 * i + k] * Ad[6 * k + j];
-            J[12 * i + j] = -s;
-            J[12 * i + 6 + j] = Jr[6 * i + j];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            T ac = 0, top = 0;
+            for (int k = 0; k < 3; ++k) {
+                ac += Jl[6 * i + k] * Ad[6 * k + j];
+                top += Jl[6 * i + k] * Ad[6 * k + 3 + j] + Jl[6 * i + 3 + k] * Ad[6 * (3 + k) + 3 + j];
+            }
+            J[12 * i + j] = -ac;
+            J[12 * (3 + i) + 3 + j] = -ac;
+            J[12 * i + 3 + j] = -top;
+            J[12 * (3 + i) + j] = 0;
         }
 }
 
