@@ -12,7 +12,7 @@
    100), then for larger batches (64, 256, 1024 graphs).
 3. Where the engine's time goes: cProfile of one pose-graph solve, cumulative seconds of the
    linearisation (residuals, Jacobians, assembly; of which the prior and between residuals and
-   Jacobians, and within them the operator ``torchsgal::se3_factor_normal``), the linear solves
+   Jacobians, and within them the operator ``torchsgal::se3_factor_assemble``), the linear solves
    and the rest.
 4. Native batching against ``torch.func.vmap`` over factors for the Between residual and its
    analytic Jacobians (64 x 10 factors): medians and ratio.
@@ -197,7 +197,7 @@ def profile_pose_graphs() -> dict:
 
     parts = dict(linearize=cum("linearize.py", "linearize"),
                  prior_between_log_terms=cum("linearize.py", "_log_form_terms"),
-                 se3_factor_normal_kernel=cum("factor_kernels.py", "_run_normal"),
+                 se3_factor_assemble_kernel=cum("factor_kernels.py", "_run_assemble"),
                  linear_solve=cum("linear_system.py", "solve"),
                  retract=cum("linearize.py", "retract"),
                  final_rank_test=cum("linear_system.py", "set_solution") + cum("linear_system.py", "singular"),

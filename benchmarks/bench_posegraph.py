@@ -270,9 +270,10 @@ def run_block(graph: PoseGraph, initial, repeats: int) -> dict:
     analyse = time.perf_counter() - t0
     st, order = system.structure, system.structure.order
     rhs = -lin.g[:, order].unsqueeze(-1)
+    stored = linearize(problem, problem.initial(engine_graph(graph, initial)), system.layout).values
 
     def factor_solve():
-        return block_cholesky_solve(system._panels(lin.values), rhs, st)[1]
+        return block_cholesky_solve(system._panels(stored), rhs, st)[1]
 
     t, x = median_time(factor_solve, repeats)
     delta = torch.empty_like(lin.g).index_copy_(1, order, x[..., 0])[0]
