@@ -149,7 +149,8 @@ def levenberg_marquardt(graph: FactorGraph, max_iterations: int = 100, *,
                    available backend), a ``SparseCholesky`` backend name, or "auto": sparse for
                    one problem with more than ``SPARSE_ABOVE`` unknowns; otherwise block where
                    its kernel runs and the pattern's factorisation costs at most ``BLOCK_BELOW``
-                   of the dense one, dense elsewhere."""
+                   of the dense one and the iterations are not differentiated
+                   (``backward_mode="unroll"`` solves each step densely), dense elsewhere."""
     _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_lower,
            min_model_fidelity, relative_error_tol, absolute_error_tol, error_tol, diagonal_damping,
            linear_solver, backward_mode)
@@ -224,7 +225,7 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
     state's ``lam`` starts at ``o["lambda_initial"]``) on the graph's problems (layout
     ``full``), and the solution in layout order."""
     B = full.B
-    system = _system(full, o["linear_solver"])
+    system = _system(full, o["linear_solver"], unrolled=full.attach and torch.is_grad_enabled())
     x0 = full.initial(graph)
     lin = linearize(full, x0, system.layout)
     dev, dt = x0[0].device, x0[0].dtype
@@ -270,12 +271,16 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
     return GraphResult(_values(full, graph, out.x), report, full, system), out.x
 
 
-def _system(problem: Problem, linear_solver: str) -> LinearSystem:
+def _system(problem: Problem, linear_solver: str, unrolled: bool = False) -> LinearSystem:
+    """The linear system of ``linear_solver`` (``levenberg_marquardt``'s docstring); "auto" takes
+    the dense one where the iterations are differentiated (``unrolled``: every step is a dense
+    differentiable solve)."""
     if linear_solver == "block":
         return BlockSparseSystem(problem)
     if linear_solver == "auto" and (problem.B > 1 or problem.D <= SPARSE_ABOVE):
         like = torch.empty(0, dtype=problem.dtype, device=problem.device)
-        layout = block_layout(problem, max_share=BLOCK_BELOW) if uses_block_kernel(like) else None
+        layout = (block_layout(problem, max_share=BLOCK_BELOW)
+                  if uses_block_kernel(like) and not unrolled else None)
         return DenseSystem(problem) if layout is None else BlockSparseSystem(problem, *layout)
     if linear_solver == "dense":
         return DenseSystem(problem)
