@@ -455,7 +455,8 @@ def test_vmap_of_the_assemble_operators_is_a_loop_over_the_mapped_axis(group):
     slots = torch.randint(0, values.shape[-1], (E, 4 * d * d), generator=gen)
     g_slots = torch.randint(0, gvec.shape[-1], (E, 2 * d), generator=gen)
     op = ASSEMBLE_OPS[group]
-    for L, ldim in ((None, None), (Lv, 0)):
+    Ls = torch.randn(V, d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64)
+    for L, ldim in ((None, None), (Lv, 0), (Ls, 0)):  # none, per factor, shared by the factors
         dims = (0, 0, 0, ldim, None, 0, None, 0)
         mapped = (values.clone(), gvec.clone())
         got = torch.vmap(op, in_dims=dims)(Zinv, Ti, Tj, L, slots, *mapped[:1], g_slots, mapped[1])

@@ -403,6 +403,8 @@ def _assemble_vmap(op, dof: int):
         (Zinv, Ti, Tj), batch = _matrices_in_front(V, (Zinv, Ti, Tj), in_dims[:3])
         if L is not None and (in_dims[3] is not None or L.dim() > 2):
             L = L.unsqueeze(0).expand(V, *L.shape) if in_dims[3] is None else L.movedim(in_dims[3], 0)
+            if L.dim() < len(batch) + 2:  # (V, ..., dof, dof), its batch aligned to the right
+                L = L.reshape((V,) + (1,) * (len(batch) + 2 - L.dim()) + L.shape[1:])
             L = L.expand(batch + (dof, dof)).flatten(0, 1)
         r = op(*(None if t is None else t.flatten(0, 1) for t in (Zinv, Ti, Tj)), L, slots,
                values.view(-1, values.shape[-1]), g_slots, g.view(-1, g.shape[-1]))

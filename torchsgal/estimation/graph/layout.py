@@ -36,9 +36,9 @@ class EntryLayout:
         over the k of each position (the raw layout has several columns per position, the
         others one); both triangles, a dropped entry (r, c) read from its mirror (c, r)."""
         if self._entries is None:
-            D, size = self.D, self.size
-            key = torch.unique(self.h_index * size + self.slots)  # (position, column) pairs
-            flat, column = key // size, key % size
+            D = self.D
+            # the (position, column) pairs, sorted by position
+            flat, column = torch.unique(torch.stack([self.h_index, self.slots]), dim=1)
             if self.spare is not None:  # one column per position: the stored mirror's
                 kept = (column != self.spare).nonzero().squeeze(-1)
                 kept_flat, kept_column = flat[kept], column[kept]

@@ -247,8 +247,8 @@ class BlockSparseSystem:
 
     def _panels(self, values: torch.Tensor) -> torch.Tensor:
         """H's stored triangle (B, P), a copy of the values (B, P + 1) in ``layout`` without
-        their spare column."""
-        return values[:, :self.structure.panels].contiguous()
+        their spare column (always a copy: ``solve`` damps it in place)."""
+        return values[:, :self.structure.panels].clone(memory_format=torch.contiguous_format)
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -410,7 +410,7 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                     L = L.expand(shape[:2] + L.shape[-2:])
                 op = (torch.ops.torchsgal.se3_factor_assemble if group is SE3
                       else torch.ops.torchsgal.se2_factor_assemble)
-                Dk = block.g_index.numel() // (1 if block.reduced else block.size)
+                Dk = sum(block.dofs)
                 slots = normal.layout.block_slots[n].reshape(-1, Dk * Dk).expand(block.size, -1)
                 g_slots = block.g_index.reshape(-1, Dk).expand(block.size, -1)
                 out[n] = (op(Z_inv.expand(shape), Ti, Ts[-1], L, slots, normal.values, g_slots,
