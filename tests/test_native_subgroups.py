@@ -136,9 +136,10 @@ def _arguments(name, op, batch, dtype):
 
 
 # The registration code is ops._define, shared with SGal(3), whose operators tests/test_ops.py
-# opchecks over every batch shape, dtype and kernel switch; here each operator once with
-# gradients (float64, the kernel on) and once without (float32, the closed form), and the
-# backward operators (closed forms only) with second derivatives for SE(3), without for SE_2(3).
+# opchecks over every batch shape and dtype, with the kernels (the first test run of .ci/run) and
+# without (the second, TORCHSGAL_NATIVE=0); here each operator once with gradients (float64, the
+# kernel on) and once without (float32, the closed form), and the backward operators (closed
+# forms only) with second derivatives for SE(3), without for SE_2(3).
 @pytest.mark.parametrize("dtype,batch,kernels", [(torch.float64, (2, 3), True), (torch.float32, (), False)],
                          ids=["f64-kernels_on", "f32-kernels_off"])
 @pytest.mark.parametrize("op", ("exp", "log", "jl", "jl_inv"))

@@ -12,6 +12,13 @@ from test_ops import OPS, _arguments, _op
 
 from torchsgal.functional import native, ops, sgal3
 
+# ``kernels``: like the C kernels' own tests, these test a path that TORCHSGAL_NATIVE=0 switches
+# off (native.py: the compiled path goes with the kernels); the ``compiled`` fixture switches it
+# back on and the C kernels out of the way, so that a run with TORCHSGAL_NATIVE=0 would repeat
+# the first run's tests unchanged: the second test run of .ci/run (-m "not kernels") leaves them
+# out.
+pytestmark = pytest.mark.kernels
+
 
 class Recorder:
     """A torch.compile backend: records every graph it compiles and every run of one."""
