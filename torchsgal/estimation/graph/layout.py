@@ -37,8 +37,12 @@ class EntryLayout:
         others one); both triangles, a dropped entry (r, c) read from its mirror (c, r)."""
         if self._entries is None:
             D = self.D
-            # the (position, column) pairs, sorted by position
-            flat, column = torch.unique(torch.stack([self.h_index, self.slots]), dim=1)
+            # the (position, column) pairs, sorted by position: keyed by the position's rank
+            # among the distinct positions (below nnz: no overflow where r * D + c times the
+            # number of columns would pass the int64 range)
+            positions, rank = torch.unique(self.h_index, return_inverse=True)
+            key = torch.unique(rank * self.size + self.slots)
+            flat, column = positions[key // self.size], key % self.size
             if self.spare is not None:  # one column per position: the stored mirror's
                 kept = (column != self.spare).nonzero().squeeze(-1)
                 kept_flat, kept_column = flat[kept], column[kept]
