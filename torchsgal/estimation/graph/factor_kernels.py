@@ -254,18 +254,24 @@ def _matrices_in_front(V: int, tensors, in_dims):
     return [None if t is None else t.expand(batch + t.shape[-2:]) for t in moved], batch
 
 
+def _noise_in_front(V: int, L, in_dim, batch, dof: int):
+    """The noise of a vmapped call: a shared (dof, dof) L stays shared unless vmapped; else
+    (V, ..., dof, dof), its batch aligned to the right, expanded to the matrices' ``batch``."""
+    if L is None or (in_dim is None and L.dim() == 2):
+        return L
+    L = L.unsqueeze(0).expand(V, *L.shape) if in_dim is None else L.movedim(in_dim, 0)
+    if L.dim() < len(batch) + 2:
+        L = L.reshape((V,) + (1,) * (len(batch) + 2 - L.dim()) + L.shape[1:])
+    return L.expand(batch + (dof, dof))
+
+
 def _normal_vmap(op, dof: int):
     """The vmapped axis joins the factors' batch; a shared L stays shared unless vmapped."""
 
     def rule(info, in_dims, Zinv, Ti, Tj, L):
         V = info.batch_size
         (Zinv, Ti, Tj), batch = _matrices_in_front(V, (Zinv, Ti, Tj), in_dims[:3])
-        if L is not None and (in_dims[3] is not None or L.dim() > 2):
-            L = L.unsqueeze(0).expand(V, *L.shape) if in_dims[3] is None else L.movedim(in_dims[3], 0)
-            if L.dim() < len(batch) + 2:  # (V, ..., dof, dof), its batch aligned to the right
-                L = L.reshape((V,) + (1,) * (len(batch) + 2 - L.dim()) + L.shape[1:])
-            L = L.expand(batch + (dof, dof))
-        return op(Zinv, Ti, Tj, L), (0, 0, 0)
+        return op(Zinv, Ti, Tj, _noise_in_front(V, L, in_dims[3], batch, dof)), (0, 0, 0)
 
     return rule
 
@@ -401,11 +407,8 @@ def _assemble_vmap(op, dof: int):
             raise ValueError("values and g are written in place: vmap them along their first axis")
         V = info.batch_size
         (Zinv, Ti, Tj), batch = _matrices_in_front(V, (Zinv, Ti, Tj), in_dims[:3])
-        if L is not None and (in_dims[3] is not None or L.dim() > 2):
-            L = L.unsqueeze(0).expand(V, *L.shape) if in_dims[3] is None else L.movedim(in_dims[3], 0)
-            if L.dim() < len(batch) + 2:  # (V, ..., dof, dof), its batch aligned to the right
-                L = L.reshape((V,) + (1,) * (len(batch) + 2 - L.dim()) + L.shape[1:])
-            L = L.expand(batch + (dof, dof)).flatten(0, 1)
+        L = _noise_in_front(V, L, in_dims[3], batch, dof)
+        L = L if L is None or L.dim() == 2 else L.flatten(0, 1)
         r = op(*(None if t is None else t.flatten(0, 1) for t in (Zinv, Ti, Tj)), L, slots,
                values.view(-1, values.shape[-1]), g_slots, g.view(-1, g.shape[-1]))
         return r.unflatten(0, (V, -1)), 0
