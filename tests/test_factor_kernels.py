@@ -279,9 +279,9 @@ def test_normal_blocks_are_the_whitened_terms_products(noise, kernel, group):
 
 
 @needs_kernel
-def test_the_engine_linearises_unweighted_built_in_factors_through_the_normal_blocks():
-    """The engine's normal equations of a pose graph with the normal operators equal those
-    assembled from the residuals and Jacobians (the kernels off)."""
+def test_the_engine_linearises_unweighted_built_in_factors_through_the_assemble_kernel():
+    """The engine's normal equations of a pose graph with the assemble operators' kernels equal
+    those assembled from the residuals and Jacobians as tensor code (the kernels off)."""
     import torchsgal as ts
     from torchsgal.estimation import graph as fg
     from torchsgal.estimation.graph.linearize import Problem, linearize

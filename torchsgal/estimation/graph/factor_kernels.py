@@ -8,15 +8,15 @@ J = [J_i | J_j] (..., dof, 2 dof) with J_j = J_r^-1(r) and J_i = -J_l^-1(r) Ad(Z
 formulas of ``factors``; ``linearize._log_form_terms`` derives them); r = log(E); J is
 (..., dof, 0) without ``jacobians``.  All arguments of one batch shape, dtype and device.
 
-``se3_factor_normal(Zinv, Ti, Tj, L)`` and ``se2_factor_normal`` go one step further for the
-engine's linearisation of factors without a robust loss: the whitened residual r~ = L r and the
-factor's blocks of the normal equations, H = J~^T J~ and g = J~^T r~ with J~ = L J (L shared
-(dof, dof), per factor (..., dof, dof), or None), so that whitening and the products of small
-matrices are part of the same C pass.  ``se3_factor_assemble`` and ``se2_factor_assemble`` add
-those blocks straight into each problem's normal equations, in the layout of the linear system
-(``layout.EntryLayout``: each factor's entries of H at its ``slots``, of g at its ``g_slots``),
-so that no (B, E, Dk, Dk) intermediate is written and read back.  Under vmap the mapped axis of any of these operators
-joins the factors' batch.
+``se3_factor_normal(Zinv, Ti, Tj, L)`` and ``se2_factor_normal`` go one step further, for
+factors without a robust loss: the whitened residual r~ = L r and the factor's blocks of the
+normal equations, H = J~^T J~ and g = J~^T r~ with J~ = L J (L shared (dof, dof), per factor
+(..., dof, dof), or None), so that whitening and the products of small matrices are part of the
+same C pass.  ``se3_factor_assemble`` and ``se2_factor_assemble``, which the engine's
+linearisation calls, add those blocks in place into each problem's normal equations, in the
+layout of the linear system (``layout.EntryLayout``: each factor's entries of H at its
+``slots``, of g at its ``g_slots``), so that no (B, E, Dk, Dk) intermediate is written and read
+back.  Under vmap the mapped axis of any of these operators joins the factors' batch.
 
 The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
 on SE(3), three operator calls) per block of factors: the inverses, two products, the log,
@@ -218,7 +218,7 @@ def se3_factor_normal(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Ten
     (``Ti`` None, Dk = 6) or betweens (Dk = 12), J~ = L J, with (r, J) those of
     ``se3_factor_terms`` and L (6, 6) for all factors, (..., 6, 6) per factor, or None (the
     identity): the factors' whitened residuals and their blocks of the normal equations in one
-    pass (the engine's linearisation of unweighted built-in factors)."""
+    pass (the per-factor form of ``se3_factor_assemble``, which the engine calls)."""
     _check(Zinv, Ti, Tj)
     _check_noise(L, Tj, 6)
     return _se3_normal_code(Zinv, Ti, Tj, L)
