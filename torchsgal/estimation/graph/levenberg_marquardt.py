@@ -196,8 +196,11 @@ class _State:
                              ("cost_start", "lam", "iterations", "step_norm", "status")])
 
 
-def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return torch.where(mask.reshape(mask.shape + (1,) * (a.dim() - 1)), a, b)
+def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
+           out: torch.Tensor | None = None) -> torch.Tensor:
+    """``a`` where ``mask`` (one flag per problem), else ``b``; into ``out`` if given."""
+    mask = mask.reshape(mask.shape + (1,) * (a.dim() - 1))
+    return torch.where(mask, a, b) if out is None else torch.where(mask, a, b, out=out)
 
 
 def _full(like: torch.Tensor, code) -> torch.Tensor:
@@ -373,8 +376,7 @@ def _take_trial(success: torch.Tensor, trial: torch.Tensor, current: torch.Tenso
     no further copy of the normal equations."""
     if torch.is_grad_enabled() and (trial.requires_grad or current.requires_grad):
         return _where(success, trial, current)
-    mask = success.reshape(success.shape + (1,) * (trial.dim() - 1))
-    return torch.where(mask, trial, current, out=trial)
+    return _where(success, trial, current, out=trial)
 
 
 def _converged(s: _State, lin: Linearization, o: dict) -> torch.Tensor:

@@ -49,7 +49,7 @@ class DenseSystem:
 
     def __init__(self, problem: Problem, workspace: tuple[torch.Tensor, ...] | None = None):
         self.problem = problem
-        self.layout = dense_layout(problem.h_index, _block_sizes(problem), problem.D)
+        self.layout = dense_layout(problem.h_index, problem.block_entries, problem.D)
         self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._H: torch.Tensor | None = None
@@ -235,7 +235,7 @@ class BlockSparseSystem:
             structure, maps = analysed
         self.structure, self._maps = structure, maps
         self.layout = layout if layout is not None else EntryLayout(
-            problem.h_index, _block_sizes(problem), problem.D, maps[0], structure.panels + 1,
+            problem.h_index, problem.block_entries, problem.D, maps[0], structure.panels + 1,
             spare=structure.panels)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._dense: DenseSystem | None = None  # built when a dense question is asked
@@ -357,7 +357,7 @@ class SparseSystem:
         n = lower.numel()
         at = torch.searchsorted(lower, h).clamp_max(n - 1)
         slots = torch.where(lower[at] == h, at, torch.full_like(at, n))
-        self.layout = EntryLayout(h, _block_sizes(problem), D, slots, n + 1, spare=n)
+        self.layout = EntryLayout(h, problem.block_entries, D, slots, n + 1, spare=n)
         rows, cols = lower // D, lower % D
         self.rows, self.stored = rows, n
         self.on_diagonal = (rows == cols).nonzero().squeeze(-1)
@@ -440,7 +440,3 @@ class SparseSystem:
 
 LinearSystem = DenseSystem | BlockSparseSystem | SparseSystem
 
-
-def _block_sizes(problem: Problem) -> list[int]:
-    """The number of entries of H each factor block contributes (``EntryLayout``)."""
-    return [b.h_index.numel() for b in problem.blocks]

@@ -84,8 +84,8 @@ class Problem:
         self.index = {v.name: k for k, v in enumerate(self.variables)}
         self.blocks = [self._block(f) for f in graph.factors]
         self.h_index = torch.cat([b.h_index for b in self.blocks])  # (nnz,) flat into (D * D)
-        self.g_index = torch.cat([b.g_index for b in self.blocks])
-        self.layout = raw_layout(self.h_index, [b.h_index.numel() for b in self.blocks], self.D)
+        self.block_entries = [b.h_index.numel() for b in self.blocks]  # each block's share
+        self.layout = raw_layout(self.h_index, self.block_entries, self.D)
 
     def _block(self, factor: Factor) -> Block:
         E, B = factor.size, self.B
