@@ -434,6 +434,30 @@ def test_assemble_rejects_bad_index_maps(group):
         op(Zinv, Ti, Tj, None, slots, values, g_slots, gvec.mT.contiguous().mT)
 
 
+@pytest.mark.parametrize("kernel", [True, False])
+@pytest.mark.parametrize("group", GROUPS)
+def test_assemble_bumps_the_versions_it_writes_and_refuses_grad_inputs(group, kernel):
+    """The written arrays' version counters move (as an in-place torch op's would: autograd
+    sees the mutation); inputs that require grad raise at the call, naming the operator, and
+    leave values and g untouched."""
+    g, Zinv, Ti, Tj, values, gvec, _ = _assemble_case(group)
+    E, Dk = Zinv.shape[1], 2 * g.dof
+    slots = torch.arange(E * Dk * Dk).remainder(values.shape[1]).reshape(E, Dk * Dk)
+    g_slots = torch.arange(E * Dk).remainder(gvec.shape[1]).reshape(E, Dk)
+    op = ASSEMBLE_OPS[group]
+    with native.disabled() if not kernel else contextlib.nullcontext():
+        before = (values._version, gvec._version)
+        op(Zinv, Ti, Tj, None, slots, values, g_slots, gvec)
+        assert values._version > before[0] and gvec._version > before[1]
+        v0, g0 = values.clone(), gvec.clone()
+        with pytest.raises(RuntimeError, match=f"torchsgal::{group.lower()}_factor_assemble has no derivative"):
+            op(Zinv, Ti.clone().requires_grad_(), Tj, None, slots, values, g_slots, gvec)
+        assert torch.equal(values, v0) and torch.equal(gvec, g0)
+        with torch.no_grad():  # where nothing records, the flag alone does not refuse
+            op(Zinv, Ti.clone().requires_grad_(), Tj, None, slots, values, g_slots, gvec)
+        assert not torch.equal(values, v0)
+
+
 @needs_kernel
 @pytest.mark.parametrize("group", GROUPS)
 def test_the_assemble_kernel_rejects_an_index_out_of_range(group):
