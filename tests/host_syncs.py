@@ -110,8 +110,9 @@ def solve_loop_reads(solve):
     import importlib
     import inspect
 
-    lm, linear_system, lz = (importlib.import_module(f"torchsgal.estimation.graph.{m}")
-                             for m in ("levenberg_marquardt", "linear_system", "linearize"))
+    lm, linear_system, lz, problem = (importlib.import_module(f"torchsgal.estimation.graph.{m}")
+                                      for m in ("levenberg_marquardt", "linear_system", "linearize",
+                                                "problem"))
 
     def lines(fn):
         src, start = inspect.getsourcelines(fn)
@@ -120,7 +121,8 @@ def solve_loop_reads(solve):
     with HostSyncs() as syncs:
         result = solve()
     hot = {lz.__file__: [lines(f) for f in (lz.linearize, lz.evaluate_cost, lz._block_terms,
-                                            lz.Problem.retract, lz._residual_and_jacobian)],
+                                            lz._residual_and_jacobian)],
+           problem.__file__: [lines(problem.Problem.retract)],
            linear_system.__file__: [lines(linear_system.DenseSystem.solve)],
            lm.__file__: [lines(lm._round)]}
     in_hot = [(why, where) for why, where in syncs.events

@@ -39,7 +39,8 @@ from .graph import FactorGraph
 from .layout import diagonal, times
 from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _full, _solve, _State, _trial, _where
 from .linear_system import LinearSystem
-from .linearize import Linearization, Problem
+from .linearize import Linearization
+from .problem import Problem
 
 __all__ = ["dogleg"]
 

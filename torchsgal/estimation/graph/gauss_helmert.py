@@ -69,7 +69,8 @@ from .levenberg_marquardt import (
     _where,
 )
 from .linear_system import LinearSystem
-from .linearize import Linearization, Problem, evaluate_cost, linearize
+from .linearize import Linearization, evaluate_cost, linearize
+from .problem import Problem
 
 __all__ = ["GaussHelmert", "gauss_helmert"]
 

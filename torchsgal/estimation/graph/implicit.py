@@ -26,7 +26,8 @@ from __future__ import annotations
 import torch
 
 from .linear_system import LinearSystem
-from .linearize import Problem, linearize
+from .linearize import linearize
+from .problem import Problem
 
 __all__ = ["attach_implicit"]
 

@@ -40,7 +40,8 @@ from ..solver import SolverReport, SolverStatus
 from .graph import FactorGraph
 from .implicit import attach_implicit
 from .linear_system import BlockSparseSystem, DenseSystem, LinearSystem, SparseSystem, block_layout
-from .linearize import Linearization, Problem, evaluate_cost, linearize
+from .linearize import Linearization, evaluate_cost, linearize
+from .problem import Problem
 
 __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 

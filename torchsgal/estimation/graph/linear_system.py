@@ -25,7 +25,7 @@ import torch
 from ..block_cholesky import Structure, analyse, block_cholesky_solve
 from ..dense_solve import MIN_BATCH, cholesky_solve, uses_kernel
 from .layout import EntryLayout, dense, dense_layout, times
-from .linearize import Problem
+from .problem import Problem
 
 RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
