@@ -30,7 +30,7 @@ from torchsgal.imu import (
     suffix_products,
     window_product,
 )
-from torchsgal.imu.preintegration import noise_map
+from torchsgal.imu.moments import noise_map
 from torchsgal.imu.trajectory import SinusoidalTrajectory
 
 F64 = torch.float64
@@ -655,6 +655,7 @@ def _assert_same(fast, plain, tol=1e-13):
 @pytest.mark.parametrize("block_bytes", [None, 700])  # 700: blocks of a few windows, a ragged last one
 @pytest.mark.parametrize("kernel", [True, False], ids=["C", "tensor"])  # C: the optional IMU kernel
 def test_fast_path_matches_plain_path(K, per_axis, block_bytes, kernel, monkeypatch):
+    import torchsgal.imu._fast_path as fast_path
     import torchsgal.imu.preintegration as P
     from torchsgal.functional import native
 
@@ -662,7 +663,7 @@ def test_fast_path_matches_plain_path(K, per_axis, block_bytes, kernel, monkeypa
         monkeypatch.setattr(native, "_state", {"on": False})
 
     if block_bytes is not None:
-        monkeypatch.setattr(P, "_BLOCK_BYTES", block_bytes)
+        monkeypatch.setattr(fast_path, "_BLOCK_BYTES", block_bytes)
     gyro, acc, dt = random_stream(15, K, seed=70 + K)
     gyro, acc, dt = gyro.reshape(3, 5, K, 3), acc.reshape(3, 5, K, 3), dt[:5]  # dt broadcasts over 3
     g = torch.Generator().manual_seed(K)
@@ -708,7 +709,7 @@ def test_forward_ad_takes_the_plain_path():
 def test_fast_path_blocks_large_float32_batches(monkeypatch):
     # Default block size: 520 x 256 float32 samples run as two blocks of 260 windows (the tensor
     # fast path: the optional C kernel, which needs no blocks, switched off).
-    import torchsgal.imu.preintegration as P
+    import torchsgal.imu._fast_path as fast_path
     from torchsgal.functional import native
 
     monkeypatch.setattr(native, "_state", {"on": False})
@@ -716,8 +717,8 @@ def test_fast_path_blocks_large_float32_batches(monkeypatch):
     gyro, acc, dt = random_stream(520, 256, seed=77, dtype=torch.float32)
     dens = dict(gyro_noise_density=1e-3, acc_noise_density=1e-2)
     blocks = []
-    nodes = P._nodes_fast
-    monkeypatch.setattr(P, "_nodes_fast", lambda *a: blocks.append(a[0].shape[0]) or nodes(*a))
+    nodes = fast_path._nodes_fast
+    monkeypatch.setattr(fast_path, "_nodes_fast", lambda *a: blocks.append(a[0].shape[0]) or nodes(*a))
     fast = preintegrate(gyro, acc, dt, **dens)
     assert blocks == [260, 260]
     plain = _plain(gyro, acc, dt, **dens)
@@ -728,17 +729,37 @@ def test_fast_path_blocks_large_float32_batches(monkeypatch):
 
 @pytest.mark.parametrize("K", [1, 2, 5, 8, 13])
 def test_in_place_products_match_compose_packed(K):
-    import torchsgal.imu.preintegration as P
+    import torchsgal.imu._fast_path as fast_path
+    import torchsgal.imu.products as products
     from torchsgal.functional import sgal3 as Fs
 
     M = SGal3.random((K, 4), dtype=F64, generator=torch.Generator().manual_seed(K)).as_matrix()
     E = Fs.pack(M)  # (16, K, 4)
     out = torch.empty_like(E)
-    P._compose_into(E, E.flip(1), out)
+    fast_path._compose_into(E, E.flip(1), out)
     assert torch.equal(out, Fs.compose_packed(E, E.flip(1)))  # same operations, same order
-    P._scan_into(E, out)
-    assert torch.equal(out, P._suffix_products(E, Fs.compose_packed, 1, Fs.packed_identity(E)))
-    assert torch.equal(P._tree_product(E), P._window_product(E, Fs.compose_packed, 1))
+    fast_path._scan_into(E, out)
+    assert torch.equal(out, products._suffix_products(E, Fs.compose_packed, 1, Fs.packed_identity(E)))
+    assert torch.equal(fast_path._tree_product(E), products._window_product(E, Fs.compose_packed, 1))
+
+
+def test_preintegration_module_keeps_the_names_of_its_parts():
+    """``torchsgal.imu.preintegration`` gives the names of products.py, moments.py,
+    prediction.py and the fast path as well: the same objects."""
+    import torchsgal.imu._fast_path as fast_path
+    import torchsgal.imu.moments as moments
+    import torchsgal.imu.prediction as prediction
+    import torchsgal.imu.preintegration as P
+    import torchsgal.imu.products as products
+
+    homes = {products: ["window_product", "suffix_products", "_window_product", "_suffix_products"],
+             moments: ["noise_map", "_node_moments"],
+             prediction: ["STANDARD_GRAVITY", "EARTH_RATE", "gravity_vector", "earth_rate_vector", "predict",
+                          "predict_jacobians"],
+             fast_path: ["_BLOCK_BYTES", "_blocked", "_compose_into", "_nodes_fast", "_scan_into", "_tree_product"]}
+    for module, names in homes.items():
+        for name in names:
+            assert getattr(P, name) is getattr(module, name), name
 
 
 def test_predict_compiles_in_one_graph():

@@ -10,19 +10,9 @@ from .factors import (
     imu_jacobians,
     imu_residual,
 )
-from .preintegration import (
-    EARTH_RATE,
-    STANDARD_GRAVITY,
-    Preintegration,
-    earth_rate_vector,
-    gravity_vector,
-    increment_tangents,
-    predict,
-    predict_jacobians,
-    preintegrate,
-    suffix_products,
-    window_product,
-)
+from .prediction import EARTH_RATE, STANDARD_GRAVITY, earth_rate_vector, gravity_vector, predict, predict_jacobians
+from .preintegration import Preintegration, increment_tangents, preintegrate
+from .products import suffix_products, window_product
 from .streaming import StreamingPreintegration
 
 __all__ = ["EARTH_RATE", "STANDARD_GRAVITY", "Preintegration", "earth_rate_vector",

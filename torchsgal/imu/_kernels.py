@@ -3,7 +3,7 @@
 One registration that eager code, torch.func.vmap and torch.compile all see
 (``torch.library.custom_op``): the operator preintegrates n flattened windows of K samples and
 returns their increments and the node sums from which ``preintegrate`` forms the isotropic
-covariance and the bias Jacobian (``preintegration._node_moments``, Simpson's rule on each
+covariance and the bias Jacobian (``moments._node_moments``, Simpson's rule on each
 sample: instants and midpoints, docs/guide/imu.md).
 
 * CPU: the C loop of ``_native_imu.h`` (the extension ``torchsgal.imu._native``, built by
@@ -11,7 +11,7 @@ sample: instants and midpoints, docs/guide/imu.md).
   windows split over ``torch.get_num_threads()`` threads; where it was not built, or is switched
   off (``functional.native.enabled()``: ``TORCHSGAL_NATIVE=0``, or a ``native.disabled()`` block
   of the calling thread), the tensor code below.
-* Other devices: the tensor code (``preintegration._blocked``: the same arithmetic as batched
+* Other devices: the tensor code (``_fast_path._blocked``: the same arithmetic as batched
   tensor operations, in blocks of windows).
 * Fake tensors (torch.compile, meta): shapes only.
 * vmap: the windows are independent, so the vmapped dimension joins the window batch.
@@ -36,7 +36,7 @@ if _lib is not None:
     native.set_constants(_lib)
 
 # Offsets of the node sums in the operator's (n, 117) output (_native_imu.h, IMU_W ... IMU_Y),
-# as the dict of preintegration._node_moments: name -> (offset, shape).
+# as the dict of moments._node_moments: name -> (offset, shape).
 MOMENTS = {"w": (0, ()), "wt": (1, ()), "wtt": (2, ()), "wl": (3, (3,)), "wv": (6, (3,)),
            "outer": (9, (6, 6)), "Y": (45, (8, 3, 3))}
 WIDTH = 117
@@ -48,7 +48,7 @@ def available() -> bool:
 
 
 def node_sums(moments: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The dict of ``preintegration._node_moments`` (views, each (n, ...)) of the operator's
+    """The dict of ``moments._node_moments`` (views, each (n, ...)) of the operator's
     packed (n, 117) node sums."""
     n = moments.shape[0]
     return {k: moments[:, o : o + math.prod(shape)].reshape(n, *shape) for k, (o, shape) in MOMENTS.items()}
@@ -77,7 +77,7 @@ def _tensor_code(gyro, acc, dt, b_g, b_a, nodes: bool) -> tuple[torch.Tensor, to
     n, _ = _check(gyro, acc, dt, b_g, b_a, nodes)
     if n == 0:
         return gyro.new_empty(0, 5, 5), gyro.new_empty(0, WIDTH if nodes else 0)
-    from .preintegration import _blocked  # preintegration imports this module
+    from ._fast_path import _blocked  # _fast_path imports this module
 
     delta, sums, _ = _blocked(gyro, acc, dt, b_g, b_a, nodes)
     return delta, _pack(sums, n) if sums is not None else gyro.new_empty(n, 0)

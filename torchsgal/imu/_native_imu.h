@@ -1,9 +1,9 @@
 /* Galilean IMU preintegration of one window at a time (included once by imu/_native.c, after
  * the float64 SGal(3) kernels of functional/_native_sgal3.h, whose exp coefficients it uses).
  *
- * The arithmetic of torchsgal/imu/preintegration.py (_integrate / _integrate_fast) in a loop
- * over the samples of a window, run backwards so that nothing but the current suffix product
- * is kept:
+ * The arithmetic of torchsgal/imu/preintegration.py and _fast_path.py (_integrate /
+ * _integrate_fast) in a loop over the samples of a window, run backwards so that nothing but
+ * the current suffix product is kept:
  *
  *   H_k = exp((1/2) [0, (f_k - b_a) dt_k, (omega_k - b_g) dt_k, dt_k])   (F.exp_parts, rho = 0)
  *   mid_k = H_k S_{k+1},  S_k = H_k mid_k = E_k S_{k+1},  S_K = I,  delta = S_0,

@@ -15,7 +15,7 @@ import torch
 
 from .. import SGal3
 from ..functional import checks
-from .preintegration import STANDARD_GRAVITY
+from .prediction import STANDARD_GRAVITY
 
 
 def _frames(x, name: str) -> SGal3:
