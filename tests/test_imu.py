@@ -744,19 +744,16 @@ def test_in_place_products_match_compose_packed(K):
 
 
 def test_preintegration_module_keeps_the_names_of_its_parts():
-    """``torchsgal.imu.preintegration`` gives the names of products.py, moments.py,
-    prediction.py and the fast path as well: the same objects."""
-    import torchsgal.imu._fast_path as fast_path
+    """``torchsgal.imu.preintegration`` gives the public names of products.py, moments.py and
+    prediction.py as well: the same objects."""
     import torchsgal.imu.moments as moments
     import torchsgal.imu.prediction as prediction
     import torchsgal.imu.preintegration as P
     import torchsgal.imu.products as products
 
-    homes = {products: ["window_product", "suffix_products", "_window_product", "_suffix_products"],
-             moments: ["noise_map", "_node_moments"],
+    homes = {products: ["window_product", "suffix_products"], moments: ["noise_map"],
              prediction: ["STANDARD_GRAVITY", "EARTH_RATE", "gravity_vector", "earth_rate_vector", "predict",
-                          "predict_jacobians"],
-             fast_path: ["_BLOCK_BYTES", "_blocked", "_compose_into", "_nodes_fast", "_scan_into", "_tree_product"]}
+                          "predict_jacobians"]}
     for module, names in homes.items():
         for name in names:
             assert getattr(P, name) is getattr(module, name), name

@@ -35,15 +35,9 @@ from ..functional import checks, unobserved
 from ..functional import sgal3 as F
 from ..functional._blocking import _is_wrapped, is_compiling
 
-# ``name as name``: importable from this module as well (the public names of products.py,
-# moments.py and prediction.py, and the fast path's parts)
-from ._fast_path import _BLOCK_BYTES as _BLOCK_BYTES
-from ._fast_path import _blocked as _blocked
-from ._fast_path import _compose_into as _compose_into
+# ``name as name``: the public names of products.py, moments.py and prediction.py stay
+# importable from this module
 from ._fast_path import _integrate_fast
-from ._fast_path import _nodes_fast as _nodes_fast
-from ._fast_path import _scan_into as _scan_into
-from ._fast_path import _tree_product as _tree_product
 from .moments import _bias_jacobian, _general_covariance, _isotropic_covariance, _node_moments, _weights
 from .moments import noise_map as noise_map
 from .prediction import EARTH_RATE as EARTH_RATE
