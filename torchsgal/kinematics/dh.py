@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import torch
 
 from ..functional import checks
-from .chain import CONTINUOUS, PRISMATIC, REVOLUTE, Joint
+from .state import CONTINUOUS, PRISMATIC, REVOLUTE, Joint
 
 
 def _rot(axis: str, angle: float) -> torch.Tensor:

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import torch
 
-from .chain import CONTINUOUS, PRISMATIC, REVOLUTE, Joint, KinematicChain
+from .chain import KinematicChain
+from .state import CONTINUOUS, PRISMATIC, REVOLUTE, Joint
 
 _KINDS = {"revolute": REVOLUTE, "continuous": CONTINUOUS, "prismatic": PRISMATIC}
 
