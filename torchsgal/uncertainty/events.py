@@ -38,7 +38,8 @@ import torch
 from ..functional import checks
 from ..functional._blocking import values_readable
 from ..groups import SGal3
-from .gaussian import ConcentratedGaussian, _covariance_measures, _default_tol, _mv, _raise_for_measures, _read, _sym
+from .covariance import _covariance_measures, _default_tol, _mv, _raise_for_measures, _read, _sym
+from .gaussian import ConcentratedGaussian
 
 
 def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal3:
