@@ -13,7 +13,8 @@ import torchsgal as ts
 from torchsgal import _compat
 
 PACKAGE = Path(ts.__file__).resolve().parent
-PRIVATE = re.compile(r"torch\._")
+# a private name anywhere on a torch path (torch._C, torch.utils._pytree, ...), or imported from one
+PRIVATE = re.compile(r"torch(\.[A-Za-z0-9]+)*\._[A-Za-z]|from torch[\w.]* import _")
 
 # Each fallback: the module attributes that a torch without the interface leaves unset.
 FALLBACKS = {
@@ -25,7 +26,8 @@ FALLBACKS = {
 
 
 def test_no_private_torch_interface_outside_compat():
-    """``grep -rn "torch\\._" torchsgal/`` lists only _compat.py (the Python and the C sources)."""
+    """``grep -rn "torch\\._" torchsgal/`` lists only _compat.py (the Python and the C sources),
+    and so does the wider search for private names on any torch path (``torch.utils._pytree``)."""
     hits = [f"{p.relative_to(PACKAGE)}:{i}" for p in sorted(PACKAGE.rglob("*"))
             if p.suffix in {".py", ".c", ".h"} and p.name != "_compat.py"
             for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if PRIVATE.search(line)]
@@ -38,6 +40,27 @@ def test_every_interface_is_found_on_the_supported_torch():
     for attrs in FALLBACKS.values():
         for name in attrs:
             assert getattr(_compat, name) is not None, name
+    assert _compat._pytree is not None
+
+
+def test_without_a_pytree_registry_torch_func_takes_the_matrices(monkeypatch):
+    """The pytree fallback: a class made while torch offers no registry is not registered
+    (flattening keeps its instances whole), and torch.func still maps over its matrices with
+    the same results as the registered built-in class."""
+    from torch.utils import _pytree as pytree
+
+    monkeypatch.setattr(_compat, "_pytree", None)
+
+    class Unregistered(ts.SE3):
+        __slots__ = ()
+
+    g = Unregistered.exp(sample_tangent(ts.SE3, (5,), torch.float64, seed=4))
+    assert pytree.tree_flatten(g)[0] == [g]  # one opaque leaf: not a pytree node
+    assert len(pytree.tree_flatten(ts.SE3(g.as_matrix()))[0]) == 1  # the built-in: its matrix
+    assert pytree.tree_flatten(ts.SE3(g.as_matrix()))[0][0] is g.as_matrix()
+    got = torch.func.vmap(lambda m: Unregistered(m).log())(g.as_matrix())
+    want = torch.func.vmap(lambda h: h.log())(ts.SE3(g.as_matrix()))
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
 
 
 def _results(G, dtype):

@@ -17,6 +17,9 @@ autograd.Function.apply        ``torch.autograd.function.             ``Function
 without signature binding      _SingleLevelFunction``
 a getter folded as constant    the ``_dynamo_marked_constant`` mark   the same mark (an attribute:
 by torch.compile               of ``assume_constant_result``          ignored where unknown)
+group classes as pytree nodes  ``torch.utils._pytree.                 not registered: torch.func
+(torch.func takes and returns  register_pytree_node``                 takes the elements' matrices
+group elements)                                                       (``g.as_matrix()``)
 =============================  =====================================  ==============================
 
 The bound on torch in ``pyproject.toml`` (checked in CI) names the releases these were tested on.
@@ -46,6 +49,12 @@ try:
     _FAKE_KEY: Any = torch._C._TorchDispatchModeKey.FAKE
 except AttributeError:  # pragma: no cover
     _get_dispatch_mode = _FAKE_KEY = None
+
+_pytree: Any
+try:
+    from torch.utils import _pytree
+except ImportError:  # pragma: no cover
+    _pytree = None
 
 _SingleLevelFunction: Any
 try:
@@ -77,6 +86,23 @@ def fake_tensor_mode_active() -> bool:
     if _get_dispatch_mode is None:
         return True
     return _get_dispatch_mode(_FAKE_KEY) is not None
+
+
+def register_pytree_node(cls: type, flatten: Callable[[Any], tuple[list[Any], Any]],
+                         unflatten: Callable[[list[Any], Any], Any], leaf_attribute: str) -> bool:
+    """Registers ``cls`` as a pytree node whose one leaf is the attribute ``leaf_attribute``
+    (``flatten(obj) -> ([leaf], context)``, ``unflatten([leaf], context) -> obj``), so that
+    torch.func transforms take and return its instances; False, registering nothing, where
+    torch offers no registry (its instances are then opaque to torch.func: pass tensors)."""
+    if _pytree is None:
+        return False
+    _pytree.register_pytree_node(
+        cls, flatten, unflatten,
+        serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
+        flatten_with_keys_fn=lambda obj: ([(_pytree.GetAttrKey(leaf_attribute), flatten(obj)[0][0])],
+                                          flatten(obj)[1]),
+    )
+    return True
 
 
 def mark_compile_constant(getter: Callable[[], Any]) -> Callable[[], Any]:

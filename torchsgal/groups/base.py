@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 import torch
 from typing_extensions import Self
 
+from .. import _compat
 from ..functional import blocks, checks
 from ..functional._blocking import values_readable
 
@@ -168,8 +169,8 @@ class LieGroup:
 
     @classmethod
     def _from_leaf(cls, leaf: Any, state: dict | None = None) -> Self:
-        """The pytree unflatten: wraps ``leaf`` unchecked, since torch.func and torch.utils._pytree
-        rebuild the structure around whatever leaves they computed (Jacobians of other shapes,
+        """The pytree unflatten: wraps ``leaf`` unchecked, since torch.func and torch's pytree
+        utilities rebuild the structure around whatever leaves they computed (Jacobians of other shapes,
         in_dims, sizes), then sets the attributes ``state`` (the context) without calling
         ``__init__``."""
         g = object.__new__(cls)
@@ -703,15 +704,10 @@ def _rebuild(cls: type[LieGroup], matrix: torch.Tensor, state: dict | None = Non
 def _register_pytree(cls: type[LieGroup]) -> None:
     """Registers a group class as a pytree node with one leaf, its matrix, so that torch.func
     transforms (vmap, grad, jacrev, ...) take and return group objects; the context is the
-    instance's other attributes (None for the built-in classes)."""
-    pytree = torch.utils._pytree
-    flatten = lambda g: ([g._matrix], g._state())  # noqa: E731
-    unflatten = lambda leaves, context: cls._from_leaf(leaves[0], context)  # noqa: E731
-    pytree.register_pytree_node(
-        cls, flatten, unflatten,
-        serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
-        flatten_with_keys_fn=lambda g: ([(pytree.GetAttrKey("_matrix"), g._matrix)], g._state()),
-    )
+    instance's other attributes (None for the built-in classes).  Through ``_compat``: where
+    torch has no pytree registry, the transforms take the elements' matrices instead."""
+    _compat.register_pytree_node(cls, lambda g: ([g._matrix], g._state()),
+                                 lambda leaves, context: cls._from_leaf(leaves[0], context), "_matrix")
 
 
 def _tol_arg(tol: float | None) -> float | None:
