@@ -23,6 +23,10 @@ mid = F.interpolate(G, torch.rand(1024, dtype=torch.float64))  # geodesic
 events = F.act(torch.randn(1024, 4, dtype=torch.float64))  # (x, t) -> (Cx + vt + r, t + tau)
 vel = F.act_velocity(torch.randn(1024, 3, dtype=torch.float64))  # [u, 1, 0] -> Cu + v
 dirs = F.act_direction(torch.randn(1024, 3, dtype=torch.float64))  # [d, 0, 0] -> Cd
+e = torch.randn(1024, 4, dtype=torch.float64)
+J_F, J_e = F.act_jacobians(e)  # d act / d xi (right perturbation), d act / d e
+assert torch.allclose(J_F[..., 0] * 1e-7, F.rplus(1e-7 * torch.eye(10, dtype=torch.float64)[0]).act(e) - F.act(e),
+                      atol=1e-12)
 
 # Algebra maps and Jacobians
 X = ts.SGal3.hat(xi)

@@ -361,6 +361,37 @@ def test_point_observations_recover_poses_and_points():
     torch.testing.assert_close(result.values["p"], points, rtol=0, atol=1e-8)
 
 
+@pytest.mark.parametrize("G", [ts.SE3, ts.SE2, ts.Sim3, ts.SGal3, ts.SO3], ids=lambda G: G.__name__)
+def test_point_observation_jacobians_are_the_forward_mode_ones(G):
+    """PointObservation's analytic Jacobians (act_jacobians) give the normal equations of the
+    same residual differentiated in forward mode, with one pose read by every factor and with
+    a pose per factor."""
+    gen = torch.Generator().manual_seed(17)
+    B, N, M = 2, 3, 8
+    poses = G.exp(torch.randn(B, N, G.dof, generator=gen, dtype=f64))
+    points = torch.randn(B, M, G.point_dim, generator=gen, dtype=f64)
+    z = torch.randn(B, 2 * M, G.point_dim, generator=gen, dtype=f64)
+    i = torch.cat([torch.zeros(M, dtype=torch.int64), torch.arange(M) % N])
+    j = torch.cat([torch.arange(M), torch.arange(M)])
+    W = torch.eye(G.point_dim, dtype=f64) * 4
+    lins = []
+    for analytic in (True, False):
+        graph = fg.FactorGraph()
+        graph.add_variable("T", poses)
+        graph.add_variable("p", points)
+        if analytic:
+            graph.add(fg.PointObservation("T", i, "p", j, z, information=W))
+        else:
+            graph.add(fg.Factor(lambda T, p, zz: T.act(p) - zz, [("T", i), ("p", j)], [z],
+                                dim=G.point_dim, information=W))
+        problem = Problem(graph)
+        assert (problem.blocks[0].factor.jacobians is not None) == analytic
+        lins.append(linearize(problem, problem.initial(graph)))
+    torch.testing.assert_close(lins[0].values, lins[1].values, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(lins[0].g, lins[1].g, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(lins[0].cost, lins[1].cost, rtol=1e-14, atol=0)
+
+
 def test_per_problem_per_factor_noise_and_cost_by_hand():
     """Square-root information (B, E, m, m): the cost is 1/2 sum |L r|^2, summed here factor by
     factor with the group operations."""

@@ -440,6 +440,26 @@ class LieGroup:
         points before the coordinates every element maps whole (see "Acting on points" above)."""
         return self._f.act(self._acting(x, "x", point_axes, self.point_dim), x)
 
+    def act_jacobians(self, x: torch.Tensor, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Jacobians of ``act(x)`` (..., rows): J_g (..., rows, dof) with respect to the
+        right perturbation, d/dxi act(g exp(xi^), x) at 0, and J_x (..., rows, k) with respect
+        to x (..., k); ``point_axes`` as in ``act``.  The action is linear in the matrix
+        (M [x, tail], rows of it), so column j of J_g is the action of M hat(e_j) and J_x is the
+        block of M that multiplies x (Sim3, whose action divides by M[3, 3], gives its own)."""
+        M = _batch_like(self._acting(x, "x", point_axes, self.point_dim), x)
+        J_g = self._f.act(self._right_products(M), x).movedim(0, -1)
+        rows, k = J_g.shape[-2], x.shape[-1]
+        return J_g, M[..., :rows, :k].expand(J_g.shape[:-1] + (k,)).clone()
+
+    @classmethod
+    def _right_products(cls, M: torch.Tensor) -> torch.Tensor:
+        """M hat(e_j) for j < dof: (dof, *M.shape), as one matrix product (M's rows against the
+        basis matrices side by side)."""
+        n, dof = M.shape[-1], cls.dof
+        hats = cls._f.hat(torch.eye(dof, dtype=M.dtype, device=M.device))  # (dof, n, n)
+        prod = M.reshape(-1, n) @ hats.permute(1, 0, 2).reshape(n, dof * n)  # (rows, dof * n)
+        return prod.reshape(M.shape[:-1] + (dof, n)).movedim(-2, 0)
+
     def act_direction(self, d: torch.Tensor, point_axes: int = 0) -> torch.Tensor:
         """Directions (..., 3) (or (..., 2) for the planar groups), homogeneous [d, 0, ...]: C d.
         ``point_axes`` as in ``act``."""
@@ -708,6 +728,13 @@ def _register_pytree(cls: type[LieGroup]) -> None:
     torch has no pytree registry, the transforms take the elements' matrices instead."""
     _compat.register_pytree_node(cls, lambda g: ([g._matrix], g._state()),
                                  lambda leaves, context: cls._from_leaf(leaves[0], context), "_matrix")
+
+
+def _batch_like(M: torch.Tensor, x) -> torch.Tensor:
+    """M (..., n, n) with leading batch axes of size 1 up to x's (..., k) batch rank: a new
+    axis in front of M (act_jacobians' tangent axis) then never meets one of x's."""
+    missing = x.dim() - 1 - (M.dim() - 2) if isinstance(x, torch.Tensor) else 0
+    return M.reshape((1,) * missing + M.shape) if missing > 0 else M
 
 
 def _tol_arg(tol: float | None) -> float | None:

@@ -187,10 +187,16 @@ def _point_residual(T, p, z):
     return T.act(p) - z
 
 
+def _point_jacobians(T, p, z):
+    """r = T p - z and [dr/dT (right perturbation), dr/dp] (``LieGroup.act_jacobians``)."""
+    J_T, J_p = T.act_jacobians(p)
+    return T.act(p) - z, [J_T, J_p]
+
+
 class PointObservation(Factor):
     """A pose acting on a point vs a measured point: ``r = T_i p_j - z`` for the group variable
     ``pose`` (elements i) and the Euclidean variable ``point`` (elements j), ``measured`` z
-    (E, point_dim) or (B, E, point_dim).  Jacobians by forward-mode autodiff."""
+    (E, point_dim) or (B, E, point_dim).  Analytic Jacobians (``LieGroup.act_jacobians``)."""
 
     def __init__(self, pose: str, i, point: str, j, measured: torch.Tensor, *,
                  information: torch.Tensor | None = None,
@@ -201,4 +207,4 @@ class PointObservation(Factor):
                              f"{tuple(measured.shape)}")
         super().__init__(_point_residual, [(pose, i), (point, j)], data=[measured],
                          dim=measured.shape[-1], information=information,
-                         sqrt_information=sqrt_information, loss=loss)
+                         sqrt_information=sqrt_information, loss=loss, jacobians=_point_jacobians)

@@ -43,15 +43,6 @@ class Linearization:
     model_cost: torch.Tensor
 
 
-def _right_basis(group: type[LieGroup], X: torch.Tensor) -> torch.Tensor:
-    """X hat(e_j) for j < dof: (dof, *X.shape), as one matrix product (X rows against the
-    basis matrices side by side)."""
-    n, dof = X.shape[-1], group.dof
-    hats = group._f.hat(torch.eye(dof, dtype=X.dtype, device=X.device))  # (dof, n, n)
-    prod = X.reshape(-1, n) @ hats.permute(1, 0, 2).reshape(n, dof * n)  # (rows, dof * n)
-    return prod.reshape(X.shape[:-1] + (dof, n)).movedim(-2, 0)
-
-
 def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jacobian: bool):
     """r (B, E, m) and, if asked, J (B, E, m, Dk) with respect to the slots' perturbations."""
     f = block.factor
@@ -70,14 +61,14 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
     for (k, _), a, dof in zip(block.slots, args, block.dofs):
         info = problem.variables[k]
         if len(args) == 1 and info.group is not None:  # one slot: the basis itself, no copy
-            tangents.append(_right_basis(info.group, a))
+            tangents.append(info.group._right_products(a))
             break
         t = a.new_zeros((Dk,) + a.shape)
         if info.group is None:
             t[start:start + dof] = torch.eye(dof, dtype=a.dtype, device=a.device).reshape(
                 (dof,) + (1,) * (a.dim() - 1) + (dof,))
         else:
-            t[start:start + dof] = _right_basis(info.group, a)
+            t[start:start + dof] = info.group._right_products(a)
         tangents.append(t)
         start += dof
 

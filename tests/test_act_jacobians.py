@@ -1,0 +1,152 @@
+"""``g.act_jacobians(x)``: the Jacobians of the action with respect to the right perturbation
+of g and to x, against their written-out forms, central differences and GTSAM's
+``transformFrom`` / ``rotate`` / ``act`` Jacobians."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import all_groups, assert_close, sample_group
+
+import torchsgal as ts
+
+F64 = torch.float64
+
+
+def _skew(p: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(p[..., 0])
+    return torch.stack([z, -p[..., 2], p[..., 1], p[..., 2], z, -p[..., 0],
+                        -p[..., 1], p[..., 0], z], -1).unflatten(-1, (3, 3))
+
+
+def _written_out(g, x):
+    """(J_g, J_x) of each group's action written out: the perturbed matrix M (I + xi^) acting
+    on x, term by term."""
+    G = type(g)._group
+    M = g.as_matrix().expand(x.shape[:-1] + g.as_matrix().shape[-2:])
+    C = M[..., :G.rotation_dim, :G.rotation_dim]
+    Cx = lambda v: (C @ v.unsqueeze(-1)).squeeze(-1)  # noqa: E731
+    if G in (ts.SO2, ts.SE2):
+        Jp = Cx(torch.stack([-x[..., 1], x[..., 0]], -1)).unsqueeze(-1)  # C [[0, -1], [1, 0]] p
+        return (Jp if G is ts.SO2 else torch.cat([C, Jp], -1)), C
+    if G is ts.SO3:
+        return -C @ _skew(x), C
+    if G is ts.SE3:
+        return torch.cat([C, -C @ _skew(x)], -1), C
+    if G is ts.SE23:  # [rho, nu, phi]: the velocity does not move a point
+        return torch.cat([C, torch.zeros_like(C), -C @ _skew(x)], -1), C
+    if G is ts.Sim3:  # s (C p + r); lambda scales M's last column [r, 1/s] by (1 - lambda):
+        # d/drho = s C, d/dphi = -s C p^, d/dlambda = s C p
+        s = 1.0 / M[..., 3, 3, None, None]
+        return torch.cat([s * C, -s * C @ _skew(x), s * Cx(x).unsqueeze(-1)], -1), s * C
+    # SGal3, events (x, t): [rho, nu, phi, iota] -> (C rho, C t nu, -C x^ phi, v iota; iota)
+    p, t = x[..., :3], x[..., 3:]
+    v = M[..., :3, 3:4]
+    top = torch.cat([C, C * t.unsqueeze(-1), -C @ _skew(p), v], -1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom[..., 0, 9] = 1.0
+    J_x = torch.cat([torch.cat([C, v], -1), torch.cat([torch.zeros_like(v.mT), torch.ones_like(v[..., :1, :])], -1)], -2)
+    return torch.cat([top, bottom], -2), J_x
+
+
+@all_groups
+def test_act_jacobians_are_the_written_out_derivatives(G, batch_shape, dtype):
+    g = sample_group(G, batch_shape, dtype, seed=5)
+    gen = torch.Generator().manual_seed(6)
+    x = torch.randn(batch_shape + (G.point_dim,), generator=gen, dtype=F64).to(dtype)
+    J_g, J_x = g.act_jacobians(x)
+    want_g, want_x = _written_out(g, x)
+    assert J_g.shape == batch_shape + (want_g.shape[-2], G.dof) and J_g.dtype == dtype
+    assert_close(J_g, want_g, dtype, msg="J_g")
+    assert_close(J_x, want_x, dtype, msg="J_x")
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_act_jacobians_match_central_differences(G):
+    g = sample_group(G, (4,), F64, seed=8)
+    gen = torch.Generator().manual_seed(9)
+    x = 2.0 * torch.randn(4, G.point_dim, generator=gen, dtype=F64)
+    J_g, J_x = g.act_jacobians(x)
+    h = 1e-6
+    for j in range(G.dof):
+        e = torch.zeros(G.dof, dtype=F64)
+        e[j] = h
+        fd = ((g @ G.exp(e)).act(x) - (g @ G.exp(-e)).act(x)) / (2 * h)
+        torch.testing.assert_close(J_g[..., j], fd, rtol=1e-7, atol=1e-7)
+    for i in range(G.point_dim):
+        e = torch.zeros(G.point_dim, dtype=F64)
+        e[i] = h
+        torch.testing.assert_close(J_x[..., i], (g.act(x + e) - g.act(x - e)) / (2 * h), rtol=1e-7, atol=1e-7)
+
+
+def test_act_jacobians_broadcast_as_act_and_own_their_storage():
+    """One element per batch row acting on N points (point_axes=1), and an unbatched element on
+    a batch of points; J_x is a copy (writing to it leaves the element alone)."""
+    g = ts.SE3.exp(torch.randn(2, 6, dtype=F64))
+    P = torch.randn(2, 7, 3, dtype=F64)
+    J_g, J_x = g.act_jacobians(P, point_axes=1)
+    assert J_g.shape == (2, 7, 3, 6) and J_x.shape == (2, 7, 3, 3)
+    want = torch.stack([g[k].act_jacobians(P[k])[0] for k in range(2)])
+    torch.testing.assert_close(J_g, want, rtol=0, atol=1e-15)
+    for G in (ts.Sim3, ts.SE3):  # points' last batch axis as long as Sim3's tangent (7)
+        one = G.exp(torch.randn(G.dof, dtype=F64))
+        J_g1, J_x1 = one.act_jacobians(P)
+        assert J_g1.shape == (2, 7, 3, G.dof) and J_x1.shape == (2, 7, 3, 3)
+        each = torch.stack([torch.stack([one.act_jacobians(P[i, k])[0] for k in range(7)]) for i in range(2)])
+        torch.testing.assert_close(J_g1, each, rtol=0, atol=1e-15)
+    before = one.as_matrix().clone()
+    J_x1.zero_()
+    assert torch.equal(one.as_matrix(), before)
+
+
+def test_act_jacobians_name_a_bad_argument():
+    g = ts.SE3.identity(dtype=F64)
+    with pytest.raises(ValueError, match=r"x must have shape \(\.\.\., 3\)|p must have shape"):
+        g.act_jacobians(torch.zeros(4, dtype=F64))
+    with pytest.raises(ValueError, match="point_axes"):
+        g.act_jacobians(torch.zeros(3, dtype=F64), point_axes=2)
+
+
+# ------------------------------------------------------------------------ GTSAM
+gtsam = pytest.importorskip("gtsam")
+from torchsgal.interop import gtsam as interop  # noqa: E402
+
+# where our tangent coordinate k sits in GTSAM's: xi_gtsam = xi_ours[perm]
+PEERS = {ts.SO2: "Rot2", ts.SE2: "Pose2", ts.SO3: "Rot3", ts.SE3: "Pose3", ts.Sim3: "Similarity3",
+         ts.SGal3: "Gal3"}
+
+
+def _gtsam_act(G, obj, x):
+    """(y, H_self, H_x) from GTSAM, H in GTSAM's tangent and point orders."""
+    rows = 4 if G is ts.SGal3 else x.size
+    Hs = np.zeros((rows, G.dof), order="F")
+    Hx = np.zeros((rows, rows), order="F")
+    if G is ts.SGal3:  # gtsam.Event is (t, location): its tangent [t, x]
+        out = obj.act(gtsam.Event(float(x[3]), x[:3]), Hs, Hx)
+        return np.concatenate([out.location(), [out.time()]]), Hs, Hx
+    method = "rotate" if G in (ts.SO2, ts.SO3) else "transformFrom"
+    return np.asarray(getattr(obj, method)(x, Hs, Hx)), Hs, Hx
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-6, 0.7, 2.5, math.pi - 1e-4])
+@pytest.mark.parametrize("G", list(PEERS), ids=lambda G: G.__name__)
+def test_act_jacobians_match_gtsam(G, angle):
+    xi = torch.tensor(np.random.default_rng(3).standard_normal(G.dof), dtype=F64)
+    phi = G._f.PHI
+    axis = xi[phi] / xi[phi].norm()
+    xi[phi] = axis * angle
+    g = G.exp(xi)
+    x = torch.tensor(np.random.default_rng(4).standard_normal(G.point_dim), dtype=F64)
+    J_g, J_x = g.act_jacobians(x)
+    y, Hs, Hx = _gtsam_act(G, interop.to_gtsam(g), x.numpy())
+    perm = list(interop.TYPES[PEERS[G]][1])
+    want_g = np.empty_like(Hs)
+    want_g[:, perm] = Hs  # our column perm[k] is GTSAM's column k
+    if G is ts.SGal3:  # GTSAM's event rows and columns [t, x] -> ours [x, t]
+        order = [1, 2, 3, 0]
+        want_g, Hx = want_g[order], Hx[np.ix_(order, order)]
+    np.testing.assert_allclose(g.act(x).numpy(), y, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(J_g.numpy(), want_g, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(J_x.numpy(), Hx, rtol=0, atol=1e-12)
