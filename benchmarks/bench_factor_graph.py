@@ -196,9 +196,9 @@ def profile_pose_graphs() -> dict:
                  prior_between_log_terms=cum("linearize.py", "_log_form_terms"),
                  se3_factor_assemble_kernel=cum("factor_kernels.py", "_run_assemble"),
                  linear_solve=cum("linear_system.py", "solve"),
-                 retract=cum("linearize.py", "retract"),
+                 retract=cum("graph/problem.py", "retract"),
                  final_rank_test=cum("linear_system.py", "set_solution") + cum("linear_system.py", "singular"),
-                 problem_setup=cum("linearize.py", "__init__"))
+                 problem_setup=cum("graph/problem.py", "__init__"))
     parts["total_profiled"] = total
     return parts
 
