@@ -360,65 +360,40 @@ _se3_assemble_code = _assemble_code(_se3_normal_code)
 _se2_assemble_code = _assemble_code(_se2_normal_code)
 _ASSEMBLE_SCHEMA = ("(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L, Tensor slots, Tensor(a!) values, "
                     "Tensor g_slots, Tensor(b!) g) -> Tensor")
-# The two mutating operators are defined with ``torch.library.Library`` rather than
-# ``custom_op``: a mutating custom_op runs some 20 us of Python per call (argument
-# normalisation, its ADInplaceOrView and autograd steps), and the engine calls these twice per
-# linearisation.  Fake, vmap rule and opcheck are the same; the kernels bump the version
-# counters of ``values`` and ``g`` (as ADInplaceOrView would) and refuse inputs that require
-# grad (no derivative is registered).
-_LIBRARY = torch.library.Library("torchsgal", "FRAGMENT")
 
 
-def _no_grad_inputs(name: str, *tensors) -> None:
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors):
-        raise RuntimeError(f"torchsgal::{name} has no derivative: its inputs must not require "
-                           f"grad (se3_factor_normal / se2_factor_normal and the engine's tensor "
-                           f"path are differentiable)")
-
-
-def _define_assemble(name: str, n: int, code, *extra: torch.Tensor):
-    """Defines ``torchsgal::name``: the CPU kernel (``_run_assemble``), the tensor code on
-    other devices, the fake."""
-    _LIBRARY.define(name + _ASSEMBLE_SCHEMA)
-
-    def reference(Zinv, Ti, Tj, L, slots, values, g_slots, g):
-        _no_grad_inputs(name, Zinv, Ti, Tj, L, values, g)
-        _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, n)
-        return code(Zinv, Ti, Tj, L, slots, values, g_slots, g)
-
-    def cpu(Zinv, Ti, Tj, L, slots, values, g_slots, g):
-        _no_grad_inputs(name, Zinv, Ti, Tj, L, values, g)
-        r = _run_assemble(name, n, code, Zinv, Ti, Tj, L, slots, values, g_slots, g, *extra)
-        torch.autograd.graph.increment_version((values, g))
-        return r
-
-    _LIBRARY.impl(name, reference, "CompositeExplicitAutograd")
-    _LIBRARY.impl(name, cpu, "CPU")
-    torch.library.register_fake("torchsgal::" + name, _assemble_fake(n), lib=_LIBRARY)
-
-
-_define_assemble("se3_factor_assemble", 4, _se3_assemble_code)
-_define_assemble("se2_factor_assemble", 3, _se2_assemble_code, _SE2_SERIES)
-
-
+@torch.library.custom_op("torchsgal::se3_factor_assemble", mutates_args=("values", "g"),
+                         schema=_ASSEMBLE_SCHEMA)
 def se3_factor_assemble(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                         L: torch.Tensor | None, slots: torch.Tensor, values: torch.Tensor,
                         g_slots: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """``torch.ops.torchsgal.se3_factor_assemble``: r~ (B, E, 6) of ``se3_factor_normal`` for
-    the factors (B, E, 4, 4) of B problems, with each factor e's H (Dk, Dk) added in place into
-    its problem's ``values`` (B, size) at ``slots[e]`` (Dk * Dk,) and its g (Dk,) into ``g``
-    (B, D) at ``g_slots[e]`` (both contiguous): the blocks go straight into a linear system's
-    layout (``layout.EntryLayout``), with no (B, E, Dk, Dk) intermediate and no copy of the
-    values.  Inputs must not require grad where autograd records."""
-    return torch.ops.torchsgal.se3_factor_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g)
+    """r~ (B, E, 6) of ``se3_factor_normal`` for the factors (B, E, 4, 4) of B problems, with
+    each factor e's H (Dk, Dk) added in place into its problem's ``values`` (B, size) at
+    ``slots[e]`` (Dk * Dk,) and its g (Dk,) into ``g`` (B, D) at ``g_slots[e]`` (both
+    contiguous): the blocks go straight into a linear system's layout
+    (``layout.EntryLayout``), with no (B, E, Dk, Dk) intermediate and no copy of the values."""
+    _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, 4)
+    return _se3_assemble_code(Zinv, Ti, Tj, L, slots, values, g_slots, g)
 
 
+se3_factor_assemble.register_kernel("cpu")(
+    lambda *a: _run_assemble("se3_factor_assemble", 4, _se3_assemble_code, *a))
+se3_factor_assemble.register_fake(_assemble_fake(4))
+
+
+@torch.library.custom_op("torchsgal::se2_factor_assemble", mutates_args=("values", "g"),
+                         schema=_ASSEMBLE_SCHEMA)
 def se2_factor_assemble(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                         L: torch.Tensor | None, slots: torch.Tensor, values: torch.Tensor,
                         g_slots: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """``torch.ops.torchsgal.se2_factor_assemble``: as ``se3_factor_assemble`` for SE(2)
-    (matrices (B, E, 3, 3), r~ (B, E, 3))."""
-    return torch.ops.torchsgal.se2_factor_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g)
+    """As ``se3_factor_assemble`` for SE(2) (matrices (B, E, 3, 3), r~ (B, E, 3))."""
+    _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, 3)
+    return _se2_assemble_code(Zinv, Ti, Tj, L, slots, values, g_slots, g)
+
+
+se2_factor_assemble.register_kernel("cpu")(
+    lambda *a: _run_assemble("se2_factor_assemble", 3, _se2_assemble_code, *a, _SE2_SERIES))
+se2_factor_assemble.register_fake(_assemble_fake(3))
 
 
 def _assemble_vmap(op, dof: int):
@@ -441,7 +416,5 @@ def _assemble_vmap(op, dof: int):
     return rule
 
 
-torch.library.register_vmap("torchsgal::se3_factor_assemble",
-                            _assemble_vmap(torch.ops.torchsgal.se3_factor_assemble, 6), lib=_LIBRARY)
-torch.library.register_vmap("torchsgal::se2_factor_assemble",
-                            _assemble_vmap(torch.ops.torchsgal.se2_factor_assemble, 3), lib=_LIBRARY)
+se3_factor_assemble.register_vmap(_assemble_vmap(se3_factor_assemble, 6))
+se2_factor_assemble.register_vmap(_assemble_vmap(se2_factor_assemble, 3))
