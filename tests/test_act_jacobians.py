@@ -101,12 +101,20 @@ def test_act_jacobians_broadcast_as_act_and_own_their_storage():
     assert torch.equal(one.as_matrix(), before)
 
 
-def test_act_jacobians_name_a_bad_argument():
-    g = ts.SE3.identity(dtype=F64)
-    with pytest.raises(ValueError, match=r"x must have shape \(\.\.\., 3\)|p must have shape"):
-        g.act_jacobians(torch.zeros(4, dtype=F64))
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
+def test_act_jacobians_raise_as_act_does(G):
+    """Bad points raise act's own error (the argument's name, its batch shape without the
+    tangent axis the Jacobians add)."""
+    g = G.identity((3,), dtype=F64)
+    for bad in (torch.zeros(3, G.point_dim + 1, dtype=F64), torch.zeros(4, G.point_dim, dtype=F64),
+                torch.zeros(3, G.point_dim, dtype=torch.float32)):
+        with pytest.raises((ValueError, TypeError)) as want:
+            g.act(bad)
+        with pytest.raises(type(want.value)) as got:
+            g.act_jacobians(bad)
+        assert str(got.value) == str(want.value)
     with pytest.raises(ValueError, match="point_axes"):
-        g.act_jacobians(torch.zeros(3, dtype=F64), point_axes=2)
+        g.act_jacobians(torch.zeros(3, G.point_dim, dtype=F64), point_axes=2)
 
 
 # ------------------------------------------------------------------------ GTSAM

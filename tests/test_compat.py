@@ -2,6 +2,7 @@
 library gives the same results on every fallback."""
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -13,8 +14,8 @@ import torchsgal as ts
 from torchsgal import _compat
 
 PACKAGE = Path(ts.__file__).resolve().parent
-# a private name anywhere on a torch path (torch._C, torch.utils._pytree, ...), or imported from one
-PRIVATE = re.compile(r"torch(\.[A-Za-z0-9]+)*\._[A-Za-z]|from torch[\w.]* import _")
+# a private name anywhere on a torch path (torch._C, torch.utils._pytree, forward_ad._x, ...)
+PRIVATE = re.compile(r"torch(\.\w+)*\._[A-Za-z]")
 
 # Each fallback: the module attributes that a torch without the interface leaves unset.
 FALLBACKS = {
@@ -32,6 +33,38 @@ def test_no_private_torch_interface_outside_compat():
             if p.suffix in {".py", ".c", ".h"} and p.name != "_compat.py"
             for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if PRIVATE.search(line)]
     assert not hits, f"private torch interfaces outside torchsgal/_compat.py: {hits}"
+
+
+def _private_uses(tree: ast.AST) -> list[int]:
+    """Lines that import a private name from a torch module (``from torch.x import a, _b``,
+    ``import torch._x``, in any layout) or read one by ``getattr(<torch...>, "_x")``."""
+    lines = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "torch":
+            if any(part.startswith("_") for part in node.module.split(".")) or any(
+                    a.name.startswith("_") for a in node.names):
+                lines.append(node.lineno)
+        elif isinstance(node, ast.Import):
+            if any(a.name.split(".")[0] == "torch" and any(p.startswith("_") for p in a.name.split("."))
+                   for a in node.names):
+                lines.append(node.lineno)
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "getattr"
+              and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+              and isinstance(node.args[1].value, str) and node.args[1].value.startswith("_")
+              and "torch" in ast.unparse(node.args[0]).split(".")[0]):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_no_private_torch_import_outside_compat():
+    """The same by the syntax tree: no module but _compat.py imports a private torch name or
+    reads one with getattr, however the import is laid out."""
+    hits = [f"{p.relative_to(PACKAGE)}:{line}" for p in sorted(PACKAGE.rglob("*.py")) if p.name != "_compat.py"
+            for line in _private_uses(ast.parse(p.read_text(encoding="utf-8")))]
+    assert not hits, f"private torch interfaces outside torchsgal/_compat.py: {hits}"
+    found = _private_uses(ast.parse("from torch.utils import (\n    cpp_extension,\n    _pytree,\n)\n"
+                                    "import torch._dynamo\nx = getattr(torch.autograd, '_secret')\n"))
+    assert found == [1, 5, 6]  # the search itself finds each form
 
 
 def test_every_interface_is_found_on_the_supported_torch():

@@ -170,7 +170,7 @@ log_sin_taylor = _constant(LOG_SIN_TAYLOR)
 
 
 # ----------------------------------------------------------------------- IMU streaming
-# The one-sample path of imu/streaming.py evaluates c_1 .. c_4 at p = theta^2 as one product of
+# The one-sample path of imu/stream_parts.py evaluates c_1 .. c_4 at p = theta^2 as one product of
 # the powers p^1 .. p^(IMU_STREAM_TAYLOR_TERMS - 1) with their Taylor coefficients
 # (``taylor_table``) wherever p <= IMU_STREAM_SERIES_THRESHOLD_SQ, so a typical sample (theta < 1.58)
 # needs no sin/cos: the first term left out, p^12 / 25!, is below 4e-21 there.  Above it, the

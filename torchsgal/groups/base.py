@@ -440,13 +440,14 @@ class LieGroup:
         points before the coordinates every element maps whole (see "Acting on points" above)."""
         return self._f.act(self._acting(x, "x", point_axes, self.point_dim), x)
 
-    def act_jacobians(self, x: torch.Tensor, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    def act_jacobians(self, x: torch.Tensor, /, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """The Jacobians of ``act(x)`` (..., rows): J_g (..., rows, dof) with respect to the
         right perturbation, d/dxi act(g exp(xi^), x) at 0, and J_x (..., rows, k) with respect
         to x (..., k); ``point_axes`` as in ``act``.  The action is linear in the matrix
         (M [x, tail], rows of it), so column j of J_g is the action of M hat(e_j) and J_x is the
         block of M that multiplies x (Sim3, whose action divides by M[3, 3], gives its own)."""
         M = _batch_like(self._acting(x, "x", point_axes, self.point_dim), x)
+        self._f.act(M, x)  # act's own checks and messages, before the tangent axis is added
         J_g = self._f.act(self._right_products(M), x).movedim(0, -1)
         rows, k = J_g.shape[-2], x.shape[-1]
         return J_g, M[..., :rows, :k].expand(J_g.shape[:-1] + (k,)).clone()

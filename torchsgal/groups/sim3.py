@@ -75,15 +75,15 @@ class Sim3(LieGroup):
         (0: the batches broadcast as in torch; see "Acting on points" in LieGroup)."""
         return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)
 
-    def act_jacobians(self, p: torch.Tensor, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    def act_jacobians(self, p: torch.Tensor, /, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """As ``LieGroup.act_jacobians`` for y = u / w, u = (M [p, 1])[:3], w = M[3, 3]: the
         quotient rule, with du and dw along xi_j the rows of M hat(e_j) [p, 1] (J_g (..., 3, 7));
         J_x = M[:3, :3] / w = s C."""
         M = _batch_like(self._acting(p, "p", point_axes, self.point_dim), p)
+        y = self._f.act(M, p).unsqueeze(-1)  # act's own checks, before the tangent axis is added
         MH = self._right_products(M)  # (7, ..., 4, 4)
         du = act_homogeneous(MH, p, "p", 4, (1.0,)).movedim(0, -1)  # (..., 3, 7)
         dw = ((MH[..., 3, :3] * p).sum(-1) + MH[..., 3, 3]).movedim(0, -1).unsqueeze(-2)  # (..., 1, 7)
         w = M[..., 3, 3, None, None]
-        y = self._f.act(M, p).unsqueeze(-1)
         J_g = du / w - y * dw / w
         return J_g, (M[..., :3, :3] / w).expand(J_g.shape[:-1] + (3,)).clone()

@@ -59,7 +59,7 @@ class GraphResult:
     """values       {name: value at the solution}, in the form the graph was given (group
                     elements of batch (N,) or (B, N), tensors (N, k) or (B, N, k)).
     report          ``SolverReport`` (per problem: status, iterations, costs, norms).
-    problem         the graph's layout (``linearize.Problem``: variables in insertion order,
+    problem         the graph's layout (``problem.Problem``: variables in insertion order,
                     element-major tangents).
     system          the linear system at the solution (``linear_system.DenseSystem`` or
                     ``SparseSystem``), which gives the marginals.
