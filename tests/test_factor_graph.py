@@ -361,7 +361,7 @@ def test_point_observations_recover_poses_and_points():
     torch.testing.assert_close(result.values["p"], points, rtol=0, atol=1e-8)
 
 
-@pytest.mark.parametrize("G", [ts.SE3, ts.SE2, ts.Sim3, ts.SGal3, ts.SO3], ids=lambda G: G.__name__)
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
 def test_point_observation_jacobians_are_the_forward_mode_ones(G):
     """PointObservation's analytic Jacobians (act_jacobians) give the normal equations of the
     same residual differentiated in forward mode, with one pose read by every factor and with
