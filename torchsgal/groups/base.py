@@ -7,7 +7,7 @@ group's functional module (``_f``), the one place its maths lives.
 from __future__ import annotations
 
 import copyreg
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from numbers import Real
 from typing import Any, ClassVar
 
@@ -17,6 +17,7 @@ from typing_extensions import Self
 from .. import _compat
 from ..functional import blocks, checks
 from ..functional._blocking import values_readable
+from .batch import MatrixBatch
 
 REPR_ELEMENTS = 4  # repr shows the matrices of batches up to this size
 
@@ -31,7 +32,7 @@ class _AbstractModule:
 _ABSTRACT = "LieGroup is the abstract base class: use SO2, SE2, SO3, SE3, SE23, SGal3 or Sim3"
 
 
-class LieGroup:
+class LieGroup(MatrixBatch):
     """Base of the group classes (SO2, SE2, SO3, SE3, SE23, SGal3, Sim3); subclasses set
     ``dof``, ``matrix_dim`` and ``_f``.
 
@@ -267,68 +268,7 @@ class LieGroup:
             raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
         return cls._new(cls._f.random(batch_shape, dtype, device, generator))
 
-    # ------------------------------------------------------------------ properties
-    @property
-    def batch_shape(self) -> torch.Size:
-        """The leading axes of the matrix (TypeError for a torch.func wrapper whose leaf is not
-        a tensor of trailing shape (n, n), see the class docstring)."""
-        m = self._matrix
-        n = self.matrix_dim
-        # a leaf that is not a tensor may be a group element, whose .shape is its batch shape
-        if not isinstance(m, torch.Tensor) or m.dim() < 2 or m.shape[-1] != n or m.shape[-2] != n:
-            raise TypeError(self._not_matrices())
-        return m.shape[:-2]
-
-    @property
-    def shape(self) -> torch.Size:
-        """The batch shape, the same as ``batch_shape`` (the matrix axes are not counted: an SE3
-        of ``shape`` (B,) wraps a (B, 4, 4) tensor)."""
-        return self.batch_shape
-
-    @property
-    def requires_grad(self) -> bool:
-        """Whether autograd records operations on the wrapped matrix."""
-        return self._matrix.requires_grad
-
-    def requires_grad_(self, requires_grad: bool = True) -> Self:
-        """Sets ``requires_grad`` of the wrapped matrix in place (as Tensor.requires_grad_, which
-        refuses a matrix that is not a leaf of the autograd graph) and returns this element.
-        The gradient then lands on ``as_matrix().grad``: a Euclidean gradient of the matrix
-        entries, not a tangent vector.  To optimise an element on the group, hold it in a
-        ``torchsgal.nn.ManifoldParameter``, which optimises a right perturbation."""
-        requires_grad = checks.boolean(requires_grad, "requires_grad")
-        self._matrix.requires_grad_(requires_grad)
-        return self
-
-    @property
-    def dtype(self) -> torch.dtype:
-        try:
-            return self._matrix.dtype
-        except AttributeError:
-            raise TypeError(self._not_matrices()) from None
-
-    @property
-    def device(self) -> torch.device:
-        try:
-            return self._matrix.device
-        except AttributeError:
-            raise TypeError(self._not_matrices()) from None
-
-    def _leaf_description(self) -> str | None:
-        """None for a tensor of trailing shape (n, n), else what the pytree leaf is."""
-        m = self._matrix
-        if not isinstance(m, torch.Tensor):
-            return f"<pytree leaf: {m._summary() if isinstance(m, LieGroup) else repr(m)}>"
-        if m.dim() < 2 or m.shape[-2:] != (self.matrix_dim, self.matrix_dim):
-            return f"<pytree leaf of shape {tuple(m.shape)}, dtype={m.dtype}, device={m.device}>"
-        return None
-
-    def _not_matrices(self) -> str:
-        n = self.matrix_dim
-        return (f"this {type(self).__name__} wraps {self._leaf_description()}, not matrices "
-                f"(..., {n}, {n}): a torch.func result (a derivative, or vmap with out_dims), not a "
-                f"group element; read it with as_matrix()")
-
+    # ------------------------------------------------------------------ the matrix
     def as_matrix(self) -> torch.Tensor:
         """The homogeneous matrices (..., matrix_dim, matrix_dim) (the wrapped tensor, not a copy)."""
         return self._matrix
@@ -526,154 +466,6 @@ class LieGroup:
         """J_r(xi)^-1 = J_l(-xi)^-1 (..., dof, dof)."""
         return cls._f.jr_inv(checks.vector(xi, cls.dof, "xi"))
 
-    # ---------------------------------------------------------------- batch handling
-    def __getitem__(self, index: Any) -> Self:
-        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors).
-
-        As for tensors, ints, slices and None give a view of this element's matrix: it shares
-        the storage (``torch.save`` of ``g[0]`` writes the whole batch; save ``g[0].clone()``),
-        and in-place changes to either show in both."""
-        if not isinstance(index, tuple):
-            index = (index,)
-        try:
-            return type(self)._new(self._matrix[index + (slice(None), slice(None))])
-        except (IndexError, ValueError) as err:  # ValueError: a negative slice step
-            why = str(err)
-            if "too many indices" in why:  # torch counts the matrix axes too
-                n = len(self.batch_shape)
-                why = f"too many indices for {n} batch ax{'is' if n == 1 else 'es'}"
-            raise IndexError(f"index {index!r} does not fit the batch shape "
-                             f"{tuple(self.batch_shape)} of this {type(self).__name__}: {why}") from None
-
-    def __len__(self) -> int:
-        if not self.batch_shape:
-            raise TypeError(f"len() of an unbatched {type(self).__name__}")
-        return self.batch_shape[0]
-
-    def __iter__(self) -> Iterator[Self]:
-        """The elements along the first batch axis (as iterating a tensor); TypeError for an
-        unbatched element, as for a 0-d tensor."""
-        if not self.batch_shape:
-            raise TypeError(f"iteration over an unbatched {type(self).__name__}")
-        return (self[i] for i in range(self.batch_shape[0]))
-
-    def __bool__(self) -> bool:
-        raise TypeError(
-            f"the truth value of a {type(self).__name__} is ambiguous: test `g is not None`, or "
-            f"the batch size with g.batch_shape.numel()"
-        )
-
-    def reshape(self, *shape: Any) -> Self:
-        """A new batch shape (one -1 allowed), as torch.reshape on the batch axes."""
-        if len(shape) == 1 and not isinstance(shape[0], int):
-            shape = tuple(shape[0])
-        n = self.matrix_dim
-        try:
-            return type(self)._new(self._matrix.reshape(*shape, n, n))
-        except RuntimeError as err:
-            raise ValueError(f"cannot reshape the batch shape {tuple(self.batch_shape)} of this "
-                             f"{type(self).__name__} to {tuple(shape)}: {err}") from None
-
-    def flatten(self) -> Self:
-        """The batch axes flattened into one (an unbatched element gets batch shape (1,))."""
-        return self.reshape(-1)
-
-    def squeeze(self, dim: int | None = None) -> Self:
-        """Removes batch axes of size 1: all of them, or only ``dim`` (counted over the batch
-        axes) if it has size 1."""
-        if dim is None:
-            return self.reshape(tuple(s for s in self.batch_shape if s != 1))
-        return type(self)._new(self._matrix.squeeze(_batch_axis(dim, len(self.batch_shape), "dim")))
-
-    def expand(self, *shape: Any) -> Self:
-        """The elements broadcast to the batch shape ``shape`` (a view, as Tensor.expand)."""
-        if len(shape) == 1 and not isinstance(shape[0], int):
-            shape = tuple(shape[0])
-        n = self.matrix_dim
-        why = f"cannot expand the batch shape {tuple(self.batch_shape)} of this {type(self).__name__} to {tuple(shape)}"
-        if len(shape) < len(self.batch_shape):
-            raise ValueError(f"{why}: the target has fewer batch axes")
-        try:
-            return type(self)._new(self._matrix.expand(*shape, n, n))
-        except RuntimeError as err:
-            raise ValueError(f"{why}: {err}") from None
-
-    def unsqueeze(self, dim: int) -> Self:
-        """A new batch axis of size 1 at ``dim`` (counted over the batch axes only)."""
-        return type(self)._new(self._matrix.unsqueeze(_batch_axis(dim, len(self.batch_shape) + 1, "dim")))
-
-    @classmethod
-    def stack(cls, elements: Sequence[LieGroup], dim: int = 0) -> Self:
-        """Stack elements of equal batch shape along a new batch axis ``dim``."""
-        mats = cls._matrices(elements, "stack")
-        axis = _batch_axis(dim, mats[0].dim() - 1, "dim")
-        for i, m in enumerate(mats[1:], 1):
-            if m.shape != mats[0].shape:
-                raise ValueError(f"{cls.__name__}.stack needs elements of equal batch shape: "
-                                 f"elements[0] has {tuple(mats[0].shape[:-2])}, "
-                                 f"elements[{i}] has {tuple(m.shape[:-2])}")
-        return cls._new(torch.stack(mats, dim=axis))
-
-    @classmethod
-    def cat(cls, elements: Sequence[LieGroup], dim: int = 0) -> Self:
-        """Concatenate elements along their existing batch axis ``dim``."""
-        mats = cls._matrices(elements, "cat")
-        if mats[0].dim() == 2:
-            raise ValueError(f"{cls.__name__}.cat needs elements with a batch axis; use stack")
-        axis = _batch_axis(dim, mats[0].dim() - 2, "dim")
-        b0 = mats[0].shape[:-2]
-        for i, m in enumerate(mats[1:], 1):
-            b = m.shape[:-2]
-            if len(b) != len(b0) or any(x != y for k, (x, y) in enumerate(zip(b, b0)) if k != axis):
-                raise ValueError(f"{cls.__name__}.cat needs elements whose batch shapes differ only "
-                                 f"along dim {dim}: elements[0] has {tuple(b0)}, elements[{i}] has {tuple(b)}")
-        return cls._new(torch.cat(mats, dim=axis))
-
-    @classmethod
-    def _matrices(cls, elements: Sequence[LieGroup], op: str) -> list[torch.Tensor]:
-        if isinstance(elements, LieGroup):  # iterating it would stack or cat its first batch axis
-            raise TypeError(f"{cls.__name__}.{op}: elements must be a sequence of elements (a list "
-                            f"or tuple), got one {type(elements).__name__}; write "
-                            f"{cls.__name__}.{op}([g, ...])")
-        elements = list(elements)
-        if not elements:
-            raise ValueError(f"{cls.__name__}.{op} needs at least one element")
-        for i, e in enumerate(elements):
-            if not isinstance(e, cls._group):
-                raise TypeError(f"{cls.__name__}.{op}: elements[{i}] must be a {cls._group.__name__}, "
-                                f"got {type(e).__name__}")
-        # one dtype and device, as compose (no silent promotion)
-        checks.same_device_dtype(**{f"elements[{i}]": e._matrix for i, e in enumerate(elements)})
-        return [e._matrix for e in elements]
-
-    def to(self, *args: Any, **kwargs: Any) -> Self:
-        """As torch.Tensor.to on the matrix (dtype and/or device)."""
-        return type(self)._new(self._matrix.to(*args, **kwargs))
-
-    def float(self) -> Self:
-        """The same elements in float32."""
-        return self.to(torch.float32)
-
-    def double(self) -> Self:
-        """The same elements in float64."""
-        return self.to(torch.float64)
-
-    def cpu(self) -> Self:
-        """The same elements on the CPU."""
-        return type(self)._new(self._matrix.cpu())
-
-    def cuda(self, device: torch.device | int | str | None = None) -> Self:
-        """The same elements on a CUDA device."""
-        return type(self)._new(self._matrix.cuda(device))
-
-    def detach(self) -> Self:
-        """The same elements, detached from the autograd graph."""
-        return type(self)._new(self._matrix.detach())
-
-    def clone(self) -> Self:
-        """A copy with its own storage."""
-        return type(self)._new(self._matrix.clone())
-
     def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
         """Pickles (and torch.save's, deepcopies) as ``cls(matrix)``: loading goes through the
         constructor's shape and dtype checks (not a membership check), and torch.load's default
@@ -741,10 +533,3 @@ def _batch_like(M: torch.Tensor, x) -> torch.Tensor:
 def _tol_arg(tol: float | None) -> float | None:
     """``tol``: None or a finite number > 0."""
     return None if tol is None else checks.finite_number(tol, "tol", "> 0")
-
-
-def _batch_axis(dim: int, n_axes: int, name: str) -> int:
-    """``dim`` in [-n_axes, n_axes) as a non-negative axis; the matrix axes are never counted."""
-    if not -n_axes <= dim < n_axes:
-        raise IndexError(f"{name} must be in [{-n_axes}, {n_axes - 1}] (batch axes only), got {dim}")
-    return dim % n_axes
