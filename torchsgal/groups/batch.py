@@ -35,7 +35,7 @@ class MatrixBatch:
     @property
     def batch_shape(self) -> torch.Size:
         """The leading axes of the matrix (TypeError for a torch.func wrapper whose leaf is not
-        a tensor of trailing shape (n, n), see the class docstring)."""
+        a tensor of trailing shape (n, n), see LieGroup's docstring)."""
         m = self._matrix
         n = self.matrix_dim
         # a leaf that is not a tensor may be a group element, whose .shape is its batch shape
