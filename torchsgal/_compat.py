@@ -96,12 +96,14 @@ def register_pytree_node(cls: type, flatten: Callable[[Any], tuple[list[Any], An
     torch offers no registry (its instances are then opaque to torch.func: pass tensors)."""
     if _pytree is None:
         return False
-    _pytree.register_pytree_node(
-        cls, flatten, unflatten,
-        serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
-        flatten_with_keys_fn=lambda obj: ([(_pytree.GetAttrKey(leaf_attribute), flatten(obj)[0][0])],
-                                          flatten(obj)[1]),
-    )
+
+    def flatten_with_keys(obj: Any) -> tuple[list[Any], Any]:
+        leaves, context = flatten(obj)
+        return [(_pytree.GetAttrKey(leaf_attribute), leaves[0])], context
+
+    _pytree.register_pytree_node(cls, flatten, unflatten,
+                                 serialized_type_name=f"{cls.__module__}.{cls.__qualname__}",
+                                 flatten_with_keys_fn=flatten_with_keys)
     return True
 
 

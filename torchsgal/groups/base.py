@@ -387,8 +387,11 @@ class LieGroup(MatrixBatch):
         (M [x, tail], rows of it), so column j of J_g is the action of M hat(e_j) and J_x is the
         block of M that multiplies x (Sim3, whose action divides by M[3, 3], gives its own)."""
         M = _batch_like(self._acting(x, "x", point_axes, self.point_dim), x)
-        self._f.act(M, x)  # act's own checks and messages, before the tangent axis is added
-        J_g = self._f.act(self._right_products(M), x).movedim(0, -1)
+        try:
+            J_g = self._f.act(self._right_products(M), x).movedim(0, -1)
+        except (TypeError, ValueError):
+            self._f.act(M, x)  # act's own message, without the tangent axis in the shapes
+            raise
         rows, k = J_g.shape[-2], x.shape[-1]
         return J_g, M[..., :rows, :k].expand(J_g.shape[:-1] + (k,)).clone()
 
