@@ -314,6 +314,31 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
 
 
+def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int, hat, dof: int,
+                             tail: tuple = (), rows: int = 3, size: int | None = None) -> torch.Tensor:
+    """J (..., rows, dof) of act_homogeneous(M exp(xi^), x) at xi = 0 (the right perturbation):
+    column j is the first ``rows`` entries of M hat(e_j) [x, *tail] (``hat`` the group's).  As
+    sum_b [x, *tail]_b P_b with P_b = M[:rows] hat(e_j)[:, b], the (rows x dof) products formed
+    once per element and the points contracted with them in one matrix product (no per-point
+    copy of M hat(e_j)).  The input checks are act_homogeneous's; x has ``size`` entries (by
+    default ``rows``)."""
+    checks.matrix(M, n, "g")
+    checks.vector(x, rows if size is None else size, name)
+    checks.binary(M, 2, x, 1, "g", name)
+    if tail:
+        x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
+    k = x.shape[-1]
+    basis = hat(torch.eye(dof, dtype=M.dtype, device=M.device))[:, :, :k]  # (dof, n, k)
+    # P[..., b, r, j] = sum_a M[..., r, a] hat(e_j)[a, b], as (..., k, rows * dof)
+    P = M[..., :rows, :] @ basis.permute(1, 2, 0).reshape(n, k * dof)
+    P = P.unflatten(-1, (k, dof)).transpose(-3, -2).flatten(-2)
+    if M.dim() >= 3 and x.dim() >= 2 and M.shape[-3] == 1 and x.shape[-2] != 1:
+        J = x @ P[..., 0, :, :]  # one element per batch row, N points: one product over the rows
+    else:
+        J = (x.unsqueeze(-2) @ P).squeeze(-2)
+    return J.unflatten(-1, (rows, dof))
+
+
 def random_rotation(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     """Uniformly distributed rotation matrices (normalised Gaussian quaternions)."""
     q = torch.randn(4, *batch_shape, dtype=dtype, device=device, generator=generator)

@@ -199,6 +199,11 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(M, p, "p", MATRIX_DIM, (0.0, 1.0))
 
 
+def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """d act(M exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation."""
+    return B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, DOF, (0.0, 1.0))
+
+
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Velocities [u, 1, 0] -> C u + v."""
     return B.act_homogeneous(M, u, "u", MATRIX_DIM, (1.0,))

@@ -176,6 +176,11 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(M, p, "p", MATRIX_DIM, (1.0,))
 
 
+def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """d act(M exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation."""
+    return B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, DOF, (1.0,))
+
+
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0] -> C d."""
     return B.act_homogeneous(M, d, "d", MATRIX_DIM)

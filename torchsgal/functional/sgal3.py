@@ -323,6 +323,11 @@ def act(M: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(M, e, "e", MATRIX_DIM, (1.0,), rows=4)
 
 
+def act_jacobian(M: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
+    """d act(M exp(xi^), e) / d xi at 0 (..., 4, DOF), the right perturbation."""
+    return B.act_homogeneous_jacobian(M, e, "e", MATRIX_DIM, hat, DOF, (1.0,), rows=4)
+
+
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """Inertial velocities [u, 1, 0] -> C u + v."""
     return B.act_homogeneous(M, u, "u", MATRIX_DIM, (1.0,))

@@ -286,6 +286,15 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(M, p, "p", MATRIX_DIM, (1.0,)) / M[..., 3, 3].unsqueeze(-1)
 
 
+def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """d act(M exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation: y = u / w with
+    u = (M [p, 1])[:3] and w = M[3, 3], by the quotient rule, du and dw the first three rows and
+    the fourth of d(M exp(xi^) [p, 1])."""
+    J = B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, DOF, (1.0,), rows=4, size=3)
+    w = M[..., 3, 3, None, None]
+    return (J[..., :3, :] - act(M, p).unsqueeze(-1) * J[..., 3:, :]) / w
+
+
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """Directions [d, 0] -> C d (rotated, not scaled)."""
     return B.act_homogeneous(M, d, "d", MATRIX_DIM)

@@ -118,6 +118,11 @@ def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(C, p, "p", MATRIX_DIM, rows=2)
 
 
+def act_jacobian(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """d act(C exp(xi^), p) / d xi at 0 (..., 2, DOF), the right perturbation."""
+    return B.act_homogeneous_jacobian(C, p, "p", MATRIX_DIM, hat, DOF, rows=2)
+
+
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return B.act_homogeneous(C, d, "d", MATRIX_DIM, rows=2)
 

@@ -384,14 +384,11 @@ class LieGroup(MatrixBatch):
         """The Jacobians of ``act(x)`` (..., rows): J_g (..., rows, dof) with respect to the
         right perturbation, d/dxi act(g exp(xi^), x) at 0, and J_x (..., rows, k) with respect
         to x (..., k); ``point_axes`` as in ``act``.  The action is linear in the matrix
-        (M [x, tail], rows of it), so column j of J_g is the action of M hat(e_j) and J_x is the
-        block of M that multiplies x (Sim3, whose action divides by M[3, 3], gives its own)."""
-        M = _batch_like(self._acting(x, "x", point_axes, self.point_dim), x)
-        try:
-            J_g = self._f.act(self._right_products(M), x).movedim(0, -1)
-        except (TypeError, ValueError):
-            self._f.act(M, x)  # act's own message, without the tangent axis in the shapes
-            raise
+        (M [x, tail], rows of it), so column j of J_g is the action of M hat(e_j)
+        (``functional.blocks.act_homogeneous_jacobian``) and J_x is the block of M that
+        multiplies x (Sim3, whose action divides by M[3, 3], gives its own)."""
+        M = self._acting(x, "x", point_axes, self.point_dim)
+        J_g = self._f.act_jacobian(M, x)
         rows, k = J_g.shape[-2], x.shape[-1]
         return J_g, M[..., :rows, :k].expand(J_g.shape[:-1] + (k,)).clone()
 
@@ -524,13 +521,6 @@ def _register_pytree(cls: type[LieGroup]) -> None:
     torch has no pytree registry, the transforms take the elements' matrices instead."""
     _compat.register_pytree_node(cls, lambda g: ([g._matrix], g._state()),
                                  lambda leaves, context: cls._from_leaf(leaves[0], context), "_matrix")
-
-
-def _batch_like(M: torch.Tensor, x) -> torch.Tensor:
-    """M (..., n, n) with leading batch axes of size 1 up to x's (..., k) batch rank: a new
-    axis in front of M (act_jacobians' tangent axis) then never meets one of x's."""
-    missing = x.dim() - 1 - (M.dim() - 2) if isinstance(x, torch.Tensor) else 0
-    return M.reshape((1,) * missing + M.shape) if missing > 0 else M
 
 
 def _tol_arg(tol: float | None) -> float | None:

@@ -4,9 +4,8 @@ import torch
 from typing_extensions import Self
 
 from ..functional import sim3 as _sim3
-from ..functional.blocks import act_homogeneous
 from ._components import prepare
-from .base import LieGroup, _batch_like
+from .base import LieGroup
 
 
 class Sim3(LieGroup):
@@ -76,14 +75,8 @@ class Sim3(LieGroup):
         return self._f.act(self._acting(p, "p", point_axes, self.point_dim), p)
 
     def act_jacobians(self, p: torch.Tensor, /, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-        """As ``LieGroup.act_jacobians`` for y = u / w, u = (M [p, 1])[:3], w = M[3, 3]: the
-        quotient rule, with du and dw along xi_j the rows of M hat(e_j) [p, 1] (J_g (..., 3, 7));
-        J_x = M[:3, :3] / w = s C."""
-        M = _batch_like(self._acting(p, "p", point_axes, self.point_dim), p)
-        y = self._f.act(M, p).unsqueeze(-1)  # act's own checks, before the tangent axis is added
-        MH = self._right_products(M)  # (7, ..., 4, 4)
-        du = act_homogeneous(MH, p, "p", 4, (1.0,)).movedim(0, -1)  # (..., 3, 7)
-        dw = ((MH[..., 3, :3] * p).sum(-1) + MH[..., 3, 3]).movedim(0, -1).unsqueeze(-2)  # (..., 1, 7)
-        w = M[..., 3, 3, None, None]
-        J_g = du / w - y * dw / w
-        return J_g, (M[..., :3, :3] / w).expand(J_g.shape[:-1] + (3,)).clone()
+        """As ``LieGroup.act_jacobians`` for y = s (C p + r): J_g by the quotient rule
+        (``functional.sim3.act_jacobian``), J_x = s C."""
+        M = self._acting(p, "p", point_axes, self.point_dim)
+        J_g = self._f.act_jacobian(M, p)
+        return J_g, (M[..., :3, :3] / M[..., 3, 3, None, None]).expand(J_g.shape[:-1] + (3,)).clone()

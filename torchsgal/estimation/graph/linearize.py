@@ -272,7 +272,7 @@ def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | Non
         if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
             J = J.reshape(B, -1, J.shape[-1])
             r = r.reshape(B, -1)
-        H, gb = J.mT @ J, (J * r.unsqueeze(-1)).sum(dim=-2)  # J^T J, J^T r
+        H, gb = J.mT @ J, (J.mT @ r.unsqueeze(-1)).squeeze(-1)  # J^T J, J^T r
         values.index_add_(1, layout.block_slots[n], H.reshape(B, -1))
         g.index_add_(1, block.g_index, gb.reshape(B, -1))
     return Linearization(values, g, cost, model)
