@@ -62,6 +62,13 @@ def dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
+def last_axis_dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """sum(u * v) over the last axis (...), as (u * v) times a vector of ones: torch's CPU sum
+    over a short last axis (3-vectors, residuals of a few rows) costs several times that."""
+    w = u * v
+    return w @ w.new_ones(w.shape[-1])
+
+
 def theta_squared(phi: torch.Tensor) -> torch.Tensor:
     return dot(phi, phi)
 

@@ -37,6 +37,7 @@ from typing import NamedTuple
 import torch
 
 from ...functional import se3
+from ...functional.blocks import last_axis_dot
 
 __all__ = ["se3_log_jacobians", "se2_log_jacobians", "se3_inverse", "SERIES_THRESHOLD"]
 
@@ -129,12 +130,12 @@ def _se3_one_pass(r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     k = _constants(r)
     I3 = k.eye
     rho, phi = r[..., :3], r[..., 3:]
-    theta2 = (phi * phi).sum(-1)
+    theta2 = last_axis_dot(phi, phi)
     d, beta = _coefficients(theta2, k.series)
     d_, t2_ = d.unsqueeze(-1), theta2.unsqueeze(-1)
     ad = torch.cat([torch.zeros_like(r[..., :1]), r, -r], dim=-1)[..., k.ad_index].unflatten(
         -1, (6, 6))
-    pr = (phi * rho).sum(-1)[..., None, None]
+    pr = last_axis_dot(phi, rho)[..., None, None]
     outer = phi[..., :, None, None] * torch.stack([phi, rho], dim=-2).unsqueeze(-3)  # (..., 3, 2, 3)
     W2 = outer[..., 0, :] - t2_.unsqueeze(-1) * I3  # phi phi^T - theta^2 I = W^2
     S = outer[..., 1, :] + outer[..., 1, :].mT - 2.0 * pr * I3
@@ -153,7 +154,7 @@ def se3_inverse(M: torch.Tensor) -> torch.Tensor:
     Ct = M[..., :3, :3].mT
     out = torch.zeros_like(M)
     out[..., :3, :3] = Ct
-    out[..., :3, 3] = -(Ct * M[..., None, :3, 3]).sum(-1)
+    out[..., :3, 3] = -(Ct @ M[..., :3, 3, None]).squeeze(-1)
     out[..., 3, 3] = 1.0
     return out
 

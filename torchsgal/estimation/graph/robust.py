@@ -19,6 +19,7 @@ from __future__ import annotations
 import torch
 
 from ...functional import checks
+from ...functional.blocks import last_axis_dot
 
 __all__ = ["RobustLoss", "TrivialLoss", "Huber", "Cauchy", "GemanMcClure", "Tukey", "correct"]
 
@@ -116,12 +117,6 @@ class Tukey(RobustLoss):
         return rho, u * u, -2.0 * u / b
 
 
-def squared_norms(r: torch.Tensor) -> torch.Tensor:
-    """|r|^2 over the last axis, (r * r) times a vector of ones: torch's CPU sum over a short last
-    axis (a 3-vector residual) costs several times the product."""
-    return (r * r) @ r.new_ones(r.shape[-1])
-
-
 def correct(loss: RobustLoss | None, r: torch.Tensor, J: torch.Tensor | None
             ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """Ceres' Corrector on whitened residuals r (..., m) and Jacobians J (..., m, n) (or None):
@@ -144,7 +139,7 @@ def corrected(loss: RobustLoss | None, r: torch.Tensor, J: torch.Tensor | None
               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """``correct`` without its argument checks, for residuals and Jacobians whose types and
     shapes are known (the engine's built-in factors)."""
-    s = squared_norms(r)
+    s = last_axis_dot(r, r)
     if loss is None:
         return r, J, s
     rho, d1, d2 = loss.evaluate(s)
