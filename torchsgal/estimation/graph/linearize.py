@@ -145,8 +145,9 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     SE(3) and SE(2), log, J_r^-1 and J_l^-1 come from one pass (``log_terms``) and
     J_i = -J_l^-1(r) Ad(Z^-1) (as J_r^-1(r) = J_l^-1(r) Ad(E) and E A^-1 = Z^-1), with Ad(Z^-1)
     computed once per problem.  With ``normal``, the kernels' blocks of factors without a robust
-    loss are whitened and their blocks of H and g added in place into its values and g
-    (``se3_factor_assemble``, ``se2_factor_assemble``); such a block gives (r~,)."""
+    loss are whitened and their blocks of H and g added to its values and g
+    (``se3_factor_assemble``, ``se2_factor_assemble``, which return the sums; ``normal`` then
+    holds them); such a block gives (r~,)."""
     B = x[0].shape[0]
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
@@ -173,8 +174,9 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                 Dk = sum(block.dofs)
                 slots = normal.layout.block_slots[n].reshape(-1, Dk * Dk).expand(block.size, -1)
                 g_slots = block.g_index.reshape(-1, Dk).expand(block.size, -1)
-                out[n] = (op(Z_inv.expand(shape), Ti, Ts[-1], L, slots, normal.values, g_slots,
-                             normal.g),)
+                r, normal.values, normal.g = op(Z_inv.expand(shape), Ti, Ts[-1], L, slots,
+                                                normal.values, g_slots, normal.g)
+                out[n] = (r,)
                 continue
             op = (torch.ops.torchsgal.se3_factor_terms if group is SE3
                   else torch.ops.torchsgal.se2_factor_terms)
