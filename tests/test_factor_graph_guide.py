@@ -8,7 +8,7 @@ GUIDE = Path(__file__).resolve().parents[1] / "docs" / "guide" / "factor_graphs.
 
 def test_guide_examples_run():
     blocks = re.findall(r"```python\n(.*?)```", GUIDE.read_text(), flags=re.S)
-    assert len(blocks) == 4
+    assert len(blocks) == 5
     namespace: dict = {}
     for block in blocks:
         exec(compile(block, str(GUIDE), "exec"), namespace)
