@@ -105,6 +105,27 @@ def test_act_jacobians_broadcast_as_act_and_own_their_storage():
     assert torch.equal(one.as_matrix(), before)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+def test_sim3_act_jacobian_keeps_its_precision_far_from_the_origin_and_at_extreme_scales(dtype):
+    """Sim(3)'s J_g = [sC, -sC p^, sC p] does not depend on the translation: with |r| = 1e8
+    and points of unit size, and with lambda = +-80 and +-700 (float64), every entry is exact to
+    a few eps relative to the Jacobian's size (the quotient rule on M itself cancelled terms of
+    size s |r|: relative errors up to 1 in float32)."""
+    gen = torch.Generator().manual_seed(3)
+    C = ts.SO3.exp(torch.randn(50, 3, dtype=F64, generator=gen)).as_matrix()
+    r = 1e8 * torch.randn(50, 3, dtype=F64, generator=gen)
+    lam = torch.zeros(50, dtype=F64)
+    if dtype is F64:
+        lam[:4] = torch.tensor([-80.0, 80.0, -700.0, 700.0], dtype=F64)
+    M = ts.Sim3.from_components(C, r, torch.exp(lam)).as_matrix().to(dtype)
+    p = torch.randn(50, 3, dtype=dtype, generator=gen)
+    J = ts.Sim3(M).act_jacobians(p)[0].double()
+    sC = M.double()[:, :3, :3] / M.double()[:, 3, 3, None, None]
+    want = torch.cat([sC, -sC @ _skew(p.double()), sC @ p.double()[..., None]], -1)
+    err = (J - want).abs().amax((-1, -2)) / want.abs().amax((-1, -2))
+    assert err.max() < 8 * torch.finfo(dtype).eps, err.max()
+
+
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
 def test_act_jacobians_raise_as_act_does(G):
     """Bad points raise act's own error (the argument's name, its batch shape without the

@@ -467,6 +467,23 @@ def test_assemble_writes_no_argument_and_has_no_derivative(group, kernel):
             torch.func.grad(loss)(Tj.clone())
 
 
+@pytest.mark.parametrize("kernel", [True, False])
+@pytest.mark.parametrize("group", GROUPS)
+def test_assemble_takes_an_empty_batch(group, kernel):
+    """B = 0 problems (or E = 0 factors): empty residuals and the values and g unchanged, on the
+    kernel and on the tensor code."""
+    g, Zinv, Ti, Tj, values, gvec, _ = _assemble_case(group)
+    E, Dk = Zinv.shape[1], 2 * g.dof
+    slots = torch.zeros(E, Dk * Dk, dtype=torch.int64)
+    g_slots = torch.zeros(E, Dk, dtype=torch.int64)
+    op = ASSEMBLE_OPS[group]
+    with native.disabled() if not kernel else contextlib.nullcontext():
+        r, v, gv = op(Zinv[:0], Ti[:0], Tj[:0], None, slots, values[:0], g_slots, gvec[:0])
+        assert r.shape == (0, E, g.dof) and v.shape == (0, values.shape[1]) and gv.shape == (0, gvec.shape[1])
+        r, v, gv = op(Zinv[:, :0], Ti[:, :0], Tj[:, :0], None, slots[:0], values, g_slots[:0], gvec)
+        assert r.shape == (Zinv.shape[0], 0, g.dof) and torch.equal(v, values) and torch.equal(gv, gvec)
+
+
 @needs_kernel
 @pytest.mark.parametrize("group", GROUPS)
 def test_the_assemble_kernel_rejects_an_index_out_of_range(group):

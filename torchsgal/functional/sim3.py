@@ -287,12 +287,16 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 
 def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """d act(M exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation: y = u / w with
-    u = (M [p, 1])[:3] and w = M[3, 3], by the quotient rule, du and dw the first three rows and
-    the fourth of d(M exp(xi^) [p, 1])."""
-    J = B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, DOF, (1.0,), rows=4, size=3)
+    """d act(M exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation: [sC, -sC p^, sC p]
+    for xi = [rho, phi, lambda].  By the quotient rule on y = u / w, u = (M [p, 1])[:3] and
+    w = M[3, 3] (du and dw the first three rows and the fourth of d(M exp(xi^) [p, 1])), with
+    M's translation r set to zero: the Jacobian does not depend on r, and the quotient rule on
+    M itself would subtract terms of size s |r| that cancel (precision lost as |r| / |p|)."""
+    M0 = torch.cat([M[..., :, :3], torch.cat([torch.zeros_like(M[..., :3, 3:]), M[..., 3:, 3:]],
+                                             dim=-2)], dim=-1)
+    J = B.act_homogeneous_jacobian(M0, p, "p", MATRIX_DIM, hat, DOF, (1.0,), rows=4, size=3)
     w = M[..., 3, 3, None, None]
-    return (J[..., :3, :] - act(M, p).unsqueeze(-1) * J[..., 3:, :]) / w
+    return (J[..., :3, :] - act(M0, p).unsqueeze(-1) * J[..., 3:, :]) / w
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

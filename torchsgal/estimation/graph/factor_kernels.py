@@ -302,9 +302,8 @@ def _assemble_code(normal):
 
     def code(Zinv, Ti, Tj, L, slots, values, g_slots, g):
         r, H, gb = normal(Zinv, Ti, Tj, L)
-        B = values.shape[0]
-        return (r, values.index_add(1, slots.reshape(-1), H.reshape(B, -1)),
-                g.index_add(1, g_slots.reshape(-1), gb.reshape(B, -1)))
+        return (r, values.index_add(1, slots.reshape(-1), H.flatten(1)),
+                g.index_add(1, g_slots.reshape(-1), gb.flatten(1)))
 
     return code
 
