@@ -292,6 +292,7 @@ def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     w = M[3, 3] (du and dw the first three rows and the fourth of d(M exp(xi^) [p, 1])), with
     M's translation r set to zero: the Jacobian does not depend on r, and the quotient rule on
     M itself would subtract terms of size s |r| that cancel (precision lost as |r| / |p|)."""
+    checks.matrix(M, MATRIX_DIM, "g")
     M0 = torch.cat([M[..., :, :3], torch.cat([torch.zeros_like(M[..., :3, 3:]), M[..., 3:, 3:]],
                                              dim=-2)], dim=-1)
     J = B.act_homogeneous_jacobian(M0, p, "p", MATRIX_DIM, hat, DOF, (1.0,), rows=4, size=3)

@@ -16,8 +16,8 @@ same C pass.  ``se3_factor_assemble`` and ``se2_factor_assemble``, which the eng
 linearisation calls, add those blocks to each problem's normal equations, in the layout of the
 linear system (``layout.EntryLayout``: each factor's entries of H at its ``slots``, of g at its
 ``g_slots``), so that no (B, E, Dk, Dk) intermediate is written and read back; they return the
-sums as new tensors (a functional operator costs torch's dispatcher about half the time of one
-that writes its arguments in place: 18 against 34 us per call).  Under vmap the mapped axis
+sums as new tensors (torch's dispatcher gives an operator that writes its arguments in place
+a further Python step per call, about as costly as the rest of the call).  Under vmap the mapped axis
 of any of these operators joins the factors' batch.
 
 The engine's linearisation of a pose graph otherwise runs some thirty tensor operations (and,
