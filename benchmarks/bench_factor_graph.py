@@ -16,7 +16,9 @@
    Jacobians, and within them the operator ``torchsgal::se3_factor_assemble``), the linear solves
    and the rest.
 4. Native batching against ``torch.func.vmap`` over factors for the Between residual and its
-   analytic Jacobians (64 x 10 factors): medians and ratio.
+   analytic Jacobians (64 x 10 factors): medians and ratio.  Then the assembly of a block's
+   normal equations, ``torchsgal::normal_assemble`` (C kernel) against its tensor code, on
+   256 x 100 factors of 3 x 6: per factor, with the tangent axis last, and summed.
 5. Differentiable solves of the 64 pose graphs of 1. (measurements Z exp(xi), xi requiring
    grad): the plain solve, the forward and backward of ``backward_mode="implicit"`` and of
    ``"unroll"``, the implicit mode with nothing requiring grad, in alternation; medians, the
@@ -221,6 +223,38 @@ def bench_vmap_vs_native(repeats: int) -> dict:
     agree = max(float((x - y).abs().max()) for x, y in zip([a[0], *a[1]], [b[0], *b[1]]))
     return dict(factors=B * E, native_s=t_native, vmap_s=t_vmap, vmap_over_native=t_vmap / t_native,
                 max_abs_difference=agree)
+
+
+def bench_assembly(repeats: int) -> list[dict]:
+    """``torchsgal::normal_assemble`` (C kernel) against its tensor code (batched ``J.mT @ J``,
+    ``J.mT @ r`` and ``index_add``, as with the kernels off) on 256 problems x 100 factors of
+    3 x 6 (the rigid fit's point factors): per-factor blocks (each at its own slots), the same
+    with the tangent axis moved last (forward mode's layout), and summed blocks."""
+    from torchsgal.estimation.graph import normal_kernel
+    from torchsgal.functional import native
+
+    gen = torch.Generator().manual_seed(0)
+    B, E, m, Dk = 256, 100, 3, 6
+    J = torch.randn(B, E, m, Dk, generator=gen, dtype=torch.float64)
+    r = torch.randn(B, E, m, generator=gen, dtype=torch.float64)
+    rows = []
+    for name, Jl, summed in (("per factor", J, False),
+                             ("per factor, tangent axis last", J.movedim(-1, 0).contiguous().movedim(0, -1), False),
+                             ("summed", J, True)):
+        n = 1 if summed else E
+        slots = torch.arange(n * Dk * Dk).reshape(n, Dk * Dk)
+        g_slots = torch.arange(n * Dk).reshape(n, Dk)
+        values = torch.zeros(B, n * Dk * Dk, dtype=torch.float64)
+        g = torch.zeros(B, n * Dk, dtype=torch.float64)
+        args = (Jl, r, slots, values, g_slots, g, summed)
+        t_kernel, a = median_time(lambda: torch.ops.torchsgal.normal_assemble(*args), repeats)
+        with native.disabled():
+            t_tensor, b = median_time(lambda: normal_kernel.normal_assemble(*args), repeats)
+        diff = max(float(((x - y).abs() / y.abs().max()).max()) for x, y in zip(a, b))
+        rows.append(dict(block=name, problems=B, factors=E, rows=m, columns=Dk,
+                         kernel_s=t_kernel, tensor_s=t_tensor, tensor_over_kernel=t_tensor / t_kernel,
+                         max_rel_difference=diff))
+    return rows
 
 
 def bench_dense_solves(repeats: int) -> list[dict]:
@@ -541,6 +575,7 @@ def main() -> None:
     out["rigid_fit"] = bench_rigid_fit(args.repeats)
     out["profile_pose_graphs_s"] = profile_pose_graphs()
     out["between_native_vs_vmap"] = bench_vmap_vs_native(args.repeats)
+    out["assembly"] = bench_assembly(args.repeats)
     out["differentiable"] = bench_differentiable(args.repeats)
     out["dense_solves"] = bench_dense_solves(args.repeats)
     out["kept_memory"] = bench_kept_memory(args.repeats)  # last: it changes the process
@@ -613,6 +648,19 @@ def _markdown(o: dict) -> str:
         f"Native batching {vm['native_s'] * 1e3:.2f} ms, torch.func.vmap over factors "
         f"{vm['vmap_s'] * 1e3:.2f} ms (vmap / native {vm['vmap_over_native']:.2f}); "
         f"largest difference {vm['max_abs_difference']:.1e}.",
+        "",
+        "## Assembly of a block's normal equations",
+        "",
+        "`torch.ops.torchsgal.normal_assemble` (C kernel: J^T J and J^T r of every factor added "
+        "at its slots) against its tensor code (batched products and `index_add`, as with the "
+        "kernels off), on the same J and r:",
+        "",
+        "| block | problems x factors | J per factor | kernel ms | tensor code ms | "
+        "tensor / kernel | largest relative difference |",
+        "|---|---|---|---|---|---|---|",
+        *[f"| {r['block']} | {r['problems']} x {r['factors']} | {r['rows']} x {r['columns']} | "
+          f"{r['kernel_s'] * 1e3:.3f} | {r['tensor_s'] * 1e3:.3f} | {r['tensor_over_kernel']:.2f} | "
+          f"{r['max_rel_difference']:.1e} |" for r in o.get("assembly", [])],
         "",
         *_markdown_differentiable(o["differentiable"]),
         "",

@@ -5,7 +5,9 @@
  * torchsgal::block_cholesky_solve, estimation/block_cholesky.py), and the
  * residuals and Jacobians of the built-in SE(3) and SE(2) priors and betweens (_native_factors.h,
  * SE(3) on the closed forms of functional/_native_sgal3.h; torchsgal::se3_factor_terms and
- * se2_factor_terms, estimation/graph/factor_kernels.py).
+ * se2_factor_terms, estimation/graph/factor_kernels.py), and the blocks J^T J and J^T r of
+ * any factor's normal equations (_native_normal.h; torchsgal::normal_assemble,
+ * estimation/graph/normal_kernel.py).
  *
  * No torch headers: the Python side passes data pointers of contiguous CPU tensors it allocated
  * and checked.  The splitting of a batch over threads is the core kernels' (_native_common.h).
@@ -47,6 +49,7 @@
 #define COS cos
 #define ATAN2 atan2
 #include "_native_factors.h"
+#include "_native_normal.h"
 #include "_native_block_cholesky.h"
 #include "_native_cholesky.h"  /* undefines T, SFX and SQRT */
 #undef SIN
@@ -59,6 +62,7 @@
 #define COS cosf
 #define ATAN2 atan2f
 #include "_native_factors.h"
+#include "_native_normal.h"
 #include "_native_block_cholesky.h"
 #include "_native_cholesky.h"
 #undef SIN
@@ -209,6 +213,41 @@ static PyObject *py_se2_factor_assemble(PyObject *self, PyObject *const *a, Py_s
                            se2_factor_assemble_range_f32, 1, "se2_factor_assemble");
 }
 
+/* normal_assemble(J, r, values, g, slots, g_slots, dims, B, cost, threads, is_double): dims (13
+ * int64) as _native_normal.h reads them; cost: the work of one problem in units of one SGal(3)
+ * exp.  A slot out of range, or more than NORMAL_MAX_DK columns, raises ValueError. */
+static PyObject *py_normal_assemble(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[7];
+    int64_t ints[4]; /* B, cost, threads, is_double */
+    if (read_call(a, nargs, 7, ptr, 4, ints, "normal_assemble") < 0) return NULL;
+    const int64_t *d = (const int64_t *)ptr[6];
+    const int64_t k = d[2], rows = d[5] ? 1 : d[0];
+    if (k < 1 || k > NORMAL_MAX_DK) {
+        PyErr_Format(PyExc_ValueError, "normal_assemble: Dk must lie in [1, %d], got %lld",
+                     NORMAL_MAX_DK, (long long)k);
+        return NULL;
+    }
+    const int64_t *slots = ptr[4], *g_slots = ptr[5];
+    for (int64_t i = 0; i < rows * k * k; ++i)
+        if (slots[i] < 0 || slots[i] >= d[3]) {
+            PyErr_Format(PyExc_ValueError, "normal_assemble: slots must lie in [0, %lld), got %lld",
+                         (long long)d[3], (long long)slots[i]);
+            return NULL;
+        }
+    for (int64_t i = 0; i < rows * k; ++i)
+        if (g_slots[i] < 0 || g_slots[i] >= d[4]) {
+            PyErr_Format(PyExc_ValueError, "normal_assemble: g_slots must lie in [0, %lld), got %lld",
+                         (long long)d[4], (long long)g_slots[i]);
+            return NULL;
+        }
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[3] ? normal_assemble_for_f64(k) : normal_assemble_for_f32(k), ptr, ints[0],
+                 ints[1], (int)ints[2]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
@@ -229,6 +268,8 @@ static PyMethodDef methods[] = {
      "SE(3) normal-equation blocks added into the problems' values (Zinv, Ti, Tj, L, rw, values, g, slots, g_slots, B, E, size, D, shared, threads, is_double)"},
     {"se2_factor_assemble", (PyCFunction)(void (*)(void))py_se2_factor_assemble, METH_FASTCALL,
      "SE(2) normal-equation blocks added into the problems' values (Zinv, Ti, Tj, L, rw, values, g, slots, g_slots, series, B, E, size, D, shared, threads, is_double)"},
+    {"normal_assemble", (PyCFunction)(void (*)(void))py_normal_assemble, METH_FASTCALL,
+     "normal-equation blocks J^T J, J^T r added into the problems' values and g (J, r, values, g, slots, g_slots, dims, B, cost, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

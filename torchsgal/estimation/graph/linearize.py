@@ -4,9 +4,10 @@
 vector, each factor block's data and noise with a problem axis, and the flat indices of every
 factor's blocks in the normal equations.  ``linearize`` evaluates all factors of a block
 together, whitens, applies the robust loss (``robust.correct``) and assembles
-H = sum J~^T J~, g = sum J~^T r~ with one ``index_add_`` per block each, H in the layout of the
-linear system that solves it (``layout.EntryLayout``: the dense matrix, or the stored triangle
-of the block and sparse factorisations).
+H = sum J~^T J~, g = sum J~^T r~ per block (``normal_kernel.assemble``; the built-in SE(3) and
+SE(2) priors and betweens by ``factor_kernels``), H in the layout of the linear system that
+solves it (``layout.EntryLayout``: the dense matrix, or the stored triangle of the block and
+sparse factorisations).
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from ...groups import SE2, SE3, LieGroup
 from . import factor_kernels
 from .layout import EntryLayout
 from .log_terms import se3_inverse
+from .normal_kernel import assemble
 from .problem import ONE_PASS, Block, Problem
 from .robust import correct, corrected
 
@@ -271,10 +273,7 @@ def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | Non
         J = J.expand((B, block.size) + J.shape[-2:])
         # 1/2 |r~|^2; without a loss rho(s) = s = |r~|^2 already (``robust.correct``)
         model = model + (half if block.factor.loss is None else 0.5 * (r * r).sum(dim=(-1, -2)))
-        if block.reduced:  # sum over the factors: one (Dk x E m) (E m x Dk) product
-            J = J.reshape(B, -1, J.shape[-1])
-            r = r.reshape(B, -1)
-        H, gb = J.mT @ J, (J.mT @ r.unsqueeze(-1)).squeeze(-1)  # J^T J, J^T r
-        values.index_add_(1, layout.block_slots[n], H.reshape(B, -1))
-        g.index_add_(1, block.g_index, gb.reshape(B, -1))
+        Dk, rows = J.shape[-1], 1 if block.reduced else block.size
+        values, g = assemble(J, r, layout.block_slots[n].reshape(rows, Dk * Dk), values,
+                             block.g_index.reshape(rows, Dk), g, block.reduced)
     return Linearization(values, g, cost, model)
