@@ -126,6 +126,19 @@ def test_empty_batches_and_blocks(kernel):
             assert torch.equal(v, values) and torch.equal(gv, g)
 
 
+@pytest.mark.parametrize("kernel", [True, False])
+def test_a_block_without_columns_adds_nothing(kernel):
+    """Dk = 0 (a factor on no tangent directions): values and g unchanged on both paths."""
+    J, r, _, values, _, g = case()
+    J = J[..., :0]
+    slots, g_slots = torch.zeros(5, 0, dtype=torch.int64), torch.zeros(5, 0, dtype=torch.int64)
+    with native.disabled() if not kernel else contextlib.nullcontext():
+        v, gv = op(J, r, slots, values, g_slots, g, False)
+        v2, g2 = normal_kernel.assemble(J, r, slots, values, g_slots, g, False)
+    assert torch.equal(v, values) and torch.equal(gv, g)
+    assert torch.equal(v2, values) and torch.equal(g2, g)
+
+
 def test_bad_arguments_name_themselves():
     J, r, slots, values, g_slots, g = case()
     with pytest.raises(ValueError, match=r"J must have shape \(B, E, m, Dk\), got \(5, 4, 6\)"):

@@ -9,8 +9,8 @@
  * any factor's normal equations (_native_normal.h; torchsgal::normal_assemble,
  * estimation/graph/normal_kernel.py).
  *
- * No torch headers: the Python side passes data pointers of contiguous CPU tensors it allocated
- * and checked.  The splitting of a batch over threads is the core kernels' (_native_common.h).
+ * No torch headers: the Python side passes data pointers of CPU tensors it checked: contiguous
+ * ones it allocated, and for normal_assemble the caller's J and r with their strides.  The splitting of a batch over threads is the core kernels' (_native_common.h).
  */
 #include "../functional/_native_common.h"
 

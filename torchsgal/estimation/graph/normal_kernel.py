@@ -9,18 +9,20 @@ the sums over the factors at ``slots[0]`` and ``g_slots[0]`` (slots (1, Dk * Dk)
 (1, Dk)).  The results are new tensors; the
 inputs are left as they are.
 
-The engine's linearisation assembles every block that is not a built-in SE(3)/SE(2) prior or
-between (those have ``factor_kernels``) this way: user factors, point observations, robust
-blocks.  The tensor code forms H with a batched matrix product and adds it with ``index_add``;
-torch's CPU products of many small matrices cost a few microseconds per matrix (per problem for
-a summed block, per factor otherwise) and write every (Dk, Dk) block before it is added.  The C
+The engine's linearisation assembles every block of at most ``MAX_DK`` columns that is not a
+built-in SE(3)/SE(2) prior or between (those have ``factor_kernels``) this way: user factors,
+point observations, robust blocks; wider blocks (e.g. a between of SGal(3), 20 columns) take
+the tensor code.  The tensor code forms H with a batched matrix product and adds it with
+``index_add``: every (Dk, Dk) block is written and read back, and for a summed block torch's CPU
+product of one (Dk, E m) by (E m, Dk) pair per problem costs a few microseconds each.  The C
 kernel of ``estimation/_native_normal.h`` reads J and r once through their strides (an expanded
 noise, a moved tangent axis: no copy), accumulates each block in a local square of fixed size
 and adds it at its slots, the problems split over ``torch.get_num_threads()`` threads.  It takes
-CPU float32/float64 blocks of at most ``MAX_DK`` columns where nothing observes the call
+CPU float32/float64 blocks of 1 to ``MAX_DK`` columns where nothing observes the call
 (``factor_kernels.usable``); elsewhere the tensor code runs (the reference the tests compare the
 kernel with), and autograd, forward mode and ``torch.func`` see only the tensor code
-(``assemble``).  Under vmap the mapped axis joins the problems' axis.
+(``assemble``).  Under vmap the mapped axis joins the problems' axis.  Slots out of range
+raise: a ``ValueError`` from the kernel, torch's ``index_add`` error from the tensor code.
 """
 from __future__ import annotations
 
@@ -83,7 +85,7 @@ def _kernel(J, r, slots, values, g_slots, g, summed: bool):
     lib = dense_solve._lib
     B, E, m, Dk = J.shape
     if (lib is None or not native.enabled() or J.dtype not in (torch.float32, torch.float64)
-            or Dk > MAX_DK):
+            or not 1 <= Dk <= MAX_DK):
         return _tensor_code(J, r, slots, values, g_slots, g, summed)
     J, r = J.resolve_neg().resolve_conj(), r.resolve_neg().resolve_conj()
     slots, g_slots = slots.contiguous(), g_slots.contiguous()
@@ -126,8 +128,8 @@ def _vmap(info, in_dims, J, r, slots, values, g_slots, g, summed):
 def assemble(J: torch.Tensor, r: torch.Tensor, slots: torch.Tensor, values: torch.Tensor,
              g_slots: torch.Tensor, g: torch.Tensor, summed: bool
              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The engine's call: the operator where its kernel runs (``usable``, at most ``MAX_DK``
+    """The engine's call: the operator where its kernel runs (``usable``, 1 to ``MAX_DK``
     columns), else the tensor code, which autograd and ``torch.func`` differentiate."""
-    if J.shape[-1] <= MAX_DK and usable(J, r, values, g):
+    if 1 <= J.shape[-1] <= MAX_DK and usable(J, r, values, g):
         return torch.ops.torchsgal.normal_assemble(J, r, slots, values, g_slots, g, summed)
     return _tensor_code(J, r, slots, values, g_slots, g, summed)
