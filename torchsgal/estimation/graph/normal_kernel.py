@@ -6,8 +6,7 @@ B problems and r (B, E, m) their whitened residuals; each factor's H = J^T J (Dk
 to its problem's ``values`` (B, size) at ``slots[e]`` (Dk * Dk,) and J^T r to ``g`` (B, D) at
 ``g_slots[e]`` (Dk,), or with ``summed`` (every factor on the same variables: ``Block.reduced``)
 the sums over the factors at ``slots[0]`` and ``g_slots[0]`` (slots (1, Dk * Dk), g_slots
-(1, Dk)).  The results are new tensors; the
-inputs are left as they are.
+(1, Dk)).  The results are new tensors; the inputs are left as they are.
 
 The engine's linearisation assembles every block of at most ``MAX_DK`` columns that is not a
 built-in SE(3)/SE(2) prior or between (those have ``factor_kernels``) this way: user factors,
