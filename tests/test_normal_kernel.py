@@ -6,11 +6,11 @@ written) and the engine's use of it."""
 from __future__ import annotations
 
 import contextlib
-import os
 
 import numpy as np
 import pytest
 import torch
+from test_factor_kernels import needs_kernel
 from torch.library import opcheck
 
 from torchsgal.estimation import dense_solve
@@ -19,16 +19,6 @@ from torchsgal.functional import native
 
 f64 = torch.float64
 op = torch.ops.torchsgal.normal_assemble
-
-_no_kernel = pytest.mark.skipif(not dense_solve.available()
-                                and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
-                                reason="the estimation C kernels were not compiled")
-
-
-def needs_kernel(test):
-    """Tests of the C kernel itself: left out of the run with the kernels off (.ci/run)."""
-    return pytest.mark.kernels(_no_kernel(test))
-
 
 def case(B=3, E=5, m=4, Dk=6, size=50, D=11, summed=False, dtype=f64, seed=0):
     """J (B, E, m, Dk), r (B, E, m), slots drawn with repeats, random bases to add into."""

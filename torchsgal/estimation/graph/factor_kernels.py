@@ -317,9 +317,15 @@ def _check_assemble(Zinv, Ti, Tj, L, slots, values, g_slots, g, n: int) -> None:
         raise ValueError(f"Tj must have shape (B, E, {n}, {n}), got {tuple(Tj.shape)}")
     B, E = Tj.shape[:2]
     checks.same_device_dtype(values=values, g=g, Tj=Tj)
-    for name, t, shape in (("slots", slots, (E, Dk * Dk)), ("g_slots", g_slots, (E, Dk))):
-        if t.dtype != torch.int64 or t.device != Tj.device or tuple(t.shape) != shape:
-            raise ValueError(f"{name} must be int64 of shape {shape} on {Tj.device}, got "
+    check_index_maps(slots, g_slots, values, g, B, E, Dk, Tj.device)
+
+
+def check_index_maps(slots, g_slots, values, g, B: int, rows: int, Dk: int, device) -> None:
+    """The assemble operators' index maps, slots (rows, Dk * Dk) and g_slots (rows, Dk) int64
+    on ``device``, and the sums they add into, values (B, size) and g (B, D)."""
+    for name, t, shape in (("slots", slots, (rows, Dk * Dk)), ("g_slots", g_slots, (rows, Dk))):
+        if t.dtype != torch.int64 or t.device != device or tuple(t.shape) != shape:
+            raise ValueError(f"{name} must be int64 of shape {shape} on {device}, got "
                              f"{t.dtype} of shape {tuple(t.shape)} on {t.device}")
     for name, t in (("values", values), ("g", g)):
         if t.dim() != 2 or t.shape[0] != B:

@@ -29,7 +29,7 @@ import torch
 
 from ...functional import checks, native
 from .. import dense_solve
-from .factor_kernels import usable
+from .factor_kernels import check_index_maps, usable
 
 __all__ = ["normal_assemble", "assemble", "MAX_DK"]
 
@@ -46,14 +46,7 @@ def _check(J, r, slots, values, g_slots, g, summed: bool) -> None:
                          f"{tuple(r.shape) if isinstance(r, torch.Tensor) else type(r).__name__}")
     checks.boolean(summed, "summed")
     checks.same_device_dtype(J=J, r=r, values=values, g=g)
-    rows = 1 if summed else E
-    for name, t, shape in (("slots", slots, (rows, Dk * Dk)), ("g_slots", g_slots, (rows, Dk))):
-        if t.dtype != torch.int64 or t.device != J.device or tuple(t.shape) != shape:
-            raise ValueError(f"{name} must be int64 of shape {shape} on {J.device}, got "
-                             f"{t.dtype} of shape {tuple(t.shape)} on {t.device}")
-    for name, t in (("values", values), ("g", g)):
-        if t.dim() != 2 or t.shape[0] != B:
-            raise ValueError(f"{name} must have shape ({B}, n), got {tuple(t.shape)}")
+    check_index_maps(slots, g_slots, values, g, B, 1 if summed else E, Dk, J.device)
 
 
 def _tensor_code(J, r, slots, values, g_slots, g, summed: bool):
