@@ -299,3 +299,13 @@ def interleaved(cases: dict, *, target_s: float, min_rounds: int, max_rounds: in
 def paired_ratio(times: dict, slow: str, fast: str) -> float:
     """Median over rounds of time(slow) / time(fast)."""
     return statistics.median(a / b for a, b in zip(times[slow], times[fast]))
+
+
+def kernels_note() -> str:
+    """Whether the engine's optional C kernels run on this machine's CPU (the host-CPU rows of a
+    device run): they are compiled at install and missing where no compiler was there."""
+    from torchsgal.estimation import dense_solve
+    from torchsgal.functional import native
+    if dense_solve.available() and native.enabled():
+        return "the engine's C kernels built and on"
+    return "the engine's C kernels not built or off (the host CPU runs the tensor code)"

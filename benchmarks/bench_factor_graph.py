@@ -57,7 +57,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 
-from _timing import cpu_model, resolve_device, synchronize  # noqa: E402
+from _timing import cpu_model, kernels_note, resolve_device, synchronize  # noqa: E402
 from test_factor_graph import (  # noqa: E402
     EDGES_I,
     EDGES_J,
@@ -478,7 +478,8 @@ def main_device(args) -> None:
                                               else cpu_model()),
              cpu=cpu_model(), torch=torch.__version__, cuda=torch.version.cuda,
              threads=torch.get_num_threads(), repeats=args.repeats, time_budget_s=args.time_budget,
-             gtsam=gtsam_note, command=" ".join(["python benchmarks/bench_factor_graph.py", *sys.argv[1:]]))
+             gtsam=gtsam_note, kernels=kernels_note(),
+             command=" ".join(["python benchmarks/bench_factor_graph.py", *sys.argv[1:]]))
     o["pose_graphs"] = device_pose_graphs(device, args.repeats, deadline, with_gtsam=has_gtsam)
     print(o["pose_graphs"], flush=True)
     o["pose_graphs_far"] = device_pose_graphs(device, max(1, args.repeats // 2), deadline, seed=2,
@@ -517,7 +518,8 @@ def _markdown_device(o: dict) -> str:
     lines = [
         f"# Factor-graph engine on {o['device']} ({o['device_name']}) and on the host CPU", "",
         f"`{o['command']}`; torch {o['torch']} (CUDA {o['cuda']}); host CPU {o['cpu']}, {o['threads']} "
-        f"thread(s); medians of up to --repeats {o['repeats']} alternated runs after an untimed one, the "
+        f"thread(s), {o.get('kernels', 'C kernels not recorded')}; medians of up to --repeats "
+        f"{o['repeats']} alternated runs after an untimed one, the "
         f"device synchronised before and after each; time budget {o['time_budget_s']} s (fewer runs, or "
         f"rows not run, once spent); total {o['total_s']:.1f} s; {o['gtsam']}.", "",
         "SE(3) pose graphs (8 poses, 10 edges, a prior; the generator of tests/test_factor_graph.py), "

@@ -56,7 +56,7 @@ from torchsgal.estimation.g2o import PoseGraph, odometry_initial_guess, read_pos
 from torchsgal.estimation.sparse import SparseCholesky, available_backends
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _timing import cpu_model, resolve_device, synchronize  # noqa: E402
+from _timing import cpu_model, kernels_note, resolve_device, synchronize  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 PROBLEMS = ("sphere2500.txt", "pose3example-grid.txt", "w100.graph")
@@ -390,7 +390,7 @@ def main_device(args, device: torch.device) -> dict:
                    python=sys.version.split()[0], torch=torch.__version__, cuda=torch.version.cuda,
                    threads=torch.get_num_threads(), repeats=args.repeats, time_budget_s=args.time_budget,
                    prior_sigma=PRIOR_SIGMA, gtsam=gtsam_note, theseus=theseus_note,
-                   sparse_backends=list(available_backends()), warm_up_s=warm,
+                   sparse_backends=list(available_backends()), warm_up_s=warm, kernels=kernels_note(),
                    environment={k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")},
                    command=" ".join(["python benchmarks/bench_posegraph.py", *sys.argv[1:]]), problems={})
     for name in args.problems:
@@ -461,7 +461,8 @@ def markdown_device(results: dict) -> str:
     lines = [f"# Pose-graph optimisation: the engine on {results['device']} ({results['device_name']}) "
              "and on the host CPU", "",
              f"`{results['command']}`; torch {results['torch']} (CUDA {results['cuda']}), host CPU "
-             f"{results['cpu']}, {results['threads']} threads; median of up to {results['repeats']} "
+             f"{results['cpu']}, {results['threads']} threads, "
+             f"{results.get('kernels', 'C kernels not recorded')}; median of up to {results['repeats']} "
              f"runs (5x that, after an untimed run, for the problems of at most --dense-limit "
              f"unknowns), the device synchronised before and after each; time budget "
              f"{results['time_budget_s']} s (a row with fewer runs than asked, or not run, when it "

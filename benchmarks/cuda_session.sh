@@ -1,9 +1,15 @@
 #!/usr/bin/env bash
 # The GPU checks in one call of a lent GPU machine: the CUDA tests, then the CUDA benchmarks.
 #
-#   bash benchmarks/cuda_session.sh [STEP ...]   STEP: env tests ops core compile imu gdh
+#   bash benchmarks/cuda_session.sh [STEP ...]   STEP: env build tests ops core compile imu gdh
 #                                                posegraph factor_graph suite
 #                                                (default: env tests ops factor_graph posegraph)
+#
+# build: the optional C kernels for that machine's Python (setup.py build_ext --inplace), so
+# that the host-CPU rows of the benchmarks and the CPU side of the tests run what a user's CPU
+# runs; without it they run the tensor code.  TEST_WORKERS (default 0: one process) runs the
+# CUDA tests on that many pytest-xdist workers, TESTS_TIMEOUT (default 400) bounds them in
+# seconds; POSEGRAPH_BUDGET (default 80) is the pose-graph step's time budget in seconds.
 #
 # Runs the checkout it lives in (PYTHONPATH, no install) with that machine's python3 and
 # torch; extra pure-Python packages (pypose, the peer of bench_core) are read from .gpu_site/
@@ -47,16 +53,17 @@ print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.get
 print(\"numpy\", numpy.__version__)'; $PY -c 'import pypose; print(\"pypose\", pypose.__version__)'; \
 $PY -c 'import triton; print(\"triton\", triton.__version__)'; \
 nproc; $PY -m pytest --version" ;;
-    tests) step tests timeout 400 $PY -m pytest tests/test_cuda.py $(ls tests/test_cuda_engine.py 2>/dev/null) \
-             -p no:cacheprovider -W ignore::DeprecationWarning -rA --durations=15 ;;
+    build) step build timeout 120 $PY setup.py build_ext --inplace -j 3 ;;
+    tests) step tests timeout "${TESTS_TIMEOUT:-400}" $PY -m pytest tests/test_cuda.py $(ls tests/test_cuda_engine.py 2>/dev/null) \
+             -n "${TEST_WORKERS:-0}" -p no:cacheprovider -W ignore::DeprecationWarning -rA --durations=15 ;;
     # the operators on CUDA (their compiled closed forms) against eager code and the peers
     ops) step ops timeout 150 $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" \
            --cases "operator eager" "closed form eager" "matrix_exp eager" "fwd+bwd custom eager" \
            "fwd+bwd plain eager" "pypose" ;;
     # the estimation engine on the device and on the host CPU in the same run
     # the small problems first: sphere2500's host-side sparse solve takes most of the budget
-    posegraph) step posegraph timeout 120 $PY benchmarks/bench_posegraph.py --device cuda --repeats 3 \
-                 --time-budget 80 --problems pose3example-grid.txt w100.graph sphere2500.txt \
+    posegraph) step posegraph timeout $((${POSEGRAPH_BUDGET:-80} + 40)) $PY benchmarks/bench_posegraph.py \
+                 --device cuda --repeats 3 --time-budget "${POSEGRAPH_BUDGET:-80}" --problems pose3example-grid.txt w100.graph sphere2500.txt \
                  --out "$WORK/posegraph_cuda" ;;
     factor_graph) step factor_graph timeout 100 $PY benchmarks/bench_factor_graph.py --device cuda --repeats 5 \
                     --time-budget 40 --out "$WORK/factor_graph_cuda" ;;

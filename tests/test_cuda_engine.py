@@ -78,7 +78,8 @@ def test_batched_pose_graphs_match_cpu():
     dev = fg.levenberg_marquardt(_pose_graph(Z, Z0, x0, DEVICE))
     cpu = fg.levenberg_marquardt(_pose_graph(Z, Z0, x0, CPU))
     assert (cpu.report.status == SolverStatus.CONVERGED).all(), cpu.report.counts()
-    assert isinstance(dev.system, DenseSystem)
+    if DEVICE.type == "cuda":  # the block-sparse Cholesky kernel is the CPU's: "auto" takes dense
+        assert isinstance(dev.system, DenseSystem)
     _same_solve(dev, cpu, "x")
     _same(dev.marginal_covariance("x", [1, 6]), cpu.marginal_covariance("x", [1, 6]), f64,
           "marginal covariances")
@@ -228,3 +229,67 @@ def test_solve_loop_reads_once_per_round_on_device():
     assert 0 < len(loop) <= 2 * rounds, loop
     _same(result.report.cost, fg.levenberg_marquardt(_pose_graph(Z, Z0, x0, CPU)).report.cost, f64,
           "final cost")
+
+
+# --------------------------------------------------------- the engine's operators on the device
+def _operator_cases():
+    """Each of the engine's registered operators with CPU arguments (the builders of its CPU
+    tests) and the opcheck utilities its CPU test runs."""
+    from test_block_cholesky import MIXED, analysed, pattern_matrix, stored
+    from test_dense_solve import spd
+    from test_factor_kernels import _assemble_case, _pair, _pair2
+    from test_normal_kernel import case
+
+    ops = torch.ops.torchsgal
+    cases = []
+    for summed in (False, True):
+        J, r, slots, values, g_slots, g = case(B=2, E=3, m=2, Dk=4, summed=summed)
+        cases.append((f"normal_assemble summed={summed}", ops.normal_assemble,
+                      (J, r, slots, values, g_slots, g, summed), None))
+    gen = torch.Generator().manual_seed(5)
+    for group, pair, d in (("se3", _pair, 6), ("se2", _pair2, 3)):
+        Zinv, Ti, Tj = pair(0.5, n=4, seed=7)
+        L = torch.randn(d, d, generator=gen, dtype=f64).tril() + 3 * torch.eye(d, dtype=f64)
+        cases += [(f"{group}_factor_terms between", getattr(ops, f"{group}_factor_terms"), (Zinv, Ti, Tj, True), None),
+                  (f"{group}_factor_terms prior", getattr(ops, f"{group}_factor_terms"), (Zinv, None, Tj, False), None),
+                  (f"{group}_factor_normal", getattr(ops, f"{group}_factor_normal"), (Zinv, Ti, Tj, L), None)]
+        _, Zb, Tib, Tjb, vals, gvec, gen2 = _assemble_case(group.upper(), B=2, E=3)
+        slots = torch.randint(0, vals.shape[1], (3, 4 * d * d), generator=gen2)
+        g_slots = torch.randint(0, gvec.shape[1], (3, 2 * d), generator=gen2)
+        cases.append((f"{group}_factor_assemble", getattr(ops, f"{group}_factor_assemble"),
+                      (Zb, Tib, Tjb, L, slots, vals, g_slots, gvec), None))
+    A, R = spd(5, 6, f64, seed=8), torch.randn(5, 6, 3, dtype=f64, generator=gen)
+    cases += [(f"cholesky_solve back={back}", ops.cholesky_solve, (A, R, back), None) for back in (True, False)]
+    Lc = torch.linalg.cholesky(A)
+    cases += [(f"triangular_solve transpose={t}", ops.triangular_solve, (Lc, R, t), None) for t in (True, False)]
+    st = analysed(*MIXED)
+    Ab, _ = pattern_matrix(*MIXED, B=2, seed=3)
+    cases.append(("block_cholesky_solve", ops.block_cholesky_solve,
+                  (stored(st, Ab), torch.randn(2, st.size, 2, dtype=f64, generator=gen), st.packed),
+                  ("test_schema", "test_faketensor")))
+    return cases
+
+
+def test_engine_operators_on_device_match_cpu_and_pass_opcheck():
+    """Every registered operator of the engine (the factor terms, normal blocks and assembly of
+    SE(3)/SE(2), the normal equations of any block, the dense and block-sparse Cholesky solves)
+    on DEVICE: the same outputs as on the CPU, new tensors on DEVICE, and torch.library.opcheck
+    with device arguments (float64 and float32)."""
+    from torch.library import opcheck
+
+    for name, op, args, utils in _operator_cases():
+        for dtype in (f64, torch.float32):
+            cpu_args = tuple(a.to(dtype) if isinstance(a, torch.Tensor) and a.is_floating_point() else a
+                             for a in args)
+            dev_args = tuple(a.to(DEVICE) if isinstance(a, torch.Tensor) else a for a in cpu_args)
+            expected = op(*cpu_args)
+            got = op(*dev_args)
+            for k, (x, y) in enumerate(zip(got, expected)):
+                if y.is_floating_point():
+                    _same(x, y, dtype, f"{name} {dtype} output {k}")
+                else:  # a solve's failure flags
+                    assert x.device.type == DEVICE.type and torch.equal(x.cpu(), y), (name, k, x, y)
+            for a, b in zip(dev_args, cpu_args):  # no argument written
+                if isinstance(a, torch.Tensor):
+                    assert torch.equal(a.cpu(), b), f"{name}: an argument was written"
+            opcheck(op.default, dev_args, **({} if utils is None else {"test_utils": utils}))
