@@ -96,6 +96,17 @@ def np64(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().double().numpy()
 
 
+def needs_robot_data() -> None:
+    """Skips the calling test where example-robot-data's URDF files are not installed (a
+    failure under TORCHSGAL_NO_SKIPS=1, like every skip)."""
+    from torchsgal.kinematics.urdf import example_robot_data_dir
+
+    try:
+        example_robot_data_dir()
+    except FileNotFoundError as e:
+        pytest.skip(str(e))
+
+
 def _no_skips() -> bool:
     return os.environ.get("TORCHSGAL_NO_SKIPS") == "1"
 

@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import needs_robot_data
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -43,6 +44,8 @@ def test_readme_python_block_runs(index, tmp_path):
     """Every ```python block of the README runs as it is (in a scratch directory, so that
     nothing it writes lands in the repository)."""
     code = _readme_python_blocks()[index]
+    if "load_robot" in code:
+        needs_robot_data()
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0, f"README python block {index}:\n{code}\n{out.stderr[-3000:]}"

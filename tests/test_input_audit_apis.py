@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import needs_robot_data
 
 import torchsgal as ts
 from torchsgal import load
@@ -328,6 +329,7 @@ def test_gtsam_pim_checks_params_and_biases():
 # ------------------------------------------------------------------ kinematics
 @pytest.fixture(scope="module")
 def panda():
+    needs_robot_data()
     return robots.panda()
 
 
@@ -348,6 +350,7 @@ def test_ik_generator_type(panda):
 
 
 def test_urdf_end_link_type():
+    needs_robot_data()
     with pytest.raises(TypeError, match="end_link must be a link name, a list of them or None, got 3"):
         robots.load_robot("panda", end_link=3)
 
