@@ -3,9 +3,10 @@ suite checks against their definitions and the peers), and CUDA's own host-sync 
 hot paths.
 
 Collected only where ``torch.cuda.is_available()`` (see conftest.py): CI has no GPU, so these
-tests run on a lent GPU machine (``python -m pytest tests/test_cuda.py``); the README says when
-they last ran.  ``TORCHSGAL_CUDA_TEST_DEVICE=cpu`` runs this file against the CPU itself, to work
-on the harness without a GPU (the parity checks are then trivial and the sync detector is off).
+tests run on a GPU machine (``python -m pytest tests/test_cuda.py``); docs/benchmarks.md (On
+CUDA) names the machine and torch they last passed on.  ``TORCHSGAL_CUDA_TEST_DEVICE=cpu`` runs
+this file against the CPU itself, to work on the harness without a GPU (the parity checks are
+then trivial and the sync detector is off).
 """
 from __future__ import annotations
 
