@@ -576,6 +576,15 @@ def main(argv=None) -> int:
     log(f"torch {env['torch']} | pk {env['pytorch_kinematics']} | {where} | "
         f"threads {env['torch_num_threads']} | n={args.n:,}")
     sections = [x.strip() for x in args.sections.split(",")]
+    robot_data_missing = None
+    if {"panda", "ik"} & set(sections):  # the Panda's URDF comes from example-robot-data
+        from torchsgal.kinematics.urdf import example_robot_data_dir
+        try:
+            example_robot_data_dir()
+        except FileNotFoundError as e:
+            robot_data_missing = str(e)
+            sections = [x for x in sections if x not in ("panda", "ik")]
+            log(f"the Panda sections are not run: {robot_data_missing}")
     results = [run_dtype(getattr(torch, d.strip()), args, device, pk is not None)
                for d in args.dtypes.split(",")] if "iiwa" in sections else []
     panda_results = [run_panda(getattr(torch, d.strip()), args, device, pk)
@@ -592,6 +601,9 @@ def main(argv=None) -> int:
     if pk is None:
         md += [f"NOTE: pytorch-kinematics is not importable ({pk_missing}): its cases, ratios and "
                "agreement rows were not run.", ""]
+    if robot_data_missing is not None:
+        md += [f"NOTE: the Panda sections (URDF pose, velocity and acceleration; IK) were not run: "
+               f"{robot_data_missing}.", ""]
     for res in results:
         md += table_md(res)
     verdict = []
