@@ -1,7 +1,7 @@
-"""The operators of SGal(3)'s subgroups SE(3) and SE_2(3) (``torchsgal::se3_*``, ``se23_*``,
-functional/ops.py) and their C kernels (functional/_native_sgal3.h: exp, log, J_l and J_l^-1 of
-each) against the tensor closed forms of
-functional/se3.py and se23.py at every angle band, in both dtypes; opcheck of the six operators
+"""The operators of SGal(3)'s subgroups SO(3), SE(3) and SE_2(3) (``torchsgal::so3_*``, ``se3_*``,
+``se23_*``, functional/ops.py) and their C kernels (functional/_native_sgal3.h: exp, log, J_l and
+J_l^-1 of each) against the tensor closed forms of
+functional/so3.py, se3.py and se23.py at every angle band, in both dtypes; opcheck of the six operators
 of each; where the kernels run.  The tensor code is itself checked against its definitions and
 peers elsewhere (tests/test_definitions.py, tests/test_gtsam.py)."""
 from __future__ import annotations
@@ -14,10 +14,10 @@ import pytest
 import torch
 from test_native import ANGLES, _Recorder, assert_rowwise_close
 
-from torchsgal import SE3, SE23
-from torchsgal.functional import native, se3, se23
+from torchsgal import SE3, SE23, SO3
+from torchsgal.functional import native, se3, se23, so3
 
-GROUPS = {"se3": (SE3, se3), "se23": (SE23, se23)}
+GROUPS = {"so3": (SO3, so3), "se3": (SE3, se3), "se23": (SE23, se23)}
 
 
 def _op(name):

@@ -1,6 +1,6 @@
-"""The product, inverse and adjoint operators of SGal(3), SE(3) and SE_2(3)
+"""The product, inverse and adjoint operators of SGal(3), SE(3), SE_2(3) and SO(3)
 (``torchsgal::<group>_compose``, ``<group>_inverse``, ``<group>_adjoint``; functional/ops.py, C
-kernels in functional/_native_products.h): against the tensor code (``A @ B`` and the block
+kernels in functional/_native_products.h; SO(3)'s inverse and adjoint are its tensor code): against the tensor code (``A @ B`` and the block
 closed forms ``inverse_impl`` and ``adjoint_impl``) and the definitions (A A^-1 = I,
 Ad(M) xi = vee(M xi^ M^-1)), opcheck, derivatives in reverse and forward mode, vmap,
 torch.compile, where the operators run, and bad arguments."""
@@ -15,9 +15,12 @@ from test_native_subgroups import kernel_test
 from test_ops import _operators_run
 
 import torchsgal as ts
-from torchsgal.functional import _autograd, native, se3, se23, sgal3
+from torchsgal.functional import _autograd, native, se3, se23, sgal3, so3
 
+# the groups whose public compose, inverse and adjoint run the operators
 GROUPS = {"sgal3": (ts.SGal3, sgal3), "se3": (ts.SE3, se3), "se23": (ts.SE23, se23)}
+# and SO(3), whose public inverse and adjoint are views (test_so3_public_functions)
+OPERATOR_GROUPS = {**GROUPS, "so3": (ts.SO3, so3)}
 f64 = torch.float64
 
 
@@ -26,7 +29,7 @@ def _op(name):
 
 
 def _elements(group, batch, dtype=f64, seed=0):
-    G, mod = GROUPS[group]
+    G, mod = OPERATOR_GROUPS[group]
     gen = torch.Generator().manual_seed(seed)
     xi = 2.0 * torch.randn(*batch, mod.DOF, generator=gen, dtype=f64)
     return G.exp(xi).as_matrix().to(dtype)
@@ -40,7 +43,7 @@ def _adjoint_definition(mod, M, xi):
 @pytest.mark.parametrize("kernels", [True, False], ids=["kernels_on", "kernels_off"])
 @pytest.mark.parametrize("dtype", [torch.float32, f64], ids=["f32", "f64"])
 @pytest.mark.parametrize("batch", [(), (2, 3), (0,)], ids=str)
-@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("group", OPERATOR_GROUPS)
 def test_opcheck(group, batch, dtype, kernels):
     A, B = _elements(group, batch, dtype, 1), _elements(group, batch, dtype, 2)
     grad = dtype is f64
@@ -55,10 +58,10 @@ def test_opcheck(group, batch, dtype, kernels):
 
 @kernel_test
 @pytest.mark.parametrize("dtype", [torch.float32, f64], ids=["f32", "f64"])
-@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("group", OPERATOR_GROUPS)
 def test_kernels_match_the_tensor_code_and_the_definition(group, dtype):
     # 261 products: 32 passes of the lanes and a tail of 5; the identity among them
-    _, mod = GROUPS[group]
+    _, mod = OPERATOR_GROUPS[group]
     A, B = _elements(group, (261,), dtype, 3), _elements(group, (261,), dtype, 4)
     A[7] = torch.eye(mod.MATRIX_DIM, dtype=dtype)
     eps = torch.finfo(dtype).eps
@@ -80,7 +83,7 @@ def test_kernels_match_the_tensor_code_and_the_definition(group, dtype):
 
 
 @kernel_test
-@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("group", OPERATOR_GROUPS)
 def test_kernel_bits_do_not_depend_on_the_batch_or_the_threads(group):
     A, B = _elements(group, (70_001,), f64, 5), _elements(group, (70_001,), f64, 6)
     threads = torch.get_num_threads()
@@ -98,7 +101,7 @@ def test_kernel_bits_do_not_depend_on_the_batch_or_the_threads(group):
         assert torch.equal(single[0], many[0][i])
 
 
-@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("group", OPERATOR_GROUPS)
 def test_first_and_second_derivatives_match_finite_differences(group):
     A = _elements(group, (3,), f64, 7).requires_grad_(True)
     B = _elements(group, (3,), f64, 8).requires_grad_(True)
@@ -141,6 +144,27 @@ def test_public_functions_run_the_operators_and_differentiate_as_the_tensor_code
     # vmap over a leading axis (the operators' vmap rule), one argument unbatched
     batched = torch.func.vmap(mod.compose, in_dims=(0, None))(A.unflatten(0, (2, -1)), B[: n // 2])
     torch.testing.assert_close(batched, A.unflatten(0, (2, -1)) @ B[: n // 2], rtol=1e-14, atol=1e-14)
+
+
+def test_so3_public_functions():
+    """SO(3)'s product runs its operator from 2048 elements (below, A @ B, which is faster there),
+    through the product rule in reverse and forward mode; its inverse and adjoint are views of
+    C (C^T and C itself), which run no operator."""
+    n = 2048
+    A, B = _elements("so3", (n,), f64, 20), _elements("so3", (n,), f64, 21)
+    assert _operators_run(so3.compose, A, B) == {"torchsgal::so3_compose"}
+    assert _operators_run(so3.compose, A[: n - 1], B[: n - 1]) == set()
+    torch.testing.assert_close(so3.compose(A, B), A @ B, rtol=1e-15, atol=1e-15)
+    assert _operators_run(lambda x: (so3.inverse(x), so3.adjoint(x)), A) == set()
+    assert so3.inverse(A)._base is A and so3.adjoint(A) is A
+    a, b = A.clone().requires_grad_(True), B.clone().requires_grad_(True)
+    W = torch.randn(n, 3, 3, dtype=f64, generator=torch.Generator().manual_seed(22))
+    (so3.compose(a, b) * W).sum().backward()
+    torch.testing.assert_close(a.grad, W @ B.mT, rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(b.grad, A.mT @ W, rtol=1e-14, atol=1e-14)
+    dA, dB = torch.randn_like(A), torch.randn_like(B)
+    tangent = torch.func.jvp(so3.compose, (A, B), (dA, dB))[1]
+    torch.testing.assert_close(tangent, dA @ B + A @ dB, rtol=1e-14, atol=1e-14)
 
 
 @pytest.mark.parametrize("group", GROUPS)

@@ -30,7 +30,7 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev), and
 their backward is itself differentiable (higher derivatives).  The forward and backward of
-SGal(3), SE(3) and SE_2(3) run their registered operators (ops.py: C kernels on the CPU where
+SGal(3), SO(3), SE(3) and SE_2(3) run their registered operators (ops.py: C kernels on the CPU where
 compiled, native.py); large CPU batches of the other groups run in blocks (_blocking).
 """
 from __future__ import annotations
@@ -100,7 +100,7 @@ def _differentiable_operator(operator, tensor_code, event_dims: tuple, name: str
 
 
 def make_exp_log(mod):
-    # SGal(3)'s registered operators (ops.py: the C kernels, or the closed forms), or None
+    # the group's registered operators (ops.py: the C kernels, or the closed forms), or None
     op = ops.register(mod) if mod.NAME in ops.GROUPS else None
 
     def _exp_backward(xi, M, grad_M):
@@ -250,16 +250,18 @@ def make_jacobians(mod):
 
 
 # Batches below this many elements compose as tensor code (A @ B): there the operator's call
-# (~15 us) costs more than torch's batched matmul (crossing over at 150-250 elements).
+# (~15 us) costs more than torch's batched matmul (crossing over at 150-250 elements of 4 x 4
+# and 5 x 5; SO(3)'s 3 x 3 products, cheaper in torch, pass their own, 2048: crossing over at
+# 2,000-4,000 elements).
 COMPOSE_MIN_BATCH = 256
 
 
-def make_products(mod):
+def make_products(mod, compose_min_batch: int = COMPOSE_MIN_BATCH):
     """``compose`` (the group product A B of matrices), ``adjoint`` and ``inverse`` of a group
     module with registered operators (``ops.GROUPS``), running the operators (C kernels on the
     CPU) where they pay:
 
-    * compose, for CPU batches of ``COMPOSE_MIN_BATCH`` elements or more (smaller ones, other
+    * compose, for CPU batches of ``compose_min_batch`` elements or more (smaller ones, other
       devices and autocast regions run ``A @ B``), through an autograd.Function whose derivatives are the product
       rule's (backward G B^T and A^T G, jvp dA B + A dB, each a product again);
     * inverse and adjoint, where nothing differentiates them (no autograd recording in either
@@ -302,7 +304,7 @@ def make_products(mod):
         batch = A.shape[:-2] if A.shape[:-2] == Bm.shape[:-2] else torch.broadcast_shapes(
             A.shape[:-2], Bm.shape[:-2])
         # the kernel runs on the CPU only; under autocast the product is torch's (lower precision)
-        if batch.numel() < COMPOSE_MIN_BATCH or A.device.type != "cpu" or torch.is_autocast_enabled("cpu"):
+        if batch.numel() < compose_min_batch or A.device.type != "cpu" or torch.is_autocast_enabled("cpu"):
             return A @ Bm
         if is_compiling():
             return op[6](A, Bm) if _compiled_inference(A) else A @ Bm
@@ -325,7 +327,7 @@ def make_products(mod):
     adjoint = unary(7, mod.adjoint_impl, "adjoint")
     inverse = unary(8, mod.inverse_impl, "inverse")
     compose.__doc__ = (f"The {mod.NAME} product A B of (..., {n}, {n}) matrices (batch shapes "
-                       "broadcast); a registered operator for batches of COMPOSE_MIN_BATCH or more.")
+                       f"broadcast); a registered operator for batches of {compose_min_batch} or more.")
     adjoint.__doc__ = "The adjoint matrix " + (mod.adjoint_impl.__doc__ or "").strip() + (
         "; a registered operator where nothing differentiates it.")
     inverse.__doc__ = (f"The {mod.NAME} inverse (..., {n}, {n}); a registered operator where nothing "

@@ -301,6 +301,17 @@ static void K(log_vjp_one)(const T *M, const T *xi, const T *g, T *O) {
     O[20] = bh[0]; O[21] = bh[1]; O[22] = bh[2]; O[23] = K(dot)(b, nu); O[24] = K(dot)(b, rho) - tau * iota;
 }
 
+/* SO(3) (so3.py), tangent phi (3), matrices (3, 3) row-major: the rotation block of the groups
+ * above, with the same series.  exp: Rodrigues' formula C = Gamma_0(phi) (3.7); log: (3.10)-(3.11),
+ * accurate near 0 and pi (blocks.rotation_log). */
+static void K(so3_exp_one)(const T *phi, T *o) {
+    T c[7];
+    K(coefficients)(K(dot)(phi, phi), 4, c);
+    K(sym_skew)(c[0], c[1], c[2], phi, o);
+}
+
+static void K(so3_log_one)(const T *M, T *phi) { K(rotation_log)(M, 3, phi); }
+
 /* SE(3) (se3.py; Barfoot, Table 1), tangent (6) = [rho, phi], matrices (4, 4) row-major
  * [[C, r], [0, 1]]: a subgroup of SGal(3), with the same series.
  * exp: C = Gamma_0(phi), r = Gamma_1(phi) rho (se3.exp_impl). */
@@ -444,6 +455,17 @@ static void K(se3_jl_one)(const T *x, int inverse, T *o) {
     K(put3)(o, 6, 0, 0, Ji); K(put3)(o, 6, 1, 1, Ji); K(put3)(o, 6, 0, 1, R);
 }
 
+/* SO(3): J_l = D(phi) = Gamma_1(phi) (3.8) and D^-1(phi) (3.12) (so3.jl_impl, jl_inv_impl). */
+static void K(so3_jl_one)(const T *phi, int inverse, T *o) {
+    if (inverse) {
+        K(jac_inv_mat)(phi, o);
+        return;
+    }
+    T c[7];
+    K(coefficients)(K(dot)(phi, phi), 4, c);
+    K(sym_skew)(c[1], c[2], c[3], phi, o);
+}
+
 /* SE_2(3), [rho, nu, phi]: J_l = [[J, 0, Q_rho], [0, J, Q_nu], [0, 0, J]] and its inverse
  * (se23.jl_impl, jl_inv_impl). */
 static void K(se23_jl_one)(const T *x, int inverse, T *o) {
@@ -520,6 +542,8 @@ static void K(sgal3_jl_one)(const T *x, int inverse, T *o) {
         for (int64_t i = lo; i < hi; ++i)                                                 \
             K(group##_jl_one)(xi + (dof) * i, inverse, out + (dof) * (dof) * i);          \
     }
+JACOBIAN_RANGE(so3, 3, 0, so3_jl)
+JACOBIAN_RANGE(so3, 3, 1, so3_jl_inv)
 JACOBIAN_RANGE(se3, 6, 0, se3_jl)
 JACOBIAN_RANGE(se3, 6, 1, se3_jl_inv)
 JACOBIAN_RANGE(se23, 9, 0, se23_jl)
@@ -539,6 +563,8 @@ RANGE(exp, exp_one, 10, 25)
 RANGE(log, log_one, 25, 10)
 RANGE(se23_exp, se23_exp_one, 9, 25)
 RANGE(se23_log, se23_log_one, 25, 9)
+RANGE(so3_exp, so3_exp_one, 3, 9)
+RANGE(so3_log, so3_log_one, 9, 3)
 RANGE(se3_exp, se3_exp_one, 6, 16)
 RANGE(se3_log, se3_log_one, 16, 6)
 #undef RANGE

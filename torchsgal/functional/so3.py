@@ -10,7 +10,7 @@ import torch
 
 from . import blocks as B
 from . import checks
-from ._autograd import checked_backward_parts, make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians, make_products
 from ._blocking import blocked, values_readable
 
 NAME = "SO3"
@@ -54,19 +54,28 @@ def log_impl(C: torch.Tensor) -> torch.Tensor:
     return B.last(B.rotation_log(C))
 
 
-def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
-    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
-    return A @ Bm
-
-
 def inverse(C: torch.Tensor) -> torch.Tensor:
+    """C^T (a view of C)."""
     checks.matrix(C, MATRIX_DIM, "C")
     return C.transpose(-1, -2)
 
 
 def adjoint(C: torch.Tensor) -> torch.Tensor:
+    """Ad(C) = C (C itself)."""
     checks.matrix(C, MATRIX_DIM, "C")
     return C
+
+
+# The tensor code of the operators torchsgal::so3_inverse and so3_adjoint (ops.py), which return
+# new tensors; the group's ``inverse`` and ``adjoint`` above are views and run no operator.
+def inverse_impl(C: torch.Tensor) -> torch.Tensor:
+    checks.matrix(C, MATRIX_DIM, "M")
+    return C.transpose(-1, -2).clone(memory_format=torch.contiguous_format)
+
+
+def adjoint_impl(C: torch.Tensor) -> torch.Tensor:
+    checks.matrix(C, MATRIX_DIM, "M")
+    return C.clone(memory_format=torch.contiguous_format)
 
 
 def ad(phi: torch.Tensor) -> torch.Tensor:
@@ -74,7 +83,7 @@ def ad(phi: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(1)
-def jl(phi: torch.Tensor) -> torch.Tensor:
+def jl_impl(phi: torch.Tensor) -> torch.Tensor:
     """D(phi) = Gamma_1(phi), (3.8) (with the corrected u^u^ coefficient)."""
     checks.vector(phi, DOF, "xi")
     p = B.first(phi)
@@ -82,7 +91,7 @@ def jl(phi: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(1)
-def jl_inv(phi: torch.Tensor) -> torch.Tensor:
+def jl_inv_impl(phi: torch.Tensor) -> torch.Tensor:
     """D^-1(phi), (3.12)."""
     checks.vector(phi, DOF, "xi")
     return B.jac_inv_mat(B.first(phi))
@@ -112,13 +121,15 @@ def _log_pullback(C: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return torch.stack([x for row in r for x in row], dim=-1).unflatten(-1, (3, 3))
 
 
-@blocked(1)
 def jr(phi: torch.Tensor) -> torch.Tensor:
+    """J_r(phi) = J_l(-phi)."""
+    checks.vector(phi, DOF, "xi")
     return jl(-phi)
 
 
-@blocked(1)
 def jr_inv(phi: torch.Tensor) -> torch.Tensor:
+    """J_r(phi)^-1 = J_l(-phi)^-1."""
+    checks.vector(phi, DOF, "xi")
     return jl_inv(-phi)
 
 
@@ -206,4 +217,7 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
 
 
 exp, log = make_exp_log(sys.modules[__name__])
+jl, jl_inv = make_jacobians(sys.modules[__name__])
+# inverse and adjoint: the views above
+compose = make_products(sys.modules[__name__], compose_min_batch=2048)[0]
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])
