@@ -1,7 +1,7 @@
-"""The operators of SGal(3)'s subgroups SO(3), SE(3) and SE_2(3) (``torchsgal::so3_*``, ``se3_*``,
-``se23_*``, functional/ops.py) and their C kernels (functional/_native_sgal3.h: exp, log, J_l and
-J_l^-1 of each) against the tensor closed forms of
-functional/so3.py, se3.py and se23.py at every angle band, in both dtypes; opcheck of the six operators
+"""The operators of SGal(3)'s subgroups SO(3), SE(3) and SE_2(3) and of SE(2) (``torchsgal::so3_*``,
+``se3_*``, ``se23_*``, ``se2_*``, functional/ops.py) and their C kernels (functional/_native_sgal3.h
+and _native_se2.h: exp, log, J_l and J_l^-1 of each) against the tensor closed forms of
+functional/so3.py, se3.py, se23.py and se2.py at every angle band, in both dtypes; opcheck of the six operators
 of each; where the kernels run.  The tensor code is itself checked against its definitions and
 peers elsewhere (tests/test_definitions.py, tests/test_gtsam.py)."""
 from __future__ import annotations
@@ -14,10 +14,10 @@ import pytest
 import torch
 from test_native import ANGLES, _Recorder, assert_rowwise_close
 
-from torchsgal import SE3, SE23, SO3
-from torchsgal.functional import native, se3, se23, so3
+from torchsgal import SE2, SE3, SE23, SO3
+from torchsgal.functional import native, se2, se3, se23, so3
 
-GROUPS = {"so3": (SO3, so3), "se3": (SE3, se3), "se23": (SE23, se23)}
+GROUPS = {"so3": (SO3, so3), "se3": (SE3, se3), "se23": (SE23, se23), "se2": (SE2, se2)}
 
 
 def _op(name):
@@ -25,11 +25,15 @@ def _op(name):
 
 
 def tangents(F, dtype, seed=0, copies=4):
-    """Tangents with |phi| (the last three components) at every angle of ``ANGLES`` (both branches
-    of every series and threshold, the near-pi symmetric-part log), the rest standard normal x 3."""
+    """Tangents with |phi| (the last three components; SE(2): |theta|, the last one) at every angle
+    of ``ANGLES`` (both branches of every series and threshold, the near-pi symmetric-part log),
+    the rest standard normal x 3."""
     rng = np.random.default_rng(seed)
     ang = np.repeat(ANGLES, copies)
     xi = 3.0 * rng.standard_normal((ang.size, F.DOF))
+    if F.NAME == "SE2":  # theta, the last component, at every angle, of either sign
+        xi[:, -1] = np.where(rng.standard_normal(ang.size) < 0, -1.0, 1.0) * ang
+        return torch.tensor(xi, dtype=dtype)
     axis = rng.standard_normal((ang.size, 3))
     xi[:, -3:] = axis / np.linalg.norm(axis, axis=-1, keepdims=True) * ang[:, None]
     return torch.tensor(xi, dtype=dtype)
@@ -52,14 +56,27 @@ def test_kernels_match_the_tensor_code_at_every_angle(name, dtype):
     M = _op(f"{name}_exp")(xi)
     M_ref = F.exp_impl(xi)
     assert_rowwise_close(M, M_ref, dtype)
-    assert torch.equal(M[:, 3:, :], M_ref[:, 3:, :])  # the bottom rows exactly
+    fixed = 2 if name == "se2" else 3  # the constant bottom rows (none for SO(3)) exactly
+    assert torch.equal(M[:, fixed:, :], M_ref[:, fixed:, :])
     assert_rowwise_close(_op(f"{name}_log")(M_ref), F.log_impl(M_ref), dtype)
     assert_rowwise_close(_op(f"{name}_jl")(xi), F.jl_impl(xi), dtype)
     assert_rowwise_close(_op(f"{name}_jl_inv")(xi), F.jl_inv_impl(xi), dtype)
 
 
 @kernel_test
-@pytest.mark.parametrize("name", GROUPS)
+def test_se2_log_at_exactly_pi_and_the_identity():
+    M = torch.eye(3, dtype=torch.float64).repeat(3, 1, 1)
+    M[1, :2, :2] = -torch.eye(2, dtype=torch.float64)  # a rotation by pi: atan2(+0, -1) = pi
+    M[2, :2, :2] = torch.tensor([[-1.0, 0.0], [-0.0, -1.0]], dtype=torch.float64)  # atan2(-0, -1) = -pi
+    M[:, :2, 2] = torch.randn(3, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    out = _op("se2_log")(M)
+    assert torch.equal(out[:, 2], se2.log_impl(M)[:, 2])
+    assert torch.equal(out[:, 2], torch.tensor([0.0, math.pi, -math.pi], dtype=torch.float64))
+    assert_rowwise_close(out, se2.log_impl(M), torch.float64)
+
+
+@kernel_test
+@pytest.mark.parametrize("name", [g for g in GROUPS if g != "se2"])
 def test_log_at_exactly_pi_and_the_identity(name):
     _, F = GROUPS[name]
     n = F.MATRIX_DIM

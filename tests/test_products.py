@@ -1,6 +1,7 @@
-"""The product, inverse and adjoint operators of SGal(3), SE(3), SE_2(3) and SO(3)
+"""The product, inverse and adjoint operators of SGal(3), SE(3), SE_2(3), SO(3) and SE(2)
 (``torchsgal::<group>_compose``, ``<group>_inverse``, ``<group>_adjoint``; functional/ops.py, C
-kernels in functional/_native_products.h; SO(3)'s inverse and adjoint are its tensor code): against the tensor code (``A @ B`` and the block
+kernels in functional/_native_products.h; the inverse and adjoint of SO(3) and SE(2) are their
+tensor code): against the tensor code (``A @ B`` and the block
 closed forms ``inverse_impl`` and ``adjoint_impl``) and the definitions (A A^-1 = I,
 Ad(M) xi = vee(M xi^ M^-1)), opcheck, derivatives in reverse and forward mode, vmap,
 torch.compile, where the operators run, and bad arguments."""
@@ -15,12 +16,13 @@ from test_native_subgroups import kernel_test
 from test_ops import _operators_run
 
 import torchsgal as ts
-from torchsgal.functional import _autograd, native, se3, se23, sgal3, so3
+from torchsgal.functional import _autograd, native, se2, se3, se23, sgal3, so3
 
 # the groups whose public compose, inverse and adjoint run the operators
 GROUPS = {"sgal3": (ts.SGal3, sgal3), "se3": (ts.SE3, se3), "se23": (ts.SE23, se23)}
-# and SO(3), whose public inverse and adjoint are views (test_so3_public_functions)
-OPERATOR_GROUPS = {**GROUPS, "so3": (ts.SO3, so3)}
+# and SO(3) and SE(2), whose public inverse and adjoint run their tensor code
+# (test_so3_and_se2_public_functions)
+OPERATOR_GROUPS = {**GROUPS, "so3": (ts.SO3, so3), "se2": (ts.SE2, se2)}
 f64 = torch.float64
 
 
@@ -146,24 +148,27 @@ def test_public_functions_run_the_operators_and_differentiate_as_the_tensor_code
     torch.testing.assert_close(batched, A.unflatten(0, (2, -1)) @ B[: n // 2], rtol=1e-14, atol=1e-14)
 
 
-def test_so3_public_functions():
-    """SO(3)'s product runs its operator from 2048 elements (below, A @ B, which is faster there),
-    through the product rule in reverse and forward mode; its inverse and adjoint are views of
-    C (C^T and C itself), which run no operator."""
+@pytest.mark.parametrize("group", ["so3", "se2"])
+def test_so3_and_se2_public_functions(group):
+    """The 3 x 3 products run their operator from 2048 elements (below, A @ B, which is faster
+    there), through the product rule in reverse and forward mode; the inverse and adjoint run
+    their tensor code, no operator (SO(3)'s are views of C: C^T and C itself)."""
+    _, mod = OPERATOR_GROUPS[group]
     n = 2048
-    A, B = _elements("so3", (n,), f64, 20), _elements("so3", (n,), f64, 21)
-    assert _operators_run(so3.compose, A, B) == {"torchsgal::so3_compose"}
-    assert _operators_run(so3.compose, A[: n - 1], B[: n - 1]) == set()
-    torch.testing.assert_close(so3.compose(A, B), A @ B, rtol=1e-15, atol=1e-15)
-    assert _operators_run(lambda x: (so3.inverse(x), so3.adjoint(x)), A) == set()
-    assert so3.inverse(A)._base is A and so3.adjoint(A) is A
+    A, B = _elements(group, (n,), f64, 20), _elements(group, (n,), f64, 21)
+    assert _operators_run(mod.compose, A, B) == {f"torchsgal::{group}_compose"}
+    assert _operators_run(mod.compose, A[: n - 1], B[: n - 1]) == set()
+    torch.testing.assert_close(mod.compose(A, B), A @ B, rtol=1e-15, atol=1e-15)
+    assert _operators_run(lambda x: (mod.inverse(x), mod.adjoint(x)), A) == set()
+    if group == "so3":
+        assert so3.inverse(A)._base is A and so3.adjoint(A) is A
     a, b = A.clone().requires_grad_(True), B.clone().requires_grad_(True)
     W = torch.randn(n, 3, 3, dtype=f64, generator=torch.Generator().manual_seed(22))
-    (so3.compose(a, b) * W).sum().backward()
+    (mod.compose(a, b) * W).sum().backward()
     torch.testing.assert_close(a.grad, W @ B.mT, rtol=1e-14, atol=1e-14)
     torch.testing.assert_close(b.grad, A.mT @ W, rtol=1e-14, atol=1e-14)
     dA, dB = torch.randn_like(A), torch.randn_like(B)
-    tangent = torch.func.jvp(so3.compose, (A, B), (dA, dB))[1]
+    tangent = torch.func.jvp(mod.compose, (A, B), (dA, dB))[1]
     torch.testing.assert_close(tangent, dA @ B + A @ dB, rtol=1e-14, atol=1e-14)
 
 

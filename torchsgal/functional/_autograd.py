@@ -30,7 +30,7 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev), and
 their backward is itself differentiable (higher derivatives).  The forward and backward of
-SGal(3), SO(3), SE(3) and SE_2(3) run their registered operators (ops.py: C kernels on the CPU where
+SGal(3), SO(3), SE(2), SE(3) and SE_2(3) run their registered operators (ops.py: C kernels on the CPU where
 compiled, native.py); large CPU batches of the other groups run in blocks (_blocking).
 """
 from __future__ import annotations
@@ -251,8 +251,8 @@ def make_jacobians(mod):
 
 # Batches below this many elements compose as tensor code (A @ B): there the operator's call
 # (~15 us) costs more than torch's batched matmul (crossing over at 150-250 elements of 4 x 4
-# and 5 x 5; SO(3)'s 3 x 3 products, cheaper in torch, pass their own, 2048: crossing over at
-# 2,000-4,000 elements).
+# and 5 x 5; the 3 x 3 products of SO(3) and SE(2), cheaper in torch, pass their own, 2048:
+# crossing over at 2,000-4,000 elements).
 COMPOSE_MIN_BATCH = 256
 
 

@@ -1,7 +1,8 @@
 /* torchsgal.functional._native: the SGal(3) exp, log, their backward maps and Jacobians, and the
- * exp, log and Jacobians of its subgroups SO(3), SE(3) and SE_2(3), and the products of the four
- * groups and the inverses and adjoints of the last three (_native_products.h), as plain C loops: the CPU
- * implementations of the operators torchsgal::sgal3_*, so3_*, se3_* and se23_* (functional/ops.py; the IMU
+ * exp, log and Jacobians of its subgroups SO(3), SE(3) and SE_2(3) and of SE(2) (_native_se2.h), the
+ * products of these five groups and the inverses and adjoints of SGal(3), SE(3) and SE_2(3)
+ * (_native_products.h), as plain C loops: the CPU implementations of the operators
+ * torchsgal::sgal3_*, so3_*, se2_*, se3_* and se23_* (functional/ops.py; the IMU
  * preintegration kernel is torchsgal.imu._native, built from imu/_native.c on the same code).
  *
  * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
@@ -31,6 +32,15 @@
 
 #define T double
 #define SFX f64
+#define ATAN2 atan2
+#include "_native_se2.h"  /* undefines T, SFX and ATAN2 */
+#define T float
+#define SFX f32
+#define ATAN2 atan2f
+#include "_native_se2.h"
+
+#define T double
+#define SFX f64
 #include "_native_products.h"  /* compose, inverse and adjoint; undefines T and SFX */
 #define T float
 #define SFX f32
@@ -54,6 +64,10 @@ WRAP(jl_inv, 2)
         (void)self;                                                                       \
         return dispatch(a, nargs, 2, op##_range_f64, op##_range_f32, 1, #op);                \
     }
+WRAP_SUB(se2_exp)
+WRAP_SUB(se2_log)
+WRAP_SUB(se2_jl)
+WRAP_SUB(se2_jl_inv)
 WRAP_SUB(so3_exp)
 WRAP_SUB(so3_log)
 WRAP_SUB(so3_jl)
@@ -81,6 +95,7 @@ WRAP_SUB(se23_inverse)
                         #group "_compose");                                                \
     }
 WRAP_COMPOSE(so3, 3)
+WRAP_COMPOSE(se2, 3)
 WRAP_COMPOSE(sgal3, 5)
 WRAP_COMPOSE(se3, 4)
 WRAP_COMPOSE(se23, 5)
@@ -97,6 +112,8 @@ static PyMethodDef methods[] = {
     {"sgal3_jl_inv", (PyCFunction)(void (*)(void))py_sgal3_jl_inv, METH_FASTCALL,
      "J_l^-1 (xi, out, n, threads, is_double)"},
 #define SUB_ENTRY(op, doc) {#op, (PyCFunction)(void (*)(void))py_##op, METH_FASTCALL, doc " (in, out, n, threads, is_double)"},
+    SUB_ENTRY(se2_exp, "SE(2) exp") SUB_ENTRY(se2_log, "SE(2) log")
+    SUB_ENTRY(se2_jl, "SE(2) J_l") SUB_ENTRY(se2_jl_inv, "SE(2) J_l^-1")
     SUB_ENTRY(so3_exp, "SO(3) exp") SUB_ENTRY(so3_log, "SO(3) log")
     SUB_ENTRY(so3_jl, "SO(3) J_l") SUB_ENTRY(so3_jl_inv, "SO(3) J_l^-1")
     SUB_ENTRY(se3_exp, "SE(3) exp") SUB_ENTRY(se3_log, "SE(3) log")
@@ -111,6 +128,8 @@ static PyMethodDef methods[] = {
      "SGal(3) product (A, B, out, n, threads, is_double)"},
     {"so3_compose", (PyCFunction)(void (*)(void))py_so3_compose, METH_FASTCALL,
      "SO(3) product (A, B, out, n, threads, is_double)"},
+    {"se2_compose", (PyCFunction)(void (*)(void))py_se2_compose, METH_FASTCALL,
+     "SE(2) product (A, B, out, n, threads, is_double)"},
     {"se3_compose", (PyCFunction)(void (*)(void))py_se3_compose, METH_FASTCALL,
      "SE(3) product (A, B, out, n, threads, is_double)"},
     {"se23_compose", (PyCFunction)(void (*)(void))py_se23_compose, METH_FASTCALL,
@@ -120,7 +139,7 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3), SO(3), SE(3) and SE_2(3) CPU kernels", -1, methods};
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3), SO(3), SE(2), SE(3) and SE_2(3) CPU kernels", -1, methods};
 
 PyMODINIT_FUNC PyInit__native(void) {
     find_openmp();

@@ -1,9 +1,9 @@
-/* Products of SO(3), SGal(3), SE(3) and SE_2(3) matrices, inverses and adjoints of the last three, for one scalar type T
+/* Products of SO(3), SE(2), SGal(3), SE(3) and SE_2(3) matrices, inverses and adjoints of the last three, for one scalar type T
  * (included per dtype by functional/_native.c, and by estimation/_native.c for the factor kernels'
  * SE(3) inverse and adjoint, after _native_sgal3.h, whose skew_times and put3 it uses;
  * undefines T and SFX).
  *
- * compose: the matrix product A B of n x n row-major matrices (n = 3: SO(3); n = 4: SE(3); n = 5:
+ * compose: the matrix product A B of n x n row-major matrices (n = 3: SO(3), SE(2); n = 4: SE(3); n = 5:
  * SGal(3), SE_2(3)), PRODUCT_LANES products per pass with lane w of every array holding product w, so
  * that each multiply-add is one operation on PRODUCT_LANES values (torch's batched matmul pays
  * ~100 ns of call overhead per product at these sizes).  Every entry sums a_r0 b_0c + a_r1 b_1c

@@ -1,8 +1,9 @@
 """The package's optional C kernels: their switches and constants.
 
 ``torchsgal.functional._native`` holds SGal(3) exp, log, their backward maps and Jacobians, and
-the exp, log and Jacobians of SO(3), SE(3) and SE_2(3): the CPU implementations of the torch
-operators ``torchsgal::sgal3_*``, ``so3_*``, ``se3_*`` and ``se23_*`` (``functional/ops.py``);
+the exp, log and Jacobians of SO(3), SE(2), SE(3) and SE_2(3): the CPU implementations of the
+torch operators ``torchsgal::sgal3_*``, ``so3_*``, ``se2_*``, ``se3_*`` and ``se23_*``
+(``functional/ops.py``);
 ``torchsgal.imu._native`` holds IMU preintegration, the CPU implementation of
 ``torchsgal::imu_preintegrate`` (``imu/_kernels.py``).
 

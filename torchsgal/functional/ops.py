@@ -1,17 +1,17 @@
 """The exp, log, their backward maps, the left Jacobian and its inverse, the product, the
-inverse and the adjoint of SGal(3) and of its subgroups SO(3), SE(3) and SE_2(3) as registered
-torch operators.
+inverse and the adjoint of SGal(3), of its subgroups SO(3), SE(3) and SE_2(3), and of SE(2) as
+registered torch operators.
 
 ``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp``, ``sgal3_log_vjp``, ``sgal3_jl``,
 ``sgal3_jl_inv``, ``sgal3_compose``, ``sgal3_inverse`` and ``sgal3_adjoint``
-(``torch.library.custom_op``), and the same nine of ``so3_``, ``se3_`` and ``se23_``, are the one
+(``torch.library.custom_op``), and the same nine of ``so3_``, ``se2_``, ``se3_`` and ``se23_``, are the one
 mechanism that eager code, autograd, ``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
   batch shape, where the kernels are compiled and not switched off for the calling thread (every
-  SGal(3) operator; exp, log, jl, jl_inv, compose, inverse and adjoint of the subgroups (SO(3)'s
-  inverse and adjoint excepted: their closed forms are a transpose and a copy), whose backward
-  maps run their closed forms); on CUDA, for SGal(3), where chosen (``native.use_compiled_cuda(True)``) and
+  SGal(3) operator; exp, log, jl, jl_inv, compose, inverse and adjoint of the other groups (the
+  inverse and adjoint of SO(3) and SE(2) excepted: their closed forms are a few entries), whose
+  backward maps run their closed forms); on CUDA, for SGal(3), where chosen (``native.use_compiled_cuda(True)``) and
   Triton is installed, the closed
   form compiled by ``torch.compile`` (inductor's Triton kernels), one compilation per operator
   and dtype, over the flattened batch with a dynamic size (float32: float64 stays eager); the
@@ -51,7 +51,7 @@ from ._blocking import run_blocked
 
 Tensor = torch.Tensor
 _FLOATS = (torch.float32, torch.float64)
-GROUPS = ("SGal3", "SE3", "SE23", "SO3")  # the groups whose exp, log and J_l are operators, with C kernels
+GROUPS = ("SGal3", "SE3", "SE23", "SO3", "SE2")  # the groups whose exp, log and J_l are operators, with C kernels
 # the groups whose operators may run compiled closed forms (``_compiles``; measured on CUDA for these)
 COMPILED_GROUPS = ("SGal3",)
 # devices whose operators run their closed forms through torch.compile, and what that needs

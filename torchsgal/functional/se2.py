@@ -17,7 +17,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import checked_backward_parts, make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians, make_products
 from ._blocking import blocked
 
 NAME = "SE2"
@@ -90,11 +90,6 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
     return torch.stack((x, y, t), dim=-1)
 
 
-def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
-    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
-    return A @ Bm
-
-
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
@@ -141,7 +136,7 @@ def _jl_parts(xi: torch.Tensor):
 
 
 @blocked(1)
-def jl(xi: torch.Tensor) -> torch.Tensor:
+def jl_impl(xi: torch.Tensor) -> torch.Tensor:
     """[[V, -J W rho], [0, 1]]."""
     checks.vector(xi, DOF, "xi")
     _, a, b, q = _jl_parts(xi)
@@ -149,7 +144,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(1)
-def jl_inv(xi: torch.Tensor) -> torch.Tensor:
+def jl_inv_impl(xi: torch.Tensor) -> torch.Tensor:
     """[[V^-1, -V^-1 q], [0, 1]] with V^-1 = (a I - b J) / (2 c_2)."""
     checks.vector(xi, DOF, "xi")
     c, a, b, q = _jl_parts(xi)
@@ -158,13 +153,15 @@ def jl_inv(xi: torch.Tensor) -> torch.Tensor:
     return _block(_mat(ai, bi), -torch.stack((qx, qy), dim=-1), xi.shape[:-1], xi)
 
 
-@blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi) = J_l(-xi)."""
+    checks.vector(xi, DOF, "xi")
     return jl(-xi)
 
 
-@blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi)^-1 = J_l(-xi)^-1."""
+    checks.vector(xi, DOF, "xi")
     return jl_inv(-xi)
 
 
@@ -218,5 +215,11 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     return _matrix(torch.cos(t), torch.sin(t), r[..., 0], r[..., 1])
 
 
+# The tensor code of the operators torchsgal::se2_inverse and se2_adjoint (ops.py); the group's
+# inverse and adjoint run it directly (no operator: no C kernel would pay for these few entries).
+inverse_impl, adjoint_impl = inverse, adjoint
+
 exp, log = make_exp_log(sys.modules[__name__])
+jl, jl_inv = make_jacobians(sys.modules[__name__])
+compose = make_products(sys.modules[__name__], compose_min_batch=2048)[0]
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])
