@@ -16,7 +16,8 @@ setup(
         Extension(
             "torchsgal.functional._native",
             sources=["torchsgal/functional/_native.c"],
-            depends=common + ["torchsgal/functional/_native_products.h", "torchsgal/functional/_native_se2.h"],
+            depends=common + ["torchsgal/functional/_native_products.h", "torchsgal/functional/_native_se2.h",
+                              "torchsgal/functional/_native_sim3.h"],
             extra_compile_args=args,
             libraries=libraries,
             optional=True,

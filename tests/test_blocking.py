@@ -70,11 +70,11 @@ def _assert_same(a, b, dtype, msg):
 def test_decorated_functions_exist():
     """The groups whose closed forms allocate many temporaries carry the blocked wrappers."""
     names = {gname(G): _blocked_names(G) for G in GROUP_CLASSES}
-    assert set(names["Sim3"]) >= {"jl", "jl_inv", "jr", "jr_inv"}, names["Sim3"]
-    # the Jacobians, adjoints and inverses of SGal(3), SE(3) and SE_2(3), and the Jacobians of
-    # SO(3) and SE(2), are operators (ops.py); their closed forms are blocked inside them
-    from torchsgal.functional import se2, se3, se23, sgal3, so3
-    for mod in (se3, se23, sgal3):
+    assert set(names["Sim3"]) >= {"jr", "jr_inv"}, names["Sim3"]
+    # the Jacobians, adjoints and inverses of SGal(3), SE(3), SE_2(3) and Sim(3), and the
+    # Jacobians of SO(3) and SE(2), are operators (ops.py); their closed forms are blocked inside them
+    from torchsgal.functional import se2, se3, se23, sgal3, sim3, so3
+    for mod in (se3, se23, sgal3, sim3):
         for impl in (mod.jl_impl, mod.jl_inv_impl, mod.adjoint_impl, mod.inverse_impl):
             assert hasattr(impl, "__wrapped__"), impl
     for impl in (so3.jl_impl, so3.jl_inv_impl, se2.jl_impl, se2.jl_inv_impl, se2.inverse_impl, se2.adjoint_impl):

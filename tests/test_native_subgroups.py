@@ -1,8 +1,9 @@
-"""The operators of SGal(3)'s subgroups SO(3), SE(3) and SE_2(3) and of SE(2) (``torchsgal::so3_*``,
-``se3_*``, ``se23_*``, ``se2_*``, functional/ops.py) and their C kernels (functional/_native_sgal3.h
-and _native_se2.h: exp, log, J_l and J_l^-1 of each) against the tensor closed forms of
-functional/so3.py, se3.py, se23.py and se2.py at every angle band, in both dtypes; opcheck of the six operators
-of each; where the kernels run.  The tensor code is itself checked against its definitions and
+"""The operators of SGal(3)'s subgroups SO(3), SE(3) and SE_2(3), of SE(2) and of Sim(3)
+(``torchsgal::so3_*``, ``se3_*``, ``se23_*``, ``se2_*``, ``sim3_*``, functional/ops.py) and their C
+kernels (functional/_native_sgal3.h, _native_se2.h and _native_sim3.h: exp, log, J_l and J_l^-1 of
+each) against the tensor closed forms of functional/so3.py, se3.py, se23.py, se2.py and sim3.py at
+every angle band (Sim(3): and every band of the scale's moments), in both dtypes; opcheck of the
+six operators of each; where the kernels run.  The tensor code is itself checked against its definitions and
 peers elsewhere (tests/test_definitions.py, tests/test_gtsam.py)."""
 from __future__ import annotations
 
@@ -14,10 +15,15 @@ import pytest
 import torch
 from test_native import ANGLES, _Recorder, assert_rowwise_close
 
-from torchsgal import SE2, SE3, SE23, SO3
-from torchsgal.functional import native, se2, se3, se23, so3
+from torchsgal import SE2, SE3, SE23, SO3, Sim3
+from torchsgal.functional import native, se2, se3, se23, sim3, so3
 
-GROUPS = {"so3": (SO3, so3), "se3": (SE3, se3), "se23": (SE23, se23), "se2": (SE2, se2)}
+GROUPS = {"so3": (SO3, so3), "se3": (SE3, se3), "se23": (SE23, se23), "se2": (SE2, se2), "sim3": (Sim3, sim3)}
+# Sim(3)'s lambda = log s: both recursions of every scale moment (the switch at |lambda| = j + 1/2
+# for order j, to 2 x 11 + 2), the series' own orders, and the normalised Jacobians beyond
+# lambda = -30 (numerics.sim3_coefficients)
+LAMBDAS = [0.0, 1e-9, -1e-4, 0.3, -0.49, 0.51, -1.5, 1.51, 6.0, -8.49, 12.5, -22.4, 22.6, -24.4,
+           24.6, -29.9, 31.0, -31.0, 40.0, -40.0]
 
 
 def _op(name):
@@ -35,7 +41,10 @@ def tangents(F, dtype, seed=0, copies=4):
         xi[:, -1] = np.where(rng.standard_normal(ang.size) < 0, -1.0, 1.0) * ang
         return torch.tensor(xi, dtype=dtype)
     axis = rng.standard_normal((ang.size, 3))
-    xi[:, -3:] = axis / np.linalg.norm(axis, axis=-1, keepdims=True) * ang[:, None]
+    xi[:, F.PHI] = axis / np.linalg.norm(axis, axis=-1, keepdims=True) * ang[:, None]
+    if F.NAME == "Sim3":  # every band of lambda at every angle
+        xi = np.tile(xi, (len(LAMBDAS), 1))
+        xi[:, 6] = np.repeat(LAMBDAS, ang.size)
     return torch.tensor(xi, dtype=dtype)
 
 
@@ -56,8 +65,11 @@ def test_kernels_match_the_tensor_code_at_every_angle(name, dtype):
     M = _op(f"{name}_exp")(xi)
     M_ref = F.exp_impl(xi)
     assert_rowwise_close(M, M_ref, dtype)
-    fixed = 2 if name == "se2" else 3  # the constant bottom rows (none for SO(3)) exactly
-    assert torch.equal(M[:, fixed:, :], M_ref[:, fixed:, :])
+    # the constant bottom rows (none for SO(3); Sim(3)'s last entry is e^-lambda) exactly
+    fixed = 2 if name == "se2" else 3
+    assert torch.equal(M[:, fixed:, :fixed], M_ref[:, fixed:, :fixed])
+    if name != "sim3":
+        assert torch.equal(M[:, fixed:, :], M_ref[:, fixed:, :])
     assert_rowwise_close(_op(f"{name}_log")(M_ref), F.log_impl(M_ref), dtype)
     assert_rowwise_close(_op(f"{name}_jl")(xi), F.jl_impl(xi), dtype)
     assert_rowwise_close(_op(f"{name}_jl_inv")(xi), F.jl_inv_impl(xi), dtype)
@@ -85,9 +97,9 @@ def test_log_at_exactly_pi_and_the_identity(name):
         M[k + 1, :3, :3] = torch.diag(torch.tensor(d, dtype=torch.float64))
     M[:, :3, 3:] = torch.randn(4, 3, n - 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     out = _op(f"{name}_log")(M)
-    assert torch.equal(out[:, -3:], F.log_impl(M)[:, -3:])
+    assert torch.equal(out[:, F.PHI], F.log_impl(M)[:, F.PHI])
     assert_rowwise_close(out, F.log_impl(M), torch.float64)
-    assert torch.equal(out[0, -3:], torch.zeros(3, dtype=torch.float64))
+    assert torch.equal(out[0, F.PHI], torch.zeros(3, dtype=torch.float64))
 
 
 @pytest.fixture
@@ -125,17 +137,22 @@ def test_eager_calls_run_the_kernels_and_the_backward_its_closed_form(recorder, 
 @pytest.mark.parametrize("name", GROUPS)
 def test_gradients_through_the_operators(name):
     G, F = GROUPS[name]
-    xi = tangents(F, torch.float64, copies=1)[::3].clone().requires_grad_()
+    xi = tangents(F, torch.float64, copies=1)[::3]
+    if name == "sim3":  # |lambda| <= 6: finite differences of entries of size e^|lambda|
+        xi = xi[xi[:, 6].abs() <= 6][::3]
+    xi = xi.clone().requires_grad_()
     assert torch.autograd.gradcheck(F.exp, (xi,))
-    assert torch.autograd.gradcheck(F.jl, (xi[:4],))
-    assert torch.autograd.gradcheck(F.jl_inv, (xi[:4],))
-    d = torch.randn(xi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
-    x0 = xi.detach()
+    spread = xi[:: max(1, xi.shape[0] // 4)][:4]  # four angles (Sim(3): and scales) across the bands
+    assert torch.autograd.gradcheck(F.jl, (spread,))
+    assert torch.autograd.gradcheck(F.jl_inv, (spread,))
+    # the log away from the cut at pi, where a finite difference of the principal log jumps
+    x0 = xi.detach()[xi.detach()[:, F.PHI].norm(dim=-1) < math.pi - 1e-3]
+    d = torch.randn(x0.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
 
     def log_along(t):  # log's backward projects onto the group: checked along the group
         return F.log(F.exp_impl(x0) @ F.exp_impl(t * d))
 
-    t = torch.zeros(xi.shape[:-1], dtype=torch.float64)[..., None].requires_grad_()
+    t = torch.zeros(x0.shape[:-1], dtype=torch.float64)[..., None].requires_grad_()
     assert torch.autograd.gradcheck(log_along, (t,))
 
 

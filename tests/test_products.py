@@ -16,10 +16,10 @@ from test_native_subgroups import kernel_test
 from test_ops import _operators_run
 
 import torchsgal as ts
-from torchsgal.functional import _autograd, native, se2, se3, se23, sgal3, so3
+from torchsgal.functional import _autograd, native, se2, se3, se23, sgal3, sim3, so3
 
 # the groups whose public compose, inverse and adjoint run the operators
-GROUPS = {"sgal3": (ts.SGal3, sgal3), "se3": (ts.SE3, se3), "se23": (ts.SE23, se23)}
+GROUPS = {"sgal3": (ts.SGal3, sgal3), "se3": (ts.SE3, se3), "se23": (ts.SE23, se23), "sim3": (ts.Sim3, sim3)}
 # and SO(3) and SE(2), whose public inverse and adjoint run their tensor code
 # (test_so3_and_se2_public_functions)
 OPERATOR_GROUPS = {**GROUPS, "so3": (ts.SO3, so3), "se2": (ts.SE2, se2)}
@@ -73,11 +73,14 @@ def test_kernels_match_the_tensor_code_and_the_definition(group, dtype):
     torch.testing.assert_close(product[7], B[7], rtol=0, atol=0)
     Ad = _op(f"{group}_adjoint")(A)
     reference = mod.adjoint_impl(A)
-    assert ((Ad - reference).abs() / (1 + A.abs().amax((-2, -1), keepdim=True))).max() <= 8 * eps
+    # relative to the adjoint's own size (Sim(3)'s blocks s C and s r^ C scale with s = 1/M[3, 3])
+    assert ((Ad - reference).abs() / (1 + reference.abs().amax((-2, -1), keepdim=True))).max() <= 8 * eps
     inverse = _op(f"{group}_inverse")(A)
     torch.testing.assert_close(inverse, mod.inverse_impl(A), rtol=0, atol=0)  # the same operations
     eye = torch.eye(mod.MATRIX_DIM, dtype=dtype)
-    assert ((A @ inverse - eye).abs() / scale).max() <= 64 * eps
+    # rounding of the product A A^-1, relative to its factors' sizes (Sim(3)'s inverse holds s C^T r)
+    scale_inverse = A.abs().amax((-2, -1), keepdim=True) * inverse.abs().amax((-2, -1), keepdim=True)
+    assert ((A @ inverse - eye).abs() / scale_inverse).max() <= 64 * eps
     xi = torch.randn(261, mod.DOF, dtype=f64, generator=torch.Generator().manual_seed(5))
     definition = _adjoint_definition(mod, A.double(), xi)
     tol = 1e-11 if dtype is f64 else 1e-3

@@ -30,7 +30,7 @@ For a group module ``mod`` (so2, so3, se2, se3, se23, sgal3, sim3):
 
 Both use ``setup_context`` and ``generate_vmap_rule = True`` (torch.func.vmap, jacrev), and
 their backward is itself differentiable (higher derivatives).  The forward and backward of
-SGal(3), SO(3), SE(2), SE(3) and SE_2(3) run their registered operators (ops.py: C kernels on the CPU where
+SGal(3), SO(3), SE(2), SE(3), SE_2(3) and Sim(3) run their registered operators (ops.py: C kernels on the CPU where
 compiled, native.py); large CPU batches of the other groups run in blocks (_blocking).
 """
 from __future__ import annotations

@@ -1,8 +1,9 @@
 /* torchsgal.functional._native: the SGal(3) exp, log, their backward maps and Jacobians, and the
- * exp, log and Jacobians of its subgroups SO(3), SE(3) and SE_2(3) and of SE(2) (_native_se2.h), the
- * products of these five groups and the inverses and adjoints of SGal(3), SE(3) and SE_2(3)
- * (_native_products.h), as plain C loops: the CPU implementations of the operators
- * torchsgal::sgal3_*, so3_*, se2_*, se3_* and se23_* (functional/ops.py; the IMU
+ * exp, log and Jacobians of its subgroups SO(3), SE(3) and SE_2(3), of SE(2) (_native_se2.h) and
+ * of Sim(3) (_native_sim3.h, with its inverse and adjoint), the products of these six groups and
+ * the inverses and adjoints of SGal(3), SE(3) and SE_2(3) (_native_products.h), as plain C loops:
+ * the CPU implementations of the operators torchsgal::sgal3_*, so3_*, se2_*, se3_*, se23_* and
+ * sim3_* (functional/ops.py; the IMU
  * preintegration kernel is torchsgal.imu._native, built from imu/_native.c on the same code).
  *
  * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
@@ -41,6 +42,25 @@
 
 #define T double
 #define SFX f64
+#define SIN sin
+#define SQRT sqrt
+#define EXP exp
+#define EXPM1 expm1
+#define LOG log
+#define FABS fabs
+#include "_native_sim3.h"  /* undefines T, SFX and the math macros */
+#define T float
+#define SFX f32
+#define SIN sinf
+#define SQRT sqrtf
+#define EXP expf
+#define EXPM1 expm1f
+#define LOG logf
+#define FABS fabsf
+#include "_native_sim3.h"
+
+#define T double
+#define SFX f64
 #include "_native_products.h"  /* compose, inverse and adjoint; undefines T and SFX */
 #define T float
 #define SFX f32
@@ -64,6 +84,12 @@ WRAP(jl_inv, 2)
         (void)self;                                                                       \
         return dispatch(a, nargs, 2, op##_range_f64, op##_range_f32, 1, #op);                \
     }
+WRAP_SUB(sim3_exp)
+WRAP_SUB(sim3_log)
+WRAP_SUB(sim3_jl)
+WRAP_SUB(sim3_jl_inv)
+WRAP_SUB(sim3_inverse)
+WRAP_SUB(sim3_adjoint)
 WRAP_SUB(se2_exp)
 WRAP_SUB(se2_log)
 WRAP_SUB(se2_jl)
@@ -98,6 +124,7 @@ WRAP_COMPOSE(so3, 3)
 WRAP_COMPOSE(se2, 3)
 WRAP_COMPOSE(sgal3, 5)
 WRAP_COMPOSE(se3, 4)
+WRAP_COMPOSE(sim3, 4)
 WRAP_COMPOSE(se23, 5)
 
 static PyMethodDef methods[] = {
@@ -112,6 +139,9 @@ static PyMethodDef methods[] = {
     {"sgal3_jl_inv", (PyCFunction)(void (*)(void))py_sgal3_jl_inv, METH_FASTCALL,
      "J_l^-1 (xi, out, n, threads, is_double)"},
 #define SUB_ENTRY(op, doc) {#op, (PyCFunction)(void (*)(void))py_##op, METH_FASTCALL, doc " (in, out, n, threads, is_double)"},
+    SUB_ENTRY(sim3_exp, "Sim(3) exp") SUB_ENTRY(sim3_log, "Sim(3) log")
+    SUB_ENTRY(sim3_jl, "Sim(3) J_l") SUB_ENTRY(sim3_jl_inv, "Sim(3) J_l^-1")
+    SUB_ENTRY(sim3_inverse, "Sim(3) inverse") SUB_ENTRY(sim3_adjoint, "Sim(3) adjoint")
     SUB_ENTRY(se2_exp, "SE(2) exp") SUB_ENTRY(se2_log, "SE(2) log")
     SUB_ENTRY(se2_jl, "SE(2) J_l") SUB_ENTRY(se2_jl_inv, "SE(2) J_l^-1")
     SUB_ENTRY(so3_exp, "SO(3) exp") SUB_ENTRY(so3_log, "SO(3) log")
@@ -132,6 +162,8 @@ static PyMethodDef methods[] = {
      "SE(2) product (A, B, out, n, threads, is_double)"},
     {"se3_compose", (PyCFunction)(void (*)(void))py_se3_compose, METH_FASTCALL,
      "SE(3) product (A, B, out, n, threads, is_double)"},
+    {"sim3_compose", (PyCFunction)(void (*)(void))py_sim3_compose, METH_FASTCALL,
+     "Sim(3) product (A, B, out, n, threads, is_double)"},
     {"se23_compose", (PyCFunction)(void (*)(void))py_se23_compose, METH_FASTCALL,
      "SE_2(3) product (A, B, out, n, threads, is_double)"},
 #undef SUB_ENTRY
@@ -139,7 +171,7 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3), SO(3), SE(2), SE(3) and SE_2(3) CPU kernels", -1, methods};
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_native", "SGal(3), SO(3), SE(2), SE(3), SE_2(3) and Sim(3) CPU kernels", -1, methods};
 
 PyMODINIT_FUNC PyInit__native(void) {
     find_openmp();

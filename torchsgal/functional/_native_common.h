@@ -36,6 +36,11 @@ static double INV_FACT[8];
 static int N_BERNOULLI = 0;
 static double BERNOULLI[MAX_TERMS];
 static double SERIES_THRESHOLD, JINV_THRESHOLD, LOG_SYMMETRIC_COS, LOG_SIN_TAYLOR;
+/* Sim(3)'s scale moments and series (numerics.scale_moments, sim3_coefficients); 1/j! to j = 32. */
+#define MAX_MOMENT_ORDER 30
+static double INV_FACT_LONG[MAX_MOMENT_ORDER + 3];
+static double SCALE_UPWARD_MARGIN, SIM3_SERIES_THRESHOLD, SIM3_NORMALISE;
+static int SCALE_EXTRA_ORDERS, SCALE_TAYLOR_TERMS, SIM3_SERIES_TERMS;
 
 typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
 
@@ -292,19 +297,29 @@ static inline PyObject *dispatch(PyObject *const *a, Py_ssize_t nargs, int npoin
 }
 
 /* set_constants(series_threshold, jinv_threshold, log_symmetric_cos, log_sin_taylor,
- *               taylor_c3, taylor_c4, taylor_c5, taylor_c6, inv_fact, bernoulli) */
+ *               taylor_c3, taylor_c4, taylor_c5, taylor_c6, inv_fact, bernoulli,
+ *               scale_upward_margin, scale_extra_orders, scale_taylor_terms,
+ *               sim3_series_threshold, sim3_series_terms, sim3_normalise, inv_fact_long) */
 static PyObject *py_set_constants(PyObject *self, PyObject *args) {
     (void)self;
-    PyObject *t3, *t4, *t5, *t6, *inv_fact, *bern;
-    double st, jt, lsc, lst;
-    if (!PyArg_ParseTuple(args, "ddddOOOOOO", &st, &jt, &lsc, &lst, &t3, &t4, &t5, &t6, &inv_fact, &bern))
+    PyObject *t3, *t4, *t5, *t6, *inv_fact, *bern, *inv_fact_long;
+    double st, jt, lsc, lst, margin, sim3_threshold, sim3_normalise;
+    int extra, taylor, sim3_terms;
+    if (!PyArg_ParseTuple(args, "ddddOOOOOOdiididO", &st, &jt, &lsc, &lst, &t3, &t4, &t5, &t6, &inv_fact, &bern,
+                          &margin, &extra, &taylor, &sim3_threshold, &sim3_terms, &sim3_normalise, &inv_fact_long))
         return NULL;
     int n3 = read_table(t3, TAYLOR_C3, MAX_TERMS, "taylor_c3"), n4 = read_table(t4, TAYLOR_C4, MAX_TERMS, "taylor_c4");
     int n5 = read_table(t5, TAYLOR_C5, MAX_TERMS, "taylor_c5"), n6 = read_table(t6, TAYLOR_C6, MAX_TERMS, "taylor_c6");
     int nf = read_table(inv_fact, INV_FACT, 8, "inv_fact"), nb = read_table(bern, BERNOULLI, MAX_TERMS, "bernoulli");
-    if (n3 < 0 || n4 < 0 || n5 < 0 || n6 < 0 || nf < 0 || nb < 0) return NULL;
+    int nl = read_table(inv_fact_long, INV_FACT_LONG, MAX_MOMENT_ORDER + 3, "inv_fact_long");
+    if (n3 < 0 || n4 < 0 || n5 < 0 || n6 < 0 || nf < 0 || nb < 0 || nl < 0) return NULL;
     if (n3 != n4 || n3 != n5 || n3 != n6 || nf < 7) {
         PyErr_SetString(PyExc_ValueError, "the Taylor tables must have equal lengths and inv_fact 7 entries");
+        return NULL;
+    }
+    if (sim3_terms < 1 || 2 * sim3_terms + 2 > MAX_MOMENT_ORDER || nl != MAX_MOMENT_ORDER + 3 || extra < 0 || taylor < 0) {
+        PyErr_Format(PyExc_ValueError, "the Sim(3) series: at most %d terms and %d inverse factorials",
+                     MAX_MOMENT_ORDER / 2 - 1, MAX_MOMENT_ORDER + 3);
         return NULL;
     }
     SERIES_THRESHOLD = st;
@@ -313,6 +328,12 @@ static PyObject *py_set_constants(PyObject *self, PyObject *args) {
     LOG_SIN_TAYLOR = lst;
     N_BERNOULLI = nb;
     TAYLOR_TERMS = n3;
+    SCALE_UPWARD_MARGIN = margin;
+    SCALE_EXTRA_ORDERS = extra;
+    SCALE_TAYLOR_TERMS = taylor;
+    SIM3_SERIES_THRESHOLD = sim3_threshold;
+    SIM3_SERIES_TERMS = sim3_terms;
+    SIM3_NORMALISE = sim3_normalise;
     Py_RETURN_NONE;
 }
 

@@ -1,9 +1,9 @@
 """The package's optional C kernels: their switches and constants.
 
 ``torchsgal.functional._native`` holds SGal(3) exp, log, their backward maps and Jacobians, and
-the exp, log and Jacobians of SO(3), SE(2), SE(3) and SE_2(3): the CPU implementations of the
-torch operators ``torchsgal::sgal3_*``, ``so3_*``, ``se2_*``, ``se3_*`` and ``se23_*``
-(``functional/ops.py``);
+the exp, log and Jacobians of SO(3), SE(2), SE(3), SE_2(3) and Sim(3): the CPU implementations of
+the torch operators ``torchsgal::sgal3_*``, ``so3_*``, ``se2_*``, ``se3_*``, ``se23_*`` and
+``sim3_*`` (``functional/ops.py``);
 ``torchsgal.imu._native`` holds IMU preintegration, the CPU implementation of
 ``torchsgal::imu_preintegrate`` (``imu/_kernels.py``).
 
@@ -71,7 +71,10 @@ def set_constants(lib: ModuleType) -> None:
     lib.set_constants(numerics.SERIES_THRESHOLD, numerics.JINV_THRESHOLD,
                       numerics.LOG_SYMMETRIC_COS, numerics.LOG_SIN_TAYLOR,
                       taylor(3), taylor(4), taylor(5), taylor(6),
-                      [1.0 / math.factorial(m) for m in range(7)], list(numerics.JINV_SERIES))
+                      [1.0 / math.factorial(m) for m in range(7)], list(numerics.JINV_SERIES),
+                      numerics.SCALE_UPWARD_MARGIN, numerics.SCALE_EXTRA_ORDERS, numerics.SCALE_TAYLOR_TERMS,
+                      numerics.SIM3_SERIES_THRESHOLD, numerics.SIM3_SERIES_TERMS, numerics.SIM3_NORMALISE,
+                      [1.0 / math.factorial(j) for j in range(33)])
 
 
 if _lib is not None:

@@ -1,10 +1,11 @@
 """The exp, log, their backward maps, the left Jacobian and its inverse, the product, the
-inverse and the adjoint of SGal(3), of its subgroups SO(3), SE(3) and SE_2(3), and of SE(2) as
-registered torch operators.
+inverse and the adjoint of SGal(3), of its subgroups SO(3), SE(3) and SE_2(3), of SE(2) and of
+Sim(3) as registered torch operators.
 
 ``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp``, ``sgal3_log_vjp``, ``sgal3_jl``,
 ``sgal3_jl_inv``, ``sgal3_compose``, ``sgal3_inverse`` and ``sgal3_adjoint``
-(``torch.library.custom_op``), and the same nine of ``so3_``, ``se2_``, ``se3_`` and ``se23_``, are the one
+(``torch.library.custom_op``), and the same nine of ``so3_``, ``se2_``, ``se3_``, ``se23_`` and
+``sim3_``, are the one
 mechanism that eager code, autograd, ``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
@@ -51,7 +52,8 @@ from ._blocking import run_blocked
 
 Tensor = torch.Tensor
 _FLOATS = (torch.float32, torch.float64)
-GROUPS = ("SGal3", "SE3", "SE23", "SO3", "SE2")  # the groups whose exp, log and J_l are operators, with C kernels
+# the groups whose exp, log and J_l are operators, with C kernels (every group but SO(2))
+GROUPS = ("SGal3", "SE3", "SE23", "SO3", "SE2", "Sim3")
 # the groups whose operators may run compiled closed forms (``_compiles``; measured on CUDA for these)
 COMPILED_GROUPS = ("SGal3",)
 # devices whose operators run their closed forms through torch.compile, and what that needs

@@ -29,7 +29,7 @@ import torch
 
 from . import blocks as B
 from . import checks, numerics
-from ._autograd import checked_backward_parts, make_exp_log
+from ._autograd import checked_backward_parts, make_exp_log, make_jacobians, make_products
 from ._blocking import blocked
 
 NAME = "Sim3"
@@ -110,11 +110,6 @@ def log_impl(M: torch.Tensor) -> torch.Tensor:
     return B.last(rho, phi, lam[None])
 
 
-def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
-    checks.matrix_pair(A, Bm, MATRIX_DIM, "A", "B")
-    return A @ Bm
-
-
 @blocked(2)
 def inverse(M: torch.Tensor) -> torch.Tensor:
     """[[C^T, -s C^T r], [0, s]]."""
@@ -174,7 +169,7 @@ def _jl_parts(xi: torch.Tensor):
 
 
 @blocked(1)
-def jl(xi: torch.Tensor) -> torch.Tensor:
+def jl_impl(xi: torch.Tensor) -> torch.Tensor:
     checks.vector(xi, DOF, "xi")
     m, lam, phi, G1, coupling, lam_col = _jl_parts(xi)
     s = _scale(lam, m)
@@ -188,7 +183,7 @@ def jl(xi: torch.Tensor) -> torch.Tensor:
 
 
 @blocked(1)
-def jl_inv(xi: torch.Tensor) -> torch.Tensor:
+def jl_inv_impl(xi: torch.Tensor) -> torch.Tensor:
     """[[M^-1 / s, -M^-1 coupling Gamma_1^-1, -M^-1 lam_col], [0, Gamma_1^-1, 0], [0, 0, 1]]."""
     checks.vector(xi, DOF, "xi")
     m, lam, phi, _, coupling, lam_col = _jl_parts(xi)
@@ -316,5 +311,10 @@ def random(batch_shape, dtype, device, generator=None) -> torch.Tensor:
     return _matrix(B.entries(C), r, torch.exp(-lam))
 
 
+# The tensor code of the operators torchsgal::sim3_inverse and sim3_adjoint (ops.py).
+inverse_impl, adjoint_impl = inverse, adjoint
+
 exp, log = make_exp_log(sys.modules[__name__])
+jl, jl_inv = make_jacobians(sys.modules[__name__])
+compose, adjoint, inverse = make_products(sys.modules[__name__])
 jl_tmv, jl_inv_tmv, exp_pullback, log_pullback = checked_backward_parts(sys.modules[__name__])
