@@ -44,6 +44,23 @@ static int SCALE_EXTRA_ORDERS, SCALE_TAYLOR_TERMS, SIM3_SERIES_TERMS;
 
 typedef void (*range_fn)(void **args, int64_t lo, int64_t hi);
 
+/* Batch loops over [lo, hi) of the per-element kernels, for the including header's K() (its
+ * scalar type's suffix): the one-argument maps, one(in + in_size i, out + out_size i), and the
+ * Jacobians, group_jl_one(xi + dof i, inverse, out + dof^2 i). */
+#define RANGE(name, one, in_size, out_size)                                               \
+    static void K(name##_range)(void **a, int64_t lo, int64_t hi) {                      \
+        const T *in = a[0];                                                               \
+        T *out = a[1];                                                                    \
+        for (int64_t i = lo; i < hi; ++i) K(one)(in + (in_size) * i, out + (out_size) * i); \
+    }
+#define JACOBIAN_RANGE(group, dof, inverse, name)                                        \
+    static void K(name##_range)(void **a, int64_t lo, int64_t hi) {                      \
+        const T *xi = a[0];                                                               \
+        T *out = a[1];                                                                    \
+        for (int64_t i = lo; i < hi; ++i)                                                 \
+            K(group##_jl_one)(xi + (dof) * i, inverse, out + (dof) * (dof) * i);          \
+    }
+
 #define MAX_THREADS 64
 /* Work per thread (elements times their cost) below which a batch runs on the calling thread. */
 #define MIN_PER_THREAD 8192

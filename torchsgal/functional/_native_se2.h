@@ -53,29 +53,10 @@ static void K(se2_jl_one)(const T *x, int inverse, T *o) {
     K(se2_put)(a, b, qx, qy, o);
 }
 
-static void K(se2_exp_range)(void **a, int64_t lo, int64_t hi) {
-    const T *in = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se2_exp_one)(in + 3 * i, out + 9 * i);
-}
-
-static void K(se2_log_range)(void **a, int64_t lo, int64_t hi) {
-    const T *in = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se2_log_one)(in + 9 * i, out + 3 * i);
-}
-
-static void K(se2_jl_range)(void **a, int64_t lo, int64_t hi) {
-    const T *in = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se2_jl_one)(in + 3 * i, 0, out + 9 * i);
-}
-
-static void K(se2_jl_inv_range)(void **a, int64_t lo, int64_t hi) {
-    const T *in = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(se2_jl_one)(in + 3 * i, 1, out + 9 * i);
-}
+RANGE(se2_exp, se2_exp_one, 3, 9)
+RANGE(se2_log, se2_log_one, 9, 3)
+JACOBIAN_RANGE(se2, 3, 0, se2_jl)
+JACOBIAN_RANGE(se2, 3, 1, se2_jl_inv)
 
 #undef K
 #undef K_

@@ -535,13 +535,6 @@ static void K(sgal3_jl_one)(const T *x, int inverse, T *o) {
         o[10 * i + 9] = -(Di[3 * i] * g2n[0] + Di[3 * i + 1] * g2n[1] + Di[3 * i + 2] * g2n[2]);
 }
 
-#define JACOBIAN_RANGE(group, dof, inverse, name)                                        \
-    static void K(name##_range)(void **a, int64_t lo, int64_t hi) {                      \
-        const T *xi = a[0];                                                               \
-        T *out = a[1];                                                                    \
-        for (int64_t i = lo; i < hi; ++i)                                                 \
-            K(group##_jl_one)(xi + (dof) * i, inverse, out + (dof) * (dof) * i);          \
-    }
 JACOBIAN_RANGE(so3, 3, 0, so3_jl)
 JACOBIAN_RANGE(so3, 3, 1, so3_jl_inv)
 JACOBIAN_RANGE(se3, 6, 0, se3_jl)
@@ -550,15 +543,7 @@ JACOBIAN_RANGE(se23, 9, 0, se23_jl)
 JACOBIAN_RANGE(se23, 9, 1, se23_jl_inv)
 JACOBIAN_RANGE(sgal3, 10, 0, jl)
 JACOBIAN_RANGE(sgal3, 10, 1, jl_inv)
-#undef JACOBIAN_RANGE
 
-/* Batch loops over [lo, hi): the one-argument maps, one(in + in_size i, out + out_size i). */
-#define RANGE(name, one, in_size, out_size)                                               \
-    static void K(name##_range)(void **a, int64_t lo, int64_t hi) {                      \
-        const T *in = a[0];                                                               \
-        T *out = a[1];                                                                    \
-        for (int64_t i = lo; i < hi; ++i) K(one)(in + (in_size) * i, out + (out_size) * i); \
-    }
 RANGE(exp, exp_one, 10, 25)
 RANGE(log, log_one, 25, 10)
 RANGE(se23_exp, se23_exp_one, 9, 25)
@@ -567,7 +552,6 @@ RANGE(so3_exp, so3_exp_one, 3, 9)
 RANGE(so3_log, so3_log_one, 9, 3)
 RANGE(se3_exp, se3_exp_one, 6, 16)
 RANGE(se3_log, se3_log_one, 16, 6)
-#undef RANGE
 
 static void K(exp_vjp_range)(void **a, int64_t lo, int64_t hi) {
     const T *xi = a[0], *M = a[1], *G = a[2];

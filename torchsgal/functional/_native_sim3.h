@@ -295,17 +295,8 @@ static void K(sim3_adjoint_one)(const T *M, T *o) {
     o[48] = 1;
 }
 
-static void K(sim3_inverse_range)(void **a, int64_t lo, int64_t hi) {
-    const T *in = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(sim3_inverse_one)(in + 16 * i, out + 16 * i);
-}
-
-static void K(sim3_adjoint_range)(void **a, int64_t lo, int64_t hi) {
-    const T *in = a[0];
-    T *out = a[1];
-    for (int64_t i = lo; i < hi; ++i) K(sim3_adjoint_one)(in + 16 * i, out + 49 * i);
-}
+RANGE(sim3_inverse, sim3_inverse_one, 16, 16)
+RANGE(sim3_adjoint, sim3_adjoint_one, 16, 49)
 
 #undef K
 #undef K_
