@@ -382,21 +382,26 @@ static inline void K(gamma_vec)(const T *c, int l, const T *phi, const T *x, T *
     for (int i = 0; i < 3; ++i) o[i] = (l < 2 ? x[i] : x[i] / (T)2) + c[l + 1] * p[i] + c[l + 2] * pp[i];
 }
 
-/* d/dphi [Gamma_l(phi) x] (blocks.gamma_vec_derivative), e_m = m c_(m+2) - c_(m+1):
- * (e_(l+1) phi^x + e_(l+2) phi^phi^x - 2 b x) phi^T + b phi x^T + b (phi . x) I - a x^. */
-static inline void K(gamma_vec_derivative)(const T *c, int l, const T *phi, const T *x, T *o) {
+/* d/dphi [(m1 phi^ + m2 phi^ phi^) x] (blocks.poly_vec_derivative), e_k = m_k'(theta)/theta:
+ * (e1 phi^x + e2 phi^phi^x - 2 m2 x) phi^T + m2 phi x^T + m2 (phi . x) I - m1 x^. */
+static inline void K(poly_vec_derivative)(T m1, T m2, T e1, T e2, const T *phi, const T *x, T *o) {
     T p[3], pp[3], u[3];
     K(cross)(phi, x, p);
     K(cross)(phi, p, pp);
-    T a = c[l + 1], b = c[l + 2];
-    T ea = (T)(l + 1) * c[l + 3] - c[l + 2], eb = (T)(l + 2) * c[l + 4] - c[l + 3];
-    for (int i = 0; i < 3; ++i) u[i] = ea * p[i] + eb * pp[i] - (T)2 * b * x[i];
-    T bd = b * K(dot)(phi, x);
+    for (int i = 0; i < 3; ++i) u[i] = e1 * p[i] + e2 * pp[i] - (T)2 * m2 * x[i];
+    T bd = m2 * K(dot)(phi, x);
     for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) o[3 * i + j] = u[i] * phi[j] + b * phi[i] * x[j] + (i == j ? bd : (T)0);
-    o[1] += a * x[2]; o[2] -= a * x[1];  /* - a x^ */
-    o[3] -= a * x[2]; o[5] += a * x[0];
-    o[6] += a * x[1]; o[7] -= a * x[0];
+        for (int j = 0; j < 3; ++j) o[3 * i + j] = u[i] * phi[j] + m2 * (phi[i] * x[j]) + (i == j ? bd : (T)0);
+    o[1] += m1 * x[2]; o[2] -= m1 * x[1];  /* - m1 x^ */
+    o[3] -= m1 * x[2]; o[5] += m1 * x[0];
+    o[6] += m1 * x[1]; o[7] -= m1 * x[0];
+}
+
+/* d/dphi [Gamma_l(phi) x] (blocks.gamma_vec_derivative): the same algebra with a = c_(l+1),
+ * b = c_(l+2) and e_m = m c_(m+2) - c_(m+1). */
+static inline void K(gamma_vec_derivative)(const T *c, int l, const T *phi, const T *x, T *o) {
+    T ea = (T)(l + 1) * c[l + 3] - c[l + 2], eb = (T)(l + 2) * c[l + 4] - c[l + 3];
+    K(poly_vec_derivative)(c[l + 1], c[l + 2], ea, eb, phi, x, o);
 }
 
 /* r^ M, column by column (blocks.skew_times). */

@@ -61,15 +61,15 @@ WIDE_LOOPS static void K(scale_moments_lanes)(const T *x, const T *em1, const T 
  * moments q[j] (this element's lane, stride SIM3_LANES): m[0..3] = m0, m1, m2, m_re, and with
  * derivatives m[4..8] = p0, e1, e2, p1, p2.  sg is sigma (1 unless normalised), em1 sigma expm1(-lam). */
 static inline void K(sim3_m)(T t2, T lam, T em1, T sg, int normalised, int derivatives, const T *q, T *m) {
-    const int K_ = SIM3_SERIES_TERMS;
+    const int terms = SIM3_SERIES_TERMS;
 #define Q(j) q[SIM3_LANES * (j)]
     T m0 = Q(0);
     m[0] = m0;
     if (derivatives) m[4] = Q(1) - Q(0);
     if (t2 < (T)(SIM3_SERIES_THRESHOLD * SIM3_SERIES_THRESHOLD)) {
         T u = -t2;
-        T a1 = Q(2 * (K_ - 1) + 1), a2 = Q(2 * (K_ - 1) + 2);
-        for (int k = K_ - 2; k >= 0; --k) {
+        T a1 = Q(2 * (terms - 1) + 1), a2 = Q(2 * (terms - 1) + 2);
+        for (int k = terms - 2; k >= 0; --k) {
             a1 = a1 * u + Q(2 * k + 1);
             a2 = a2 * u + Q(2 * k + 2);
         }
@@ -77,10 +77,10 @@ static inline void K(sim3_m)(T t2, T lam, T em1, T sg, int normalised, int deriv
         m[2] = a2;
         m[3] = m0 + u * a2;
         if (!derivatives) return;
-        int k = K_ - 1;
+        int k = terms - 1;
         T e1 = (T)(2 * (k + 1)) * Q(2 * k + 3), e2 = (T)(2 * (k + 1)) * Q(2 * k + 4);
         T p1 = Q(2 * k + 1) - (T)(2 * k + 2) * Q(2 * k + 2), p2 = Q(2 * k + 2) - (T)(2 * k + 3) * Q(2 * k + 3);
-        for (k = K_ - 2; k >= 0; --k) {
+        for (k = terms - 2; k >= 0; --k) {
             e1 = e1 * u + (T)(2 * (k + 1)) * Q(2 * k + 3);
             e2 = e2 * u + (T)(2 * (k + 1)) * Q(2 * k + 4);
             p1 = p1 * u + (Q(2 * k + 1) - (T)(2 * k + 2) * Q(2 * k + 2));
@@ -131,6 +131,16 @@ static void K(sim3_m_lanes)(const T *t2, const T *lam, int derivatives, int norm
         K(sim3_m)(t2[w], lam[w], em1[w], sg[w], normalise, derivatives, &q[0][w], m[w]);
 }
 
+/* (n0, n1, n2) with (m0 I + m1 phi^ + m2 phi^ phi^)^-1 = n0 I + n1 phi^ + n2 phi^ phi^, from
+ * m = (m0, m1, m2, m_re) and theta^2 = t2 (blocks.poly_inverse). */
+static inline void K(poly_inverse)(const T *m, T t2, T *n) {
+    T n0 = (T)1 / m[0], b = m[1] * n0, c = m[2] * n0, re = m[3] * n0;
+    T scale = n0 / (re * re + b * b * t2);
+    n[0] = n0;
+    n[1] = -b * scale;
+    n[2] = (b * b - c * re) * scale;
+}
+
 /* exp: [[Gamma_0(phi), M rho], [0, e^-lambda]] (sim3.exp_impl), given m. */
 static void K(sim3_exp_finish)(const T *x, const T *m, T *o) {
     const T *rho = x, *phi = x + 3;
@@ -148,10 +158,9 @@ static void K(sim3_exp_finish)(const T *x, const T *m, T *o) {
 /* log: phi = log(C), lambda = -log M[3, 3], rho = M(phi, lambda)^-1 r with the inverse's
  * coefficients of blocks.poly_inverse (sim3.log_impl), given m. */
 static void K(sim3_log_finish)(const T *M, const T *phi, T t2, const T *m, T *x) {
-    T r[3] = {M[3], M[7], M[11]};
-    T n0 = (T)1 / m[0], b = m[1] * n0, cc = m[2] * n0, re = m[3] * n0;
-    T scale = n0 / (re * re + b * b * t2);
-    K(poly)(phi, r, n0, -b * scale, (b * b - cc * re) * scale, x);
+    T r[3] = {M[3], M[7], M[11]}, n[3];
+    K(poly_inverse)(m, t2, n);
+    K(poly)(phi, r, n[0], n[1], n[2], x);
     for (int i = 0; i < 3; ++i) x[3 + i] = phi[i];
 }
 
@@ -192,21 +201,6 @@ static void K(sim3_log_range)(void **a, int64_t lo, int64_t hi) {
     }
 }
 
-/* d/dphi [(m1 phi^ + m2 phi^ phi^) x] (blocks.poly_vec_derivative), e_k = m_k'(theta)/theta:
- * (e1 phi^x + e2 phi^phi^x - 2 m2 x) phi^T + m2 phi x^T + m2 (phi . x) I - m1 x^. */
-static inline void K(poly_vec_derivative)(T m1, T m2, T e1, T e2, const T *phi, const T *x, T *o) {
-    T p[3], pp[3], u[3];
-    K(cross)(phi, x, p);
-    K(cross)(phi, p, pp);
-    for (int i = 0; i < 3; ++i) u[i] = e1 * p[i] + e2 * pp[i] - (T)2 * m2 * x[i];
-    T bd = m2 * K(dot)(phi, x);
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) o[3 * i + j] = u[i] * phi[j] + m2 * (phi[i] * x[j]) + (i == j ? bd : (T)0);
-    o[1] += m1 * x[2]; o[2] -= m1 * x[1];  /* - m1 x^ */
-    o[3] -= m1 * x[2]; o[5] += m1 * x[0];
-    o[6] += m1 * x[1]; o[7] -= m1 * x[0];
-}
-
 /* J_l = [[s M, s coupling, s lam_col], [0, Gamma_1, 0], [0, 0, 1]] and
  * J_l^-1 = [[M^-1 / s, -M^-1 coupling Gamma_1^-1, -M^-1 lam_col], [0, Gamma_1^-1, 0], [0, 0, 1]]
  * with coupling = d(M rho)/dphi + (M rho)^ Gamma_1 and lam_col = dM/dlambda rho (sim3.jl_impl,
@@ -234,15 +228,13 @@ static void K(sim3_jl_finish)(const T *x, const T *m, T shift, int inverse, T *o
         for (int i = 0; i < 3; ++i) o[7 * i + 6] = s * lam_col[i];
         return;
     }
-    T inv_s = EXP(-(lam - shift)), Mi[9], G1i[9], t[9], R[9], y[3];
-    T n0 = (T)1 / m[0], b = m[1] * n0, cc = m[2] * n0, re = m[3] * n0;
-    T scale = n0 / (re * re + b * b * t2);
-    T n1 = -b * scale, n2 = (b * b - cc * re) * scale;
-    K(sym_skew)(n0 - t2 * n2, n1, n2, phi, Mi);
+    T inv_s = EXP(-(lam - shift)), Mi[9], G1i[9], t[9], R[9], y[3], n[3];
+    K(poly_inverse)(m, t2, n);
+    K(sym_skew)(n[0] - t2 * n[2], n[1], n[2], phi, Mi);
     K(jac_inv_mat)(phi, G1i);
     K(mat3_mul)(Mi, coupling, t);
     K(mat3_mul)(t, G1i, R);
-    K(poly)(phi, lam_col, n0, n1, n2, y);
+    K(poly)(phi, lam_col, n[0], n[1], n[2], y);
     for (int i = 0; i < 9; ++i) { R[i] = -R[i]; t[i] = Mi[i] * inv_s; }
     K(put3)(o, 7, 0, 0, t);
     K(put3)(o, 7, 0, 1, R);
