@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from ..functional import checks, native
+from ..functional.registration import operator
 
 try:
     from . import _native as _lib  # type: ignore[attr-defined]  # compiled: mypy reads no .so
@@ -356,8 +357,8 @@ def _unpack_dense(packed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return row_index[row_base[t] + r], elim_off[t] + c
 
 
-@torch.library.custom_op("torchsgal::block_cholesky_solve", mutates_args=(),
-                         schema="(Tensor values, Tensor rhs, Tensor structure) -> (Tensor, Tensor, Tensor, Tensor)")
+@operator("torchsgal::block_cholesky_solve",
+          schema="(Tensor values, Tensor rhs, Tensor structure) -> (Tensor, Tensor, Tensor, Tensor)")
 def _block_cholesky_solve_op(values: torch.Tensor, rhs: torch.Tensor, structure: torch.Tensor
                              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(L, X, Q, info) (module docstring): the tensor code."""

@@ -17,7 +17,7 @@ one thread and copy every batch into column-major order and back; the C kernel o
 batch split over ``torch.get_num_threads()`` threads (``benchmarks/bench_factor_graph.py``, case
 6, times it against torch.linalg).
 
-One registration (``torch.library.custom_op``) that autograd, ``torch.func`` and
+One registration (``functional.registration``, through ``torch.library``) that autograd, ``torch.func`` and
 ``torch.compile`` all see:
 
 * CPU, float32 or float64, systems of up to ``SMALL_SIZE`` unknowns, or up to
@@ -49,6 +49,7 @@ from .._compat import FastApply
 from ..functional import checks, native
 from ..functional._autograd import _nested_forward_mode
 from ..functional._blocking import is_compiling
+from ..functional.registration import operator
 
 try:
     from . import _native as _lib  # type: ignore[attr-defined]  # compiled: mypy reads no .so
@@ -151,8 +152,8 @@ def uses_kernel(M: torch.Tensor) -> bool:
 
 
 # ---------------------------------------------------------------------------- cholesky_solve
-@torch.library.custom_op("torchsgal::cholesky_solve", mutates_args=(),
-                         schema="(Tensor A, Tensor R, bool back) -> (Tensor, Tensor, Tensor, Tensor)")
+@operator("torchsgal::cholesky_solve",
+          schema="(Tensor A, Tensor R, bool back) -> (Tensor, Tensor, Tensor, Tensor)")
 def _cholesky_solve_op(A: torch.Tensor, R: torch.Tensor, back: bool):
     """(L, X, Y, info); Y (..., m, 0) without ``back`` (module docstring)."""
     _check(A, R, "A", "R")
@@ -201,8 +202,8 @@ def _cholesky_solve_vmap(info, in_dims, A, R, back):
 
 
 # ---------------------------------------------------------------------------- triangular_solve
-@torch.library.custom_op("torchsgal::triangular_solve", mutates_args=(),
-                         schema="(Tensor L, Tensor R, bool transpose) -> Tensor")
+@operator("torchsgal::triangular_solve",
+          schema="(Tensor L, Tensor R, bool transpose) -> Tensor")
 def _triangular_solve_op(L: torch.Tensor, R: torch.Tensor, transpose: bool) -> torch.Tensor:
     """L^-1 R or L^-T R (module docstring)."""
     _check(L, R, "L", "R")

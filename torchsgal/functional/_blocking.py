@@ -55,7 +55,7 @@ def unobserved(args) -> bool:
         return False
     grad = torch.is_grad_enabled()
     for a in args:
-        if type(a) is not torch.Tensor or a.device.type != "cpu" or _is_wrapped(a):
+        if type(a) is not torch.Tensor or not a.is_cpu or _is_wrapped(a):
             return False
         if grad and a.requires_grad:
             return False

@@ -4,9 +4,9 @@ Sim(3) as registered torch operators.
 
 ``torchsgal::sgal3_exp``, ``sgal3_log``, ``sgal3_exp_vjp``, ``sgal3_log_vjp``, ``sgal3_jl``,
 ``sgal3_jl_inv``, ``sgal3_compose``, ``sgal3_inverse`` and ``sgal3_adjoint``
-(``torch.library.custom_op``), and the same nine of ``so3_``, ``se2_``, ``se3_``, ``se23_`` and
-``sim3_``, are the one
-mechanism that eager code, autograd, ``torch.func`` and ``torch.compile`` all see:
+(defined through ``torch.library``, ``registration.py``), and the same nine of ``so3_``,
+``se2_``, ``se3_``, ``se23_`` and ``sim3_``, are the one mechanism that eager code, autograd,
+``torch.func`` and ``torch.compile`` all see:
 
 * the implementation runs the C kernel (``native.py``) on CPU float32/float64 tensors of one
   batch shape, where the kernels are compiled and not switched off for the calling thread (every
@@ -49,6 +49,7 @@ import torch
 
 from . import checks, native
 from ._blocking import run_blocked
+from .registration import operator
 
 Tensor = torch.Tensor
 _FLOATS = (torch.float32, torch.float64)
@@ -71,19 +72,22 @@ def _kernel(name: str, args: Sequence[Tensor], batch: Sequence[torch.Size]) -> C
     if lib is None or not native.enabled():
         return None
     dtype = args[0].dtype
-    if dtype not in _FLOATS or any(a.dtype is not dtype or a.device.type != "cpu" for a in args):
+    if dtype not in _FLOATS:
         return None
-    if any(b != batch[0] for b in batch[1:]):
-        return None
+    for a, b in zip(args, batch):
+        if a.dtype is not dtype or not a.is_cpu or b != batch[0]:
+            return None
     return getattr(lib, name, None)  # an operator without a kernel runs its closed form
 
 
 def _run_kernel(fn: Callable, args: Sequence[Tensor], batch: torch.Size, event: tuple) -> Tensor:
     """fn over the batch: contiguous inputs, a fresh (*batch, *event) output of their dtype."""
-    ins = [a.resolve_neg().resolve_conj().contiguous() for a in args]
-    out = torch.empty(tuple(batch) + event, dtype=ins[0].dtype)
-    fn(*(t.data_ptr() for t in ins), out.data_ptr(), math.prod(batch), torch.get_num_threads(),
-       ins[0].dtype is torch.float64)
+    ins = [a if a.is_contiguous() and not a.is_neg() and not a.is_conj()
+           else a.resolve_neg().resolve_conj().contiguous() for a in args]
+    dtype = ins[0].dtype
+    out = torch.empty(tuple(batch) + event, dtype=dtype)
+    fn(*[t.data_ptr() for t in ins], out.data_ptr(), math.prod(batch), torch.get_num_threads(),
+       dtype is torch.float64)
     return out
 
 
@@ -223,58 +227,62 @@ def _define(mod) -> tuple:
                   "jl": jl_flat, "jl_inv": jl_inv_flat, "compose": compose_flat, "adjoint": adjoint_flat,
                   "inverse": inverse_flat}
 
+    kernel_names = {kernel: f"{name}_{kernel}" for kernel in names}
+
     def run(kernel: str, tensor_code, args, event_dims, event):
         # the operators are public: shapes checked before a C loop reads the memory
+        batch = []
         for a, k, arg_name in zip(args, event_dims, names[kernel]):
             if k == 1:
                 checks.vector(a, dof, arg_name)
             else:
                 checks.matrix(a, n, arg_name)
-        batch = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
-        if kernel == "compose":  # A @ B promotes no dtype: name the mismatch
-            checks.same_device_dtype(**dict(zip(names[kernel], args)))
-        if any(b != batch[0] for b in batch[1:]):
-            checks.broadcast_batch(**dict(zip(names[kernel], batch)))
-        fn = _kernel(f"{name}_{kernel}", args, batch)
+            batch.append(a.shape[: a.dim() - k])
+        if len(args) > 1:
+            if kernel == "compose":  # A @ B promotes no dtype: name the mismatch
+                checks.same_device_dtype(**dict(zip(names[kernel], args)))
+            if any(b != batch[0] for b in batch[1:]):
+                checks.broadcast_batch(**dict(zip(names[kernel], batch)))
+        fn = _kernel(kernel_names[kernel], args, batch)
         if fn is None:
             if compiled_group and _compiles(args):
-                return _run_compiled(f"{name}_{kernel}", flat_codes[kernel], args, event_dims)
+                return _run_compiled(kernel_names[kernel], flat_codes[kernel], args, event_dims)
             return run_blocked(tensor_code, tuple(args), tuple(event_dims))
         return _run_kernel(fn, args, batch[0], event)
 
-    @torch.library.custom_op(prefix + "exp", mutates_args=())
+    @operator(prefix + "exp")
     def exp(xi: Tensor) -> Tensor:
         return run("exp", mod.exp_impl, (xi,), (1,), (n, n))
 
-    @torch.library.custom_op(prefix + "log", mutates_args=())
+    @operator(prefix + "log")
     def log(M: Tensor) -> Tensor:
         return run("log", mod.log_impl, (M,), (2,), (dof,))
 
-    @torch.library.custom_op(prefix + "exp_vjp", mutates_args=())
+    @operator(prefix + "exp_vjp")
     def exp_vjp(xi: Tensor, M: Tensor, G: Tensor) -> Tensor:
         return run("exp_vjp", exp_vjp_tensor, (xi, M, G), (1, 2, 2), (dof,))
 
-    @torch.library.custom_op(prefix + "log_vjp", mutates_args=())
+    @operator(prefix + "log_vjp")
     def log_vjp(M: Tensor, xi: Tensor, g: Tensor) -> Tensor:
         return run("log_vjp", log_vjp_tensor, (M, xi, g), (2, 1, 1), (n, n))
 
-    @torch.library.custom_op(prefix + "jl", mutates_args=())
+    @operator(prefix + "jl")
     def jl(xi: Tensor) -> Tensor:
         return run("jl", mod.jl_impl, (xi,), (1,), (dof, dof))
 
-    @torch.library.custom_op(prefix + "jl_inv", mutates_args=())
+    @operator(prefix + "jl_inv")
     def jl_inv(xi: Tensor) -> Tensor:
         return run("jl_inv", mod.jl_inv_impl, (xi,), (1,), (dof, dof))
 
-    @torch.library.custom_op(prefix + "compose", mutates_args=())
+    @operator(prefix + "compose")
     def compose(A: Tensor, Bm: Tensor) -> Tensor:
         return run("compose", compose_tensor, (A, Bm), (2, 2), (n, n))
 
-    @torch.library.custom_op(prefix + "adjoint", mutates_args=())
+    @operator(prefix + "adjoint")
     def adjoint(M: Tensor) -> Tensor:
         return run("adjoint", mod.adjoint_impl, (M,), (2,), (dof, dof))
 
-    @torch.library.custom_op(prefix + "inverse", mutates_args=())
+    @operator(prefix + "inverse")
     def inverse(M: Tensor) -> Tensor:
         return run("inverse", mod.inverse_impl, (M,), (2,), (n, n))
 

@@ -1,10 +1,10 @@
 """The IMU preintegration kernel as a torch operator: ``torch.ops.torchsgal.imu_preintegrate``.
 
 One registration that eager code, torch.func.vmap and torch.compile all see
-(``torch.library.custom_op``): the operator preintegrates n flattened windows of K samples and
-returns their increments and the node sums from which ``preintegrate`` forms the isotropic
-covariance and the bias Jacobian (``moments._node_moments``, Simpson's rule on each
-sample: instants and midpoints, docs/guide/imu.md).
+(``functional.registration``, through ``torch.library``): the operator preintegrates n
+flattened windows of K samples and returns their increments and the node sums from which
+``preintegrate`` forms the isotropic covariance and the bias Jacobian (``moments._node_moments``,
+Simpson's rule on each sample: instants and midpoints, docs/guide/imu.md).
 
 * CPU: the C loop of ``_native_imu.h`` (the extension ``torchsgal.imu._native``, built by
   ``pip install`` where a C compiler is found), one window at a time in double precision,
@@ -26,6 +26,7 @@ import math
 import torch
 
 from ..functional import checks, native
+from ..functional.registration import operator
 
 try:
     from . import _native as _lib  # type: ignore[attr-defined]  # compiled: mypy reads no .so
@@ -83,8 +84,8 @@ def _tensor_code(gyro, acc, dt, b_g, b_a, nodes: bool) -> tuple[torch.Tensor, to
     return delta, _pack(sums, n) if sums is not None else gyro.new_empty(n, 0)
 
 
-@torch.library.custom_op(
-    "torchsgal::imu_preintegrate", mutates_args=(),
+@operator(
+    "torchsgal::imu_preintegrate",
     schema="(Tensor gyro, Tensor acc, Tensor dt, Tensor b_g, Tensor b_a, bool nodes) -> (Tensor, Tensor)")
 def imu_preintegrate(gyro: torch.Tensor, acc: torch.Tensor, dt: torch.Tensor, b_g: torch.Tensor,
                      b_a: torch.Tensor, nodes: bool) -> tuple[torch.Tensor, torch.Tensor]:

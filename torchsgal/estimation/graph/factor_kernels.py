@@ -38,6 +38,7 @@ import torch
 
 from ...functional import checks, native, se2, se3
 from ...functional._blocking import unobserved
+from ...functional.registration import operator
 from .. import dense_solve
 from .log_terms import _SERIES, SERIES_THRESHOLD, se2_log_jacobians, se3_inverse, se3_log_jacobians
 
@@ -89,8 +90,8 @@ def _log_form_code(inverse, log_jacobians, adjoint, dof: int):
 _tensor_code = _log_form_code(se3_inverse, se3_log_jacobians, se3.adjoint, 6)
 
 
-@torch.library.custom_op("torchsgal::se3_factor_terms", mutates_args=(),
-                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, bool jacobians) -> (Tensor, Tensor)")
+@operator("torchsgal::se3_factor_terms",
+          schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, bool jacobians) -> (Tensor, Tensor)")
 def se3_factor_terms(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                      jacobians: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """(r, J) of SE(3) priors (``Ti`` None) or betweens (module docstring)."""
@@ -138,8 +139,8 @@ _SE2_SERIES = torch.tensor([SERIES_THRESHOLD ** 2] + [d for d, _ in _SERIES], dt
 _se2_tensor_code = _log_form_code(se2.inverse, se2_log_jacobians, se2.adjoint, 3)
 
 
-@torch.library.custom_op("torchsgal::se2_factor_terms", mutates_args=(),
-                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, bool jacobians) -> (Tensor, Tensor)")
+@operator("torchsgal::se2_factor_terms",
+          schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, bool jacobians) -> (Tensor, Tensor)")
 def se2_factor_terms(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                      jacobians: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """(r, J) of SE(2) priors (``Ti`` None) or betweens (module docstring)."""
@@ -212,8 +213,8 @@ _se3_normal_code = _normal_code(_tensor_code)
 _se2_normal_code = _normal_code(_se2_tensor_code)
 
 
-@torch.library.custom_op("torchsgal::se3_factor_normal", mutates_args=(),
-                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L) -> (Tensor, Tensor, Tensor)")
+@operator("torchsgal::se3_factor_normal",
+          schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L) -> (Tensor, Tensor, Tensor)")
 def se3_factor_normal(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                       L: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(r~ = L r (..., 6), H = J~^T J~ (..., Dk, Dk), g = J~^T r~ (..., Dk)) of SE(3) priors
@@ -231,8 +232,8 @@ se3_factor_normal.register_kernel("cpu")(
 se3_factor_normal.register_fake(_normal_fake(4))
 
 
-@torch.library.custom_op("torchsgal::se2_factor_normal", mutates_args=(),
-                         schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L) -> (Tensor, Tensor, Tensor)")
+@operator("torchsgal::se2_factor_normal",
+          schema="(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L) -> (Tensor, Tensor, Tensor)")
 def se2_factor_normal(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                       L: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """As ``se3_factor_normal`` for SE(2) (matrices (..., 3, 3), r (..., 3), Dk 3 or 6)."""
@@ -371,8 +372,8 @@ _ASSEMBLE_SCHEMA = ("(Tensor Zinv, Tensor? Ti, Tensor Tj, Tensor? L, Tensor slot
                     "Tensor g_slots, Tensor g) -> (Tensor, Tensor, Tensor)")
 
 
-@torch.library.custom_op("torchsgal::se3_factor_assemble", mutates_args=(),
-                         schema=_ASSEMBLE_SCHEMA)
+@operator("torchsgal::se3_factor_assemble",
+          schema=_ASSEMBLE_SCHEMA)
 def se3_factor_assemble(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                         L: torch.Tensor | None, slots: torch.Tensor, values: torch.Tensor,
                         g_slots: torch.Tensor, g: torch.Tensor
@@ -392,8 +393,8 @@ se3_factor_assemble.register_kernel("cpu")(
 se3_factor_assemble.register_fake(_assemble_fake(4))
 
 
-@torch.library.custom_op("torchsgal::se2_factor_assemble", mutates_args=(),
-                         schema=_ASSEMBLE_SCHEMA)
+@operator("torchsgal::se2_factor_assemble",
+          schema=_ASSEMBLE_SCHEMA)
 def se2_factor_assemble(Zinv: torch.Tensor, Ti: torch.Tensor | None, Tj: torch.Tensor,
                         L: torch.Tensor | None, slots: torch.Tensor, values: torch.Tensor,
                         g_slots: torch.Tensor, g: torch.Tensor

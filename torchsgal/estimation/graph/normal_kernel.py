@@ -28,6 +28,7 @@ from __future__ import annotations
 import torch
 
 from ...functional import checks, native
+from ...functional.registration import operator
 from .. import dense_solve
 from .factor_kernels import check_index_maps, usable
 
@@ -63,7 +64,7 @@ _SCHEMA = ("(Tensor J, Tensor r, Tensor slots, Tensor values, Tensor g_slots, Te
            "bool summed) -> (Tensor, Tensor)")
 
 
-@torch.library.custom_op("torchsgal::normal_assemble", mutates_args=(), schema=_SCHEMA)
+@operator("torchsgal::normal_assemble", schema=_SCHEMA)
 def normal_assemble(J: torch.Tensor, r: torch.Tensor, slots: torch.Tensor, values: torch.Tensor,
                     g_slots: torch.Tensor, g: torch.Tensor, summed: bool
                     ) -> tuple[torch.Tensor, torch.Tensor]:
