@@ -34,7 +34,8 @@ SGal(3), SO(3), SE(2), SE(3), SE_2(3) and Sim(3) run their registered operators 
 compiled, native.py); large CPU batches of the other groups run in blocks (_blocking).  Where
 nothing records (no autograd recording, forward-mode tangent or torch.func transform, not
 compiling: ``_blocking.unobserved``), exp, log, J_l, J_l^-1 and compose call their operators
-without the Function around them: the same values, without its bookkeeping (~15 us a call).
+without the Function around them: the same values, without its bookkeeping (~35 us a call,
+benchmarks/bench_call_cost.py).
 """
 from __future__ import annotations
 
@@ -259,9 +260,9 @@ def make_jacobians(mod):
 
 
 # Batches below this many elements compose as tensor code (A @ B): there the operator's call
-# (~15 us) costs more than torch's batched matmul (crossing over at 150-250 elements of 4 x 4
-# and 5 x 5; the 3 x 3 products of SO(3) and SE(2), cheaper in torch, pass their own, 2048:
-# crossing over at 2,000-4,000 elements).
+# (~55 us on one thread, benchmarks/bench_call_cost.py) costs more than torch's batched matmul
+# (crossing over at 150-250 elements of 4 x 4 and 5 x 5; the 3 x 3 products of SO(3) and
+# SE(2), cheaper in torch, pass their own, 2048: crossing over at 2,000-4,000 elements).
 COMPOSE_MIN_BATCH = 256
 
 
