@@ -46,6 +46,7 @@ def test_the_operator_is_the_registered_one_and_passes_opcheck():
     x = torch.randn(3, 4, dtype=torch.float64)
     assert torch.equal(_scale(x, 3.0), x * 3.0)
     assert torch.equal(torch.ops.torchsgal.registration_test_scale(x, 3.0), x * 3.0)
+    assert torch.equal(_scale(x, factor=3.0), x * 3.0)  # arguments by name, as the schema names them
     torch.library.opcheck(torch.ops.torchsgal.registration_test_scale.default, (x, 3.0))
     torch.library.opcheck(torch.ops.torchsgal.registration_test_square.default,
                           (x.clone().requires_grad_(),))

@@ -47,8 +47,8 @@ class Operator:
         torch.library.register_autograd(qualname, self._run_backward, setup_context=self._run_setup_context,
                                         lib=_LIBRARY)
 
-    def __call__(self, *args: Any) -> Any:
-        return self._overload(*args)
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self._overload(*args, **kwargs)
 
     def __repr__(self) -> str:
         return f"<operator {self._qualname}>"
