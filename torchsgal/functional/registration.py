@@ -7,9 +7,10 @@ registration methods of ``torch.library.custom_op``'s objects: ``register_kernel
 ``register_fake``, ``register_autograd`` and ``register_vmap`` (the last three by
 ``torch.library``'s functions of the same names).  Autograd, ``torch.func``, ``torch.compile``
 and ``torch.library.opcheck`` see the same operator either way; what differs is the cost of a
-call: ``custom_op`` reaches the implementation through Python wrappers that cost about 17 us per
-call (``torchsgal::sgal3_exp`` of one element: 87.6 us through ``custom_op``, 70.5 us through
-``Library``, one thread), which is the fixed cost of every group operation on small batches.
+call: ``custom_op`` reaches the implementation through Python wrappers that cost 13-19 us per
+call (``torchsgal::sgal3_exp`` of one element: 75.2 us through ``custom_op``, 56.4 us through
+``Library``, one thread, ``benchmarks/bench_call_cost.py``), part of the fixed cost of every
+group operation on small batches.
 
 An operator without a backward formula raises on a backward through it ("no autograd formula"),
 as a ``custom_op`` does: every operator has one autograd registration, whose formula
