@@ -5,9 +5,10 @@ What is timed (ns per batch element, median over samples; see ``_timing.measure`
 
 * torchsgal, for SO2 / SE2 / SO3 / SE3 / SE23 / SGal3 / Sim3: ``G.exp(xi)``, ``g.log()``, ``g @ h``,
   ``g.inverse()``, ``g.act(p)`` (points (...,3), (...,2) for SO2/SE2; events (...,4) for SGal3),
-  ``g.adjoint()``, ``G.jl(xi)``, and the functional layer ``ts.functional.<g>.exp(xi)`` (-> matrix)
-  / ``.log(M)``; for the groups with C kernels (SE3, SE23, SGal3) exp, log, compose, inverse and
-  adjoint again with the kernels off (rows "[tensor code]").
+  ``g.act_jacobians(p)`` (both Jacobians of the action, one element per point), ``g.adjoint()``,
+  ``G.jl(xi)``, and the functional layer ``ts.functional.<g>.exp(xi)`` (-> matrix) / ``.log(M)``;
+  for the groups with C kernels (SE3, SE23, SGal3) exp, log, compose, inverse and adjoint again
+  with the kernels off (rows "[tensor code]").
 * peers on the same group, batch, dtype and device:
   - ``torch.linalg.matrix_exp(G.hat(xi))`` (hat matrix built outside the timed region);
   - pypose ``pp.so3(x).Exp()``, ``pp.SO3(q).Log()``, ``pp.se3(x).Exp()``, ``pp.SE3(T).Log()``,
@@ -71,7 +72,7 @@ DOF = {"SO2": 1, "SE2": 3, "SO3": 3, "SE3": 6, "SE23": 9, "SGal3": 10, "Sim3": 7
 MDIM = {"SO2": 2, "SE2": 3, "SO3": 3, "SE3": 4, "SE23": 5, "SGal3": 5, "Sim3": 4}
 POINT_DIM = {"SO2": 2, "SE2": 2, "SO3": 3, "SE3": 3, "SE23": 3, "SGal3": 4, "Sim3": 3}
 PYPOSE_GROUPS = ("SO3", "SE3", "Sim3")  # groups pypose has
-OPS = ("exp", "log", "compose", "inverse", "act", "adjoint", "jl", "F.exp", "F.log")
+OPS = ("exp", "log", "compose", "inverse", "act", "act_jacobians", "adjoint", "jl", "F.exp", "F.log")
 # Ops that run as C kernels where torchsgal.functional.native has them (SGal3, SE3 and SE23 on
 # the CPU), timed again with the kernels off: rows "<op> [tensor code]".
 NATIVE_OPS = ("exp", "log", "compose", "inverse", "adjoint")
@@ -229,6 +230,7 @@ def bench_torchsgal(res, args, ts, group, n, dtype, device, gen):
         "compose": lambda: g @ h,
         "inverse": lambda: g.inverse(),
         "act": lambda: g.act(p),
+        "act_jacobians": lambda: g.act_jacobians(p),
         "adjoint": lambda: g.adjoint(),
         "jl": lambda: G.jl(xi),
         "F.exp": lambda: Fm.exp(xi),

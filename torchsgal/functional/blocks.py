@@ -324,11 +324,15 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
 def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int, hat, dof: int,
                              tail: tuple = (), rows: int = 3, size: int | None = None) -> torch.Tensor:
     """J (..., rows, dof) of act_homogeneous(M exp(xi^), x) at xi = 0 (the right perturbation):
-    column j is the first ``rows`` entries of M hat(e_j) [x, *tail] (``hat`` the group's).  As
-    sum_b [x, *tail]_b P_b with P_b = M[:rows] hat(e_j)[:, b], the (rows x dof) products formed
-    once per element and the points contracted with them in one matrix product (no per-point
-    copy of M hat(e_j)).  The input checks are act_homogeneous's; x has ``size`` entries (by
-    default ``rows``)."""
+    column j is the first ``rows`` entries of M hat(e_j) [x, *tail] (``hat`` the group's).  The
+    input checks are act_homogeneous's; x has ``size`` entries (by default ``rows``).
+
+    Two contractions of the same sum, J[r, j] = sum_a,b M[r, a] hat(e_j)[a, b] x_b, chosen by
+    which side has fewer elements: where one element acts on many points (M broadcast over x's
+    batch), P_b = M[:rows] hat(e_j)[:, b] is formed once per element and the points contracted
+    with it in one matrix product; where every point has its own element, G = hat(e_j) x (a
+    product of x with the constant basis) is formed per point and J = M[:rows] G, with no per-point
+    (k, rows * dof) intermediate."""
     checks.matrix(M, n, "g")
     checks.vector(x, rows if size is None else size, name)
     checks.binary(M, 2, x, 1, "g", name)
@@ -336,6 +340,12 @@ def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int
         x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
     k = x.shape[-1]
     basis = hat(torch.eye(dof, dtype=M.dtype, device=M.device))[:, :, :k]  # (dof, n, k)
+    per_point = M.dim() > 2 and M.shape[:-2].numel() > 1 and \
+        M.shape[:-2].numel() >= x.shape[:-1].numel()
+    if per_point:
+        # G[..., a, j] = sum_b hat(e_j)[a, b] x_b, as x (..., k) times the basis (k, n * dof)
+        G = (x @ basis.permute(2, 1, 0).reshape(k, n * dof)).unflatten(-1, (n, dof))
+        return M[..., :rows, :] @ G
     # P[..., b, r, j] = sum_a M[..., r, a] hat(e_j)[a, b], as (..., k, rows * dof)
     P = M[..., :rows, :] @ basis.permute(1, 2, 0).reshape(n, k * dof)
     P = P.unflatten(-1, (k, dof)).transpose(-3, -2).flatten(-2)
