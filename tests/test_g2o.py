@@ -213,3 +213,21 @@ def test_write_errors(tmp_path):
     bad.poses = bad.poses[:3]
     with pytest.raises(ValueError, match=r"poses must be None or SE2 of batch \(6,\)"):
         write_pose_graph(tmp_path / "g", bad)
+
+
+@pytest.mark.parametrize("spoil, message", [
+    (lambda g: setattr(g, "ids", g.ids - 3), r"ids must be >= 0 \(g2o and TORO vertex ids\), got -1"),
+    (lambda g: setattr(g, "ids", torch.zeros_like(g.ids)), "ids must be distinct"),
+    (lambda g: g.information.__setitem__((0, 0, 0), float("nan")), "information must be finite"),
+    (lambda g: setattr(g, "measurements", ts.SE2(g.measurements.as_matrix().clone().index_fill_(
+        -1, torch.tensor([2]), float("inf")))), "measurements must be finite"),
+])
+def test_write_refuses_what_the_reader_refuses(tmp_path, spoil, message):
+    """A graph the reader would refuse (negative or repeated ids, non-finite numbers) is not
+    written: the file could not be read back."""
+    graph = random_graph(ts.SE2, edge_tag="EDGE2")
+    graph.information = graph.information.clone()
+    spoil(graph)
+    with pytest.raises(ValueError, match=message):
+        write_pose_graph(tmp_path / "g", graph)
+    assert not (tmp_path / "g").exists()

@@ -211,6 +211,17 @@ def _check_graph(graph: PoseGraph) -> None:
         problems.append(f"poses must be None or {graph.group.__name__} of batch ({n},)")
     if problems:
         raise ValueError("graph: " + "; ".join(problems))
+    # what the readers refuse, refused before writing: ids >= 0 and distinct, finite numbers
+    if n and int(graph.ids.min()) < 0:
+        problems.append(f"ids must be >= 0 (g2o and TORO vertex ids), got {int(graph.ids.min())}")
+    if graph.ids.unique().numel() != n:
+        problems.append("ids must be distinct (one vertex line each)")
+    for name, t in (("measurements", graph.measurements.as_matrix()), ("information", graph.information),
+                    ("poses", None if graph.poses is None else graph.poses.as_matrix())):
+        if t is not None and not bool(torch.isfinite(t).all()):
+            problems.append(f"{name} must be finite")
+    if problems:
+        raise ValueError("graph: " + "; ".join(problems))
 
 
 # --------------------------------------------------------------------------- parsing

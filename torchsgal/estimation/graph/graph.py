@@ -8,7 +8,7 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
-from .factors import Between, Factor, Prior
+from .factors import Between, Factor, PointObservation, Prior
 from .robust import RobustLoss
 
 __all__ = ["FactorGraph"]
@@ -90,6 +90,19 @@ class FactorGraph:
                 kind = type(variable).__name__ if isinstance(variable, LieGroup) else "a Euclidean tensor"
                 raise TypeError(f"factor {factor!r}: measured is a {type(measured).__name__} but the "
                                 f"variable {name!r} is {kind}")
+        if isinstance(factor, PointObservation):  # a group pose acting on Euclidean points
+            (pose, _), (point, _) = factor.slots
+            T, p, z = self.variables[pose], self.variables[point], factor.data[0]
+            if not isinstance(T, LieGroup):
+                raise TypeError(f"factor {factor!r}: pose {pose!r} must be a group variable, got "
+                                f"a Euclidean tensor")
+            if isinstance(p, LieGroup):
+                raise TypeError(f"factor {factor!r}: point {point!r} must be a Euclidean variable, "
+                                f"got a {type(p).__name__}")
+            if p.shape[-1] != T.point_dim or z.shape[-1] != T.point_dim:
+                raise ValueError(f"factor {factor!r}: {type(T).__name__} acts on points of size "
+                                 f"{T.point_dim}; point {point!r} has size {p.shape[-1]} and "
+                                 f"measured {z.shape[-1]}")
         first = _leaf(next(iter(self.variables.values())))
         for k, d in enumerate(factor.data):
             checks.same_device_dtype(**{"the graph's first variable": first,

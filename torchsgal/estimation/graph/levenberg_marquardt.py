@@ -37,6 +37,7 @@ from ...functional import checks
 from ...groups import LieGroup
 from ..block_cholesky import uses_kernel as uses_block_kernel
 from ..solver import SolverReport, SolverStatus
+from .factors import _indices
 from .graph import FactorGraph
 from .implicit import attach_implicit
 from .linear_system import BlockSparseSystem, DenseSystem, LinearSystem, SparseSystem, block_layout
@@ -86,7 +87,7 @@ class GraphResult:
         info = p.variables[p.index[name]]
         if index is None:
             index = torch.arange(info.size, device=p.device)
-        index = torch.as_tensor(index, dtype=torch.int64, device=p.device).reshape(-1)
+        index = _indices(index, "index").to(p.device)
         if index.numel() and (int(index.min()) < 0 or int(index.max()) >= info.size):
             raise IndexError(f"index must be in [0, {info.size}) for {name!r}, got "
                              f"[{int(index.min())}, {int(index.max())}]")
@@ -118,6 +119,9 @@ def _check(max_iterations, lambda_initial, lambda_factor, lambda_upper, lambda_l
         raise ValueError(f"lambda_factor must be > 1, got {lambda_factor}")
     checks.finite_number(lambda_upper, "lambda_upper", "> 0")
     checks.finite_number(lambda_lower, "lambda_lower", ">= 0")
+    if not lambda_lower <= lambda_initial <= lambda_upper:
+        raise ValueError(f"lambda_initial must lie in [lambda_lower, lambda_upper] = "
+                         f"[{lambda_lower}, {lambda_upper}], got {lambda_initial}")
     checks.finite_number(min_model_fidelity, "min_model_fidelity")
     checks.finite_number(relative_error_tol, "relative_error_tol", ">= 0")
     checks.finite_number(absolute_error_tol, "absolute_error_tol", ">= 0")

@@ -50,9 +50,9 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
     f = block.factor
     elements = [problem.wrap(k, a) for (k, _), a in zip(block.slots, args)]
     if not want_jacobian:
-        return f.residual(*elements, *block.data), None
+        return _own_dtype(problem, block, f.residual(*elements, *block.data)), None
     if f.jacobians is not None:
-        r, Js = f.jacobians(*elements, *block.data)
+        r, Js = _checked_jacobians(problem, block, f.jacobians(*elements, *block.data))
         if isinstance(Js, torch.Tensor):  # the slots' Jacobians side by side already
             return r, Js.expand(r.shape + Js.shape[-1:])
         if len(Js) == 1:
@@ -83,17 +83,60 @@ def _residual_and_jacobian(problem: Problem, block: Block, args: list, want_jaco
 
     out_dims: tuple = (None, 0)  # the residual once, its derivatives along the basis
     r_all, dr = torch.func.vmap(column, out_dims=out_dims)(*tangents)
-    return r_all, dr.movedim(0, -1)
+    return _own_dtype(problem, block, r_all), dr.movedim(0, -1)
+
+
+def _own_dtype(problem: Problem, block: Block, r):
+    """``r`` if it is a tensor of the graph's dtype and device (other types are named by
+    ``_check_residual``)."""
+    if isinstance(r, torch.Tensor) and r.is_floating_point() and (
+            r.dtype != problem.dtype or r.device != problem.device):
+        raise TypeError(f"{block.factor!r}: the residual is {r.dtype} on {r.device}, the graph's "
+                        f"variables {problem.dtype} on {problem.device}")
+    return r
+
+
+def _checked_jacobians(problem: Problem, block: Block, out) -> tuple:
+    """(r, Js) of a factor's ``jacobians``: Js one tensor (..., dim, sum of the slots' dofs)
+    or one (..., dim, dof_k) per slot, of the residual's dtype and device."""
+    f = block.factor
+    if not isinstance(out, (tuple, list)) or len(out) != 2:
+        raise TypeError(f"{f!r}: jacobians must return (r, [J_1, ...]) or (r, J), got "
+                        f"{type(out).__name__}")
+    r, Js = out
+    r = _own_dtype(problem, block, r)
+    if not isinstance(r, torch.Tensor) or r.dim() == 0:
+        return r, Js  # _check_residual names it
+    parts = [Js] if isinstance(Js, torch.Tensor) else Js
+    dofs = [sum(block.dofs)] if isinstance(Js, torch.Tensor) else list(block.dofs)
+    if not isinstance(parts, (tuple, list)) or len(parts) != len(dofs):
+        raise TypeError(f"{f!r}: jacobians must return one Jacobian per variable "
+                        f"({len(block.dofs)}) or one tensor of them side by side, got "
+                        f"{len(parts) if isinstance(parts, (tuple, list)) else type(parts).__name__}")
+    for k, (J, dof) in enumerate(zip(parts, dofs)):
+        if not isinstance(J, torch.Tensor) or J.dtype != r.dtype or J.device != r.device:
+            raise TypeError(f"{f!r}: Jacobian {k} must be a tensor of the residual's dtype "
+                            f"{r.dtype} on {r.device}, got "
+                            f"{f'{J.dtype} on {J.device}' if isinstance(J, torch.Tensor) else type(J).__name__}")
+        if J.dim() < 2 or J.shape[-2:] != (r.shape[-1], dof):
+            raise ValueError(f"{f!r}: Jacobian {k} has shape {tuple(J.shape)}, expected "
+                             f"(..., {r.shape[-1]}, {dof}) (the residual's size, the tangent size)")
+    return r, Js
 
 
 def _check_residual(block: Block, r, B: int) -> None:
-    """The residual must be a floating tensor (..., dim) that broadcasts to (B, E, dim)."""
+    """The residual must be a floating tensor (..., dim) that broadcasts to (B, E, dim); without
+    ``dim`` it must have all three axes, since a shorter one does not say which is its size."""
     f = block.factor
     if not isinstance(r, torch.Tensor) or not r.is_floating_point():
         raise TypeError(f"{f!r}: the residual must return a floating tensor, got "
                         f"{type(r).__name__ if not isinstance(r, torch.Tensor) else r.dtype}")
     if f.dim is not None and (r.dim() == 0 or r.shape[-1] != f.dim):
         raise ValueError(f"{f!r}: the residual has shape {tuple(r.shape)}, expected (..., {f.dim})")
+    if f.dim is None and r.dim() != 3:
+        raise ValueError(f"{f!r}: the residual has shape {tuple(r.shape)}; a factor without dim= "
+                         f"must return (B, E, dim) (the engine passes (B, E) batches): give the "
+                         f"factor its dim to let the residual broadcast")
     lead = tuple(r.shape[:-1])
     if len(lead) > 2 or any(n not in (1, m) for n, m in zip(lead[::-1], (block.size, B))):
         raise ValueError(f"{f!r}: the residual's shape {tuple(r.shape)} does not broadcast to "

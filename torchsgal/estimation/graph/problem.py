@@ -162,6 +162,13 @@ class Problem:
             raise ValueError(f"{factor!r} {name} has non-finite entries")
         sqrt = given if self.attach else given.detach()
         if W is not None:
+            # the Cholesky factorisation reads one triangle: an asymmetric W would be read as
+            # another matrix without a word (rounding of a computed W is within the tolerance)
+            tol = torch.finfo(W.dtype).eps ** 0.5
+            if bool(((W - W.mT).abs() > tol * W.abs().amax(dim=(-2, -1), keepdim=True)).any()):
+                raise ValueError(f"{factor!r} information must be symmetric, got a matrix whose "
+                                 f"entries differ from their transposes by more than {tol:.1e} "
+                                 f"of its largest entry")
             C, info = torch.linalg.cholesky_ex(sqrt)
             if bool((info != 0).any()):
                 raise ValueError(f"{factor!r} information must be symmetric positive definite")
