@@ -156,13 +156,13 @@ def _quaternion_order(order) -> None:
                          f"last: scipy, pypose, ROS), got {order!r}")
 
 
-def from_quaternion(q: torch.Tensor, order: str) -> torch.Tensor:
+def from_quaternion(q: torch.Tensor, order: str, name: str = "q") -> torch.Tensor:
     """Rotation matrices (..., 3, 3) of quaternions q (..., 4) with components in ``order``
     ("wxyz" or "xyzw"); q is normalised here, at any length the dtype holds, subnormal included
     (ValueError for a quaternion that is exactly zero or not finite, where its values can be
-    read), and q and -q give the same rotation."""
+    read), and q and -q give the same rotation.  ``name``: what errors call q."""
     _quaternion_order(order)
-    checks.vector(q, 4, "q")
+    checks.vector(q, 4, name)
     if order == "xyzw":
         q = q.roll(1, -1)
     # Scaled by its largest |component| first (as hypot): the sum of squares of q itself
@@ -172,9 +172,9 @@ def from_quaternion(q: torch.Tensor, order: str) -> torch.Tensor:
     if q.numel() and values_readable(q):
         bad = torch.stack(((scale == 0).any(), (~torch.isfinite(q)).any())).tolist()
         if bad[0]:
-            raise ValueError("q has a quaternion of zero length, which is no rotation")
+            raise ValueError(f"{name} has a quaternion of zero length, which is no rotation")
         if bad[1]:
-            raise ValueError("q has a quaternion that is not finite (inf or NaN components)")
+            raise ValueError(f"{name} has a quaternion that is not finite (inf or NaN components)")
     u = q / scale
     u = u / torch.linalg.vector_norm(u, dim=-1, keepdim=True)
     return B.quaternion_rotation(*B.first(u))

@@ -23,9 +23,15 @@ def _se3(g, name: str) -> SE3:
 def from_quaternion_translation(q: torch.Tensor, t: torch.Tensor, *, order: str) -> SE3:
     """SE3 of rotations given as quaternions q (..., 4) in ``order`` ("wxyz" or "xyzw") and
     translations t (..., 3) (the batches broadcast): the pose x -> R(q) x + t."""
-    C = _so3.from_quaternion(q, order)
-    checks.vector(t, 3, "t")
-    return SE3.from_components(rotation=C, position=t)
+    return _from_parts(q, t, order, "q", "t")
+
+
+def _from_parts(q: torch.Tensor, t: torch.Tensor, order: str, q_name: str, t_name: str) -> SE3:
+    checks.vector(t, 3, t_name)
+    checks.vector(q, 4, q_name)
+    checks.same_device_dtype(**{q_name: q, t_name: t})
+    checks.broadcast_batch(**{q_name: q.shape[:-1], t_name: t.shape[:-1]})
+    return SE3.from_components(rotation=_so3.from_quaternion(q, order, q_name), position=t)
 
 
 def as_quaternion_translation(g: SE3, *, order: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -38,7 +44,7 @@ def from_pose7(pose: torch.Tensor, *, order: str) -> SE3:
     """SE3 of 7-vectors ``[tx, ty, tz, q]`` (..., 7), the quaternion in ``order`` ("xyzw" is the
     TUM and pypose layout ``[t, qx, qy, qz, qw]``; "wxyz" gives ``[t, qw, qx, qy, qz]``)."""
     checks.vector(pose, 7, "pose")
-    return from_quaternion_translation(pose[..., 3:7], pose[..., 0:3], order=order)
+    return _from_parts(pose[..., 3:7], pose[..., 0:3], order, "pose[..., 3:7]", "pose[..., 0:3]")
 
 
 def as_pose7(g: SE3, *, order: str) -> torch.Tensor:

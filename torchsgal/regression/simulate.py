@@ -23,9 +23,18 @@ def simulate_maneuver(G, velocity: torch.Tensor, n_samples: int, noise_std: floa
     sampled at t_i = i / N, i = 1..N; the measurement adds Gaussian noise of standard deviation
     ``noise_std`` to every algebra component before the exponential (line 6).  ``start``
     (default identity) multiplies on the left, as x_0 does in lines 5 and 7."""
+    if not (isinstance(G, type) and issubclass(G, LieGroup) and G is not LieGroup):
+        raise TypeError(f"G must be a group class (ts.SE3, ts.SGal3, ...), got {G!r}")
     checks.vector(velocity, G.dof, "velocity")
     n_samples = checks.integer(n_samples, "n_samples", 1)
     noise_std = checks.finite_number(noise_std, "noise_std", ">= 0")
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator or None, got {type(generator).__name__}")
+    if start is not None:
+        if not isinstance(start, G):
+            raise TypeError(f"start must be a {G.__name__}, got {type(start).__name__}")
+        checks.same_device_dtype(velocity=velocity, start=start.as_matrix())
+        checks.broadcast_batch(velocity=velocity.shape[:-1], start=start.batch_shape)
     dtype, device = velocity.dtype, velocity.device
     t = torch.arange(1, n_samples + 1, dtype=dtype, device=device) / n_samples
     t = t.expand(velocity.shape[:-1] + (n_samples,))
@@ -33,7 +42,5 @@ def simulate_maneuver(G, velocity: torch.Tensor, n_samples: int, noise_std: floa
     noise = torch.randn(s.shape, dtype=dtype, device=device, generator=generator) * noise_std
     real, measured = G.exp(s), G.exp(s + noise)
     if start is not None:
-        if not isinstance(start, G):
-            raise TypeError(f"start must be a {G.__name__}, got {type(start).__name__}")
         real, measured = start.unsqueeze(-1) @ real, start.unsqueeze(-1) @ measured
     return Maneuver(t, real, measured)

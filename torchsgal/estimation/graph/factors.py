@@ -71,7 +71,8 @@ class Factor:
                    or (B, E) (one per problem), passed after the variables.  In a batched
                    graph a tensor whose two leading sizes are (B, E) is read as per problem
                    (group elements are never ambiguous: their batch has one or two axes).
-    dim            the residual's size.
+    dim            the residual's size; without it the residual must have the full shape
+                   (B, E, dim), with it its leading axes may broadcast.
     information / sqrt_information: the noise (see the module docstring); neither: identity.
     loss           a ``RobustLoss`` or None (plain least squares).
     jacobians      optional ``g(*variables, *data) -> (r, [J_1, ...])``, J_k (..., dim, dof_k)
