@@ -25,6 +25,7 @@ import torch
 
 from ..functional import checks
 from ..functional import so3 as _so3
+from ..functional._blocking import values_readable
 from ..groups import SE3, SO3, LieGroup, Sim3
 from ._common import require
 
@@ -70,7 +71,9 @@ def to_pypose(g: LieGroup):
 
 def from_pypose(x) -> LieGroup:
     """Our SO3, SE3 or Sim3 of a pypose LieTensor of type SO3, SE3 or Sim3 (quaternions are
-    normalised; differentiable)."""
+    normalised; differentiable).  A Sim3 scale must be finite and > 0 (ValueError naming x;
+    checked, with one host sync, where the values can be read: not on 'meta', inside a
+    torch.func transform or while torch.compile traces)."""
     kind = _lie_tensor(x, "x", ("SO3", "SE3", "Sim3"))
     data = x.tensor()
     if kind == "SO3":
@@ -79,6 +82,12 @@ def from_pypose(x) -> LieGroup:
     if kind == "SE3":
         return SE3.from_components(rotation=C, position=data[..., 0:3])
     s = data[..., 7]
+    if s.numel() and values_readable(s):
+        bad = ~(torch.isfinite(s) & (s > 0))
+        if bad.any():  # the host sync
+            first = s.detach().reshape(-1)[bad.reshape(-1).int().argmax()].item()
+            raise ValueError(f"x must be a pypose Sim3 with finite scales > 0 (its last "
+                             f"component), got a scale of {first}")
     return Sim3.from_components(rotation=C, position=data[..., 0:3] / s.unsqueeze(-1), scale=s)
 
 

@@ -24,7 +24,9 @@ cumulative sums over the joint axis: only the pose needs a loop over the joints 
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -64,6 +66,9 @@ class KinematicChain:
             is the default link of ``forward`` and ``jacobian``.
 
     Joint limits are ``lower`` and ``upper`` ((n,) tensors, -inf / inf where there are none).
+    Joint axes are normalised (a zero or non-finite axis is a ValueError naming
+    ``joints[i].axis``); joint origins, base, tool and link offsets are checked as rigid
+    transforms and copied, so later changes to the caller's tensors do not reach the chain.
     """
 
     def __init__(
@@ -93,6 +98,10 @@ class KinematicChain:
                                  f"got {j.kind!r}")
             if not j.lower <= j.upper:
                 raise ValueError(f"joint {j.name!r}: lower limit {j.lower} exceeds upper {j.upper}")
+            # own copies: a unit axis and a checked origin the caller cannot change later
+            joints[i] = dataclasses.replace(
+                j, axis=_unit_axis(j.axis, f"joints[{i}].axis ({j.name!r})"),
+                origin=_transform(j.origin, f"joints[{i}].origin ({j.name!r})"))
         names = [j.name for j in joints]
         if len(set(names)) != len(names):
             raise ValueError(f"joint names must be unique, got {names}")
@@ -176,13 +185,13 @@ class KinematicChain:
 
     @property
     def base(self) -> SE3:
-        """The base transform."""
-        return SE3.from_matrix(self._base64.to(self._device, self._dtype))
+        """The base transform (a copy)."""
+        return SE3.from_matrix(self._base64.to(self._device, self._dtype, copy=True))
 
     @property
     def tool(self) -> SE3:
-        """The tool transform after the end link."""
-        return SE3.from_matrix(self._tool64.to(self._device, self._dtype))
+        """The tool transform after the end link (a copy)."""
+        return SE3.from_matrix(self._tool64.to(self._device, self._dtype, copy=True))
 
     def to(self, dtype: torch.dtype | None = None, device=None) -> KinematicChain:
         """A copy of the chain in ``dtype`` and on ``device`` (unchanged where None)."""
@@ -205,14 +214,18 @@ class KinematicChain:
 
     def random_configuration(self, batch_shape=(), generator: torch.Generator | None = None,
                              unbounded_range: float = math.pi) -> torch.Tensor:
-        """(*batch_shape, n) joint positions uniform within the limits (in
-        [-unbounded_range, unbounded_range] for joints without limits)."""
+        """(*batch_shape, n) joint positions, uniform within the limits.
+
+        A joint with both limits is sampled in [lower, upper]; with one limit, in an interval
+        of width 2 * unbounded_range from it: [lower, lower + 2 r] or [upper - 2 r, upper];
+        with none, in [-r, r] (r = ``unbounded_range``, default pi)."""
         shape = checks.shape(batch_shape, "batch_shape")
         span = checks.finite_number(unbounded_range, "unbounded_range", "> 0")
         if generator is not None and not isinstance(generator, torch.Generator):
             raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
-        lo = torch.where(torch.isfinite(self._lower), self._lower, -span)
-        hi = torch.where(torch.isfinite(self._upper), self._upper, span)
+        has_lo, has_hi = torch.isfinite(self._lower), torch.isfinite(self._upper)
+        lo = torch.where(has_lo, self._lower, torch.where(has_hi, self._upper - 2 * span, -span))
+        hi = torch.where(has_hi, self._upper, torch.where(has_lo, self._lower + 2 * span, span))
         u = torch.rand(*shape, self.n_joints, generator=generator, dtype=self._dtype,
                        device=generator.device if generator is not None else self._device)
         return lo + (hi - lo) * u.to(self._device)
@@ -465,6 +478,24 @@ class KinematicChain:
         return cls.from_dh(chain.a, chain.alpha, chain.d, chain.theta_offset, chain.joint_types,
                            base=base, tool=tool, dtype=chain.dtype, device=chain.device,
                            name=chain.name)
+
+
+def _unit_axis(axis, name: str) -> tuple[float, float, float]:
+    """A joint axis: 3 finite real numbers, not all zero, normalised (as ``from_urdf`` does);
+    ValueError (TypeError for a wrong type) naming ``name`` otherwise."""
+    if isinstance(axis, torch.Tensor):
+        axis = axis.detach().cpu().tolist() if axis.dim() == 1 else axis
+    try:
+        raw = list(axis)
+    except TypeError:
+        raise TypeError(f"{name} must be 3 real numbers, got {axis!r}") from None
+    if len(raw) != 3 or any(isinstance(x, bool) or not isinstance(x, numbers.Real) for x in raw):
+        raise TypeError(f"{name} must be 3 real numbers, got {axis!r}")
+    vals = [float(x) for x in raw]
+    norm = math.hypot(*vals)  # no overflow or underflow of the squares
+    if not (math.isfinite(norm) and norm > 0):
+        raise ValueError(f"{name} must be a finite, non-zero 3-vector, got {tuple(vals)}")
+    return (vals[0] / norm, vals[1] / norm, vals[2] / norm)
 
 
 def _reframe(J: torch.Tensor, R: torch.Tensor, p: torch.Tensor, frame: str) -> torch.Tensor:

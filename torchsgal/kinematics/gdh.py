@@ -34,6 +34,7 @@ Only the public group API (SE23) is used.
 """
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -146,18 +147,31 @@ def _column_kind(value, name: str) -> None:
                         f"{type(value).__name__} {value!r}")
 
 
+def _has_bools(value) -> bool:
+    """Whether a column holds booleans (a bool tensor or array, or bool entries)."""
+    dt = getattr(value, "dtype", None)
+    if dt is not None:
+        return dt == torch.bool or getattr(dt, "kind", "") == "b"
+    np = sys.modules.get("numpy")  # a numpy bool can only come from an imported numpy
+    bools = (bool,) if np is None else (bool, np.bool_)
+    return any(isinstance(v, bools) for v in value)
+
+
 def _column_tensor(value, name: str, dtype: torch.dtype, device) -> torch.Tensor:
-    """A column (checked by ``_column_kind``) as a tensor (n,) of ``dtype`` on ``device``;
-    TypeError naming the column where its entries are not real numbers."""
+    """A column (checked by ``_column_kind``) as a new tensor (n,) of ``dtype`` on ``device``
+    (a copy, never the caller's tensor; autograd history kept); TypeError naming the column
+    where its entries are not real numbers (booleans included)."""
+    message = f"{name} (a DH table column) must be {_COLUMN}: its entries must be real numbers"
+    if _has_bools(value):
+        raise TypeError(f"{message}, got booleans {value!r}")
     try:
         t = torch.as_tensor(value, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError):
-        raise TypeError(f"{name} (a DH table column) must be {_COLUMN}: its entries must be real "
-                        f"numbers, got {value!r}") from None
+        raise TypeError(f"{message}, got {value!r}") from None
     if t.dim() != 1:  # nested sequences
         raise TypeError(f"{name} (a DH table column) must be {_COLUMN}, got nested sequences of "
                         f"shape {tuple(t.shape)}")
-    return t
+    return t.clone()  # as_tensor may alias a tensor or numpy array of the caller
 
 
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -183,12 +197,13 @@ class GDHChain:
     device="cuda")``).
 
     The columns may be sequences of numbers or 1-D tensors (anything else, a scalar, a
-    string, nested sequences or entries that are not real numbers, raises TypeError naming
-    the column).  With ``device=None`` the table goes where its tensor columns are (all of
+    string, nested sequences or entries that are not real numbers, booleans included, raises
+    TypeError naming the column).  With ``device=None`` the table goes where its tensor columns are (all of
     them on one device, else ValueError naming the columns), or to torch's default device
     when no column is a tensor; ``dtype`` is not taken from the columns (float64 unless given:
-    tensor columns are converted).  The table must be finite (ValueError naming the column;
-    not checked on 'meta' or under torch.func transforms).
+    tensor columns are converted; the chain keeps copies of the columns).  The table must be
+    finite (ValueError naming the column; not checked on 'meta' or under torch.func
+    transforms).
     ``joint_types`` is a sequence of "revolute"/"R" and "prismatic"/"P", or a string read
     letter by letter ("RRP").
     """

@@ -71,12 +71,18 @@ def _targets(chain: KinematicChain, target, position: bool, orientation: bool):
             target = target.unsqueeze(0)
         if len(target.batch_shape) != 1:
             raise ValueError(f"target must have batch shape (B,), got {tuple(target.batch_shape)}")
-        R, p = target.rotation(), target.position()
+        m = target.as_matrix()
+        _rigid(chain, m)
+        R, p = m[:, :3, :3], m[:, :3, 3]
     elif isinstance(target, torch.Tensor):
         checks.floating(target, "target")
-        if target.dim() >= 2 and tuple(target.shape[-2:]) == (4, 4):
+        if target.dim() in (2, 3) and tuple(target.shape[-2:]) == (4, 4):
             m = target.reshape(-1, 4, 4)
+            _rigid(chain, m)
             R, p = m[:, :3, :3], m[:, :3, 3]
+        elif target.dim() > 3 and tuple(target.shape[-2:]) == (4, 4):
+            raise ValueError(f"target must be a (4, 4) or (B, 4, 4) tensor (one batch axis), "
+                             f"got shape {tuple(target.shape)}")
         elif target.shape[-1:] == (3,) and target.dim() <= 2:
             if orientation:
                 raise ValueError("target is a position (..., 3): pass orientation=False for "
@@ -92,19 +98,36 @@ def _targets(chain: KinematicChain, target, position: bool, orientation: bool):
     return p, R
 
 
-def _seeds(chain: KinematicChain, q0, B: int, num_seeds: int, generator) -> torch.Tensor:
-    """(B, S, n) starting joint positions."""
+def _rigid(chain: KinematicChain, m: torch.Tensor) -> None:
+    """ValueError naming ``target`` unless every (4, 4) of m is a rigid transform (the check of
+    ``SE3.from_matrix(check=True)``, default tolerance; where the values can be read)."""
+    checks.same_device_dtype(**{f"the chain {chain.name!r}": chain.lower, "target": m})
+    try:
+        SE3.from_matrix(m, check=True)
+    except ValueError as err:
+        raise ValueError(f"target must be rigid transforms [[R, p], [0, 1]]: {err}") from None
+
+
+def _seeds(chain: KinematicChain, q0, B: int, num_seeds: int | None, generator) -> torch.Tensor:
+    """(B, S, n) starting joint positions (the reading of q0 in ``inverse_kinematics``)."""
     n = chain.n_joints
     if q0 is None:
-        return chain.random_configuration((B, num_seeds), generator=generator)
+        return chain.random_configuration((B, 8 if num_seeds is None else num_seeds),
+                                          generator=generator)
     q0 = chain._joint_tensor(q0, "q0")
+    given = tuple(q0.shape)
     if q0.dim() == 1:
         q0 = q0.expand(B, 1, n)
     elif q0.dim() == 2:
-        q0 = q0[:, None, :] if q0.shape[0] == B else q0.expand(B, *q0.shape)
+        per_target = q0.shape[0] == B and (num_seeds is None or num_seeds == 1)
+        q0 = q0[:, None, :] if per_target else q0.expand(B, *q0.shape)
     elif q0.dim() != 3 or q0.shape[0] != B:
         raise ValueError(f"q0 must be (n,), (S, n), (B, n) or (B, S, n) with B = {B} targets, "
                          f"got {tuple(q0.shape)}")
+    if num_seeds is not None and num_seeds != q0.shape[1]:
+        raise ValueError(f"num_seeds ({num_seeds}) conflicts with q0 of shape "
+                         f"{given}: q0 gives {q0.shape[1]} seed(s) per "
+                         f"target for B = {B} targets; leave num_seeds=None with q0")
     return q0
 
 
@@ -113,7 +136,7 @@ def inverse_kinematics(
     target,
     *,
     q0: torch.Tensor | None = None,
-    num_seeds: int = 8,
+    num_seeds: int | None = None,
     link: str | None = None,
     position: bool = True,
     orientation: bool = True,
@@ -130,10 +153,18 @@ def inverse_kinematics(
 
     Args:
         chain: a :class:`KinematicChain`.
-        target: SE3 poses of batch (B,) (or one pose), a (B, 4, 4) tensor, or positions (B, 3)
-            with ``orientation=False``; in the chain's base frame, dtype and device.
-        q0: starting joint positions: (n,), (S, n) (shared seeds), (B, n) or (B, S, n); by
-            default ``num_seeds`` random configurations within the limits per target.
+        target: SE3 poses of batch (B,) (or one pose), a (B, 4, 4) or (4, 4) tensor, or
+            positions (B, 3) with ``orientation=False``; in the chain's base frame, dtype and
+            device.  Poses must be rigid transforms (``SE3.from_matrix(check=True)``,
+            ValueError naming ``target``).
+        q0: starting joint positions: (n,) (one seed for every target), (B, n) (one seed per
+            target), (S, n) (S seeds shared by all targets) or (B, S, n).  A 2-D q0 with
+            q0.shape[0] == B is read as (B, n), one seed per target, unless ``num_seeds``
+            equals B (> 1), which selects the shared (S, n) reading; (B, S, n) is never
+            ambiguous.
+        num_seeds: the number of random seeds per target within the limits (default 8) when
+            q0 is None.  With q0 it is not needed (None); if given it must equal the number of
+            seeds per target of q0's reading (ValueError otherwise).
         position, orientation: which parts of the pose to reach (at least one).
         orientation_weight: metres per radian in the residual (module doc).
         position_tol (m), rotation_tol (rad): the errors below which a target is solved.
@@ -157,7 +188,8 @@ def inverse_kinematics(
     centering = checks.finite_number(centering, "centering", ">= 0")
     pos_tol = checks.finite_number(position_tol, "position_tol", "> 0")
     rot_tol = checks.finite_number(rotation_tol, "rotation_tol", "> 0")
-    num_seeds = checks.integer(num_seeds, "num_seeds", 1)
+    if num_seeds is not None:
+        num_seeds = checks.integer(num_seeds, "num_seeds", 1)
     if generator is not None and not isinstance(generator, torch.Generator):
         raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
     link = chain._one_link(link)

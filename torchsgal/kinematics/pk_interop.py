@@ -40,12 +40,13 @@ both expressed in the base frame, ``v`` being the velocity of the end-effector o
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import numbers
+from collections.abc import Iterable, Sequence
 
 import torch
 
 from ..functional import checks
-from .gdh import _letters_hint, normalize_joint_type
+from .gdh import _column_kind, _column_tensor, _letters_hint, normalize_joint_type
 
 
 def _import_pk():
@@ -62,13 +63,11 @@ def _import_pk():
 
 
 def _as_list(x, name: str) -> list:
-    """A DH column as a list of finite floats (ValueError naming the column otherwise)."""
-    if torch.is_tensor(x):
-        if x.dim() != 1:
-            raise ValueError(f"{name} must be one-dimensional, got shape {tuple(x.shape)}")
-        values = [float(v) for v in x.detach().cpu().tolist()]
-    else:
-        values = [float(v) for v in x]
+    """A DH column as a list of finite floats: the column checks of :class:`GDHChain`
+    (TypeError naming the column for a string, booleans, a scalar or nested sequences),
+    ValueError naming it for a non-finite entry."""
+    _column_kind(x, name)
+    values = _column_tensor(x, name, torch.float64, "cpu").detach().tolist()
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"{name} (a DH table column) must be finite, got {values}")
     return values
@@ -108,9 +107,11 @@ def build_pk_chain(
     """A ``pytorch_kinematics.SerialChain`` equivalent to a standard-DH table.
 
     Args:
-        a, alpha, d, theta_offset: sequences (or 1-D tensors) of length n, finite (ValueError
-            naming the column otherwise).  For a prismatic joint ``d`` is the offset
-            ``d_offset_i``; for a revolute one ``theta_offset`` is.
+        a, alpha, d, theta_offset: sequences of real numbers (or 1-D tensors) of length n,
+            checked as :class:`GDHChain`'s columns (TypeError naming the column for a string,
+            booleans, a scalar or nested sequences), finite (ValueError naming the column).
+            For a prismatic joint ``d`` is the offset ``d_offset_i``; for a revolute one
+            ``theta_offset`` is.
         joint_types: n entries, each ``"revolute"`` or ``"prismatic"`` (``"R"``/``"P"`` too);
             a string is read letter by letter (``"RRPR"``).
         dtype, device: of the chain (torch.float64, the default, or torch.float32; built
@@ -207,13 +208,25 @@ def to_transform3d(x):
     return pk_tf.Transform3d(matrix=m, dtype=m.dtype, device=m.device)
 
 
+def _batch_shape(batch_shape) -> tuple[int, ...]:
+    """``batch_shape`` of :func:`from_transform3d`: an int or a sequence of ints >= 0 (bools,
+    floats and strings refused, naming ``batch_shape[i]``)."""
+    if isinstance(batch_shape, numbers.Integral) and not isinstance(batch_shape, bool):
+        batch_shape = (batch_shape,)
+    if isinstance(batch_shape, (str, bytes, bool)) or not isinstance(batch_shape, Iterable):
+        raise TypeError(f"batch_shape must be a tuple of ints (or an int), got {batch_shape!r}")
+    return tuple(checks.integer(n, f"batch_shape[{i}]", 0)
+                 for i, n in enumerate(batch_shape))
+
+
 def from_transform3d(t, velocity: torch.Tensor | None = None, batch_shape=None,
                      check: bool = False, tol: float | None = None):
     """A ``pytorch_kinematics.Transform3d`` (or a (..., 4, 4) pose tensor) as torchsgal.
 
     Returns ``SE3`` of batch (N,) where N = len(t), or, when ``velocity`` (..., 3) is given,
     the ``SE23`` element with that velocity (broadcast against the batch of ``t``).  With
-    ``batch_shape`` (a tuple of ints, or an int) the batch is reshaped to it (inverse of the
+    ``batch_shape`` (a tuple of ints >= 0, or an int; a float, bool or string is a TypeError
+    naming ``batch_shape[i]``) the batch is reshaped to it (inverse of the
     flattening in :func:`to_transform3d`; applied before the velocity is broadcast).
 
     The rotation block and the translation column are taken as they are: a matrix that is not
@@ -234,13 +247,8 @@ def from_transform3d(t, velocity: torch.Tensor | None = None, batch_shape=None,
     checks.matrix(m, 4, "t")
     checks.boolean(check, "check")
     if batch_shape is not None:
-        shape = (batch_shape,) if isinstance(batch_shape, int) else batch_shape
-        try:
-            shape = tuple(int(n) for n in shape)
-        except (TypeError, ValueError):
-            raise TypeError(f"batch_shape must be a tuple of ints (or an int), got "
-                            f"{batch_shape!r}") from None
-        if any(n < 0 for n in shape) or math.prod(shape) != math.prod(m.shape[:-2]):
+        shape = _batch_shape(batch_shape)
+        if math.prod(shape) != math.prod(m.shape[:-2]):
             raise ValueError(f"batch_shape {shape} does not fit the {math.prod(m.shape[:-2])} "
                              f"poses of t (batch {tuple(m.shape[:-2])})")
         m = m.reshape(*shape, 4, 4)

@@ -26,9 +26,9 @@ class Joint:
 
     name      the joint's name (URDF joint name, or ``q1 .. qn`` for DH tables).
     kind      "revolute", "continuous" (revolute without limits) or "prismatic".
-    axis      unit axis (3 floats) in the joint frame.
+    axis      axis (3 floats) in the joint frame; ``KinematicChain`` normalises it.
     origin    (4, 4) float64 tensor: the fixed transform from the previous actuated joint's
-              frame (or the chain root) to this joint's frame at q = 0.
+              frame (or the chain root) to this joint's frame at q = 0 (copied by the chain).
     lower, upper   position limits (rad or m); -inf / inf where the joint has none.
     velocity  velocity limit (inf where none is given).
     """
@@ -116,7 +116,8 @@ def _tmatvec(M: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 def _transform(value, name: str) -> torch.Tensor:
     """A fixed transform argument: None (identity), an SE3 element or a (4, 4) tensor, as a
-    float64 CPU tensor; ValueError naming the argument otherwise."""
+    float64 CPU tensor (a copy: later changes to ``value`` do not reach it); ValueError naming
+    the argument otherwise."""
     if value is None:
         return torch.eye(4, dtype=torch.float64)
     if isinstance(value, SE3):
@@ -130,7 +131,7 @@ def _transform(value, name: str) -> torch.Tensor:
     checks.floating(value, name)
     if tuple(value.shape) != (4, 4):
         raise ValueError(f"{name} must have shape (4, 4), got {tuple(value.shape)}")
-    m = value.detach().to("cpu", torch.float64)
+    m = value.detach().to("cpu", torch.float64).clone()  # .to may alias the caller's tensor
     if not bool(torch.isfinite(m).all()):
         raise ValueError(f"{name} must be finite, got {m.tolist()}")
     R = m[:3, :3]

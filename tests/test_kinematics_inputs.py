@@ -1,0 +1,225 @@
+"""Inputs of the kinematics API: joint axes, one-sided limits, copies of the caller's tensors,
+IK targets and seeds, pk interop arguments.  Expected values come from Rodrigues' formula
+written here, the limits themselves and values taken before the caller's tensors change."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchsgal import SE3
+from torchsgal.kinematics import GDHChain, KinematicChain, inverse_kinematics
+from torchsgal.kinematics.pk_interop import from_transform3d
+from torchsgal.kinematics.state import Joint
+
+F64 = torch.float64
+
+
+def _eye():
+    return torch.eye(4, dtype=F64)
+
+
+def _one_joint(axis, kind="revolute", lower=-math.inf, upper=math.inf, origin=None,
+               base=None, offset=None, tool=None):
+    j = Joint("j", kind, axis, _eye() if origin is None else origin, lower, upper)
+    return KinematicChain([j], {"l": (0, _eye() if offset is None else offset)}, "l",
+                          base=base, tool=tool)
+
+
+def _unit(axis):
+    k = np.asarray(axis, dtype=float)
+    k = k / np.abs(k).max()  # first: the squares of tiny or huge entries under/overflow
+    return k / np.linalg.norm(k)
+
+
+def _rodrigues(axis, angle):
+    k = _unit(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+# ------------------------------------------------------------------ 1. joint axes
+@pytest.mark.parametrize("axis", [(1.0, 0.0, 1.0), (0.0, 3.0, 0.0), (1e-200, 2e-200, -1e-200),
+                                  (1e200, 0.0, 1e200)])
+def test_non_unit_axis_is_normalised(axis):
+    q = torch.tensor([0.7, -2.1], dtype=F64)[:, None]
+    R = _one_joint(axis).pose(q).rotation()
+    for b in range(2):
+        np.testing.assert_allclose(R[b].numpy(), _rodrigues(axis, float(q[b, 0])),
+                                   rtol=0, atol=1e-14)
+    p = _one_joint(axis, "prismatic").pose(q).position()
+    unit = _unit(axis)
+    np.testing.assert_allclose(p.numpy(), q.numpy() * unit, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("axis", [(0.0, 0.0, 0.0), (math.nan, 0.0, 1.0), (math.inf, 0.0, 0.0),
+                                  (0.0, -math.inf, 1.0)])
+def test_zero_or_non_finite_axis_raises(axis):
+    with pytest.raises(ValueError, match=r"joints\[0\]\.axis .* finite, non-zero 3-vector"):
+        _one_joint(axis)
+
+
+@pytest.mark.parametrize("axis", [(True, 0, 0), (0.0, 1.0), "xyz", 3.0])
+def test_malformed_axis_raises_typeerror(axis):
+    with pytest.raises(TypeError, match=r"joints\[0\]\.axis .* must be 3 real numbers"):
+        _one_joint(axis)
+
+
+def test_joint_origin_is_checked():
+    bad = _eye()
+    bad[1, 3] = math.nan
+    with pytest.raises(ValueError, match=r"joints\[0\]\.origin .* must be finite"):
+        _one_joint((0.0, 0.0, 1.0), origin=bad)
+    scaled = 2 * _eye()
+    scaled[3, 3] = 1.0
+    with pytest.raises(ValueError, match=r"joints\[0\]\.origin .* rigid transform"):
+        _one_joint((0.0, 0.0, 1.0), origin=scaled)
+
+
+# ------------------------------------------------------------ 2. one-sided limits
+def test_random_configuration_with_one_sided_limits():
+    joints = [Joint("a", "prismatic", (0.0, 0.0, 1.0), _eye(), 4.0, math.inf),
+              Joint("b", "revolute", (0.0, 0.0, 1.0), _eye(), -math.inf, -5.0),
+              Joint("c", "revolute", (0.0, 0.0, 1.0), _eye(), -0.5, 0.25),
+              Joint("d", "continuous", (0.0, 0.0, 1.0), _eye())]
+    chain = KinematicChain(joints, {"l": (3, _eye())}, "l")
+    g = torch.Generator().manual_seed(0)
+    q = chain.random_configuration(4000, generator=g)
+    assert bool(chain.within_limits(q).all())
+    tp = 2 * math.pi
+    lo = torch.tensor([4.0, -5.0 - tp, -0.5, -math.pi], dtype=F64)
+    hi = torch.tensor([4.0 + tp, -5.0, 0.25, math.pi], dtype=F64)
+    assert bool(((q >= lo) & (q <= hi)).all())
+    # the samples fill each interval (4000 uniform samples: gaps at the ends are < 1%)
+    width = hi - lo
+    assert bool(((q.min(0).values - lo) < 0.01 * width).all())
+    assert bool(((hi - q.max(0).values) < 0.01 * width).all())
+    q1 = chain.random_configuration(500, generator=g, unbounded_range=1.0)
+    assert bool(((q1[:, 0] >= 4.0) & (q1[:, 0] <= 6.0)).all())
+    assert bool(((q1[:, 1] >= -7.0) & (q1[:, 1] <= -5.0)).all())
+    assert bool(((q1[:, 3] >= -1.0) & (q1[:, 3] <= 1.0)).all())
+
+
+# ----------------------------------------------------- 3. copies of user tensors
+def test_chain_keeps_copies_of_the_callers_tensors():
+    base, origin, offset, tool = _eye(), _eye(), _eye(), _eye()
+    base[0, 3], origin[1, 3], offset[2, 3], tool[0, 3] = 0.5, 0.25, 0.125, 1.0
+    chain = _one_joint((0.0, 0.0, 1.0), base=base, origin=origin, offset=offset, tool=tool)
+    q = torch.tensor([[0.0]], dtype=F64)
+    expected = torch.tensor([[1.5, 0.25, 0.125]], dtype=F64)  # sum of the translations
+    torch.testing.assert_close(chain.pose(q).position(), expected, rtol=0, atol=1e-15)
+    for m in (base, origin, offset, tool):
+        m[:3, 3] = math.nan
+    torch.testing.assert_close(chain.pose(q).position(), expected, rtol=0, atol=1e-15)
+    torch.testing.assert_close(chain.to(torch.float32).pose(q.float()).position(),
+                               expected.float(), rtol=0, atol=1e-7)
+    torch.testing.assert_close(chain.base.position(), torch.tensor([0.5, 0.0, 0.0], dtype=F64),
+                               rtol=0, atol=0)
+    chain.base.as_matrix()[0, 3] = 9.0  # a copy: the chain does not change
+    torch.testing.assert_close(chain.pose(q).position(), expected, rtol=0, atol=1e-15)
+
+
+def test_gdh_chain_keeps_copies_of_its_columns():
+    a = torch.tensor([0.5, 0.25], dtype=F64)
+    d = np.array([0.125, 0.0])
+    chain = GDHChain(a, [0.0, 0.0], d, [0.0, 0.0], "RR")
+    q = torch.zeros(2, dtype=F64)
+    a[0], d[0] = math.nan, math.nan
+    expected = torch.tensor([0.75, 0.0, 0.125], dtype=F64)
+    torch.testing.assert_close(chain.forward(q).end_effector.position(), expected,
+                               rtol=0, atol=1e-15)
+    assert chain.a.tolist() == [0.5, 0.25]
+
+
+def test_dh_column_of_booleans_raises():
+    with pytest.raises(TypeError, match=r"a \(a DH table column\) .* booleans"):
+        GDHChain([True, False], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    with pytest.raises(TypeError, match=r"d \(a DH table column\) .* booleans"):
+        GDHChain([0.0, 0.0], [0.0, 0.0], torch.tensor([True, False]), [0.0, 0.0], "RR")
+
+
+# --------------------------------------------------------------- 4, 5. inverse kinematics
+def _planar():
+    return KinematicChain.from_dh([1.0], [0.0], [0.0], [0.0], "R")
+
+
+def test_ik_target_must_be_rigid():
+    chain = _planar()
+    T = chain.pose(torch.tensor([[0.3], [2.0]], dtype=F64)).as_matrix()
+    scaled = T.clone()
+    scaled[0, :3, :3] *= 1.1
+    row = T.clone()
+    row[1, 3, 0] = 0.5
+    nan = T.clone()
+    nan[0, 0, 3] = math.nan
+    for bad in (scaled, row, nan, scaled[0]):
+        with pytest.raises(ValueError, match=r"target must be rigid transforms"):
+            inverse_kinematics(chain, bad)
+    with pytest.raises(ValueError, match=r"target must be rigid transforms"):
+        inverse_kinematics(chain, SE3.from_matrix(scaled))
+    with pytest.raises(ValueError, match=r"target must be a \(4, 4\) or \(B, 4, 4\) tensor .* "
+                                         r"got shape \(2, 2, 4, 4\)"):
+        inverse_kinematics(chain, T.expand(2, 2, 4, 4))
+    res = inverse_kinematics(chain, T[1], num_seeds=2, generator=torch.Generator().manual_seed(0))
+    assert res.q.shape == (1, 1) and bool(res.success.all())
+
+
+def test_ik_q0_reading_when_seeds_equal_targets():
+    """q0 (2, n) with B = 2 targets: one seed per target by default; num_seeds=2 reads it as
+    two shared seeds.  max_iterations=0 keeps each seed as it is, so the answer shows the
+    reading: per target, the seeds are swapped; shared, each target finds its own angle."""
+    chain = _planar()
+    angles = torch.tensor([[0.3], [2.0]], dtype=F64)
+    T = chain.pose(angles)
+    q0 = angles.flip(0)
+    kw = dict(q0=q0, max_iterations=0, centering=0.0)
+    for ns in (None, 1):
+        per_target = inverse_kinematics(chain, T, num_seeds=ns, **kw)
+        assert per_target.q.tolist() == q0.tolist() and not per_target.success.any()
+    shared = inverse_kinematics(chain, T, num_seeds=2, **kw)
+    assert shared.q.tolist() == angles.tolist() and shared.seed.tolist() == [1, 0]
+    with pytest.raises(ValueError, match=r"num_seeds \(3\) conflicts with q0 of shape \(2, 1\)"):
+        inverse_kinematics(chain, T, num_seeds=3, **kw)
+    with pytest.raises(ValueError, match=r"num_seeds \(2\) conflicts with q0 of shape \(1,\)"):
+        inverse_kinematics(chain, T, q0=q0[0], num_seeds=2)
+
+
+# ------------------------------------------------------------------ 6, 7. pk interop
+@pytest.mark.parametrize("shape, error, message", [
+    ((2.7, 2), TypeError, r"batch_shape\[0\] must be an integer >= 0, got 2.7"),
+    ((2, True), TypeError, r"batch_shape\[1\] must be an integer >= 0, got True"),
+    ((2, "2"), TypeError, r"batch_shape\[1\] must be an integer >= 0, got '2'"),
+    ("22", TypeError, r"batch_shape must be a tuple of ints \(or an int\), got '22'"),
+    (True, TypeError, r"batch_shape must be a tuple of ints \(or an int\), got True"),
+    (4.0, TypeError, r"batch_shape must be a tuple of ints \(or an int\), got 4.0"),
+    ((-2, -2), ValueError, r"batch_shape\[0\] must be an integer >= 0, got -2"),
+])
+def test_from_transform3d_batch_shape_entries(shape, error, message):
+    M = _eye().expand(4, 4, 4)
+    with pytest.raises(error, match=message):
+        from_transform3d(M, batch_shape=shape)
+
+
+def test_from_transform3d_batch_shape_accepts_integers():
+    M = _eye().expand(4, 4, 4)
+    assert from_transform3d(M, batch_shape=(np.int64(2), 2)).batch_shape == (2, 2)
+    assert from_transform3d(M, batch_shape=torch.Size([1, 4])).batch_shape == (1, 4)
+
+
+@pytest.mark.parametrize("column, message", [
+    ("12", r"a \(a DH table column\) must be a sequence of numbers or a 1-D tensor, got str"),
+    ([True, False], r"a \(a DH table column\) .* booleans"),
+    (torch.tensor([True, False]), r"a \(a DH table column\) .* booleans"),
+    (torch.zeros(2, 1, dtype=F64), r"a \(a DH table column\) .* got a 2-D Tensor"),
+    (0.5, r"a \(a DH table column\) must be a sequence of numbers or a 1-D tensor, got float"),
+])
+def test_build_pk_chain_checks_columns_as_gdh(column, message):
+    pytest.importorskip("pytorch_kinematics")
+    from torchsgal.kinematics.pk_interop import build_pk_chain
+
+    with pytest.raises(TypeError, match=message):
+        build_pk_chain(column, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    with pytest.raises(TypeError, match=message):  # the same error as GDHChain's
+        GDHChain(column, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
