@@ -24,7 +24,7 @@ import torch
 
 from .. import SE3, SO3, SGal3
 from ..functional import checks
-from .preintegration import Preintegration
+from .preintegration import Preintegration, _readable
 from .streaming import StreamingPreintegration
 
 
@@ -169,7 +169,9 @@ def from_gtsam_pim(pim, dtype=torch.float64) -> Preintegration | tuple[Preintegr
     ``deltaTij``, covariance (10, 10) mapped by :func:`gtsam_tangent_map` with a zero time row
     and column, bias Jacobian None: GTSAM's Python API does not expose it) or, for a
     ``PreintegratedCombinedMeasurements``, the pair (Preintegration, combined covariance
-    (16, 16) in the order of :meth:`StreamingPreintegration.combined_covariance`).
+    (16, 16) in the order of :meth:`StreamingPreintegration.combined_covariance`); there the
+    Preintegration's covariance is the combined one's (10, 10) block, which includes the bias
+    random walk (GTSAM keeps no other), unlike :attr:`StreamingPreintegration.covariance`.
 
     GTSAM propagates its combined covariance with the bias blocks of its transition taken as
     the Jacobians with respect to the *measurements* (+d/d omega, +d/d a, CombinedImuFactor.cpp),
@@ -288,7 +290,10 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
     bias-corrected) sensor samples.  alpha_b (..., K, 3) is ``angular_acceleration`` if given,
     else, with ``dt`` (a number or (..., K)), the derivative of omega_b along the samples
     (central differences, one-sided at the ends; K >= 2), else 0 (GTSAM's
-    ``correctMeasurementsBySensorPose`` keeps the centripetal term only).  Biases estimated in
+    ``correctMeasurementsBySensorPose`` keeps the centripetal term only).  ``angular_acceleration``
+    must have gyro's dtype and device and broadcast to its shape; a tensor dt must be finite and
+    > 0, checked where reading it costs no host sync (on CPU, outside torch.func transforms and
+    compilation, as :func:`~torchsgal.imu.preintegrate`'s dt).  Biases estimated in
     the sensor frame map as R_bs b_g (the accelerometer bias mixes with the lever arm: convert
     bias-corrected samples)."""
     checks.vector(gyro, 3, "gyro")
@@ -317,12 +322,24 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
             except RuntimeError:
                 raise ValueError(f"dt must be a number or broadcast to {tuple(gyro.shape[:-1])}, "
                                  f"got shape {tuple(dt.shape)}") from None
+            if _readable(dt) and dt.numel():
+                ok = (dt > 0) & dt.isfinite()
+                if not bool(ok.all()):
+                    bad = dt.detach()[~ok]
+                    raise ValueError(f"dt must be finite and > 0 everywhere, got {bad.numel()} zero, "
+                                     f"negative, infinite or NaN entries (first {float(bad[0]):.3g})")
         t = torch.cat((torch.zeros_like(h[..., :1]), h.cumsum(-1)[..., :-1]), -1)  # sample instants
         dw = torch.cat((w[..., 1:2, :] - w[..., 0:1, :], w[..., 2:, :] - w[..., :-2, :],
                         w[..., -1:, :] - w[..., -2:-1, :]), -2)
         dtt = torch.cat((t[..., 1:2] - t[..., 0:1], t[..., 2:] - t[..., :-2], t[..., -1:] - t[..., -2:-1]), -1)
         angular_acceleration = dw / dtt.unsqueeze(-1)
-    if angular_acceleration is not None:
+    elif angular_acceleration is not None:
         checks.vector(angular_acceleration, 3, "angular_acceleration")
+        checks.same_device_dtype(gyro=gyro, angular_acceleration=angular_acceleration)
+        if checks.broadcast_batch(gyro=f.shape, angular_acceleration=angular_acceleration.shape) != f.shape:
+            raise ValueError(f"angular_acceleration must broadcast to the samples' shape {tuple(f.shape)} "
+                             f"(gyro's, with body_P_sensor's batch), got {tuple(angular_acceleration.shape)}")
+        angular_acceleration = angular_acceleration.expand_as(f)  # linalg.cross wants equal dims
+    if angular_acceleration is not None:
         f = f - torch.linalg.cross(angular_acceleration, r.expand_as(f))
     return w, f

@@ -362,7 +362,8 @@ def preintegrate(
         batch = checks.broadcast_batch(stream=batch, acc_noise_density=s_a.shape[:-1],
                                        gyro_noise_density=s_g.shape[:-1])
         s_a, s_g = s_a.expand(*batch, 3), s_g.expand(*batch, 3)
-    b_g, b_a = b_g.expand(*batch, 3), b_a.expand(*batch, 3)
+    # copies: the result must not follow in-place updates of the caller's biases
+    b_g, b_a = b_g.expand(*batch, 3).clone(), b_a.expand(*batch, 3).clone()
     args = (gyro, acc, dt, b_g, b_a, s_a, s_g)
     if unobserved([a for a in args + (s_t,) if isinstance(a, torch.Tensor)]) and math.prod(batch) > 0:
         delta, cov, jac = _integrate_fast(args, batch, s_t, isotropic, covariance, bias_jacobian)

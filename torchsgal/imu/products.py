@@ -53,20 +53,22 @@ def _check_chain(E, name: str = "E") -> None:
 
 def window_product(E: torch.Tensor) -> torch.Tensor:
     """E_0 E_1 ... E_{K-1} of (..., K, n, n) by a log-depth tree of batched products; the
-    identity (..., n, n) for an empty chain (K = 0)."""
+    identity (..., n, n) for an empty chain (K = 0).  Always a new tensor (never a view of E)."""
     _check_chain(E)
     if E.shape[-3] == 0:
         eye = torch.eye(E.shape[-1], dtype=E.dtype, device=E.device)
         return eye.expand(*E.shape[:-3], *eye.shape).clone()
+    if E.shape[-3] == 1:
+        return E[..., 0, :, :].clone()  # a new tensor, as for any other K
     return _window_product(E, torch.matmul, E.dim() - 3)
 
 
 def suffix_products(E: torch.Tensor) -> torch.Tensor:
     """S_k = E_k E_{k+1} ... E_{K-1} for k = 0..K-1 of (..., K, n, n) (a work-efficient parallel
     scan: 2 log2 K levels of batched products, about 2K products in all); empty (..., 0, n, n)
-    for an empty chain (K = 0)."""
+    for an empty chain (K = 0).  Always a new tensor (never E or a view of it)."""
     _check_chain(E)
-    if E.shape[-3] == 0:
-        return E.clone()
+    if E.shape[-3] <= 1:
+        return E.clone()  # a new tensor, as for any other K
     eye = torch.eye(E.shape[-1], dtype=E.dtype, device=E.device)
     return _suffix_products(E, torch.matmul, E.dim() - 3, eye)

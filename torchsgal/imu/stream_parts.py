@@ -4,6 +4,10 @@ A sample of length h contributes its increment E = H H (H the half-sample factor
 exp of the half sample's tangent), A = Ad(E^-1), the bias Jacobian J_k and the covariance S_k
 of (C2); parts compose by (C1) and, with the bias random walk, (C3) (the rules in
 ``streaming``'s docstring and docs/guide/imu_streaming.md), pairwise in a log-depth tree.
+
+A part is (E, A, J, S, X, B, C): S the increment's covariance without the random walk (C1),
+and with it X, B and C, the blocks of the combined covariance [[C, X], [X^T, B]] (C3); X, B
+and C are None without random walk.
 """
 from __future__ import annotations
 
@@ -115,7 +119,7 @@ def _noise_parts(A, Ah, w, sq2, Qd, c: _Constants):
 
 def _sample_parts(gyro, acc, dt, bias6, sq2, Qd, r_diag, c: _Constants):
     """Per sample (any leading shape): E (..., 5, 5), A = Ad(E^-1), J_k (..., 10, 6), S_k (10, 10)
-    by (C2), and X_k = 0, B_k = R h (..., 6, 6) (None without random walk)."""
+    by (C2), and X_k = 0, B_k = R h (..., 6, 6), C_k = S_k (None without random walk)."""
     half = 0.5 * dt.unsqueeze(-1)
     zh = torch.addcmul(c.z0, half, c.lz[0])
     bottom = torch.addcmul(c.bottom[0], half, c.bottom[1])
@@ -123,24 +127,24 @@ def _sample_parts(gyro, acc, dt, bias6, sq2, Qd, r_diag, c: _Constants):
     E, A = H @ H, Ah @ Ah
     J, S = _noise_parts(A, Ah, (dt / 6.0)[..., None, None], sq2, Qd, c)
     if r_diag is None:
-        return E, A, J, S, None, None
-    return E, A, J, S, torch.zeros_like(J), torch.diag_embed(r_diag * dt.unsqueeze(-1))
+        return E, A, J, S, None, None, None
+    return E, A, J, S, torch.zeros_like(J), torch.diag_embed(r_diag * dt.unsqueeze(-1)), S
 
 
 def _combine(first, second, need_a: bool = True):
-    """A part appended to another, (C1) and (C3): parts (E, A, J, S, X, B), X and B None
+    """A part appended to another, (C1) and (C3): parts (E, A, J, S, X, B, C), X, B and C None
     without random walk."""
-    E1, A1, J1, S1, X1, B1 = first
-    E2, A2, J2, S2, X2, B2 = second
+    E1, A1, J1, S1, X1, B1, C1 = first
+    E2, A2, J2, S2, X2, B2, C2 = second
     S = A2 @ S1 @ A2.mT + S2
-    X = B = None
+    X = B = C = None
     if B1 is not None:
         AX, JB = A2 @ X1, J2 @ B1
         T = AX @ J2.mT
-        S = S + T + T.mT + JB @ J2.mT
+        C = A2 @ C1 @ A2.mT + C2 + T + T.mT + JB @ J2.mT
         X, B = AX + JB + X2, B1 + B2
     A = A2 @ A1 if need_a else None
-    return E1 @ E2, A, A2 @ J1 + J2, S, X, B
+    return E1 @ E2, A, A2 @ J1 + J2, S, X, B, C
 
 
 def _along(parts, index):

@@ -31,7 +31,9 @@ Phi = [[Ad(E^-1), J_k], [0, I]], and the combined covariance P = [[S, X], [X^T, 
 
 for a part (E, A = Ad(E^-1), J, S_c, X_c, B_c) appended to the running one: (C1) with the
 cross terms.  Both are associative, so chunks are reduced by a log-depth tree over samples
-(the parts and their composition: ``stream_parts``).
+(the parts and their composition: ``stream_parts``).  This S is the combined block
+(``combined_covariance``); ``covariance`` and ``result()`` keep the (C1) S without the walk,
+as ``preintegrate``'s (an ``ImuFactor`` beside a ``BiasRandomWalkFactor`` would count it twice).
 """
 from __future__ import annotations
 
@@ -146,6 +148,7 @@ class StreamingPreintegration:
         self._J = torch.zeros(*batch, 10, 6, **kw)
         self._X = None if self._r is None else torch.zeros(*batch, 10, 6, **kw)
         self._B = None if self._r is None else torch.zeros(*batch, 6, 6, **kw)
+        self._C = None if self._r is None else torch.zeros(*batch, 10, 10, **kw)
         self._count = 0
         self._pending: list = []
         self._pending_count = 0
@@ -187,8 +190,9 @@ class StreamingPreintegration:
     @property
     def covariance(self) -> torch.Tensor:
         """Covariance (*batch_shape, 10, 10) of the increment's right perturbation, as
-        :class:`~torchsgal.imu.Preintegration`'s (bias random walk not included: see
-        :meth:`combined_covariance`)."""
+        :func:`~torchsgal.imu.preintegrate`'s (bias random walk not included: the biases are
+        those of the linearisation point, the walk is for a ``BiasRandomWalkFactor``; the
+        combined model's block is ``combined_covariance()[..., :10, :10]``)."""
         self._flush()
         return self._S
 
@@ -215,13 +219,15 @@ class StreamingPreintegration:
         in torchsgal's tangent and bias orders: see gtsam_interop)."""
         self._flush()
         kw, batch = self._kw, self.batch_shape
-        X = self._X if self._X is not None else torch.zeros(*batch, 10, 6, **kw)
-        B = self._B if self._B is not None else torch.zeros(*batch, 6, 6, **kw)
-        return torch.cat((torch.cat((self._S, X), -1), torch.cat((X.mT, B), -1)), -2)
+        if self._C is None or self._X is None or self._B is None:  # no random walk
+            S, X, B = self._S, torch.zeros(*batch, 10, 6, **kw), torch.zeros(*batch, 6, 6, **kw)
+        else:
+            S, X, B = self._C, self._X, self._B
+        return torch.cat((torch.cat((S, X), -1), torch.cat((X.mT, B), -1)), -2)
 
     def result(self) -> Preintegration:
         """The window so far as a :class:`~torchsgal.imu.Preintegration` (its ``corrected``,
-        ``predict`` and ``predict_covariance`` apply)."""
+        ``predict`` and ``predict_covariance`` apply), with :attr:`covariance` (no random walk)."""
         self._flush()
         return Preintegration(SGal3(self._delta), self._S, self._J, self.gyro_bias, self.acc_bias)
 
@@ -263,8 +269,15 @@ class StreamingPreintegration:
         """(*batch, K) from a list of (dt: float or tensor (*batch, k), k)."""
         kw, batch = self._kw, self.batch_shape
         if all(not isinstance(h, torch.Tensor) for h, _ in dts):
-            flat = [h for h, k in dts for _ in range(k)]
-            return torch.tensor(flat, **kw).expand(*batch, len(flat))
+            runs: list = []  # (h, count) of equal consecutive dt: one fill each, no host copy
+            for h, k in dts:
+                if runs and runs[-1][0] == h:
+                    runs[-1][1] += k
+                else:
+                    runs.append([h, k])
+            flat = torch.cat([torch.full((k,), h, **kw) for h, k in runs]) if len(runs) > 1 \
+                else torch.full((runs[0][1],), runs[0][0], **kw)
+            return flat.expand(*batch, flat.shape[0])
         parts = [h if isinstance(h, torch.Tensor) else torch.full((*batch, k), h, **kw) for h, k in dts]
         return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
 
@@ -291,15 +304,15 @@ class StreamingPreintegration:
                                time_noise_density=self._dens[2])
             E = pre.delta.as_matrix()
             A = SGal3(E).inverse().adjoint()
-            chunk = (E, A, pre.bias_jacobian, pre.covariance, None, None)
+            chunk = (E, A, pre.bias_jacobian, pre.covariance, None, None, None)
             factors = None
         else:
             factors = _sample_parts(gyro, acc, dt, self._bias6, self._sq2.unsqueeze(-3), self._Qd.unsqueeze(-3),
                                     self._r6, self._c)
             chunk = _along(factors, 0) if K == 1 else _reduce(factors)
         before = self._delta
-        state = (self._delta, None, self._J, self._S, self._X, self._B)
-        self._delta, _, self._J, self._S, self._X, self._B = _combine(state, chunk, need_a=False)
+        state = (self._delta, None, self._J, self._S, self._X, self._B, self._C)
+        self._delta, _, self._J, self._S, self._X, self._B, self._C = _combine(state, chunk, need_a=False)
         self._count += K
         if not intermediate:
             return None
@@ -331,9 +344,9 @@ class StreamingPreintegration:
             self._S = A @ self._S @ A.mT + S
         else:
             rh = self._r * (dt.unsqueeze(-1) if isinstance(dt, torch.Tensor) else dt)
-            part = (E, A, J, S, torch.zeros_like(J), torch.diag_embed(rh))
-            _, _, _, self._S, self._X, self._B = _combine((self._delta, None, self._J, self._S, self._X, self._B),
-                                                          part, need_a=False)
+            part = (E, A, J, S, torch.zeros_like(J), torch.diag_embed(rh), S)
+            state = (self._delta, None, self._J, self._S, self._X, self._B, self._C)
+            _, _, _, self._S, self._X, self._B, self._C = _combine(state, part, need_a=False)
         self._J = A @ self._J + J
         self._delta = self._delta @ E
         self._count += 1

@@ -39,7 +39,7 @@ from ..functional import checks
 from ..functional._blocking import values_readable
 from ..groups import SGal3
 from .covariance import _covariance_measures, _default_tol, _mv, _raise_for_measures, _read, _sym
-from .gaussian import ConcentratedGaussian
+from .gaussian import KNOWN_DIRECTIONS_HINT, ConcentratedGaussian
 
 
 def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal3:
@@ -70,6 +70,13 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
     """Posterior concentrated Gaussian (right perturbation) after fusing the event
     (..., 4) = (y, tau) with covariance (..., 4, 4) into ``prior`` on SGal3.  ``time_row``:
     also fuse the (uninformative) time row as the paper prints it (see the module doc).
+
+    The prior's covariance must be positive definite: it is inverted.  The singular ones that
+    the constructor accepts (rows and columns of exact zeros, directions known exactly, as in an
+    IMU increment's covariance with time_noise_density=0) raise ValueError ('the prior's
+    covariance is singular'); give those directions a small variance first (``covariance +
+    s2 * torch.diag_embed(known)``, ``known`` the zero rows) or integrate with a
+    time_noise_density > 0.
 
     ``event_covariance`` must be symmetric positive semi-definite with a positive definite
     position block (an exact timestamp, variance 0, is allowed; an exact position is not: its
@@ -158,7 +165,7 @@ def fuse_event(prior: ConcentratedGaussian, event: torch.Tensor, event_covarianc
         for k, (S_k, name, definite) in enumerate(checked):
             _raise_for_measures(values[3 * k: 3 * k + 3], S_k, name, definite, tol)
         for flag, what in zip(values[3 * len(checked):], (
-                "the prior's covariance is singular",
+                "the prior's covariance is singular" + KNOWN_DIRECTIONS_HINT,
                 "the measurement noise N_mu event_covariance N_mu^T is singular",
                 "the information matrix Q^-1 + C^T S^-1 C is singular")):
             if flag:

@@ -395,6 +395,13 @@ class ConcentratedGaussian:
         >= 0, the largest step entry at which they stop early (0: they never do; None: 1e-12 in
         float64, 1e-6 in float32, about 8 of its epsilons, where the steps bottom out).
 
+        Both covariances must be positive definite: they are inverted.  The singular ones that
+        the constructor accepts (rows and columns of exact zeros, directions known exactly, as
+        in an IMU increment's covariance with time_noise_density=0) raise ValueError ('...
+        covariance is singular'); give those directions a small variance first (``covariance +
+        s2 * torch.diag_embed(known)``, ``known`` the zero rows) or integrate with a
+        time_noise_density > 0.
+
         Host syncs: with ``tol`` > 0, one per iteration (the step test, which also reads whether
         a matrix so far was singular); then one at the end, which raises ValueError if a
         covariance or the final information matrix is singular.  With ``tol=0`` only the one at
@@ -448,10 +455,18 @@ class ConcentratedGaussian:
         return ConcentratedGaussian(F, _sym(P), "right", validate=False).to_side(self.side)
 
 
+# fuse and fuse_event invert covariances: what to do with directions known exactly
+KNOWN_DIRECTIONS_HINT = ("; fusion inverts it, so it must be positive definite: give directions "
+                         "known exactly (rows and columns of zeros) a small variance first, "
+                         "e.g. covariance + s2 * torch.diag_embed(known), or integrate an IMU "
+                         "increment with time_noise_density > 0")
+
+
 def _raise_fuse(bad) -> None:
     """The status flags of fuse (Python floats, read): self's, other's covariance, then a
     Gauss-Newton system (a step's or the final information matrix)."""
-    for flag, what in zip(bad, ("self.covariance is singular", "other.covariance is singular",
+    for flag, what in zip(bad, ("self.covariance is singular" + KNOWN_DIRECTIONS_HINT,
+                                "other.covariance is singular" + KNOWN_DIRECTIONS_HINT,
                                 "the fused information matrix (sum_k J_k^T Sigma_k^-1 J_k) is "
                                 "singular")):
         if flag:

@@ -1,0 +1,161 @@
+"""Review fixes in torchsgal.imu (and fusion of its rank-9 covariance):
+
+- the streaming covariance and result() equal preintegrate's with a bias random walk (the walk
+  only in combined_covariance), under chunkings, batched;
+- sensor_to_body: a tensor dt checked (finite, > 0), angular_acceleration checked and broadcast,
+  against the formula written out here;
+- results do not follow in-place updates of the caller's biases or chains (K = 1 products);
+- fuse / fuse_event refuse a covariance with known directions with a message saying what to do;
+- a number dt is filled on the device when the held samples are flushed (no torch.tensor).
+"""
+from __future__ import annotations
+
+import functools
+
+import pytest
+import torch
+
+from torchsgal import SE3, SGal3
+from torchsgal.imu import gravity_vector, preintegrate, suffix_products, window_product
+from torchsgal.imu.gtsam_interop import sensor_to_body
+from torchsgal.imu.streaming import StreamingPreintegration
+from torchsgal.uncertainty import ConcentratedGaussian, fuse_event
+
+F64 = torch.float64
+DENS = dict(gyro_noise_density=2e-2, acc_noise_density=3e-1)
+
+
+def samples(batch, K, seed):
+    g = torch.Generator().manual_seed(seed)
+    gyro = 2.0 * torch.randn(*batch, K, 3, generator=g, dtype=F64)
+    acc = 3.0 * torch.randn(*batch, K, 3, generator=g, dtype=F64)
+    dt = 0.002 + 0.01 * torch.rand(*batch, K, generator=g, dtype=F64)
+    bg = 0.05 * torch.randn(*batch, 3, generator=g, dtype=F64)
+    ba = 0.2 * torch.randn(*batch, 3, generator=g, dtype=F64)
+    return gyro, acc, dt, bg, ba
+
+
+@pytest.mark.parametrize("buffer_size", [1, 5, 256])
+@pytest.mark.parametrize("time_noise", [0.0, 1e-3])
+def test_streaming_covariance_is_preintegrates_with_random_walk(buffer_size, time_noise):
+    gyro, acc, dt, bg, ba = samples((3,), 23, seed=4)
+    pre = preintegrate(gyro, acc, dt, bg, ba, time_noise_density=time_noise, **DENS)
+    s = StreamingPreintegration((3,), gyro_bias=bg, acc_bias=ba, gyro_bias_random_walk=0.05,
+                                acc_bias_random_walk=0.05, time_noise_density=time_noise,
+                                buffer_size=buffer_size, dtype=F64, **DENS)
+    i = 0
+    for n in (1, 4, 1, 1, 9, 7):  # one-sample calls and chunks
+        if n == 1:
+            s.integrate(gyro[:, i], acc[:, i], dt[:, i])
+        else:
+            s.integrate(gyro[:, i:i + n], acc[:, i:i + n], dt[:, i:i + n])
+        i += n
+    scale = pre.covariance.abs().max()
+    assert (s.covariance - pre.covariance).abs().max() < 1e-14 * scale
+    assert (s.result().covariance - pre.covariance).abs().max() < 1e-14 * scale
+    # the combined block carries the walk (its cross terms), the plain one does not
+    assert (s.combined_covariance()[..., :10, :10] - pre.covariance).abs().max() > 1e-4 * scale
+
+
+def lever_arm_formula(gyro, acc, T: SE3, alpha):
+    R, r = T.rotation(), T.position()
+    w = gyro @ R.mT
+    f = acc @ R.mT - torch.linalg.cross(w, torch.linalg.cross(w, r.expand_as(w)))
+    return w, f - torch.linalg.cross(alpha, r.expand_as(f))
+
+
+def test_sensor_to_body_checks_a_tensor_dt():
+    gyro, acc, dt, _, _ = samples((2,), 5, seed=1)
+    T = SE3.exp(torch.tensor([0.1, -0.2, 0.3, 0.2, 0.1, -0.4], dtype=F64))
+    for bad in (torch.zeros(2, 5, dtype=F64), -dt, dt.new_tensor(float("nan")), dt.new_tensor(float("inf"))):
+        with pytest.raises(ValueError, match=r"dt must be finite and > 0"):
+            sensor_to_body(gyro, acc, T, bad)
+    # a valid tensor dt equal to a number dt gives the same result
+    w1, f1 = sensor_to_body(gyro, acc, T, 0.01)
+    w2, f2 = sensor_to_body(gyro, acc, T, torch.full((5,), 0.01, dtype=F64))
+    assert torch.equal(w1, w2) and torch.equal(f1, f2)
+
+
+def test_sensor_to_body_checks_angular_acceleration():
+    gyro, acc, _, _, _ = samples((2,), 5, seed=2)
+    T = SE3.exp(torch.tensor([0.1, -0.2, 0.3, 0.2, 0.1, -0.4], dtype=F64))
+    alpha = torch.randn(5, 3, dtype=F64)
+    with pytest.raises(TypeError, match=r"angular_acceleration has dtype torch.float32"):
+        sensor_to_body(gyro, acc, T, angular_acceleration=alpha.float())
+    with pytest.raises(ValueError, match=r"angular_acceleration must have shape \(\.\.\., 3\)"):
+        sensor_to_body(gyro, acc, T, angular_acceleration=torch.zeros(5, 4, dtype=F64))
+    with pytest.raises(ValueError, match=r"angular_acceleration"):
+        sensor_to_body(gyro, acc, T, angular_acceleration=torch.zeros(3, 5, 3, dtype=F64))
+    with pytest.raises(ValueError, match=r"angular_acceleration must broadcast to the samples' shape"):
+        sensor_to_body(gyro, acc, T, angular_acceleration=torch.zeros(4, 2, 5, 3, dtype=F64))
+    w, f = sensor_to_body(gyro, acc, T, angular_acceleration=alpha)  # broadcast over the batch
+    w_ref, f_ref = lever_arm_formula(gyro, acc, T, alpha.expand(2, 5, 3))
+    assert (w - w_ref).abs().max() < 1e-13 and (f - f_ref).abs().max() < 1e-13
+
+
+def test_preintegration_does_not_follow_in_place_bias_updates():
+    gyro, acc, dt, bg, ba = samples((2,), 6, seed=3)
+    pre = preintegrate(gyro, acc, dt, bg, ba, **DENS)
+    start = SGal3.exp(0.1 * torch.ones(10, dtype=F64))
+    g = gravity_vector(dtype=F64)
+    new_g, new_a = bg + 0.01, ba - 0.02
+    want_c, want_p = pre.corrected(new_g, new_a).as_matrix(), pre.predict(start, g, None, new_g, new_a).as_matrix()
+    bg0, ba0 = bg.clone(), ba.clone()
+    bg.add_(0.3)  # an estimator updating its bias in place
+    ba.mul_(2.0)
+    assert torch.equal(pre.gyro_bias, bg0) and torch.equal(pre.acc_bias, ba0)
+    assert torch.equal(pre.corrected(new_g, new_a).as_matrix(), want_c)
+    assert torch.equal(pre.predict(start, g, None, new_g, new_a).as_matrix(), want_p)
+
+
+@pytest.mark.parametrize("K", [0, 1, 2, 3])
+def test_chain_products_are_new_tensors(K):
+    E = torch.randn(2, K, 4, 4, dtype=F64)
+    S, W = suffix_products(E), window_product(E)
+    eye = torch.eye(4, dtype=F64).expand(2, 4, 4)
+    ref_S = [functools.reduce(torch.matmul, [E[:, j] for j in range(k, K)], eye) for k in range(K)]
+    ref_W = functools.reduce(torch.matmul, [E[:, j] for j in range(K)], eye)
+    assert S.shape == E.shape and (W - ref_W).abs().max() < 1e-12
+    for k in range(K):
+        assert (S[:, k] - ref_S[k]).abs().max() < 1e-12
+    before_S, before_W = S.clone(), W.clone()
+    E.add_(1.0)  # the caller updates its chain in place
+    assert torch.equal(S, before_S) and torch.equal(W, before_W)
+
+
+def test_fusion_refuses_known_directions_with_advice():
+    gyro, acc, dt, bg, ba = samples((), 8, seed=5)
+    pre = preintegrate(gyro, acc, dt, bg, ba, **DENS)  # rank 9: exact time
+    assert not pre.covariance[9].any()
+    a = ConcentratedGaussian(pre.delta, pre.covariance)  # the constructor takes it
+    step = torch.tensor([1e-3, 0, 0, 0, 2e-3, 0, 0, 1e-3, 0, 0], dtype=F64)
+    b = ConcentratedGaussian(pre.delta.rplus(step), pre.covariance)
+    with pytest.raises(ValueError, match=r"fuse: self.covariance is singular.*small variance"):
+        a.fuse(b)
+    event = torch.tensor([0.1, 0.2, 0.3, float(pre.delta.time())], dtype=F64)
+    with pytest.raises(ValueError, match=r"fuse_event: the prior's covariance is singular.*small variance"):
+        fuse_event(a, event, 1e-2 * torch.eye(4, dtype=F64))
+    # the advice: a small variance on the known directions
+    known = (pre.covariance == 0).all(-1)
+    cov = pre.covariance + 1e-12 * torch.diag_embed(known.to(F64))
+    fused = ConcentratedGaussian(pre.delta, cov).fuse(ConcentratedGaussian(b.mean, cov))
+    assert torch.isfinite(fused.covariance).all()
+    assert abs(float(fused.mean.time() - pre.delta.time())) < 1e-12  # both know the same time
+
+
+def test_number_dt_is_filled_on_the_device(monkeypatch):
+    gyro, acc, _, bg, ba = samples((2,), 9, seed=6)
+    s = StreamingPreintegration((2,), gyro_bias=bg, acc_bias=ba, buffer_size=64, dtype=F64, **DENS)
+    s.integrate(gyro[:, :3], acc[:, :3], 0.01)
+    s.integrate(gyro[:, 3], acc[:, 3], 0.01)
+    s.integrate(gyro[:, 4:], acc[:, 4:], 0.02)
+
+    def no_copy(*args, **kwargs):
+        raise AssertionError("torch.tensor (a host-to-device copy on CUDA) in a flush")
+    with monkeypatch.context() as m:
+        m.setattr(torch, "tensor", no_copy)
+        cov, delta = s.covariance, s.delta.as_matrix()
+    dt = torch.tensor([0.01] * 4 + [0.02] * 5, dtype=F64)
+    pre = preintegrate(gyro, acc, dt, bg, ba, **DENS)
+    assert (delta - pre.delta.as_matrix()).abs().max() < 1e-12
+    assert (cov - pre.covariance).abs().max() < 1e-12 * pre.covariance.abs().max()
