@@ -1,4 +1,4 @@
-"""Review fixes in torchsgal.imu (and fusion of its rank-9 covariance):
+"""torchsgal.imu's streaming covariance, input checks and copies (and fusion of its rank-9 covariance):
 
 - the streaming covariance and result() equal preintegrate's with a bias random walk (the walk
   only in combined_covariance), under chunkings, batched;
