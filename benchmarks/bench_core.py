@@ -7,8 +7,8 @@ What is timed (ns per batch element, median over samples; see ``_timing.measure`
   ``g.inverse()``, ``g.act(p)`` (points (...,3), (...,2) for SO2/SE2; events (...,4) for SGal3),
   ``g.act_jacobians(p)`` (both Jacobians of the action, one element per point), ``g.adjoint()``,
   ``G.jl(xi)``, and the functional layer ``ts.functional.<g>.exp(xi)`` (-> matrix) / ``.log(M)``;
-  for the groups with C kernels (SE3, SE23, SGal3) exp, log, compose, inverse and adjoint again
-  with the kernels off (rows "[tensor code]").
+  for the groups with C kernels (``functional.ops.GROUPS``: all but SO2) exp, log, compose,
+  inverse and adjoint again with the kernels off (rows "[tensor code]").
 * peers on the same group, batch, dtype and device:
   - ``torch.linalg.matrix_exp(G.hat(xi))`` (hat matrix built outside the timed region);
   - pypose ``pp.so3(x).Exp()``, ``pp.SO3(q).Log()``, ``pp.se3(x).Exp()``, ``pp.SE3(T).Log()``,
