@@ -24,7 +24,7 @@ import torch
 
 from .. import SE3, SO3, SGal3
 from ..functional import checks
-from .preintegration import Preintegration, _readable
+from .preintegration import Preintegration, _check_non_negative
 from .streaming import StreamingPreintegration
 
 
@@ -322,12 +322,7 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
             except RuntimeError:
                 raise ValueError(f"dt must be a number or broadcast to {tuple(gyro.shape[:-1])}, "
                                  f"got shape {tuple(dt.shape)}") from None
-            if _readable(dt) and dt.numel():
-                ok = (dt > 0) & dt.isfinite()
-                if not bool(ok.all()):
-                    bad = dt.detach()[~ok]
-                    raise ValueError(f"dt must be finite and > 0 everywhere, got {bad.numel()} zero, "
-                                     f"negative, infinite or NaN entries (first {float(bad[0]):.3g})")
+            _check_non_negative(dt, "dt", positive=True)
         t = torch.cat((torch.zeros_like(h[..., :1]), h.cumsum(-1)[..., :-1]), -1)  # sample instants
         dw = torch.cat((w[..., 1:2, :] - w[..., 0:1, :], w[..., 2:, :] - w[..., :-2, :],
                         w[..., -1:, :] - w[..., -2:-1, :]), -2)

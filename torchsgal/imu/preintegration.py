@@ -111,14 +111,16 @@ def _readable(t: torch.Tensor) -> bool:
             and not _is_wrapped(t))
 
 
-def _check_non_negative(t: torch.Tensor, name: str) -> None:
-    """Raise if a readable tensor has negative, infinite or NaN entries; see ``_readable``."""
+def _check_non_negative(t: torch.Tensor, name: str, positive: bool = False) -> None:
+    """Raise if a readable tensor has negative (with ``positive``: or zero), infinite or NaN
+    entries; see ``_readable``."""
     if _readable(t) and t.numel():
-        ok = (t >= 0) & t.isfinite()
+        ok = ((t > 0) if positive else (t >= 0)) & t.isfinite()
         if not bool(ok.all()):
             bad = t.detach()[~ok]
-            raise ValueError(f"{name} must be finite and >= 0 everywhere, got {bad.numel()} "
-                             f"negative, infinite or NaN entries (first {float(bad[0]):.3g})")
+            raise ValueError(f"{name} must be finite and {'>' if positive else '>='} 0 everywhere, "
+                             f"got {bad.numel()} {'zero, ' if positive else ''}negative, infinite "
+                             f"or NaN entries (first {float(bad[0]):.3g})")
 
 
 def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Tensor:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from ...groups import SE2, SE3, LieGroup
+from ...uncertainty.covariance import check_covariance
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
@@ -162,17 +163,10 @@ class Problem:
             raise ValueError(f"{factor!r} {name} has non-finite entries")
         sqrt = given if self.attach else given.detach()
         if W is not None:
-            # the Cholesky factorisation reads one triangle: an asymmetric W would be read as
-            # another matrix without a word (rounding of a computed W is within the tolerance)
-            tol = torch.finfo(W.dtype).eps ** 0.5
-            if bool(((W - W.mT).abs() > tol * W.abs().amax(dim=(-2, -1), keepdim=True)).any()):
-                raise ValueError(f"{factor!r} information must be symmetric, got a matrix whose "
-                                 f"entries differ from their transposes by more than {tol:.1e} "
-                                 f"of its largest entry")
-            C, info = torch.linalg.cholesky_ex(sqrt)
-            if bool((info != 0).any()):
-                raise ValueError(f"{factor!r} information must be symmetric positive definite")
-            sqrt = C.mT  # W = C C^T = L^T L
+            # symmetric (the factorisation reads one triangle: an asymmetric W would be solved as
+            # another matrix) and positive definite, as a covariance is checked
+            check_covariance(W, W.shape[-1], f"{factor!r} information")
+            sqrt = torch.linalg.cholesky_ex(sqrt)[0].mT  # W = C C^T = L^T L
         return sqrt, sqrt.dim() == 4
 
     def select(self, rows: torch.Tensor) -> Problem:
