@@ -1,6 +1,6 @@
 /* torchsgal.estimation._native: the estimation engine's CPU kernels: batched Cholesky
  * factorisations and triangular solves of small dense systems (_native_cholesky.h; the operators
- * torchsgal::cholesky_solve and torchsgal::triangular_solve, estimation/dense_solve.py), and the
+ * torchsgal::cholesky_solve, gram_cholesky_solve and triangular_solve, estimation/dense_solve.py), and the
  * batched Cholesky solves of block-sparse systems sharing one pattern (_native_block_cholesky.h;
  * torchsgal::block_cholesky_solve, estimation/block_cholesky.py), and the
  * residuals and Jacobians of the built-in SE(3) and SE(2) priors and betweens (_native_factors.h,
@@ -87,6 +87,24 @@ static PyObject *py_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_
     Py_BEGIN_ALLOW_THREADS
     run_parallel(ints[5] ? cholesky_solve_range_f64 : cholesky_solve_range_f32, args, ints[0],
                  solve_cost(ints[1], ints[2], ptr[4] != NULL), (int)ints[4]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+/* gram_cholesky_solve(G, d, R, L, X, Y, info, n, m, p, k, d_stride, threads, is_double):
+ * cholesky_solve of A = G diag(d) G^T, A formed per system in the kernel; Y 0 (a null pointer)
+ * for the factor and the forward solve only */
+static PyObject *py_gram_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[7];
+    int64_t ints[7]; /* n, m, p, k, d_stride, threads, is_double */
+    if (read_call(a, nargs, 7, ptr, 7, ints, "gram_cholesky_solve") < 0) return NULL;
+    void *args[11] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6],
+                      &ints[1], &ints[2], &ints[3], &ints[4]};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[6] ? gram_cholesky_solve_range_f64 : gram_cholesky_solve_range_f32, args, ints[0],
+                 solve_cost(ints[1], ints[3], ptr[5] != NULL) + ints[1] * ints[1] * ints[2] / 800,
+                 (int)ints[5]);
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
 }
@@ -252,6 +270,8 @@ static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
      "batched Cholesky and solves (A, R, L, X, Y, info, n, m, k, lanes, threads, is_double)"},
+    {"gram_cholesky_solve", (PyCFunction)(void (*)(void))py_gram_cholesky_solve, METH_FASTCALL,
+     "batched Cholesky and solves of G diag(d) G^T (G, d, R, L, X, Y, info, n, m, p, k, d_stride, threads, is_double)"},
     {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,
      "batched triangular solves (L, R, X, n, m, k, transpose, lanes, threads, is_double)"},
     {"block_cholesky_solve", (PyCFunction)(void (*)(void))py_block_cholesky_solve, METH_FASTCALL,

@@ -152,12 +152,12 @@ static inline void CAT(lanes_store, SFX)(T (*restrict x)[LANES], T *restrict dst
     }
 }
 
-/* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range */
-static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T *Y, int32_t *info,
-                                          int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
-                                          T (*r)[LANES], T (*x)[LANES]) {
+/* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range, their matrices already in the
+ * lanes l (lower triangle) */
+static void CAT(lanes_factor_solve, SFX)(const T *R, T *L, T *X, T *Y, int32_t *info,
+                                        int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
+                                        T (*r)[LANES], T (*x)[LANES]) {
     int32_t bad[LANES];
-    CAT(lanes_load, SFX)(l, A + b0 * m * m, n, m, m, 0, m);
     CAT(lanes_factor, SFX)(l, r, bad, m);
     for (int64_t w = 0; w < n; ++w) {
         T *Lb = L + (b0 + w) * m * m;
@@ -180,6 +180,44 @@ static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T
             CAT(fill_nan, SFX)(X + (b0 + w) * m * k, m * k);
             if (Y) CAT(fill_nan, SFX)(Y + (b0 + w) * m * k, m * k);
         }
+}
+
+/* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range */
+static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T *Y, int32_t *info,
+                                          int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
+                                          T (*r)[LANES], T (*x)[LANES]) {
+    CAT(lanes_load, SFX)(l, A + b0 * m * m, n, m, m, 0, m);
+    CAT(lanes_factor_solve, SFX)(R, L, X, Y, info, b0, n, m, k, l, r, x);
+}
+
+/* the lower triangle of A = G diag(d) G^T into the lanes l for the systems [b0, b0 + n): G (m, p)
+ * per system, d (p) per system (d_stride p) or shared (d_stride 0); g: m * p lanes of workspace */
+static inline void CAT(lanes_gram, SFX)(T (*restrict l)[LANES], T (*restrict g)[LANES], const T *restrict G,
+                                       const T *restrict d, int64_t d_stride, int64_t b0, int64_t n,
+                                       int64_t m, int64_t p) {
+    CAT(lanes_load, SFX)(g, G + b0 * m * p, n, m, p, 0, p);
+    T dw[LANES];
+    for (int64_t i = 0; i < m; ++i)
+        for (int64_t j = 0; j <= i; ++j)
+            for (int w = 0; w < LANES; ++w) l[i * m + j][w] = 0;
+    for (int64_t q = 0; q < p; ++q) {
+        for (int w = 0; w < LANES; ++w) dw[w] = d[(b0 + (w < n ? w : n - 1)) * d_stride + q];
+        for (int64_t j = 0; j < m; ++j) {
+            T u[LANES];  /* d_q G[j, q] */
+            for (int w = 0; w < LANES; ++w) u[w] = dw[w] * g[j * p + q][w];
+            for (int64_t i = j; i < m; ++i)
+                for (int w = 0; w < LANES; ++w) l[i * m + j][w] += g[i * p + q][w] * u[w];
+        }
+    }
+}
+
+/* the systems [b0, b0 + n) (n <= LANES) of gram_cholesky_solve_range */
+static void CAT(lanes_gram_cholesky_solve, SFX)(const T *G, const T *d, int64_t d_stride, const T *R, T *L,
+                                               T *X, T *Y, int32_t *info, int64_t b0, int64_t n, int64_t m,
+                                               int64_t p, int64_t k, T (*l)[LANES], T (*r)[LANES],
+                                               T (*x)[LANES], T (*g)[LANES]) {
+    CAT(lanes_gram, SFX)(l, g, G, d, d_stride, b0, n, m, p);
+    CAT(lanes_factor_solve, SFX)(R, L, X, Y, info, b0, n, m, k, l, r, x);
 }
 
 /* the systems [b0, b0 + n) (n <= LANES) of triangular_solve_range */
@@ -225,6 +263,51 @@ WIDE_LOOPS static void CAT(cholesky_solve_range, SFX)(void **args, int64_t lo, i
         CAT(forward_one, SFX)(Lb, R + b * m * k, Xb, m, k);
         if (Yb) CAT(back_one, SFX)(Lb, Xb, Yb, m, k);
     }
+}
+
+/* args: G, d, R, L, X, Y (null: not wanted), info, and m, p, k, d_stride as int64: cholesky_solve_range
+ * of A = G diag(d) G^T, formed in the lanes (one system at a time where the workspace cannot be
+ * allocated) */
+WIDE_LOOPS static void CAT(gram_cholesky_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
+    const T *G = args[0], *d = args[1], *R = args[2];
+    T *L = args[3], *X = args[4], *Y = args[5];
+    int32_t *info = args[6];
+    const int64_t m = *(const int64_t *)args[7], p = *(const int64_t *)args[8];
+    const int64_t k = *(const int64_t *)args[9], d_stride = *(const int64_t *)args[10];
+    T(*lanes)[LANES] = m <= LANE_MAX_M ? malloc((size_t)(m * m + m + m * LANE_COLS + m * p) * sizeof(T[LANES])) : NULL;
+    if (lanes) {
+        for (int64_t b = lo; b < hi; b += LANES)
+            CAT(lanes_gram_cholesky_solve, SFX)(G, d, d_stride, R, L, X, Y, info, b, hi - b < LANES ? hi - b : LANES,
+                                                m, p, k, lanes, lanes + m * m, lanes + m * m + m,
+                                                lanes + m * m + m + m * LANE_COLS);
+        free(lanes);
+        return;
+    }
+    T *A = malloc((size_t)(m * m) * sizeof(T));
+    for (int64_t b = lo; b < hi; ++b) {
+        T *Lb = L + b * m * m, *Xb = X + b * m * k, *Yb = Y ? Y + b * m * k : NULL;
+        int32_t f = 1;
+        if (A) {
+            const T *Gb = G + b * m * p, *db = d + b * d_stride;
+            for (int64_t i = 0; i < m; ++i)
+                for (int64_t j = 0; j <= i; ++j) {
+                    T acc = 0;
+                    for (int64_t q = 0; q < p; ++q) acc += Gb[i * p + q] * db[q] * Gb[j * p + q];
+                    A[i * m + j] = acc;
+                }
+            f = CAT(cholesky_one, SFX)(A, Lb, m);
+        }
+        info[b] = f;
+        if (f) {
+            CAT(fill_nan, SFX)(Lb, m * m);
+            CAT(fill_nan, SFX)(Xb, m * k);
+            if (Yb) CAT(fill_nan, SFX)(Yb, m * k);
+            continue;
+        }
+        CAT(forward_one, SFX)(Lb, R + b * m * k, Xb, m, k);
+        if (Yb) CAT(back_one, SFX)(Lb, Xb, Yb, m, k);
+    }
+    free(A);
 }
 
 /* args: L, R, X, and m, k, transpose, lanes as int64: X = L^-1 R, or L^-T R */

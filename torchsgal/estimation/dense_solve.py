@@ -3,6 +3,10 @@
 ``cholesky_solve(A, R, back)`` factors every symmetric positive definite A = L L^T of a batch
 and solves with it: X = L^-1 R, and with ``back`` also Y = L^-T X = A^-1 R.
 ``triangular_solve(L, R, transpose)`` solves with a factor already at hand: L^-1 R, or L^-T R.
+``gram_cholesky_solve(G, d, R, back)`` is ``cholesky_solve`` of A = G diag(d) G^T, the matrix
+formed per system inside the kernel (the covariance S = Bm Sigma Bm^T of a Gauss-Helmert
+condition with a diagonal Sigma, without the (..., m, p) product G diag(d) and the batched
+product of it with G^T in memory).
 A failed factorisation (a pivot that is not positive: A not positive definite, or not finite)
 reports info = the pivot's row + 1 (LAPACK's ``potrf`` convention; 0 when it succeeds) and
 NaN in that matrix's L, X and Y, so a caller tests ``info`` once, without a host read.
@@ -48,7 +52,7 @@ import torch
 from .._compat import FastApply
 from ..functional import checks, native
 from ..functional._autograd import _nested_forward_mode
-from ..functional._blocking import is_compiling
+from ..functional._blocking import is_compiling, unobserved
 from ..functional.registration import operator
 
 try:
@@ -64,7 +68,7 @@ if _lib is not None:
 # lane); LAPACK's blocked factorisation is faster for larger systems and for a few mid-sized ones.
 SMALL_SIZE, KERNEL_MAX_SIZE, MIN_BATCH = 16, 64, 4
 
-__all__ = ["cholesky_solve", "triangular_solve", "uses_kernel", "available"]
+__all__ = ["cholesky_solve", "gram_cholesky_solve", "triangular_solve", "uses_kernel", "available"]
 
 
 def available() -> bool:
@@ -88,6 +92,41 @@ def cholesky_solve(A: torch.Tensor, R: torch.Tensor, back: bool = False
     else:
         L, X, Y, info = _CholeskySolve.apply(A, R, back)
     return L, X, Y if back else None, info
+
+
+def gram_cholesky_solve(G: torch.Tensor, d: torch.Tensor, R: torch.Tensor, back: bool = False
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """``cholesky_solve(G diag(d) G^T, R, back)`` for G (..., m, p), d (..., p) (positive where
+    A is to be positive definite) and R (..., m, k), batch shapes broadcast.  Where nothing
+    observes the call (no autograd recording, no torch.func transform, not compiling) it is one
+    operator, ``torchsgal::gram_cholesky_solve``, whose CPU kernel forms each A in its vector
+    lanes; otherwise the product is formed as tensors and ``cholesky_solve`` takes it (the same
+    derivatives)."""
+    checks.boolean(back, "back")
+    _check_gram(G, d, R)
+    if not unobserved((G, d, R)):
+        return cholesky_solve((G * d[..., None, :]) @ G.mT, R, back)
+    batch = torch.broadcast_shapes(G.shape[:-2], d.shape[:-1], R.shape[:-2])
+    L, X, Y, info = torch.ops.torchsgal.gram_cholesky_solve(
+        G.expand(batch + G.shape[-2:]), d.expand(batch + d.shape[-1:]), R.expand(batch + R.shape[-2:]),
+        back)
+    return L, X, Y if back else None, info
+
+
+def _check_gram(G: torch.Tensor, d: torch.Tensor, R: torch.Tensor) -> None:
+    for name, t in (("G", G), ("d", d), ("R", R)):
+        checks.floating(t, name)
+    checks.same_device_dtype(G=G, d=d, R=R)
+    if G.dim() < 2:
+        raise ValueError(f"G must have shape (..., m, p), got {tuple(G.shape)}")
+    m, p = G.shape[-2:]
+    if d.dim() < 1 or d.shape[-1] != p:
+        raise ValueError(f"d must have shape (..., p) with p = {p} (G is {tuple(G.shape)}), got "
+                         f"{tuple(d.shape)}")
+    if R.dim() < 2 or R.shape[-2] != m:
+        raise ValueError(f"R must have shape (..., m, k) with m = {m} (G is {tuple(G.shape)}), got "
+                         f"{tuple(R.shape)}")
+    checks.broadcast_batch(G=G.shape[:-2], d=d.shape[:-1], R=R.shape[:-2])
 
 
 def triangular_solve(L: torch.Tensor, R: torch.Tensor, transpose: bool = False) -> torch.Tensor:
@@ -145,10 +184,14 @@ def _triangular_solve_tensor(L, R, transpose: bool):
 def uses_kernel(M: torch.Tensor) -> bool:
     """Whether the operators run the C kernel for systems M (..., m, m) on the CPU now: float32 or
     float64, the size rule above, kernels built and on in the calling thread."""
-    m = M.shape[-1]
-    return (_lib is not None and native.enabled() and M.device.type == "cpu"
-            and M.dtype in (torch.float32, torch.float64)
-            and (m <= SMALL_SIZE or m <= KERNEL_MAX_SIZE and math.prod(M.shape[:-2]) >= MIN_BATCH))
+    return _kernel_for(M.shape[-1], math.prod(M.shape[:-2]), M)
+
+
+def _kernel_for(m: int, systems: int, like: torch.Tensor) -> bool:
+    """``uses_kernel`` for ``systems`` systems of m unknowns on ``like``'s device and dtype."""
+    return (_lib is not None and native.enabled() and like.device.type == "cpu"
+            and like.dtype in (torch.float32, torch.float64)
+            and (m <= SMALL_SIZE or m <= KERNEL_MAX_SIZE and systems >= MIN_BATCH))
 
 
 # ---------------------------------------------------------------------------- cholesky_solve
@@ -199,6 +242,87 @@ _cholesky_solve_op.register_autograd(_cholesky_solve_backward, setup_context=_ch
 def _cholesky_solve_vmap(info, in_dims, A, R, back):
     A, R = _batched_front(info.batch_size, (A, R), in_dims[:2])
     return _cholesky_solve_op(A, R, back), (0, 0, 0, 0)
+
+
+# ---------------------------------------------------------------------------- gram_cholesky_solve
+def _gram_tensor(G, d, R, back: bool):
+    return _cholesky_solve_tensor((G * d[..., None, :]) @ G.mT, R, back)
+
+
+@operator("torchsgal::gram_cholesky_solve",
+          schema="(Tensor G, Tensor d, Tensor R, bool back) -> (Tensor, Tensor, Tensor, Tensor)")
+def _gram_cholesky_solve_op(G: torch.Tensor, d: torch.Tensor, R: torch.Tensor, back: bool):
+    """(L, X, Y, info) of cholesky_solve(G diag(d) G^T, R, back); G (..., m, p), d (..., p) and
+    R (..., m, k) of one batch shape; Y (..., m, 0) without ``back``."""
+    _check_gram_same(G, d, R)
+    return _gram_tensor(G, d, R, back)
+
+
+def _check_gram_same(G, d, R) -> None:
+    _check_gram(G, d, R)
+    if not G.shape[:-2] == d.shape[:-1] == R.shape[:-2]:
+        raise ValueError(f"G, d and R must have the same batch shape, got {tuple(G.shape[:-2])}, "
+                         f"{tuple(d.shape[:-1])} and {tuple(R.shape[:-2])}")
+
+
+@_gram_cholesky_solve_op.register_kernel("cpu")
+def _gram_cholesky_solve_cpu(G, d, R, back):
+    _check_gram_same(G, d, R)
+    m, p, k = G.shape[-2], G.shape[-1], R.shape[-1]
+    batch = G.shape[:-2]
+    if not _kernel_for(m, math.prod(batch), G):
+        return _gram_tensor(G, d, R, back)
+    shared = d.dim() >= 1 and all(st == 0 for st in d.stride()[:-1])
+    d_used = d[(0,) * (d.dim() - 1)][None] if shared and d.shape[:-1].numel() else d
+    G, R = G.resolve_neg().contiguous(), R.resolve_neg().contiguous()
+    d_used = d_used.resolve_neg().contiguous()
+    L = G.new_empty(batch + (m, m))
+    X = torch.empty_like(R)
+    Y = torch.empty_like(R) if back else R.new_empty(batch + (m, 0))
+    info = torch.empty(batch, dtype=torch.int32)
+    _lib.gram_cholesky_solve(G.data_ptr(), d_used.data_ptr(), R.data_ptr(), L.data_ptr(),
+                             X.data_ptr(), Y.data_ptr() if back else 0, info.data_ptr(),
+                             info.numel(), m, p, k, 0 if shared else p, torch.get_num_threads(),
+                             G.dtype is torch.float64)
+    return L, X, Y, info
+
+
+@_gram_cholesky_solve_op.register_fake
+def _gram_cholesky_solve_fake(G, d, R, back):
+    _check_gram_same(G, d, R)
+    m = G.shape[-2]
+    Y = R.new_empty(R.shape) if back else R.new_empty(R.shape[:-1] + (0,))
+    return (G.new_empty(G.shape[:-2] + (m, m)), R.new_empty(R.shape), Y,
+            G.new_empty(G.shape[:-2], dtype=torch.int32))
+
+
+def _gram_setup(ctx, inputs, output):
+    G, d, _, _ = inputs
+    ctx.mark_non_differentiable(output[3])
+    ctx.save_for_backward(G, d, *output[:3])
+
+
+def _gram_backward(ctx, gL, gX, gY, _ginfo):
+    """gA, gR of ``cholesky_solve``; then A = G D G^T with gA symmetric: gG = 2 gA G D,
+    gd = diag(G^T gA G)."""
+    G, d, L, X, Y = ctx.saved_tensors
+    gA, gR = _cholesky_solve_vjp(L, X, Y, gL, gX, gY)
+    gAG = gA @ G
+    return 2.0 * gAG * d[..., None, :], (gAG * G).sum(-2), gR, None
+
+
+_gram_cholesky_solve_op.register_autograd(_gram_backward, setup_context=_gram_setup)
+
+
+@_gram_cholesky_solve_op.register_vmap
+def _gram_cholesky_solve_vmap(info, in_dims, G, d, R, back):
+    size = info.batch_size
+    moved = [a.unsqueeze(0).expand(size, *a.shape) if k is None else a.movedim(k, 0)
+             for a, k in zip((G, d, R), in_dims[:3])]
+    batch = torch.broadcast_shapes(moved[0].shape[:-2], moved[1].shape[:-1], moved[2].shape[:-2])
+    G, d, R = (moved[0].expand(batch + moved[0].shape[-2:]), moved[1].expand(batch + moved[1].shape[-1:]),
+               moved[2].expand(batch + moved[2].shape[-2:]))
+    return _gram_cholesky_solve_op(G, d, R, back), (0, 0, 0, 0)
 
 
 # ---------------------------------------------------------------------------- triangular_solve

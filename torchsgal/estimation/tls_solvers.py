@@ -46,14 +46,15 @@ def _sgal3_terms(F, dtau, M, n, e):
     n = n[..., 0]
     s = n * dtau[..., 0]  # (B, E)
     eye = torch.eye(10, dtype=s.dtype, device=s.device)
-    Ad_Finv = F.inverse().adjoint()  # (B, 1, 10, 10)
     A = _drift_sgal3(F, s)
-    Ad_Ainv = _ad_time_right_inverse(_ad_time_left(s, Ad_Finv), s)
-    d_F = _ad_time_left(s, eye)
-    d_t = n[:, None, None] * (_ad_time_left(s, Ad_Finv[..., E10:E10 + 1]) - eye[E10][:, None])
+    Ad_Ainv = A.inverse().adjoint()  # Ad(T^n) Ad(F^-1) Ad(T^-n), from A_n itself
+    # n (Ad(T^n F^-1) - I) e_10: the iota column of Ad(F^-1), moved by Ad(T^n)
+    d_t = n[:, None, None] * (_ad_time_left(s, F.inverse().adjoint()[..., E10:E10 + 1])
+                              - eye[E10][:, None])
     if e is None:
         c = (M @ A).log()
         d_a, d_b = Ad_Ainv, -eye.expand(c.shape + (10,))
+        d_F = _ad_time_left(s, eye)
     else:
         ea, eb = e[..., :10], e[..., 10:]
         Eb = SGal3.exp(eb)
@@ -63,11 +64,20 @@ def _sgal3_terms(F, dtau, M, n, e):
         K = SGal3.jr_inv(c)
         left = K @ Eb.adjoint()
         d_a = left @ Ad_Ainv @ SGal3.jr(ea)
-        d_b = -(K @ SGal3.jl(eb))
+        d_b = _negated_product(K, SGal3.jl(eb))
         d_F = _ad_time_right_inverse(left, -s)  # left Ad(T^n), elementwise
-        d_t = (left * d_t.transpose(-1, -2)).sum(-1, keepdim=True)
+        d_t = left @ d_t
     Bm = torch.cat([d_a.expand(c.shape + (10,)), d_b.expand(c.shape + (10,))], -1)
     return c, [d_F, d_t], Bm
+
+
+def _negated_product(K: torch.Tensor, J: torch.Tensor) -> torch.Tensor:
+    """-(K @ J) for K, J (..., k, k) of one batch shape, the sign in the product (no second
+    pass over the result)."""
+    batch = K.shape[:-2]
+    out = torch.baddbmm(K.new_zeros(()), K.reshape((-1,) + K.shape[-2:]),
+                        J.reshape((-1,) + J.shape[-2:]), beta=0, alpha=-1)
+    return out.reshape(batch + out.shape[-2:])
 
 
 def _sgal3_condition(F, dtau, M, n, e):
@@ -86,14 +96,14 @@ def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
     s = n * dtau[..., 0]  # (B, E)
     eye9 = torch.eye(9, dtype=s.dtype, device=s.device)
     A = _drift(X, s)
-    Ad_Ainv = _ad_time_right_inverse(_ad_time_left(s, X.inverse().adjoint()), s)
-    P = _ad_time_left(s, eye9)
+    Ad_Ainv = A.inverse().adjoint()  # Ad(T^n) Ad(X^-1) Ad(T^-n), from A'_n itself
     Cv = (X.rotation().mT @ X.velocity()[..., None])[..., 0]  # (B, 1, 3)
     nCv = -n[:, None] * Cv  # (B, E, 3): d rho / d dtau
     dt_col = torch.cat([nCv, torch.zeros_like(nCv), torch.zeros_like(nCv)], -1)[..., None]
     if e is None:
         c9 = (M @ A).log()
         d_a, d_b = Ad_Ainv, -eye9.expand(c9.shape + (9,))
+        P = _ad_time_left(s, eye9)
         ia = ib = 0.0
     else:
         ea, eb = e[..., :9], e[..., 10:19]
@@ -104,8 +114,8 @@ def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
         K = SE23.jr_inv(c9)
         left = K @ Eb.adjoint()
         d_a = left @ Ad_Ainv @ SE23.jr(ea)
-        d_b = -(K @ SE23.jl(eb))
-        P, dt_col = _ad_time_right_inverse(left, -s), left @ dt_col  # left P, elementwise
+        d_b = _negated_product(K, SE23.jl(eb))
+        P, dt_col = _ad_time_right_inverse(left, -s), left @ dt_col  # left Ad(T^n), elementwise
     ct = dclock[..., 0] + ia + tau0[..., 0] - ib  # (B, E)
     c = torch.cat([c9, ct[..., None]], dim=-1)
     shape = c.shape

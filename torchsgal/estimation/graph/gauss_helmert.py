@@ -51,7 +51,7 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
-from ..dense_solve import cholesky_solve, triangular_solve
+from ..dense_solve import gram_cholesky_solve, triangular_solve
 from ..gauss_helmert import check_covariance
 from ..solver import SolverStatus
 from .factors import Data, Factor
@@ -193,16 +193,20 @@ class GaussHelmert(Factor):
             w = c - v
         batch = torch.broadcast_shapes(c.shape[:-1], *([] if state is None else [state[0].shape[:-1]]))
         w, Bm = w.expand(batch + w.shape[-1:]), Bm.expand(batch + Bm.shape[-2:])
-        if L is None or refresh:  # Bm Sigma (Sigma = R R^T, R the diagonal root or Cholesky factor)
-            P = Bm * (factor * factor)[..., None, :] if self.diagonal else Bm @ (factor @ factor.mT)
         cols = [w[..., None]]
         if want_jacobian or refresh:
             cols += [A.expand(batch + A.shape[-2:]) for A in As]
         rhs = torch.cat(cols, -1)
         if L is None:
-            # S = Bm Sigma Bm^T = L L^T; sol = L^-1 [w | A], full = S^-1 [w | A] at a refresh;
-            # a non-positive-definite S (non-finite data) gives NaN, reported NON_FINITE
-            L, sol, full, _ = cholesky_solve(P @ Bm.mT, rhs, back=refresh)
+            # S = Bm Sigma Bm^T = L L^T (Sigma = R R^T: G diag(R^2) G^T with G = Bm for a
+            # diagonal Sigma, R its root, else G = Bm R); sol = L^-1 [w | A], full = S^-1 [w | A]
+            # at a refresh; a non-positive-definite S (non-finite data) gives NaN, reported
+            # NON_FINITE
+            if self.diagonal:
+                G, d = Bm, factor * factor
+            else:
+                G, d = Bm @ factor, factor.new_ones(()).expand(self.m)
+            L, sol, full, _ = gram_cholesky_solve(G, d, rhs, back=refresh)
         else:
             sol, full = triangular_solve(L, rhs), None
         r = sol[..., 0]
