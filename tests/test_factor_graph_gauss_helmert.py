@@ -180,8 +180,8 @@ def test_corrections_update_is_that_of_the_linearised_problem(covariance, batche
 
 @pytest.mark.parametrize("estimator", ["sgal3", "baseline"])
 def test_forward_mode_jacobians_equal_the_analytic_tls_jacobians(estimator):
-    """The TLS conditions' analytic Jacobians (at non-zero corrections: exact derivatives)
-    against the factor's forward mode."""
+    """The TLS conditions' analytic Jacobians at non-zero corrections against the factor's
+    forward mode: the exact derivatives times the left factor Q they return."""
     P = study.simulate(study.StudyConfig(trials=3, samples=5, seed=2)).problem
     F0, dt = P.initial_guess(-1.0)
     n = P.indices[:, None]
@@ -195,15 +195,24 @@ def test_forward_mode_jacobians_equal_the_analytic_tls_jacobians(estimator):
         variables = [X0.unsqueeze(-1), t0[:, None, None], dt[:, None, :]]
         data = [M, dclock[..., None], n]
         terms, condition = tls_solvers._baseline_terms, tls_solvers._baseline_condition
-    c, As, Bm = terms(*variables, *data, e)
+    c, As, Bm, Q = terms(*variables, *data, e)
     # the condition alone (the cost at trial points) gives the very same values as the terms
     assert torch.equal(condition(*variables, *data, e), c)
     assert torch.equal(condition(*variables, *data, None), terms(*variables, *data, None)[0])
     c2, As2, Bm2 = _forward_jacobians(condition, variables, data, e)
     torch.testing.assert_close(c, c2, rtol=0, atol=1e-13)
+    # the Jacobians are the left factor Q = J_r(c) (spatial rows) times the exact derivatives
+    J_r = (tls_solvers.SGal3 if estimator == "sgal3" else tls_solvers.SE23).jr(
+        c if estimator == "sgal3" else c[..., :9])
+    torch.testing.assert_close(Q[..., :J_r.shape[-1], :J_r.shape[-1]], J_r, rtol=0, atol=0)
+    if estimator == "baseline":
+        assert torch.equal(Q[..., 9, :], torch.eye(10, dtype=f64)[9].expand_as(Q[..., 9, :]))
+        assert torch.equal(Q[..., :9, 9], torch.zeros_like(Q[..., :9, 9]))
     for A, A2 in zip(As, As2):
-        torch.testing.assert_close(A.expand_as(A2), A2, rtol=0, atol=1e-12)
-    torch.testing.assert_close(Bm, Bm2, rtol=0, atol=1e-12)
+        torch.testing.assert_close(A.expand_as(A2), Q @ A2, rtol=0, atol=1e-12)
+    torch.testing.assert_close(Bm, Q @ Bm2, rtol=0, atol=1e-12)
+    # J_r(c) c = c: the engine's reading of the condition, Q c, is c
+    torch.testing.assert_close((Q @ c[..., None])[..., 0], c, rtol=0, atol=1e-13)
 
 
 def test_non_finite_observation_spoils_only_its_problem():
@@ -239,3 +248,98 @@ def test_bad_input_names_the_argument():
         fg.gauss_helmert(graph, step_tol=-1.0)
     with pytest.raises(ValueError, match="update_below must be a finite number > 0"):
         fg.gauss_helmert(graph, update_below=0.0)
+
+
+def _rigid2d(B=3, E=25, seed=3, sigma=0.02):
+    """Points p and q = R(theta) p + t, noise on both (m = 4: e = [e_p, e_q])."""
+    gen = torch.Generator().manual_seed(seed)
+    theta = torch.rand(B, 1, generator=gen, dtype=f64) * 2 - 1
+    t = torch.randn(B, 2, generator=gen, dtype=f64)
+    p = torch.randn(B, E, 2, generator=gen, dtype=f64)
+    c, s = theta.cos()[..., None], theta.sin()[..., None]
+    q = torch.stack([c[..., 0] * p[..., 0] - s[..., 0] * p[..., 1],
+                     s[..., 0] * p[..., 0] + c[..., 0] * p[..., 1]], -1) + t[:, None, :]
+    noise = sigma * torch.randn(B, E, 4, generator=gen, dtype=f64)
+    return torch.cat([p, q], -1) + noise, torch.cat([theta, t], -1)
+
+
+def _rigid2d_condition(x, obs, e):
+    """R(theta) (p + e_p) + t - (q + e_q), x = (theta, t) (..., 3)."""
+    p, q = obs[..., :2] + e[..., :2], obs[..., 2:] + e[..., 2:]
+    c, s = x[..., 0].cos(), x[..., 0].sin()
+    Rp = torch.stack([c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1]], -1)
+    return Rp + x[..., 1:] - q
+
+
+def _rigid2d_jacobians(x, obs, e, scaled):
+    """(c, [A], Bm) with the exact derivatives, or (c, [Q A], Q Bm, Q) with a Q that moves with
+    the point (Q = [[2, c_0], [-c_0, 2]], invertible)."""
+    e = torch.zeros(obs.shape, dtype=f64) if e is None else e
+    p = obs[..., :2] + e[..., :2]
+    c_, s_ = x[..., 0].cos(), x[..., 0].sin()
+    cond = _rigid2d_condition(x, obs, e)
+    dR = torch.stack([-s_ * p[..., 0] - c_ * p[..., 1], c_ * p[..., 0] - s_ * p[..., 1]], -1)
+    eye = torch.eye(2, dtype=f64).expand(cond.shape[:-1] + (2, 2))
+    A = torch.cat([dR[..., None], eye], -1)  # (..., 2, 3)
+    R = torch.stack([torch.stack([c_, -s_], -1), torch.stack([s_, c_], -1)], -2).expand_as(eye)
+    Bm = torch.cat([R, -eye], -1)  # (..., 2, 4)
+    if not scaled:
+        return cond, [A], Bm
+    c0 = cond[..., 0]
+    Q = torch.stack([torch.stack([2 + 0 * c0, c0], -1), torch.stack([-c0, 2 + 0 * c0], -1)], -2)
+    return cond, [Q @ A], Q @ Bm, Q
+
+
+@pytest.mark.parametrize("iterated", [True, False])
+def test_left_factor_leaves_steps_corrections_and_solution_unchanged(iterated):
+    """The same problem with the exact Jacobians, with Q times them (left_factor=True, Q moving
+    with the point) and with forward mode: the same solution, iterations and corrections."""
+    obs, truth = _rigid2d()
+    B, E = obs.shape[:2]
+    cov = torch.diag(torch.tensor([1.0, 2.0, 0.5, 1.5], dtype=f64)) * 0.02 ** 2
+    x0 = truth + torch.tensor([0.3, 0.5, -0.4], dtype=f64)
+    results = []
+    for mode in ("exact", "left factor", "forward"):
+        graph = fg.FactorGraph()
+        graph.add_variable("x", x0[:, None, :])
+        scaled = mode == "left factor"
+        jac = None if mode == "forward" else (
+            lambda x, o, e, scaled=scaled: _rigid2d_jacobians(x, o, e, scaled))
+        factor = fg.GaussHelmert(_rigid2d_condition, [("x", torch.zeros(E, dtype=torch.int64))],
+                                 cov, data=[obs], dim=2, jacobians=jac, iterated=iterated,
+                                 left_factor=scaled)
+        graph.add(factor)
+        result = fg.gauss_helmert(graph, step_tol=1e-10, damped=iterated, cost_tests=iterated)
+        assert (result.report.status == SolverStatus.CONVERGED).all(), mode
+        results.append((result, factor.corrections))
+    (ref, e_ref), others = results[0], results[1:]
+    for result, e in others:
+        torch.testing.assert_close(result.values["x"], ref.values["x"], rtol=0, atol=1e-11)
+        assert torch.equal(result.report.iterations, ref.report.iterations)
+        if iterated:
+            torch.testing.assert_close(e, e_ref, rtol=0, atol=1e-12)
+        torch.testing.assert_close(result.information, ref.information, rtol=1e-9, atol=0)
+    assert (ref.values["x"][:, 0] - truth).abs().max() < 0.05
+
+
+def test_left_factor_arguments():
+    obs, truth = _rigid2d(B=1, E=4)
+    cov = 0.02 ** 2 * torch.eye(4, dtype=f64)
+    idx = [("x", torch.zeros(4, dtype=torch.int64))]
+    with pytest.raises(ValueError, match="left_factor=True needs jacobians"):
+        fg.GaussHelmert(_rigid2d_condition, idx, cov, data=[obs], dim=2, left_factor=True)
+    with pytest.raises(TypeError, match="left_factor"):
+        fg.GaussHelmert(_rigid2d_condition, idx, cov, data=[obs], dim=2, left_factor=1,
+                        jacobians=lambda x, o, e: _rigid2d_jacobians(x, o, e, True))
+
+    def solve(jac):
+        graph = fg.FactorGraph()
+        graph.add_variable("x", truth[:, None, :])
+        graph.add(fg.GaussHelmert(_rigid2d_condition, idx, cov, data=[obs], dim=2,
+                                  jacobians=jac, left_factor=True))
+        return fg.gauss_helmert(graph)
+
+    with pytest.raises(ValueError, match=r"jacobians must return 4 items .*got 3"):
+        solve(lambda x, o, e: _rigid2d_jacobians(x, o, e, False))
+    with pytest.raises(ValueError, match=r"Q of shape \(\.\.\., 2, 2\)"):
+        solve(lambda x, o, e: _rigid2d_jacobians(x, o, e, True)[:3] + (torch.eye(3, dtype=f64),))

@@ -5,9 +5,11 @@ SE_2(3) x R: X', tau0 and dtau) and one ``graph.GaussHelmert`` factor of N + 1 c
 batch of trials one batched graph.  The conditions are those of ``tls_problem.sgal3_condition``
 and ``tls_baseline.baseline_condition`` written per condition, with their analytic Jacobians,
 and the observation covariance
-blockdiag(Sigma_a, Sigma_b) (the baseline's ``baseline_covariance``).  The iterated variant
-holds each linearisation point while x moves, and needs the exact derivatives (J_r(c)^-1 times
-those); the paper-style one keeps the J_r(c) factor (``GaussHelmert``).  The iterated variant
+blockdiag(Sigma_a, Sigma_b) (the baseline's ``baseline_covariance``).  Their Jacobians are
+J_r(c) times the exact derivatives: the paper-style variant may take any such factor
+(``GaussHelmert``), and the iterated one, which holds each linearisation point while x moves,
+gives it to the engine as its left factor (``left_factor=True``: the condition read as
+J_r(c) c, the factor held with the linearisation point).  The iterated variant
 runs Levenberg-Marquardt with the corrections updated after each accepted step, the paper
 variant Gauss-Newton at zero corrections (kelly-giamou (5.18)); ``graph.gauss_helmert``.
 """
@@ -40,44 +42,32 @@ DEFAULT_OPTIONS = {"max_iterations": 50, "step_tol": 1e-6, "relative_error_tol":
 def _sgal3_terms(F, dtau, M, n, e):
     """(c (B, E, 10), [dc/dF (B, E, 10, 10), dc/ddtau (B, E, 10, 1)], Bm (B, E, 10, 20)) of
     the conditions log(M_n exp(eps_a) A_n exp(-eps_b)) (the formulas of ``sgal3_condition``);
-    F (B, 1), dtau (B, 1, 1), M (B, E), n (E, 1), e (B, E, 20) or None.  At e = None (the
-    paper-style form) the Jacobians are multiplied by J_r(c), which leaves that form's
-    solution unchanged; otherwise they are the exact derivatives."""
+    F (B, 1), dtau (B, 1, 1), M (B, E), n (E, 1), e (B, E, 20) or None.  Every Jacobian is
+    J_r(c) times the exact derivative: at e = None (the paper-style form) this leaves the
+    solution unchanged; otherwise (the iterated form) J_r(c) comes back as a fourth item, the
+    factor's left factor Q (``GaussHelmert(left_factor=True)``).  The rows are those of
+    ``sgal3_condition``: [Ad(Eb) Ad(T^n), Ad(Eb) d_t] and [Ad(Eb A_n^-1) J_r(eps_a),
+    -J_l(eps_b)] (Eb = exp(eps_b); at e = None, Ad(A_n^-1) and -I)."""
     n = n[..., 0]
     s = n * dtau[..., 0]  # (B, E)
     eye = torch.eye(10, dtype=s.dtype, device=s.device)
     A = _drift_sgal3(F, s)
-    Ad_Ainv = A.inverse().adjoint()  # Ad(T^n) Ad(F^-1) Ad(T^-n), from A_n itself
     # n (Ad(T^n F^-1) - I) e_10: the iota column of Ad(F^-1), moved by Ad(T^n)
     d_t = n[:, None, None] * (_ad_time_left(s, F.inverse().adjoint()[..., E10:E10 + 1])
                               - eye[E10][:, None])
     if e is None:
         c = (M @ A).log()
-        d_a, d_b = Ad_Ainv, -eye.expand(c.shape + (10,))
-        d_F = _ad_time_left(s, eye)
-    else:
-        ea, eb = e[..., :10], e[..., 10:]
-        Eb = SGal3.exp(eb)
-        c = (M @ SGal3.exp(ea) @ A @ Eb.inverse()).log()
-        # the exact derivatives (the iterated form holds its linearisation point): the rows
-        # of ``sgal3_condition`` times J_r(c)^-1
-        K = SGal3.jr_inv(c)
-        left = K @ Eb.adjoint()
-        d_a = left @ Ad_Ainv @ SGal3.jr(ea)
-        d_b = _negated_product(K, SGal3.jl(eb))
-        d_F = _ad_time_right_inverse(left, -s)  # left Ad(T^n), elementwise
-        d_t = left @ d_t
-    Bm = torch.cat([d_a.expand(c.shape + (10,)), d_b.expand(c.shape + (10,))], -1)
-    return c, [d_F, d_t], Bm
-
-
-def _negated_product(K: torch.Tensor, J: torch.Tensor) -> torch.Tensor:
-    """-(K @ J) for K, J (..., k, k) of one batch shape, the sign in the product (no second
-    pass over the result)."""
-    batch = K.shape[:-2]
-    out = torch.baddbmm(K.new_zeros(()), K.reshape((-1,) + K.shape[-2:]),
-                        J.reshape((-1,) + J.shape[-2:]), beta=0, alpha=-1)
-    return out.reshape(batch + out.shape[-2:])
+        d_a, d_b = A.inverse().adjoint(), -eye.expand(c.shape + (10,))  # Ad(A_n^-1), -I
+        Bm = torch.cat([d_a.expand(c.shape + (10,)), d_b], -1)
+        return c, [_ad_time_left(s, eye), d_t], Bm
+    ea, eb = e[..., :10], e[..., 10:]
+    Eb = SGal3.exp(eb)
+    c = (M @ SGal3.exp(ea) @ A @ Eb.inverse()).log()
+    left = Eb.adjoint()
+    d_a = (Eb @ A.inverse()).adjoint() @ SGal3.jr(ea)  # Ad(Eb) Ad(A_n^-1) J_r(eps_a)
+    d_F = _ad_time_right_inverse(left, -s)  # Ad(Eb) Ad(T^n), elementwise
+    Bm = torch.cat([d_a, -SGal3.jl(eb)], -1)
+    return c, [d_F, left @ d_t], Bm, SGal3.jr(c)
 
 
 def _sgal3_condition(F, dtau, M, n, e):
@@ -91,18 +81,20 @@ def _sgal3_condition(F, dtau, M, n, e):
 def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
     """The baseline's conditions (``baseline_condition``) per condition: X (B, 1) SE23,
     tau0, dtau (B, 1, 1), M (B, E) SE23, dclock (B, E, 1), n (E, 1), e (B, E, 20) or None;
-    the spatial rows' Jacobians multiplied by J_r(c) at e = None, exact otherwise."""
+    the spatial rows' Jacobians are J_r(c') times the exact derivatives (c' the spatial part;
+    the clock row is exact), as ``_sgal3_terms``: at e = None that leaves the solution
+    unchanged, otherwise Q = blockdiag(J_r(c'), 1) comes back as a fourth item."""
     n = n[..., 0]
     s = n * dtau[..., 0]  # (B, E)
     eye9 = torch.eye(9, dtype=s.dtype, device=s.device)
     A = _drift(X, s)
-    Ad_Ainv = A.inverse().adjoint()  # Ad(T^n) Ad(X^-1) Ad(T^-n), from A'_n itself
     Cv = (X.rotation().mT @ X.velocity()[..., None])[..., 0]  # (B, 1, 3)
     nCv = -n[:, None] * Cv  # (B, E, 3): d rho / d dtau
     dt_col = torch.cat([nCv, torch.zeros_like(nCv), torch.zeros_like(nCv)], -1)[..., None]
+    Q = None
     if e is None:
         c9 = (M @ A).log()
-        d_a, d_b = Ad_Ainv, -eye9.expand(c9.shape + (9,))
+        d_a, d_b = A.inverse().adjoint(), -eye9.expand(c9.shape + (9,))  # Ad(A'_n^-1), -I
         P = _ad_time_left(s, eye9)
         ia = ib = 0.0
     else:
@@ -110,12 +102,13 @@ def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
         ia, ib = e[..., 9], e[..., 19]
         Eb = SE23.exp(eb)
         c9 = (M @ SE23.exp(ea) @ A @ Eb.inverse()).log()
-        # the exact derivatives (the iterated form holds its linearisation point): J_r(c)^-1
-        K = SE23.jr_inv(c9)
-        left = K @ Eb.adjoint()
-        d_a = left @ Ad_Ainv @ SE23.jr(ea)
-        d_b = _negated_product(K, SE23.jl(eb))
-        P, dt_col = _ad_time_right_inverse(left, -s), left @ dt_col  # left Ad(T^n), elementwise
+        left = Eb.adjoint()
+        d_a = (Eb @ A.inverse()).adjoint() @ SE23.jr(ea)  # Ad(Eb) Ad(A'_n^-1) J_r(eps'_a)
+        d_b = -SE23.jl(eb)
+        P, dt_col = _ad_time_right_inverse(left, -s), left @ dt_col  # Ad(Eb) Ad(T^n), elementwise
+        Q = c9.new_zeros(c9.shape[:-1] + (10, 10))
+        Q[..., :9, :9] = SE23.jr(c9)
+        Q[..., 9, 9] = 1.0
     ct = dclock[..., 0] + ia + tau0[..., 0] - ib  # (B, E)
     c = torch.cat([c9, ct[..., None]], dim=-1)
     shape = c.shape
@@ -130,7 +123,7 @@ def _baseline_terms(X, tau0, dtau, M, dclock, n, e):
     Bm[..., 9, 9] = 1.0
     Bm[..., :9, 10:19] = d_b
     Bm[..., 9, 19] = -1.0
-    return c, [A_X, A_t0, A_dt], Bm
+    return (c, [A_X, A_t0, A_dt], Bm) if Q is None else (c, [A_X, A_t0, A_dt], Bm, Q)
 
 
 def _baseline_condition(X, tau0, dtau, M, dclock, n, e):
@@ -240,7 +233,7 @@ def solve_sgal3(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "iterat
         factor = GaussHelmert(_sgal3_condition, [("F", idx), ("dtau", idx)],
                               _observation_covariance(problem.cov_a, problem.cov_b, Bn, N1),
                               data=[problem.M, n], dim=10,
-                              jacobians=_sgal3_terms, iterated=iterated)
+                              jacobians=_sgal3_terms, iterated=iterated, left_factor=iterated)
         graph.add(factor)
         return _solve(problem, graph, factor, ["F", "dtau"], iterated, options)
 
@@ -275,7 +268,7 @@ def solve_baseline(problem: TLSProblem, x0=None, dtau0=-1.0, variant: str = "ite
         factor = GaussHelmert(_baseline_condition, [("X", idx), ("tau0", idx), ("dtau", idx)],
                               _observation_covariance(ca, cb, Bn, N1),
                               data=[M, dclock[..., None], n], dim=10,
-                              jacobians=_baseline_terms, iterated=iterated)
+                              jacobians=_baseline_terms, iterated=iterated, left_factor=iterated)
         graph.add(factor)
         return _solve(problem, graph, factor, ["X", "tau0", "dtau"], iterated, options)
 

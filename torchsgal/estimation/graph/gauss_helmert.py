@@ -98,6 +98,13 @@ class GaussHelmert(Factor):
                    the paper-style form any invertible (k, k) factor per condition may
                    multiply the linearisation (every A_j and Bm, and c's linear part) without
                    changing the solution.  Default: forward mode (exact).
+    left_factor    True: ``jacobians`` returns ``(c, [A_1, ...], Bm, Q)`` with Q (..., k, k)
+                   invertible and every A_j and Bm Q times the exact derivative of c; the
+                   engine reads the condition as Q c, with Q held at the linearisation point
+                   while x moves (the iterated form), which leaves every step, correction and
+                   solution unchanged.  For a condition c = log(E) on a Lie group, whose exact
+                   derivatives all carry J_r(c)^-1, Q = J_r(c) saves that product (and
+                   J_r(c) c = c).  Default False.
     iterated       True (default): re-linearise at the corrected observations, carried in
                    ``corrections``; False: the paper-style form, always at e = 0.
     corrections    the initial corrections (E, m) or (B, E, m); default zeros.  After
@@ -108,12 +115,15 @@ class GaussHelmert(Factor):
     def __init__(self, condition: Callable, variables: Sequence[tuple[str, object]],
                  covariance: torch.Tensor, *, data: Sequence[Data] = (), dim: int,
                  jacobians: Callable | None = None, iterated: bool = True,
-                 corrections: torch.Tensor | None = None):
+                 corrections: torch.Tensor | None = None, left_factor: bool = False):
         if not callable(condition):
             raise TypeError(f"condition must be callable, got {type(condition).__name__}")
         if jacobians is not None and not callable(jacobians):
             raise TypeError(f"jacobians must be callable or None, got {type(jacobians).__name__}")
         self.iterated = checks.boolean(iterated, "iterated")
+        self.left_factor = checks.boolean(left_factor, "left_factor")
+        if self.left_factor and jacobians is None:
+            raise ValueError("left_factor=True needs jacobians (they return the factor Q)")
         self.condition = condition
         self.condition_jacobians = jacobians
         check_covariance(covariance, covariance.shape[-1] if isinstance(covariance, torch.Tensor)
@@ -140,7 +150,8 @@ class GaussHelmert(Factor):
                                  f"{self.size}, {self.m}), got {tuple(corrections.shape)}")
             corrections = corrections.detach().clone()
         self.corrections: torch.Tensor | None = corrections
-        self.linearisation: tuple[torch.Tensor, torch.Tensor] | None = None  # (L, Bm e), iterated
+        # (L, Bm e) of the iterated form at its linearisation point, and Q with left_factor
+        self.linearisation: tuple[torch.Tensor, ...] | None = None
         # between the engine's calls: whether to re-linearise S and Bm e at the current point,
         # and what that gave
         self._refresh = True
@@ -153,10 +164,11 @@ class GaussHelmert(Factor):
     # ------------------------------------------------------------------ evaluation
     def _split(self, args):
         """(variables, user data, covariance factor, state) of an engine call; the state is
-        (corrections, L, v) for the iterated form, None for the paper-style one."""
+        (corrections, L, v) for the iterated form (and Q with ``left_factor``), None for the
+        paper-style one."""
         nv, nd = len(self.slots), len(self.user_data)
         variables, rest = args[:nv], args[nv:]
-        state = tuple(rest[nd + 1:nd + 4]) if self.iterated else None
+        state = tuple(rest[nd + 1:nd + 4 + self.left_factor]) if self.iterated else None
         if state == ():
             raise RuntimeError("an iterated GaussHelmert factor carries state that "
                                "graph.gauss_helmert updates after each step: solve its graph "
@@ -166,15 +178,17 @@ class GaussHelmert(Factor):
     def _linearise(self, args, want_jacobian: bool):
         variables, data, factor, state = self._split(args)
         if state is not None and not self._refresh and not want_jacobian:
-            # the cost at a trial point, with the linearisation point's L and Bm e held:
+            # the cost at a trial point, with the linearisation point's L and Bm e (and Q) held:
             # the condition alone
-            e, L, v = state
-            w = self.condition(*variables, *data, e) - v
+            e, L, v = state[:3]
+            c = self.condition(*variables, *data, e)
+            w = (c if not self.left_factor else (state[3] @ c[..., None])[..., 0]) - v
             return triangular_solve(L, w[..., None])[..., 0], None
         refresh = state is not None and self._refresh
+        Q = None
         if state is None:  # paper-style: at the raw observations, S at the current x
             if self.condition_jacobians is not None:  # the condition may take a cheaper path
-                c, As, Bm = self.condition_jacobians(*variables, *data, None)
+                c, As, Bm, Q = self._user_jacobians(variables, data, None)
             else:
                 shape = torch.broadcast_shapes(*[_batch(v) for v in variables],
                                                *[_batch(d) for d in data])
@@ -182,11 +196,14 @@ class GaussHelmert(Factor):
                                                factor.new_zeros(shape + (self.m,)))
             w, L = c, None
         else:
-            e, L, v = state
+            e, L, v = state[:3]
             if self.condition_jacobians is not None:
-                c, As, Bm = self.condition_jacobians(*variables, *data, e)
+                c, As, Bm, Q = self._user_jacobians(variables, data, e)
             else:
                 c, As, Bm = _forward_jacobians(self.condition, variables, data, e)
+            if Q is not None and not refresh:
+                raise RuntimeError("a GaussHelmert factor with left_factor=True takes its "
+                                   "Jacobians only at a new linearisation point (graph.gauss_helmert)")
             if refresh:  # a new linearisation point: S and Bm e from here on
                 v = (Bm @ e[..., None])[..., 0]
                 L = None
@@ -214,10 +231,31 @@ class GaussHelmert(Factor):
             # the corrections of the linearised problem for a step d of the slots (S of (5.23)):
             # e'(d) = -Sigma Bm^T S^-1 (w + A d) = -Sigma Bm^T F [1, d] with F = S^-1 [w | A]
             assert full is not None  # back substitution at a refresh
-            self._fresh = (L, v.expand(batch + v.shape[-1:]), Bm, full)
+            held: tuple[torch.Tensor, ...] = (L, v.expand(batch + v.shape[-1:]))
+            if self.left_factor:
+                assert Q is not None  # _user_jacobians
+                held += (Q.expand(batch + Q.shape[-2:]),)
+            self._fresh = (*held, Bm, full)
         if not want_jacobian:
             return r, None
         return r, sol[..., 1:]  # the slots' Jacobians side by side
+
+    def _user_jacobians(self, variables, data, e):
+        """(Q c, [A_j], Bm, Q) from ``jacobians`` (Q None without ``left_factor``)."""
+        out = self.condition_jacobians(*variables, *data, e)
+        if not isinstance(out, (tuple, list)) or len(out) != 3 + self.left_factor:
+            got = len(out) if isinstance(out, (tuple, list)) else type(out).__name__
+            raise ValueError(f"jacobians must return {3 + self.left_factor} items "
+                             f"({'(c, [A_j], Bm, Q)' if self.left_factor else '(c, [A_j], Bm)'}, "
+                             f"left_factor={self.left_factor}), got {got}")
+        if not self.left_factor:
+            return (*out, None)
+        c, As, Bm, Q = out
+        k = c.shape[-1]
+        if not isinstance(Q, torch.Tensor) or Q.shape[-2:] != (k, k):
+            raise ValueError(f"jacobians must return Q of shape (..., {k}, {k}) (left_factor=True), "
+                             f"got {tuple(getattr(Q, 'shape', ()))}")
+        return (Q @ c[..., None])[..., 0], As, Bm, Q
 
     def _residual(self, *args):
         return self._linearise(args, False)[0]
@@ -338,6 +376,8 @@ def _prepare_states(graph: FactorGraph) -> None:
         e = leaf.new_zeros(shape) if e is None else e.to(leaf).expand(shape).clone()
         f.corrections = e
         f.linearisation = (leaf.new_zeros(lead + (f.size, k, k)), leaf.new_zeros(lead + (f.size, k)))
+        if f.left_factor:
+            f.linearisation += (leaf.new_zeros(lead + (f.size, k, k)),)
         f.data = (*f.user_data, f.data[len(f.user_data)], e, *f.linearisation)
         Dk = sum(graph.dof(name) for name, _ in f.slots)
         f._refresh, f._fresh = True, None
@@ -375,19 +415,22 @@ def _take_fresh(blocks: list, rows: torch.Tensor) -> None:
         f = b.factor
         if f._fresh is not None:
             assert f._update is not None  # _prepare_states
-            L, v, Bm, F = (_kept(state, rows, new) for state, new in
-                           zip((*f.linearisation, *f._update), f._fresh))
-            f.linearisation, f._update = (L, v), (Bm, F)
+            kept = [_kept(state, rows, new) for state, new in
+                    zip((*f.linearisation, *f._update), f._fresh)]
+            held = len(f.linearisation)
+            f.linearisation, f._update = tuple(kept[:held]), (kept[held], kept[held + 1])
         f._refresh, f._fresh = False, None
 
 
 def _working_state(blocks: list, rows: torch.Tensor) -> None:
-    """The working set's state (corrections, L, Bm e) as the blocks' data, from the factors."""
+    """The working set's state (corrections, L, Bm e, Q) as the blocks' data, from the factors."""
     for b in blocks:
         f = b.factor
+        start = len(f.user_data) + 1  # after the user's data and the covariance factor
         for j, state in enumerate((f.corrections, *f.linearisation)):
-            everyone = state.dim() == 2 + (j == 1) or rows.numel() == state.shape[0]
-            b.data[len(b.data) - 3 + j] = state if everyone else state.index_select(0, rows)
+            matrix = j in (1, 3)  # L and Q; the corrections and Bm e are vectors
+            everyone = state.dim() == 2 + matrix or rows.numel() == state.shape[0]
+            b.data[start + j] = state if everyone else state.index_select(0, rows)
 
 
 def _candidate(block, rows: torch.Tensor, delta: torch.Tensor, batched: bool
@@ -404,7 +447,7 @@ def _candidate(block, rows: torch.Tensor, delta: torch.Tensor, batched: bool
     d = delta[:, block.g_index].unflatten(1, (-1, F.shape[-1] - 1))  # (B, E or 1, Dk)
     if not batched:
         d = d[0]
-    R = block.data[len(block.data) - 4]  # the covariance's square-root diagonal or Cholesky factor
+    R = block.data[len(f.user_data)]  # the covariance's square-root diagonal or Cholesky factor
 
     # Sigma Bm^T y for y = F [1, 0] and F [0, d] side by side (Sigma = R R^T); Bm^T y as
     # (y^T Bm)^T, the (2 x k) by (k x m) form of the batched product (half the time of the other)
@@ -459,20 +502,21 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     moved = torch.zeros_like(lam)  # the largest change of a correction, in standard deviations
     if blocks:
         for b in blocks:
-            old = b.data[len(b.data) - 3]
+            start = len(b.factor.user_data)  # the covariance factor, then the corrections
+            old = b.data[start + 1]
             point, cand = _candidate(b, s.rows, delta, old.dim() == 3)
             if old.dim() == 3:
                 new = _where(update, cand, _where(in_place, point, old))
             else:
                 new = torch.where(update[0], cand, torch.where(in_place[0], point, old))
-            R = b.data[len(b.data) - 4]  # the covariance's square-root diagonal or Cholesky factor
+            R = b.data[start]  # the covariance's square-root diagonal or Cholesky factor
             change = new - old  # before the store: ``old`` may be the state itself
             change = change / R if b.factor.diagonal else torch.linalg.solve_triangular(
                 R, change[..., None], upper=False)[..., 0]
             moved = torch.maximum(moved, change.abs().flatten(1).amax(-1) if change.dim() == 3
                                   else change.abs().amax().expand_as(moved))
             _store(b.factor.corrections, s.rows, new)
-            b.data[len(b.data) - 3] = new
+            b.data[start + 1] = new
             b.factor._refresh = True
         updated = linearize(problem, x, system.layout)  # at the new corrections: L, Bm e refreshed
         # converged where the corrections hardly moved and either the step just taken passed
