@@ -266,8 +266,8 @@ WIDE_LOOPS static void CAT(cholesky_solve_range, SFX)(void **args, int64_t lo, i
 }
 
 /* args: G, d, R, L, X, Y (null: not wanted), info, and m, p, k, d_stride as int64: cholesky_solve_range
- * of A = G diag(d) G^T, formed in the lanes (one system at a time where the workspace cannot be
- * allocated) */
+ * of A = G diag(d) G^T, formed in the lanes (one system at a time, A formed in L's memory and
+ * factored there, where the lanes' workspace cannot be allocated) */
 WIDE_LOOPS static void CAT(gram_cholesky_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
     const T *G = args[0], *d = args[1], *R = args[2];
     T *L = args[3], *X = args[4], *Y = args[5];
@@ -283,20 +283,16 @@ WIDE_LOOPS static void CAT(gram_cholesky_solve_range, SFX)(void **args, int64_t 
         free(lanes);
         return;
     }
-    T *A = malloc((size_t)(m * m) * sizeof(T));
     for (int64_t b = lo; b < hi; ++b) {
         T *Lb = L + b * m * m, *Xb = X + b * m * k, *Yb = Y ? Y + b * m * k : NULL;
-        int32_t f = 1;
-        if (A) {
-            const T *Gb = G + b * m * p, *db = d + b * d_stride;
-            for (int64_t i = 0; i < m; ++i)
-                for (int64_t j = 0; j <= i; ++j) {
-                    T acc = 0;
-                    for (int64_t q = 0; q < p; ++q) acc += Gb[i * p + q] * db[q] * Gb[j * p + q];
-                    A[i * m + j] = acc;
-                }
-            f = CAT(cholesky_one, SFX)(A, Lb, m);
-        }
+        const T *Gb = G + b * m * p, *db = d + b * d_stride;
+        for (int64_t i = 0; i < m; ++i)  /* A's lower triangle in L's memory: factored in place */
+            for (int64_t j = 0; j <= i; ++j) {
+                T acc = 0;
+                for (int64_t q = 0; q < p; ++q) acc += Gb[i * p + q] * db[q] * Gb[j * p + q];
+                Lb[i * m + j] = acc;
+            }
+        const int32_t f = CAT(cholesky_one, SFX)(Lb, Lb, m);
         info[b] = f;
         if (f) {
             CAT(fill_nan, SFX)(Lb, m * m);
@@ -307,7 +303,6 @@ WIDE_LOOPS static void CAT(gram_cholesky_solve_range, SFX)(void **args, int64_t 
         CAT(forward_one, SFX)(Lb, R + b * m * k, Xb, m, k);
         if (Yb) CAT(back_one, SFX)(Lb, Xb, Yb, m, k);
     }
-    free(A);
 }
 
 /* args: L, R, X, and m, k, transpose, lanes as int64: X = L^-1 R, or L^-T R */
