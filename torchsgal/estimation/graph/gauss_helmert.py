@@ -94,7 +94,8 @@ class GaussHelmert(Factor):
                    the derivative with respect to the right perturbation of variable j
                    (additive for Euclidean ones), Bm (..., k, m) with respect to e; the
                    paper-style form passes e = None (zero corrections).  The iterated form
-                   needs the exact derivatives of c (it holds S and Bm e while x moves); in
+                   needs the exact derivatives of c (it holds S and Bm e while x moves), or Q
+                   times them with ``left_factor``; in
                    the paper-style form any invertible (k, k) factor per condition may
                    multiply the linearisation (every A_j and Bm, and c's linear part) without
                    changing the solution.  Default: forward mode (exact).
