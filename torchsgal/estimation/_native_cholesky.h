@@ -76,6 +76,19 @@ static void CAT(fill_nan, SFX)(T *p, int64_t n) {
     for (int64_t i = 0; i < n; ++i) p[i] = (T)NAN;
 }
 
+/* after cholesky_one's factor L (status f) of one system: X = L^-1 R and, with Y, Y = L^-T X;
+ * a failed factor (f != 0) leaves NaN in L, X and Y */
+static inline void CAT(solve_one, SFX)(int32_t f, T *L, const T *R, T *X, T *Y, int64_t m, int64_t k) {
+    if (f) {
+        CAT(fill_nan, SFX)(L, m * m);
+        CAT(fill_nan, SFX)(X, m * k);
+        if (Y) CAT(fill_nan, SFX)(Y, m * k);
+        return;
+    }
+    CAT(forward_one, SFX)(L, R, X, m, k);
+    if (Y) CAT(back_one, SFX)(L, X, Y, m, k);
+}
+
 /* Systems of at most LANE_MAX_M unknowns go LANES at a time, lane w of every array holding
  * system w: each step of the factor and the solves is one operation on LANES values (vector
  * instructions, and LANES independent chains where one system's steps wait on each other).
@@ -252,16 +265,8 @@ WIDE_LOOPS static void CAT(cholesky_solve_range, SFX)(void **args, int64_t lo, i
     }
     for (int64_t b = lo; b < hi; ++b) {
         T *Lb = L + b * m * m, *Xb = X + b * m * k, *Yb = Y ? Y + b * m * k : NULL;
-        int32_t f = CAT(cholesky_one, SFX)(A + b * m * m, Lb, m);
-        info[b] = f;
-        if (f) {
-            CAT(fill_nan, SFX)(Lb, m * m);
-            CAT(fill_nan, SFX)(Xb, m * k);
-            if (Yb) CAT(fill_nan, SFX)(Yb, m * k);
-            continue;
-        }
-        CAT(forward_one, SFX)(Lb, R + b * m * k, Xb, m, k);
-        if (Yb) CAT(back_one, SFX)(Lb, Xb, Yb, m, k);
+        info[b] = CAT(cholesky_one, SFX)(A + b * m * m, Lb, m);
+        CAT(solve_one, SFX)(info[b], Lb, R + b * m * k, Xb, Yb, m, k);
     }
 }
 
@@ -292,16 +297,8 @@ WIDE_LOOPS static void CAT(gram_cholesky_solve_range, SFX)(void **args, int64_t 
                 for (int64_t q = 0; q < p; ++q) acc += Gb[i * p + q] * db[q] * Gb[j * p + q];
                 Lb[i * m + j] = acc;
             }
-        const int32_t f = CAT(cholesky_one, SFX)(Lb, Lb, m);
-        info[b] = f;
-        if (f) {
-            CAT(fill_nan, SFX)(Lb, m * m);
-            CAT(fill_nan, SFX)(Xb, m * k);
-            if (Yb) CAT(fill_nan, SFX)(Yb, m * k);
-            continue;
-        }
-        CAT(forward_one, SFX)(Lb, R + b * m * k, Xb, m, k);
-        if (Yb) CAT(back_one, SFX)(Lb, Xb, Yb, m, k);
+        info[b] = CAT(cholesky_one, SFX)(Lb, Lb, m);
+        CAT(solve_one, SFX)(info[b], Lb, R + b * m * k, Xb, Yb, m, k);
     }
 }
 

@@ -316,12 +316,7 @@ _gram_cholesky_solve_op.register_autograd(_gram_backward, setup_context=_gram_se
 
 @_gram_cholesky_solve_op.register_vmap
 def _gram_cholesky_solve_vmap(info, in_dims, G, d, R, back):
-    size = info.batch_size
-    moved = [a.unsqueeze(0).expand(size, *a.shape) if k is None else a.movedim(k, 0)
-             for a, k in zip((G, d, R), in_dims[:3])]
-    batch = torch.broadcast_shapes(moved[0].shape[:-2], moved[1].shape[:-1], moved[2].shape[:-2])
-    G, d, R = (moved[0].expand(batch + moved[0].shape[-2:]), moved[1].expand(batch + moved[1].shape[-1:]),
-               moved[2].expand(batch + moved[2].shape[-2:]))
+    G, d, R = _batched_front(info.batch_size, (G, d, R), in_dims[:3], tails=(2, 1, 2))
     return _gram_cholesky_solve_op(G, d, R, back), (0, 0, 0, 0)
 
 
@@ -372,13 +367,14 @@ def _triangular_solve_vmap(info, in_dims, L, R, transpose):
     return _triangular_solve_op(L, R, transpose), 0
 
 
-def _batched_front(size: int, args, in_dims):
+def _batched_front(size: int, args, in_dims, tails=None):
     """The arguments with the vmapped axis in front (unbatched ones expanded) and their batch
-    shapes broadcast."""
+    shapes broadcast; ``tails``: each argument's number of non-batch axes (default 2)."""
+    tails = tails or (2,) * len(args)
     moved = [a.unsqueeze(0).expand(size, *a.shape) if d is None else a.movedim(d, 0)
              for a, d in zip(args, in_dims)]
-    batch = torch.broadcast_shapes(*(a.shape[:-2] for a in moved))
-    return [a.expand(batch + a.shape[-2:]) for a in moved]
+    batch = torch.broadcast_shapes(*(a.shape[:a.dim() - t] for a, t in zip(moved, tails)))
+    return [a.expand(batch + a.shape[a.dim() - t:]) for a, t in zip(moved, tails)]
 
 
 # ---------------------------------------------------------------------------- autograd.Functions
