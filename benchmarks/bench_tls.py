@@ -15,6 +15,12 @@ error uniform up to 90 degrees about a random axis, dtau off by a factor uniform
 Usage::
 
     python benchmarks/bench_tls.py [--trials 1200] [--serial 40] [--gtsam 40] [--lbfgs 20]
+    python benchmarks/bench_tls.py --device cuda [--trials 1200]
+
+With ``--device cuda`` it times the four batched solves (both estimators, both variants) with
+every trial in one batch on the device, and the same solves on the host CPU (``--chunk``
+trials at a time, as above) in the same run, checks that both give the same solutions (in
+standard deviations) and writes ``tls_cuda.{json,md}``.
 """
 from __future__ import annotations
 
@@ -64,7 +70,11 @@ def main(argv=None) -> int:
     ap.add_argument("--release-memory", action="store_true",
                     help="leave the C allocator's defaults (as the command line, the process "
                          "keeps the large blocks it frees: torchsgal.load.keep_freed_memory)")
+    ap.add_argument("--device", default="cpu",
+                    help="cuda: the batched solves on that device against the host CPU (tls_cuda)")
     args = ap.parse_args(argv)
+    if args.device != "cpu":
+        return device_main(args)
     kept = 0 if args.release_memory else keep_freed_memory()  # glibc's mmap threshold set, or 0
 
     cfg = study.StudyConfig(trials=args.trials, seed=args.seed)
@@ -252,6 +262,84 @@ def main(argv=None) -> int:
            f" = {100 * st['success_rate']:.1f}% reach the well-initialised solution "
            f"({st['time_s']:.1f} s).", ""]
     with open(os.path.join(args.out, "tls_cpu.md"), "w") as f:
+        f.write("\n".join(md))
+    print("\n".join(md))
+    return 0
+
+
+def device_main(args) -> int:
+    """The four batched solves on ``args.device`` (all trials at once) and on the host CPU."""
+    device = torch.device(args.device)
+    cfg = study.StudyConfig(trials=args.trials, seed=args.seed)
+    P = study.simulate(cfg).problem
+    K = args.trials
+    Pd = tls.TLSProblem(P.F_ga.to(device), P.F_gb.to(device), P.cov_a.to(device), P.cov_b.to(device),
+                        indices=P.indices.to(device))
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    def on_device(solve, variant):
+        def run():
+            out = solve(Pd, variant=variant, dtau0=cfg.nominal_dtau)
+            sync()
+            return out
+        run()  # warm-up, untimed (the device's libraries, first launches)
+        runs = [timed(run) for _ in range(args.repeats)]
+        return runs[0][0], statistics.median(r[1] for r in runs)
+
+    def on_host(solve, variant):
+        parts, t = [], 0.0
+        for s in range(0, K, args.chunk):
+            runs = [timed(lambda: solve(tls.subset(P, slice(s, s + args.chunk)), variant=variant,
+                                        dtau0=cfg.nominal_dtau)) for _ in range(args.repeats)]
+            parts.append(runs[0][0])
+            t += statistics.median(r[1] for r in runs)
+        return parts, t
+
+    res = {"config": vars(args), "torch": torch.__version__, "cpu": cpu_model(),
+           "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else str(device),
+           "host_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d"), "rows": {}}
+    for name, solve in (("SGal(3)", tls.solve_sgal3), ("SE_2(3) x R", tls.solve_baseline)):
+        for variant in ("iterated", "paper"):
+            dev, t_dev = on_device(solve, variant)
+            host, t_host = on_host(solve, variant)
+            diffs = []
+            for i, x_dev in enumerate(dev.x):
+                if hasattr(x_dev, "as_matrix"):
+                    x_host = type(x_dev).stack([h.x[i] for h in host]).reshape(-1)
+                    diffs.append(x_dev.to("cpu").rminus(x_host))
+                else:
+                    diffs.append(x_dev.cpu() - torch.cat([h.x[i] for h in host]))
+            cov = torch.cat([h.covariance for h in host])
+            status = torch.cat([h.report.status for h in host])
+            sd = cov.diagonal(dim1=-2, dim2=-1).sqrt()
+            d = torch.cat(diffs, -1) / sd
+            res["rows"][f"{name} {variant}"] = {
+                "device_s": t_dev, "host_s": t_host, "speedup": t_host / t_dev,
+                "same_status": bool(torch.equal(dev.report.status.cpu(), status)),
+                "max_deviation_sigma": float(d.abs().max())}
+            print(f"{name} {variant}: {res['rows'][f'{name} {variant}']}", file=sys.stderr)
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, f"tls_{device.type}.json"), "w") as f:
+        json.dump(res, f, indent=2)
+    md = [f"# TLS benchmark on {res['device_name']} (torch {res['torch']}, {res['date']})", "",
+          f"{K} trials of {P.F_ga.batch_shape[1]} paired observations (defaults of "
+          f"`python -m torchsgal tls`): all trials in one batch on the device, against the host "
+          f"CPU ({res['cpu']}, {res['host_threads']} threads, {args.chunk} trials a batch as in "
+          f"`tls_cpu.md`) in the same run; medians of {args.repeats} solves after an untimed one.",
+          "", "| solver | device | host CPU | device speed-up | same status | max deviation |",
+          "|---|---|---|---|---|---|"]
+    for k, v in res["rows"].items():
+        md.append(f"| batched {k} | {v['device_s']:.3f} s | {v['host_s']:.2f} s | "
+                  f"{v['speedup']:.1f}x | {'yes' if v['same_status'] else 'no'} | "
+                  f"{v['max_deviation_sigma']:.1e} sd |")
+    total_dev = sum(v["device_s"] for v in res["rows"].values())
+    total_host = sum(v["host_s"] for v in res["rows"].values())
+    md += ["", f"The four solves: **{total_dev:.2f} s** on the device, {total_host:.1f} s on the "
+           "host CPU.", ""]
+    with open(os.path.join(args.out, f"tls_{device.type}.md"), "w") as f:
         f.write("\n".join(md))
     print("\n".join(md))
     return 0

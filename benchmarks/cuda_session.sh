@@ -2,7 +2,7 @@
 # The GPU checks in one call of a lent GPU machine: the CUDA tests, then the CUDA benchmarks.
 #
 #   bash benchmarks/cuda_session.sh [STEP ...]   STEP: env build tests ops core compile imu gdh
-#                                                posegraph factor_graph suite
+#                                                posegraph factor_graph tls suite
 #                                                (default: env tests ops factor_graph posegraph)
 #
 # build: the optional C kernels for that machine's Python (setup.py build_ext --inplace), so
@@ -67,6 +67,8 @@ nproc; $PY -m pytest --version" ;;
                  --out "$WORK/posegraph_cuda" ;;
     factor_graph) step factor_graph timeout 100 $PY benchmarks/bench_factor_graph.py --device cuda --repeats 5 \
                     --time-budget 40 --out "$WORK/factor_graph_cuda" ;;
+    # the TLS study's four batched solves, every trial in one batch on the device, and on the host
+    tls) step tls timeout 240 $PY benchmarks/bench_tls.py --device cuda --repeats 3 --out "$WORK" ;;
     core) step core $PY benchmarks/bench_core.py --device cuda --skip gtsam --target 0.2 \
             --out "$WORK" --tag core_cuda ;;
     compile) step compile $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" ;;

@@ -238,6 +238,7 @@ def _operator_cases():
     from test_block_cholesky import MIXED, analysed, pattern_matrix, stored
     from test_dense_solve import spd
     from test_factor_kernels import _assemble_case, _pair, _pair2
+    from test_gram_cholesky_solve import gram_inputs
     from test_normal_kernel import case
 
     ops = torch.ops.torchsgal
@@ -260,6 +261,9 @@ def _operator_cases():
                       (Zb, Tib, Tjb, L, slots, vals, g_slots, gvec), None))
     A, R = spd(5, 6, f64, seed=8), torch.randn(5, 6, 3, dtype=f64, generator=gen)
     cases += [(f"cholesky_solve back={back}", ops.cholesky_solve, (A, R, back), None) for back in (True, False)]
+    G, d, Rg = gram_inputs((5,), 4, 6, 3, f64, seed=6)
+    cases += [(f"gram_cholesky_solve back={back}", ops.gram_cholesky_solve, (G, d, Rg, back), None)
+              for back in (True, False)]
     Lc = torch.linalg.cholesky(A)
     cases += [(f"triangular_solve transpose={t}", ops.triangular_solve, (Lc, R, t), None) for t in (True, False)]
     st = analysed(*MIXED)
@@ -272,7 +276,7 @@ def _operator_cases():
 
 def test_engine_operators_on_device_match_cpu_and_pass_opcheck():
     """Every registered operator of the engine (the factor terms, normal blocks and assembly of
-    SE(3)/SE(2), the normal equations of any block, the dense and block-sparse Cholesky solves)
+    SE(3)/SE(2), the normal equations of any block, the dense, Gram and block-sparse Cholesky solves)
     on DEVICE: the same outputs as on the CPU, new tensors on DEVICE, and torch.library.opcheck
     with device arguments (float64 and float32)."""
     from torch.library import opcheck
