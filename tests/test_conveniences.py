@@ -115,6 +115,24 @@ def test_point_axes_zero_keeps_torch_broadcasting(G):
 
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS)
+@pytest.mark.parametrize("batch", [(3,), (2, 3)], ids=["one batch axis", "two batch axes"])
+def test_point_axes_maps_every_point_by_its_element(G, batch):
+    """point_axes=1 (one element per batch entry acting on 5 points: one matrix product over the
+    points, the homogeneous tail's constants added once per element), with one and with two
+    batch axes, against each point mapped alone; the points and the element are not written."""
+    g = _random(G, batch)
+    x = torch.randn(*batch, 5, G.point_dim, dtype=F64, generator=torch.Generator().manual_seed(6))
+    x_before, m_before = x.clone(), g.as_matrix().clone()
+    got = g.act(x, point_axes=1)
+    assert got.shape == x.shape
+    flat_g, flat_x, flat_got = g.reshape(-1), x.reshape(-1, 5, G.point_dim), got.reshape(-1, 5, G.point_dim)
+    for b in range(flat_x.shape[0]):
+        for k in range(5):
+            torch.testing.assert_close(flat_got[b, k], flat_g[b].act(flat_x[b, k]), rtol=1e-12, atol=1e-12)
+    assert torch.equal(x, x_before) and torch.equal(g.as_matrix(), m_before)
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS)
 def test_point_axes_gradients(G):
     """Gradients with respect to the element and the points through point_axes=1 agree with
     the unsqueezed element's (finite differences: torch.autograd.gradcheck)."""

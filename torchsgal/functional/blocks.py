@@ -312,12 +312,23 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
     checks.matrix(M, n, "g")
     checks.vector(x, rows, name)
     checks.binary(M, 2, x, 1, "g", name)
-    if tail:  # constants built on x's device without a host-to-device copy
-        x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
     if M.dim() >= 3 and x.dim() >= 2 and M.shape[-3] == 1 and x.shape[-2] != 1:
         # one element per batch row acting on N points (M (..., 1, n, n), x (..., N, k)): one
-        # matrix product x M^T over the N rows, not N products of (rows x k) by (k x 1)
-        return x @ M[..., 0, :rows, : x.shape[-1]].mT
+        # matrix product x M^T over the N rows, not N products of (rows x k) by (k x 1); the
+        # tail's columns of M times its constants, once per element, added after
+        k, E = x.shape[-1], M[..., 0, :rows, :]
+        offset = None
+        for j, v in enumerate(tail):
+            if v != 0:
+                term = E[..., k + j] if v == 1 else E[..., k + j] * v
+                offset = term if offset is None else offset + term
+        if offset is None:
+            return x @ E[..., :k].mT
+        if x.dim() == 3 and E.dim() == 3 and x.shape[0] == E.shape[0]:
+            return torch.baddbmm(offset[..., None, :], x, E[..., :k].mT)
+        return x @ E[..., :k].mT + offset[..., None, :]
+    if tail:  # constants built on x's device without a host-to-device copy
+        x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
 
 

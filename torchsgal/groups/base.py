@@ -390,7 +390,10 @@ class LieGroup(MatrixBatch):
         M = self._acting(x, "x", point_axes, self.point_dim)
         J_g = self._f.act_jacobian(M, x)
         rows, k = J_g.shape[-2], x.shape[-1]
-        return J_g, M[..., :rows, :k].expand(J_g.shape[:-1] + (k,)).clone()
+        # the block broadcast over the points as rows * k contiguous values (one copy of whole
+        # rows; expanding the (rows, k) block itself copies element by element)
+        block = M[..., :rows, :k].reshape(M.shape[:-2] + (rows * k,))
+        return J_g, block.expand(J_g.shape[:-2] + (rows * k,)).contiguous().unflatten(-1, (rows, k))
 
     @classmethod
     def _right_products(cls, M: torch.Tensor) -> torch.Tensor:
