@@ -56,10 +56,11 @@ nproc; $PY -m pytest --version" ;;
     build) step build timeout 120 $PY setup.py build_ext --inplace -j 3 ;;
     tests) step tests timeout "${TESTS_TIMEOUT:-400}" $PY -m pytest tests/test_cuda.py $(ls tests/test_cuda_engine.py 2>/dev/null) \
              -n "${TEST_WORKERS:-0}" -p no:cacheprovider -W ignore::DeprecationWarning -rA --durations=15 ;;
-    # the operators on CUDA (their compiled closed forms) against eager code and the peers
-    ops) step ops timeout 150 $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" \
-           --cases "operator eager" "closed form eager" "matrix_exp eager" "fwd+bwd custom eager" \
-           "fwd+bwd plain eager" "pypose" ;;
+    # the operators on CUDA (their compiled closed forms) against eager code and the peers, and
+    # user code that calls them compiled by torch.compile against the same code eager
+    ops) step ops timeout 240 $PY benchmarks/bench_compile.py --device cuda --target-s 0.2 --out "$WORK" \
+           --cases "operator eager" "operator compiled" "closed form eager" "matrix_exp eager" \
+           "fwd+bwd custom eager" "fwd+bwd plain eager" "xi * 2" "pypose" ;;
     # the estimation engine on the device and on the host CPU in the same run
     # the small problems first: sphere2500's host-side sparse solve takes most of the budget
     posegraph) step posegraph timeout $((${POSEGRAPH_BUDGET:-80} + 40)) $PY benchmarks/bench_posegraph.py \
