@@ -270,6 +270,7 @@ def main(argv=None) -> int:
 def device_main(args) -> int:
     """The four batched solves on ``args.device`` (all trials at once) and on the host CPU."""
     device = torch.device(args.device)
+    kept = 0 if args.release_memory else keep_freed_memory()  # for the host rows, as above
     cfg = study.StudyConfig(trials=args.trials, seed=args.seed)
     P = study.simulate(cfg).problem
     K = args.trials
@@ -300,7 +301,8 @@ def device_main(args) -> int:
 
     res = {"config": vars(args), "torch": torch.__version__, "cpu": cpu_model(),
            "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else str(device),
-           "host_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d"), "rows": {}}
+           "host_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d"),
+           "keep_freed_memory": kept, "rows": {}}
     for name, solve in (("SGal(3)", tls.solve_sgal3), ("SE_2(3) x R", tls.solve_baseline)):
         for variant in ("iterated", "paper"):
             dev, t_dev = on_device(solve, variant)
@@ -328,7 +330,10 @@ def device_main(args) -> int:
           f"{K} trials of {P.F_ga.batch_shape[1]} paired observations (defaults of "
           f"`python -m torchsgal tls`): all trials in one batch on the device, against the host "
           f"CPU ({res['cpu']}, {res['host_threads']} threads, {args.chunk} trials a batch as in "
-          f"`tls_cpu.md`) in the same run; medians of {args.repeats} solves after an untimed one.",
+          f"`tls_cpu.md`) in the same run; medians of {args.repeats} solves after an untimed one.  "
+          "On the host, freed large blocks "
+          + ("kept for reuse (`torchsgal.load.keep_freed_memory()`, as the command line)." if kept
+             else "returned to the system (the C allocator's defaults)."),
           "", "| solver | device | host CPU | device speed-up | same status | max deviation |",
           "|---|---|---|---|---|---|"]
     for k, v in res["rows"].items():
