@@ -174,6 +174,27 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def eager_call_us() -> float:
+    """Microseconds of one eager ``x * 2`` on 1,000 float64 elements, one thread (median of 20
+    samples of 1,000 calls): the machine's per-call cost, which sets the ratios of batched
+    solves to one-problem-at-a-time solves and to peers called in a Python loop."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        x = torch.ones(1000, dtype=torch.float64)
+        for _ in range(1000):
+            x * 2
+        samples = []
+        for _ in range(20):
+            t0 = time.perf_counter()
+            for _ in range(1000):
+                x * 2
+            samples.append((time.perf_counter() - t0) / 1000)
+        return 1e6 * statistics.median(samples)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def resolve_device(name: str) -> torch.device:
     """The ``--device`` of a benchmark script: "cpu" or "cuda[:i]"; exits with a clear message
     when it is malformed, of another type, or CUDA is asked for and not available."""

@@ -39,7 +39,7 @@ from torchsgal.load import keep_freed_memory
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from _timing import cpu_model  # noqa: E402
+from _timing import cpu_model, eager_call_us  # noqa: E402
 
 
 def timed(fn):
@@ -82,7 +82,7 @@ def main(argv=None) -> int:
     P = trials.problem
     K = args.trials
     res = {"config": vars(args), "threads": torch.get_num_threads(), "torch": torch.__version__,
-           "cpu": cpu_model(), "date": time.strftime("%Y-%m-%d"),
+           "cpu": cpu_model(), "eager_call_us": eager_call_us(), "date": time.strftime("%Y-%m-%d"),
            "time_utc": time.strftime("%H:%M", time.gmtime()), "loadavg_at_start": os.getloadavg(),
            "keep_freed_memory": kept}
 
@@ -229,7 +229,9 @@ def main(argv=None) -> int:
           "`python -m torchsgal tls`).  Started at "
           f"{res['time_utc']} UTC; load average (1, 5, 15 min) at start "
           f"{tuple(round(x, 2) for x in res['loadavg_at_start'])}, at end "
-          f"{tuple(round(x, 2) for x in res['loadavg_at_end'])}.  Freed large blocks "
+          f"{tuple(round(x, 2) for x in res['loadavg_at_end'])}; an eager `x * 2` on 1,000 float64 "
+          f"elements takes {res['eager_call_us']:.1f} us (the per-call cost that the one-at-a-time "
+          "and GTSAM solves pay most).  Freed large blocks "
           + ("kept for reuse (`torchsgal.load.keep_freed_memory()`, as the command line)." if kept
              else "returned to the system (the C allocator's defaults)."), "",
           "| solver | trials | time | per trial | converged | median iterations |",
