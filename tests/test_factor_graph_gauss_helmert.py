@@ -119,7 +119,7 @@ def test_corrections_update_is_that_of_the_linearised_problem(covariance, batche
     the formula with the line's derivatives written out and a dense solve; and the cost at a
     trial point, which evaluates the condition alone with S and Bm e of the linearisation point
     held, against the same quantities written out."""
-    from torchsgal.estimation.graph.gauss_helmert import (
+    from torchsgal.estimation.graph.gauss_helmert_solver import (
         _candidate,
         _iterated_blocks,
         _prepare_states,

@@ -20,7 +20,7 @@ import torch
 from ..groups import SE23, SGal3
 from .gauss_helmert import VARIANTS
 from .graph import FactorGraph, GaussHelmert
-from .graph.gauss_helmert import gauss_helmert
+from .graph.gauss_helmert_solver import gauss_helmert
 from .solver import Solution, SolverReport, SolverStatus, covariance_from_information, information_is_singular
 from .tls_baseline import _drift, baseline_covariance, baseline_observations, baseline_start, check_reading
 from .tls_problem import (

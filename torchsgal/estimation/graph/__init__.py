@@ -51,7 +51,8 @@ gradient).  User guide: ``docs/guide/factor_graphs.md``.
 """
 from .dogleg import dogleg
 from .factors import Between, Factor, PointObservation, Prior
-from .gauss_helmert import GaussHelmert, gauss_helmert
+from .gauss_helmert import GaussHelmert
+from .gauss_helmert_solver import gauss_helmert
 from .graph import FactorGraph
 from .levenberg_marquardt import GraphResult, gauss_newton, levenberg_marquardt
 from .robust import Cauchy, GemanMcClure, Huber, RobustLoss, TrivialLoss, Tukey
