@@ -596,8 +596,8 @@ def _markdown(o: dict) -> str:
         "",
         f"CPU: {o['cpu']}; torch {o['torch']}, {o['threads']} thread; medians of {o['repeats']} "
         "repeats (`python benchmarks/bench_factor_graph.py`); an eager `x * 2` on 1,000 float64 "
-        f"elements takes {o['eager_call_us']:.1f} us (the per-call cost, which the GTSAM loop "
-        "and small batches pay most).",
+        f"elements takes {o['eager_call_us']:.1f} us (the per-call cost, which the engine's small "
+        "batches pay most: some hundreds of eager operations per iteration).",
         "",
         f"## {pg['problems']} SE(3) pose graphs ({pg['poses']} poses, {pg['edges']} edges, a prior)",
         "",
