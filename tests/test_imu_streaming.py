@@ -84,9 +84,11 @@ def test_one_sample_calls_and_large_rotations():
     dt = torch.full_like(dt, 0.03)
     pre = preintegrate(gyro, acc, dt, gyro_bias=bg, acc_bias=ba, **DENS)
     assert (gyro.norm(dim=-1) * 0.03).max() > 2.5
-    s = StreamingPreintegration((3,), gyro_bias=bg, acc_bias=ba, buffer_size=1, dtype=F64, **DENS)
-    feed(s, gyro, acc, dt, [(i, 1) for i in range(30)], as_number=True)
-    assert_matches(s, pre)
+    for buffer_size in (1, 7):  # folded at once, and held in groups of single samples
+        s = StreamingPreintegration((3,), gyro_bias=bg, acc_bias=ba, buffer_size=buffer_size,
+                                    dtype=F64, **DENS)
+        feed(s, gyro, acc, dt, [(i, 1) for i in range(30)], as_number=True)
+        assert_matches(s, pre)
 
 
 def test_per_axis_densities_and_float32():

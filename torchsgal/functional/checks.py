@@ -183,6 +183,8 @@ def finite_number(value, name: str, bound: str = "") -> float:
     """A finite real number (bool refused); ``bound`` one of "", ">= 0", "> 0", "in [0, 1]".
     TypeError for another type, ValueError for a non-finite or out-of-bound value."""
     ok = _BOUNDS[bound]
+    if type(value) is float and math.isfinite(value) and ok(value):  # the common case, no message
+        return value
     message = f"{name} must be a finite number{' ' + bound if bound else ''}, got {value!r}"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise TypeError(message)

@@ -252,14 +252,16 @@ class StreamingPreintegration:
         Samples are held (copied) until ``buffer_size`` of them are pending or a result is
         read, then folded in as one chunk: the same result as folding each in at once."""
         intermediate = checks.boolean(intermediate, "intermediate")
-        sample, dt, K = self._check_samples(gyro, acc, dt)
+        sample, dt, K, one = self._check_samples(gyro, acc, dt)
         if intermediate or self.buffer_size <= K:
             self._flush()
             if K == 1 and not intermediate:
-                self._fold_one(sample[..., 0, :], dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
+                self._fold_one(sample if one else sample[..., 0, :],
+                               dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
                 return None
-            return self._fold(sample, self._dt_tensor([(dt, K)]), intermediate)
-        self._pending.append((sample, dt, K))
+            return self._fold(sample.unsqueeze(-2) if one else sample, self._dt_tensor([(dt, K)]),
+                              intermediate)
+        self._pending.append((sample, dt, K, one))
         self._pending_count += K
         if self._pending_count >= self.buffer_size:
             self._flush()
@@ -286,11 +288,15 @@ class StreamingPreintegration:
             return
         pend, self._pending, self._pending_count = self._pending, [], 0
         if len(pend) == 1 and pend[0][2] == 1:
-            sample, dt, _ = pend[0]
-            self._fold_one(sample[..., 0, :], dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
+            sample, dt, _, one = pend[0]
+            self._fold_one(sample if one else sample[..., 0, :],
+                           dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
             return
-        sample = pend[0][0] if len(pend) == 1 else torch.cat([p[0] for p in pend], -2)
-        self._fold(sample, self._dt_tensor([(h, k) for _, h, k in pend]), False)
+        if all(p[3] for p in pend):  # single samples (*batch, 6): one stack along the sample axis
+            sample = torch.stack([p[0] for p in pend], -2)
+        else:
+            sample = torch.cat([p[0].unsqueeze(-2) if p[3] else p[0] for p in pend], -2)
+        self._fold(sample, self._dt_tensor([(h, k) for _, h, k, _ in pend]), False)
 
     def _fold(self, sample: torch.Tensor, dt: torch.Tensor, intermediate: bool):
         """Fold samples [gyro, acc] (*batch, K, 6), dt (*batch, K) into the state: one sample by
@@ -352,8 +358,9 @@ class StreamingPreintegration:
         self._count += 1
 
     def _check_samples(self, gyro, acc, dt):
-        """([gyro, acc] (*batch, K, 6) (a new tensor), dt (a float or a tensor (*batch, K)), K)
-        from one sample or a chunk."""
+        """([gyro, acc] (a new tensor: (*batch, 6) for one sample, (*batch, K, 6) for a chunk),
+        dt (a float or a tensor (*batch, K)), K, whether it is one sample) from one sample or a
+        chunk."""
         if not isinstance(gyro, torch.Tensor) or gyro.dtype != self._kw["dtype"] or gyro.device != self._device:
             checks.floating(gyro, "gyro")
             raise TypeError(f"gyro must have dtype {self._kw['dtype']} on {self._device} (the "
@@ -373,10 +380,8 @@ class StreamingPreintegration:
         if K == 0:
             raise ValueError(f"gyro must hold at least one sample (K >= 1), got shape {tuple(gyro.shape)}")
         sample = torch.cat((gyro, acc), -1)
-        if one:
-            sample = sample.unsqueeze(-2)
         if not isinstance(dt, torch.Tensor):
-            return sample, checks.finite_number(dt, "dt", "> 0"), K
+            return sample, checks.finite_number(dt, "dt", "> 0"), K, one
         checks.floating(dt, "dt")
         if dt.dtype != gyro.dtype or dt.device != gyro.device:
             raise TypeError(f"dt must have gyro's dtype and device ({gyro.dtype}, {gyro.device}), "
@@ -391,4 +396,4 @@ class StreamingPreintegration:
             bad = dt[~((dt > 0) & dt.isfinite())]
             raise ValueError(f"dt must be finite and > 0 everywhere, got {bad.numel()} other "
                              f"entries (first {float(bad[0])!r})")
-        return sample, dt.clone(), K
+        return sample, dt.clone(), K, one
