@@ -596,7 +596,7 @@ def _markdown(o: dict) -> str:
         "",
         f"CPU: {o['cpu']}; torch {o['torch']}, {o['threads']} thread; medians of {o['repeats']} "
         "repeats (`python benchmarks/bench_factor_graph.py`); an eager `x * 2` on 1,000 float64 "
-        f"elements takes {o['eager_call_us']:.1f} us (the per-call cost, which the engine's small "
+        f"elements takes {o['eager_call_us']:.1f} us on one thread (the per-call cost, which the engine's small "
         "batches pay most: some hundreds of eager operations per iteration).",
         "",
         f"## {pg['problems']} SE(3) pose graphs ({pg['poses']} poses, {pg['edges']} edges, a prior)",

@@ -230,7 +230,7 @@ def main(argv=None) -> int:
           f"{res['time_utc']} UTC; load average (1, 5, 15 min) at start "
           f"{tuple(round(x, 2) for x in res['loadavg_at_start'])}, at end "
           f"{tuple(round(x, 2) for x in res['loadavg_at_end'])}; an eager `x * 2` on 1,000 float64 "
-          f"elements takes {res['eager_call_us']:.1f} us (the per-call cost that the one-at-a-time "
+          f"elements takes {res['eager_call_us']:.1f} us on one thread (the per-call cost that the one-at-a-time "
           "and GTSAM solves pay most).  Freed large blocks "
           + ("kept for reuse (`torchsgal.load.keep_freed_memory()`, as the command line)." if kept
              else "returned to the system (the C allocator's defaults)."), "",

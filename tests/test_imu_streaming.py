@@ -91,6 +91,28 @@ def test_one_sample_calls_and_large_rotations():
         assert_matches(s, pre)
 
 
+@pytest.mark.parametrize("buffer_size", [1, 5])
+def test_one_sample_chunks_and_number_dt_held_with_tensor_dt_chunks(buffer_size):
+    """Calls of (*batch, 1, 3) chunks, single samples with a number dt (one dt for the whole
+    stream) and longer chunks with tensor dt, held together and folded as one chunk."""
+    gyro, acc, dt, bg, ba = stream((2,), 24, seed=11)
+    dt = torch.full_like(dt, 0.01)
+    pre = preintegrate(gyro, acc, dt, gyro_bias=bg, acc_bias=ba, **DENS)
+    s = StreamingPreintegration((2,), gyro_bias=bg, acc_bias=ba, buffer_size=buffer_size,
+                                dtype=F64, **DENS)
+    i = 0
+    for n, kind in [(1, "chunk"), (1, "number"), (3, "chunk"), (1, "number"), (1, "chunk"),
+                    (4, "chunk"), (1, "number"), (1, "number"), (2, "chunk"), (1, "chunk"),
+                    (5, "chunk"), (1, "number"), (2, "chunk")]:
+        if kind == "number":
+            s.integrate(gyro[..., i, :], acc[..., i, :], 0.01)
+        else:
+            s.integrate(gyro[..., i:i + n, :], acc[..., i:i + n, :], dt[..., i:i + n])
+        i += n
+    assert i == 24 and s.num_samples == 24
+    assert_matches(s, pre)
+
+
 def test_per_axis_densities_and_float32():
     gyro, acc, dt, bg, ba = stream((2,), 20, seed=3)
     dens = dict(gyro_noise_density=torch.tensor([1e-2, 2e-2, 3e-2], dtype=F64),

@@ -55,7 +55,7 @@ def test_opcheck(name, batch, dtype, path):
     # schema, fake implementation, autograd registration and AOT dispatch (dynamic shapes), with
     # gradients in float64 where they depend on the run's path: with the kernels on, the four
     # closed-form backwards are left to the kernels-off run, which opchecks the same backward
-    # (trace and values), and to tests/test_ops_compiled.py's opcheck
+    # (trace and values), and for sgal3_log_vjp also to tests/test_ops_compiled.py's opcheck
     assert native.enabled() is (path == "kernels_on")
     grad = dtype is torch.float64 and (path == "kernels_off" or name in BACKWARD_RUNS_OPERATORS)
     torch.library.opcheck(_op(name), _arguments(name, batch, dtype, requires_grad=grad))

@@ -292,7 +292,9 @@ class StreamingPreintegration:
             self._fold_one(sample if one else sample[..., 0, :],
                            dt if not isinstance(dt, torch.Tensor) else dt[..., 0])
             return
-        if all(p[3] for p in pend):  # single samples (*batch, 6): one stack along the sample axis
+        if len(pend) == 1:  # one chunk (a single sample was folded above)
+            sample = pend[0][0]
+        elif all(p[3] for p in pend):  # single samples (*batch, 6): one stack along the sample axis
             sample = torch.stack([p[0] for p in pend], -2)
         else:
             sample = torch.cat([p[0].unsqueeze(-2) if p[3] else p[0] for p in pend], -2)

@@ -2,8 +2,9 @@
 
 ``gauss_helmert(graph)`` runs the engine's Levenberg-Marquardt (or Gauss-Newton) rounds with
 the update of the iterated conditions' state (``GaussHelmert``: the corrections, and S's
-Cholesky factor and Bm e at the linearisation point): after each accepted step d (or, with ``update_below``, only after
-those shorter than that many standard deviations) the corrections become those of the
+Cholesky factor and Bm e at the linearisation point): after each accepted step d (or, with
+``update_below``, only after those shorter than that many standard deviations) the
+corrections become those of the
 linearised problem, e' = -Sigma Bm^T S^-1 (w + A d) (the classical Gauss-Helmert update,
 S as in (5.23); its fixed point is the constrained optimum), and the linearisation point moves
 to the new x and e'.  Each linearisation keeps what this update needs per condition, Bm and
