@@ -357,8 +357,11 @@ def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int
         # G[..., a, j] = sum_b hat(e_j)[a, b] x_b, as x (..., k) times the basis (k, n * dof)
         G = (x @ basis.permute(2, 1, 0).reshape(k, n * dof)).unflatten(-1, (n, dof))
         return M[..., :rows, :] @ G
-    # P[..., b, r, j] = sum_a M[..., r, a] hat(e_j)[a, b], as (..., k, rows * dof)
-    P = M[..., :rows, :] @ basis.permute(1, 2, 0).reshape(n, k * dof)
+    # P[..., b, r, j] = sum_a M[..., r, a] hat(e_j)[a, b], as (..., k, rows * dof); the rows of
+    # every element stacked into one matrix product with the basis (a batch of small products
+    # with a broadcast right factor costs some tens of times more)
+    P = (M[..., :rows, :].reshape(-1, n) @ basis.permute(1, 2, 0).reshape(n, k * dof)).reshape(
+        M.shape[:-2] + (rows, k * dof))
     P = P.unflatten(-1, (k, dof)).transpose(-3, -2).flatten(-2)
     if M.dim() >= 3 and x.dim() >= 2 and M.shape[-3] == 1 and x.shape[-2] != 1:
         J = x @ P[..., 0, :, :]  # one element per batch row, N points: one product over the rows
