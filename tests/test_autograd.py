@@ -57,10 +57,10 @@ OP_NAMES = ["exp", "log", "compose", "inverse", "act", "act_direction", "adjoint
             "jl_inv", "jr_inv", "log_exp"]
 
 
-# J_r(xi) = J_l(-xi) in every group (functional/*.py: jr and jr_inv call jl and jl_inv at -xi; SO(2)'s
-# four are the same constant function), so
-# the right Jacobians' derivatives at every angle band are the left ones' at the negated samples:
-# jl and jl_inv are checked over the bands, jr and jr_inv at the generic angles.
+# J_r(xi) = J_l(-xi) in every group (functional/*.py: jr and jr_inv call jl and jl_inv at -xi;
+# SO(2)'s four are the same constant function), so the right Jacobians' derivatives at every
+# angle band are the left ones' at the negated samples: jl and jl_inv are checked over the
+# bands, jr and jr_inv at the generic angles.
 BANDED = [(op, angle) for op in OP_NAMES for angle in GRAD_ANGLES
           if op not in ("jr", "jr_inv") or angle is None]
 
