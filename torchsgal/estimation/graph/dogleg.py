@@ -34,10 +34,9 @@ from dataclasses import dataclass
 import torch
 
 from ...functional import checks
-from ..solver import SolverStatus
 from .graph import FactorGraph
 from .layout import diagonal, times
-from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _full, _solve, _State, _trial, _where
+from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _round_status, _solve, _State, _trial, _where
 from .linear_system import LinearSystem
 from .linearize import Linearization
 from .problem import Problem
@@ -147,10 +146,7 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     iterations = s.iterations + done.to(torch.int64)
     converged = _converged(s, lin, o)
-    status = s.status
-    status = torch.where(done & converged, _full(status, SolverStatus.CONVERGED), status)
-    status = torch.where(done & ~converged & (iterations >= max_iterations),
-                         _full(status, SolverStatus.MAX_ITERATIONS), status)
+    status = _round_status(s.status, done, None, converged, iterations, max_iterations)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     return _DoglegState(s.rows, x, lin, cost_start, delta_new, iterations,
                         quad.clamp_min(0).sqrt(), status, damped)

@@ -24,7 +24,6 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
-from ..solver import SolverStatus
 from .gauss_helmert import GaussHelmert
 from .graph import FactorGraph
 from .levenberg_marquardt import (
@@ -33,7 +32,7 @@ from .levenberg_marquardt import (
     _check,
     _converged,
     _decide,
-    _full,
+    _round_status,
     _solve,
     _State,
     _trial,
@@ -270,11 +269,7 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
         lin = updated
     iterations = s.iterations + (success | in_place).to(torch.int64) if blocks else \
         s.iterations + success.to(torch.int64)
-    status = s.status
-    status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
-    status = torch.where(done & ~gave_up & converged, _full(status, SolverStatus.CONVERGED), status)
-    status = torch.where(done & ~gave_up & ~converged & (iterations >= max_iterations),
-                         _full(status, SolverStatus.MAX_ITERATIONS), status)
+    status = _round_status(s.status, done, gave_up, converged, iterations, max_iterations)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     if blocks:  # the refreshed linearisation into the state now: the working set may shrink
         _take_fresh(blocks, s.rows)

@@ -316,13 +316,22 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     iterations = s.iterations + success.to(torch.int64)
     converged = _converged(s, lin, o)
-    status = s.status
-    status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
-    status = torch.where(done & ~gave_up & converged, _full(status, SolverStatus.CONVERGED), status)
-    status = torch.where(done & ~gave_up & ~converged & (iterations >= max_iterations),
-                         _full(status, SolverStatus.MAX_ITERATIONS), status)
+    status = _round_status(s.status, done, gave_up, converged, iterations, max_iterations)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     return _State(s.rows, x, lin, cost_start, lam, iterations, quad.clamp_min(0).sqrt(), status)
+
+
+def _round_status(status: torch.Tensor, done: torch.Tensor, gave_up: torch.Tensor | None,
+                  converged: torch.Tensor, iterations: torch.Tensor, max_iterations: int) -> torch.Tensor:
+    """The statuses after a round: where the round is ``done``, DIVERGED where the search gave up
+    (``gave_up``; None: never), else CONVERGED where ``converged``, else MAX_ITERATIONS where the
+    iterations reached ``max_iterations``; unchanged elsewhere."""
+    ended = done if gave_up is None else done & ~gave_up
+    if gave_up is not None:
+        status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
+    status = torch.where(ended & converged, _full(status, SolverStatus.CONVERGED), status)
+    return torch.where(ended & ~converged & (iterations >= max_iterations),
+                       _full(status, SolverStatus.MAX_ITERATIONS), status)
 
 
 def _decide(s: _State, o: dict, solved: torch.Tensor, lin_change: torch.Tensor,
