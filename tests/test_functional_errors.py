@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchsgal.functional as TF
+from torchsgal.functional import checks
 
 D = torch.float64
 MODS = list(TF.GROUPS.values())
@@ -169,3 +170,26 @@ def test_backward_parts_broadcast_batches_of_different_ranks(mod):
         expect = torch.stack([f(x, y) for x, y in zip(first, second)])
         assert out.shape[:2] == (3, 1)
         torch.testing.assert_close(out[:, 0], expect, rtol=1e-14, atol=1e-14)
+
+
+_SHAPES = [(), (1,), (0,), (3,), (4,), (1, 1), (2, 1), (1, 3), (2, 3), (0, 3), (2, 0), (5, 1, 3),
+           (5, 2, 1), (1, 2, 3), (7, 1, 1, 1)]
+
+
+@pytest.mark.parametrize("extra", [(), (1, 3), (2, 1, 1)])
+def test_broadcast_shapes_is_torchs(extra):
+    """checks.broadcast_shapes against torch.broadcast_shapes over pairs and triples of shapes:
+    the same Size where torch broadcasts, the same RuntimeError where it refuses."""
+    for a in _SHAPES:
+        for b in _SHAPES:
+            shapes = (torch.Size(a), b, *([extra] if extra else []))
+            try:
+                want = torch.broadcast_shapes(*shapes)
+            except RuntimeError as e:
+                with pytest.raises(RuntimeError) as got:
+                    checks.broadcast_shapes(*shapes)
+                assert str(got.value) == str(e)
+                continue
+            got = checks.broadcast_shapes(*shapes)
+            assert type(got) is torch.Size and got == want, (shapes, got, want)
+    assert checks.broadcast_shapes() == torch.broadcast_shapes() == torch.Size()

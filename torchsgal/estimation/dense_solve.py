@@ -85,7 +85,7 @@ def cholesky_solve(A: torch.Tensor, R: torch.Tensor, back: bool = False
     triangle of A is read."""
     checks.boolean(back, "back")
     A, R = _broadcast(A, R, "A", "R")
-    if is_compiling():
+    if is_compiling() or unobserved((A, R)):  # unobserved: the operator without the Function
         L, X, Y, info = torch.ops.torchsgal.cholesky_solve(A, R, back)
     elif _nested_forward_mode(A) or _nested_forward_mode(R):
         L, X, Y, info = _cholesky_solve_tensor(A, R, back)
@@ -106,7 +106,7 @@ def gram_cholesky_solve(G: torch.Tensor, d: torch.Tensor, R: torch.Tensor, back:
     _check_gram(G, d, R)
     if not unobserved((G, d, R)):
         return cholesky_solve((G * d[..., None, :]) @ G.mT, R, back)
-    batch = torch.broadcast_shapes(G.shape[:-2], d.shape[:-1], R.shape[:-2])
+    batch = checks.broadcast_shapes(G.shape[:-2], d.shape[:-1], R.shape[:-2])
     L, X, Y, info = torch.ops.torchsgal.gram_cholesky_solve(
         G.expand(batch + G.shape[-2:]), d.expand(batch + d.shape[-1:]), R.expand(batch + R.shape[-2:]),
         back)
@@ -134,7 +134,7 @@ def triangular_solve(L: torch.Tensor, R: torch.Tensor, transpose: bool = False) 
     diagonal and R (..., m, k), batch shapes broadcast (only the lower triangle of L is read)."""
     checks.boolean(transpose, "transpose")
     L, R = _broadcast(L, R, "L", "R")
-    if is_compiling():
+    if is_compiling() or unobserved((L, R)):  # unobserved: the operator without the Function
         return torch.ops.torchsgal.triangular_solve(L, R, transpose)
     if _nested_forward_mode(L) or _nested_forward_mode(R):
         return _triangular_solve_tensor(L, R, transpose)
@@ -144,7 +144,7 @@ def triangular_solve(L: torch.Tensor, R: torch.Tensor, transpose: bool = False) 
 def _broadcast(M: torch.Tensor, R: torch.Tensor, m_name: str, r_name: str
                ) -> tuple[torch.Tensor, torch.Tensor]:
     _check(M, R, m_name, r_name, same_batch=False)
-    batch = torch.broadcast_shapes(M.shape[:-2], R.shape[:-2])
+    batch = checks.broadcast_shapes(M.shape[:-2], R.shape[:-2])
     return M.expand(batch + M.shape[-2:]), R.expand(batch + R.shape[-2:])
 
 
@@ -373,7 +373,7 @@ def _batched_front(size: int, args, in_dims, tails=None):
     tails = tails or (2,) * len(args)
     moved = [a.unsqueeze(0).expand(size, *a.shape) if d is None else a.movedim(d, 0)
              for a, d in zip(args, in_dims)]
-    batch = torch.broadcast_shapes(*(a.shape[:a.dim() - t] for a, t in zip(moved, tails)))
+    batch = checks.broadcast_shapes(*(a.shape[:a.dim() - t] for a, t in zip(moved, tails)))
     return [a.expand(batch + a.shape[a.dim() - t:]) for a, t in zip(moved, tails)]
 
 

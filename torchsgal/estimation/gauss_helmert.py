@@ -101,7 +101,7 @@ class _CovarianceBlocks:
         self.all_diagonal = all(self.diagonal)
         if self.all_diagonal:
             shapes = [f.shape[:-1] for f in self.factors]
-            batch = torch.broadcast_shapes(*shapes)
+            batch = checks.broadcast_shapes(*shapes)
             self.sqrt_diag = torch.cat([f.expand(batch + f.shape[-1:]) for f in self.factors], -1)
 
     @property

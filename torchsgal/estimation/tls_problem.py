@@ -131,7 +131,7 @@ class TLSProblem:
 
 def _ad_time_left(s: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
     """Ad(T^s) M = (I + s ad(e_10)) M: the rho rows minus s times the nu rows (ad(e_10)^2 = 0)."""
-    shape = torch.broadcast_shapes(s.shape + (1, 1), M.shape)
+    shape = checks.broadcast_shapes(s.shape + (1, 1), M.shape)
     out = M.expand(shape).clone()
     out[..., 0:3, :] -= s[..., None, None] * M[..., 3:6, :]
     return out
@@ -139,7 +139,7 @@ def _ad_time_left(s: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
 
 def _ad_time_right_inverse(M: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """M Ad(T^-s) = M (I - s ad(e_10)): the nu columns plus s times the rho columns."""
-    shape = torch.broadcast_shapes(s.shape + (1, 1), M.shape)
+    shape = checks.broadcast_shapes(s.shape + (1, 1), M.shape)
     out = M.expand(shape).clone()
     out[..., :, 3:6] += s[..., None, None] * M[..., :, 0:3]
     return out

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import torch
 
+from ..functional import checks
 from ..groups import SE23, SGal3
 from .gauss_helmert import VARIANTS
 from .graph import FactorGraph, GaussHelmert
@@ -141,7 +142,7 @@ def _observation_covariance(cov_a: torch.Tensor, cov_b: torch.Tensor, B: int, E:
                             ) -> torch.Tensor:
     """blockdiag(cov_a, cov_b) in the factor's layout: (20, 20) shared, (E, 20, 20) per
     condition or (B, E, 20, 20) per trial and condition."""
-    shape = torch.broadcast_shapes(cov_a.shape[:-2], cov_b.shape[:-2])
+    shape = checks.broadcast_shapes(cov_a.shape[:-2], cov_b.shape[:-2])
     S = cov_a.new_zeros(shape + (20, 20))
     S[..., :10, :10] = cov_a
     S[..., 10:, 10:] = cov_b

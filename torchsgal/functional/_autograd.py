@@ -311,7 +311,7 @@ def make_products(mod, compose_min_batch: int = COMPOSE_MIN_BATCH):
 
     def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
         checks.matrix_pair(A, Bm, n, "A", "B")
-        batch = A.shape[:-2] if A.shape[:-2] == Bm.shape[:-2] else torch.broadcast_shapes(
+        batch = A.shape[:-2] if A.shape[:-2] == Bm.shape[:-2] else checks.broadcast_shapes(
             A.shape[:-2], Bm.shape[:-2])
         # the kernel runs on the CPU only; under autocast the product is torch's (lower precision)
         if batch.numel() < compose_min_batch or A.device.type != "cpu" or torch.is_autocast_enabled("cpu"):

@@ -24,6 +24,7 @@ import torch
 from torch.autograd import forward_ad as _forward_ad
 
 from .._compat import is_functorch_wrapped
+from . import checks
 
 # Batch elements per block.  Two of torch's parallel grains (32768 elements), so every kernel of
 # a block still runs on two threads; 16384 lost that and was slower with 2 threads, 131072 gained
@@ -92,14 +93,10 @@ def run_blocked(fn, args, event_dims):
     """
     if not unobserved(args) or any(a.dim() < k for a, k in zip(args, event_dims)):
         return run_lifted(fn, args, event_dims)
-    shapes = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
-    if all(s == shapes[0] for s in shapes):
-        batch = shapes[0]  # the common case; broadcast_shapes costs ~10 us per call
-    else:
-        try:
-            batch = torch.broadcast_shapes(*shapes)
-        except RuntimeError:
-            return fn(*args)  # raises the function's own error naming the arguments
+    try:
+        batch = checks.broadcast_shapes(*(a.shape[: a.dim() - k] for a, k in zip(args, event_dims)))
+    except RuntimeError:
+        return fn(*args)  # raises the function's own error naming the arguments
     n = math.prod(batch)
     if n < MIN_BATCH:
         return fn(*args)

@@ -145,10 +145,7 @@ _FAILED = object()  # marks an operator whose compilation failed
 
 
 def _batch_shape(args: Sequence[Tensor], event_dims: Sequence[int]) -> torch.Size:
-    shapes = [a.shape[: a.dim() - k] for a, k in zip(args, event_dims)]
-    if all(s == shapes[0] for s in shapes[1:]):
-        return shapes[0]  # the common case: broadcast_shapes costs ~10-40 us per call
-    return torch.broadcast_shapes(*shapes)
+    return checks.broadcast_shapes(*(a.shape[: a.dim() - k] for a, k in zip(args, event_dims)))
 
 
 def _vmap_rule(op, event_dims: Sequence[int]):

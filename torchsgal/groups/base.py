@@ -424,7 +424,7 @@ class LieGroup(MatrixBatch):
         batch = self.batch_shape
         outer = x.shape[: x.dim() - 1 - k]
         try:
-            torch.broadcast_shapes(batch, outer)
+            checks.broadcast_shapes(batch, outer)
         except RuntimeError:
             raise ValueError(
                 f"the batch shape {tuple(batch)} of this {type(self).__name__} does not broadcast "

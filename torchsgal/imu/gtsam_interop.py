@@ -142,7 +142,7 @@ def gtsam_tangent_map(delta_rotation: torch.Tensor, theta: torch.Tensor) -> torc
     checks.vector(theta, 3, "theta")
     checks.binary(delta_rotation, 2, theta, 1, "delta_rotation", "theta")
     Rt = delta_rotation.transpose(-1, -2)
-    batch = torch.broadcast_shapes(Rt.shape[:-2], theta.shape[:-1])
+    batch = checks.broadcast_shapes(Rt.shape[:-2], theta.shape[:-1])
     M = Rt.new_zeros(*batch, 10, 9)
     M[..., 0:3, 3:6] = Rt  # rho from dp
     M[..., 3:6, 6:9] = Rt  # nu from dv

@@ -351,7 +351,7 @@ def preintegrate(
     _check_non_negative(dt, "dt")
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch)
-    batch = torch.broadcast_shapes(batch, b_g.shape[:-1], b_a.shape[:-1])
+    batch = checks.broadcast_shapes(batch, b_g.shape[:-1], b_a.shape[:-1])
     s_t = _density(time_noise_density, gyro, "time_noise_density")
     if isinstance(s_t, torch.Tensor) and s_t.dim() != 0:
         raise ValueError(f"time_noise_density must be a float or a 0-d tensor, got shape {tuple(s_t.shape)}")

@@ -342,7 +342,7 @@ class KinematicChain:
             if qdot is None:
                 raise ValueError("qddot needs qdot: the acceleration depends on the velocity")
             qddot = self._joint_tensor(qddot, "qddot", like=q)
-        shape = torch.broadcast_shapes(*(x.shape for x in (q, qdot, qddot) if x is not None))
+        shape = checks.broadcast_shapes(*(x.shape for x in (q, qdot, qddot) if x is not None))
         return tuple(None if x is None else x.expand(shape) for x in (q, qdot, qddot))
 
     # -------------------------------------------------------------- Jacobians

@@ -286,7 +286,7 @@ class GDHChain:
             except (TypeError, ValueError) as err:
                 raise type(err)(f"{err} ({name} must match q: nothing is cast)") from None
             try:
-                torch.broadcast_shapes(x.shape, like.shape)
+                checks.broadcast_shapes(x.shape, like.shape)
             except RuntimeError:
                 raise ValueError(
                     f"batch shapes do not broadcast: q {tuple(like.shape[:-1])}, "

@@ -80,7 +80,7 @@ class CurveFit:
         if times.dim() < 1:
             raise ValueError(f"times must have shape (..., M), got {tuple(times.shape)}")
         try:
-            torch.broadcast_shapes(times.shape[:-1], self.time_origin.shape)
+            checks.broadcast_shapes(times.shape[:-1], self.time_origin.shape)
         except RuntimeError:
             raise ValueError(f"times must have shape (..., M) with (...) broadcasting with the "
                              f"fit's batch shape {tuple(self.time_origin.shape)}, got "
@@ -104,18 +104,18 @@ def _prepare(samples, times, weights, time_origin, min_samples):
     G = type(samples)
     Ym = samples.as_matrix()
     _checks.sample_times(times, samples)
-    batch = torch.broadcast_shapes(samples.batch_shape[:-1], times.shape[:-1])
+    batch = checks.broadcast_shapes(samples.batch_shape[:-1], times.shape[:-1])
     n = samples.batch_shape[-1]
     w = _checks.metric_weights(weights, G, Ym)
     try:
-        batch = torch.broadcast_shapes(batch, w.shape[:-1])
+        batch = checks.broadcast_shapes(batch, w.shape[:-1])
     except RuntimeError:
         raise ValueError(f"batch shapes do not broadcast: weights {tuple(w.shape[:-1])}, "
                          f"samples/times {tuple(batch)}") from None
     t0 = _checks.time_origin(time_origin, Ym)
     if t0 is not None:
         try:
-            batch = torch.broadcast_shapes(batch, t0.shape)
+            batch = checks.broadcast_shapes(batch, t0.shape)
         except RuntimeError:
             raise ValueError(f"time_origin must broadcast with the batch {tuple(batch)}, got shape "
                              f"{tuple(t0.shape)}") from None

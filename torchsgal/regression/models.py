@@ -266,7 +266,7 @@ def polynomial_flow(G, initial: torch.Tensor, tau: torch.Tensor, weights: torch.
 def _polynomial_flow(G, initial, tau, weights, steps, sensitivity):
     K, dof = initial.shape[-2], G.dof
     V, w = initial.unsqueeze(-3), weights.unsqueeze(-2)
-    batch = torch.broadcast_shapes(V.shape[:-2], tau.shape, w.shape[:-1])
+    batch = checks.broadcast_shapes(V.shape[:-2], tau.shape, w.shape[:-1])
     tau = tau.expand(batch)
     V = V.expand(batch + (K, dof))
     h = (tau / steps)[..., None, None]

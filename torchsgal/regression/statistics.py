@@ -74,7 +74,7 @@ def frechet_mean(samples: LieGroup, weights=None, max_iterations: int = 50,
 def _frechet_mean(samples: LieGroup, w: torch.Tensor, max_iterations, tolerance) -> FrechetMean:
     """frechet_mean with checked weights."""
     G, n = type(samples), samples.batch_shape[-1]
-    batch = torch.broadcast_shapes(samples.batch_shape[:-1], w.shape[:-1])
+    batch = checks.broadcast_shapes(samples.batch_shape[:-1], w.shape[:-1])
     m = G.matrix_dim
     Y = samples.as_matrix().detach().expand(batch + (n, m, m))
     t = torch.arange(n, dtype=samples.dtype, device=samples.device).expand(batch + (n,))

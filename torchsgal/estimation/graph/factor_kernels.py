@@ -253,7 +253,7 @@ def _matrices_in_front(V: int, tensors, in_dims):
     their batch shapes broadcast; and that batch."""
     moved = [None if t is None else (t.unsqueeze(0).expand(V, *t.shape) if d is None
                                       else t.movedim(d, 0)) for t, d in zip(tensors, in_dims)]
-    batch = torch.broadcast_shapes(*(t.shape[:-2] for t in moved if t is not None))
+    batch = checks.broadcast_shapes(*(t.shape[:-2] for t in moved if t is not None))
     return [None if t is None else t.expand(batch + t.shape[-2:]) for t in moved], batch
 
 

@@ -162,7 +162,7 @@ class GaussHelmert(Factor):
             if self.condition_jacobians is not None:  # the condition may take a cheaper path
                 c, As, Bm, Q = self._user_jacobians(variables, data, None)
             else:
-                shape = torch.broadcast_shapes(*[_batch(v) for v in variables],
+                shape = checks.broadcast_shapes(*[_batch(v) for v in variables],
                                                *[_batch(d) for d in data])
                 c, As, Bm = _forward_jacobians(self.condition, variables, data,
                                                factor.new_zeros(shape + (self.m,)))
@@ -180,7 +180,7 @@ class GaussHelmert(Factor):
                 v = (Bm @ e[..., None])[..., 0]
                 L = None
             w = c - v
-        batch = torch.broadcast_shapes(c.shape[:-1], *([] if state is None else [state[0].shape[:-1]]))
+        batch = checks.broadcast_shapes(c.shape[:-1], *([] if state is None else [state[0].shape[:-1]]))
         w, Bm = w.expand(batch + w.shape[-1:]), Bm.expand(batch + Bm.shape[-2:])
         cols = [w[..., None]]
         if want_jacobian or refresh:
@@ -246,7 +246,7 @@ def _forward_jacobians(condition: Callable, variables, data, e):
     """(c, [A_j], Bm) by forward mode: the derivatives along every tangent direction of the
     variables (right perturbations) and of e, one ``jvp`` each, batched under ``vmap``."""
     sizes = [v.dof if isinstance(v, LieGroup) else v.shape[-1] for v in variables] + [e.shape[-1]]
-    batch = torch.broadcast_shapes(e.shape[:-1], *[_batch(v) for v in variables])
+    batch = checks.broadcast_shapes(e.shape[:-1], *[_batch(v) for v in variables])
     zeros = tuple(e.new_zeros(batch + (s,)) for s in sizes)
     total = sum(sizes)
     eye = torch.eye(total, dtype=e.dtype, device=e.device)
