@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import all_groups, assert_close, sample_group
+from conftest import GROUP_CLASSES, all_groups, assert_close, sample_group
 
 import torchsgal as ts
 
@@ -103,6 +103,27 @@ def test_act_jacobians_broadcast_as_act_and_own_their_storage():
     before = one.as_matrix().clone()
     J_x1.zero_()
     assert torch.equal(one.as_matrix(), before)
+
+
+@pytest.mark.parametrize("G", GROUP_CLASSES, ids=lambda g: g.__name__)
+def test_act_jacobians_under_vmap_and_compile_equal_eager(G):
+    """The basis the CPU paths take from the group module's GENERATORS (float64, converted for
+    float32) under torch.func.vmap over elements and points and under torch.compile (fullgraph):
+    the eager values, the constant unchanged and equal to hat(e_j)."""
+    gen = torch.Generator().manual_seed(8)
+    for dtype in (torch.float32, F64):
+        g = G.exp(torch.randn(3, 1, G.dof, dtype=F64, generator=gen).to(dtype))
+        x = torch.randn(3, 5, G.point_dim, dtype=F64, generator=gen).to(dtype)
+        want = g.act_jacobians(x)[0]
+        assert want.dtype == dtype
+        mapped = torch.vmap(lambda M, p: G.from_matrix(M).act_jacobians(p)[0])(g.as_matrix(), x)
+        torch.testing.assert_close(mapped, want, rtol=0, atol=0)
+        if G in (ts.SE3, ts.SGal3):  # compiling costs seconds a group
+            compiled = torch.compile(lambda M, p: G.from_matrix(M).act_jacobians(p)[0], fullgraph=True)
+            torch.testing.assert_close(compiled(g.as_matrix(), x), want)
+    table = G._f.GENERATORS
+    assert table.dtype == F64 and table.device.type == "cpu"
+    assert torch.equal(table, G.hat(torch.eye(G.dof, dtype=F64)))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)

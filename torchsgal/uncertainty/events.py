@@ -35,7 +35,7 @@ from typing import cast
 
 import torch
 
-from ..functional import checks
+from ..functional import blocks, checks, sgal3
 from ..functional._blocking import values_readable
 from ..groups import SGal3
 from .covariance import _covariance_measures, _default_tol, _mv, _raise_for_measures, _read, _sym
@@ -60,7 +60,7 @@ def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal
 
 def _event_columns(x: torch.Tensor) -> torch.Tensor:
     """The 4 x 10 matrix of eps -> I4^T eps^ x for a homogeneous 5-vector x (..., 5)."""
-    hats = SGal3.hat(torch.eye(10, dtype=x.dtype, device=x.device))  # (10, 5, 5)
+    hats = blocks.generators(sgal3.GENERATORS, SGal3.hat, x)  # (10, 5, 5)
     return torch.einsum("jab,...b->...aj", hats, x)[..., :4, :]
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..functional import checks
+from ..functional import blocks, checks
 from ..functional._blocking import values_readable
 from ..groups import LieGroup
 from .covariance import _mv, _read, _supported_factor, _sym, _with_known_directions, check_covariance
@@ -101,7 +101,7 @@ class ConcentratedGaussian:
                 f"({mean.dtype}, {mean.device})"
             )
         try:
-            torch.broadcast_shapes(mean.batch_shape, covariance.shape[:-2])
+            checks.broadcast_shapes(mean.batch_shape, covariance.shape[:-2])
         except RuntimeError:
             raise ValueError(
                 f"batch shapes do not broadcast: mean {tuple(mean.batch_shape)}, "
@@ -143,7 +143,7 @@ class ConcentratedGaussian:
     @property
     def batch_shape(self) -> torch.Size:
         """The broadcast batch shape of the mean and the covariance."""
-        return torch.broadcast_shapes(self.mean.batch_shape, self.covariance.shape[:-2])
+        return checks.broadcast_shapes(self.mean.batch_shape, self.covariance.shape[:-2])
 
     @property
     def _group(self) -> type[LieGroup]:
@@ -334,7 +334,7 @@ class ConcentratedGaussian:
         pads = {"act": [0.0] * (n - k - 1) + [1.0] if n > k else [],
                 "act_velocity": [1.0] + [0.0] * (n - k - 1), "act_direction": [0.0] * (n - k)}[fn_name]
         xh = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in pads], dim=-1)
-        hats = self.group.hat(torch.eye(self.dof, dtype=x.dtype, device=x.device))  # (dof, n, n)
+        hats = blocks.generators(self.group._f.GENERATORS, self.group.hat, x)  # (dof, n, n)
         Y = torch.einsum("jab,...b->...ja", hats, xh)
         Hfull = torch.einsum("...ab,...jb->...aj", M, Y)  # (..., n, dof)
         H, Jx = Hfull[..., :k, :], M[..., :k, :k]
