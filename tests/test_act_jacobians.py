@@ -107,9 +107,9 @@ def test_act_jacobians_broadcast_as_act_and_own_their_storage():
 
 @pytest.mark.parametrize("G", GROUP_CLASSES, ids=lambda g: g.__name__)
 def test_act_jacobians_under_vmap_and_compile_equal_eager(G):
-    """The basis the CPU paths take from the group module's GENERATORS (float64, converted for
-    float32) under torch.func.vmap over elements and points and under torch.compile (fullgraph):
-    the eager values, the constant unchanged and equal to hat(e_j)."""
+    """The basis hat(e_j) (``blocks.generators``, cached per group, dtype and device) under
+    torch.func.vmap over elements and points and under torch.compile (fullgraph): the eager
+    values, float32 and float64."""
     gen = torch.Generator().manual_seed(8)
     for dtype in (torch.float32, F64):
         g = G.exp(torch.randn(3, 1, G.dof, dtype=F64, generator=gen).to(dtype))
@@ -121,9 +121,40 @@ def test_act_jacobians_under_vmap_and_compile_equal_eager(G):
         if G in (ts.SE3, ts.SGal3):  # compiling costs seconds a group
             compiled = torch.compile(lambda M, p: G.from_matrix(M).act_jacobians(p)[0], fullgraph=True)
             torch.testing.assert_close(compiled(g.as_matrix(), x), want)
-    table = G._f.GENERATORS
-    assert table.dtype == F64 and table.device.type == "cpu"
-    assert torch.equal(table, G.hat(torch.eye(G.dof, dtype=F64)))
+
+
+def test_generator_cache_keeps_only_plain_tensors(monkeypatch):
+    """Created first under inference mode or a fake-tensor trace, the basis is not cached (it
+    would poison later calls: inference tensors cannot be saved for backward, fake ones cannot
+    mix with real ones); a plain call caches it, and a fake-tensor trace with the cache filled
+    runs and leaves it as it was."""
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    from torchsgal.functional import blocks
+
+    monkeypatch.setattr(blocks, "_GENERATORS", {})
+    with torch.inference_mode():
+        ts.SO2.random(4, dtype=F64).act_jacobians(torch.randn(4, 2, dtype=F64))
+    with FakeTensorMode():
+        ts.SE3.random(4, dtype=F64).act_jacobians(torch.randn(4, 3, dtype=F64))
+    assert blocks._GENERATORS == {}
+    g = ts.SO2.exp(torch.randn(4, 1, dtype=F64)).as_matrix().requires_grad_(True)
+    x = torch.randn(4, 2, dtype=F64)
+    assert torch.autograd.gradcheck(lambda M: ts.SO2.from_matrix(M).act_jacobians(x)[0], (g,))
+    for G in GROUP_CLASSES:
+        G.random(2, dtype=torch.float32).act_jacobians(torch.randn(2, G.point_dim))
+    assert len(blocks._GENERATORS) == len(GROUP_CLASSES) + 1  # SO2 in both dtypes
+    assert all(type(t) is torch.Tensor and not t.is_inference() for t in blocks._GENERATORS.values())
+    for (hat, dtype, device), t in blocks._GENERATORS.items():
+        dof = t.shape[0]
+        assert t.dtype == dtype and t.device == device
+        assert torch.equal(t, hat(torch.eye(dof, dtype=dtype)))
+    cached = dict(blocks._GENERATORS)
+    with FakeTensorMode():
+        for G in GROUP_CLASSES:
+            J = G.random(3).act_jacobians(torch.randn(3, G.point_dim))[0]
+            assert J.shape[-1] == G.dof
+    assert blocks._GENERATORS == cached
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)

@@ -361,8 +361,10 @@ def test_bad_arguments():
         triangular_solve(A, R, transpose="yes")
     with pytest.raises(TypeError, match="A"):
         cholesky_solve(A.long(), R)
-    with pytest.raises(RuntimeError):  # batch shapes that do not broadcast
-        cholesky_solve(A, torch.randn(3, 3, 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: A \(\d+,\), R \(3,\)"):
+        cholesky_solve(A, torch.randn(3, A.shape[-1], 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: L \(\d+,\), R \(3,\)"):
+        triangular_solve(A, torch.randn(3, A.shape[-1], 1, dtype=torch.float64))
 
 
 def test_inputs_are_not_modified():

@@ -144,7 +144,7 @@ def triangular_solve(L: torch.Tensor, R: torch.Tensor, transpose: bool = False) 
 def _broadcast(M: torch.Tensor, R: torch.Tensor, m_name: str, r_name: str
                ) -> tuple[torch.Tensor, torch.Tensor]:
     _check(M, R, m_name, r_name, same_batch=False)
-    batch = checks.broadcast_shapes(M.shape[:-2], R.shape[:-2])
+    batch = checks.broadcast_batch(**{m_name: M.shape[:-2], r_name: R.shape[:-2]})
     return M.expand(batch + M.shape[-2:]), R.expand(batch + R.shape[-2:])
 
 

@@ -18,7 +18,9 @@ import math
 
 import torch
 
+from .._compat import fake_tensor_mode_active
 from . import checks, numerics
+from ._blocking import _is_wrapped, is_compiling
 
 
 # ------------------------------------------------------------------------- layout
@@ -332,22 +334,32 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def generators(table: torch.Tensor, hat, like: torch.Tensor) -> torch.Tensor:
-    """hat(e_j) for j < dof, (dof, n, n), in ``like``'s dtype and on its device: on the CPU from
-    ``table`` (a group module's GENERATORS, float64), elsewhere built on the device by ``hat``
-    (no host-to-device copy).  Building the basis costs 20-25 us of small operations a call."""
-    if like.device.type == "cpu":
-        return table if like.dtype == table.dtype else table.to(like.dtype)
-    return hat(torch.eye(table.shape[0], dtype=like.dtype, device=like.device))
+_GENERATORS: dict = {}
 
 
-def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int, hat,
-                             table: torch.Tensor, tail: tuple = (), rows: int = 3,
-                             size: int | None = None) -> torch.Tensor:
+def generators(hat, dof: int, like: torch.Tensor) -> torch.Tensor:
+    """hat(e_j) for j < dof, (dof, n, n), in ``like``'s dtype and on its device: a constant,
+    cached per group (its ``hat``), dtype and device, as rebuilding it costs 20-25 us of small
+    operations a call.  Under a fake-tensor trace or torch.compile it is built fresh (a cached real
+    tensor cannot mix with fake ones, and would be a guarded graph input), and only plain tensors
+    are cached (not the inference tensors or torch.func wrappers of a first call), as
+    ``numerics._series_constants``."""
+    key = (hat, like.dtype, like.device)
+    fresh = is_compiling() or fake_tensor_mode_active()
+    basis = None if fresh else _GENERATORS.get(key)
+    if basis is None:
+        basis = hat(torch.eye(dof, dtype=like.dtype, device=like.device))
+        if not fresh and type(basis) is torch.Tensor and not basis.is_inference() and not _is_wrapped(basis):
+            _GENERATORS[key] = basis
+    return basis
+
+
+def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int, hat, dof: int,
+                             tail: tuple = (), rows: int = 3, size: int | None = None) -> torch.Tensor:
     """J (..., rows, dof) of act_homogeneous(M exp(xi^), x) at xi = 0 (the right perturbation):
-    column j is the first ``rows`` entries of M hat(e_j) [x, *tail] (``hat`` the group's,
-    ``table`` its GENERATORS: ``generators``).  The input checks are act_homogeneous's; x has
-    ``size`` entries (by default ``rows``).
+    column j is the first ``rows`` entries of M hat(e_j) [x, *tail] (``hat`` the group's, the
+    basis from ``generators``).  The input checks are act_homogeneous's; x has ``size`` entries
+    (by default ``rows``).
 
     Two contractions of the same sum, J[r, j] = sum_a,b M[r, a] hat(e_j)[a, b] x_b, chosen by
     which side has fewer elements: where one element acts on many points (M broadcast over x's
@@ -360,8 +372,8 @@ def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int
     checks.binary(M, 2, x, 1, "g", name)
     if tail:
         x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
-    k, dof = x.shape[-1], table.shape[0]
-    basis = generators(table, hat, M)[:, :, :k]  # (dof, n, k)
+    k = x.shape[-1]
+    basis = generators(hat, dof, M)[:, :, :k]  # (dof, n, k)
     per_point = M.dim() > 2 and M.shape[:-2].numel() > 1 and \
         M.shape[:-2].numel() >= x.shape[:-1].numel()
     if per_point:

@@ -69,11 +69,6 @@ def hat(xi: torch.Tensor) -> torch.Tensor:
     return torch.stack((z, -t, x, t, z, y, z, z, z), dim=-1).unflatten(-1, (3, 3))
 
 
-# hat(e_j) for j < DOF, (DOF, n, n) float64 on the CPU: the basis of the CPU paths
-# (blocks.generators); built once, as every call would rebuild the same constant
-GENERATORS = hat(torch.eye(DOF, dtype=torch.float64))
-
-
 def vee(X: torch.Tensor) -> torch.Tensor:
     checks.matrix(X, MATRIX_DIM, "X")
     return torch.stack((X[..., 0, 2], X[..., 1, 2], 0.5 * (X[..., 1, 0] - X[..., 0, 1])), dim=-1)
@@ -203,7 +198,7 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """d act(M exp(xi^), p) / d xi at 0 (..., 2, DOF), the right perturbation."""
-    return B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, GENERATORS, (1.0,), rows=2)
+    return B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, DOF, (1.0,), rows=2)
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

@@ -54,11 +54,6 @@ def hat(xi: torch.Tensor) -> torch.Tensor:
     return B.homogeneous((o, -z, y, z, o, -x, -y, x, o), [rho], [[o] * 4])
 
 
-# hat(e_j) for j < DOF, (DOF, n, n) float64 on the CPU: the basis of the CPU paths
-# (blocks.generators); built once, as every call would rebuild the same constant
-GENERATORS = hat(torch.eye(DOF, dtype=torch.float64))
-
-
 def vee(X: torch.Tensor) -> torch.Tensor:
     checks.matrix(X, MATRIX_DIM, "X")
     return B.last(B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]))
@@ -183,7 +178,7 @@ def act(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """d act(M exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation."""
-    return B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, GENERATORS, (1.0,))
+    return B.act_homogeneous_jacobian(M, p, "p", MATRIX_DIM, hat, DOF, (1.0,))
 
 
 def act_direction(M: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

@@ -60,11 +60,6 @@ def hat(xi: torch.Tensor) -> torch.Tensor:
     return B.homogeneous(rot, [nu, rho], [[o, o, o, o, iota], [o, o, o, o, o]])
 
 
-# hat(e_j) for j < DOF, (DOF, n, n) float64 on the CPU: the basis of the CPU paths
-# (blocks.generators); built once, as every call would rebuild the same constant
-GENERATORS = hat(torch.eye(DOF, dtype=torch.float64))
-
-
 def vee(X: torch.Tensor) -> torch.Tensor:
     """Inverse of ``hat``; the rotation part is the skew part of the top-left block."""
     checks.matrix(X, MATRIX_DIM, "X")
@@ -330,7 +325,7 @@ def act(M: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
 
 def act_jacobian(M: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
     """d act(M exp(xi^), e) / d xi at 0 (..., 4, DOF), the right perturbation."""
-    return B.act_homogeneous_jacobian(M, e, "e", MATRIX_DIM, hat, GENERATORS, (1.0,), rows=4)
+    return B.act_homogeneous_jacobian(M, e, "e", MATRIX_DIM, hat, DOF, (1.0,), rows=4)
 
 
 def act_velocity(M: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

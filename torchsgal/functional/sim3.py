@@ -74,11 +74,6 @@ def hat(xi: torch.Tensor) -> torch.Tensor:
     return B.homogeneous((o, -z, y, z, o, -x, -y, x, o), [rho], [[o, o, o, -lam]])
 
 
-# hat(e_j) for j < DOF, (DOF, n, n) float64 on the CPU: the basis of the CPU paths
-# (blocks.generators); built once, as every call would rebuild the same constant
-GENERATORS = hat(torch.eye(DOF, dtype=torch.float64))
-
-
 def vee(X: torch.Tensor) -> torch.Tensor:
     checks.matrix(X, MATRIX_DIM, "X")
     return B.last(B.first(X[..., :3, 3]), B.unskew(X[..., :3, :3]), -X[..., 3, 3][None])
@@ -295,7 +290,7 @@ def act_jacobian(M: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "g")
     M0 = torch.cat([M[..., :, :3], torch.cat([torch.zeros_like(M[..., :3, 3:]), M[..., 3:, 3:]],
                                              dim=-2)], dim=-1)
-    J = B.act_homogeneous_jacobian(M0, p, "p", MATRIX_DIM, hat, GENERATORS, (1.0,), rows=4, size=3)
+    J = B.act_homogeneous_jacobian(M0, p, "p", MATRIX_DIM, hat, DOF, (1.0,), rows=4, size=3)
     w = M[..., 3, 3, None, None]
     return (J[..., :3, :] - act(M0, p).unsqueeze(-1) * J[..., 3:, :]) / w
 

@@ -41,11 +41,6 @@ def hat(theta: torch.Tensor) -> torch.Tensor:
     return _rot(torch.zeros_like(t), t)
 
 
-# hat(e_j) for j < DOF, (DOF, n, n) float64 on the CPU: the basis of the CPU paths
-# (blocks.generators); built once, as every call would rebuild the same constant
-GENERATORS = hat(torch.eye(DOF, dtype=torch.float64))
-
-
 def vee(X: torch.Tensor) -> torch.Tensor:
     """The skew part of X: (X10 - X01) / 2."""
     checks.matrix(X, MATRIX_DIM, "X")
@@ -125,7 +120,7 @@ def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 def act_jacobian(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """d act(C exp(xi^), p) / d xi at 0 (..., 2, DOF), the right perturbation."""
-    return B.act_homogeneous_jacobian(C, p, "p", MATRIX_DIM, hat, GENERATORS, rows=2)
+    return B.act_homogeneous_jacobian(C, p, "p", MATRIX_DIM, hat, DOF, rows=2)
 
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

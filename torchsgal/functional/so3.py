@@ -35,11 +35,6 @@ def hat(phi: torch.Tensor) -> torch.Tensor:
     return B.skew(B.first(phi))
 
 
-# hat(e_j) for j < DOF, (DOF, n, n) float64 on the CPU: the basis of the CPU paths
-# (blocks.generators); built once, as every call would rebuild the same constant
-GENERATORS = hat(torch.eye(DOF, dtype=torch.float64))
-
-
 def vee(X: torch.Tensor) -> torch.Tensor:
     """Vector of the skew part of X."""
     checks.matrix(X, MATRIX_DIM, "X")
@@ -145,7 +140,7 @@ def act(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 def act_jacobian(C: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """d act(C exp(xi^), p) / d xi at 0 (..., 3, DOF), the right perturbation."""
-    return B.act_homogeneous_jacobian(C, p, "p", MATRIX_DIM, hat, GENERATORS)
+    return B.act_homogeneous_jacobian(C, p, "p", MATRIX_DIM, hat, DOF)
 
 
 def act_direction(C: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

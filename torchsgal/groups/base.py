@@ -400,7 +400,7 @@ class LieGroup(MatrixBatch):
         """M hat(e_j) for j < dof: (dof, *M.shape), as one matrix product (M's rows against the
         basis matrices side by side)."""
         n, dof = M.shape[-1], cls.dof
-        hats = blocks.generators(cls._f.GENERATORS, cls._f.hat, M)  # (dof, n, n)
+        hats = blocks.generators(cls._f.hat, dof, M)  # (dof, n, n)
         prod = M.reshape(-1, n) @ hats.permute(1, 0, 2).reshape(n, dof * n)  # (rows, dof * n)
         return prod.reshape(M.shape[:-1] + (dof, n)).movedim(-2, 0)
 

@@ -52,7 +52,7 @@ def sample_times(times, samples: LieGroup, name: str = "times") -> torch.Tensor:
         raise ValueError(f"{name} must have shape (..., {n}) (one stamp per sample), got "
                          f"{tuple(times.shape)}")
     try:
-        torch.broadcast_shapes(times.shape[:-1], samples.batch_shape[:-1])
+        checks.broadcast_shapes(times.shape[:-1], samples.batch_shape[:-1])
     except RuntimeError:
         raise ValueError(f"batch shapes do not broadcast: {name} {tuple(times.shape[:-1])}, "
                          f"samples {tuple(samples.batch_shape[:-1])}") from None

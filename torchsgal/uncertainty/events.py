@@ -60,7 +60,7 @@ def near_inertial_relative_frame(tau: torch.Tensor, t_hat: torch.Tensor) -> SGal
 
 def _event_columns(x: torch.Tensor) -> torch.Tensor:
     """The 4 x 10 matrix of eps -> I4^T eps^ x for a homogeneous 5-vector x (..., 5)."""
-    hats = blocks.generators(sgal3.GENERATORS, SGal3.hat, x)  # (10, 5, 5)
+    hats = blocks.generators(sgal3.hat, 10, x)  # (10, 5, 5)
     return torch.einsum("jab,...b->...aj", hats, x)[..., :4, :]
 
 

@@ -334,7 +334,7 @@ class ConcentratedGaussian:
         pads = {"act": [0.0] * (n - k - 1) + [1.0] if n > k else [],
                 "act_velocity": [1.0] + [0.0] * (n - k - 1), "act_direction": [0.0] * (n - k)}[fn_name]
         xh = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in pads], dim=-1)
-        hats = blocks.generators(self.group._f.GENERATORS, self.group.hat, x)  # (dof, n, n)
+        hats = blocks.generators(self.group._f.hat, self.dof, x)  # (dof, n, n)
         Y = torch.einsum("jab,...b->...ja", hats, xh)
         Hfull = torch.einsum("...ab,...jb->...aj", M, Y)  # (..., n, dof)
         H, Jx = Hfull[..., :k, :], M[..., :k, :k]
