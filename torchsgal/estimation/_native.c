@@ -33,7 +33,7 @@
 #define SIN sinf
 #define COS cosf
 #define SQRT sqrtf
-#define ATAN2 atan2f
+#define ATAN2 atan2_f32
 #include "../functional/_native_sgal3.h"
 #define T float
 #define SFX f32
@@ -60,7 +60,7 @@
 #define SQRT sqrtf
 #define SIN sinf
 #define COS cosf
-#define ATAN2 atan2f
+#define ATAN2 atan2_f32
 #include "_native_factors.h"
 #include "_native_normal.h"
 #include "_native_block_cholesky.h"

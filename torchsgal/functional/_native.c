@@ -28,7 +28,7 @@
 #define SIN sinf
 #define COS cosf
 #define SQRT sqrtf
-#define ATAN2 atan2f
+#define ATAN2 atan2_f32
 #include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
 
 #define T double
@@ -37,7 +37,7 @@
 #include "_native_se2.h"  /* undefines T, SFX and ATAN2 */
 #define T float
 #define SFX f32
-#define ATAN2 atan2f
+#define ATAN2 atan2_f32
 #include "_native_se2.h"
 
 #define T double

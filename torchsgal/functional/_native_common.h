@@ -29,6 +29,41 @@
 #define WIDE_LOOPS
 #endif
 
+/* c ? a : b by masks on the bits (compilers branch on a float select, and a branch on data
+ * is mispredicted half the time) */
+static inline float select_f32(int c, float a, float b) {
+    uint32_t ua, ub, m = (uint32_t)0 - (uint32_t)(c != 0);
+    memcpy(&ua, &a, 4);
+    memcpy(&ub, &b, 4);
+    ub = (ua & m) | (ub & ~m);
+    memcpy(&b, &ub, 4);
+    return b;
+}
+
+/* atan2 for float32 (the kernels' ATAN2 there): glibc's atan2f costs 15-18 ns a call, most of an
+ * SO(3) log.  Cephes' atanf (range reduction to |a| <= tan(pi/8), a degree-4 polynomial in a^2;
+ * relative error below 3e-7) on min/max(|x|, |y|), then the octant and quadrant, chosen without
+ * branches (select_f32), and one division.  NaN in, NaN out; an infinite argument as libm.
+ * Float64 keeps libm's atan2. */
+static inline float atan2_f32(float y, float x) {
+    const float ax = fabsf(x), ay = fabsf(y);
+    const int swap = ay > ax;
+    float mx = select_f32(swap, ay, ax), mn = select_f32(swap, ax, ay);
+    if (mx == INFINITY) {  /* rare: the ratio by hand (inf / inf is NaN) */
+        mn = mn == INFINITY ? 1.0f : 0.0f;
+        mx = 1.0f;
+    }
+    const int big = mn > 0.4142135623730950f * mx;  /* mn / mx > tan(pi/8) */
+    const float num = select_f32(big, mn - mx, mn), den = select_f32(big, mn + mx, mx);
+    const float a = num / select_f32(den > 0.0f, den, 1.0f), z = a * a;
+    float r = ((((8.05374449538e-2f * z - 1.38776856032e-1f) * z + 1.99777106478e-1f) * z
+               - 3.33329491539e-1f) * z * a + a) + select_f32(big, 0.7853981633974483f, 0.0f);
+    r = select_f32(swap, 1.5707963267948966f - r, r);
+    r = select_f32(signbit(x) != 0, 3.1415926535897932f - r, r);
+    r = copysignf(r, y);
+    return select_f32(x != x || y != y, x + y, r);
+}
+
 #define MAX_TERMS 32
 static int TAYLOR_TERMS = 0;
 static double TAYLOR_C3[MAX_TERMS], TAYLOR_C4[MAX_TERMS], TAYLOR_C5[MAX_TERMS], TAYLOR_C6[MAX_TERMS];
