@@ -345,3 +345,37 @@ def test_left_factor_arguments():
         solve(lambda x, o, e: _rigid2d_jacobians(x, o, e, False))
     with pytest.raises(ValueError, match=r"Q of shape \(\.\.\., 2, 2\)"):
         solve(lambda x, o, e: _rigid2d_jacobians(x, o, e, True)[:3] + (torch.eye(3, dtype=f64),))
+
+
+def test_a_solve_leaves_no_reference_cycle_and_a_copy_runs_its_own_methods():
+    """The factor's residual and Jacobians are its methods bound on access: no reference cycle
+    (factor -> bound method -> factor) keeps its linearisation's tensors alive after a solve
+    until the cyclic collector runs, and a copy (what graph.add makes to give it a loss)
+    linearises itself, not the original."""
+    import copy
+    import gc
+
+    obs, truth = _line_data()
+    cov = torch.diag(torch.tensor([0.05, 0.05], dtype=f64) ** 2)
+    graph, factor = _line_graph(obs, cov, True, torch.zeros_like(truth))
+    fg.gauss_helmert(graph)
+    assert factor.linearisation is not None
+    gc.collect()
+    was = gc.get_debug()
+    gc.set_debug(gc.DEBUG_SAVEALL)
+    try:
+        graph, factor = _line_graph(obs, cov, True, torch.zeros_like(truth))
+        fg.gauss_helmert(graph)
+        del graph, factor
+        gc.collect()
+        left = [o for o in gc.garbage if isinstance(o, (torch.Tensor, fg.GaussHelmert))]
+    finally:
+        gc.garbage.clear()
+        gc.set_debug(was)
+    assert left == []
+    _, factor = _line_graph(obs, cov, True, torch.zeros_like(truth))
+    twin = copy.copy(factor)
+    assert twin.residual.__self__ is twin and twin.jacobians.__self__ is twin
+    assert factor.residual.__self__ is factor
+    with pytest.raises(AttributeError, match="residual"):
+        factor.residual = _line_condition
