@@ -103,15 +103,17 @@ def test_float32_kernels_angle_over_every_octant():
                                                      generator=torch.Generator().manual_seed(3)), dim=-1)
     C = so3.exp_impl(axis * theta.abs()[:, None]).float()
     torch.testing.assert_close(_op("so3_log")(C).double(), so3.log_impl(C.double()), rtol=3e-7, atol=1e-7)
-    exact = torch.eye(3).repeat(4, 1, 1)
+    exact = torch.eye(3).repeat(5, 1, 1)
     exact[1, :2, :2] = torch.tensor([[-1.0, 0.0], [0.0, -1.0]])  # atan2(+0, -1) = pi
     exact[2, :2, :2] = torch.tensor([[-1.0, 0.0], [-0.0, -1.0]])  # atan2(-0, -1) = -pi
     exact[3, :2, :2] = torch.tensor([[0.0, -1.0], [1.0, 0.0]])  # pi / 2
+    exact[4, :2, :2] = torch.tensor([[-0.0, 1.0], [-1.0, -0.0]])  # atan2(-1, -0) = -pi / 2
     angles = _op("se2_log")(exact)[:, 2]
-    assert angles.tolist() == torch.tensor([0.0, math.pi, -math.pi, math.pi / 2]).tolist()
-    bad = exact.clone()
-    bad[:, 0, 1] = float("nan")
-    assert torch.isnan(_op("se2_log")(bad)[:, 2]).all()
+    assert angles.tolist() == torch.tensor([0.0, math.pi, -math.pi, math.pi / 2, -math.pi / 2]).tolist()
+    for entry in ((0, 1), (0, 0)):  # NaN in atan2's y, and in its x
+        bad = exact.clone()
+        bad[:, entry[0], entry[1]] = float("nan")
+        assert torch.isnan(_op("se2_log")(bad)[:, 2]).all()
 
 
 @kernel_test

@@ -43,7 +43,7 @@ static inline float select_f32(int c, float a, float b) {
 /* atan2 for float32 (the kernels' ATAN2 there): glibc's atan2f costs 15-18 ns a call, most of an
  * SO(3) log.  Cephes' atanf (range reduction to |a| <= tan(pi/8), a degree-4 polynomial in a^2;
  * relative error below 3e-7) on min/max(|x|, |y|), then the octant and quadrant, chosen without
- * branches (select_f32), and one division.  NaN in, NaN out; an infinite argument as libm.
+ * branches (select_f32), and one division.  NaN in, NaN out; infinite and huge arguments as libm.
  * Float64 keeps libm's atan2. */
 static inline float atan2_f32(float y, float x) {
     const float ax = fabsf(x), ay = fabsf(y);
@@ -53,6 +53,9 @@ static inline float atan2_f32(float y, float x) {
         mn = mn == INFINITY ? 1.0f : 0.0f;
         mx = 1.0f;
     }
+    const float scale = select_f32(mx > 1.0e38f, 0.25f, 1.0f);  /* mn + mx stays finite */
+    mx *= scale;
+    mn *= scale;
     const int big = mn > 0.4142135623730950f * mx;  /* mn / mx > tan(pi/8) */
     const float num = select_f32(big, mn - mx, mn), den = select_f32(big, mn + mx, mx);
     const float a = num / select_f32(den > 0.0f, den, 1.0f), z = a * a;

@@ -18,9 +18,8 @@ import math
 
 import torch
 
-from .._compat import fake_tensor_mode_active
 from . import checks, numerics
-from ._blocking import _is_wrapped, is_compiling
+from ._blocking import _is_wrapped
 
 
 # ------------------------------------------------------------------------- layout
@@ -340,12 +339,11 @@ _GENERATORS: dict = {}
 def generators(hat, dof: int, like: torch.Tensor) -> torch.Tensor:
     """hat(e_j) for j < dof, (dof, n, n), in ``like``'s dtype and on its device: a constant,
     cached per group (its ``hat``), dtype and device, as rebuilding it costs 20-25 us of small
-    operations a call.  Under a fake-tensor trace or torch.compile it is built fresh (a cached real
-    tensor cannot mix with fake ones, and would be a guarded graph input), and only plain tensors
-    are cached (not the inference tensors or torch.func wrappers of a first call), as
-    ``numerics._series_constants``."""
+    operations a call.  Built fresh where ``numerics.fresh_constants`` says so (a fake-tensor
+    trace, torch.compile, a CUDA graph's capture), and only plain tensors are cached (not the
+    inference tensors or torch.func wrappers of a first call), as ``numerics._series_constants``."""
     key = (hat, like.dtype, like.device)
-    fresh = is_compiling() or fake_tensor_mode_active()
+    fresh = numerics.fresh_constants(like.device)
     basis = None if fresh else _GENERATORS.get(key)
     if basis is None:
         basis = hat(torch.eye(dof, dtype=like.dtype, device=like.device))

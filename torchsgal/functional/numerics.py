@@ -78,17 +78,25 @@ def select(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor
 _CONSTANTS: dict = {}
 
 
+def fresh_constants(device: torch.device) -> bool:
+    """Whether constant tensors must be built anew rather than taken from (or put in) a cache:
+    under a fake-tensor trace (FakeTensorMode, outside torch.compile) a cached real tensor cannot
+    be mixed with the fake ones; under torch.compile a cached one would be a graph input whose
+    size gets guarded (and, with dynamic shapes, equated with a batch size of the same length);
+    while a CUDA graph is captured, the kernels that would fill a new constant are recorded,
+    not run."""
+    if is_compiling() or fake_tensor_mode_active():
+        return True
+    return device.type == "cuda" and torch.cuda.is_current_stream_capturing()
+
+
 def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
     """Taylor coefficients of c_(order-1), c_order, (TAYLOR_TERMS, 2), and 1/m! (order + 1,),
     as tensors (cached per dtype and device): tensor operands avoid the per-call conversion of
     Python scalars, which costs as much as the arithmetic at small batches."""
     key = (order, dtype, device)
-    # Under a fake-tensor trace (FakeTensorMode, outside torch.compile) a cached real tensor
-    # cannot be mixed with the fake ones, and under torch.compile a cached one would be a graph
-    # input whose size gets guarded (and, with dynamic shapes, equated with a batch size of the
-    # same length): build fresh constants (compiled: folded into the graph), cache untouched.
-    fake = not is_compiling() and fake_tensor_mode_active()
-    consts = None if fake or is_compiling() else _CONSTANTS.get(key)
+    fresh = fresh_constants(device)  # built anew, cache untouched (compiled: folded into the graph)
+    consts = None if fresh else _CONSTANTS.get(key)
     if consts is None:
         taylor = [[(-1.0) ** k / math.factorial(2 * k + m) for m in (order - 1, order)]
                   for k in range(TAYLOR_TERMS)]
@@ -98,7 +106,7 @@ def _series_constants(order: int, dtype: torch.dtype, device: torch.device):
         # Cache plain tensors only: not the fake or inference tensors of a tracing or
         # inference-mode first call, nor the wrappers of a first call inside a torch.func
         # transform (a cached wrapper broke every later transform of the process).
-        if not fake and not is_compiling() and all(
+        if not fresh and all(
                 type(t) is torch.Tensor and not t.is_inference()
                 and not _is_wrapped(t) for t in consts):
             _CONSTANTS[key] = consts

@@ -246,7 +246,7 @@ class GaussHelmert(Factor):
 
     @residual.setter
     def residual(self, value) -> None:
-        if value != self._residual:
+        if not _own_method(self, value, GaussHelmert._residual):
             raise AttributeError("a GaussHelmert factor's residual is its own condition's")
 
     @property
@@ -255,8 +255,13 @@ class GaussHelmert(Factor):
 
     @jacobians.setter
     def jacobians(self, value) -> None:
-        if value != self._jacobians:
+        if not _own_method(self, value, GaussHelmert._jacobians):
             raise AttributeError("a GaussHelmert factor's Jacobians are its own condition's")
+
+
+def _own_method(factor: GaussHelmert, value, function) -> bool:
+    """Whether ``value`` is ``function`` bound to ``factor`` (what Factor.__init__ assigns)."""
+    return getattr(value, "__self__", None) is factor and getattr(value, "__func__", None) is function
 
 
 def _batch(v) -> torch.Size:
