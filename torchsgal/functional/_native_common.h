@@ -53,9 +53,10 @@ static inline float atan2_f32(float y, float x) {
         mn = mn == INFINITY ? 1.0f : 0.0f;
         mx = 1.0f;
     }
-    const float scale = select_f32(mx > 1.0e38f, 0.25f, 1.0f);  /* mn + mx stays finite */
-    mx *= scale;
-    mn *= scale;
+    if (mx > 1.0e38f) {  /* rare (a predictable branch): mn + mx stays finite */
+        mx *= 0.25f;
+        mn *= 0.25f;
+    }
     const int big = mn > 0.4142135623730950f * mx;  /* mn / mx > tan(pi/8) */
     const float num = select_f32(big, mn - mx, mn), den = select_f32(big, mn + mx, mx);
     const float a = num / select_f32(den > 0.0f, den, 1.0f), z = a * a;
