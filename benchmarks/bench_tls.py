@@ -89,8 +89,8 @@ def main(argv=None) -> int:
     def batched(solve, variant):
         xs, covs, status, its = [], [], [], []
         t = 0.0
-        # one untimed solve first (the allocator's heap grows to the solver's blocks), as the
-        # paired passes below come after other solves
+        # one untimed solve first: first-call costs (lazy imports, caches, the heap's growth)
+        # stay out of the timings, as they do for the paired passes below
         solve(tls.subset(P, slice(0, args.chunk)), variant=variant, dtau0=cfg.nominal_dtau)
         for s in range(0, K, args.chunk):
             runs = [timed(lambda: solve(tls.subset(P, slice(s, s + args.chunk)), variant=variant,
