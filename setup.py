@@ -17,7 +17,7 @@ setup(
             "torchsgal.functional._native",
             sources=["torchsgal/functional/_native.c"],
             depends=common + ["torchsgal/functional/_native_products.h", "torchsgal/functional/_native_se2.h",
-                              "torchsgal/functional/_native_sim3.h"],
+                              "torchsgal/functional/_native_sim3.h", "torchsgal/functional/_native_lanes_f32.h"],
             extra_compile_args=args,
             libraries=libraries,
             optional=True,

@@ -117,6 +117,44 @@ def test_float32_kernels_angle_over_every_octant():
 
 
 @kernel_test
+def test_float32_so3_log_lanes_give_the_bits_of_the_per_element_loop(recorder):
+    """SO(3)'s float32 log runs eight elements per pass with both of rotation_log's paths and a
+    select (_native_lanes_f32.h), the tail of a batch element by element: an element's bits do not
+    depend on where it falls.  Rotations at every angle band (the series near 0, the symmetric
+    part near pi, pi exactly), the identity, matrices that are not rotations, huge entries (atan2's
+    rare branches: the pass is redone element by element), infinities and NaNs, shuffled; the
+    whole batch against batches of seven (fewer than a pass: only the per-element loop runs) and
+    against the batch shifted by three (every element in another lane)."""
+    gen = torch.Generator().manual_seed(11)
+    blocks = [torch.eye(3).expand(16, 3, 3)]
+    for angle in (1e-30, 1e-8, 1e-4, 1e-3, 0.1, 1.0, 2.0, 3.0, math.pi - 1e-3, math.pi - 1e-6, math.pi):
+        axis = torch.nn.functional.normalize(torch.randn(600, 3, dtype=torch.float64, generator=gen), dim=-1)
+        scale = torch.rand(600, 1, dtype=torch.float64, generator=gen) if angle < 3.0 else torch.ones(600, 1)
+        blocks.append(so3.exp_impl(angle * scale * axis).float())
+    for size in (1.0, 1e30, 1e38):
+        blocks.append(size * torch.randn(600, 3, 3, generator=gen))
+    special = torch.randn(600, 3, 3, generator=gen)
+    special[::7, 1, 0] = float("nan")
+    special[::5, 0, 0] = float("inf")
+    special[::11, 1, 1] = -float("inf")
+    blocks.append(special)
+    M = torch.cat(blocks)
+    M = M[torch.randperm(M.shape[0], generator=gen)].contiguous()
+    whole = _op("so3_log")(M)
+    sevens = torch.cat([_op("so3_log")(M[k:k + 7]) for k in range(0, M.shape[0], 7)])
+    shifted = _op("so3_log")(M[3:])
+    assert recorder.calls == ["so3_log"] * (2 + math.ceil(M.shape[0] / 7))  # every call ran the kernel
+
+    def same_bits(a, b):
+        return bool(((a.view(torch.int32) == b.view(torch.int32)) | (a.isnan() & b.isnan())).all())
+
+    assert same_bits(whole, sevens) and same_bits(whole[3:], shifted)
+    rotations = torch.cat(blocks[:12])  # against the float64 log of the same float32 matrices
+    torch.testing.assert_close(_op("so3_log")(rotations).double(), so3.log_impl(rotations.double()),
+                               rtol=3e-7, atol=1e-7)
+
+
+@kernel_test
 @pytest.mark.parametrize("name", [g for g in GROUPS if g != "se2"])
 def test_log_at_exactly_pi_and_the_identity(name):
     _, F = GROUPS[name]

@@ -30,6 +30,7 @@
 #define SQRT sqrtf
 #define ATAN2 atan2_f32
 #include "_native_sgal3.h"  /* undefines T, SFX and the math macros */
+#include "_native_lanes_f32.h"  /* SO(3) log over lanes, on the float32 loops above */
 
 #define T double
 #define SFX f64
@@ -95,7 +96,10 @@ WRAP_SUB(se2_log)
 WRAP_SUB(se2_jl)
 WRAP_SUB(se2_jl_inv)
 WRAP_SUB(so3_exp)
-WRAP_SUB(so3_log)
+static PyObject *py_so3_log(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;  /* float32 over lanes (_native_lanes_f32.h): the same bits as so3_log_range_f32 */
+    return dispatch(a, nargs, 2, so3_log_range_f64, so3_log_lanes_range_f32, 1, "so3_log");
+}
 WRAP_SUB(so3_jl)
 WRAP_SUB(so3_jl_inv)
 WRAP_SUB(se3_exp)

@@ -44,7 +44,21 @@ static inline float select_f32(int c, float a, float b) {
  * SO(3) log.  Cephes' atanf (range reduction to |a| <= tan(pi/8), a degree-4 polynomial in a^2;
  * relative error below 3e-7) on min/max(|x|, |y|), then the octant and quadrant, chosen without
  * branches (select_f32), and one division.  NaN in, NaN out; infinite and huge arguments as libm.
- * Float64 keeps libm's atan2. */
+ * Float64 keeps libm's atan2.  atan2_f32_reduced is its branch-free part, on the reduced
+ * arguments mx = max(|x|, |y|) (finite, at most 1e38), mn = min(|x|, |y|) and swap = |y| > |x|:
+ * it vectorises in a loop over lanes (_native_lanes_f32.h). */
+static inline float atan2_f32_reduced(float y, float x, float mx, float mn, int swap) {
+    const int big = mn > 0.4142135623730950f * mx;  /* mn / mx > tan(pi/8) */
+    const float num = select_f32(big, mn - mx, mn), den = select_f32(big, mn + mx, mx);
+    const float a = num / select_f32(den > 0.0f, den, 1.0f), z = a * a;
+    float r = ((((8.05374449538e-2f * z - 1.38776856032e-1f) * z + 1.99777106478e-1f) * z
+               - 3.33329491539e-1f) * z * a + a) + select_f32(big, 0.7853981633974483f, 0.0f);
+    r = select_f32(swap, 1.5707963267948966f - r, r);
+    r = select_f32(signbit(x) != 0, 3.1415926535897932f - r, r);
+    r = copysignf(r, y);
+    return select_f32((x != x) | (y != y), x + y, r);
+}
+
 static inline float atan2_f32(float y, float x) {
     const float ax = fabsf(x), ay = fabsf(y);
     const int swap = ay > ax;
@@ -57,15 +71,7 @@ static inline float atan2_f32(float y, float x) {
         mx *= 0.25f;
         mn *= 0.25f;
     }
-    const int big = mn > 0.4142135623730950f * mx;  /* mn / mx > tan(pi/8) */
-    const float num = select_f32(big, mn - mx, mn), den = select_f32(big, mn + mx, mx);
-    const float a = num / select_f32(den > 0.0f, den, 1.0f), z = a * a;
-    float r = ((((8.05374449538e-2f * z - 1.38776856032e-1f) * z + 1.99777106478e-1f) * z
-               - 3.33329491539e-1f) * z * a + a) + select_f32(big, 0.7853981633974483f, 0.0f);
-    r = select_f32(swap, 1.5707963267948966f - r, r);
-    r = select_f32(signbit(x) != 0, 3.1415926535897932f - r, r);
-    r = copysignf(r, y);
-    return select_f32(x != x || y != y, x + y, r);
+    return atan2_f32_reduced(y, x, mx, mn, swap);
 }
 
 #define MAX_TERMS 32
