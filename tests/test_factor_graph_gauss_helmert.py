@@ -242,6 +242,36 @@ def test_bad_input_names_the_argument():
         fg.gauss_helmert(graph, step_tol=-1.0)
     with pytest.raises(ValueError, match="update_below must be a finite number > 0"):
         fg.gauss_helmert(graph, update_below=0.0)
+    # the covariance and the corrections are named, with the sizes they must have
+    with pytest.raises(ValueError, match=r"covariance must have shape \(m, m\), \(E, m, m\) or "
+                                         r"\(B, E, m, m\) with E = 5 conditions, got \(3, 2, 2\)"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], cov.expand(3, 2, 2), data=[obs], dim=1)
+    with pytest.raises(ValueError, match=r"covariance must have shape \(m, m\), .* got \(2,\)"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], cov.diagonal(), data=[obs], dim=1)
+    with pytest.raises(TypeError, match="corrections has dtype torch.float32 but covariance has dtype torch.float64"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], cov, data=[obs], dim=1,
+                        corrections=torch.zeros(5, 2))
+    graph, _ = _line_graph(obs, cov, True, truth)
+    graph.factors[0].corrections = torch.zeros(3, 5, 2, dtype=f64)
+    with pytest.raises(ValueError, match=r"corrections of shape \(3, 5, 2\) for a graph of 2 problems: "
+                                         r"give \(E, m\) = \(5, 2\) or \(B, E, m\) = \(2, 5, 2\)"):
+        fg.gauss_helmert(graph)
+
+
+def test_a_factor_added_with_a_loss_gets_the_corrections():
+    """graph.add(factor, loss=...) stores a copy with the loss (the caller's factor keeps its
+    own): the solver's corrections are given to the caller's factor too."""
+    obs, truth = _line_data(B=2, E=6)
+    cov = 0.05 ** 2 * torch.eye(2, dtype=f64)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", torch.zeros_like(truth)[:, None, :])
+    factor = fg.GaussHelmert(_line_condition, [("x", torch.zeros(6, dtype=torch.int64))], cov,
+                             data=[obs], dim=1)
+    graph.add(factor, loss=fg.Huber(3.0))
+    assert graph.factors[0] is not factor and factor.loss is None
+    fg.gauss_helmert(graph)
+    assert factor.corrections is graph.factors[0].corrections
+    assert factor.corrections.shape == (2, 6, 2) and bool(factor.corrections.abs().amax() > 0)
 
 
 def _rigid2d(B=3, E=25, seed=3, sigma=0.02):

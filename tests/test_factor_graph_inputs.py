@@ -5,6 +5,8 @@ a damping start outside its bounds.  Each case is one the engine would otherwise
 another problem without a word, or fail in torch with another argument's name."""
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -107,6 +109,42 @@ def test_point_observation_checks_its_variables():
         graph.add(fg.PointObservation("x", [0, 1], "p", [0, 1], z[:, :2]))
     graph.add(fg.PointObservation("x", [0, 1], "p", [0, 1], z))
     assert len(graph.factors) == 1
+
+
+def test_a_residual_without_dim_and_noise_of_another_size_is_refused():
+    """Without dim the residual's size is known only when it is evaluated: the noise is checked
+    against it then, named (torch would fail in a matrix product)."""
+    for noise in (dict(information=torch.eye(3, dtype=f64)),
+                  dict(sqrt_information=torch.ones(4, 1, 1, dtype=f64))):
+        graph = fg.FactorGraph()
+        graph.add_variable("v", torch.zeros(4, 2, dtype=f64))
+        graph.add(fg.Factor(lambda v: v - 1, variables=[("v", torch.arange(4))], **noise))
+        name, = noise
+        with pytest.raises(ValueError, match=rf"{name} must be \(2, 2\), \(E, 2, 2\) or \(B, E, 2, 2\) "
+                                             rf"for a residual of size 2, got {re.escape(str(tuple(noise[name].shape)))}"):
+            fg.levenberg_marquardt(graph)
+
+
+def test_jacobians_must_be_callable():
+    with pytest.raises(TypeError, match="jacobians must be callable or None, got int"):
+        fg.Factor(lambda v: v, variables=[("v", torch.arange(4))], dim=2, jacobians=3)
+
+
+@pytest.mark.parametrize("value", [torch.zeros(0, 3, 2, dtype=f64), torch.zeros(3, 0, dtype=f64),
+                                   torch.zeros(0, 2, dtype=f64), ts.SE3.identity((0, 5), dtype=f64),
+                                   ts.SE3.identity((0,), dtype=f64)], ids=str)
+def test_an_empty_variable_is_refused(value):
+    """No problems, no elements or no entries: nothing a solve could return (the solvers failed
+    in torch's broadcasting, or in the block analysis with no variable named)."""
+    graph = fg.FactorGraph()
+    with pytest.raises(ValueError, match=r"variable 'v': a (tensor|group element) .* >= 1, got"):
+        graph.add_variable("v", value)
+
+
+def test_point_observation_measured_needs_its_factor_axis():
+    """A (point_dim,) measurement is refused even where E = point_dim (it was read as E points)."""
+    with pytest.raises(ValueError, match=r"measured must have shape \(E, point_dim\) or \(B, E, point_dim\), got \(3,\)"):
+        fg.PointObservation("x", [0, 0, 0], "p", [0, 1, 2], torch.tensor([1.0, 2.0, 3.0], dtype=f64))
 
 
 def test_marginal_covariance_takes_integer_indices_only():

@@ -187,6 +187,11 @@ def test_odometry_initial_guess_sphere2500_matches_gtsam_compose(data):
     ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n", r"do not match the edges"),
     ("VERTEX2 0 0 0 0\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n", r"vertex 1 of an edge has no vertex line"),
     ("VERTEX2 0 0 0 0\nVERTEX2 0 0 0 0\nEDGE2 0 0 1 0 0 1 0 1 1 0 0\n", r"more than one vertex line"),
+    ("EDGE2 0 99999999999999999999 1 0 0 1 0 1 1 0 0\n",
+     r":1: EDGE2 field 2, token '99999999999999999999', is not a vertex id \(an integer in \[0, 2\^63\)\)"),
+    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 0\n"
+     "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1\n",
+     r":2: VERTEX_SE3:QUAT fields 5-8, the quaternion \(qx qy qz qw\), are all zero"),
 ])
 def test_malformed_files(tmp_path, text, message):
     path = tmp_path / "bad.graph"
@@ -213,6 +218,32 @@ def test_write_errors(tmp_path):
     bad.poses = bad.poses[:3]
     with pytest.raises(ValueError, match=r"poses must be None or SE2 of batch \(6,\)"):
         write_pose_graph(tmp_path / "g", bad)
+
+
+def test_write_refuses_an_asymmetric_information(tmp_path):
+    """The formats hold the upper triangle: an asymmetric matrix would be read back as another
+    one.  Rounding-level asymmetry is written (as its upper triangle)."""
+    graph = random_graph(ts.SE2, edge_tag="EDGE_SE2")
+    W = graph.information.clone()
+    W[0, 0, 1] += 5.0
+    graph.information = W
+    with pytest.raises(ValueError, match=r"information must be symmetric .* got max \|W - W\^T\| = 5"):
+        write_pose_graph(tmp_path / "g", graph)
+    assert not (tmp_path / "g").exists()
+    W = W.clone()
+    W[0, 0, 1] = W[0, 1, 0] * (1 + 1e-15)
+    graph.information = W
+    write_pose_graph(tmp_path / "g", graph)
+    torch.testing.assert_close(read_pose_graph(tmp_path / "g").information[0, 1, 0], W[0, 0, 1])
+
+
+def test_odometry_initial_guess_checks_a_graph_made_by_hand():
+    """Edges outside [0, N) (a negative one would wrap around to the last vertex) are refused."""
+    graph = random_graph(ts.SE2, edge_tag="EDGE2")
+    for edges in (graph.edges.clone().index_fill_(1, torch.tensor([1]), -1), graph.edges + 10):
+        graph.edges = edges
+        with pytest.raises(ValueError, match=r"edges must hold positions in ids, in \[0, 5\]"):
+            odometry_initial_guess(graph)
 
 
 @pytest.mark.parametrize("spoil, message", [

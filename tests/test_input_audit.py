@@ -1,8 +1,9 @@
 """Bad input and edge values found by an audit of the public API, one test per defect:
 quaternions whose norm overflows or underflows, flags read by their truth value, the
-tolerance of check_covariance, Sim(3) gradients at large scale log, sparse tensors and
-strings where numbers are expected, the kernel switch shared between threads, and the
-attribution of host syncs to the library's frames."""
+tolerance of check_covariance, Sim(3) gradients at large scale log, sparse tensors, strings
+and other types where numbers, dims, shapes or generators are expected, a non-finite regression
+basis, the kernel switch shared between threads, and the attribution of host syncs to the
+library's frames."""
 from __future__ import annotations
 
 import threading
@@ -213,6 +214,16 @@ BAD_INPUTS = {
     "string-weights-riemannian": ("weights", lambda: regression.fit_riemannian_polynomial(
         *_fit_samples(), weights="abc")),
     "string-weights-frechet": ("weights", lambda: regression.frechet_mean(_fit_samples()[0], weights="abc")),
+    "sparse-gaussian": ("covariance", lambda: gaussian.ConcentratedGaussian(
+        ts.SE3.identity(dtype=F64), _sparse(torch.eye(6, dtype=F64)))),
+    "int-generator": ("generator", lambda: gaussian.ConcentratedGaussian(
+        ts.SE3.identity(dtype=F64), torch.eye(6, dtype=F64)).sample((2,), generator=1)),
+    "bool-dim-stack": ("dim", lambda: ts.SE3.stack([ts.SE3.identity(2), ts.SE3.identity(2)], dim=True)),
+    "string-dim-cat": ("dim", lambda: ts.SE3.cat([ts.SE3.identity(2), ts.SE3.identity(2)], dim="0")),
+    "bool-dim-unsqueeze": ("dim", lambda: ts.SE3.identity(2).unsqueeze(True)),
+    "float-dim-squeeze": ("dim", lambda: ts.SE3.identity((2, 1)).squeeze(1.0)),
+    "none-reshape": ("shape", lambda: ts.SE3.identity(2).reshape(None)),
+    "bool-expand": ("shape", lambda: ts.SE3.identity(2).expand(True, 2)),
 }
 
 
@@ -280,6 +291,13 @@ def test_host_sync_caller_ignores_a_virtualenv_inside_a_checkout_named_torchsgal
     assert host_syncs._caller() == f"{library}:42"
     stack = traceback.StackSummary.from_list([(test_file, 5, "test", ""), (venv_torch, 7, "__bool__", "")])
     assert host_syncs._caller() == "?"
+
+
+def test_a_non_finite_regression_basis_is_refused():
+    """fit_polynomial's basis is checked finite, as its weights and times (the SVD failed in
+    torch, naming no argument)."""
+    with pytest.raises(ValueError, match="^basis must be finite"):
+        regression.fit_polynomial(*_fit_samples(), 1, basis=torch.full((6, 1), float("nan"), dtype=F64))
 
 
 def test_unvalidated_non_positive_definite_covariance_names_the_covariance():

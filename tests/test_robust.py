@@ -72,6 +72,20 @@ def test_scale_is_checked():
         fg.Huber(0.0)
     with pytest.raises(ValueError, match="scale"):
         fg.Cauchy(float("nan"))
+    # a^2 and a^4 must be normal numbers (1e200 ** 2 overflows; 1e-200 ** 2 is 0: NaN costs)
+    for loss in (fg.Huber, fg.Cauchy, fg.GemanMcClure, fg.Tukey):
+        for a in (1e200, 1e-200):
+            with pytest.raises(ValueError, match=r"scale must be within \[1e-75, 1e75\]"):
+                loss(a)
+    s = torch.tensor([0.0, 1e-300, 1.0, 1e300], dtype=f64)
+    for loss in (fg.Huber(1e-75), fg.Cauchy(1e-75), fg.GemanMcClure(1e75), fg.Tukey(1e75)):
+        assert all(torch.isfinite(v).all() for v in loss.evaluate(s[:3])), loss
+
+
+def test_a_negative_squared_norm_is_refused():
+    for loss in (fg.Huber(1.0), fg.Cauchy(1.0), fg.GemanMcClure(1.0), fg.Tukey(1.0), fg.TrivialLoss()):
+        with pytest.raises(ValueError, match=r"s must be >= 0 \(a squared whitened norm\), got a minimum of -2"):
+            loss(torch.tensor([1.0, -2.0], dtype=f64))
 
 
 class _Convex(RobustLoss):

@@ -132,10 +132,11 @@ def read_pose_graph(path: str | os.PathLike) -> PoseGraph:
     ids = torch.unique(torch.cat([vertex_ids, pairs.reshape(-1)]))  # sorted
     poses = None
     if vertex_data is not None:
-        missing = ids[~torch.isin(ids, vertex_ids)]
-        if missing.numel():
-            raise ValueError(f"{path}: vertex {int(missing[0])} of an edge has no vertex line "
-                             f"({missing.numel()} such vertices)")
+        present = torch.isin(ids, vertex_ids)
+        if not bool(present.all()):
+            first = int(ids[int(torch.argmin(present.to(torch.int8)))])
+            raise ValueError(f"{path}: vertex {first} of an edge has no vertex line "
+                             f"({int((~present).sum())} such vertices)")
         order = torch.argsort(vertex_ids)
         poses = _pose(vertex_tag, vertex_data[order])
     measurements, information = _edge(edge_tag, data)
@@ -176,6 +177,7 @@ def odometry_initial_guess(graph: PoseGraph) -> SE3 | SE2:
     identity and its second at ``T_i Z_ij``; vertices no edge reaches stay at the identity.
     Sequential by nature (each pose depends on the one before), so it runs on the host once."""
     _pose_graph(graph)
+    _check_graph(graph)
     M = graph.measurements.as_matrix().detach().cpu().numpy()
     poses = np.tile(np.eye(M.shape[-1]), (graph.ids.numel(), 1, 1))
     placed = np.zeros(graph.ids.numel(), dtype=bool)
@@ -206,6 +208,14 @@ def _check_graph(graph: PoseGraph) -> None:
                         f"{type(graph.measurements).__name__}")
     if graph.information.shape != (E, d, d):
         problems.append(f"information must have shape ({E}, {d}, {d}), got {tuple(graph.information.shape)}")
+    elif not graph.information.is_floating_point():
+        problems.append(f"information must be floating point, got {graph.information.dtype}")
+    elif E:  # the formats store one triangle: an asymmetric matrix would come back as another
+        W = graph.information.detach()
+        asym = float((W - W.mT).abs().amax())
+        if asym > 1e3 * torch.finfo(W.dtype).eps * float(W.abs().amax()):
+            problems.append(f"information must be symmetric (the files hold its upper triangle), "
+                            f"got max |W - W^T| = {asym:.3g}")
     if graph.poses is not None and (not isinstance(graph.poses, graph.group)
                                     or graph.poses.batch_shape != (n,)):
         problems.append(f"poses must be None or {graph.group.__name__} of batch ({n},)")
@@ -233,9 +243,9 @@ def _numbers(tokens: list[str], n_ids: int, n_values: int, path, number: int):
                          f"({n_ids} ids, {n_values} numbers), got {len(tokens) - 1}")
     ids = []
     for k, t in enumerate(tokens[1:1 + n_ids], start=1):
-        if not (t.isascii() and t.isdigit()):
+        if not (t.isascii() and t.isdigit()) or int(t) >= 2 ** 63:
             raise ValueError(f"{path}:{number}: {tag} field {k}, token {t!r}, is not a vertex id "
-                             f"(an integer >= 0)")
+                             f"(an integer in [0, 2^63))")
         ids.append(int(t))
     try:
         values = np.array(tokens[1 + n_ids:], dtype=np.float64)
@@ -250,6 +260,9 @@ def _numbers(tokens: list[str], n_ids: int, n_values: int, path, number: int):
                 v = math.nan
             if not math.isfinite(v):
                 raise ValueError(f"{path}:{number}: {tag} field {k}, token {t!r}, is not a finite number")
+    if tag.endswith(":QUAT") and not values[3:7].any():
+        raise ValueError(f"{path}:{number}: {tag} fields {n_ids + 4}-{n_ids + 7}, the quaternion "
+                         f"(qx qy qz qw), are all zero: no rotation")
     return ids, values
 
 

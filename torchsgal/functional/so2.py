@@ -54,7 +54,8 @@ def exp_impl(theta: torch.Tensor) -> torch.Tensor:
 
 
 def log_impl(C: torch.Tensor) -> torch.Tensor:
-    """theta = atan2(C10, C00) in (-pi, pi]."""
+    """theta = atan2 of C's skew and symmetric parts, in [-pi, pi]: -pi at a half turn whose
+    skew part is -0 or rounds below zero (exp(-pi)), as atan2 gives it."""
     checks.matrix(C, MATRIX_DIM, "M")
     return torch.atan2(0.5 * (C[..., 1, 0] - C[..., 0, 1]), 0.5 * (C[..., 0, 0] + C[..., 1, 1])).unsqueeze(-1)
 

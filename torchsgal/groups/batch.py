@@ -8,6 +8,7 @@ built by the class's ``_new`` from the matrices' batch axes.
 """
 from __future__ import annotations
 
+import numbers
 from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -132,8 +133,7 @@ class MatrixBatch:
 
     def reshape(self, *shape: Any) -> Self:
         """A new batch shape (one -1 allowed), as torch.reshape on the batch axes."""
-        if len(shape) == 1 and not isinstance(shape[0], int):
-            shape = tuple(shape[0])
+        shape = _sizes(shape, "shape")
         n = self.matrix_dim
         try:
             return type(self)._new(self._matrix.reshape(*shape, n, n))
@@ -154,8 +154,7 @@ class MatrixBatch:
 
     def expand(self, *shape: Any) -> Self:
         """The elements broadcast to the batch shape ``shape`` (a view, as Tensor.expand)."""
-        if len(shape) == 1 and not isinstance(shape[0], int):
-            shape = tuple(shape[0])
+        shape = _sizes(shape, "shape")
         n = self.matrix_dim
         why = f"cannot expand the batch shape {tuple(self.batch_shape)} of this {type(self).__name__} to {tuple(shape)}"
         if len(shape) < len(self.batch_shape):
@@ -242,8 +241,22 @@ class MatrixBatch:
         return type(self)._new(self._matrix.clone())
 
 
+def _sizes(shape: tuple, name: str) -> tuple:
+    """The sizes of ``reshape(*shape)`` / ``reshape(shape)`` (ints, -1 among them; bool refused)."""
+    if len(shape) == 1 and not isinstance(shape[0], (numbers.Integral, torch.SymInt)):
+        try:
+            shape = tuple(shape[0])
+        except TypeError:
+            raise TypeError(f"{name} must be ints or one sequence of ints, got {shape[0]!r}") from None
+    for size in shape:
+        if isinstance(size, bool) or not isinstance(size, (numbers.Integral, torch.SymInt)):
+            raise TypeError(f"{name} must be ints or one sequence of ints, got {size!r} in {shape!r}")
+    return shape
+
+
 def _batch_axis(dim: int, n_axes: int, name: str) -> int:
     """``dim`` in [-n_axes, n_axes) as a non-negative axis; the matrix axes are never counted."""
+    dim = checks.integer(dim, name)
     if not -n_axes <= dim < n_axes:
         raise IndexError(f"{name} must be in [{-n_axes}, {n_axes - 1}] (batch axes only), got {dim}")
     return dim % n_axes

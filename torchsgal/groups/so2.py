@@ -25,7 +25,8 @@ class SO2(LieGroup):
         return cls._new(C)
 
     def angle(self) -> torch.Tensor:
-        """theta in (-pi, pi] (...)."""
+        """theta in [-pi, pi] (...), the log's: -pi at a half turn whose sine entry is -0 or rounds
+        below zero (SO2.exp(-pi)), as atan2 gives it."""
         return self.log()[..., 0]
 
     def act(self, p: torch.Tensor, point_axes: int = 0) -> torch.Tensor:

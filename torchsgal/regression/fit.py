@@ -175,6 +175,7 @@ def _basis(basis, G, like):
         raise ValueError(f"basis must have shape ({G.dof}, m) with 1 <= m <= {G.dof}, got "
                          f"{tuple(basis.shape)}")
     checks.same_device_dtype(samples=like, basis=basis)
+    _checks.read_values(_checks.finite_values(basis, "basis"))
     return basis
 
 

@@ -110,7 +110,11 @@ def _supported_factor(S: torch.Tensor, allow_singular: bool):
     """(M, keep, whiten): M (..., dof, dof) with M M^T = S, keep (..., dof) the supported
     directions, and whiten(xi) -> (z, log pseudo-determinant of S) with |z| the norm of xi's
     supported part in the metric S^+.  Known (zero) directions: a Cholesky factor of
-    _with_known_directions(S) (S itself where none is zero); ``allow_singular``: eigenvectors."""
+    _with_known_directions(S) (S itself where none is zero).  ``allow_singular``: the support
+    is spanned by the eigenvectors U of S whose eigenvalues exceed the tolerance, and S is
+    factored there as the Cholesky factor of U^T S U on it (the identity elsewhere), U held as
+    a constant: the derivatives are those of S's restriction to its support, finite also where
+    eigenvalues repeat (an isotropic covariance), where eigh's are not."""
     if not allow_singular:
         keep = ~_known_directions(S)
         L, info = torch.linalg.cholesky_ex(_sym(_with_known_directions(S)))
@@ -122,12 +126,18 @@ def _supported_factor(S: torch.Tensor, allow_singular: bool):
             z = torch.linalg.solve_triangular(L, (xi * keep).unsqueeze(-1), upper=False).squeeze(-1)
             return z, 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
         return L * keep.unsqueeze(-1), keep, whiten
-    lam, U = torch.linalg.eigh(_sym(S))
-    scale = S.abs().amax(dim=(-1, -2), keepdim=True).squeeze(-1)
+    sym = _sym(S)
+    lam, U = torch.linalg.eigh(sym.detach())
+    scale = S.detach().abs().amax(dim=(-1, -2), keepdim=True).squeeze(-1)
     keep = lam > _default_tol(S, None) * scale
-    safe = torch.where(keep, lam, torch.ones_like(lam))
+    both = keep.unsqueeze(-1) & keep.unsqueeze(-2)
+    # U^T S U on the support (diag(lam) but for rounding, and differentiable in S), the identity
+    # on the rest: eigh sorts the dropped (smallest) eigenvalues first, so L = blockdiag(I, L_kept)
+    restricted = torch.where(both, U.mT @ sym @ U, torch.zeros_like(sym)) + \
+        torch.diag_embed((~keep).to(S.dtype))
+    L = torch.linalg.cholesky_ex(restricted)[0]
 
     def whiten_eigen(xi):
-        z = torch.where(keep, _mv(U.transpose(-1, -2), xi) / safe.sqrt(), torch.zeros_like(lam))
-        return z, torch.log(safe).sum(-1)
-    return U * torch.where(keep, safe.sqrt(), torch.zeros_like(lam)).unsqueeze(-2), keep, whiten_eigen
+        z = torch.linalg.solve_triangular(L, (_mv(U.mT, xi) * keep).unsqueeze(-1), upper=False).squeeze(-1)
+        return z, 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    return U @ (L * keep.unsqueeze(-2)), keep, whiten_eigen

@@ -93,6 +93,7 @@ class ConcentratedGaussian:
                 f"covariance must have shape (..., {dof}, {dof}) for {type(mean).__name__}, "
                 f"got {tuple(covariance.shape)}"
             )
+        checks.dense(covariance, "covariance")
         if covariance.dtype != mean.dtype or covariance.device != mean.device:
             # a dtype mismatch is a TypeError, a device mismatch a ValueError (as checks.same_device_dtype)
             error = ValueError if covariance.device != mean.device else TypeError
@@ -169,6 +170,8 @@ class ConcentratedGaussian:
         """Reparameterised samples, batch ``sample_shape + batch_shape``; gradients flow to the
         mean and the covariance (through its Cholesky factor)."""
         sample_shape = checks.shape(sample_shape, "sample_shape")
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator must be None or a torch.Generator, got {type(generator).__name__}")
         L = _supported_factor(self.covariance, self.allow_singular)[0]
         batch = self.batch_shape
         eps = torch.randn(*sample_shape, *batch, self.dof, dtype=L.dtype, device=L.device,

@@ -89,6 +89,8 @@ class Factor:
                  loss: RobustLoss | None = None, jacobians: Callable | None = None):
         if not callable(residual):
             raise TypeError(f"residual must be callable, got {type(residual).__name__}")
+        if jacobians is not None and not callable(jacobians):
+            raise TypeError(f"jacobians must be callable or None, got {type(jacobians).__name__}")
         self.residual = residual
         self.jacobians = jacobians
         if not isinstance(variables, (list, tuple)) or not variables:
@@ -203,7 +205,7 @@ class PointObservation(Factor):
                  information: torch.Tensor | None = None,
                  sqrt_information: torch.Tensor | None = None, loss: RobustLoss | None = None):
         measured = checks.floating(measured, "measured")
-        if measured.dim() < 1:
+        if measured.dim() not in (2, 3):
             raise ValueError(f"measured must have shape (E, point_dim) or (B, E, point_dim), got "
                              f"{tuple(measured.shape)}")
         super().__init__(_point_residual, [(pose, i), (point, j)], data=[measured],

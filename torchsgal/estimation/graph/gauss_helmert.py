@@ -81,7 +81,8 @@ class GaussHelmert(Factor):
                    ``corrections``; False: the paper-style form, always at e = 0.
     corrections    the initial corrections (E, m) or (B, E, m); default zeros.  After
                    ``gauss_helmert`` it holds the estimated corrections (B, E, m) (or (E, m)
-                   for an unbatched graph).
+                   for an unbatched graph), also where the graph holds a copy of the factor
+                   (``graph.add(factor, loss=...)``).
     """
 
     def __init__(self, condition: Callable, variables: Sequence[tuple[str, object]],
@@ -98,11 +99,10 @@ class GaussHelmert(Factor):
             raise ValueError("left_factor=True needs jacobians (they return the factor Q)")
         self.condition = condition
         self.condition_jacobians = jacobians
-        check_covariance(covariance, covariance.shape[-1] if isinstance(covariance, torch.Tensor)
-                         and covariance.dim() >= 2 else 0, "covariance")
-        if covariance.dim() > 4:
-            raise ValueError(f"covariance must have shape (m, m), (E, m, m) or (B, E, m, m), got "
-                             f"{tuple(covariance.shape)}")
+        if not isinstance(covariance, torch.Tensor) or not 2 <= covariance.dim() <= 4:
+            got = tuple(covariance.shape) if isinstance(covariance, torch.Tensor) else type(covariance).__name__
+            raise ValueError(f"covariance must have shape (m, m), (E, m, m) or (B, E, m, m), got {got}")
+        check_covariance(covariance, covariance.shape[-1], "covariance")
         self.m = covariance.shape[-1]
         off = covariance - torch.diag_embed(covariance.diagonal(dim1=-2, dim2=-1))
         self.diagonal = not bool(off.any())
@@ -113,6 +113,9 @@ class GaussHelmert(Factor):
         self.user_data = tuple(data)
         super().__init__(self._residual, variables, data=(*self.user_data, factor),
                          dim=dim, jacobians=self._jacobians)
+        if covariance.dim() >= 3 and covariance.shape[-3] != self.size:
+            raise ValueError(f"covariance must have shape (m, m), (E, m, m) or (B, E, m, m) with "
+                             f"E = {self.size} conditions, got {tuple(covariance.shape)}")
         self.covariance = covariance
         if corrections is not None:
             corrections = checks.floating(corrections, "corrections")
@@ -120,8 +123,12 @@ class GaussHelmert(Factor):
                     corrections.shape[-2] != self.size:
                 raise ValueError(f"corrections must have shape (E, m) or (B, E, m) = (..., "
                                  f"{self.size}, {self.m}), got {tuple(corrections.shape)}")
+            checks.same_device_dtype(covariance=covariance, corrections=corrections)
             corrections = corrections.detach().clone()
         self.corrections: torch.Tensor | None = corrections
+        # the caller's factor where the graph holds a copy (graph.add with a loss): the solver's
+        # corrections are also given to it
+        self.source: GaussHelmert | None = None
         # (L, Bm e) of the iterated form at its linearisation point, and Q with left_factor
         self.linearisation: tuple[torch.Tensor, ...] | None = None
         # between the engine's calls: whether to re-linearise S and Bm e at the current point,

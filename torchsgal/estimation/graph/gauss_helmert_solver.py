@@ -93,7 +93,11 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
              step_tol=step_tol, cost_tests=cost_tests,
              update_below=math.inf if update_below is None else update_below,
              corrections_tol=corrections_tol, linear_solver=linear_solver, round=_gauss_helmert_round)
-    return _solve(graph, max_iterations, "none", o)
+    solution = _solve(graph, max_iterations, "none", o)
+    for f in graph.factors:  # the caller's factors behind the graph's copies
+        if isinstance(f, GaussHelmert) and f.iterated and f.source is not None:
+            f.source.corrections = f.corrections
+    return solution
 
 
 def _prepare_states(graph: FactorGraph) -> None:
@@ -115,6 +119,10 @@ def _prepare_states(graph: FactorGraph) -> None:
         assert k is not None  # required by GaussHelmert
         shape = lead + (f.size, f.m)
         e = f.corrections
+        if e is not None and e.dim() == 3 and (B is None or e.shape[0] != B):
+            raise ValueError(f"{f!r}: corrections of shape {tuple(e.shape)} for a graph of "
+                             f"{'no batch' if B is None else f'{B} problems'}: give (E, m) = "
+                             f"({f.size}, {f.m}){'' if B is None else f' or (B, E, m) = ({B}, {f.size}, {f.m})'}")
         e = leaf.new_zeros(shape) if e is None else e.to(leaf).expand(shape).clone()
         f.corrections = e
         f.linearisation = (leaf.new_zeros(lead + (f.size, k, k)), leaf.new_zeros(lead + (f.size, k)))

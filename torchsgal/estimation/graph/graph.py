@@ -9,6 +9,7 @@ import torch
 from ...functional import checks
 from ...groups import LieGroup
 from .factors import Between, Factor, PointObservation, Prior
+from .gauss_helmert import GaussHelmert
 from .robust import RobustLoss
 
 __all__ = ["FactorGraph"]
@@ -45,12 +46,18 @@ class FactorGraph:
                 raise ValueError(f"variable {name!r}: a group element of batch (N,) or (B, N), "
                                  f"got batch {tuple(value.batch_shape)}")
             batch = value.batch_shape[0] if nd == 2 else None
+            if value.batch_shape.numel() == 0:
+                raise ValueError(f"variable {name!r}: a group element of batch (N,) or (B, N) with "
+                                 f"B, N >= 1, got batch {tuple(value.batch_shape)}")
         elif isinstance(value, torch.Tensor):
             checks.floating(value, name)
             if value.dim() not in (2, 3):
                 raise ValueError(f"variable {name!r}: a tensor (N, k) or (B, N, k), got shape "
                                  f"{tuple(value.shape)}")
             batch = value.shape[0] if value.dim() == 3 else None
+            if value.numel() == 0:
+                raise ValueError(f"variable {name!r}: a tensor (N, k) or (B, N, k) with B, N, k >= 1, "
+                                 f"got shape {tuple(value.shape)}")
         else:
             raise TypeError(f"variable {name!r}: expected a group element or a tensor, got "
                             f"{type(value).__name__}")
@@ -73,8 +80,10 @@ class FactorGraph:
         if loss is not None:
             if not isinstance(loss, RobustLoss):
                 raise TypeError(f"loss must be a RobustLoss or None, got {type(loss).__name__}")
-            factor = copy.copy(factor)  # the caller's factor keeps its own loss
+            source, factor = factor, copy.copy(factor)  # the caller's factor keeps its own loss
             factor.loss = loss
+            if isinstance(factor, GaussHelmert):  # gauss_helmert's corrections reach the caller's too
+                factor.source = source
         for name, idx in factor.slots:
             if name not in self.variables:
                 raise KeyError(f"factor {factor!r} reads variable {name!r}, which is not in the "

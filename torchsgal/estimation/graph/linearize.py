@@ -141,6 +141,12 @@ def _check_residual(block: Block, r, B: int) -> None:
     if len(lead) > 2 or any(n not in (1, m) for n, m in zip(lead[::-1], (block.size, B))):
         raise ValueError(f"{f!r}: the residual's shape {tuple(r.shape)} does not broadcast to "
                          f"(B, E, dim) = ({B}, {block.size}, {r.shape[-1]})")
+    L, m = block.sqrt_info, r.shape[-1]
+    if L is not None and tuple(L.shape[-2:]) != (m, m):  # a factor without dim: known only now
+        name, noise = ("information", f.information) if f.information is not None else \
+            ("sqrt_information", f.sqrt_information)
+        raise ValueError(f"{f!r}: {name} must be ({m}, {m}), (E, {m}, {m}) or (B, E, {m}, {m}) for "
+                         f"a residual of size {m}, got {tuple(noise.shape)}")
 
 
 def _args(block: Block, x: list[torch.Tensor]) -> list[torch.Tensor]:

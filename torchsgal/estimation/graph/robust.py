@@ -34,7 +34,11 @@ class RobustLoss:
         raise NotImplementedError
 
     def __call__(self, s: torch.Tensor) -> torch.Tensor:
-        """rho(s)."""
+        """rho(s) for s >= 0 (a negative s raises; ``evaluate``, which the solvers call on
+        squared norms, does not check the values)."""
+        checks.floating(s, "s")
+        if bool((s < 0).any()):
+            raise ValueError(f"s must be >= 0 (a squared whitened norm), got a minimum of {float(s.min()):g}")
         return self.evaluate(s)[0]
 
     def __repr__(self) -> str:
@@ -52,7 +56,13 @@ class TrivialLoss(RobustLoss):
 
 
 def _scale(scale) -> float:
-    return checks.finite_number(scale, "scale", "> 0")
+    """The loss's scale a: positive, and within [1e-75, 1e75], where a^2 and a^4 (which the
+    losses and their derivatives use) are normal floating-point numbers."""
+    a = checks.finite_number(scale, "scale", "> 0")
+    if not 1e-75 <= a <= 1e75:
+        raise ValueError(f"scale must be within [1e-75, 1e75] (in whitened units; its square and "
+                         f"fourth power must be normal numbers), got {a:g}")
+    return a
 
 
 class Huber(RobustLoss):
