@@ -322,6 +322,20 @@ def _pp_matrix_ours(G, x):
     return M / x.tensor()[..., 7, None, None] if G is ts.Sim3 else M
 
 
+@pytest.mark.parametrize("array", [np.full(6, 1 + 2j), np.zeros(6, dtype=np.float16), np.array(["a"] * 6),
+                                   np.zeros(6, dtype=np.int64), np.zeros(6, dtype=bool)], ids=lambda a: str(a.dtype))
+def test_gtsam_arrays_of_other_kinds_are_refused(array):
+    """GTSAM's vectors and matrices are float64 arrays (float32 accepted): complex numbers
+    (whose imaginary part a cast drops), half precision, strings, integers and booleans are
+    refused by name, as tensors of those dtypes are."""
+    with pytest.raises(TypeError, match=f"^xi must be a float32 or float64 array or tensor, got a numpy array of dtype {array.dtype}"):
+        tg.tangent_from_gtsam(array, "Pose3")
+    for name, fn in (("P", tg.covariance_from_gtsam), ("J", lambda a, t: tg.jacobian_from_gtsam(a, output=t, input=t))):
+        with pytest.raises(TypeError, match=f"^{name} must be a float32 or float64"):
+            fn(np.zeros((6, 6), dtype=array.dtype) if array.dtype.kind != "U" else np.array([["a"] * 6] * 6), "Pose3")
+    assert tg.tangent_from_gtsam(np.arange(6, dtype=np.float32), "Pose3").dtype == torch.float64
+
+
 @pytest.mark.parametrize("G", PYPOSE_GROUPS, ids=lambda G: G.__name__)
 def test_pypose_round_trips_and_exp(G):
     xi = _xi(G, seed=20, shape=(2, 3))

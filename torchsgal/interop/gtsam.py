@@ -89,8 +89,12 @@ def _perm(gtsam_type, name: str = "gtsam_type") -> tuple[int, ...]:
 
 
 def _tensor(x, name: str) -> torch.Tensor:
-    """A tensor, or a numpy array (GTSAM's vectors and matrices) as float64."""
+    """A tensor, or a numpy array (GTSAM's vectors and matrices: float32 or float64) as float64;
+    arrays of other kinds (integers, complex numbers, strings) are refused as tensors are."""
     if isinstance(x, np.ndarray):
+        if x.dtype not in (np.float32, np.float64):
+            raise TypeError(f"{name} must be a float32 or float64 array or tensor, got a numpy "
+                            f"array of dtype {x.dtype}")
         x = torch.from_numpy(np.array(x, dtype=np.float64))
     return checks.floating(x, name)
 
