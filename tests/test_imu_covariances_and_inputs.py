@@ -3,7 +3,9 @@
 - the streaming covariance and result() equal preintegrate's with a bias random walk (the walk
   only in combined_covariance), under chunkings, batched;
 - sensor_to_body: a tensor dt checked (finite, > 0), angular_acceleration checked and broadcast,
-  against the formula written out here;
+  against the formula written out here; body_P_sensor's batch checked against the samples';
+- increment_tangents checks a tensor dt as preintegrate does; gravity_vector refuses a negative
+  magnitude; SinusoidalTrajectory names a parameter that is not a 3-vector of numbers;
 - results do not follow in-place updates of the caller's biases or chains (K = 1 products);
 - fuse / fuse_event refuse a covariance with known directions with a message saying what to do;
 - a number dt is filled on the device when the held samples are flushed (no torch.tensor).
@@ -16,9 +18,10 @@ import pytest
 import torch
 
 from torchsgal import SE3, SGal3
-from torchsgal.imu import gravity_vector, preintegrate, suffix_products, window_product
+from torchsgal.imu import gravity_vector, increment_tangents, preintegrate, suffix_products, window_product
 from torchsgal.imu.gtsam_interop import sensor_to_body
 from torchsgal.imu.streaming import StreamingPreintegration
+from torchsgal.imu.trajectory import SinusoidalTrajectory
 from torchsgal.uncertainty import ConcentratedGaussian, fuse_event
 
 F64 = torch.float64
@@ -91,6 +94,52 @@ def test_sensor_to_body_checks_angular_acceleration():
     w, f = sensor_to_body(gyro, acc, T, angular_acceleration=alpha)  # broadcast over the batch
     w_ref, f_ref = lever_arm_formula(gyro, acc, T, alpha.expand(2, 5, 3))
     assert (w - w_ref).abs().max() < 1e-13 and (f - f_ref).abs().max() < 1e-13
+
+
+def test_sensor_to_body_checks_the_pose_batch():
+    """A pose batch that does not broadcast with the windows' gave torch's RuntimeError."""
+    gyro, acc, _, _, _ = samples((4,), 10, seed=3)
+    T = SE3.exp(0.1 * torch.randn(3, 6, dtype=F64, generator=torch.Generator().manual_seed(0)))
+    for dt in (None, 0.01):
+        with pytest.raises(ValueError, match=r"body_P_sensor's batch shape \(3,\) must broadcast "
+                                             r"with .* gyro and acc of shape \(4, 10, 3\)"):
+            sensor_to_body(gyro, acc, T, dt)
+    w, f = sensor_to_body(gyro, acc, T[:1])  # (1,) broadcasts
+    w_ref, f_ref = lever_arm_formula(gyro, acc, T[0], torch.zeros_like(acc))
+    assert (w - w_ref).abs().max() < 1e-13 and (f - f_ref).abs().max() < 1e-13
+
+
+def test_increment_tangents_checks_dt_as_preintegrate():
+    """A negative tensor dt was accepted by increment_tangents (a number was refused)."""
+    gyro, acc, dt, _, _ = samples((2,), 5, seed=4)
+    for bad in (-dt, torch.full_like(dt, float("nan")), torch.full_like(dt, float("inf"))):
+        for f in (increment_tangents, preintegrate):
+            with pytest.raises(ValueError, match=r"^dt must be finite and >= 0 everywhere"):
+                f(gyro, acc, bad)
+    with pytest.raises(ValueError, match=r"^dt must be a finite number >= 0, got -0.01"):
+        increment_tangents(gyro, acc, -0.01)
+    assert increment_tangents(gyro, acc, torch.zeros_like(dt))[..., 3:].abs().max() == 0
+
+
+def test_gravity_magnitude_must_not_be_negative():
+    """gravity_vector("ned", -9.8) flipped gravity to point up."""
+    for frame in ("ned", "z_up"):
+        with pytest.raises(ValueError, match=r"^magnitude must be a finite number >= 0, got -9.8$"):
+            gravity_vector(frame, -9.8)
+    assert gravity_vector("z_up", 0.0, dtype=F64).abs().max() == 0
+
+
+def test_trajectory_parameters_are_named():
+    """A string parameter gave torch's "new(): invalid data type 'str'"."""
+    t = torch.zeros(2, dtype=F64)
+    for bad in ("abc", (1.0, "x", 2.0), None):
+        with pytest.raises(TypeError, match=r"^rot_amplitude must be a 3-vector of real numbers"):
+            SinusoidalTrajectory(rot_amplitude=bad).state(t)
+    with pytest.raises(ValueError, match=r"^pos_phase must be finite, got \(nan, 0.0, 0.0\)"):
+        SinusoidalTrajectory(pos_phase=(float("nan"), 0.0, 0.0)).state(t)
+    ref = SinusoidalTrajectory().state(t).as_matrix()
+    as_tensor = SinusoidalTrajectory(rot_amplitude=torch.tensor([0.3, 0.4, 0.8], dtype=F64)).state(t)
+    assert torch.equal(as_tensor.as_matrix(), ref)
 
 
 def test_preintegration_does_not_follow_in_place_bias_updates():

@@ -356,7 +356,8 @@ def test_urdf_end_link_type():
 
 
 def test_dh_column_not_a_sequence():
-    with pytest.raises(TypeError, match="a must be a sequence of numbers or a tensor .*got NoneType"):
+    with pytest.raises(TypeError, match=r"a \(a DH table column\) must be a sequence of numbers or a "
+                                        r"1-D tensor, got NoneType"):
         dh.dh_links(None, [0.0], [0.0], [0.0], "R")
     with pytest.raises(TypeError, match=r"lower\[0\] must be a number \(inf for no limit\), got 'a'"):
         dh.dh_links([0.0], [0.0], [0.0], [0.0], "R", lower=["a"], upper=[1.0])

@@ -186,6 +186,187 @@ def test_ik_q0_reading_when_seeds_equal_targets():
         inverse_kinematics(chain, T, q0=q0[0], num_seeds=2)
 
 
+def test_ik_respects_one_sided_limits():
+    """Only joints with both limits were bounded: a one-sided limit was ignored.  A prismatic
+    joint along z reaches p = q; targets beyond its one limit are not solved and stay within
+    it, targets inside are solved as without limits."""
+    tgt = torch.tensor([[0.0, 0.0, 0.2], [0.0, 0.0, 2.0], [0.0, 0.0, -3.0]], dtype=F64)
+    for lower, upper, solved in ((0.5, math.inf, [False, True, False]),
+                                 (-math.inf, 1.0, [True, False, True])):
+        chain = KinematicChain.from_dh([0.0], [0.0], [0.0], [0.0], "P", lower=[lower], upper=[upper])
+        res = inverse_kinematics(chain, tgt, orientation=False,
+                                 generator=torch.Generator().manual_seed(0))
+        assert chain.within_limits(res.q).all()
+        assert res.success.tolist() == solved
+        q_ref = tgt[:, 2].clamp(lower, upper)  # the nearest reachable point
+        assert (res.q[:, 0] - q_ref).abs().max() < 1e-4
+        torch.testing.assert_close(res.position_error, (tgt[:, 2] - res.q[:, 0]).abs())
+        free = inverse_kinematics(chain, tgt, orientation=False, respect_limits=False,
+                                  generator=torch.Generator().manual_seed(0))
+        assert free.success.all()
+        inside = torch.tensor(solved)
+        torch.testing.assert_close(res.q[inside], free.q[inside], rtol=0, atol=1e-8)
+        at_limit = torch.tensor([lower if math.isfinite(lower) else upper], dtype=F64)
+        res = inverse_kinematics(chain, tgt, orientation=False, q0=at_limit)  # a seed on the limit
+        assert res.success.tolist() == solved and chain.within_limits(res.q).all()
+    # a revolute arm whose one-sided limits are far from the solution: the free solver's answer
+    chain = KinematicChain.from_dh([0.5, 0.4], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR",
+                                   lower=[-10.0, -math.inf], upper=[math.inf, 10.0])
+    q_true = torch.tensor([[0.4, 0.9], [-1.0, -0.5]], dtype=F64)
+    kw = dict(orientation=False, q0=(q_true + 0.1)[:, None, :])
+    res = inverse_kinematics(chain, chain.pose(q_true).position(), **kw)
+    free = inverse_kinematics(chain, chain.pose(q_true).position(), respect_limits=False, **kw)
+    assert res.success.all() and free.success.all()
+    torch.testing.assert_close(res.q, free.q, rtol=0, atol=1e-8)
+
+
+def test_ik_holds_a_joint_with_equal_limits():
+    """lower == upper was treated as no limit: the joint moved away from its value."""
+    chain = KinematicChain.from_dh([0.5, 0.5], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR",
+                                   lower=[0.2, -1.0], upper=[0.2, 1.0])
+    g = torch.Generator().manual_seed(0)
+    reachable = chain.pose(torch.tensor([[0.2, 0.7]], dtype=F64))
+    res = inverse_kinematics(chain, reachable, generator=g)
+    assert res.success.all() and res.q[0, 0].item() == 0.2
+    # reachable only with q1 = -0.3: not solved, and the joint stays at 0.2
+    tgt = torch.tensor([[math.cos(-0.3), math.sin(-0.3), 0.0]], dtype=F64)
+    for dtype in (F64, torch.float32):
+        c = chain.to(dtype=dtype)
+        res = inverse_kinematics(c, tgt.to(dtype), orientation=False, generator=g)
+        assert not res.success.any() and c.within_limits(res.q).all()
+        assert res.q[0, 0].item() == torch.tensor(0.2, dtype=dtype).item()
+        p = c.pose(res.q).position()
+        torch.testing.assert_close(res.position_error, (p - tgt.to(dtype)).norm(dim=-1))
+        assert res.position_error.item() > 0.1
+
+
+# ------------------------------------------------------ jacobian_derivative, DH, Joint
+def test_jacobian_derivative_needs_qdot():
+    """jacobian_derivative(q, None) returned None (base) or a TypeError from inside."""
+    chain = KinematicChain.from_dh([0.5, 0.4], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    q = torch.zeros(2, dtype=F64)
+    for frame in ("base", "body", "spatial"):
+        with pytest.raises(TypeError, match=r"^qdot must be a torch.Tensor \(\.\.\., 2\) .* got "
+                                            r"NoneType$"):
+            chain.jacobian_derivative(q, None, frame=frame)
+    assert chain.jacobian_derivative(q, torch.ones(2, dtype=F64)).shape == (6, 2)
+
+
+def test_from_dh_names_a_bad_column_or_joint_types():
+    """from_dh gave "object of type 'int' has no len()" and "'float' object is not iterable"."""
+    with pytest.raises(TypeError, match=r"^joint_types must be a string such as 'RRP' or a "
+                                        r"sequence .* got int$"):
+        KinematicChain.from_dh([0.5], [0.0], [0.0], [0.0], 5)
+    expected = r"\(a DH table column\) must be a sequence of numbers or a 1-D tensor"
+    with pytest.raises(TypeError, match=rf"^a {expected}, got a 0-D Tensor of shape \(\)$"):
+        KinematicChain.from_dh(torch.tensor(0.0), [0.0], [0.0], [0.0], "R")
+    with pytest.raises(TypeError, match=rf"^theta_offset {expected}, got float 0.5$"):
+        KinematicChain.from_dh([0.0], [0.0], [0.0], 0.5, "R")
+    with pytest.raises(ValueError, match=r"^d \(a DH table column\) must be finite"):
+        KinematicChain.from_dh([0.0], [0.0], [math.nan], [0.0], "R")
+    with pytest.raises(ValueError, match=r"^joint_types\[1\] must be .* got 'X' \(joint_types"):
+        KinematicChain.from_dh([0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RX")
+    chain = KinematicChain.from_dh(torch.tensor([0.5]), np.array([0.0]), (0.0,), [0.0], ["R"])
+    assert chain.n_joints == 1
+
+
+@pytest.mark.parametrize("field, value, error, message", [
+    ("lower", "x", TypeError, r"^joints\[0\]\.lower \('j'\) must be a real number \(-inf for no "
+                              r"limit\), got 'x'$"),
+    ("upper", None, TypeError, r"^joints\[0\]\.upper \('j'\) must be a real number"),
+    ("lower", True, TypeError, r"^joints\[0\]\.lower \('j'\) must be a real number"),
+    ("upper", math.nan, ValueError, r"^joints\[0\]\.upper \('j'\) must be a real number .* got nan"),
+    ("velocity", -1.0, ValueError, r"^joints\[0\]\.velocity \('j'\) must be >= 0"),
+    ("velocity", math.nan, ValueError, r"^joints\[0\]\.velocity \('j'\) must be a real number"),
+])
+def test_joint_limits_are_checked(field, value, error, message):
+    """Joint(..., lower="x") gave Python's comparison error, naming no argument."""
+    j = Joint("j", "revolute", (0.0, 0.0, 1.0), _eye(), **{field: value})
+    with pytest.raises(error, match=message):
+        KinematicChain([j], {"l": (0, _eye())}, "l")
+
+
+def test_joint_limits_accept_numbers_and_0d_tensors():
+    j = Joint("j", "revolute", (0.0, 0.0, 1.0), _eye(), torch.tensor(-1.0), 2, np.float32(3.0))
+    chain = KinematicChain([j], {"l": (0, _eye())}, "l")
+    assert chain.lower.tolist() == [-1.0] and chain.upper.tolist() == [2.0]
+    assert chain.joints[0].velocity == 3.0
+
+
+# -------------------------------------------------------------- URDF structure
+_LIMIT = '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/>'
+
+
+def _urdf(joints, links=("base", "a", "b", "c")):
+    body = "".join(f'<link name="{k}"/>' for k in links)
+    for name, parent, child, *extra in joints:
+        body += (f'<joint name="{name}" type="revolute"><parent link="{parent}"/>'
+                 f'<child link="{child}"/><origin xyz="0 0 0.1"/>'
+                 f'{extra[0] if extra else _LIMIT}</joint>')
+    return f'<robot name="r">{body}</robot>'
+
+
+def test_urdf_cycle_raises():
+    """A cycle of joints made from_urdf loop forever (or pass unnoticed off the chain)."""
+    from torchsgal.kinematics import from_urdf
+
+    pytest.importorskip("yourdfpy")
+    cyc = _urdf([("j1", "base", "a"), ("j2", "b", "c"), ("j3", "c", "b")])
+    message = r"the joints .*'j[23]'.*'j[23]'.* form a cycle through the links \['[bc]', '[bc]'\]"
+    for kw in (dict(end_link="c"), dict(end_link="a", root_link="b"), dict(end_link="a")):
+        with pytest.raises(ValueError, match=message):
+            from_urdf(cyc, **kw)
+    loop = _urdf([("j1", "base", "a"), ("j2", "b", "b")], links=("base", "a", "b"))
+    with pytest.raises(ValueError, match=r"the joints 'j2' \('b' -> 'b'\) form a cycle"):
+        from_urdf(loop, end_link="a")
+
+
+def test_urdf_link_with_two_parents_and_duplicate_names_raise():
+    """A link that was the child of two joints kept only the last joint (a wrong chain)."""
+    from torchsgal.kinematics import from_urdf
+
+    pytest.importorskip("yourdfpy")
+    two = _urdf([("j1", "base", "a"), ("j2", "base", "b"), ("j3", "a", "c"), ("j4", "b", "c")])
+    with pytest.raises(ValueError, match=r"link 'c' is the child of two joints, 'j3' and 'j4'"):
+        from_urdf(two)
+    dup_link = _urdf([("j1", "base", "a")], links=("base", "a", "a"))
+    with pytest.raises(ValueError, match=r"link names must be unique, got several <link> named \['a'\]"):
+        from_urdf(dup_link, end_link="a")
+    dup_joint = _urdf([("j1", "base", "a"), ("j1", "a", "b")], links=("base", "a", "b"))
+    with pytest.raises(ValueError, match=r"joint names must be unique, got several <joint> named \['j1'\]"):
+        from_urdf(dup_joint)
+
+
+@pytest.mark.parametrize("limit, message", [
+    ('lower="1" upper="-1" effort="1" velocity="1"', r'<limit lower="1.0" upper="-1.0">: lower must be <= upper'),
+    ('lower="nan" upper="1" effort="1" velocity="1"', r'<limit lower="nan">: lower must be a number'),
+    ('lower="-1" upper="1" effort="1" velocity="-5"', r'<limit velocity="-5.0">: velocity must be >= 0'),
+    ('lower="-1" upper="1" effort="1" velocity="nan"', r'<limit velocity="nan">: velocity must be >= 0'),
+    ('lower="-1" upper="1" effort="-2" velocity="1"', r'<limit effort="-2.0">: effort must be >= 0'),
+    ('lower="-1" upper="1" effort="nan" velocity="1"', r'<limit effort="nan">: effort must be >= 0'),
+])
+def test_urdf_bad_limits_raise(limit, message):
+    from torchsgal.kinematics import from_urdf
+
+    pytest.importorskip("yourdfpy")
+    bad = _urdf([("j1", "base", "a", f'<axis xyz="0 0 1"/><limit {limit}/>'), ("j2", "a", "b")],
+                links=("base", "a", "b"))
+    with pytest.raises(ValueError, match=r"joint 'j1' has " + message):
+        from_urdf(bad)
+
+
+def test_urdf_equal_limits_and_zero_velocity_are_allowed():
+    from torchsgal.kinematics import from_urdf
+
+    pytest.importorskip("yourdfpy")
+    ok = _urdf([("j1", "base", "a", '<axis xyz="0 0 1"/><limit lower="0.3" upper="0.3" '
+                                    'effort="0" velocity="0"/>'), ("j2", "a", "b")],
+               links=("base", "a", "b"))
+    chain = from_urdf(ok)
+    assert chain.lower.tolist() == [0.3, -1.0] and chain.upper.tolist() == [0.3, 1.0]
+    assert chain.joints[0].velocity == 0.0
+
+
 # ------------------------------------------------------------------ 6, 7. pk interop
 @pytest.mark.parametrize("shape, error, message", [
     ((2.7, 2), TypeError, r"batch_shape\[0\] must be an integer >= 0, got 2.7"),

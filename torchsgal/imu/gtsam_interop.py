@@ -287,7 +287,8 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
         f_b = R_bs f_s - omega_b x (omega_b x r) - alpha_b x r,
 
     the centripetal and Euler (lever-arm) terms.  gyro, acc (..., K, 3) bias-free (or
-    bias-corrected) sensor samples.  alpha_b (..., K, 3) is ``angular_acceleration`` if given,
+    bias-corrected) sensor samples; body_P_sensor's batch (...) broadcasts with theirs
+    (ValueError naming it otherwise).  alpha_b (..., K, 3) is ``angular_acceleration`` if given,
     else, with ``dt`` (a number or (..., K)), the derivative of omega_b along the samples
     (central differences, one-sided at the ends; K >= 2), else 0 (GTSAM's
     ``correctMeasurementsBySensorPose`` keeps the centripetal term only).  ``angular_acceleration``
@@ -303,6 +304,13 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
     if not isinstance(body_P_sensor, SE3):
         raise TypeError(f"body_P_sensor must be an SE3, got {type(body_P_sensor).__name__}")
     checks.same_device_dtype(gyro=gyro, acc=acc, body_P_sensor=body_P_sensor.as_matrix())
+    pose_batch = tuple(body_P_sensor.batch_shape)
+    try:
+        torch.broadcast_shapes(pose_batch + (1,), gyro.shape[:-1])
+    except RuntimeError:
+        raise ValueError(f"body_P_sensor's batch shape {pose_batch} must broadcast with the "
+                         f"windows' batch of gyro and acc (..., K, 3), got gyro and acc of shape "
+                         f"{tuple(gyro.shape)}") from None
     R = body_P_sensor.rotation().unsqueeze(-3)  # (..., 1, 3, 3) over the samples
     r = body_P_sensor.position().unsqueeze(-2)  # (..., 1, 3)
     w = (R @ gyro.unsqueeze(-1)).squeeze(-1)

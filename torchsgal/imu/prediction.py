@@ -16,10 +16,11 @@ EARTH_RATE = 7.292115e-5  # rad/s, WGS-84
 
 
 def gravity_vector(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY, dtype=None, device=None):
-    """Gravity in the navigation frame: z-up (ENU) (0, 0, -g) or NED (0, 0, +g)."""
+    """Gravity in the navigation frame: z-up (ENU) (0, 0, -g) or NED (0, 0, +g); the magnitude
+    g is a finite number >= 0 (the frame gives the sign)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
-    magnitude = checks.finite_number(magnitude, "magnitude")
+    magnitude = checks.finite_number(magnitude, "magnitude", ">= 0")
     dtype = checks.dtype_arg(dtype or torch.get_default_dtype())
     sign = -1.0 if frame == "z_up" else 1.0
     return _filled_vector([0.0, 0.0, sign * magnitude], dtype, device)

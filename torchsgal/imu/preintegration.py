@@ -126,10 +126,20 @@ def _check_non_negative(t: torch.Tensor, name: str, positive: bool = False) -> N
 def increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None) -> torch.Tensor:
     """Tangents (..., K, 10) of the K factors exp((U(omega - b_g, f - b_a) + N) dt).
 
-    gyro, acc (..., K, 3) body rate [rad/s] and specific force [m/s^2]; dt (..., K) [s];
+    gyro, acc (..., K, 3) body rate [rad/s] and specific force [m/s^2]; dt (..., K) [s] or a
+    number, checked as :func:`preintegrate`'s (>= 0 and finite, ValueError naming it);
     biases (..., 3) or None."""
+    return _increment_tangents(gyro, acc, dt, gyro_bias, acc_bias, check_dt=True)
+
+
+def _increment_tangents(gyro, acc, dt, gyro_bias=None, acc_bias=None,
+                        check_dt: bool = False) -> torch.Tensor:
+    """``increment_tangents``; dt's values are checked with ``check_dt`` (the library's callers
+    checked them already)."""
     dt = _dt_arg(dt, gyro)
     batch = _check_stream(gyro, acc, dt)
+    if check_dt:
+        _check_non_negative(dt, "dt")
     b_g = _as_vector(gyro_bias, gyro, "gyro_bias", batch).unsqueeze(-2)
     b_a = _as_vector(acc_bias, gyro, "acc_bias", batch).unsqueeze(-2)
     h = dt.unsqueeze(-1)
@@ -377,7 +387,7 @@ def preintegrate(
 def _integrate(gyro, acc, dt, b_g, b_a, s_a, s_g, s_t, isotropic, covariance, bias_jacobian):
     """(delta matrices (..., 5, 5), covariance or None, bias Jacobian or None) of the windows;
     biases (..., 3) broadcast to the windows' batch; densities validated by preintegrate."""
-    xi = increment_tangents(gyro, acc, dt, b_g, b_a)
+    xi = _increment_tangents(gyro, acc, dt, b_g, b_a)
     batch, K = xi.shape[:-2], xi.shape[-2]
     # Products in the packed layout (16, K, ...): chain axis first, contiguous halves for the scans.
     if not (covariance or bias_jacobian):

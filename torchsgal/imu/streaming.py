@@ -43,7 +43,7 @@ import torch
 
 from .. import SGal3
 from ..functional import checks
-from .preintegration import Preintegration, increment_tangents, preintegrate
+from .preintegration import Preintegration, _increment_tangents, preintegrate
 from .stream_parts import (
     _along,
     _combine,
@@ -325,7 +325,7 @@ class StreamingPreintegration:
         if not intermediate:
             return None
         if factors is None:
-            xi = increment_tangents(gyro, acc, dt, self.gyro_bias, self.acc_bias)
+            xi = _increment_tangents(gyro, acc, dt, self.gyro_bias, self.acc_bias)
             steps = SGal3.exp(xi).as_matrix()
         else:
             steps = factors[0]

@@ -12,11 +12,29 @@ _PARAMS = ("rot_amplitude", "rot_frequency", "rot_phase", "pos_amplitude", "pos_
            "pos_phase")
 
 
+def _param(value, name: str, t: torch.Tensor) -> torch.Tensor:
+    """A parameter as a tensor of t's dtype and device; numbers are checked on the host (real,
+    finite), tensors are taken as they are."""
+    if isinstance(value, torch.Tensor):
+        return value.to(dtype=t.dtype, device=t.device)
+    message = f"{name} must be a 3-vector of real numbers (a tuple or a tensor), got {value!r}"
+    if isinstance(value, (str, bytes)):
+        raise TypeError(message)
+    try:
+        x = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(message) from None
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return x.to(dtype=t.dtype, device=t.device)
+
+
 @dataclass
 class SinusoidalTrajectory:
     """R(t) = Exp(phi(t)), phi_i(t) = A_i sin(w_i t + c_i); p_i(t) = B_i sin(u_i t + d_i).
 
-    All parameters are 3-vectors (floats or tensors); the navigation frame is inertial with
+    All parameters are 3-vectors (finite real numbers or tensors; TypeError or ValueError
+    naming the parameter otherwise); the navigation frame is inertial with
     constant gravity (prediction's model without Earth rotation).  Body rate
     omega = J_r(phi) phi_dot (so that R_dot = R omega^), specific force f = R^T (p_ddot - g).
     """
@@ -32,7 +50,7 @@ class SinusoidalTrajectory:
         checks.floating(t, name)
         out = []
         for field in _PARAMS:
-            x = torch.as_tensor(getattr(self, field), dtype=t.dtype, device=t.device)
+            x = _param(getattr(self, field), field, t)
             if x.dim() < 1 or x.shape[-1] != 3:
                 raise ValueError(f"{field} must be a 3-vector (shape (..., 3)), got shape "
                                  f"{tuple(x.shape)}")

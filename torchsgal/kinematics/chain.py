@@ -65,7 +65,8 @@ class KinematicChain:
         end_links: a tree's branch ends (``forward(q, links=chain.end_links)``); ``end_link``
             is the default link of ``forward`` and ``jacobian``.
 
-    Joint limits are ``lower`` and ``upper`` ((n,) tensors, -inf / inf where there are none).
+    Joint limits are ``lower`` and ``upper`` ((n,) tensors, -inf / inf where there are none;
+    a limit that is not a real number, or NaN, or a negative ``velocity``, raises naming it).
     Joint axes are normalised (a zero or non-finite axis is a ValueError naming
     ``joints[i].axis``); joint origins, base, tool and link offsets are checked as rigid
     transforms and copied, so later changes to the caller's tensors do not reach the chain.
@@ -96,12 +97,19 @@ class KinematicChain:
             if j.kind not in JOINT_KINDS:
                 raise ValueError(f"joints[{i}] ({j.name!r}) kind must be one of {JOINT_KINDS}, "
                                  f"got {j.kind!r}")
-            if not j.lower <= j.upper:
-                raise ValueError(f"joint {j.name!r}: lower limit {j.lower} exceeds upper {j.upper}")
+            lower = _limit(j.lower, f"joints[{i}].lower ({j.name!r})", "-inf for no limit")
+            upper = _limit(j.upper, f"joints[{i}].upper ({j.name!r})", "inf for no limit")
+            velocity = _limit(j.velocity, f"joints[{i}].velocity ({j.name!r})", "inf for no limit")
+            if not lower <= upper:
+                raise ValueError(f"joint {j.name!r}: lower limit {lower} exceeds upper {upper}")
+            if velocity < 0:
+                raise ValueError(f"joints[{i}].velocity ({j.name!r}) must be >= 0 (inf for no "
+                                 f"limit), got {velocity}")
             # own copies: a unit axis and a checked origin the caller cannot change later
             joints[i] = dataclasses.replace(
                 j, axis=_unit_axis(j.axis, f"joints[{i}].axis ({j.name!r})"),
-                origin=_transform(j.origin, f"joints[{i}].origin ({j.name!r})"))
+                origin=_transform(j.origin, f"joints[{i}].origin ({j.name!r})"),
+                lower=lower, upper=upper, velocity=velocity)
         names = [j.name for j in joints]
         if len(set(names)) != len(names):
             raise ValueError(f"joint names must be unique, got {names}")
@@ -409,9 +417,13 @@ class KinematicChain:
                             frame: str = "base") -> torch.Tensor:
         """dJ/dt (..., 6, n) along qdot, J as in :meth:`jacobian` for the same ``frame``:
         the link's acceleration is J qddot + dJ/dt qdot in that frame (classical acceleration
-        for ``"base"``, the body twist's derivative for ``"body"``)."""
+        for ``"base"``, the body twist's derivative for ``"body"``).  qdot (..., n) is
+        required (TypeError naming it otherwise)."""
         frame = self._frame(frame)
         link = self._one_link(link)
+        if not isinstance(qdot, torch.Tensor):
+            raise TypeError(f"qdot must be a torch.Tensor (..., {self.n_joints}) of joint "
+                            f"velocities: dJ/dt is taken along it, got {type(qdot).__name__}")
         q, qdot, _ = self._inputs(q, qdot, None)
         R, p, J, dJ, v, w = self._jacobian_parts(q, link, qdot)
         if frame == "base":
@@ -496,6 +508,19 @@ def _unit_axis(axis, name: str) -> tuple[float, float, float]:
     if not (math.isfinite(norm) and norm > 0):
         raise ValueError(f"{name} must be a finite, non-zero 3-vector, got {tuple(vals)}")
     return (vals[0] / norm, vals[1] / norm, vals[2] / norm)
+
+
+def _limit(value, name: str, hint: str) -> float:
+    """A joint limit: a real number, +-inf allowed, NaN refused (TypeError / ValueError naming
+    ``name``); a 0-d tensor is read as its value."""
+    if isinstance(value, torch.Tensor) and value.dim() == 0 and value.dtype != torch.bool:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number ({hint}), got {value!r}")
+    value = float(value)
+    if math.isnan(value):
+        raise ValueError(f"{name} must be a real number ({hint}), got nan")
+    return value
 
 
 def _reframe(J: torch.Tensor, R: torch.Tensor, p: torch.Tensor, frame: str) -> torch.Tensor:

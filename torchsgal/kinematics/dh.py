@@ -7,7 +7,6 @@ from collections.abc import Sequence
 
 import torch
 
-from ..functional import checks
 from .state import CONTINUOUS, PRISMATIC, REVOLUTE, Joint
 
 
@@ -44,30 +43,22 @@ def dh_links(a, alpha, d, theta_offset, joint_types, convention: str = "standard
     """(joints, links) of a DH table for :class:`KinematicChain` (see ``from_dh``): the joint
     i turns (or slides) about the z axis of its frame; the standard convention's Tx(a) Rx(alpha)
     after joint i becomes the offset of link ``frame_i`` and part of the next joint's origin."""
-    from .gdh import _letters_hint, normalize_joint_type
+    from .gdh import _column_values, _joint_types_kind, _letters_hint, normalize_joint_type
 
     if convention not in ("standard", "modified"):
         raise ValueError(f"convention must be 'standard' or 'modified', got {convention!r}")
-    cols = {}
-    for key, col in (("a", a), ("alpha", alpha), ("d", d), ("theta_offset", theta_offset)):
-        if not isinstance(col, torch.Tensor):
-            try:
-                col = list(col)
-            except TypeError:
-                raise TypeError(f"{key} must be a sequence of numbers or a tensor (a DH table "
-                                f"column), got {type(col).__name__}") from None
-        vals = col.detach().cpu().tolist() if isinstance(col, torch.Tensor) else col
-        try:
-            vals = [checks.finite_number(v, f"{key}[{i}]") for i, v in enumerate(vals)]
-        except (TypeError, ValueError) as err:
-            raise type(err)(f"{err} (a DH table column)") from None
-        cols[key] = vals
+    cols = {key: _column_values(col, key) for key, col in
+            (("a", a), ("alpha", alpha), ("d", d), ("theta_offset", theta_offset))}
+    _joint_types_kind(joint_types)
     n = len(joint_types)
     lengths = {k: len(v) for k, v in cols.items()}
     if n < 1 or any(v != n for v in lengths.values()):
         raise ValueError(f"DH table columns must have one equal, non-zero length; got "
                          f"{lengths}, joint_types {n}{_letters_hint(joint_types)}")
-    types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
+    try:
+        types = [normalize_joint_type(t, i) for i, t in enumerate(joint_types)]
+    except ValueError as err:
+        raise ValueError(f"{err}{_letters_hint(joint_types)}") from None
     lo = [-math.inf] * n if lower is None else _limits(lower, "lower")
     hi = [math.inf] * n if upper is None else _limits(upper, "upper")
     if len(lo) != n or len(hi) != n:

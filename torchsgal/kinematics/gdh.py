@@ -34,6 +34,7 @@ Only the public group API (SE23) is used.
 """
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -174,6 +175,24 @@ def _column_tensor(value, name: str, dtype: torch.dtype, device) -> torch.Tensor
     return t.clone()  # as_tensor may alias a tensor or numpy array of the caller
 
 
+def _column_values(value, name: str) -> list[float]:
+    """A DH column as a list of finite floats: the checks of ``_column_kind`` and
+    ``_column_tensor`` (TypeError naming the column), ValueError naming it for a non-finite
+    entry."""
+    _column_kind(value, name)
+    values = _column_tensor(value, name, torch.float64, "cpu").detach().tolist()
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{name} (a DH table column) must be finite, got {values}")
+    return values
+
+
+def _joint_types_kind(joint_types) -> None:
+    """TypeError unless joint_types is a string ('RRP') or a sequence of joint types."""
+    if not isinstance(joint_types, (str, Sequence)):
+        raise TypeError(f"joint_types must be a string such as 'RRP' or a sequence of "
+                        f"'revolute'/'R' and 'prismatic'/'P', got {type(joint_types).__name__}")
+
+
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-1)
 
@@ -223,9 +242,7 @@ class GDHChain:
         cols = {"a": a, "alpha": alpha, "d": d, "theta_offset": theta_offset}
         for k, v in cols.items():
             _column_kind(v, k)
-        if not isinstance(joint_types, (str, Sequence)):
-            raise TypeError(f"joint_types must be a string such as 'RRP' or a sequence of "
-                            f"'revolute'/'R' and 'prismatic'/'P', got {type(joint_types).__name__}")
+        _joint_types_kind(joint_types)
         lengths = {k: len(v) for k, v in cols.items()}
         lengths["joint_types"] = len(joint_types)
         n = lengths["a"]

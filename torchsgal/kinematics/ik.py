@@ -7,10 +7,13 @@ residual of a problem is the position error and the rotation error in the link's
 
 (either part alone for position-only or orientation-only targets), with the analytic Jacobian
 (J_lin, w J_r^-1(log(R*^T R)) R^T J_ang) from the chain's geometric Jacobian.  Joint limits
-are kept by a bounded parameterisation: a joint with both limits is q = c + h sin(u), c and h
-the middle and half-range of its limits, so every iterate is within them.  A first stage adds
-the residual ``centering`` (q - c) / h, which keeps the iterates away from the limits (where a
-bounded joint's local minima lie); the second solves the pose alone from its result.
+are kept by a bounded parameterisation, so every iterate is within them: a joint with both
+limits is q = c + h sin(u), c and h the middle and half-range of its limits; one with a lower
+limit only is q = lower + sqrt(u^2 + 1) - 1, with an upper only q = upper - sqrt(u^2 + 1) + 1
+(MINUIT's transformations); one with lower == upper is held there.  A first stage adds the
+residual ``centering`` (q - c) / h of the joints with both limits, which keeps the iterates away
+from the limits (where a bounded joint's local minima lie); the second solves the pose alone
+from its result.
 
 Success is decided by the pose error against the user's tolerances, never by the solver's
 status: a redundant arm (7 joints for a 6-dof pose) has a rank-deficient information matrix
@@ -131,6 +134,11 @@ def _seeds(chain: KinematicChain, q0, B: int, num_seeds: int | None, generator) 
     return q0
 
 
+def _sqrt_inv(x: torch.Tensor) -> torch.Tensor:
+    """u >= 0 with sqrt(u^2 + 1) - 1 = x, for x >= 0: sqrt(x (x + 2))."""
+    return torch.sqrt(x) * torch.sqrt(x + 2.0)
+
+
 def inverse_kinematics(
     chain: KinematicChain,
     target,
@@ -168,11 +176,12 @@ def inverse_kinematics(
         position, orientation: which parts of the pose to reach (at least one).
         orientation_weight: metres per radian in the residual (module doc).
         position_tol (m), rotation_tol (rad): the errors below which a target is solved.
-        respect_limits: keep joints with limits inside them (bounded parameterisation).
+        respect_limits: keep every joint within its finite limits, one-sided ones included,
+            and a joint with lower == upper at that value (bounded parameterisation).
         centering: weight of a first stage (20 iterations) whose residual also pulls the
-            limited joints towards the middle of their range, (q - mid) / half: it keeps the
-            iterates away from the limits, where a bounded joint's local minima are; the
-            second stage solves the pose alone from there.  0 skips it.
+            joints with both limits towards the middle of their range, (q - mid) / half: it
+            keeps the iterates away from the limits, where a bounded joint's local minima are;
+            the second stage solves the pose alone from there.  0 skips it.
         max_iterations, damping: of the Levenberg-Marquardt solver.
         generator: for the random seeds.
     Returns an :class:`IKResult`.  Not differentiable.
@@ -202,25 +211,44 @@ def inverse_kinematics(
     R_rep = None if R_t is None else R_t.repeat_interleave(S, dim=0)
 
     lo, hi = chain.lower, chain.upper
-    limited = torch.isfinite(lo) & torch.isfinite(hi) & (hi > lo)
+    has_lo, has_hi = torch.isfinite(lo), torch.isfinite(hi)
+    limited = has_lo & has_hi & (hi > lo)  # two-sided: mid + half sin(u)
+    fixed = has_lo & has_hi & (hi == lo)  # q = lower = upper
+    lower_only, upper_only = has_lo & ~has_hi, has_hi & ~has_lo
     mid = torch.where(limited, (lo + hi) / 2, 0.0)
     half = torch.where(limited, (hi - lo) / 2, 1.0)
-    free = torch.zeros_like(limited)
+    lo0, hi0 = torch.where(has_lo, lo, 0.0), torch.where(has_hi, hi, 0.0)  # no inf arithmetic
+    none = torch.zeros_like(limited)
+    one = torch.ones_like(lo)
+    kinds = (limited, fixed, lower_only, upper_only) if respect_limits else (none,) * 4
 
-    def solve(q_init, bounded, iterations, centering=0.0):
-        """Levenberg-Marquardt from q_init (B S, n), joints in ``bounded`` as mid + half sin(u);
-        ``centering`` > 0 adds the residual centering (q - mid) / half of the limited joints."""
+    def solve(q_init, iterations, centering=0.0):
+        """Levenberg-Marquardt from q_init (B S, n) over u (module doc); ``centering`` > 0 adds
+        the residual centering (q - mid) / half of the two-sided limited joints."""
+        two, held, low, up = kinds
+
         def to_q(u):
-            return torch.where(bounded, mid + half * torch.sin(u), u)
+            q = torch.where(two, mid + half * torch.sin(u), u)
+            r = u * (u / (torch.hypot(u, one) + 1.0))  # sqrt(u^2 + 1) - 1 without cancellation
+            q = torch.where(low, lo0 + r, q)
+            q = torch.where(up, hi0 - r, q)
+            return torch.where(held, lo0, q)
 
         # strictly inside the limits: at a limit dq/du = 0 would freeze the joint there
         ratio = ((q_init - mid) / half).clamp(-1.0 + 1e-6, 1.0 - 1e-6)
-        u0 = torch.where(bounded, torch.asin(ratio), q_init)
+        u0 = torch.where(two, torch.asin(ratio), q_init)
+        u0 = torch.where(low, _sqrt_inv((q_init - lo0).clamp_min(1e-6)), u0)
+        u0 = torch.where(up, _sqrt_inv((hi0 - q_init).clamp_min(1e-6)), u0)
+        u0 = torch.where(held, 0.0, u0)
 
         def parts(u):
             q = to_q(u)
             pose, J = chain.pose_and_jacobian(q, link=link, frame="base")
-            dq_du = torch.where(bounded, half * torch.cos(u), 1.0)
+            dq_du = torch.where(two, half * torch.cos(u), 1.0)
+            dr = u / torch.hypot(u, one)
+            dq_du = torch.where(low, dr, dq_du)
+            dq_du = torch.where(up, -dr, dq_du)
+            dq_du = torch.where(held, 0.0, dq_du)
             res, jac = [], []
             if position:
                 res.append(pose.position() - p_rep)
@@ -249,12 +277,12 @@ def inverse_kinematics(
 
         sol = gauss_newton(residual, u0, jacobian=jacobian, max_iterations=iterations,
                            damping=damping, step_tol=1e-10, cost_tol=_COST_TOL)
-        return to_q(sol.x), sol.report
+        q = to_q(sol.x)
+        return (q.clamp(lo, hi) if respect_limits else q), sol.report  # clamp: rounding only
 
-    bounded = limited if respect_limits else free
     if centering > 0:
-        q_start, _ = solve(q_start, bounded, _CENTER_ITERATIONS, centering)
-    q_sol, report = solve(q_start, bounded, max_iterations)
+        q_start, _ = solve(q_start, _CENTER_ITERATIONS, centering)
+    q_sol, report = solve(q_start, max_iterations)
     with torch.no_grad():
         q = q_sol
         pose = chain.pose(q, link=link)

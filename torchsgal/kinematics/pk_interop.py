@@ -46,7 +46,7 @@ from collections.abc import Iterable, Sequence
 import torch
 
 from ..functional import checks
-from .gdh import _column_kind, _column_tensor, _letters_hint, normalize_joint_type
+from .gdh import _column_values, _joint_types_kind, _letters_hint, normalize_joint_type
 
 
 def _import_pk():
@@ -60,17 +60,6 @@ def _import_pk():
             "(pip install pytorch-kinematics)"
         ) from exc
     return pk, pk_frame, pk_tf
-
-
-def _as_list(x, name: str) -> list:
-    """A DH column as a list of finite floats: the column checks of :class:`GDHChain`
-    (TypeError naming the column for a string, booleans, a scalar or nested sequences),
-    ValueError naming it for a non-finite entry."""
-    _column_kind(x, name)
-    values = _column_tensor(x, name, torch.float64, "cpu").detach().tolist()
-    if not all(math.isfinite(v) for v in values):
-        raise ValueError(f"{name} (a DH table column) must be finite, got {values}")
-    return values
 
 
 def _rz(theta: float, dtype, device) -> torch.Tensor:
@@ -128,8 +117,9 @@ def build_pk_chain(
     """
     checks.dtype_arg(dtype)
     pk, pk_frame, pk_tf = _import_pk()
-    a_, al_, d_, th_ = (_as_list(v, n) for v, n in
+    a_, al_, d_, th_ = (_column_values(v, n) for v, n in
                         ((a, "a"), (alpha, "alpha"), (d, "d"), (theta_offset, "theta_offset")))
+    _joint_types_kind(joint_types)
     n = len(joint_types)
     if not (len(a_) == len(al_) == len(d_) == len(th_) == n):
         raise ValueError(

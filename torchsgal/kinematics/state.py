@@ -30,7 +30,7 @@ class Joint:
     origin    (4, 4) float64 tensor: the fixed transform from the previous actuated joint's
               frame (or the chain root) to this joint's frame at q = 0 (copied by the chain).
     lower, upper   position limits (rad or m); -inf / inf where the joint has none.
-    velocity  velocity limit (inf where none is given).
+    velocity  velocity limit, >= 0 (inf where none is given).
     """
 
     name: str

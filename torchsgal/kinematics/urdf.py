@@ -55,7 +55,10 @@ def parse_urdf(source):
     """The ``yourdfpy.URDF`` model of ``source`` (a path or URDF XML text), meshes not loaded.
 
     Raises ValueError for text that is not well-formed XML, not a ``<robot>``, or whose joints
-    name links that do not exist, or that have no parent/child.
+    name links that do not exist, or that have no parent/child; for duplicate link or joint
+    names, a link that is the child of two joints, joints that form a cycle (a URDF is a
+    tree), and a ``<limit>`` with a negative or NaN ``effort`` or ``velocity``, or (revolute
+    and prismatic joints) a NaN bound or ``lower`` > ``upper``.
     """
     yourdfpy = _import_yourdfpy()
     text, where = _read_source(source)
@@ -74,6 +77,7 @@ def parse_urdf(source):
             el = j.find(tag)
             if el is None or el.get("link") is None:
                 raise ValueError(f"{where}: joint {name!r} has no <{tag} link=...>")
+    _check_structure(root, where)
     try:
         model = yourdfpy.URDF.load(io.BytesIO(text), build_scene_graph=False, load_meshes=False,
                                    build_collision_scene_graph=False,
@@ -86,7 +90,77 @@ def parse_urdf(source):
             if lk not in links:
                 raise ValueError(f"{where}: joint {j.name!r} names {role} link {lk!r}, which is "
                                  f"not a <link> of the robot")
+        _check_limit(j, where)
     return model
+
+
+def _duplicates(names: list[str]) -> list[str]:
+    seen: set[str] = set()
+    dup: set[str] = set()
+    for k in names:
+        (dup if k in seen else seen).add(k)
+    return sorted(dup)
+
+
+def _link_of(joint: ET.Element, tag: str) -> str:
+    el = joint.find(tag)
+    return "" if el is None else str(el.get("link"))
+
+
+def _check_structure(root: ET.Element, where: str) -> None:
+    """ValueError for duplicate link or joint names, a link with two parent joints or a cycle
+    of joints."""
+    for tag in ("link", "joint"):
+        dup = _duplicates([str(el.get("name")) for el in root.findall(tag) if el.get("name") is not None])
+        if dup:
+            raise ValueError(f"{where}: {tag} names must be unique, got several <{tag}> named "
+                             f"{dup}")
+    parent_of: dict[str, tuple[str, str]] = {}  # child link -> (joint, parent link)
+    for j in root.findall("joint"):  # parse_urdf checked that each has them
+        name, parent, child = str(j.get("name")), _link_of(j, "parent"), _link_of(j, "child")
+        if child in parent_of:
+            raise ValueError(f"{where}: link {child!r} is the child of two joints, "
+                             f"{parent_of[child][0]!r} and {name!r}: a URDF must be a tree, each "
+                             f"link the child of at most one joint")
+        parent_of[child] = (name, parent)
+    done: set[str] = set()
+    for start in parent_of:  # each link has at most one parent: follow them up
+        path: list[tuple[str, str, str]] = []
+        on_path: dict[str, int] = {}
+        k = start
+        while k in parent_of and k not in done:
+            if k in on_path:
+                cycle = path[on_path[k]:][::-1]
+                desc = ", ".join(f"{jn!r} ({p!r} -> {c!r})" for jn, p, c in cycle)
+                raise ValueError(f"{where}: the joints {desc} form a cycle through the links "
+                                 f"{[c for _, _, c in cycle]}: a URDF must be a tree")
+            on_path[k] = len(path)
+            jn, p = parent_of[k]
+            path.append((jn, p, k))
+            k = p
+        done.update(on_path)
+
+
+def _check_limit(j, where: str) -> None:
+    """ValueError naming the joint and the attribute of a bad ``<limit>``."""
+    lim = j.limit
+    if lim is None:
+        return
+    for attr in ("effort", "velocity"):
+        v = getattr(lim, attr, None)
+        if v is not None and not float(v) >= 0:
+            raise ValueError(f"{where}: joint {j.name!r} has <limit {attr}=\"{v}\">: {attr} must "
+                             f"be >= 0")
+    if j.type not in ("revolute", "prismatic"):  # the spec ignores lower/upper elsewhere
+        return
+    for attr in ("lower", "upper"):
+        v = getattr(lim, attr, None)
+        if v is not None and math.isnan(float(v)):
+            raise ValueError(f"{where}: joint {j.name!r} has <limit {attr}=\"{v}\">: {attr} must "
+                             f"be a number")
+    if lim.lower is not None and lim.upper is not None and float(lim.lower) > float(lim.upper):
+        raise ValueError(f"{where}: joint {j.name!r} has <limit lower=\"{lim.lower}\" "
+                         f"upper=\"{lim.upper}\">: lower must be <= upper")
 
 
 def _origin(joint) -> torch.Tensor:
@@ -120,7 +194,9 @@ def from_urdf(
 
     Revolute, continuous, prismatic and fixed joints are supported, about any axis;
     floating and planar joints and mimic joints on the chain raise ValueError.  Joint limits
-    (``lower``, ``upper``, velocity) are read; continuous joints have none.
+    (``lower``, ``upper``, velocity) are read; continuous joints have none.  A file that is not
+    a tree (a link with two parent joints, a cycle of joints anywhere in it) or has duplicate
+    names or bad limits raises ValueError naming them (:func:`parse_urdf`).
     """
     model = parse_urdf(source)
     robot = model.robot

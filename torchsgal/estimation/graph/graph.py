@@ -82,8 +82,8 @@ class FactorGraph:
                 raise TypeError(f"loss must be a RobustLoss or None, got {type(loss).__name__}")
             source, factor = factor, copy.copy(factor)  # the caller's factor keeps its own loss
             factor.loss = loss
-            if isinstance(factor, GaussHelmert):  # gauss_helmert's corrections reach the caller's too
-                factor.source = source
+            if isinstance(factor, GaussHelmert) and isinstance(source, GaussHelmert):
+                factor.source = source  # gauss_helmert's corrections reach the caller's factor too
         for name, idx in factor.slots:
             if name not in self.variables:
                 raise KeyError(f"factor {factor!r} reads variable {name!r}, which is not in the "

@@ -145,8 +145,9 @@ def _check_residual(block: Block, r, B: int) -> None:
     if L is not None and tuple(L.shape[-2:]) != (m, m):  # a factor without dim: known only now
         name, noise = ("information", f.information) if f.information is not None else \
             ("sqrt_information", f.sqrt_information)
+        given = tuple(noise.shape) if noise is not None else tuple(L.shape)
         raise ValueError(f"{f!r}: {name} must be ({m}, {m}), (E, {m}, {m}) or (B, E, {m}, {m}) for "
-                         f"a residual of size {m}, got {tuple(noise.shape)}")
+                         f"a residual of size {m}, got {given}")
 
 
 def _args(block: Block, x: list[torch.Tensor]) -> list[torch.Tensor]:
