@@ -166,3 +166,14 @@ print(threshold, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
         assert out[True][1] <= 16_384 + 1_000 and 4 * out[True][1] < out[False][1], out
     else:  # a glibc that keeps blocks up to 32 MiB only: 64 MiB blocks are still mapped
         assert out[True][0] == 32 << 20 and out[True][1] >= 5 * 10_000, out
+
+
+def test_load_is_an_attribute_of_the_package():
+    """``import torchsgal`` then ``torchsgal.load.use_threads_for_load()``, as the threads guide
+    writes it, in a fresh interpreter (the module was not imported by the package before)."""
+    import subprocess
+    import sys
+
+    code = "import torchsgal; print(torchsgal.load.threads_for_load.__name__)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "threads_for_load"
