@@ -34,7 +34,8 @@ class SolverStatus(enum.IntEnum):
     MAX_ITERATIONS = 1
     DIVERGED = 2  # stalled: the damping grew past its limit without an acceptable step (plain
     # Gauss-Newton: an unsolvable or non-finite step; lbfgs: stopped early, gradient test failed)
-    NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start (costs NaN)
+    NON_FINITE = 3  # non-finite unknowns, residuals or Jacobians at the start, or a cost
+    # that overflows there (finite residuals beyond ~1e154): costs NaN
     SINGULAR = 4  # the information J^T J is singular at the solution (unobservable directions);
     # takes precedence over CONVERGED / MAX_ITERATIONS / DIVERGED, and the covariance is NaN
     CONVERGED_RANK_DEFICIENT = 5  # converged (graph solvers), but the information is singular
@@ -51,7 +52,8 @@ class SolverReport:
                    ``damping=None``, a step that could not be solved or gave non-finite
                    values; ``lbfgs``: LBFGS stopped before ``max_iterations`` (no further
                    decrease) without passing the gradient test), NON_FINITE (3: non-finite
-                   unknowns, residuals or Jacobians at x0; ``lbfgs``: a non-finite cost or
+                   unknowns, residuals or Jacobians at x0, or a cost that overflows there;
+                   ``lbfgs``: a non-finite cost or
                    gradient at x0 or at any point LBFGS evaluated, or at the end), SINGULAR
                    (4: the information J^T J is singular at the solution; it replaces the
                    other codes, the problem may have converged, its covariance is NaN).
