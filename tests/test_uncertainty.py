@@ -280,6 +280,17 @@ def test_reparameterised_gradients():
     assert torch.isfinite(g_mean).all() and g_mean.abs().sum() > 0
     assert torch.isfinite(g_L).all() and g_L.abs().sum() > 0
 
+    def sampled_loss(xi, L):  # the same draws every call: a deterministic function of (xi, L)
+        d = ConcentratedGaussian(mean.rplus(xi), L @ L.T)
+        s = d.sample(8, generator=torch.Generator().manual_seed(0))
+        return s.act(torch.ones(4, dtype=torch.float64)).square().sum()
+
+    # the reparameterised gradients are those of the samples' formula (finite differences)
+    gen = torch.Generator().manual_seed(1)
+    xi = 0.1 * torch.randn(10, dtype=torch.float64, generator=gen)
+    L = 0.1 * torch.eye(10, dtype=torch.float64) + 0.01 * torch.randn(10, 10, dtype=torch.float64, generator=gen).tril()
+    assert torch.autograd.gradcheck(sampled_loss, (xi.requires_grad_(), L.requires_grad_()))
+
 
 def test_bad_input():
     m = ts.SE3.random((), dtype=torch.float64)
