@@ -83,7 +83,8 @@ def test_act_jacobians_match_central_differences(G):
 
 def test_act_jacobians_broadcast_as_act_and_own_their_storage():
     """One element per batch row acting on N points (point_axes=1), and an unbatched element on
-    a batch of points; J_x is a copy (writing to it leaves the element alone).  The batched
+    a batch of points; J_x and the adjoint are copies (writing to them leaves the element alone,
+    in every group: SO(3)'s J_x and adjoint are its whole matrix).  The batched
     contraction of the points sums in another order than one point at a time: equal to a few
     units in the last place (rtol 4 eps)."""
     gen = torch.Generator().manual_seed(5)
@@ -103,6 +104,13 @@ def test_act_jacobians_broadcast_as_act_and_own_their_storage():
     before = one.as_matrix().clone()
     J_x1.zero_()
     assert torch.equal(one.as_matrix(), before)
+    for G in GROUP_CLASSES:  # SO(3) and SO(2): J_x is the whole matrix, and still a copy
+        g = G.random(4, dtype=F64, generator=gen)
+        before = g.as_matrix().clone()
+        g.act_jacobians(torch.randn(4, G.point_dim, dtype=F64, generator=gen))[1].zero_()
+        assert torch.equal(g.as_matrix(), before), G.__name__
+        g.adjoint().zero_()  # so is the adjoint (SO(3)'s is the rotation matrix)
+        assert torch.equal(g.as_matrix(), before), G.__name__
 
 
 @pytest.mark.parametrize("G", GROUP_CLASSES, ids=lambda g: g.__name__)

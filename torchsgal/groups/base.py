@@ -311,8 +311,10 @@ class LieGroup(MatrixBatch):
         return type(self)._new(self._f.inverse(self._matrix))
 
     def adjoint(self) -> torch.Tensor:
-        """Ad(g) (..., dof, dof): Ad(g) xi = vee(g hat(xi) g^-1)."""
-        return self._f.adjoint(self._matrix)
+        """Ad(g) (..., dof, dof): Ad(g) xi = vee(g hat(xi) g^-1); a new tensor (SO(3)'s is its
+        matrix C, copied: writing to it leaves the element alone)."""
+        Ad = self._f.adjoint(self._matrix)
+        return Ad.clone() if Ad is self._matrix else Ad
 
     def _delta(self, delta: torch.Tensor) -> torch.Tensor:
         """Checks a tangent-vector argument (..., dof) against self before exp is applied."""
@@ -391,9 +393,12 @@ class LieGroup(MatrixBatch):
         J_g = self._f.act_jacobian(M, x)
         rows, k = J_g.shape[-2], x.shape[-1]
         # the block broadcast over the points as rows * k contiguous values (one copy of whole
-        # rows; expanding the (rows, k) block itself copies element by element)
+        # rows; expanding the (rows, k) block itself copies element by element), always a copy:
+        # where the block is the whole matrix (SO(3), SO(2)) and nothing broadcasts, a reshape
+        # and contiguous() would give the element's own storage back
         block = M[..., :rows, :k].reshape(M.shape[:-2] + (rows * k,))
-        return J_g, block.expand(J_g.shape[:-2] + (rows * k,)).contiguous().unflatten(-1, (rows, k))
+        J_x = block.expand(J_g.shape[:-2] + (rows * k,)).clone(memory_format=torch.contiguous_format)
+        return J_g, J_x.unflatten(-1, (rows, k))
 
     @classmethod
     def _right_products(cls, M: torch.Tensor) -> torch.Tensor:
