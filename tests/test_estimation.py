@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torchsgal as ts
-from torchsgal.estimation import SolverStatus, autograd_jacobian, gauss_helmert, gauss_newton, metrics
+from torchsgal.estimation import SolverStatus, autograd_jacobian, gauss_helmert, gauss_newton, metrics, study
 from torchsgal.estimation import variables as V
 from torchsgal.estimation.lbfgs import lbfgs
 
@@ -338,10 +338,47 @@ def test_chi2_band_and_expected_mmd_against_scipy():
     assert math.isclose(metrics.rmse(torch.tensor([[3.0, 4.0], [0.0, 0.0]])).item(), math.sqrt(12.5))
 
 
+def test_metrics_at_the_edges_of_their_domains():
+    """The chi-square quantile is never negative (Wilson-Hilferty's cube falls below 0 at small
+    dof and very negative p_z), a normal quantile beyond 40 is refused (its cube overflowed),
+    the expected MMD stays exact for large dof (its lgamma difference lost digits, then
+    overflowed) and the NEES refuses an asymmetric covariance (Cholesky reads one triangle)."""
+    mpmath = pytest.importorskip("mpmath")
+    assert metrics.anees_band(1, 1)[0] == 0.0 and metrics.chi2_quantile(-1.96, 0.1) == 0.0
+    with pytest.raises(ValueError, match=r"p_z must be a finite number in \[-40, 40\], got 1e\+200"):
+        metrics.chi2_quantile(1e200, 1)
+    mpmath.mp.dps = 40
+    for k in (50.0, 2999.0, 3001.0, 1e4, 1e6, 1e12):
+        exact = mpmath.sqrt(2) * mpmath.gamma((k + 1) / mpmath.mpf(2)) / mpmath.gamma(k / mpmath.mpf(2))
+        assert metrics.expected_mmd(k) == pytest.approx(float(exact), rel=3e-12), k
+    assert metrics.expected_mmd(1e308) == pytest.approx(1e154, rel=1e-15)
+    with pytest.raises(ValueError, match=r"covariance is not symmetric: max \|P - P\^T\| = 5"):
+        metrics.nees(torch.ones(1, 3, dtype=f64), torch.tensor([[[1.0, 5, 0], [0, 1, 0], [0, 0, 1]]], dtype=f64))
+    nan_cov = torch.stack([torch.eye(3, dtype=f64), torch.full((3, 3), float("nan"), dtype=f64)])
+    assert torch.equal(metrics.nees(torch.ones(2, 3, dtype=f64), nan_cov).isnan(), torch.tensor([False, True]))
+
+
+def test_study_summarise_checks_its_arguments():
+    """Errors of another width (the interval column read as empty), trials of different counts
+    and a status that is not an int64 tensor are named (an IndexError or a misleading message
+    from the NEES before)."""
+    err, cov = torch.full((4, 11), 0.1, dtype=f64), torch.eye(11, dtype=f64).expand(4, 11, 11)
+    ok = torch.zeros(4, dtype=torch.int64)
+    with pytest.raises(ValueError, match=r"err must have shape \(K, 11\), got \(4, 10\)"):
+        study.summarise(err[:, :10], cov, ok)
+    with pytest.raises(ValueError, match=r"cov must have shape \(K, 11, 11\) = \(3, 11, 11\)"):
+        study.summarise(err[:3], cov, ok)
+    with pytest.raises(ValueError, match=r"status must have shape \(K,\) = \(4,\), got \(3,\)"):
+        study.summarise(err, cov, ok[:3])
+    with pytest.raises(TypeError, match="status must be an int64 tensor of SolverStatus codes, got list"):
+        study.summarise(err, cov, [0, 0, 0, 0])
+    assert study.summarise(err, cov, ok)["ANEES"] == pytest.approx(0.11)
+
+
 def test_metrics_check_their_arguments():
     with pytest.raises(ValueError, match="dof must be a finite number > 0, got 0"):
         metrics.chi2_quantile(1.96, 0)
-    with pytest.raises(ValueError, match="p_z must be a finite number, got nan"):
+    with pytest.raises(ValueError, match=r"p_z must be a finite number in \[-40, 40\], got nan"):
         metrics.chi2_quantile(math.nan, 11)
     with pytest.raises(ValueError, match="trials must be an integer >= 1, got 0"):
         metrics.anees_band(0, 11)
@@ -692,3 +729,43 @@ def test_gauss_helmert_paper_variant_takes_plain_gauss_newton_steps_by_default()
     assert (damped.report.status == SolverStatus.DIVERGED).any()
     ref = gauss_helmert(condition, S0, cov, variant="paper", damping=None)
     assert torch.equal(ref.x.as_matrix(), sol.x.as_matrix())
+
+
+def test_lbfgs_status_edges():
+    """CONVERGED is LBFGS's absolute gradient test (a constant added to the cost changes
+    nothing, and an unbounded cost is never converged); an empty batch or tangent returns an
+    empty or trivial report; a singular scale is refused (its directions could not move)."""
+    t = torch.tensor([[0.0, 1.0, 2.0]] * 4, dtype=f64)
+    for offset in (0.0, 1e6):
+        _, _, r = lbfgs(lambda x, _: (x - t).square().sum(-1) + offset, torch.zeros(4, 3, dtype=f64),
+                        max_iterations=1)
+        assert (r.status == SolverStatus.MAX_ITERATIONS).all(), offset
+    _, _, r = lbfgs(lambda x, _: x.sum(-1), torch.zeros(4, 3, dtype=f64), max_iterations=5)
+    assert not r.converged.any()
+    x, _, r = lbfgs(lambda x, _: x.sum(-1), torch.zeros(0, 3, dtype=f64))
+    assert x.shape == (0, 3) and r.status.shape == (0,)
+    x, _, r = lbfgs(lambda x, _: x.new_ones(x.shape[0]), torch.zeros(4, 0, dtype=f64))
+    assert r.converged.all() and torch.equal(r.cost, torch.ones(4, dtype=f64))
+    for scale in (torch.tensor([1.0, 0.0, 1.0], dtype=f64), torch.zeros(4, 3, 3, dtype=f64)):
+        with pytest.raises(ValueError, match="scale must be finite and invertible"):
+            lbfgs(lambda x, _: (x - t).square().sum(-1), torch.zeros(4, 3, dtype=f64), scale=scale)
+
+
+def test_undamped_levenberg_marquardt_recovers_from_a_rejected_step():
+    """damping=0 starts undamped; a rejected step raises the damping (it stayed 0, and the same
+    step was rejected to the iteration limit)."""
+    sol = gauss_newton(torch.atan, torch.full((1, 1), 2.0, dtype=f64), damping=0.0)
+    assert sol.report.converged.all() and sol.x.abs().max() < 1e-10
+
+
+def test_covariance_from_information_checks_and_refuses_to_invert_what_cholesky_did_not():
+    from torchsgal.estimation.solver import covariance_from_information as cov
+    H = torch.stack([torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=f64), torch.zeros(2, 2, dtype=f64),
+                     2 * torch.eye(2, dtype=f64)])
+    out = cov(H, torch.tensor([False, False, False]))
+    assert out[:2].isnan().all()
+    torch.testing.assert_close(out[2], 0.5 * torch.eye(2, dtype=f64), rtol=1e-15, atol=0)
+    with pytest.raises(TypeError, match="singular must be a bool tensor"):
+        cov(H, False)
+    with pytest.raises(ValueError, match=r"H must have shape \(\.\.\., d, d\), got \(2, 3\)"):
+        cov(torch.zeros(2, 3, dtype=f64), torch.tensor([False]))

@@ -241,6 +241,24 @@ def test_state_dict_round_trip(G, dtype):
         GroupParameter(G.identity((3,), dtype=dtype)).load_state_dict(p.state_dict())
 
 
+def test_a_state_dict_of_another_group_or_off_the_group_is_refused():
+    """SE(2)'s and SO(3)'s anchors are both 3 x 3: torch's size checks pass, the group's
+    membership test does not; nor does a spoiled (NaN or arbitrary) anchor, and the module keeps
+    its own.  A float32 state loads into a float64 module (checked at float32's tolerance)."""
+    so3 = GroupParameter(ts.SO3.identity(3, dtype=F64))
+    before = so3.anchor.clone()
+    delta = torch.zeros(3, 3, dtype=F64)
+    for state in (GroupParameter(ts.SE2.random((3,), dtype=F64, generator=_gen(10))).state_dict(),
+                  {"anchor": torch.full((3, 3, 3), 7.0, dtype=F64), "delta": delta},
+                  {"anchor": torch.full((3, 3, 3), float("nan"), dtype=F64), "delta": delta}):
+        with pytest.raises(ValueError, match="anchor is not an element of SO3"):
+            so3.load_state_dict(state)
+        assert torch.equal(so3.anchor, before)
+    single = GroupParameter(ts.SO3.random((3,), dtype=F32, generator=_gen(11)))
+    so3.load_state_dict(single.state_dict())
+    assert torch.equal(so3.anchor, single.anchor.double())
+
+
 def test_module_to_converts_anchor_and_delta():
     p = GroupParameter(ts.SGal3.random((2,), dtype=F32, generator=_gen(9))).to(F64)
     assert p.anchor.dtype == F64 and p.delta.dtype == F64 and p().dtype == F64

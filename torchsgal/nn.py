@@ -36,13 +36,31 @@ PROJECT_EVERY = 64  # retract_ puts the anchor back on the group every this many
 __all__ = ["GroupParameter", "group_parameters", "retract_all_", "retract_after_step"]
 
 
+def _check_loaded_anchor(module, state_dict, prefix, local_metadata, strict, missing_keys,
+                         unexpected_keys, error_msgs) -> None:
+    """A state dict's anchor must be an element of the module's group (a state saved from
+    another group of the same matrix size, or a spoiled one, would load without a word)."""
+    key = prefix + "anchor"
+    anchor = state_dict.get(key)
+    if not isinstance(anchor, torch.Tensor) or anchor.shape != module.anchor.shape:
+        return  # torch reports a missing key or a size mismatch itself
+    if anchor.dtype not in (torch.float32, torch.float64):  # checked as it will be stored
+        anchor = anchor.to(module.anchor.dtype)
+    try:  # within the tolerance of the state's own dtype (a float32 state may load into float64)
+        module.group.from_matrix(anchor, check=True)
+    except (TypeError, ValueError) as err:  # raised here: torch would still copy the anchor
+        raise ValueError(f"{key} is not an element of {module.group.__name__} (a state dict of "
+                         f"another group or a spoiled one): {err}") from None
+
+
 class GroupParameter(nn.Module, Generic[G]):
     """A trainable element ``anchor exp(delta)`` of a group, batched as the element given.
 
     ``anchor`` is a buffer (the matrices (..., n, n)), ``delta`` an ``nn.Parameter`` (..., dof),
     zero at construction; both are in ``state_dict`` and follow ``module.to(...)``.  The group
     (``group``, a class such as ``torchsgal.SE3``) is fixed at construction: load a state dict
-    into a ``GroupParameter`` of the same group and batch shape.
+    into a ``GroupParameter`` of the same group and batch shape (an anchor that is not an
+    element of the group is refused by ``load_state_dict``).
 
     Example::
 
@@ -72,6 +90,7 @@ class GroupParameter(nn.Module, Generic[G]):
         delta = matrix.new_zeros(*element.batch_shape, element.dof)
         self.delta = nn.Parameter(delta, requires_grad=requires_grad)
         self._retractions = 0  # re-anchorings so far (see retract_)
+        self.register_load_state_dict_pre_hook(_check_loaded_anchor)
 
     @property
     def value(self) -> G:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 import torch
 
 from ..functional import checks
+from ..functional._blocking import values_readable
 from . import variables as V
 from .solver import SolverReport, SolverStatus
 
@@ -35,7 +36,13 @@ def _check_scale(scale, Bn: int, d: int, ref: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"scale must have shape (d,) = ({d},), (B, d) = ({Bn}, {d}) or "
                          f"(B, d, d) = ({Bn}, {d}, {d}) (d the tangent size of x0), got "
                          f"{tuple(scale.shape)}")
-    return scale.detach()
+    scale = scale.detach()
+    if scale.numel() and values_readable(scale):  # one read: a singular scale freezes directions
+        invertible = torch.linalg.slogdet(scale)[0] != 0 if scale.dim() == 3 else scale != 0
+        if not bool(torch.isfinite(scale).all() & invertible.all()):
+            raise ValueError("scale must be finite and invertible (no zero coordinate, no singular "
+                             "matrix): LBFGS would not move the directions it maps to zero")
+    return scale
 
 
 def _check_extra(extra, extra_scale, Bn: int, ref: torch.Tensor):
@@ -80,8 +87,9 @@ def lbfgs(
     max_iterations: LBFGS iterations (an integer >= 0; 0 evaluates x0 only); history_size
     (>= 1) and gradient_tol (>= 0) as in ``torch.optim.LBFGS``.
     Returns (x, extra, report): the status is CONVERGED where the largest component of the
-    problem's gradient with respect to its scaled variables is below ``gradient_tol`` times
-    (1 + its cost), the test LBFGS itself stops on (max-abs, over the summed cost);
+    problem's gradient with respect to its scaled variables is at most ``gradient_tol``, the
+    test LBFGS itself stops on (max-abs; an absolute test, so a constant added to the cost
+    leaves the status alone);
     otherwise MAX_ITERATIONS where LBFGS used up ``max_iterations`` (or its 4 x
     max_iterations evaluations), DIVERGED where it stopped before (no further decrease: a
     stalled line search or loss change below its tolerance); NON_FINITE where the cost or
@@ -133,7 +141,10 @@ def lbfgs(
     def gradients(c, active, wrt):
         """The per-problem gradients of the costs ``c`` of the active problems with respect to
         the tensors ``wrt`` (zeros for one the cost does not use)."""
-        grads = torch.autograd.grad(torch.where(active, c, 0).sum(), wrt, allow_unused=True)
+        total = torch.where(active, c, 0).sum()
+        if not total.requires_grad:  # a cost that reads none of them (an empty tangent)
+            return [torch.zeros_like(p) for p in wrt]
+        grads = torch.autograd.grad(total, wrt, allow_unused=True)
         return [torch.zeros_like(p) if g is None else g for p, g in zip(wrt, grads)]
 
     def closure():
@@ -148,7 +159,7 @@ def lbfgs(
             p.grad = torch.where(_rows(active, g), g, 0)
         return torch.where(active, c.detach(), 0).sum()
 
-    if max_iterations > 0:
+    if max_iterations > 0 and sum(p.numel() for p in params) > 0:  # else nothing can move
         opt.step(closure)
     x = V.retract(x0, step(z.detach()))
     # Per-problem gradient at the end.
@@ -168,7 +179,7 @@ def lbfgs(
     # The max-abs test of torch.optim.LBFGS: a batch it stopped as converged reports CONVERGED
     # for every problem (the Euclidean norm can exceed it by sqrt(d)).  A batch it stopped
     # early otherwise (loss or step change below tolerance_change) has stalled: DIVERGED.
-    status = torch.where(gmax <= gradient_tol * (1 + c.abs()), SolverStatus.CONVERGED,
+    status = torch.where(gmax <= gradient_tol, SolverStatus.CONVERGED,
                          SolverStatus.MAX_ITERATIONS if exhausted else SolverStatus.DIVERGED)
     status = torch.where(finite, status, SolverStatus.NON_FINITE).to(torch.int64)
     nan = float("nan")

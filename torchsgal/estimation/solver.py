@@ -200,12 +200,23 @@ def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torc
 
 
 def covariance_from_information(H: torch.Tensor, singular: torch.Tensor) -> torch.Tensor:
-    """H^-1 by Cholesky; NaN where ``singular`` (the report's status says SINGULAR there)."""
+    """H^-1 (..., d, d) by Cholesky of the information H (..., d, d); NaN where ``singular``
+    (a bool tensor (...); the report's status says SINGULAR there) and where H is not positive
+    definite (its Cholesky fails: never an inverse of a matrix the factorisation did not
+    finish)."""
+    checks.floating(H, "H")
+    if H.dim() < 2 or H.shape[-1] != H.shape[-2]:
+        raise ValueError(f"H must have shape (..., d, d), got {tuple(H.shape)}")
+    if not isinstance(singular, torch.Tensor) or singular.dtype != torch.bool:
+        got = singular.dtype if isinstance(singular, torch.Tensor) else type(singular).__name__
+        raise TypeError(f"singular must be a bool tensor (...), got {got}")
+    checks.broadcast_batch(H=H.shape[:-2], singular=singular.shape)
     eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
     Hs = torch.where(singular[..., None, None], eye, H)
-    L, _ = torch.linalg.cholesky_ex(Hs)
-    P = torch.cholesky_inverse(L)
-    return torch.where(singular[..., None, None], torch.full_like(P, float("nan")), P)
+    L, info = torch.linalg.cholesky_ex(Hs)
+    bad = singular | (info != 0)
+    P = torch.cholesky_inverse(torch.where(bad[..., None, None], eye, L))
+    return torch.where(bad[..., None, None], torch.full_like(P, float("nan")), P)
 
 
 def _check_options(max_iterations, damping, max_damping, stop_below_fraction, **tolerances) -> None:
@@ -239,7 +250,9 @@ def iterate(
     ``linearise(x, aux) -> Linearisation`` at the current point; ``post_step(x, aux, lin,
     delta) -> aux`` gives the solver state that goes with the new point (None: unchanged).
     ``damping=None`` takes plain Gauss-Newton steps (every step accepted); otherwise
-    Levenberg-Marquardt with per-problem damping starting at ``damping``.
+    Levenberg-Marquardt with per-problem damping starting at ``damping`` (0: undamped until a
+    step is rejected), divided by 10 after an accepted step and multiplied by 10 after a
+    rejected one, never below 1e-12 after the first step.
     ``stop_below_fraction``: leave the loop (the problems still running get MAX_ITERATIONS)
     once at most this fraction of the batch is running, so that a caller can finish the
     stragglers in a smaller batch instead of iterating the whole batch for them.  A step is accepted
@@ -320,7 +333,8 @@ def iterate(
         old_cost = cost
         cost = torch.where(accept, cost_new, cost)
         if damping is not None:
-            lam = torch.where(accept, (lam / 10).clamp_min(1e-12), lam * 10)
+            # 1e-12 at least on both sides: a start at 0 (undamped) still grows after a rejection
+            lam = torch.where(accept, (lam / 10).clamp_min(1e-12), (lam * 10).clamp_min(1e-12))
         decrease = old_cost - cost
         converged = running & accept & (
             (step <= step_tol) | ((decrease >= 0) & (decrease <= cost_tol * old_cost)))

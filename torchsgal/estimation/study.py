@@ -256,6 +256,23 @@ COMPONENTS = {"position": slice(0, 3), "velocity": slice(3, 6), "orientation": s
 
 
 def summarise(err: torch.Tensor, cov: torch.Tensor, status: torch.Tensor) -> dict:
+    """Table 1's columns of K trials: err (K, 11) [position, velocity, orientation, time
+    offset, interval] (``errors``), cov (K, 11, 11) and status (K,) int64 (``SolverStatus``);
+    the converged trials are summarised."""
+    checks.floating(err, "err")
+    width = COMPONENTS["interval"].stop
+    if err.dim() != 2 or err.shape[-1] != width:
+        raise ValueError(f"err must have shape (K, {width}), got {tuple(err.shape)}")
+    K = err.shape[0]
+    checks.floating(cov, "cov")
+    if tuple(cov.shape) != (K, width, width):
+        raise ValueError(f"cov must have shape (K, {width}, {width}) = ({K}, {width}, {width}), got "
+                         f"{tuple(cov.shape)}")
+    if not isinstance(status, torch.Tensor) or status.dtype != torch.int64:
+        got = status.dtype if isinstance(status, torch.Tensor) else type(status).__name__
+        raise TypeError(f"status must be an int64 tensor of SolverStatus codes, got {got}")
+    if tuple(status.shape) != (K,):
+        raise ValueError(f"status must have shape (K,) = ({K},), got {tuple(status.shape)}")
     ok = status == SolverStatus.CONVERGED
     e, P = err[ok], cov[ok]
     q = metrics.nees(e, P)

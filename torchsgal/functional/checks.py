@@ -201,11 +201,12 @@ def boolean(value, name: str) -> bool:
 
 
 _BOUNDS = {"": lambda v: True, ">= 0": lambda v: v >= 0, "> 0": lambda v: v > 0,
-           "in [0, 1]": lambda v: 0 <= v <= 1}
+           "in [0, 1]": lambda v: 0 <= v <= 1, "in [-40, 40]": lambda v: -40 <= v <= 40}
 
 
 def finite_number(value, name: str, bound: str = "") -> float:
-    """A finite real number (bool refused); ``bound`` one of "", ">= 0", "> 0", "in [0, 1]".
+    """A finite real number (bool refused); ``bound`` one of "", ">= 0", "> 0", "in [0, 1]",
+    "in [-40, 40]".
     TypeError for another type, ValueError for a non-finite or out-of-bound value."""
     ok = _BOUNDS[bound]
     if type(value) is float and math.isfinite(value) and ok(value):  # the common case, no message
