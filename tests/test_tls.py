@@ -602,3 +602,15 @@ def test_two_observation_pairs_suffice(variant):
                                             seed=5))
     assert (tls.solve_sgal3(rest.problem, variant=variant).report.status
             == SolverStatus.SINGULAR).all()
+
+
+def test_subset_and_dtau0_name_bad_arguments():
+    """subset takes a slice or an int64 index tensor (an int dropped the batch axis and the error
+    named F_ga); a bool is no number for dtau0 (True was read as 1.0)."""
+    P = study.simulate(study.StudyConfig(trials=3, samples=6, seed=0)).problem
+    for index in (2, "a", torch.tensor([True, False, True]), torch.tensor([[0, 1]])):
+        with pytest.raises(TypeError, match="index must be a slice or a 1-D int64 tensor of trials"):
+            tls.subset(P, index)
+    assert tls.subset(P, torch.tensor([0, 2])).batch_size == 2
+    with pytest.raises(TypeError, match="dtau0 must be a torch.Tensor, a real number"):
+        tls.solve_sgal3(P, dtau0=True)

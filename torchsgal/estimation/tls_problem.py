@@ -199,7 +199,13 @@ def sgal3_condition(problem: TLSProblem):
 
 
 def subset(problem: TLSProblem, index) -> TLSProblem:
-    """The trials ``index`` (a slice or index tensor) of a problem."""
+    """The trials ``index`` (a slice, or an int64 index tensor (K,)) of a problem."""
+    if not isinstance(index, slice) and not (
+            isinstance(index, torch.Tensor) and index.dim() == 1 and index.dtype == torch.int64):
+        got = (f"a tensor of {index.dtype} and shape {tuple(index.shape)}" if isinstance(index, torch.Tensor)
+               else repr(index))
+        raise TypeError(f"index must be a slice or a 1-D int64 tensor of trials, got {got}")
+
     def pick(S):
         return S[index] if S.dim() == 4 and S.shape[0] > 1 else S
     return TLSProblem(problem.F_ga[index], problem.F_gb[index], pick(problem.cov_a),

@@ -47,7 +47,7 @@ def numbers_as_tensor(value, name: str, dtype: torch.dtype, device) -> torch.Ten
         return dense(value, name)
     message = (f"{name} must be a torch.Tensor, a real number or a sequence of real numbers, "
                f"got {value!r}")
-    if isinstance(value, (str, bytes)):
+    if isinstance(value, (str, bytes, bool)):  # a bool is no number here (True read as 1.0)
         raise TypeError(message)
     try:
         return torch.as_tensor(value, dtype=dtype, device=device)
