@@ -85,9 +85,10 @@ class Config:
     def __post_init__(self):
         for name, ratio in (("duration", self.duration * self.keyframe_rate),
                             ("imu_rate", self.imu_rate / self.keyframe_rate)):
-            if not (ratio >= 1 and abs(ratio - round(ratio)) < 1e-9):
+            if not (1 <= ratio <= 1e7 and abs(ratio - round(ratio)) < 1e-9):  # inf: no round()
                 raise ValueError(f"{name} must be a positive whole multiple of the keyframe period or "
-                                 f"rate ({self.keyframe_rate:g} Hz), got {getattr(self, name)}")
+                                 f"rate ({self.keyframe_rate:g} Hz), at most 1e7 of them, got "
+                                 f"{getattr(self, name)}")
 
     @property
     def samples_per_window(self) -> int:

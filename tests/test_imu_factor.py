@@ -228,6 +228,9 @@ def test_bad_input_raises():
         ImuFactor("x", [0, 1], [1, 2], "b", [0, 1], pre, g, state_group=SE3)
     with pytest.raises(ValueError, match="time_sigma"):
         ImuFactor("x", [0, 1], [1, 2], "b", [0, 1], pre, g, time_sigma=-1.0)
+    for sigma in (1e200, 1e-200):  # sigma^2 overflowed (a bare OverflowError) or underflowed
+        with pytest.raises(ValueError, match=r"time_sigma must lie in \[6.72e-139, 2.98e\+138\] s"):
+            ImuFactor("x", [0, 1], [1, 2], "b", [0, 1], pre, g, time_sigma=sigma)
     with pytest.raises(ValueError, match="bias_jacobian"):
         ImuFactor("x", 0, 1, "b", 0, Preintegration(pre.delta, pre.covariance, None,
                                                      pre.gyro_bias, pre.acc_bias), g,
@@ -426,3 +429,35 @@ def test_guide_example_runs():
     exec(compile(blocks[0], str(guide), "exec"), namespace)
     assert namespace["cov"].shape == (1, 10, 10)
     assert torch.isfinite(namespace["cov"]).all()
+
+
+def test_gnss_factor_with_batched_measurements_and_the_default_lever_arm():
+    """Measurements (B, E, 3) with the default lever arm (one zero vector for every factor and
+    problem; it was (B, 1, 3), which the engine read as E = 1 and failed to broadcast) solve as
+    with an explicit zero lever arm; measurements and lever arms of another E are named, as is
+    an asymmetric covariance (Cholesky read its lower triangle only)."""
+    gen = torch.Generator().manual_seed(3)
+    B, N = 3, 4
+    truth = SE3.exp(torch.randn(N, 6, dtype=D64, generator=gen))
+    k = torch.tensor([0, 2, 3])
+    z = truth[k].position() + 0.01 * torch.randn(B, 3, 3, dtype=D64, generator=gen)
+    C = 0.02 ** 2 * torch.eye(3, dtype=D64)
+
+    def solve(**lever):
+        graph = fg.FactorGraph()
+        graph.add_variable("x", truth.rplus(0.01 * torch.randn(B, N, 6, dtype=D64, generator=gen)))
+        graph.add(GnssPositionFactor("x", k, z, covariance=C, **lever))
+        graph.add(fg.Prior("x", torch.arange(N), truth, information=torch.eye(6, dtype=D64)))
+        return fg.levenberg_marquardt(graph)
+
+    default, explicit = solve(), solve(lever_arm=torch.zeros(3, dtype=D64))
+    assert default.report.converged.all()
+    torch.testing.assert_close(default.values["x"].as_matrix(), explicit.values["x"].as_matrix(),
+                               rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"measured must have shape \(E, 3\) or \(B, E, 3\) with E = 3"):
+        GnssPositionFactor("x", k, z[:, :2], covariance=C)
+    with pytest.raises(ValueError, match=r"lever_arm must have shape \(3,\) or \(E, 3\) = \(3, 3\), got \(2, 3\)"):
+        GnssPositionFactor("x", k, z, covariance=C, lever_arm=torch.zeros(2, 3, dtype=D64))
+    bad = torch.tensor([[1.0, 5.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=D64)
+    with pytest.raises(ValueError, match=r"covariance must be symmetric positive definite; it is not symmetric"):
+        GnssPositionFactor("x", k, z, covariance=bad)

@@ -26,6 +26,7 @@ the preintegrated-measurement space by ``preintMeasCov``).
 """
 from __future__ import annotations
 
+import math
 import numbers
 
 import torch
@@ -51,6 +52,11 @@ def sqrt_information_from_covariance(covariance: torch.Tensor, name: str = "cova
         raise ValueError(f"{name} must have shape (..., m, m), got {tuple(covariance.shape)}")
     if not bool(torch.isfinite(covariance).all()):
         raise ValueError(f"{name} has non-finite entries")
+    asym = float((covariance - covariance.mT).abs().amax()) if covariance.numel() else 0.0
+    if asym > 1e3 * torch.finfo(covariance.dtype).eps * float(covariance.abs().amax()):
+        # Cholesky reads one triangle: the other would be ignored without a word
+        raise ValueError(f"{name} must be symmetric positive definite; it is not symmetric: "
+                         f"max |S - S^T| = {asym:.3g}")
     C, info = torch.linalg.cholesky_ex(covariance)
     if bool((info != 0).any()):
         raise ValueError(f"{name} must be symmetric positive definite; "
@@ -265,6 +271,11 @@ class ImuFactor(Factor):
         else:
             if time_sigma is not None:
                 sigma = checks.finite_number(time_sigma, "time_sigma", "> 0")
+                info = torch.finfo(cov.dtype)
+                if not math.sqrt(info.tiny) / info.eps <= sigma <= math.sqrt(info.max) * info.eps:
+                    # sigma^2 must be a normal number that the information can still invert
+                    raise ValueError(f"time_sigma must lie in [{math.sqrt(info.tiny) / info.eps:.3g}, "
+                                     f"{math.sqrt(info.max) * info.eps:.3g}] s in {cov.dtype}, got {sigma:g}")
                 cov = cov.clone()
                 cov[..., 9, 9] += sigma**2
             elif bool((cov[..., 9, 9] <= 0).any()):
@@ -371,9 +382,10 @@ class GnssPositionFactor(Factor):
             raise ValueError(f"measured must have shape (E, 3) or (B, E, 3), got "
                              f"{tuple(measured.shape)}")
         if lever_arm is None:
-            lever_arm = torch.zeros_like(measured[..., :1, :])
+            lever_arm = measured.new_zeros(3)  # one for every factor (and every problem)
         checks.vector(lever_arm, 3, "lever_arm")
         checks.same_device_dtype(measured=measured, lever_arm=lever_arm)
+        given_lever_arm = tuple(lever_arm.shape)
         if lever_arm.dim() == 1:
             lever_arm = lever_arm.unsqueeze(0)
         if (covariance is None) == (information is None):
@@ -389,3 +401,9 @@ class GnssPositionFactor(Factor):
             kw["information"] = information
         super().__init__(_gnss_residual, [(states, index)], data=[measured, lever_arm], dim=3,
                          loss=loss, jacobians=_gnss_jacobians, **kw)
+        E = self.size  # the factors, from index: measured and lever_arm are checked against it
+        if measured.shape[-2] != E:
+            raise ValueError(f"measured must have shape (E, 3) or (B, E, 3) with E = {E} (index's "
+                             f"length), got {tuple(measured.shape)}")
+        if lever_arm.dim() != 2 or lever_arm.shape[0] not in (1, E):
+            raise ValueError(f"lever_arm must have shape (3,) or (E, 3) = ({E}, 3), got {given_lever_arm}")
