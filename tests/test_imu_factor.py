@@ -461,3 +461,16 @@ def test_gnss_factor_with_batched_measurements_and_the_default_lever_arm():
     bad = torch.tensor([[1.0, 5.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=D64)
     with pytest.raises(ValueError, match=r"covariance must be symmetric positive definite; it is not symmetric"):
         GnssPositionFactor("x", k, z, covariance=bad)
+
+
+def test_random_walk_factor_checks_its_sizes_and_ranges():
+    """duration of another E is named at construction (it was reported at the solve as
+    sqrt_information's leading size); densities beyond the dtype (a raw torch overflow) and so
+    small that the information overflows (NaN costs at the solve) are refused."""
+    with pytest.raises(ValueError, match=r"duration must have shape \(E,\) or \(B, E\) with E = 3"):
+        BiasRandomWalkFactor("b", [0, 1, 2], [1, 2, 3], torch.ones(5, dtype=D64), 1e-3, 1e-3)
+    with pytest.raises(ValueError, match="gyro_random_walk must be representable in torch.float32"):
+        BiasRandomWalkFactor("b", [0, 1, 2], [1, 2, 3], torch.ones(3), 1e39, 1.0)
+    with pytest.raises(ValueError, match=r"information 1 / \(s\^2 duration\) overflows"):
+        BiasRandomWalkFactor("b", [0, 1, 2], [1, 2, 3], torch.ones(3, dtype=D64), 1e-160, 1.0)
+    assert BiasRandomWalkFactor("b", [0, 1, 2], [1, 2, 3], torch.ones(3, dtype=D64), 1e-3, 1e-2).size == 3

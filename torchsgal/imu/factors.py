@@ -319,7 +319,10 @@ def _density_axes(x, name: str, like: torch.Tensor) -> torch.Tensor:
         return x
     if isinstance(x, bool) or not isinstance(x, numbers.Real):
         raise TypeError(f"{name} must be a number > 0 or a tensor (3,), got {type(x).__name__}")
-    return like.new_full((3,), checks.finite_number(x, name, "> 0"))
+    value = checks.finite_number(x, name, "> 0")
+    if value > torch.finfo(like.dtype).max:
+        raise ValueError(f"{name} must be representable in {like.dtype} (duration's dtype), got {value:g}")
+    return like.new_full((3,), value)
 
 
 class BiasRandomWalkFactor(Factor):
@@ -343,8 +346,15 @@ class BiasRandomWalkFactor(Factor):
         s = torch.cat((_density_axes(gyro_random_walk, "gyro_random_walk", duration),
                        _density_axes(acc_random_walk, "acc_random_walk", duration)))
         L = torch.diag_embed(1.0 / (s * duration.unsqueeze(-1).sqrt()))  # (E, 6, 6) / (B, E, 6, 6)
+        if not bool(torch.isfinite(L * L).all()):  # the information 1 / (s^2 dt)
+            raise ValueError("the random walks' information 1 / (s^2 duration) overflows: "
+                             "gyro_random_walk, acc_random_walk or duration too small for "
+                             f"{duration.dtype}")
         super().__init__(_random_walk_residual, [(bias, i), (bias, j)], dim=6,
                          sqrt_information=L, loss=loss, jacobians=_random_walk_jacobians)
+        if duration.shape[-1] != self.size:
+            raise ValueError(f"duration must have shape (E,) or (B, E) with E = {self.size} (the "
+                             f"length of i and j), got {tuple(duration.shape)}")
 
 
 def _gnss_residual(X: SE3 | SE23 | SGal3, measured: torch.Tensor, lever_arm: torch.Tensor) -> torch.Tensor:
