@@ -474,3 +474,25 @@ def test_random_walk_factor_checks_its_sizes_and_ranges():
     with pytest.raises(ValueError, match=r"information 1 / \(s\^2 duration\) overflows"):
         BiasRandomWalkFactor("b", [0, 1, 2], [1, 2, 3], torch.ones(3, dtype=D64), 1e-160, 1.0)
     assert BiasRandomWalkFactor("b", [0, 1, 2], [1, 2, 3], torch.ones(3, dtype=D64), 1e-3, 1e-2).size == 3
+
+
+def test_factors_name_variables_of_the_wrong_kind():
+    """An IMU factor on states of another group, a bias variable of another size and a GNSS
+    factor on a Euclidean variable are refused when added (the IMU case failed at the solve
+    with "the residual has shape (1, 3, 9), expected (..., 10)")."""
+    pre = _windows(2)
+    g = gravity_vector(dtype=D64)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", SE23.identity(3, dtype=D64))
+    graph.add_variable("b", torch.zeros(3, 6, dtype=D64))
+    graph.add_variable("b4", torch.zeros(3, 4, dtype=D64))
+    with pytest.raises(TypeError, match="variable 'x' must be SGal3, got SE23"):
+        graph.add(ImuFactor("x", [0, 1], [1, 2], "b", [0, 1], pre, g, time_sigma=1e-6))
+    with pytest.raises(TypeError, match="variable 'b4' must be a Euclidean variable of size 6, got size 4"):
+        graph.add(ImuFactor("x", [0, 1], [1, 2], "b4", [0, 1], pre, g, state_group=SE23))
+    with pytest.raises(TypeError, match="variable 'x' must be a Euclidean variable of size 6, got SE23"):
+        graph.add(BiasRandomWalkFactor("x", [0, 1], [1, 2], torch.ones(2, dtype=D64), 1e-3, 1e-3))
+    with pytest.raises(TypeError, match="variable 'b' must be SE3 or SE23 or SGal3, got a Euclidean tensor"):
+        graph.add(GnssPositionFactor("b", [0], torch.zeros(1, 3, dtype=D64), covariance=torch.eye(3, dtype=D64)))
+    graph.add(ImuFactor("x", [0, 1], [1, 2], "b", [0, 1], pre, g, state_group=SE23))
+    assert len(graph.factors) == 1

@@ -285,6 +285,7 @@ class ImuFactor(Factor):
             L = sqrt_information_from_covariance(cov, "preintegration.covariance")
         b_lin = torch.cat(torch.broadcast_tensors(pre.gyro_bias, pre.acc_bias), dim=-1)
         self.state_group = state_group
+        self.variable_kinds = (state_group, state_group, 6)
         super().__init__(imu_residual, [(states, i), (states, j), (bias, bias_index)],
                          data=[pre.delta, pre.bias_jacobian.expand(*batch, 10, 6),
                                b_lin.expand(*batch, 6), gravity, earth_rate],
@@ -350,6 +351,7 @@ class BiasRandomWalkFactor(Factor):
             raise ValueError("the random walks' information 1 / (s^2 duration) overflows: "
                              "gyro_random_walk, acc_random_walk or duration too small for "
                              f"{duration.dtype}")
+        self.variable_kinds = (6, 6)
         super().__init__(_random_walk_residual, [(bias, i), (bias, j)], dim=6,
                          sqrt_information=L, loss=loss, jacobians=_random_walk_jacobians)
         if duration.shape[-1] != self.size:
@@ -409,6 +411,7 @@ class GnssPositionFactor(Factor):
             kw["sqrt_information"] = sqrt_information_from_covariance(covariance)
         elif information is not None:
             kw["information"] = information
+        self.variable_kinds = ((SE3, SE23, SGal3),)
         super().__init__(_gnss_residual, [(states, index)], data=[measured, lever_arm], dim=3,
                          loss=loss, jacobians=_gnss_jacobians, **kw)
         E = self.size  # the factors, from index: measured and lever_arm are checked against it

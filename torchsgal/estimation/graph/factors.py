@@ -80,7 +80,13 @@ class Factor:
                    (additive for Euclidean variables), or ``(r, J)`` with the J_k side by side
                    in one tensor (..., dim, dof_1 + dof_2 + ...); default: forward-mode
                    autodiff.
+
+    A subclass may set ``variable_kinds``, one entry per variable argument: a group class (or a
+    tuple of them) the variable must be, an int k for a Euclidean variable of size k, or None;
+    ``FactorGraph.add`` checks the graph's variables against it and names a mismatch.
     """
+
+    variable_kinds: tuple | None = None
 
     def __init__(self, residual: Callable, variables: Sequence[tuple[str, object]],
                  data: Sequence[Data] = (), dim: int | None = None,

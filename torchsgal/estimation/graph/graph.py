@@ -112,6 +112,7 @@ class FactorGraph:
                 raise ValueError(f"factor {factor!r}: {type(T).__name__} acts on points of size "
                                  f"{T.point_dim}; point {point!r} has size {p.shape[-1]} and "
                                  f"measured {z.shape[-1]}")
+        _check_kinds(self, factor)
         first = _leaf(next(iter(self.variables.values())))
         for k, d in enumerate(factor.data):
             checks.same_device_dtype(**{"the graph's first variable": first,
@@ -149,3 +150,25 @@ class FactorGraph:
 
 def _leaf(value) -> torch.Tensor:
     return value.as_matrix() if isinstance(value, LieGroup) else value
+
+
+def _check_kinds(graph: FactorGraph, factor: Factor) -> None:
+    """The variables a factor reads against its ``variable_kinds`` (group classes, Euclidean
+    sizes or None per argument)."""
+    if factor.variable_kinds is None:
+        return
+    for (name, _), kind in zip(factor.slots, factor.variable_kinds):
+        value = graph.variables[name]
+        if kind is None:
+            continue
+        if isinstance(kind, int):
+            if isinstance(value, LieGroup) or value.shape[-1] != kind:
+                got = type(value).__name__ if isinstance(value, LieGroup) else f"size {value.shape[-1]}"
+                raise TypeError(f"factor {factor!r}: variable {name!r} must be a Euclidean variable of "
+                                f"size {kind}, got {got}")
+            continue
+        classes = kind if isinstance(kind, tuple) else (kind,)
+        if not isinstance(value, classes):
+            got = type(value).__name__ if isinstance(value, LieGroup) else "a Euclidean tensor"
+            raise TypeError(f"factor {factor!r}: variable {name!r} must be "
+                            f"{' or '.join(c.__name__ for c in classes)}, got {got}")
