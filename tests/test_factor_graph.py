@@ -521,3 +521,33 @@ def test_rank_test_flags_non_finite_information_per_problem(kind):
         v[1, k], v[2, k], v[3, k] = float("inf"), float("nan"), -float("inf")
         system.set_solution(v)
         assert system.singular().tolist() == [False, True, True, True], upper
+
+
+@pytest.mark.parametrize("linear_solver", ["dense", "block", "sparse"])
+def test_float32_graph_with_standard_deviations_100_apart_is_full_rank(linear_solver):
+    """A prior of sigma 0.01 and betweens of sigma 1 (diagonal entries 1e4 apart): the
+    diagonal test flags only entries within eps of the largest, the level of a direction no
+    residual sees (it flagged entries within 1e3 eps, 1.2e-4 in float32: this graph came back
+    CONVERGED_RANK_DEFICIENT with NaN marginals); the marginals equal float64's.  A variable no
+    factor reads is still flagged."""
+    gen = torch.Generator().manual_seed(0)
+    x64 = ts.SE3.exp(0.3 * torch.randn(3, 6, dtype=torch.float64, generator=gen))
+    marginals = {}
+    for dt in (torch.float64, torch.float32):
+        x = x64.to(dt)
+        graph = fg.FactorGraph()
+        graph.add_variable("x", x)
+        graph.add(fg.Prior("x", 0, x[:1], information=1e4 * torch.eye(6, dtype=dt)))
+        graph.add(fg.Between("x", torch.tensor([0, 1]), torch.tensor([1, 2]), x[:2].inverse() @ x[1:],
+                             information=torch.eye(6, dtype=dt)))
+        result = fg.levenberg_marquardt(graph, linear_solver=linear_solver)
+        assert result.report.status.tolist() == [int(SolverStatus.CONVERGED)], dt
+        marginals[dt] = result.marginal_covariance("x", torch.tensor([2]))[0]
+    torch.testing.assert_close(marginals[torch.float32].double(), marginals[torch.float64], rtol=1e-4, atol=1e-6)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", x64.to(torch.float32))
+    graph.add_variable("unseen", torch.zeros(1, 2))
+    graph.add(fg.Prior("x", torch.arange(3), x64.to(torch.float32), information=torch.eye(6)))
+    graph.add(fg.Factor(lambda v: 0.0 * v, variables=[("unseen", torch.zeros(1, dtype=torch.int64))], dim=2))
+    status = fg.levenberg_marquardt(graph, linear_solver=linear_solver).report.status
+    assert status.tolist() == [int(SolverStatus.CONVERGED_RANK_DEFICIENT)]

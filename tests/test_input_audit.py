@@ -293,6 +293,13 @@ def test_host_sync_caller_ignores_a_virtualenv_inside_a_checkout_named_torchsgal
     assert host_syncs._caller() == "?"
 
 
+@pytest.mark.parametrize("fn", ["jr", "jr_inv"])
+def test_sim3_right_jacobians_check_xi_before_negating_it(fn):
+    """A bool tensor: named, as for every group (torch's error on negating a bool before)."""
+    with pytest.raises(TypeError, match="^xi must have a floating dtype"):
+        getattr(ts.functional.sim3, fn)(torch.zeros(7, dtype=torch.bool))
+
+
 def test_a_non_finite_regression_basis_is_refused():
     """fit_polynomial's basis is checked finite, as its weights and times (the SVD failed in
     torch, naming no argument)."""

@@ -647,3 +647,11 @@ def test_tensor_converters_are_device_generic():
     assert tg.jacobian_to_gtsam(J, output=None, input="Gal3").shape == (3, 3, 10)
     assert tp.covariance_from_pypose(torch.empty(3, 6, 6, device=meta), g).device == meta
     assert tg.tangent_map("Pose3", torch.float32, meta).device == meta
+
+
+def test_pypose_jacobian_names_elements_of_other_batches():
+    """output (3,) and input (2,): each broadcasts with J, not with each other (a raw torch error
+    in the product before)."""
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: J \(\), output \(3,\), input \(2,\)"):
+        tp.jacobian_from_pypose(torch.zeros(6, 6, dtype=F64), output=ts.SE3.random(3, dtype=F64),
+                                input=ts.SE3.random(2, dtype=F64))

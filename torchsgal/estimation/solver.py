@@ -176,26 +176,30 @@ class Linearisation:
                              pick(self.g, other.g), pick(self.cost, other.cost))
 
 
-def information_is_singular(H: torch.Tensor, rcond: float | None = None) -> torch.Tensor:
-    """(B,) True where the information is numerically singular: a diagonal entry below
-    ``rcond`` times the largest (a direction that no residual sees: its information is then
-    rounding noise, which the Jacobi scaling below would blow up to 1), or the Jacobi-scaled
-    matrix with reciprocal condition below ``rcond`` (collinear directions, a test that does
-    not depend on the units), or non-finite entries.  Default rcond: 1e3 eps.
+def information_is_singular(H: torch.Tensor, rcond: float | None = None,
+                            diagonal_rcond: float | None = None) -> torch.Tensor:
+    """(B,) True where the information is numerically singular: a diagonal entry at most
+    ``diagonal_rcond`` times the largest (a direction that no residual sees: its information
+    is then rounding noise, O(eps^2) of the largest, which the Jacobi scaling below would blow
+    up to 1), or the Jacobi-scaled matrix with reciprocal condition below ``rcond`` (collinear
+    directions, a test that does not depend on the units), or non-finite entries.  Defaults:
+    rcond 1e3 eps, diagonal_rcond eps.
 
     The diagonal test compares unknowns with each other, so it depends on their units: an
-    unknown whose standard deviation is 1/sqrt(rcond) times another's (about 1e6 in float64,
-    100 in float32) is flagged.  Express the unknowns in commensurate units where that
-    happens."""
+    unknown whose standard deviation is 1/sqrt(diagonal_rcond) times another's (6.7e7 in
+    float64, 2,900 in float32) is flagged.  Express the unknowns in commensurate units where
+    that happens."""
     if rcond is None:
         rcond = 1e3 * torch.finfo(H.dtype).eps
+    if diagonal_rcond is None:
+        diagonal_rcond = torch.finfo(H.dtype).eps
     d = H.diagonal(dim1=-2, dim2=-1)
     s = torch.where(d > 0, d, torch.ones_like(d)).rsqrt()
     Hs = H * s[..., :, None] * s[..., None, :]
     finite = torch.isfinite(Hs).all(dim=(-1, -2))
     ev = torch.linalg.eigvalsh(torch.where(finite[..., None, None], Hs, torch.eye(
         H.shape[-1], dtype=H.dtype, device=H.device)))
-    tiny = d <= rcond * d.amax(dim=-1, keepdim=True)
+    tiny = d <= diagonal_rcond * d.amax(dim=-1, keepdim=True)
     return ~finite | tiny.any(dim=-1) | (ev[..., 0] <= rcond * ev[..., -1])
 
 

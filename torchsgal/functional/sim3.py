@@ -204,11 +204,15 @@ def jl_inv_impl(xi: torch.Tensor) -> torch.Tensor:
 
 @blocked(1)
 def jr(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi) = J_l(-xi)."""
+    checks.vector(xi, DOF, "xi")
     return jl(-xi)
 
 
 @blocked(1)
 def jr_inv(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(xi)^-1 = J_l(-xi)^-1."""
+    checks.vector(xi, DOF, "xi")
     return jl_inv(-xi)
 
 

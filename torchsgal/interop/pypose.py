@@ -153,6 +153,8 @@ def _jacobian(J: torch.Tensor, left, right) -> torch.Tensor:
     for side, A in (("output", left), ("input", right)):
         if A is not None:  # dtype, device and batch of J against each element's
             checks.binary(J, 2, A, 2, "J", side)
+    if left is not None and right is not None:  # and the two elements' batches together
+        checks.broadcast_batch(J=J.shape[:-2], output=left.shape[:-2], input=right.shape[:-2])
     if left is not None:
         J = left @ J
     if right is not None:

@@ -27,7 +27,13 @@ from ..dense_solve import MIN_BATCH, cholesky_solve, uses_kernel
 from .layout import EntryLayout, dense, dense_layout, times
 from .problem import Problem
 
-RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype
+RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype: the Jacobi-scaled pivots' test
+# A diagonal entry at most eps times the largest is a direction no residual sees (its information
+# is rounding noise, O(eps^2) of the largest); the test reads no units of its own below that
+# (unknowns whose standard deviations are up to 1 / sqrt(eps) apart: 2,900 in float32, 6.7e7 in
+# float64), where RCOND_FACTOR * eps flagged well-posed float32 graphs with standard deviations
+# 92 apart
+DIAGONAL_RCOND_FACTOR = 1.0
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
 
 
@@ -52,6 +58,7 @@ class DenseSystem:
         self.layout = dense_layout(problem.h_index, problem.block_entries, problem.D)
         self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
+        self.diagonal_rcond = DIAGONAL_RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._H: torch.Tensor | None = None
         self._work = workspace
 
@@ -142,7 +149,7 @@ class DenseSystem:
     def singular(self) -> torch.Tensor:
         """(B,) True where H at the solution is numerically rank-deficient."""
         H = self._solution()
-        d, tiny = _tiny_diagonal(H, self.rcond)
+        d, tiny = _tiny_diagonal(H, self.diagonal_rcond)
         # the pivots of the Jacobi-scaled S H S (S = diag(H)^-1/2) without forming it:
         # chol(S H S) = S chol(H), so its pivots are L_ii^2 / H_ii (rows where ``tiny`` holds
         # are decided by ``tiny`` whatever their factorisation gives)
@@ -238,6 +245,7 @@ class BlockSparseSystem:
             problem.h_index, problem.block_entries, problem.D, maps[0], structure.panels + 1,
             spare=structure.panels)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
+        self.diagonal_rcond = DIAGONAL_RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._dense: DenseSystem | None = None  # built when a dense question is asked
         self._values: torch.Tensor | None = None
 
@@ -311,7 +319,7 @@ class BlockSparseSystem:
             raise RuntimeError("set_solution(values) first")
         v = self._panels(self._values)
         d = v.index_select(1, self._maps[2])
-        tiny = (d <= self.rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(
+        tiny = (d <= self.diagonal_rcond * d.amax(dim=-1, keepdim=True)).any(dim=-1) | ~torch.isfinite(
             self._values.sum(dim=-1))  # every entry of H, both triangles
         L, _, _, info = block_cholesky_solve(v, v.new_zeros(v.shape[0], self.problem.D, 0),
                                              self.structure)
@@ -366,6 +374,7 @@ class SparseSystem:
                                             backend)
         self.backend = self.factorization.backend
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
+        self.diagonal_rcond = DIAGONAL_RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._values: torch.Tensor | None = None
         self._singular: torch.Tensor | None = None
 
@@ -404,7 +413,7 @@ class SparseSystem:
         """Factors H at the solution (undamped) for ``singular`` and ``marginal_blocks``."""
         v = values[0]
         d = self._diagonal(v)
-        tiny = bool((d <= self.rcond * d.max()).any()) or not bool(torch.isfinite(v).all())
+        tiny = bool((d <= self.diagonal_rcond * d.max()).any()) or not bool(torch.isfinite(v).all())
         ok = not tiny and self._factor(v, v.new_zeros(self.problem.D))
         self._values = values
         self._singular = torch.tensor([not ok], device=v.device)
