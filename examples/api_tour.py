@@ -1,9 +1,16 @@
 """The API tour of docs/guide/groups.md, runnable: python examples/api_tour.py"""
+import argparse
 import math
 
 import torch
 
 import torchsgal as ts
+
+if __name__ == "__main__":
+    argparse.ArgumentParser(
+        description="The API tour of docs/guide/groups.md: group elements, actions, algebra maps and "
+                    "Jacobians, constructors, batches and gradients, each identity asserted.  It takes "
+                    "no options.").parse_args()
 
 # Group elements wrap one tensor (the homogeneous matrix); any leading batch shape.
 xi = torch.randn(1024, 10, dtype=torch.float64)  # [rho, nu, phi, iota]

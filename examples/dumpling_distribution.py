@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -170,19 +171,57 @@ def plot(panels, out: Path) -> None:
     plt.close(fig)
 
 
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def png_path(parser: argparse.ArgumentParser, out: Path) -> Path:
+    """The file ``--out`` names (``.png`` added to a name without a suffix, as matplotlib
+    does), its folder created and checked writable before any computation: a path that cannot
+    be written ends as a usage error."""
+    if out.suffix == "":
+        out = out.with_name(out.name + ".png")
+    elif out.suffix.lower() != ".png":
+        parser.error(f"argument --out: expected a .png path, got {str(out)!r}")
+    if out.is_dir():
+        parser.error(f"argument --out: {str(out)!r} is a folder, expected a .png path")
+    folder = out.parent
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=_HERE / "output" / "dumpling_distribution.png",
-                    help="PNG path (default examples/output/dumpling_distribution.png)")
+                    help="PNG path, .png added to a name without a suffix "
+                         "(default examples/output/dumpling_distribution.png)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--samples", type=int, default=1200)
+    ap.add_argument("--samples", type=int_at_least(2), default=1200, help="samples per panel (>= 2)")
     args = ap.parse_args(argv)
+    out = png_path(ap, args.out)
 
     t0 = time.perf_counter()
     panels = [(s, sample_events(s, args.samples, args.seed)) for s in SIGMA_TIME]
     print("\n".join(summarize(panels)))
-    plot(panels, args.out)
-    print(f"wrote {args.out} in {time.perf_counter() - t0:.2f} s")
+    plot(panels, out)
+    print(f"wrote {out} in {time.perf_counter() - t0:.2f} s")
     return 0
 
 

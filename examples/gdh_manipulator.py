@@ -37,7 +37,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -218,16 +220,55 @@ def plot(res: dict, out: Path) -> Path:
     return path
 
 
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=_HERE / "output",
                     help="directory for the PNGs (created; default examples/output/)")
-    ap.add_argument("--seconds", type=float, default=4.0, help="trajectory duration [s]")
-    ap.add_argument("--samples", type=int, default=2001, help="number of time samples (>= 7)")
+    ap.add_argument("--seconds", type=positive_float, default=4.0, help="trajectory duration [s]")
+    ap.add_argument("--samples", type=int_at_least(7), default=2001, help="number of time samples (>= 7)")
     ap.add_argument("--no-plot", action="store_true", help="skip the figures")
     args = ap.parse_args(argv)
-    if args.samples < 7 or args.seconds <= 0:
-        ap.error("need --samples >= 7 and --seconds > 0")
+    if not args.no_plot:
+        output_folder(ap, args.out)
 
     t0 = time.perf_counter()
     t = torch.linspace(0.0, args.seconds, args.samples, dtype=DTYPE)
@@ -242,7 +283,6 @@ def main(argv=None) -> int:
         "a_i = 0, so each link's own velocity v_i = 0 and the product column is identically zero.)"
     )
     if not args.no_plot:
-        args.out.mkdir(parents=True, exist_ok=True)
         for res in results:
             print(f"wrote {plot(res, args.out)}")
     print(f"done in {time.perf_counter() - t0:.1f} s")

@@ -29,9 +29,9 @@ GTSAM solves the same graph (``PreintegratedImuMeasurements`` of the same sample
 for the first ``--gtsam-runs`` runs.  Initial values come from the GNSS fixes: positions
 interpolated across the outage, velocity from their differences, heading along it.
 
-Reports (``gnss_ins.md`` and ``gnss_ins.png`` in ``--out``): RMSE against the truth for both
-(same runs), the difference of the two estimates against the difference of the two
-preintegrations (per window, and dead-reckoned across the outage), the NEES of the smoothed
+Reports (``gnss_ins.md`` and ``gnss_ins.png`` in ``--out``, default examples/output/): RMSE
+against the truth for both (same runs), the difference of the two estimates against the
+difference of the two preintegrations (per window, and dead-reckoned across the outage), the NEES of the smoothed
 states averaged over the runs with its chi-square band, and the times of the batched solve
 and of the GTSAM runs.
 
@@ -46,6 +46,7 @@ import argparse
 import math
 import statistics
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -582,24 +583,62 @@ def plot(out: dict, path: Path, show: bool) -> None:
     plt.close(fig)
 
 
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--runs", type=int, default=32, help="Monte Carlo runs, solved as one batch")
-    parser.add_argument("--duration", type=float, default=60.0, help="seconds")
+    parser.add_argument("--runs", type=int_at_least(1), default=32, help="Monte Carlo runs, solved as one batch")
+    parser.add_argument("--duration", type=positive_float, default=60.0, help="seconds")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--gtsam-runs", type=int, default=4, help="runs also solved by GTSAM")
-    parser.add_argument("--repeats", type=int, default=3, help="timings of the batched solve")
-    parser.add_argument("--out", type=Path, default=Path("gnss_ins_out"))
+    parser.add_argument("--gtsam-runs", type=int_at_least(0), default=4, help="runs also solved by GTSAM")
+    parser.add_argument("--repeats", type=int_at_least(1), default=3, help="timings of the batched solve")
+    parser.add_argument("--out", type=Path, default=_HERE / "output",
+                        help="output folder (default examples/output/)")
     parser.add_argument("--no-show", action="store_true")
     args = parser.parse_args(argv)
-    if args.runs < 1 or args.duration <= 0 or args.gtsam_runs < 0 or args.repeats < 1:
-        parser.error("--runs and --repeats must be >= 1, --gtsam-runs >= 0, --duration > 0")
     try:
         Config(duration=args.duration)
     except ValueError as error:
-        parser.error(str(error))
+        parser.error(f"argument --duration: {error}")
+    output_folder(parser, args.out)
     out = compute(args.runs, args.duration, args.seed, args.gtsam_runs, args.repeats)
-    args.out.mkdir(parents=True, exist_ok=True)
     text = summary(out)
     (args.out / "gnss_ins.md").write_text(text)
     print(text)

@@ -31,7 +31,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -182,16 +184,60 @@ def plots(res, dts, path, truth, out: Path):
     plt.close(fig)
 
 
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
+def sample_interval(text: str) -> float:
+    """An argparse type: a sample interval dt [s], finite, > 0 and dividing the 1 s window."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    k = round(1.0 / value)
+    if k < 1 or abs(k * value - 1.0) > 1e-9:
+        raise argparse.ArgumentTypeError(f"expected a dt that divides the 1 s window, got {text!r}")
+    return value
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=_HERE / "output", help="output folder")
-    ap.add_argument("--dts", type=float, nargs="+", default=[0.04, 0.02, 0.01, 0.005, 0.0025, 0.00125])
-    ap.add_argument("--windows", type=int, default=16, help="windows (start times) per dt")
-    ap.add_argument("--runs", type=int, default=2000, help="Monte Carlo runs for the NEES")
-    ap.add_argument("--chain", type=int, default=32, help="0.25 s windows dead-reckoned in the trajectory plot")
+    ap.add_argument("--dts", type=sample_interval, nargs="+", default=[0.04, 0.02, 0.01, 0.005, 0.0025, 0.00125],
+                    help="sample intervals [s], each dividing the 1 s window")
+    ap.add_argument("--windows", type=int_at_least(1), default=16, help="windows (start times) per dt")
+    ap.add_argument("--runs", type=int_at_least(1), default=2000, help="Monte Carlo runs for the NEES")
+    ap.add_argument("--chain", type=int_at_least(1), default=32,
+                    help="0.25 s windows dead-reckoned in the trajectory plot")
     ap.add_argument("--no-plot", action="store_true", help="skip the figures")
     args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    output_folder(ap, args.out)
 
     traj = SinusoidalTrajectory()
     g = gravity_vector("z_up", G, dtype=DTYPE)

@@ -27,7 +27,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+import tempfile
 from pathlib import Path
 
 import torch
@@ -42,7 +44,7 @@ from torchsgal.imu import (  # noqa: E402
     gtsam_interop,  # noqa: E402
     preintegrate,
 )
-from torchsgal.imu.data import load_ros_imu_csv, windows  # noqa: E402
+from torchsgal.imu.data import ImuRecording, load_ros_imu_csv, windows  # noqa: E402
 
 DATA = _HERE.parent.parent / "shared" / "data" / "quadraped_imu_data.csv"
 F64 = torch.float64
@@ -52,12 +54,17 @@ def _angle(R: torch.Tensor) -> float:
     return float(SO3.from_matrix(R).log().norm())
 
 
+def load(path=DATA) -> ImuRecording:
+    """The recording: repeated stamps dropped, split at gaps longer than 0.05 s."""
+    return load_ros_imu_csv(path, duplicates="drop", max_gap=0.05)
+
+
 def compute(path=DATA, window: float = 0.5) -> dict:
     """Per window: start time [s], torchsgal's rotation angle [rad], its differences to GTSAM
     (rotation [rad], velocity [m/s], position [m]) on the samples and on the samples split in
     halves, the streaming/window difference, and the attitude difference to the recorded
-    orientation [rad]."""
-    rec = load_ros_imu_csv(path, duplicates="drop", max_gap=0.05)
+    orientation [rad].  ``path``: the CSV, or its recording from ``load``."""
+    rec = path if isinstance(path, ImuRecording) else load(path)
     dt_all = rec.intervals()
     params = gtsam_interop.to_gtsam_params(gravity_vector(dtype=F64), 1e-3, 1e-2)
     R_rec = SO3.from_quaternion(rec.orientation, order="xyzw").as_matrix()
@@ -135,17 +142,62 @@ def plot(result: dict, out: Path, show: bool) -> Path:
     return path
 
 
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
+def existing_file(text: str) -> Path:
+    """An argparse type: the path of an existing file."""
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"no such file: {text!r}")
+    return Path(text)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=DATA, help="the ROS IMU CSV")
-    ap.add_argument("--window", type=float, default=0.5, help="window length [s]")
+    ap.add_argument("--data", type=existing_file, default=DATA, help="the ROS IMU CSV")
+    ap.add_argument("--window", type=positive_float, default=0.5, help="window length [s]")
     ap.add_argument("--out", type=Path, default=_HERE / "output", help="output folder")
     ap.add_argument("--no-show", action="store_true", help="do not open a window")
     args = ap.parse_args(argv)
-    result = compute(args.data, args.window)
+    output_folder(ap, args.out)
+    try:
+        rec = load(args.data)
+    except (OSError, ValueError) as error:
+        ap.error(f"argument --data: {error}")
+    try:
+        fits = bool(windows(rec, args.window))
+    except ValueError as error:
+        ap.error(f"argument --window: {error}")
+    if not fits:
+        longest = max((float(rec.time[b - 1] - rec.time[a]) for a, b in rec.segments), default=0.0)
+        ap.error(f"argument --window: {args.window:g} s does not fit in a gap-free segment of the "
+                 f"recording (the longest spans {longest:.2f} s)")
+    result = compute(rec, args.window)
     text = table(result)
     print(text)
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "imu_real_data.md").write_text(text + "\n")
     plot(result, args.out, not args.no_show)
 

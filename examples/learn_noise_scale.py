@@ -15,6 +15,7 @@ Usage: python examples/learn_noise_scale.py [--steps 150] [--batch 32] [--poses 
 from __future__ import annotations
 
 import argparse
+import math
 
 import torch
 
@@ -68,19 +69,43 @@ def train(steps: int = 150, batch: int = 32, poses: int = 10, seed: int = 0,
         opt.step()
         history.append(float(log_sigma.detach().exp()))
         if verbose and (step % 25 == 0 or step == steps - 1):
-            print(f"step {step:4d}  loss {float(loss):.3e}  sigma {history[-1]:.4f}")
+            print(f"step {step:4d}  loss {float(loss.detach()):.3e}  sigma {history[-1]:.4f}")
     tail = history[-max(1, steps // 5):]  # the average of the last fifth: less step noise
     return dict(learned=sum(tail) / len(tail), truth=SIGMA_ODO, start=SIGMA_START)
 
 
-def main() -> None:
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=150)
-    ap.add_argument("--batch", type=int, default=32)
-    ap.add_argument("--poses", type=int, default=10)
+    ap.add_argument("--steps", type=int_at_least(1), default=150, help="Adam steps")
+    ap.add_argument("--batch", type=int_at_least(1), default=32, help="pose graphs per step")
+    ap.add_argument("--poses", type=int_at_least(2), default=10, help="poses per graph (>= 2)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--lr", type=float, default=0.05)
-    args = ap.parse_args()
+    ap.add_argument("--lr", type=positive_float, default=0.05, help="Adam learning rate")
+    args = ap.parse_args(argv)
     out = train(args.steps, args.batch, args.poses, args.seed, args.lr)
     print(f"odometry noise sigma: start {out['start']:.4f}, learned {out['learned']:.4f}, "
           f"truth {out['truth']:.4f}")

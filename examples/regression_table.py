@@ -22,8 +22,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 
@@ -185,17 +186,47 @@ def markdown(results) -> str:
     return head + "\n".join(rows) + "\n"
 
 
-def main():
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--reps", type=int, default=30, help="data sets per cell (Monte Carlo)")
-    ap.add_argument("--steps", type=int, default=8, help="integrator steps per sample")
+    ap.add_argument("--reps", type=int_at_least(1), default=30, help="data sets per cell (Monte Carlo)")
+    ap.add_argument("--steps", type=int_at_least(1), default=8, help="integrator steps per sample")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--worldline-trials", type=int, default=200,
+    ap.add_argument("--worldline-trials", type=int_at_least(1), default=200,
                     help="SGal(3) worldline vs TLS comparison: data sets")
     ap.add_argument("--quick", action="store_true", help="4 data sets per cell, 8 steps")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "output"))
-    args = ap.parse_args()
+    ap.add_argument("--threads", type=int_at_least(1), default=1, help="torch CPU threads")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output",
+                    help="output folder (default examples/output/)")
+    args = ap.parse_args(argv)
+    output_folder(ap, args.out)
     if args.quick:
         args.reps, args.steps, args.worldline_trials = 4, 8, 20
     torch.set_num_threads(args.threads)
@@ -220,10 +251,9 @@ def main():
         print("SGal(3) inertial worldline vs the total-least-squares estimator, same data:")
         print(wl_table)
         table = table + "\n" + wl_table
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "regression_table.md"), "w") as fh:
+    with open(args.out / "regression_table.md", "w") as fh:
         fh.write(table)
-    with open(os.path.join(args.out, "regression_table.json"), "w") as fh:
+    with open(args.out / "regression_table.json", "w") as fh:
         json.dump({"reps": args.reps, "steps": args.steps, "seed": args.seed,
                    "maneuvers": MANEUVERS, "weights": PAPER_WEIGHTS, "seconds": elapsed,
                    "worldline_vs_tls": worldline,

@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -137,19 +138,58 @@ def plot(chain, kin: dict, ik: dict, out: Path, show: bool) -> Path:
     return path
 
 
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=_HERE / "output", help="folder of the figure")
     ap.add_argument("--no-show", action="store_true", help="write the figure, do not show it")
     ap.add_argument("--no-plot", action="store_true", help="no figure at all")
-    ap.add_argument("--seconds", type=float, default=4.0, help="trajectory duration [s]")
-    ap.add_argument("--samples", type=int, default=2001, help="time samples (>= 5)")
-    ap.add_argument("--targets", type=int, default=64, help="IK targets on the circle")
-    ap.add_argument("--seeds", type=int, default=8, help="IK seeds per target")
+    ap.add_argument("--seconds", type=positive_float, default=4.0, help="trajectory duration [s]")
+    ap.add_argument("--samples", type=int_at_least(5), default=2001, help="time samples (>= 5)")
+    ap.add_argument("--targets", type=int_at_least(1), default=64, help="IK targets on the circle")
+    ap.add_argument("--seeds", type=int_at_least(1), default=8, help="IK seeds per target")
     ap.add_argument("--seed", type=int, default=0, help="random seed of the IK seeds")
     args = ap.parse_args(argv)
-    if args.samples < 5 or args.targets < 1 or args.seeds < 1 or not args.seconds > 0:
-        ap.error("--samples >= 5, --targets >= 1, --seeds >= 1 and --seconds > 0 are required")
+    if not args.no_plot:
+        output_folder(ap, args.out)
 
     chain = load_robot("panda")
     print(chain)

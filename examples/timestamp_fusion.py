@@ -55,6 +55,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -299,20 +300,68 @@ def figure(path: Path, sigma_t: float, sigma_v: float):
 
 
 # --------------------------------------------------------------------------------- main
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """An argparse type: a finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
+    """``--out``, created and checked writable before any computation: a folder that cannot
+    be made or written ends as a usage error."""
+    if folder.exists() and not folder.is_dir():
+        parser.error(f"argument --out: {str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
+                     f"{error.strerror or error}")
+    return folder
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=_HERE / "output", help="output folder")
-    ap.add_argument("--trials", type=int, default=2000, help="Monte Carlo trials")
+    ap.add_argument("--trials", type=int_at_least(2), default=2000, help="Monte Carlo trials")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--sigma-t", type=float, default=0.5, help="timestamp jitter std (s)")
-    ap.add_argument("--sigma-v", type=float, default=0.05, help="prior velocity std (m/s)")
+    ap.add_argument("--sigma-t", type=positive_float, default=0.5, help="timestamp jitter std (s)")
+    ap.add_argument("--sigma-v", type=positive_float, default=0.05, help="prior velocity std (m/s)")
     ap.add_argument("--no-sweep", action="store_true", help="skip the sigma_v sweep table")
-    ap.add_argument("--dt", type=float, default=0.0,
+    ap.add_argument("--dt", type=finite_float, default=0.0,
                     help="known nominal offset of the measurement time from the state's (s)")
     args = ap.parse_args(argv)
-    if args.trials < 2 or args.sigma_t <= 0 or args.sigma_v <= 0:
-        ap.error("need --trials >= 2, --sigma-t > 0 and --sigma-v > 0")
-    args.out.mkdir(parents=True, exist_ok=True)
+    output_folder(ap, args.out)
 
     t0 = time.perf_counter()
     rows, diag = monte_carlo(args.trials, args.seed, args.sigma_t, args.sigma_v, args.dt)

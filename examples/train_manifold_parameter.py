@@ -10,6 +10,7 @@ the trained poses are compared with.
 from __future__ import annotations
 
 import argparse
+import math
 
 import torch
 
@@ -28,15 +29,49 @@ def kabsch(x: torch.Tensor, y: torch.Tensor) -> ts.SE3:
     return ts.SE3.from_components(C, r)
 
 
-def main() -> None:
+def int_at_least(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    value = non_negative_float(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """An argparse type: a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--poses", type=int, default=32)
-    parser.add_argument("--points", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=500)
-    parser.add_argument("--lr", type=float, default=0.05)
-    parser.add_argument("--noise", type=float, default=0.01)
+    parser.add_argument("--poses", type=int_at_least(1), default=32)
+    parser.add_argument("--points", type=int_at_least(3), default=64,
+                        help="model points (>= 3: fewer do not determine a pose)")
+    parser.add_argument("--steps", type=int_at_least(1), default=500, help="Adam steps")
+    parser.add_argument("--lr", type=positive_float, default=0.05, help="Adam learning rate")
+    parser.add_argument("--noise", type=non_negative_float, default=0.01,
+                        help="standard deviation of the point noise (0: noise-free points)")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     gen = torch.Generator().manual_seed(args.seed)
     dtype = torch.float64

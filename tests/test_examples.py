@@ -53,3 +53,56 @@ def test_readme_python_block_runs(index, tmp_path):
 
 def test_readme_has_python_blocks():
     assert len(_readme_python_blocks()) >= 5
+
+
+# One or two bad options per example script, all rejected while parsing (before any
+# computation): "FILE" stands for a path that is a file, so no folder can be made there.
+BAD_OPTIONS = [
+    ("api_tour.py", ["--bogus"], "--bogus"),
+    ("dumpling_distribution.py", ["--samples", "0"], "--samples"),
+    ("dumpling_distribution.py", ["--out", "FILE/x.png"], "--out"),
+    ("gdh_manipulator.py", ["--seconds", "nan"], "--seconds"),
+    ("gdh_manipulator.py", ["--out", "FILE"], "--out"),
+    ("gnss_ins_smoother.py", ["--runs", "0"], "--runs"),
+    ("gnss_ins_smoother.py", ["--out", "FILE"], "--out"),
+    ("imu_preintegration.py", ["--dts", "0.01", "inf"], "--dts"),
+    ("imu_preintegration.py", ["--chain", "-1"], "--chain"),
+    ("imu_preintegration.py", ["--out", "FILE"], "--out"),
+    ("imu_real_data.py", ["--window", "nan"], "--window"),
+    ("imu_real_data.py", ["--data", "FILE.missing.csv"], "--data"),
+    ("imu_real_data.py", ["--out", "FILE"], "--out"),
+    ("learn_noise_scale.py", ["--lr", "inf"], "--lr"),
+    ("learn_noise_scale.py", ["--poses", "1"], "--poses"),
+    ("regression_table.py", ["--worldline-trials", "0"], "--worldline-trials"),
+    ("regression_table.py", ["--out", "FILE"], "--out"),
+    ("robot_arm.py", ["--seconds", "inf"], "--seconds"),
+    ("robot_arm.py", ["--no-show", "--out", "FILE"], "--out"),
+    ("timestamp_fusion.py", ["--dt", "nan"], "--dt"),
+    ("timestamp_fusion.py", ["--out", "FILE"], "--out"),
+    ("train_manifold_parameter.py", ["--points", "0"], "--points"),
+    ("train_manifold_parameter.py", ["--steps", "-1"], "--steps"),
+]
+
+
+@pytest.mark.parametrize("script, args, option", BAD_OPTIONS,
+                         ids=[f"{s[:-3]}{a[0]}" for s, a, _ in BAD_OPTIONS])
+def test_example_bad_option_is_a_usage_error(script, args, option, tmp_path):
+    """A bad option ends as an argparse usage error (exit code 2, one 'error:' line naming the
+    option, no traceback) and writes nothing."""
+    file = tmp_path / "a_file"
+    file.write_text("")
+    args = [a.replace("FILE", str(file)) for a in args]
+    out = subprocess.run([sys.executable, f"examples/{script}", *args], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 2, (out.returncode, out.stderr[-3000:])
+    assert "Traceback" not in out.stderr, out.stderr[-3000:]
+    errors = [line for line in out.stderr.splitlines() if "error:" in line]
+    assert len(errors) == 1 and option in errors[0], out.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_example_help():
+    """api_tour.py has a --help; gnss_ins_smoother.py's default --out is examples/output/, as
+    the other examples'."""
+    assert "The API tour of docs/guide/groups.md" in _run("examples/api_tour.py", "--help")
+    assert "default examples/output/" in _run("examples/gnss_ins_smoother.py", "--help")

@@ -58,3 +58,16 @@ def test_timestamp_fusion_example(tmp_path):
     assert 8.9 < gal[0] < 11.1        # full state at its dof (band ~[9.50, 10.52])
     assert 0.8 < gal[3] < 1.2         # time consistent
     assert 1.5 < paper[3] < 2.6       # as printed, the time row counts the prior twice (~2)
+
+
+def test_dumpling_distribution_reports_the_file_it_writes(tmp_path):
+    """--out without a suffix: matplotlib adds .png, and the script says so."""
+    pytest.importorskip("matplotlib")
+    proc = subprocess.run(
+        [sys.executable, "examples/dumpling_distribution.py", "--out", str(tmp_path / "fig"),
+         "--samples", "50"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert f"wrote {tmp_path / 'fig.png'} in" in proc.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.png"]
