@@ -282,3 +282,32 @@ def test_operators_refuse_bad_shapes_by_name(name):
         _op(f"{name}_log")(torch.zeros(5, 6, 6, dtype=torch.float64))
     with pytest.raises(ValueError, match=rf"xi must have shape \(\.\.\., {F.DOF}\)"):
         _op(f"{name}_jl_inv")(torch.zeros(2, 11, dtype=torch.float32))
+
+
+@pytest.mark.parametrize("name", ["so3", "se3", "se23", "sgal3", "sim3", "se2", "so2"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_log_of_a_matrix_with_an_infinite_entry_is_nan(name, dtype):
+    """An infinite entry of the rotation block gives a NaN rotation part, as a NaN entry does, in
+    the kernels and the tensor code alike (the log read it as a rotation of angle 0, pi/2 or pi:
+    a finite, wrong tangent); every other element of the batch is unchanged."""
+    from torchsgal import functional as F
+    m = getattr(F, name)
+    xi = 0.5 * torch.randn(9, m.DOF, dtype=dtype, generator=torch.Generator().manual_seed(4))
+    M = m.exp_impl(xi)
+    k = 2 if name in ("se2", "so2") else 3
+    spoiled = M.clone()
+    entries = [(r, c) for r in range(k) for c in range(k)]
+    for b in range(8):  # every entry of the rotation block, +inf and -inf
+        r, c = entries[b % len(entries)]
+        spoiled[b, r, c] = math.inf if (b // len(entries) + b) % 2 else -math.inf
+    phi = slice(m.DOF - 1, m.DOF) if name in ("se2", "so2") else slice(3, 6) if name in ("se3", "sim3") \
+        else slice(0, 3) if name == "so3" else slice(6, 9)
+    for log in (m.log, lambda M: _without_kernels(m.log, M)):
+        out = log(spoiled)
+        assert out[:8, phi].isnan().all(), name
+        assert torch.equal(out[8], log(M)[8])
+
+
+def _without_kernels(fn, *args):
+    with native.disabled():
+        return fn(*args)

@@ -7,8 +7,9 @@
  * select, with atan2_f32's branch-free part, so the compiler turns the loop over the lanes into
  * vector operations.  Every lane runs rotation_log's operations in its order: the bits are
  * rotation_log_f32's (so3_log_range_f32's), wherever an element falls in the batch.  A pass with
- * a lane whose arguments of atan2 are huge or not finite (atan2_f32's rare branches, and NaN) is
- * run again by so3_log_range_f32, as is the tail of the range.
+ * a lane whose arguments of atan2 are huge or not finite (atan2_f32's rare branches, and NaN), or
+ * whose matrix has an entry that is not finite (NaN out), is run again by so3_log_range_f32, as
+ * is the tail of the range.
  */
 
 #define LOG_LANES 8
@@ -33,7 +34,9 @@ WIDE_LOOPS static void so3_log_lanes_range_f32(void **a, int64_t lo, int64_t hi)
             const int swap = sn > acs;
             const float mx = select_f32(swap, sn, acs), mn = select_f32(swap, acs, sn);
             const float theta = atan2_f32_reduced(sn, cs, mx, mn, swap);
-            redo |= !(mx <= 1.0e38f);
+            const float z = c00 * 0.0f + c01 * 0.0f + c02 * 0.0f + c10 * 0.0f + c11 * 0.0f + c12 * 0.0f
+                            + c20 * 0.0f + c21 * 0.0f + c22 * 0.0f;  /* NaN where an entry is not finite */
+            redo |= !(mx <= 1.0e38f) | (z != z);
             /* near pi: the column of the symmetric part with the largest diagonal */
             const float d0 = c00 - cs, d1 = c11 - cs, d2 = c22 - cs;
             const float s01 = 0.5f * (c01 + c10), s02 = 0.5f * (c02 + c20), s12 = 0.5f * (c12 + c21);

@@ -67,6 +67,12 @@ static inline void K(poly)(const T *phi, const T *x, T x_scale, T a, T b, T *o) 
 static inline void K(rotation_log)(const T *M, int n, T *phi) {
     T c00 = M[0], c01 = M[1], c02 = M[2], c10 = M[n], c11 = M[n + 1], c12 = M[n + 2];
     T c20 = M[2 * n], c21 = M[2 * n + 1], c22 = M[2 * n + 2];
+    /* an infinite entry gives NaN, as a NaN one does: x * 0 is NaN for both, 0 otherwise */
+    T z = c00 * 0 + c01 * 0 + c02 * 0 + c10 * 0 + c11 * 0 + c12 * 0 + c20 * 0 + c21 * 0 + c22 * 0;
+    if (z != z) {
+        phi[0] = phi[1] = phi[2] = (T)NAN;
+        return;
+    }
     T s[3] = {(T)0.5 * (c21 - c12), (T)0.5 * (c02 - c20), (T)0.5 * (c10 - c01)};
     T cs = (T)0.5 * (c00 + c11 + c22 - (T)1);
     T ss = K(dot)(s, s);

@@ -241,7 +241,9 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     near_pi = flt(cos < numerics.log_symmetric_cos())
     sign = 1.0 - 2.0 * flt(dot(col, s) < 0)
     col_norm = torch.sqrt(sel(near_pi, dot(col, col), one))
-    return sel(near_pi, (sign * theta / col_norm) * col, ratio * s)
+    phi = sel(near_pi, (sign * theta / col_norm) * col, ratio * s)
+    # an infinite entry gives NaN, as a NaN one does (it read as angle 0 or pi/2 otherwise)
+    return torch.where(torch.isfinite(C).all(-1).all(-1), phi, torch.full_like(phi, math.nan))
 
 
 # ----------------------------------------------------------------------- assembly
