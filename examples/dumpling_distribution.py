@@ -50,7 +50,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -58,6 +57,8 @@ import torch
 
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE.parent))  # run against the checkout this script lives in
+
+from _cli import int_at_least, output_folder  # noqa: E402
 
 import torchsgal as ts  # noqa: E402
 from torchsgal.uncertainty import ConcentratedGaussian  # noqa: E402
@@ -171,19 +172,6 @@ def plot(panels, out: Path) -> None:
     plt.close(fig)
 
 
-def int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-    return parse
-
-
 def png_path(parser: argparse.ArgumentParser, out: Path) -> Path:
     """The file ``--out`` names (``.png`` added to a name without a suffix, as matplotlib
     does), its folder created and checked writable before any computation: a path that cannot
@@ -194,16 +182,7 @@ def png_path(parser: argparse.ArgumentParser, out: Path) -> Path:
         parser.error(f"argument --out: expected a .png path, got {str(out)!r}")
     if out.is_dir():
         parser.error(f"argument --out: {str(out)!r} is a folder, expected a .png path")
-    folder = out.parent
-    if folder.exists() and not folder.is_dir():
-        parser.error(f"argument --out: {str(folder)!r} is not a folder")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as error:
-        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
-                     f"{error.strerror or error}")
+    output_folder(parser, out.parent)
     return out
 
 

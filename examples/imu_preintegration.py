@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +41,8 @@ import torch
 
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE.parent))  # run against the checkout this script lives in
+
+from _cli import int_at_least, output_folder  # noqa: E402
 
 from torchsgal import SGal3  # noqa: E402
 from torchsgal.imu import (  # noqa: E402
@@ -182,34 +183,6 @@ def plots(res, dts, path, truth, out: Path):
     fig.tight_layout()
     fig.savefig(out / "imu_trajectory.png", dpi=110)
     plt.close(fig)
-
-
-def int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-    return parse
-
-
-def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
-    """``--out``, created and checked writable before any computation: a folder that cannot
-    be made or written ends as a usage error."""
-    if folder.exists() and not folder.is_dir():
-        parser.error(f"argument --out: {str(folder)!r} is not a folder")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as error:
-        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
-                     f"{error.strerror or error}")
-    return folder
 
 
 def sample_interval(text: str) -> float:

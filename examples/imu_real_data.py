@@ -27,15 +27,15 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import math
 import sys
-import tempfile
 from pathlib import Path
 
 import torch
 
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE.parent))  # run against the checkout this script lives in
+
+from _cli import output_folder, positive_float  # noqa: E402
 
 from torchsgal import SO3  # noqa: E402
 from torchsgal.imu import (  # noqa: E402
@@ -140,32 +140,6 @@ def plot(result: dict, out: Path, show: bool) -> Path:
         plt.show()
     plt.close(fig)
     return path
-
-
-def positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
-
-
-def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
-    """``--out``, created and checked writable before any computation: a folder that cannot
-    be made or written ends as a usage error."""
-    if folder.exists() and not folder.is_dir():
-        parser.error(f"argument --out: {str(folder)!r} is not a folder")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as error:
-        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
-                     f"{error.strerror or error}")
-    return folder
 
 
 def existing_file(text: str) -> Path:

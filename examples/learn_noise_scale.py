@@ -15,9 +15,9 @@ Usage: python examples/learn_noise_scale.py [--steps 150] [--batch 32] [--poses 
 from __future__ import annotations
 
 import argparse
-import math
 
 import torch
+from _cli import int_at_least, positive_float  # noqa: E402
 
 import torchsgal as ts
 from torchsgal.estimation import graph as fg
@@ -72,30 +72,6 @@ def train(steps: int = 150, batch: int = 32, poses: int = 10, seed: int = 0,
             print(f"step {step:4d}  loss {float(loss.detach()):.3e}  sigma {history[-1]:.4f}")
     tail = history[-max(1, steps // 5):]  # the average of the last fifth: less step noise
     return dict(learned=sum(tail) / len(tail), truth=SIGMA_ODO, start=SIGMA_START)
-
-
-def int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-    return parse
-
-
-def positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
 
 
 def main(argv=None) -> None:

@@ -22,11 +22,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import tempfile
 import time
 from pathlib import Path
 
 import torch
+from _cli import int_at_least, output_folder  # noqa: E402
 
 import torchsgal as ts
 from torchsgal import regression as reg
@@ -43,7 +43,6 @@ PAPER_TABLE_1 = [
     ("gradual turn", 1e-1, 10, 0.74), ("sharp turn", 1e-1, 25, 0.92),
     ("sharp turn", 1e-1, 15, 0.89), ("sharp turn", 1e-1, 10, 0.81),
 ]
-
 
 
 def calibrated_speed(r2=0.84, sigma=0.1, n=25) -> float:
@@ -184,34 +183,6 @@ def markdown(results) -> str:
                     f"{f(r['r2_geodesic_real'])} | {f(r['r2_subgroup'])} | "
                     f"{r['converged']}/{r['reps']} |")
     return head + "\n".join(rows) + "\n"
-
-
-def int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-    return parse
-
-
-def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
-    """``--out``, created and checked writable before any computation: a folder that cannot
-    be made or written ends as a usage error."""
-    if folder.exists() and not folder.is_dir():
-        parser.error(f"argument --out: {str(folder)!r} is not a folder")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as error:
-        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
-                     f"{error.strerror or error}")
-    return folder
 
 
 def main(argv=None):

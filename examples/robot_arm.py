@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,6 +35,8 @@ import torch
 
 _HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(_HERE.parent))  # the checkout this script lives in
+
+from _cli import int_at_least, output_folder, positive_float  # noqa: E402
 
 import torchsgal  # noqa: E402
 from torchsgal.kinematics import inverse_kinematics, load_robot  # noqa: E402
@@ -136,45 +137,6 @@ def plot(chain, kin: dict, ik: dict, out: Path, show: bool) -> Path:
         plt.show()
     plt.close(fig)
     return path
-
-
-def int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-    return parse
-
-
-def positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
-
-
-def output_folder(parser: argparse.ArgumentParser, folder: Path) -> Path:
-    """``--out``, created and checked writable before any computation: a folder that cannot
-    be made or written ends as a usage error."""
-    if folder.exists() and not folder.is_dir():
-        parser.error(f"argument --out: {str(folder)!r} is not a folder")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as error:
-        parser.error(f"argument --out: cannot write in the folder {str(folder)!r}: "
-                     f"{error.strerror or error}")
-    return folder
 
 
 def main(argv=None) -> int:

@@ -10,9 +10,9 @@ the trained poses are compared with.
 from __future__ import annotations
 
 import argparse
-import math
 
 import torch
+from _cli import int_at_least, non_negative_float, positive_float  # noqa: E402
 
 import torchsgal as ts
 from torchsgal.nn import GroupParameter, retract_after_step
@@ -27,38 +27,6 @@ def kabsch(x: torch.Tensor, y: torch.Tensor) -> ts.SE3:
     C = U @ S @ Vh
     r = (my - mx @ C.transpose(-1, -2)).squeeze(-2)
     return ts.SE3.from_components(C, r)
-
-
-def int_at_least(minimum: int):
-    """An argparse type: an integer >= ``minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = None
-        if value is None or value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-    return parse
-
-
-def positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    value = non_negative_float(text)
-    if value == 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    """An argparse type: a finite number >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return value
 
 
 def main(argv=None) -> None:

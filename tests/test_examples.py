@@ -88,6 +88,9 @@ BAD_OPTIONS = [
 def _example_module(script: str):
     """The example script as a module (its main(argv) not run), loaded once per process."""
     name = f"_example_{script[:-3]}"
+    folder = os.path.join(ROOT, "examples")  # the scripts import their shared _cli module
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
     if name not in sys.modules:
         spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "examples", script))
         module = importlib.util.module_from_spec(spec)
