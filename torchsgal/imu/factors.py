@@ -32,6 +32,7 @@ import numbers
 import torch
 
 from .. import SE3, SE23, SO3, SGal3
+from ..estimation.gauss_helmert import check_covariance
 from ..estimation.graph.factors import Factor
 from ..functional import checks
 from ..groups import LieGroup
@@ -45,22 +46,13 @@ __all__ = ["ImuFactor", "BiasRandomWalkFactor", "GnssPositionFactor", "imu_resid
 def sqrt_information_from_covariance(covariance: torch.Tensor, name: str = "covariance"
                                      ) -> torch.Tensor:
     """L (..., m, m) with L^T L = covariance^-1: L = C^-1 for the Cholesky factor C C^T =
-    covariance.  Raises ValueError naming ``name`` if a covariance is not positive definite
-    (a construction-time check: it reads the factorisation's status)."""
+    covariance.  Raises naming ``name`` unless the covariance is symmetric positive definite
+    (``estimation.gauss_helmert.check_covariance``: a construction-time check, one read)."""
     checks.floating(covariance, name)
     if covariance.dim() < 2 or covariance.shape[-1] != covariance.shape[-2]:
         raise ValueError(f"{name} must have shape (..., m, m), got {tuple(covariance.shape)}")
-    if not bool(torch.isfinite(covariance).all()):
-        raise ValueError(f"{name} has non-finite entries")
-    asym = float((covariance - covariance.mT).abs().amax()) if covariance.numel() else 0.0
-    if asym > 1e3 * torch.finfo(covariance.dtype).eps * float(covariance.abs().amax()):
-        # Cholesky reads one triangle: the other would be ignored without a word
-        raise ValueError(f"{name} must be symmetric positive definite; it is not symmetric: "
-                         f"max |S - S^T| = {asym:.3g}")
-    C, info = torch.linalg.cholesky_ex(covariance)
-    if bool((info != 0).any()):
-        raise ValueError(f"{name} must be symmetric positive definite; "
-                         f"{int((info != 0).sum())} of its matrices are not")
+    check_covariance(covariance, covariance.shape[-1], name)
+    C = torch.linalg.cholesky(covariance)
     eye = torch.eye(covariance.shape[-1], dtype=covariance.dtype, device=covariance.device)
     return torch.linalg.solve_triangular(C, eye.expand_as(C), upper=False)
 
