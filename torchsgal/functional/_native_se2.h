@@ -30,7 +30,7 @@ static void K(se2_exp_one)(const T *x, T *o) {
 static void K(se2_log_one)(const T *M, T *x) {
     T t = ATAN2((T)0.5 * (M[3] - M[1]), (T)0.5 * (M[0] + M[4])), c[7];
     T z = M[0] * 0 + M[1] * 0 + M[3] * 0 + M[4] * 0;  /* NaN where a rotation entry is not finite */
-    if (z != z) t = (T)NAN;  /* atan2 read an infinite entry as a quarter or half turn */
+    if (z != z) t = (T)NAN;  /* atan2 reads an infinite entry as a quarter or half turn */
     K(coefficients)(t * t, 4, c);
     T a = c[1] / ((T)2 * c[2]), b = -t * c[2] / ((T)2 * c[2]);
     x[0] = a * M[2] - b * M[5];

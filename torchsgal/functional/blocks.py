@@ -242,7 +242,7 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     sign = 1.0 - 2.0 * flt(dot(col, s) < 0)
     col_norm = torch.sqrt(sel(near_pi, dot(col, col), one))
     phi = sel(near_pi, (sign * theta / col_norm) * col, ratio * s)
-    # an infinite entry gives NaN, as a NaN one does (it read as angle 0 or pi/2 otherwise)
+    # an infinite entry gives NaN, as a NaN one does (atan2 would read it as angle 0 or pi/2)
     return torch.where(torch.isfinite(C).all(-1).all(-1), phi, torch.full_like(phi, math.nan))
 
 

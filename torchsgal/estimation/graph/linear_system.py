@@ -31,8 +31,8 @@ RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype: the Jacobi-scaled
 # A diagonal entry at most eps times the largest is a direction no residual sees (its information
 # is rounding noise, O(eps^2) of the largest); the test reads no units of its own below that
 # (unknowns whose standard deviations are up to 1 / sqrt(eps) apart: 2,900 in float32, 6.7e7 in
-# float64), where RCOND_FACTOR * eps flagged well-posed float32 graphs with standard deviations
-# 92 apart
+# float64); RCOND_FACTOR * eps would flag well-posed float32 graphs whose standard deviations
+# are 92 apart
 DIAGONAL_RCOND_FACTOR = 1.0
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
 
