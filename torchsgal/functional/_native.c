@@ -67,6 +67,32 @@
 #define SFX f32
 #include "_native_products.h"
 
+#define T double
+#define SFX f64
+#include "_native_affine.h"  /* rows times a small matrix; undefines T and SFX */
+#define T float
+#define SFX f32
+#include "_native_affine.h"
+
+/* affine_rows(x, W, c or 0, out, dims, B, threads, is_double): dims {N, k, m} (int64) */
+static PyObject *py_affine_rows(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[5];
+    int64_t ints[3]; /* B, threads, is_double */
+    if (read_call(a, nargs, 5, ptr, 3, ints, "affine_rows") < 0) return NULL;
+    const int64_t *d = (const int64_t *)ptr[4];
+    if (d[1] < 1 || d[2] < 1 || d[2] > AF_MAX_M) {
+        PyErr_Format(PyExc_ValueError, "affine_rows: k must be at least 1 and m in [1, %d], got k = %lld, "
+                     "m = %lld", AF_MAX_M, (long long)d[1], (long long)d[2]);
+        return NULL;
+    }
+    const int64_t cost = d[0] * d[1] * d[2] / 400 + 1;  /* in units of one SGal(3) exp */
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[2] ? affine_rows_for_f64(d[2]) : affine_rows_for_f32(d[2]), ptr, ints[0], cost, (int)ints[1]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
 #define WRAP(op, np)                                                                      \
     static PyObject *py_sgal3_##op(PyObject *self, PyObject *const *a, Py_ssize_t nargs) { \
         (void)self;                                                                       \
@@ -171,6 +197,8 @@ static PyMethodDef methods[] = {
     {"se23_compose", (PyCFunction)(void (*)(void))py_se23_compose, METH_FASTCALL,
      "SE_2(3) product (A, B, out, n, threads, is_double)"},
 #undef SUB_ENTRY
+    {"affine_rows", (PyCFunction)(void (*)(void))py_affine_rows, METH_FASTCALL,
+     "c + x W over a batch (x, W, c or 0, out, dims, B, threads, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

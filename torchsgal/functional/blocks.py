@@ -18,7 +18,7 @@ import math
 
 import torch
 
-from . import checks, numerics
+from . import affine, checks, numerics
 from ._blocking import _is_wrapped
 
 
@@ -325,11 +325,7 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
             if v != 0:
                 term = E[..., k + j] if v == 1 else E[..., k + j] * v
                 offset = term if offset is None else offset + term
-        if offset is None:
-            return x @ E[..., :k].mT
-        if x.dim() == 3 and E.dim() == 3 and x.shape[0] == E.shape[0]:
-            return torch.baddbmm(offset[..., None, :], x, E[..., :k].mT)
-        return x @ E[..., :k].mT + offset[..., None, :]
+        return affine.rows_times(x, E[..., :k].mT, offset)
     if tail:  # constants built on x's device without a host-to-device copy
         x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
@@ -370,12 +366,14 @@ def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int
     checks.matrix(M, n, "g")
     checks.vector(x, rows if size is None else size, name)
     checks.binary(M, 2, x, 1, "g", name)
-    if tail:
-        x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
-    k = x.shape[-1]
-    basis = generators(hat, dof, M)[:, :, :k]  # (dof, n, k)
     per_point = M.dim() > 2 and M.shape[:-2].numel() > 1 and \
         M.shape[:-2].numel() >= x.shape[:-1].numel()
+    broadcast = not per_point and M.dim() >= 3 and x.dim() >= 2 and M.shape[-3] == 1 and x.shape[-2] != 1
+    points = x.shape[-1]
+    if tail and not broadcast:
+        x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
+    k = points + len(tail)
+    basis = generators(hat, dof, M)[:, :, :k]  # (dof, n, k)
     if per_point:
         # G[..., a, j] = sum_b hat(e_j)[a, b] x_b, as x (..., k) times the basis (k, n * dof)
         G = (x @ basis.permute(2, 1, 0).reshape(k, n * dof)).unflatten(-1, (n, dof))
@@ -386,8 +384,16 @@ def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int
     P = (M[..., :rows, :].reshape(-1, n) @ basis.permute(1, 2, 0).reshape(n, k * dof)).reshape(
         M.shape[:-2] + (rows, k * dof))
     P = P.unflatten(-1, (k, dof)).transpose(-3, -2).flatten(-2)
-    if M.dim() >= 3 and x.dim() >= 2 and M.shape[-3] == 1 and x.shape[-2] != 1:
-        J = x @ P[..., 0, :, :]  # one element per batch row, N points: one product over the rows
+    if broadcast:
+        # one element per batch row, N points: one product over the rows (``affine.rows_times``),
+        # the tail's rows of P times its constants added once per element
+        P = P[..., 0, :, :]
+        offset = None
+        for j, v in enumerate(tail):
+            if v != 0:
+                term = P[..., points + j, :] if v == 1 else P[..., points + j, :] * v
+                offset = term if offset is None else offset + term
+        J = affine.rows_times(x, P[..., :points, :], offset)
     else:
         J = (x.unsqueeze(-2) @ P).squeeze(-2)
     return J.unflatten(-1, (rows, dof))

@@ -1,0 +1,147 @@
+"""``torchsgal::affine_rows`` (functional/affine.py): x @ W + c over a batch, the product behind
+a group element acting on many points and that action's Jacobian.  The C kernel against the
+tensor code (``baddbmm``) for every row length it has a loop for and one it has not; the
+operator's registration (opcheck, vmap, derivatives); every group's ``act`` and
+``act_jacobians`` on a broadcast batch with the kernels on and off."""
+from __future__ import annotations
+
+import contextlib
+
+import pytest
+import torch
+from conftest import GROUP_CLASSES
+from test_factor_kernels import needs_kernel
+from torch.library import opcheck
+
+from torchsgal.functional import affine, native
+
+f64 = torch.float64
+op = torch.ops.torchsgal.affine_rows
+
+
+def _inputs(B, N, k, m, dtype, seed=0, with_c=True):
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(B, N, k, generator=gen, dtype=f64).to(dtype)
+    W = torch.randn(B, k, m, generator=gen, dtype=f64).to(dtype)
+    c = torch.randn(B, m, generator=gen, dtype=f64).to(dtype) if with_c else None
+    return x, W, c
+
+
+@pytest.fixture
+def kernel_calls(monkeypatch):
+    """The calls of the C kernel (its argument B) while the test runs."""
+    calls: list = []
+    if native._lib is not None:
+        real = native._lib.affine_rows
+        monkeypatch.setattr(native._lib, "affine_rows", lambda *a: calls.append(a[5]) or real(*a))
+    return calls
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64], ids=str)
+@pytest.mark.parametrize("m", [1, 2, 3, 4, 5, 6, 9, 18, 21, 27, 40, 64])
+@pytest.mark.parametrize("k", [1, 3, 4, 7])
+def test_the_kernel_is_the_batched_product(k, m, dtype, kernel_calls):
+    """Every row length with a loop of its own (2, 3, 4, 6, 9, 18, 21, 27, 40) and others (1, 5,
+    64), with and without c: the kernel's rows equal baddbmm's to a few units in the last place
+    (the sums of k products are formed in another order)."""
+    eps = torch.finfo(dtype).eps
+    for with_c in (True, False):
+        x, W, c = _inputs(5, 11, k, m, dtype, seed=k * 100 + m, with_c=with_c)
+        got = op(x, W, c)
+        want = torch.baddbmm(c.unsqueeze(1), x, W) if with_c else torch.bmm(x, W)
+        scale = (x.abs() @ W.abs() + (c.abs().unsqueeze(1) if with_c else 0)).to(f64)
+        assert ((got.to(f64) - want.to(f64)).abs() <= 4 * eps * scale).all()
+    assert len(kernel_calls) == 2
+
+
+@needs_kernel
+def test_strided_inputs_are_read_as_their_values(kernel_calls):
+    """A transposed W, a sliced x and a strided c: the values they show."""
+    x, W, c = _inputs(3, 40, 4, 18, f64, seed=1)
+    Wt = W.mT.contiguous().mT  # (B, k, m) with the k axis innermost
+    xs = torch.randn(3, 40, 9, dtype=f64)[..., 2:6]
+    cs = torch.randn(3, 36, dtype=f64)[:, ::2]
+    got = op(xs, Wt, cs)
+    torch.testing.assert_close(got, torch.baddbmm(cs.unsqueeze(1), xs, Wt), rtol=1e-14, atol=1e-14)
+    assert len(kernel_calls) == 1
+
+
+def test_bad_arguments_name_themselves():
+    x, W, c = _inputs(2, 3, 4, 5, f64)
+    with pytest.raises(ValueError, match=r"x must have shape \(B, N, k\) and W \(B, k, m\)"):
+        op(x, W[:, :3], c)
+    with pytest.raises(ValueError, match=r"x must have shape"):
+        op(x[0], W, c)
+    with pytest.raises(ValueError, match=r"c must have shape \(2, 5\) \(B, m\), got \(2, 4\)"):
+        op(x, W, c[:, :4])
+    with pytest.raises((TypeError, ValueError), match="W"):
+        op(x, W.float(), c)
+
+
+@pytest.mark.parametrize("kernel", [True, False], ids=["kernel", "tensor_code"])
+def test_empty_batches_and_long_rows(kernel):
+    """No problems, no rows, and rows longer than the kernel forms (the tensor code's result)."""
+    with contextlib.nullcontext() if kernel else native.disabled():
+        for B, N, m in ((0, 4, 3), (3, 0, 3), (2, 5, 80)):
+            x, W, c = _inputs(B, N, 3, m, f64)
+            got = op(x, W, c)
+            assert got.shape == (B, N, m)
+            torch.testing.assert_close(got, torch.baddbmm(c.unsqueeze(1), x, W), rtol=1e-14, atol=1e-14)
+
+
+def test_opcheck():
+    for dtype in (torch.float32, f64):
+        for with_c in (True, False):
+            x, W, c = _inputs(3, 6, 4, 18, dtype, with_c=with_c)
+            opcheck(op.default, (x, W, c))
+
+
+def test_gradients_are_the_products():
+    """The registered backward (g W^T, x^T g, the sum of g over the rows) against gradcheck."""
+    x, W, c = _inputs(2, 5, 3, 4, f64)
+    args = tuple(t.requires_grad_() for t in (x, W, c))
+    assert torch.autograd.gradcheck(lambda *a: op(*a), args)
+    assert torch.autograd.gradcheck(lambda a, b: op(a, b, None), args[:2])
+
+
+def test_vmap_is_a_loop_over_the_mapped_axis():
+    x, W, c = _inputs(3, 7, 4, 9, f64)
+    xs = torch.stack([x, 2 * x])
+    got = torch.func.vmap(op, in_dims=(0, None, None))(xs, W, c)
+    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(2 * x, W, c)]), rtol=1e-14, atol=1e-14)
+    got = torch.func.vmap(op, in_dims=(None, 1, None))(x, torch.stack([W, W.neg()], 1), c)
+    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(x, -W, c)]), rtol=1e-14, atol=1e-14)
+
+
+@needs_kernel
+@pytest.mark.parametrize("G", GROUP_CLASSES, ids=lambda g: g.__name__)
+def test_every_group_acts_on_a_broadcast_batch_through_it(G, kernel_calls):
+    """One element per batch row acting on 800 points (point_axes=1): ``act`` and
+    ``act_jacobians`` with the kernels on (the operator runs) equal the same with them off (the
+    tensor code) to a few units in the last place; each product ran the kernel once (Sim(3)'s
+    Jacobian acts twice: its quotient rule needs the action of the element without translation)."""
+    gen = torch.Generator().manual_seed(7)
+    g = G.random(6, dtype=f64, generator=gen)
+    x = torch.randn(6, 800, G.point_dim, dtype=f64, generator=gen)
+    on = (g.act(x, point_axes=1), *g.act_jacobians(x, point_axes=1))
+    n_on = len(kernel_calls)
+    with native.disabled():
+        off = (g.act(x, point_axes=1), *g.act_jacobians(x, point_axes=1))
+    for a, b in zip(on, off):
+        torch.testing.assert_close(a, b, rtol=8 * torch.finfo(f64).eps, atol=1e-14)
+    assert n_on == (3 if G.__name__ == "Sim3" else 2), n_on
+    assert len(kernel_calls) == n_on
+
+
+def test_recorded_and_transformed_calls_take_the_tensor_code(kernel_calls):
+    """Where autograd records or torch.func transforms, ``rows_times`` is the tensor code, and
+    its gradients are those of the product."""
+    x, W, c = _inputs(4, 300, 3, 18, f64)
+    Wg = W.clone().requires_grad_()
+    affine.rows_times(x, Wg, c).square().sum().backward()
+    torch.testing.assert_close(Wg.grad, 2 * x.mT @ torch.baddbmm(c.unsqueeze(1), x, W), rtol=1e-13, atol=1e-12)
+    jac = torch.func.jacrev(lambda w: affine.rows_times(x[:1], w, c[:1]))(W[:1])
+    assert jac.shape == (1, 300, 18, 1, 3, 18)
+    torch.testing.assert_close(jac[0, :, :, 0], torch.einsum("na,jl->njal", x[0], torch.eye(18, dtype=f64)))
+    assert kernel_calls == []

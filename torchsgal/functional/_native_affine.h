@@ -1,0 +1,83 @@
+/* Rows times a small matrix, plus a row: out[b, i, :] = x[b, i, :] W[b] + c[b, :] for a batch of
+ * B matrices W (k, m) with few rows k, each applied to N rows x[b, i] (torchsgal::affine_rows,
+ * functional/affine.py): a group element acting on many points (the action, W = M[:rows, :k]^T
+ * and c its translation column) and the Jacobian of that action (W the element times the
+ * generators).  torch's batched matrix product hands each of the B small products to BLAS,
+ * whose per-product cost dominates for k of 3 or 4; here each output row is formed in place,
+ * with the row length m a compile-time constant for the sizes the groups' actions and their
+ * Jacobians have (so that the loop over a row's entries is unrolled and vectorised).  Included
+ * by functional/_native.c once per element type T with suffix SFX.
+ *
+ * args: x (B, N, k), W (B, k, m), c (B, m) or NULL, out (B, N, m), all contiguous, and dims
+ * {N, k, m} with k >= 1; the range [lo, hi) runs over b.
+ */
+#define AF_(name, sfx) name##_##sfx
+#define AF__(name, sfx) AF_(name, sfx)
+#define AF(name) AF__(name, SFX)
+
+/* the loop over the problems for a row length MM (a constant, or the runtime m) */
+#define AF_BODY(MM)                                                                              \
+    const T *x = (const T *)args[0], *W = (const T *)args[1], *c = (const T *)args[2];          \
+    T *out = (T *)args[3];                                                                      \
+    const int64_t *d = (const int64_t *)args[4];                                                \
+    const int64_t N = d[0], k = d[1], m = d[2];                                                 \
+    (void)m;                                                                                    \
+    for (int64_t b = lo; b < hi; ++b) {                                                         \
+        const T *restrict Wb = W + b * k * (MM), *restrict cb = c ? c + b * (MM) : NULL;       \
+        for (int64_t i = 0; i < N; ++i) {                                                       \
+            const T *restrict xi = x + (b * N + i) * k;                                         \
+            T o[(MM) > 0 ? (MM) : 1];                                                           \
+            for (int64_t j = 0; j < (MM); ++j) o[j] = xi[0] * Wb[j];                            \
+            for (int64_t a = 1; a < k; ++a) {                                                   \
+                const T xa = xi[a];                                                             \
+                for (int64_t j = 0; j < (MM); ++j) o[j] += xa * Wb[a * (MM) + j];               \
+            }                                                                                   \
+            T *restrict oi = out + (b * N + i) * (MM);                                          \
+            if (cb) /* the product first, then the row: as x @ W + c */                         \
+                for (int64_t j = 0; j < (MM); ++j) oi[j] = o[j] + cb[j];                        \
+            else                                                                                \
+                for (int64_t j = 0; j < (MM); ++j) oi[j] = o[j];                                \
+        }                                                                                       \
+    }
+
+#define AF_FIXED(MM)                                                                             \
+    WIDE_LOOPS static void AF(affine_rows_##MM)(void **args, int64_t lo, int64_t hi) { AF_BODY(MM) }
+AF_FIXED(2)
+AF_FIXED(3)
+AF_FIXED(4)
+AF_FIXED(6)
+AF_FIXED(9)
+AF_FIXED(18)
+AF_FIXED(21)
+AF_FIXED(27)
+AF_FIXED(40)
+#undef AF_FIXED
+
+/* any other row length (at most AF_MAX_M: the local row) */
+#define AF_MAX_M 64
+WIDE_LOOPS static void AF(affine_rows_any)(void **args, int64_t lo, int64_t hi) {
+    const int64_t mm = ((const int64_t *)args[4])[2];
+    AF_BODY(mm)
+}
+#undef AF_BODY
+
+static range_fn AF(affine_rows_for)(int64_t m) {
+    switch (m) {
+        case 2: return AF(affine_rows_2);
+        case 3: return AF(affine_rows_3);
+        case 4: return AF(affine_rows_4);
+        case 6: return AF(affine_rows_6);
+        case 9: return AF(affine_rows_9);
+        case 18: return AF(affine_rows_18);
+        case 21: return AF(affine_rows_21);
+        case 27: return AF(affine_rows_27);
+        case 40: return AF(affine_rows_40);
+        default: return AF(affine_rows_any);
+    }
+}
+
+#undef AF
+#undef AF__
+#undef AF_
+#undef T
+#undef SFX

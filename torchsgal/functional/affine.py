@@ -1,0 +1,137 @@
+"""Rows times a small matrix, plus a row, over a batch: ``torchsgal::affine_rows``.
+
+``torch.ops.torchsgal.affine_rows(x, W, c)`` -> x @ W + c[:, None, :] for x (B, N, k), W (B, k, m)
+and c (B, m) or None: B matrices W with few rows, each applied to N rows of x.  It is what a
+group element acting on many points costs (``blocks.act_homogeneous``: W the transposed
+rotation block, c the translation column) and the Jacobian of that action
+(``blocks.act_homogeneous_jacobian``: W the element times the generators, (k, rows * dof)).
+
+torch's CPU ``baddbmm`` hands each of the B products to BLAS, whose fixed cost per product
+dominates for k of 3 or 4 (256 products of 100 x 3 by 3 x 18 rows: 0.28 ms); the C kernel
+(``_native_affine.h``) forms each output row in place with its length a compile-time constant
+(0.14 ms; ``benchmarks/bench_factor_graph.py``'s rigid fit acts with it).  The kernel runs on CPU
+float32/float64 tensors where nothing observes the call (``_blocking.unobserved``) and the
+kernels are on in the calling thread (``native.enabled``), for outputs of at least
+``MIN_KERNEL_ENTRIES`` entries (below, the operator's fixed cost exceeds the product's); the
+tensor code (``baddbmm``) runs elsewhere and is the reference the tests compare the kernel with.
+The operator has a fake implementation, a vmap rule and its derivatives (the product's), and
+``tests/test_affine_rows.py`` runs ``torch.library.opcheck`` on it.
+"""
+from __future__ import annotations
+
+import torch
+
+from . import checks, native
+from ._blocking import unobserved
+from .registration import operator
+
+__all__ = ["affine_rows", "rows_times"]
+
+MIN_KERNEL_ENTRIES = 4096  # B * N * m below which the tensor code runs (the call's own cost)
+MAX_M = 64  # AF_MAX_M of _native_affine.h: the longest row the kernel forms
+
+
+def _check(x: torch.Tensor, W: torch.Tensor, c: torch.Tensor | None) -> None:
+    for name, t in (("x", x), ("W", W)) + ((("c", c),) if c is not None else ()):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"affine_rows: {name} must be a tensor, got {type(t).__name__}")
+    if x.dim() != 3 or W.dim() != 3 or x.shape[0] != W.shape[0] or x.shape[2] != W.shape[1]:
+        raise ValueError(f"affine_rows: x must have shape (B, N, k) and W (B, k, m), got x "
+                         f"{tuple(x.shape)} and W {tuple(W.shape)}")
+    if c is not None and tuple(c.shape) != (W.shape[0], W.shape[2]):
+        raise ValueError(f"affine_rows: c must have shape {(W.shape[0], W.shape[2])} (B, m), got "
+                         f"{tuple(c.shape)}")
+    given = {"x": x, "W": W} if c is None else {"x": x, "W": W, "c": c}
+    checks.same_device_dtype(**given)
+
+
+def _tensor_code(x: torch.Tensor, W: torch.Tensor, c: torch.Tensor | None) -> torch.Tensor:
+    return torch.bmm(x, W) if c is None else torch.baddbmm(c.unsqueeze(-2), x, W)
+
+
+@operator("torchsgal::affine_rows", schema="(Tensor x, Tensor W, Tensor? c) -> Tensor")
+def affine_rows(x: torch.Tensor, W: torch.Tensor, c: torch.Tensor | None) -> torch.Tensor:
+    """x @ W + c[:, None, :] (module docstring)."""
+    _check(x, W, c)
+    return _tensor_code(x, W, c)
+
+
+def _kernel(x: torch.Tensor, W: torch.Tensor, c: torch.Tensor | None) -> torch.Tensor:
+    _check(x, W, c)
+    lib = native._lib
+    B, N, k = x.shape
+    m = W.shape[2]
+    if (lib is None or not native.enabled() or x.dtype not in (torch.float32, torch.float64)
+            or k == 0 or not 1 <= m <= MAX_M or B * N == 0):
+        return _tensor_code(x, W, c)
+    x, W = (t.resolve_neg().resolve_conj().contiguous() for t in (x, W))
+    if c is not None:
+        c = c.resolve_neg().resolve_conj().contiguous()
+    out = torch.empty(B, N, m, dtype=x.dtype)
+    dims = torch.tensor([N, k, m], dtype=torch.int64)
+    lib.affine_rows(x.data_ptr(), W.data_ptr(), 0 if c is None else c.data_ptr(), out.data_ptr(),
+                    dims.data_ptr(), B, torch.get_num_threads(), x.dtype is torch.float64)
+    return out
+
+
+affine_rows.register_kernel("cpu")(_kernel)
+
+
+@affine_rows.register_fake
+def _fake(x, W, c):
+    _check(x, W, c)
+    return x.new_empty(x.shape[0], x.shape[1], W.shape[2])
+
+
+def _setup_context(ctx, inputs, output):
+    x, W, c = inputs
+    ctx.save_for_backward(x, W)
+    ctx.has_c = c is not None
+
+
+def _backward(ctx, grad):
+    x, W = ctx.saved_tensors
+    grad_x = grad @ W.mT if ctx.needs_input_grad[0] else None
+    grad_W = x.mT @ grad if ctx.needs_input_grad[1] else None
+    grad_c = grad.sum(-2) if ctx.has_c and ctx.needs_input_grad[2] else None
+    return grad_x, grad_W, grad_c
+
+
+affine_rows.register_autograd(_backward, setup_context=_setup_context)
+
+
+@affine_rows.register_vmap
+def _vmap(info, in_dims, x, W, c):
+    """The vmapped axis joins the batch axis (an unmapped argument expanded)."""
+    V = info.batch_size
+    x, W = (t.unsqueeze(0).expand(V, *t.shape) if d is None else t.movedim(d, 0)
+            for t, d in zip((x, W), in_dims[:2]))
+    if c is not None:
+        c = c.unsqueeze(0).expand(V, *c.shape) if in_dims[2] is None else c.movedim(in_dims[2], 0)
+        c = c.flatten(0, 1)
+    out = affine_rows(x.flatten(0, 1), W.flatten(0, 1), c)
+    return out.unflatten(0, (V, -1)), 0
+
+
+def rows_times(x: torch.Tensor, W: torch.Tensor, c: torch.Tensor | None = None) -> torch.Tensor:
+    """x @ W (+ c[..., None, :]) for x (..., N, k), W (..., k, m) and c (..., m): the operator
+    where its kernel runs (one batch shape, CPU float32/float64 that nothing observes, at least
+    ``MIN_KERNEL_ENTRIES`` output entries), else the same product as tensor operations, which
+    autograd and ``torch.func`` differentiate."""
+    batch = x.shape[:-2]
+    if (native._lib is not None and x.is_cpu and x.dtype in (torch.float32, torch.float64)
+            and W.shape[:-2] == batch and (c is None or c.shape[:-1] == batch)
+            and W.dtype == x.dtype and (c is None or c.dtype == x.dtype)
+            and x.shape[-1] >= 1 and 1 <= W.shape[-1] <= MAX_M
+            and x.shape[:-1].numel() * W.shape[-1] >= MIN_KERNEL_ENTRIES
+            and native.enabled() and unobserved((x, W) if c is None else (x, W, c))):
+        B = batch.numel()
+        out = torch.ops.torchsgal.affine_rows(
+            x.reshape(B, *x.shape[-2:]), W.reshape(B, *W.shape[-2:]),
+            None if c is None else c.reshape(B, c.shape[-1]))
+        return out.reshape(x.shape[:-1] + W.shape[-1:])
+    if c is None:
+        return x @ W
+    if x.dim() == 3 and W.dim() == 3 and x.shape[0] == W.shape[0]:
+        return torch.baddbmm(c.unsqueeze(-2), x, W)
+    return x @ W + c.unsqueeze(-2)
