@@ -185,7 +185,7 @@ def test_sim3_scale_must_be_positive():
         ts.Sim3.from_components(torch.eye(3), torch.zeros(3), torch.ones((), dtype=torch.int64))
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: rotation \(\), position \(3,\), scale \(4,\)"):
         ts.Sim3.from_components(torch.eye(3), torch.zeros(3, 3), torch.ones(4))
-    # one unbatched element: a 0-dim scale (the expand of an empty shape used to crash)
+    # one unbatched element: a 0-dim scale (the expand of an empty shape must not crash)
     D = torch.float64
     one = ts.Sim3.from_components(torch.eye(3, dtype=D), torch.zeros(3, dtype=D), torch.tensor(2.0, dtype=D))
     assert one.batch_shape == () and one.scale().item() == 2.0
@@ -352,7 +352,7 @@ def test_from_matrix_check(G):
     with pytest.raises(ValueError, match=r"non-finite"):
         G.from_matrix(nan, check=True)
     G.from_matrix(bad, check=False)  # unchecked wrapping is allowed
-    # tol: None or a finite number > 0 (nan and inf used to accept anything, -1 to reject all)
+    # tol: None or a finite number > 0 (nan and inf would accept anything, -1 reject all: each raises)
     for tol in (float("nan"), float("inf"), -1, 0):
         with pytest.raises(ValueError, match=r"tol must be a finite number > 0, got"):
             G.from_matrix(bad, check=True, tol=tol)
@@ -476,7 +476,7 @@ def test_series_constant_cache_keeps_only_plain_tensors(monkeypatch):
     assert torch.autograd.gradcheck(lambda v: ts.SGal3.exp(v).as_matrix(), (x,))
     assert numerics._CONSTANTS and all(type(t) is torch.Tensor and not t.is_inference()
                                        for consts in numerics._CONSTANTS.values() for t in consts)
-    # with the cache filled, a fake-tensor trace still runs (it used to get the cached real
+    # with the cache filled, a fake-tensor trace still runs (it must not get the cached real
     # tensors and fail on mixing them with fake ones), and leaves the cache as it was
     for G in ts.ALL_GROUPS:
         G.jl(torch.randn(3, G.dof, dtype=torch.float32))

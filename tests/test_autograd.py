@@ -364,12 +364,12 @@ def test_torch_compile_class_methods(G):
 
 @pytest.mark.parametrize("G", [ts.SO3, ts.SGal3], ids=["SO3", "SGal3"])
 def test_torch_compile_second_derivatives(G):
-    """Compiled second derivatives through exp and log equal eager ones.  They were silently
-    wrong (SE3: Hessian diagonal [0, 0, 0, 0.16, 0.11, 0.05] for 2 I) while exp and log were
-    custom Functions under compile: torch 2.13 differentiates a compiled Function's backward
-    with its saved tensors held constant (a ten-line Function y = log(x) with backward g / x
-    gives d2/dv2 log(v v) = +0.5 at v = 2 compiled, -0.5 eager).  Compiled code now runs the
-    closed forms under autograd."""
+    """Compiled second derivatives through exp and log equal eager ones.  Compiled code runs the
+    closed forms under autograd, not custom Functions: torch 2.13 differentiates a compiled
+    Function's backward with its saved tensors held constant (a ten-line Function y = log(x)
+    with backward g / x gives d2/dv2 log(v v) = +0.5 at v = 2 compiled, -0.5 eager), and custom
+    Functions would give silently wrong results (SE3: Hessian diagonal
+    [0, 0, 0, 0.16, 0.11, 0.05] for 2 I)."""
     from torch.func import jacrev
 
     f = G._f

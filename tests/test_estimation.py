@@ -143,7 +143,7 @@ def test_max_iterations_status():
 
 def test_errors_name_the_argument():
     r = lambda x: x[0]
-    # a block given alone is named x0 (it was named x0[0], as if a tuple had been passed)
+    # a block given alone is named x0 (not x0[0], as if a tuple had been passed)
     with pytest.raises(ValueError, match=r"x0 must be a tensor of shape \(B, k\) or \(B, K, k\)"):
         gauss_newton(r, torch.zeros(3, dtype=f64))
     with pytest.raises(ValueError, match="batch size"):
@@ -422,8 +422,8 @@ def test_variables_check_blocks_and_shapes():
 
 def test_single_unknown_reaches_the_residual_and_the_solution_unwrapped():
     """x0 given as one block alone (a group element or a tensor): residual, jacobian and
-    condition receive it alone and Solution.x is that block (they used to receive a 1-tuple,
-    so that ``lambda x: x.rminus(t)`` raised AttributeError on a tuple)."""
+    condition receive it alone and Solution.x is that block (not a 1-tuple,
+    on which ``lambda x: x.rminus(t)`` would raise AttributeError)."""
     gen = torch.Generator().manual_seed(7)
     target = ts.SE3(ts.functional.se3.random((4,), f64, None, gen))
     start = target.rplus(0.3 * torch.randn(4, 6, generator=gen, dtype=f64))
@@ -639,7 +639,7 @@ def test_lbfgs_checks_its_options_and_reports_an_early_stop():
     with pytest.raises(ValueError, match=r"cost\(x, extra\) must return a tensor of shape "
                                          r"\(B,\) = \(4,\), got \(4, 1\)"):
         lbfgs(lambda F, _e: cost(F)[:, None], F0)
-    # max_iterations=0 evaluates x0 only (it used to run an iteration).
+    # max_iterations=0 evaluates x0 only (it runs no iteration).
     x, _, rep = lbfgs(cost, F0, max_iterations=0)
     assert F0.rminus(x).abs().max() < 1e-15 and (rep.iterations == 0).all()
     assert (rep.status == SolverStatus.MAX_ITERATIONS).all()
@@ -652,8 +652,8 @@ def test_lbfgs_checks_its_options_and_reports_an_early_stop():
 
 
 def test_solutions_carry_no_autograd_graph():
-    """The start was not detached: d x_hat / d x0 was 1 (it is 0) and gradients with respect
-    to the data were silently dropped.  Results now carry no graph at all."""
+    """Results carry no graph at all: the start is detached (attached, it would give
+    d x_hat / d x0 = 1 where it is 0, and silently drop the gradients with respect to the data)."""
     b = torch.randn(3, 2, dtype=f64, requires_grad=True)
     x0 = torch.zeros(3, 2, dtype=f64, requires_grad=True)
     sol = gauss_newton(lambda x: x - b, x0)

@@ -265,7 +265,7 @@ def test_trajectory_checks_its_arguments():
     with pytest.raises(ValueError, match=r"gravity must have shape \(\.\.\., 3\), got \(2,\)"):
         traj.imu(t0, g[:2])
     with pytest.raises(TypeError, match="gravity has dtype torch.float32 but t has dtype torch.float64"):
-        traj.imu(t0, g.float())  # used to be promoted silently
+        traj.imu(t0, g.float())  # not promoted silently
     with pytest.raises(ValueError, match=r"batch shapes do not broadcast: t \(3,\), gravity \(2,\)"):
         traj.imu(torch.zeros(3, dtype=F64), g.expand(2, 3))
     with pytest.raises(TypeError, match="t must have a floating dtype"):
@@ -777,8 +777,8 @@ def test_predict_compiles_in_one_graph():
 @pytest.mark.parametrize("plain", [False, True], ids=["fast", "plain"])
 def test_per_axis_density_batch_widens_the_windows(plain):
     """A per-axis density whose batch broadcasts with the stream's, but is wider, widens the
-    result's batch like a bias (it used to be folded into the node axis: wrong covariance, batch
-    of the stream); each window equals its own computation, on both paths."""
+    result's batch like a bias (it is not folded into the node axis, which would give a wrong
+    covariance and the batch of the stream); each window equals its own computation, on both paths."""
     gyro, acc, dt = random_stream(2, 5, seed=90)
     g = torch.Generator().manual_seed(91)
     s_g = 1e-3 * (1 + torch.rand(3, 2, 3, dtype=F64, generator=g))  # batch (3, 2) vs the stream's (2,)
@@ -802,7 +802,7 @@ def test_per_axis_density_batch_widens_the_windows(plain):
 
 def test_empty_batches_with_every_density():
     """Empty batches return empty results, per-axis densities included (the general covariance
-    used to reshape a tensor of 0 elements with a -1)."""
+    must not reshape a tensor of 0 elements with a -1)."""
     gyro, acc, dt = random_stream(2, 5, seed=92)
     axes = torch.full((3,), 1e-3, dtype=F64)
     for kw, batch in ((dict(gyro_noise_density=axes), (0,)), (dict(gyro_noise_density=1e-3), (0,)),

@@ -201,7 +201,7 @@ def test_chain_dtype_and_device_are_checked():
 
 def test_joint_dtype_and_device_must_match_the_chain():
     """q is not cast to the chain's dtype (nor the table to q's): a mismatch raises, as mixed
-    dtypes do everywhere else (it used to return results in q's dtype, ignoring the chain's)."""
+    dtypes do everywhere else (results must not come in q's dtype, ignoring the chain's)."""
     c64, c32 = ur5(), ur5(dtype=torch.float32)
     assert (c64.dtype, c32.dtype, c64.device) == (torch.float64, torch.float32, torch.device("cpu"))
     q64 = torch.zeros(2, 6, dtype=torch.float64)
@@ -244,9 +244,9 @@ def test_forward_compiles_in_one_graph():
 
 
 def test_table_device_follows_its_tensor_columns():
-    """With device=None the table goes where its tensor columns are (it used to leave a tensor
-    column there and put the list columns and the joint-type mask on the CPU, and forward
-    failed with torch's 'not on the expected device')."""
+    """With device=None the table goes where its tensor columns are, its list columns and
+    joint-type mask included (left on the CPU, they would make forward fail with torch's
+    'not on the expected device')."""
     a = torch.tensor([0.3, 0.2], dtype=torch.float64, device="meta")
     chain = GDHChain(a, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
     assert chain.device == torch.device("meta")
@@ -268,7 +268,7 @@ def test_table_device_follows_its_tensor_columns():
 
 
 def test_table_must_be_finite():
-    """A non-finite DH parameter used to give NaN poses silently."""
+    """A non-finite DH parameter raises ValueError (it would give NaN poses silently)."""
     good = [0.1, 0.2]
     for i, name in enumerate(("a", "alpha", "d", "theta_offset")):
         for bad in (math.nan, math.inf, -math.inf):
@@ -318,7 +318,7 @@ def test_malformed_table_columns_raise_typeerror_naming_the_column():
 
 def test_joint_tensor_mismatch_is_typeerror_for_dtype_valueerror_for_device():
     """qdot/qddot against q: a dtype mismatch is TypeError and a device mismatch ValueError, as
-    for q against the chain (checks.same_device_dtype); both used to be ValueError."""
+    for q against the chain (checks.same_device_dtype), not ValueError for both."""
     chain = ur5()
     q = torch.zeros(6, dtype=torch.float64)
     with pytest.raises(TypeError, match=r"qdot has dtype torch.float32 but q has dtype "

@@ -88,7 +88,8 @@ def test_sim3_from_matrix_check_measures_the_bottom_row_relative_to_inverse_scal
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_iteration_and_truth_value(G):
     """Iteration runs over the first batch axis, as for a tensor; an unbatched element cannot
-    be iterated (it used to iterate to nothing) and no element has a truth value."""
+    be iterated (it raises TypeError rather than iterating to nothing) and no element has a
+    truth value."""
     g = G.random((3, 2), dtype=F64)
     parts = list(g)
     assert len(parts) == 3 and all(type(p) is G and p.batch_shape == (2,) for p in parts)
@@ -131,7 +132,7 @@ def test_equality_is_identity_and_allclose_compares_values(G):
 
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_pickle_deepcopy_and_torch_save_round_trip(G):
-    """torch.save then torch.load with its default (weights_only=True since torch 2.6) used to
+    """torch.save then torch.load with its default (weights_only=True since torch 2.6) does not
     raise UnpicklingError; loading rebuilds the element through its constructor."""
     g = G.random((2, 3), dtype=F64)
     buf = io.BytesIO()
@@ -223,7 +224,7 @@ def test_subclass_attributes_survive_pickle_deepcopy_torch_save_and_vmap():
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_torch_func_takes_and_returns_group_objects(G):
     """Group classes are pytree nodes (one leaf, the matrix): vmap maps over and returns group
-    objects (it used to refuse them: "must only return Tensors", "cannot vmap over non-Tensor
+    objects (without refusing them: "must only return Tensors", "cannot vmap over non-Tensor
     arguments"), and derivatives with respect to a group argument come back in its structure."""
     from torch.func import grad, jacrev, vmap
     from torch.utils import _pytree as pytree
@@ -307,8 +308,8 @@ def test_torch_compile_takes_and_returns_group_objects():
 
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_scalar_arguments(G):
-    """interpolate's alpha: any real number (numpy's float32 was refused, float64 accepted),
-    not a bool; from_matrix's check: a bool (check="no" used to run the check)."""
+    """interpolate's alpha: any real number (numpy's float32 as well as float64),
+    not a bool; from_matrix's check: a bool (check="no" raises rather than running the check)."""
     g = G.random(3, dtype=F64, generator=torch.Generator().manual_seed(5))
     h = G.random(3, dtype=F64, generator=torch.Generator().manual_seed(6))
     want = g.interpolate(h, 0.5).as_matrix()
@@ -419,10 +420,10 @@ def test_torch_load_checks_shape_and_dtype_not_membership():
 
 
 def test_subclass_with_required_init_argument_goes_through_operations():
-    """Results were built as type(self)(matrix), so every operation of a subclass whose
-    __init__ takes another argument raised TypeError (missing 'extra'), as did its classmethod
-    constructors and the solvers and regression given such elements.  They are now built
-    without calling __init__, after the same shape and dtype checks."""
+    """Every operation of a subclass whose __init__ takes another argument, its classmethod
+    constructors, and the solvers and regression given such elements build their results
+    without calling __init__, after the same shape and dtype checks (building them as
+    type(self)(matrix) would raise TypeError: missing 'extra')."""
     from torchsgal.estimation import gauss_newton
     from torchsgal.regression import fit_polynomial
 

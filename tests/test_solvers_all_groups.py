@@ -103,8 +103,8 @@ def test_iterated_gauss_helmert_equals_gauss_newton_on_noisy_observations(G):
 
 def test_variable_helpers_take_one_block_alone_as_the_solvers_do():
     """The public helpers of estimation.variables take one block alone (what residual/jacobian
-    now receive) and return the same form; a group element used to be iterated over its batch
-    (local (24,) instead of (4, 6)) or to hit its truth value."""
+    receive) and return the same form; a group element is neither iterated over its batch
+    (local (24,) instead of (4, 6)) nor asked for its truth value."""
     from torchsgal.estimation import autograd_jacobian
     from torchsgal.estimation import variables as V
     g = ts.SE3.exp(torch.randn(4, 6, generator=torch.Generator().manual_seed(0), dtype=F64))
@@ -130,8 +130,8 @@ def test_variable_helpers_take_one_block_alone_as_the_solvers_do():
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=lambda G: G.__name__)
 def test_solutions_of_every_group_carry_no_graph_and_one_nan_problem_stays_alone(G):
     """The solvers are not differentiable: with a target that requires gradients the estimate
-    used to carry a partial graph (the start was not detached).  And one non-finite problem
-    made every LBFGS problem of the batch NON_FINITE."""
+    carries no graph, not even a partial one (the start is detached).  And one non-finite
+    problem does not make every LBFGS problem of the batch NON_FINITE."""
     target, start, _ = _problem(G)
     xi = target.log().requires_grad_(True)
     tgt = G.exp(xi)

@@ -335,7 +335,7 @@ def test_study_config_and_run_check_their_arguments():
     with pytest.raises(TypeError, match="dtype must be torch.float32 or torch.float64, got torch.int64"):
         study.paper_covariance(torch.int64)
     cfg = study.StudyConfig(trials=3, samples=11)
-    for chunk in (0, -1):  # chunk=0 used to loop forever
+    for chunk in (0, -1):  # chunk=0 would loop forever
         with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
             study.run(cfg, chunk=chunk, progress=False)
     with pytest.raises(TypeError, match="chunk must be an integer >= 1, got 1.5"):
@@ -478,9 +478,9 @@ def _edge_problem():
 
 
 def test_lbfgs_solver_carries_singular_and_non_finite_trials():
-    """A SINGULAR or NON_FINITE trial crashed solve_sgal3_lbfgs (a Cholesky of its NaN
-    covariance); now it gets the identity preconditioner and its status, and the other trials
-    are what they are alone.  initial_cost is the cost at x0 (it was the last round's)."""
+    """A SINGULAR or NON_FINITE trial does not crash solve_sgal3_lbfgs (by a Cholesky of its NaN
+    covariance): it gets the identity preconditioner and its status, and the other trials
+    are what they are alone.  initial_cost is the cost at x0 (not the last round's)."""
     P = _edge_problem()
     sol = tls.solve_sgal3_lbfgs(P)
     assert sol.report.status.tolist() == [0, SolverStatus.SINGULAR, SolverStatus.NON_FINITE, 0]
