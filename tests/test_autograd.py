@@ -223,8 +223,8 @@ def test_jacfwd_equals_jacrev_and_hessian(G):
 @pytest.mark.parametrize("G", GROUPS, ids=IDS)
 def test_jacobians_and_adjoints_are_connected_to_the_graph(G):
     """jl, jr, their inverses, ad and adjoint are differentiable in their input for every group:
-    SO2's constants (1 and 0) were fresh tensors, so torch.autograd.grad raised 'does not
-    require grad' for SO2 alone.  Their gradients against finite differences."""
+    SO2's constants (1 and 0) must not be fresh tensors, or torch.autograd.grad would raise 'does
+    not require grad' for SO2 alone.  Their gradients against finite differences."""
     x = sample_tangent(G, (1,), torch.float64, seed=8, angles=[1.3]).requires_grad_(True)
     ops = {name: getattr(G, name) for name in ("jl", "jr", "jl_inv", "jr_inv", "ad")}
     ops["adjoint"] = lambda v: G.exp(v).adjoint()
@@ -238,7 +238,7 @@ def test_jacobians_and_adjoints_are_connected_to_the_graph(G):
 def test_float32_forward_mode_of_one_element(G):
     """Forward mode in float32 on one (unbatched) element: functorch's jvp gave a Python number
     times a 0-d float32 tensor a float64 tangent (pytorch/functorch#1073), so jacfwd of the
-    Jacobians and hessian raised in lerp or returned float64.  Each result is float32 and
+    Jacobians and hessian could raise in lerp or return float64.  Each result is float32 and
     agrees with the float64 one (checked against finite differences by the tests above)."""
     jacfwd, hessian, vmap = torch.func.jacfwd, torch.func.hessian, torch.func.vmap
     f = lambda v: G.exp(v).log().square().sum()  # noqa: E731
@@ -306,8 +306,8 @@ def test_torch_compile_smoke(G):
 def test_torch_compile_dynamic_shapes(G):
     """exp -> log with its custom backward under torch.compile(dynamic=True): one graph serves
     two batch sizes, values and gradients match eager.  (A module-level float threshold read
-    in two custom Functions' graphs broke dynamo here; numerics reads them through constant
-    getters.)  aot_eager: the failure was in dynamo's tracing, no kernels need compiling."""
+    in two custom Functions' graphs would break dynamo here; numerics reads them through constant
+    getters.)  aot_eager: that failure is in dynamo's tracing, no kernels need compiling."""
     f = G._f
 
     def loss(x):
@@ -389,8 +389,8 @@ def test_torch_compile_second_derivatives(G):
 
 def test_first_call_inside_a_nested_transform_does_not_poison_the_constants():
     """The series constants are cached per dtype and device on first use; a first use inside
-    torch.func.hessian cached functorch wrappers, and every later grad/jacrev/jacfwd/hessian
-    of the process failed with an internal assert ("level <= current_level").  Run in a fresh
+    torch.func.hessian must not cache functorch wrappers, or every later grad/jacrev/jacfwd/hessian
+    of the process would fail with an internal assert ("level <= current_level").  Run in a fresh
     interpreter so that the first use is the transformed one."""
     import subprocess
     import sys
@@ -413,7 +413,7 @@ def test_first_call_inside_a_nested_transform_does_not_poison_the_constants():
 @pytest.mark.parametrize("G", [ts.SO3, ts.SE23, ts.Sim3], ids=["SO3", "SE23", "Sim3"])
 def test_forward_over_forward_second_derivatives(G):
     """jacfwd(jacfwd(.)) through exp and log equals the other orders and the plain closed
-    forms.  Through the custom Functions torch 2.13 returned wrong second derivatives there
+    forms.  Through the custom Functions torch 2.13 returns wrong second derivatives there
     (max |jacfwd(jacfwd(SO3.exp))| = 0 against 0.91; pytorch/pytorch#197867)."""
     from torch.func import jacfwd, jacrev
 
@@ -432,8 +432,8 @@ def test_forward_over_forward_second_derivatives(G):
 
 def test_torch_compile_of_vmap_jacrev_and_hessian():
     """torch.compile(vmap(jacrev(f))) and torch.compile(hessian(f)) through exp and log: they
-    raised "You tried to vmap over ApplyTemplate, but it does not have vmap support" while
-    compiled code ran the custom Functions."""
+    must not raise "You tried to vmap over ApplyTemplate, but it does not have vmap support", as
+    they would if compiled code ran the custom Functions."""
     from torch.func import hessian, jacrev, vmap
 
     f = lambda v: ts.SO3.exp(v).log().square().sum()  # noqa: E731  (= |v|^2 for |v| < pi)

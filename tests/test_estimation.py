@@ -119,7 +119,7 @@ def test_unobservable_direction_is_reported_singular():
 
 @pytest.mark.parametrize("damping", [None, 1e-3])
 def test_solver_loop_reads_the_host_once_per_iteration(damping):
-    """The stop test and the all-accepted shortcut share one read per iteration (they were two):
+    """The stop test and the all-accepted shortcut share one read per iteration (not one each):
     on CUDA each is a host sync.  Outside the loop: the first count, and eigh's of the
     singularity test."""
     from host_syncs import HostSyncs
@@ -403,9 +403,9 @@ def test_metrics_check_their_arguments():
 def test_variables_check_blocks_and_shapes():
     F, E = ts.SGal3.identity((4,), dtype=f64), torch.zeros(4, 1, dtype=f64)
     with pytest.raises(ValueError, match=r"delta must have shape \(B, 11\) .* got \(4, 12\)"):
-        V.retract((F, E), torch.zeros(4, 12, dtype=f64))  # the extra column was ignored
+        V.retract((F, E), torch.zeros(4, 12, dtype=f64))  # the extra column must not be ignored
     with pytest.raises(ValueError, match="x and y must have the same number of blocks, got 2 and 1"):
-        V.local((F, E), (F,))  # was truncated by zip
+        V.local((F, E), (F,))  # zip would truncate it silently
     with pytest.raises(TypeError, match=r"y\[0\] must be of the kind of x\[0\] \(SGal3\), got Tensor"):
         V.local((F, E), (E, F))
     with pytest.raises(ValueError, match=r"mask must be a bool tensor of shape \(B,\) = \(4,\)"):
@@ -560,8 +560,8 @@ def test_blocks_of_k_variables_in_variables_and_gauss_helmert():
 
 
 def test_lbfgs_report_is_on_the_unknowns_device():
-    """report.iterations was made on the CPU whatever the unknowns' device (SolverReport says
-    every field is on it), so report.iterations + report.status failed on another device.
+    """report.iterations is on the unknowns' device, as SolverReport says every field is (made on
+    the CPU, report.iterations + report.status would fail on another device).
     torch.optim.LBFGS reads values, so its step is stubbed to run on 'meta'."""
     from unittest import mock
 
@@ -752,8 +752,8 @@ def test_lbfgs_status_edges():
 
 
 def test_undamped_levenberg_marquardt_recovers_from_a_rejected_step():
-    """damping=0 starts undamped; a rejected step raises the damping (it stayed 0, and the same
-    step was rejected to the iteration limit)."""
+    """damping=0 starts undamped; a rejected step raises the damping (if it stayed 0, the same
+    step would be rejected to the iteration limit)."""
     sol = gauss_newton(torch.atan, torch.full((1, 1), 2.0, dtype=f64), damping=0.0)
     assert sol.report.converged.all() and sol.x.abs().max() < 1e-10
 

@@ -436,7 +436,7 @@ def test_a_number_dt_is_the_same_interval_for_every_sample():
         assert torch.equal(getattr(by_number, name), getattr(by_tensor, name)), name
     assert torch.equal(by_number.delta.as_matrix(), by_tensor.delta.as_matrix())
     assert torch.equal(increment_tangents(gyro, acc, 0.004), increment_tangents(gyro, acc, torch.full((3, 7), 0.004, dtype=F64)))
-    for bad in (float("inf"), float("nan"), -0.004):  # inf gave a NaN increment silently
+    for bad in (float("inf"), float("nan"), -0.004):  # inf would give a NaN increment silently
         with pytest.raises(ValueError, match=rf"dt must be a finite number >= 0, got {bad}"):
             preintegrate(gyro, acc, bad, **kw)
 
@@ -825,7 +825,7 @@ def test_noise_densities_are_checked_with_names():
         torch.testing.assert_close(res.covariance, ref.covariance, rtol=0,
                                    atol=1e-14 * ref.covariance.abs().max())
     for name in ("gyro_noise_density", "acc_noise_density", "time_noise_density"):
-        # a 0-d float32 tensor was cast silently to the float64 stream, a per-axis one refused
+        # a 0-d float32 tensor is refused as a per-axis one is, not cast silently to the float64 stream
         with pytest.raises(TypeError, match=f"{name} has dtype torch.float32 but gyro has dtype torch.float64"):
             preintegrate(gyro, acc, dt, **{name: torch.tensor(1e-3)})
         with pytest.raises(ValueError, match=f"{name} is on meta but gyro is on cpu"):
@@ -848,7 +848,7 @@ def test_noise_densities_are_checked_with_names():
 
 def test_vmap_over_any_one_argument():
     """Under torch.func.vmap any one argument may be the mapped one (the increment tangents and
-    the prediction Jacobians were written in place into unbatched tensors): each result equals
+    the prediction Jacobians must not be written in place into unbatched tensors): each result equals
     the batched call."""
     gen = torch.Generator().manual_seed(70)
     B, K, D = 3, 5, torch.float64

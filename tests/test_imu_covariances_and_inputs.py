@@ -110,7 +110,8 @@ def test_sensor_to_body_checks_the_pose_batch():
 
 
 def test_increment_tangents_checks_dt_as_preintegrate():
-    """A negative tensor dt was accepted by increment_tangents (a number was refused)."""
+    """increment_tangents refuses a negative or non-finite tensor dt as preintegrate does, and as
+    it refuses such a number."""
     gyro, acc, dt, _, _ = samples((2,), 5, seed=4)
     for bad in (-dt, torch.full_like(dt, float("nan")), torch.full_like(dt, float("inf"))):
         for f in (increment_tangents, preintegrate):

@@ -287,9 +287,9 @@ def test_table_must_be_finite():
 
 
 def test_malformed_table_columns_raise_typeerror_naming_the_column():
-    """A column that is not a sequence of numbers or a 1-D tensor gave torch's or Python's
-    message ("object of type 'float' has no len()", "len() of a 0-d tensor", "too many
-    dimensions 'str'"), naming no column."""
+    """A column that is not a sequence of numbers or a 1-D tensor raises TypeError naming the
+    column; torch's or Python's message ("object of type 'float' has no len()", "len() of a 0-d
+    tensor", "too many dimensions 'str'") would name no column."""
     expected = r"\(a DH table column\) must be a sequence of numbers or a 1-D tensor"
     with pytest.raises(TypeError, match=rf"^a {expected}, got float 0.3$"):
         GDHChain(0.3, 0.0, 0.1, 0.0, "R")

@@ -170,7 +170,7 @@ print(threshold, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 
 def test_load_is_an_attribute_of_the_package():
     """``import torchsgal`` then ``torchsgal.load.use_threads_for_load()``, as the threads guide
-    writes it, in a fresh interpreter (the module was not imported by the package before)."""
+    writes it, in a fresh interpreter (the package must import the module itself)."""
     import subprocess
     import sys
 

@@ -63,8 +63,8 @@ def test_sim3_from_matrix_check_accepts_small_and_large_scales(dtype):
 @pytest.mark.parametrize("dtype", [torch.float32, F64], ids=str)
 def test_sim3_from_matrix_check_measures_the_bottom_row_relative_to_inverse_scale(dtype):
     """The bottom row's zeros are measured relative to M[3, 3] = 1/s.  Compared absolutely, a
-    row entry far larger than a tiny 1/s passed (composing with it gave a scale of 2e9 instead of
-    1e13 in float64), and a rounding-sized entry beside a huge 1/s failed."""
+    row entry far larger than a tiny 1/s would pass (composing with it would give a scale of 2e9
+    instead of 1e13 in float64), and a rounding-sized entry beside a huge 1/s would fail."""
     from torchsgal import Sim3
     tiny, off = (1e-13, 5e-10) if dtype == F64 else (1e-4, 9e-5)  # both under the absolute tol
     M = torch.eye(4, dtype=dtype)
@@ -170,10 +170,10 @@ class _Slotted(SGal3):
 
 
 def test_subclass_attributes_survive_pickle_deepcopy_torch_save_and_vmap():
-    """Pickling as cls(matrix) dropped a subclass's attributes (deepcopy(s).tag raised
-    AttributeError) and could not rebuild a subclass whose __init__ takes another argument; the
-    pytree unflatten dropped them too (vmap(lambda x: x.tag)).  The built-in classes still
-    pickle as cls(matrix), which torch.load's weights_only=True reads."""
+    """A subclass's attributes survive pickling (as cls(matrix) they would be dropped:
+    deepcopy(s).tag would raise AttributeError), a subclass whose __init__ takes another argument
+    is rebuilt, and the pytree unflatten keeps them too (vmap(lambda x: x.tag)).  The built-in
+    classes pickle as cls(matrix), which torch.load's weights_only=True reads."""
     from torch.func import vmap
 
     M = SGal3.random(3, dtype=F64, generator=torch.Generator().manual_seed(8)).as_matrix()
@@ -256,9 +256,9 @@ def test_torch_func_takes_and_returns_group_objects(G):
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_torch_func_derivative_wrappers_and_vmap_axes(G):
     """Derivatives of group-valued functions with respect to a group are nested wrappers, read
-    with as_matrix().as_matrix() (their repr raised AttributeError: no attribute 'shape'); a
+    with as_matrix().as_matrix() (their repr must not raise AttributeError: no attribute 'shape'); a
     wrapper whose leaf is not a tensor of trailing shape (n, n) reprs as such, and its
-    batch_shape raises TypeError (it gave (4,) for a (4, 4, 6) Jacobian).  vmap's in_dims count
+    batch_shape raises TypeError (not (4,) for a (4, 4, 6) Jacobian).  vmap's in_dims count
     the matrix tensor's axes: -3 is the last batch axis."""
     from torch.func import hessian, jacrev, vmap
 
@@ -331,9 +331,9 @@ def test_scalar_arguments(G):
 
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_numpy_bools_and_huge_integers(G):
-    """A numpy bool is a flag, as numpy scalars are numbers for tol, rtol and alpha (it was
-    refused); an integer beyond the float range is a bad value (ValueError naming the argument;
-    math.isfinite raised OverflowError)."""
+    """A numpy bool is a flag, as numpy scalars are numbers for tol, rtol and alpha (not
+    refused); an integer beyond the float range is a bad value (ValueError naming the argument,
+    not math.isfinite's OverflowError)."""
     M = G.random(2, dtype=F64, generator=torch.Generator().manual_seed(7)).as_matrix().clone()
     assert torch.equal(G.from_matrix(M, check=np.bool_(True)).as_matrix(), M)
     M[0, 0, 0] += 0.1
@@ -357,8 +357,8 @@ def test_from_transform3d_check_flag():
 
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_interpolate_refuses_a_non_finite_number(G):
-    """A Python or numpy alpha of nan or inf gave a NaN element silently; a number is read (no
-    host sync), a tensor alpha stays checked by metadata only."""
+    """A Python or numpy alpha of nan or inf raises ValueError (it would give a NaN element
+    silently); a number is read (no host sync), a tensor alpha stays checked by metadata only."""
     g, h = G.identity(2, dtype=F64), G.random(2, dtype=F64, generator=torch.Generator().manual_seed(10))
     for bad in (float("nan"), float("inf"), -np.inf, np.float32("nan"), 10**400):
         with pytest.raises(ValueError, match=r"alpha must be a finite number, got"):
@@ -368,8 +368,8 @@ def test_interpolate_refuses_a_non_finite_number(G):
 
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_stack_and_cat_refuse_one_element_for_the_sequence(G):
-    """G.cat(g) iterated g's first batch axis (batch (3, 2) became (6,)) and G.stack(g)
-    returned a copy, silently."""
+    """G.cat(g) and G.stack(g) raise TypeError: cat would iterate g's first batch axis (batch
+    (3, 2) would become (6,)) and stack would return a copy, silently."""
     g = G.identity((3, 2), dtype=F64)
     for op in ("stack", "cat"):
         with pytest.raises(TypeError, match=rf"{G.__name__}\.{op}: elements must be a sequence of elements "
@@ -382,8 +382,8 @@ def test_stack_and_cat_refuse_one_element_for_the_sequence(G):
 @pytest.mark.parametrize("G", ALL_GROUPS, ids=IDS)
 def test_allclose_equal_nan_and_subclasses_in_either_order(G):
     """allclose takes equal_nan as torch.allclose does; the binary operations take a subclass
-    element in either order (g.allclose(sub) was True and sub.allclose(g) a TypeError, and so
-    for compose), and still refuse another group."""
+    element in either order (sub.allclose(g) agrees with g.allclose(sub), not a TypeError,
+    and so for compose), and still refuse another group."""
     Sub = type("Sub", (G,), {})
     g = G.random(3, dtype=F64, generator=torch.Generator().manual_seed(11))
     sub = Sub(g.as_matrix().clone())
@@ -462,8 +462,8 @@ def test_subclass_with_required_init_argument_goes_through_operations():
 
 
 def test_allclose_on_meta_says_why_it_cannot():
-    """allclose on 'meta' elements raised torch's 'Tensor.item() cannot be called on meta
-    tensors', which did not say which call or why."""
+    """allclose on 'meta' elements says why it cannot read them; torch's 'Tensor.item() cannot
+    be called on meta tensors' would not say which call or why."""
     from torchsgal import SE3
     g = SE3.identity(2, dtype=F64, device="meta")
     with pytest.raises(RuntimeError, match=r"allclose reads the matrices' values .* device 'meta' have none"):

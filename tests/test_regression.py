@@ -788,9 +788,9 @@ def _se3_product_geodesic(s):
 
 
 def test_default_time_origin_is_the_mean_stamp_so_offset_stamps_fit():
-    """Stamps far from 0 (e.g. Unix time): with the former default time_origin=0.0 each sample
-    was integrated from 0 and the fit returned cost 9e26 flagged converged (offset 100) or
-    NaN (offset 1.7e9).  The default origin is now each data set's mean stamp."""
+    """Stamps far from 0 (e.g. Unix time) fit: the default origin is each data set's mean stamp.
+    With time_origin=0.0 each sample would be integrated from 0 and the fit would return cost
+    9e26 flagged converged (offset 100) or NaN (offset 1.7e9)."""
     w = torch.tensor([1.0, 1, 1, 2, 2, 2], dtype=F64)
     s = torch.linspace(0.1, 1.0, 6, dtype=F64)
     Y, X0 = _se3_product_geodesic(s - s.mean())  # X0: the body velocity at the mean stamp
@@ -927,7 +927,7 @@ def test_weights_time_origin_and_basis_are_checked_like_the_rest_of_the_library(
     G = ts.SE3
     Y = G.exp(torch.randn(5, 6, dtype=F64))
     t = torch.linspace(0, 1, 5, dtype=F64)
-    for bad in (math.inf, math.nan):  # the cost was NaN, without an error
+    for bad in (math.inf, math.nan):  # the cost would be NaN, without an error
         with pytest.raises(ValueError, match="weights must be finite"):
             reg.fit_subgroup(Y, t, weights=[1, 1, 1, 1, 1, bad])
         with pytest.raises(ValueError, match="weights must be finite"):
@@ -939,10 +939,10 @@ def test_weights_time_origin_and_basis_are_checked_like_the_rest_of_the_library(
         with pytest.raises(ValueError, match="time_origin must be finite"):
             reg.fit_riemannian_geodesic(Y, t, time_origin=torch.tensor(bad, dtype=F64))
     with pytest.raises(ValueError, match="times must be finite"):
-        reg.fit_polynomial(Y[:1], torch.tensor([math.nan], dtype=F64), 0)  # N = 1 was not checked
+        reg.fit_polynomial(Y[:1], torch.tensor([math.nan], dtype=F64), 0)  # N = 1 is checked too
     with pytest.raises(TypeError, match="time_origin must be None, a finite number or a torch.Tensor, got '0'"):
-        reg.fit_subgroup(Y, t, time_origin="0")  # was "new(): invalid data type 'str'"
-    # another dtype or device was silently cast or moved
+        reg.fit_subgroup(Y, t, time_origin="0")  # not "new(): invalid data type 'str'"
+    # another dtype or device is refused, not silently cast or moved
     with pytest.raises(TypeError, match="time_origin has dtype torch.float32 but samples has dtype torch.float64"):
         reg.fit_subgroup(Y, t, time_origin=torch.tensor(0.5))
     with pytest.raises(TypeError, match="weights has dtype torch.float32 but samples has dtype torch.float64"):

@@ -170,7 +170,7 @@ def test_non_finite_observation_spoils_only_its_trial():
 @pytest.mark.parametrize("variant,samples", [("iterated", 11), ("paper", 11), ("paper", 101)])
 def test_data_that_require_gradients_solve_as_detached_data(solver, variant, samples):
     """docs/guide/estimation.md: results come back detached whether or not the data or the
-    covariances require gradients.  The structured solver's out= buffers raised 'functions
+    covariances require gradients.  The structured solver's out= buffers must not raise 'functions
     with out=... arguments don't support automatic differentiation' (iterated, and the paper
     variant from 2,048 conditions: 21 trials of 101 samples)."""
     trials = study.simulate(study.StudyConfig(trials=21, samples=samples, seed=12)).problem
@@ -529,7 +529,7 @@ def test_simulated_trials_do_not_depend_on_the_chunk():
 
 
 def test_study_without_converged_trials_writes_strict_json(tmp_path):
-    """NaN metrics (no converged trial) were written as NaN, which is not JSON."""
+    """NaN metrics (no converged trial) are written as null, not as NaN, which is not JSON."""
     cfg = study.StudyConfig(trials=2, samples=11, variants="paper", max_iterations=1)
     out = study.run(cfg, progress=False)
     assert out["results"]["SGal(3)"]["paper"]["converged"] == 0
@@ -553,7 +553,8 @@ def _cli(*args, timeout=60):
 
 
 def test_command_line_checks_the_output_folder_before_running(tmp_path, capsys, monkeypatch):
-    """A bad --out ran the whole study and then failed with a traceback, losing the results."""
+    """A bad --out is refused before the study runs (it would fail after it with a traceback,
+    losing the results)."""
     proc = _cli("--out", "/proc/nope")
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "argument --out: cannot write to '/proc/nope'" in proc.stderr
@@ -570,7 +571,8 @@ def test_command_line_checks_the_output_folder_before_running(tmp_path, capsys, 
 
 
 def test_command_line_caps_the_threads_and_handles_ctrl_c(capsys, monkeypatch, tmp_path):
-    """--threads 100000 crashed torch (exit 139); Ctrl-C gave a KeyboardInterrupt traceback."""
+    """--threads 100000 is refused (it would crash torch, exit 139); Ctrl-C exits with 130, not
+    a KeyboardInterrupt traceback."""
     from torchsgal.__main__ import _max_threads, main
     proc = _cli("--threads", "100000", "--out", str(tmp_path))
     assert proc.returncode == 2, proc.stderr[-2000:]
@@ -587,7 +589,7 @@ def test_command_line_caps_the_threads_and_handles_ctrl_c(capsys, monkeypatch, t
 @pytest.mark.parametrize("variant", ["iterated", "paper"])
 def test_two_observation_pairs_suffice(variant):
     """The first pair fixes F_a0b0 (10 conditions), the second the interval through the drift
-    r - dtau v: 2 pairs determine the 11 unknowns (3 were required)."""
+    r - dtau v: 2 pairs determine the 11 unknowns (3 must not be required)."""
     cfg = study.StudyConfig(trials=5, samples=2, noise_scale=0.0, seed=5)
     trials = study.simulate(cfg)
     sol = tls.solve_sgal3(trials.problem, variant=variant)
@@ -605,8 +607,8 @@ def test_two_observation_pairs_suffice(variant):
 
 
 def test_subset_and_dtau0_name_bad_arguments():
-    """subset takes a slice or an int64 index tensor (an int dropped the batch axis and the error
-    named F_ga); a bool is no number for dtau0 (True was read as 1.0)."""
+    """subset takes a slice or an int64 index tensor (an int would drop the batch axis and the error
+    would name F_ga); a bool is no number for dtau0 (True would be read as 1.0)."""
     P = study.simulate(study.StudyConfig(trials=3, samples=6, seed=0)).problem
     for index in (2, "a", torch.tensor([True, False, True]), torch.tensor([[0, 1]])):
         with pytest.raises(TypeError, match="index must be a slice or a 1-D int64 tensor of trials"):

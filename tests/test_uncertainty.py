@@ -848,8 +848,8 @@ def test_gaussian_of_a_subclass_element():
 
 def test_fusion_under_vmap_over_the_means_only():
     """fuse and fuse_event read their status at the end; under vmap with only a mean (or the
-    relative frame) mapped that read used to be attempted (the readability was decided on the
-    covariances alone) and crashed.  Each mapped result equals the batched call."""
+    relative frame) mapped that read is not attempted (deciding readability on the
+    covariances alone would attempt it and crash).  Each mapped result equals the batched call."""
     D = torch.float64
     gen = torch.Generator().manual_seed(71)
     means = ts.SE3.random((4,), dtype=D, generator=gen)
