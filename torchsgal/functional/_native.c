@@ -3,11 +3,12 @@
  * of Sim(3) (_native_sim3.h, with its inverse and adjoint), the products of these six groups and
  * the inverses and adjoints of SGal(3), SE(3) and SE_2(3) (_native_products.h), as plain C loops:
  * the CPU implementations of the operators torchsgal::sgal3_*, so3_*, se2_*, se3_*, se23_* and
- * sim3_* (functional/ops.py; the IMU
+ * sim3_* (functional/ops.py), and x @ W + c over a batch of small matrices (_native_affine.h:
+ * torchsgal::affine_rows, functional/affine.py; the IMU
  * preintegration kernel is torchsgal.imu._native, built from imu/_native.c on the same code).
  *
  * An optional accelerator for CPU eager code (see native.py): one call per batch instead of
- * ~170 dispatched tensor operations, so small batches no longer pay torch's per-operation
+ * ~170 dispatched tensor operations, so small batches do not pay torch's per-operation
  * overhead.  No torch headers: the Python side passes data pointers of contiguous CPU tensors
  * it allocated and checked.  The constants (thresholds, series) are set once from numerics.py,
  * which stays their only source.  Large batches are split over threads (torch's OpenMP threads

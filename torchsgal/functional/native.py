@@ -3,7 +3,8 @@
 ``torchsgal.functional._native`` holds SGal(3) exp, log, their backward maps and Jacobians, and
 the exp, log and Jacobians of SO(3), SE(2), SE(3), SE_2(3) and Sim(3): the CPU implementations of
 the torch operators ``torchsgal::sgal3_*``, ``so3_*``, ``se2_*``, ``se3_*``, ``se23_*`` and
-``sim3_*`` (``functional/ops.py``);
+``sim3_*`` (``functional/ops.py``), and ``torchsgal::affine_rows`` (``functional/affine.py``: a
+group element acting on many points, and that action's Jacobian);
 ``torchsgal.imu._native`` holds IMU preintegration, the CPU implementation of
 ``torchsgal::imu_preintegrate`` (``imu/_kernels.py``).
 
