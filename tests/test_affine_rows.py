@@ -5,18 +5,25 @@ operator's registration (opcheck, vmap, derivatives); every group's ``act`` and
 ``act_jacobians`` on a broadcast batch with the kernels on and off."""
 from __future__ import annotations
 
-import contextlib
+import os
 
 import pytest
 import torch
 from conftest import GROUP_CLASSES
-from test_factor_kernels import needs_kernel
 from torch.library import opcheck
 
 from torchsgal.functional import affine, native
 
 f64 = torch.float64
 op = torch.ops.torchsgal.affine_rows
+
+
+def needs_kernel(test):
+    """Tests of the C kernel itself (torchsgal.functional._native): left out of the run with the
+    kernels off (.ci/run), skipped where the extension was not built."""
+    skip = pytest.mark.skipif(not native.available() and os.environ.get("TORCHSGAL_NO_SKIPS") != "1",
+                              reason="torchsgal.functional._native not built")
+    return pytest.mark.kernels(skip(test))
 
 
 def _inputs(B, N, k, m, dtype, seed=0, with_c=True):
@@ -79,22 +86,44 @@ def test_bad_arguments_name_themselves():
         op(x, W.float(), c)
 
 
-@pytest.mark.parametrize("kernel", [True, False], ids=["kernel", "tensor_code"])
-def test_empty_batches_and_long_rows(kernel):
-    """No problems, no rows, and rows longer than the kernel forms (the tensor code's result)."""
-    with contextlib.nullcontext() if kernel else native.disabled():
-        for B, N, m in ((0, 4, 3), (3, 0, 3), (2, 5, 80)):
-            x, W, c = _inputs(B, N, 3, m, f64)
-            got = op(x, W, c)
-            assert got.shape == (B, N, m)
-            torch.testing.assert_close(got, torch.baddbmm(c.unsqueeze(1), x, W), rtol=1e-14, atol=1e-14)
+def test_empty_batches_and_long_rows(kernel_calls):
+    """No problems, no rows, and rows longer than the kernel forms: the operator's result is the
+    product's, from the tensor code (the kernel is not called)."""
+    for B, N, m in ((0, 4, 3), (3, 0, 3), (2, 5, 80)):
+        x, W, c = _inputs(B, N, 3, m, f64)
+        got = op(x, W, c)
+        assert got.shape == (B, N, m)
+        torch.testing.assert_close(got, torch.baddbmm(c.unsqueeze(1), x, W), rtol=1e-14, atol=1e-14)
+    assert kernel_calls == []
+
+
+@needs_kernel
+def test_batches_split_over_threads_give_the_same_rows(kernel_calls):
+    """A batch large enough for the kernel to hand it out over two threads: every row as the
+    product's (each problem's rows are formed alone, so the split changes no bit)."""
+    x, W, c = _inputs(4096, 100, 3, 18, f64, seed=3)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = op(x, W, c)
+        torch.set_num_threads(2)
+        two = op(x, W, c)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
+    torch.testing.assert_close(two, torch.baddbmm(c.unsqueeze(1), x, W), rtol=1e-13, atol=1e-13)
+    assert len(kernel_calls) == 2
 
 
 def test_opcheck():
+    """Values, fake implementation, autograd registration and vmap rule, with inputs that require
+    grad (and without c)."""
     for dtype in (torch.float32, f64):
         for with_c in (True, False):
             x, W, c = _inputs(3, 6, 4, 18, dtype, with_c=with_c)
             opcheck(op.default, (x, W, c))
+            grads = [t.clone().requires_grad_() if t is not None else None for t in (x, W, c)]
+            opcheck(op.default, tuple(grads))
 
 
 def test_gradients_are_the_products():
@@ -106,31 +135,50 @@ def test_gradients_are_the_products():
 
 
 def test_vmap_is_a_loop_over_the_mapped_axis():
+    """Any one argument mapped (c alone too, on another axis), without c, and a mapped axis of
+    size 0."""
     x, W, c = _inputs(3, 7, 4, 9, f64)
+    ulps = dict(rtol=1e-14, atol=1e-14)
     xs = torch.stack([x, 2 * x])
     got = torch.func.vmap(op, in_dims=(0, None, None))(xs, W, c)
-    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(2 * x, W, c)]), rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(2 * x, W, c)]), **ulps)
     got = torch.func.vmap(op, in_dims=(None, 1, None))(x, torch.stack([W, W.neg()], 1), c)
-    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(x, -W, c)]), rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(x, -W, c)]), **ulps)
+    got = torch.func.vmap(op, in_dims=(None, None, 1))(x, W, torch.stack([c, 3 * c], 1))
+    torch.testing.assert_close(got, torch.stack([op(x, W, c), op(x, W, 3 * c)]), **ulps)
+    got = torch.func.vmap(lambda a: op(a, W, None))(xs)
+    torch.testing.assert_close(got, torch.stack([op(x, W, None), op(2 * x, W, None)]), **ulps)
+    assert torch.func.vmap(op, in_dims=(0, None, None))(xs[:0], W, c).shape == (0, 3, 7, 9)
+
+
+# the products of ``act`` and ``act_jacobians`` the kernel forms (``affine.KERNEL_MAX_M``): the
+# action's rows (every group, both dtypes; Sim(3)'s Jacobian acts once more, without the
+# translation, for its quotient rule) and the Jacobian's rows (rows x dof) of at most 18 entries
+# in float64 and 4 in float32 (SO(2)'s 2)
+_KERNEL_PRODUCTS = {(name, dtype): n for name, d64, d32 in
+                    (("SO2", 2, 2), ("SE2", 2, 1), ("SO3", 2, 1), ("SE3", 2, 1), ("SE23", 1, 1),
+                     ("SGal3", 1, 1), ("Sim3", 2, 2))
+                    for dtype, n in ((f64, d64), (torch.float32, d32))}
 
 
 @needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64], ids=str)
 @pytest.mark.parametrize("G", GROUP_CLASSES, ids=lambda g: g.__name__)
-def test_every_group_acts_on_a_broadcast_batch_through_it(G, kernel_calls):
+def test_every_group_acts_on_a_broadcast_batch_through_it(G, dtype, kernel_calls):
     """One element per batch row acting on 800 points (point_axes=1): ``act`` and
-    ``act_jacobians`` with the kernels on (the operator runs) equal the same with them off (the
-    tensor code) to a few units in the last place; each product ran the kernel once (Sim(3)'s
-    Jacobian acts twice: its quotient rule needs the action of the element without translation)."""
+    ``act_jacobians`` with the kernels on (the operator runs where it pays) equal the same with
+    them off (the tensor code) to a few units in the last place, and the kernel formed the
+    products ``_KERNEL_PRODUCTS`` names."""
     gen = torch.Generator().manual_seed(7)
-    g = G.random(6, dtype=f64, generator=gen)
-    x = torch.randn(6, 800, G.point_dim, dtype=f64, generator=gen)
+    g = G.random(6, dtype=dtype, generator=gen)
+    x = torch.randn(6, 800, G.point_dim, dtype=dtype, generator=gen)
     on = (g.act(x, point_axes=1), *g.act_jacobians(x, point_axes=1))
     n_on = len(kernel_calls)
     with native.disabled():
         off = (g.act(x, point_axes=1), *g.act_jacobians(x, point_axes=1))
     for a, b in zip(on, off):
-        torch.testing.assert_close(a, b, rtol=8 * torch.finfo(f64).eps, atol=1e-14)
-    assert n_on == (3 if G.__name__ == "Sim3" else 2), n_on
+        torch.testing.assert_close(a, b, rtol=8 * torch.finfo(dtype).eps, atol=8 * torch.finfo(dtype).eps)
+    assert n_on == _KERNEL_PRODUCTS[G.__name__, dtype], n_on
     assert len(kernel_calls) == n_on
 
 

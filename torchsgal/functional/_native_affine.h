@@ -11,6 +11,12 @@
  * args: x (B, N, k), W (B, k, m), c (B, m) or NULL, out (B, N, m), all contiguous, and dims
  * {N, k, m} with k >= 1; the range [lo, hi) runs over b.
  */
+#if defined(_MSC_VER) && !defined(restrict)
+#define restrict __restrict /* C99's restrict, as MSVC spells it */
+#endif
+#ifndef AF_MAX_M
+#define AF_MAX_M 64 /* the longest row the kernel forms (its local row) */
+#endif
 #define AF_(name, sfx) name##_##sfx
 #define AF__(name, sfx) AF_(name, sfx)
 #define AF(name) AF__(name, SFX)
@@ -26,7 +32,7 @@
         const T *restrict Wb = W + b * k * (MM), *restrict cb = c ? c + b * (MM) : NULL;       \
         for (int64_t i = 0; i < N; ++i) {                                                       \
             const T *restrict xi = x + (b * N + i) * k;                                         \
-            T o[(MM) > 0 ? (MM) : 1];                                                           \
+            T o[AF_MAX_M];                                                                      \
             for (int64_t j = 0; j < (MM); ++j) o[j] = xi[0] * Wb[j];                            \
             for (int64_t a = 1; a < k; ++a) {                                                   \
                 const T xa = xi[a];                                                             \
@@ -53,8 +59,7 @@ AF_FIXED(27)
 AF_FIXED(40)
 #undef AF_FIXED
 
-/* any other row length (at most AF_MAX_M: the local row) */
-#define AF_MAX_M 64
+/* any other row length (at most AF_MAX_M) */
 WIDE_LOOPS static void AF(affine_rows_any)(void **args, int64_t lo, int64_t hi) {
     const int64_t mm = ((const int64_t *)args[4])[2];
     AF_BODY(mm)

@@ -7,13 +7,19 @@ rotation block, c the translation column) and the Jacobian of that action
 (``blocks.act_homogeneous_jacobian``: W the element times the generators, (k, rows * dof)).
 
 torch's CPU ``baddbmm`` hands each of the B products to BLAS, whose fixed cost per product
-dominates for k of 3 or 4 (256 products of 100 x 3 by 3 x 18 rows: 0.28 ms); the C kernel
-(``_native_affine.h``) forms each output row in place with its length a compile-time constant
-(0.14 ms; ``benchmarks/bench_factor_graph.py``'s rigid fit acts with it).  The kernel runs on CPU
-float32/float64 tensors where nothing observes the call (``_blocking.unobserved``) and the
-kernels are on in the calling thread (``native.enabled``), for outputs of at least
-``MIN_KERNEL_ENTRIES`` entries (below, the operator's fixed cost exceeds the product's); the
-tensor code (``baddbmm``) runs elsewhere and is the reference the tests compare the kernel with.
+dominates for k of 3 or 4; the C kernel (``_native_affine.h``) forms each output row in place
+with its length a compile-time constant.  On one thread, 256 products of 100 x 3 rows: rows of 3
+entries (the action) 0.056 ms against 0.16 ms, of 18 (SE(3)'s Jacobian) 0.16 ms against 0.33 ms
+in float64, but 0.12 ms against 0.11 ms in float32 (BLAS's float32 products are twice as fast),
+and on two threads, where BLAS splits the products and the kernel splits only batches of at
+least some hundred microseconds of work (``_native_common.h``), float64 rows of 18 are as fast
+either way and rows of 27 (SE_2(3)'s) 0.25 ms against 0.18 ms.  Hence ``rows_times``, the
+groups' call, takes the operator for rows of up to ``KERNEL_MAX_M[dtype]`` entries (every
+action; in float64 the Jacobians of SO(2), SE(2), SO(3) and SE(3)) on CPU float32/float64
+tensors where nothing observes the call (``_blocking.unobserved``), the kernels are on in the
+calling thread (``native.enabled``) and the output has at least ``MIN_KERNEL_ENTRIES`` entries
+(below, the operator's fixed cost exceeds the product's), and the tensor code (``baddbmm``)
+elsewhere; that is the reference the tests compare the kernel with.
 The operator has a fake implementation, a vmap rule and its derivatives (the product's), and
 ``tests/test_affine_rows.py`` runs ``torch.library.opcheck`` on it.
 """
@@ -28,6 +34,8 @@ from .registration import operator
 __all__ = ["affine_rows", "rows_times"]
 
 MIN_KERNEL_ENTRIES = 4096  # B * N * m below which the tensor code runs (the call's own cost)
+# the longest rows ``rows_times`` forms by the kernel, per dtype (module docstring)
+KERNEL_MAX_M = {torch.float32: 4, torch.float64: 18}
 MAX_M = 64  # AF_MAX_M of _native_affine.h: the longest row the kernel forms
 
 
@@ -110,19 +118,20 @@ def _vmap(info, in_dims, x, W, c):
         c = c.unsqueeze(0).expand(V, *c.shape) if in_dims[2] is None else c.movedim(in_dims[2], 0)
         c = c.flatten(0, 1)
     out = affine_rows(x.flatten(0, 1), W.flatten(0, 1), c)
-    return out.unflatten(0, (V, -1)), 0
+    return out.unflatten(0, (V, x.shape[1])), 0
 
 
 def rows_times(x: torch.Tensor, W: torch.Tensor, c: torch.Tensor | None = None) -> torch.Tensor:
     """x @ W (+ c[..., None, :]) for x (..., N, k), W (..., k, m) and c (..., m): the operator
-    where its kernel runs (one batch shape, CPU float32/float64 that nothing observes, at least
-    ``MIN_KERNEL_ENTRIES`` output entries), else the same product as tensor operations, which
-    autograd and ``torch.func`` differentiate."""
+    where its kernel runs and pays (one batch shape, CPU float32/float64 that nothing observes,
+    rows of at most ``KERNEL_MAX_M[dtype]`` entries, at least ``MIN_KERNEL_ENTRIES`` output
+    entries), else the same product as tensor operations, which autograd and ``torch.func``
+    differentiate."""
     batch = x.shape[:-2]
-    if (native._lib is not None and x.is_cpu and x.dtype in (torch.float32, torch.float64)
+    if (native._lib is not None and x.is_cpu and x.dtype in KERNEL_MAX_M
             and W.shape[:-2] == batch and (c is None or c.shape[:-1] == batch)
             and W.dtype == x.dtype and (c is None or c.dtype == x.dtype)
-            and x.shape[-1] >= 1 and 1 <= W.shape[-1] <= MAX_M
+            and x.shape[-1] >= 1 and 1 <= W.shape[-1] <= KERNEL_MAX_M[x.dtype]
             and x.shape[:-1].numel() * W.shape[-1] >= MIN_KERNEL_ENTRIES
             and native.enabled() and unobserved((x, W) if c is None else (x, W, c))):
         B = batch.numel()
