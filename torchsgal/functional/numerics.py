@@ -224,7 +224,7 @@ assert SIM3_NORMALISE > 2 * SIM3_SERIES_TERMS + 2 + SCALE_UPWARD_MARGIN
 
 def scale_moments(x: torch.Tensor, order: int, em1: torch.Tensor | None = None,
                   sigma: torch.Tensor | None = None) -> list[torch.Tensor]:
-    """[q_0, ..., q_order](x) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)).
+    """The list (q_0(x), ..., q_order(x)) with q_j = sum_n x^n/(n + j + 1)! (phi-functions phi_(j+1)).
 
     Relative error ~1e-16 at every order for |x| <= 6, and at the orders Sim(3) weighs most
     up to |x| = 40 (tests/test_precision.py).  Both recursions run on safe inputs; each order
