@@ -84,7 +84,9 @@ def test_act_jacobians_match_central_differences(G):
 def test_act_jacobians_broadcast_as_act_and_own_their_storage():
     """One element per batch row acting on N points (point_axes=1), and an unbatched element on
     a batch of points; J_x and the adjoint are copies (writing to them leaves the element alone,
-    in every group: SO(3)'s J_x and adjoint are its whole matrix).  The batched
+    in every group: SO(3)'s J_x and adjoint are its whole matrix); where one element acts on many
+    points, J_x is its copy expanded over them (an in-place write is refused by torch, and a
+    clone of it is writable).  The batched
     contraction of the points sums in another order than one point at a time: equal to a few
     units in the last place (rtol 4 eps)."""
     gen = torch.Generator().manual_seed(5)
@@ -102,7 +104,11 @@ def test_act_jacobians_broadcast_as_act_and_own_their_storage():
         each = torch.stack([torch.stack([one.act_jacobians(P[i, k])[0] for k in range(7)]) for i in range(2)])
         torch.testing.assert_close(J_g1, each, **ulps)
     before = one.as_matrix().clone()
-    J_x1.zero_()
+    assert J_x1.stride()[:2] == (0, 0)  # one block in memory for the 14 points
+    with pytest.raises(RuntimeError, match="single memory location"):
+        J_x1.mul_(2)
+    J_x1.clone().mul_(2)
+    J_x1.zero_()  # a fill writes the one block
     assert torch.equal(one.as_matrix(), before)
     for G in GROUP_CLASSES:  # SO(3) and SO(2): J_x is the whole matrix, and still a copy
         g = G.random(4, dtype=F64, generator=gen)

@@ -388,17 +388,18 @@ class LieGroup(MatrixBatch):
         to x (..., k); ``point_axes`` as in ``act``.  The action is linear in the matrix
         (M [x, tail], rows of it), so column j of J_g is the action of M hat(e_j)
         (``functional.blocks.act_homogeneous_jacobian``) and J_x is the block of M that
-        multiplies x (Sim3, whose action divides by M[3, 3], gives its own)."""
+        multiplies x (Sim3, whose action divides by M[3, 3], gives its own).
+
+        J_x is a copy of each element's block (writing to it leaves the element alone); where
+        one element acts on many points, it is that copy expanded over the points (one block per
+        element in memory, as ``expand`` gives: ``clone()`` it to write in place)."""
         M = self._acting(x, "x", point_axes, self.point_dim)
         J_g = self._f.act_jacobian(M, x)
         rows, k = J_g.shape[-2], x.shape[-1]
-        # the block broadcast over the points as rows * k contiguous values (one copy of whole
-        # rows; expanding the (rows, k) block itself copies element by element), always a copy:
-        # where the block is the whole matrix (SO(3), SO(2)) and nothing broadcasts, a reshape
-        # and contiguous() would give the element's own storage back
-        block = M[..., :rows, :k].reshape(M.shape[:-2] + (rows * k,))
-        J_x = block.expand(J_g.shape[:-2] + (rows * k,)).clone(memory_format=torch.contiguous_format)
-        return J_g, J_x.unflatten(-1, (rows, k))
+        # always a copy: where the block is the whole matrix (SO(3), SO(2)) and nothing
+        # broadcasts, a reshape would give the element's own storage back
+        J_x = M[..., :rows, :k].clone(memory_format=torch.contiguous_format)
+        return J_g, J_x.expand(J_g.shape[:-1] + (k,))
 
     @classmethod
     def _right_products(cls, M: torch.Tensor) -> torch.Tensor:

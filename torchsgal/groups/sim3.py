@@ -76,7 +76,8 @@ class Sim3(LieGroup):
 
     def act_jacobians(self, p: torch.Tensor, /, point_axes: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """As ``LieGroup.act_jacobians`` for y = s (C p + r): J_g by the quotient rule
-        (``functional.sim3.act_jacobian``), J_x = s C."""
+        (``functional.sim3.act_jacobian``), J_x = s C (a new tensor per element, expanded over
+        the points where one element acts on many, as ``LieGroup.act_jacobians`` says)."""
         M = self._acting(p, "p", point_axes, self.point_dim)
         J_g = self._f.act_jacobian(M, p)
-        return J_g, (M[..., :3, :3] / M[..., 3, 3, None, None]).expand(J_g.shape[:-1] + (3,)).clone()
+        return J_g, (M[..., :3, :3] / M[..., 3, 3, None, None]).expand(J_g.shape[:-1] + (3,))
