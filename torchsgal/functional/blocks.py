@@ -241,9 +241,22 @@ def rotation_log(C: torch.Tensor) -> torch.Tensor:
     near_pi = flt(cos < numerics.log_symmetric_cos())
     sign = 1.0 - 2.0 * flt(dot(col, s) < 0)
     col_norm = torch.sqrt(sel(near_pi, dot(col, col), one))
-    phi = sel(near_pi, (sign * theta / col_norm) * col, ratio * s)
-    # an infinite entry gives NaN, as a NaN one does (atan2 would read it as angle 0 or pi/2)
-    return torch.where(torch.isfinite(C).all(-1).all(-1), phi, torch.full_like(phi, math.nan))
+    return nan_where_not_finite(sel(near_pi, (sign * theta / col_norm) * col, ratio * s), C)
+
+
+def nan_where_not_finite(value: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """``value`` ((...) or components first, (k, ...), as this module's closed forms hold them),
+    NaN where an entry of the matrix M (..., r, c) is not finite: an infinite entry gives NaN,
+    as a NaN one does (atan2 would read it as an angle of 0, a quarter or a half turn)."""
+    return torch.where(torch.isfinite(M).all(-1).all(-1), value, torch.full_like(value, math.nan))
+
+
+def planar_angle(M: torch.Tensor) -> torch.Tensor:
+    """theta (...) of the rotation block M[..., :2, :2]: atan2 of its skew and symmetric parts,
+    in [-pi, pi] (-pi at a half turn whose skew part is -0 or rounds below zero, as atan2 gives
+    it); NaN where an entry of the block is not finite (SO(2) and SE(2) log)."""
+    t = torch.atan2(0.5 * (M[..., 1, 0] - M[..., 0, 1]), 0.5 * (M[..., 0, 0] + M[..., 1, 1]))
+    return nan_where_not_finite(t, M[..., :2, :2])
 
 
 # ----------------------------------------------------------------------- assembly
@@ -308,6 +321,17 @@ def rotation_skew_rows(C: torch.Tensor, p: torch.Tensor) -> list[torch.Tensor]:
     return [cross(r, p) for r in rows(C)]
 
 
+def _tail_offset(parts: list[torch.Tensor], tail: tuple) -> torch.Tensor | None:
+    """sum_j tail[j] parts[j] over the nonzero constants of the homogeneous tail (None if all are
+    zero): what the tail adds to every point's row, once per element."""
+    offset = None
+    for part, v in zip(parts, tail):
+        if v != 0:
+            term = part if v == 1 else part * v
+            offset = term if offset is None else offset + term
+    return offset
+
+
 def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: tuple = (), rows: int = 3):
     """The first ``rows`` entries of M [x, *tail] for M (..., n, n) and x (..., rows): points,
     events, velocities and directions in homogeneous coordinates (CONVENTIONS.md), with the
@@ -320,12 +344,7 @@ def act_homogeneous(M: torch.Tensor, x: torch.Tensor, name: str, n: int, tail: t
         # matrix product x M^T over the N rows, not N products of (rows x k) by (k x 1); the
         # tail's columns of M times its constants, once per element, added after
         k, E = x.shape[-1], M[..., 0, :rows, :]
-        offset = None
-        for j, v in enumerate(tail):
-            if v != 0:
-                term = E[..., k + j] if v == 1 else E[..., k + j] * v
-                offset = term if offset is None else offset + term
-        return affine.rows_times(x, E[..., :k].mT, offset)
+        return affine.rows_times(x, E[..., :k].mT, _tail_offset([E[..., k + j] for j in range(len(tail))], tail))
     if tail:  # constants built on x's device without a host-to-device copy
         x = torch.cat([x] + [torch.full_like(x[..., :1], v) for v in tail], dim=-1)
     return (M[..., :rows, : x.shape[-1]] @ x.unsqueeze(-1)).squeeze(-1)
@@ -388,11 +407,7 @@ def act_homogeneous_jacobian(M: torch.Tensor, x: torch.Tensor, name: str, n: int
         # one element per batch row, N points: one product over the rows (``affine.rows_times``),
         # the tail's rows of P times its constants added once per element
         P = P[..., 0, :, :]
-        offset = None
-        for j, v in enumerate(tail):
-            if v != 0:
-                term = P[..., points + j, :] if v == 1 else P[..., points + j, :] * v
-                offset = term if offset is None else offset + term
+        offset = _tail_offset([P[..., points + j, :] for j in range(len(tail))], tail)
         J = affine.rows_times(x, P[..., :points, :], offset)
     else:
         J = (x.unsqueeze(-2) @ P).squeeze(-2)

@@ -11,7 +11,6 @@ and the scalar family c_m of ``numerics``:
 """
 from __future__ import annotations
 
-import math
 import sys
 
 import torch
@@ -83,16 +82,9 @@ def exp_impl(xi: torch.Tensor) -> torch.Tensor:
     return _matrix(c[0], t * c[1], rx, ry)
 
 
-def _angle(M: torch.Tensor) -> torch.Tensor:
-    """atan2 of the rotation block's skew and symmetric parts; NaN where an entry of the block
-    is not finite (atan2 reads an infinite one as a quarter or half turn)."""
-    t = torch.atan2(0.5 * (M[..., 1, 0] - M[..., 0, 1]), 0.5 * (M[..., 0, 0] + M[..., 1, 1]))
-    return torch.where(torch.isfinite(M[..., :2, :2]).all(-1).all(-1), t, torch.full_like(t, math.nan))
-
-
 def log_impl(M: torch.Tensor) -> torch.Tensor:
     checks.matrix(M, MATRIX_DIM, "M")
-    t = _angle(M)
+    t = B.planar_angle(M)
     c = _coeffs(t)
     x, y = _apply(c[1] / (2 * c[2]), -t * c[2] / (2 * c[2]), M[..., 0, 2], M[..., 1, 2])
     return torch.stack((x, y, t), dim=-1)

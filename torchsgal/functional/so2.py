@@ -5,7 +5,6 @@ and J_l = J_r = 1.
 """
 from __future__ import annotations
 
-import math
 import sys
 
 import torch
@@ -58,9 +57,7 @@ def log_impl(C: torch.Tensor) -> torch.Tensor:
     """theta = atan2 of C's skew and symmetric parts, in [-pi, pi]: -pi at a half turn whose
     skew part is -0 or rounds below zero (exp(-pi)), as atan2 gives it."""
     checks.matrix(C, MATRIX_DIM, "M")
-    t = torch.atan2(0.5 * (C[..., 1, 0] - C[..., 0, 1]), 0.5 * (C[..., 0, 0] + C[..., 1, 1]))
-    # NaN where an entry is not finite (atan2 reads an infinite one as a quarter or half turn)
-    return torch.where(torch.isfinite(C).all(-1).all(-1), t, torch.full_like(t, math.nan)).unsqueeze(-1)
+    return B.planar_angle(C).unsqueeze(-1)
 
 
 def compose(A: torch.Tensor, Bm: torch.Tensor) -> torch.Tensor:
