@@ -88,6 +88,17 @@ def test_a_negative_squared_norm_is_refused():
             loss(torch.tensor([1.0, -2.0], dtype=f64))
 
 
+def test_rho_runs_where_its_values_cannot_be_read():
+    """rho(s) under vmap, on 'meta' tensors and compiled (fullgraph): the values its definition
+    gives (the check on s reads values only where they can be read)."""
+    s = torch.tensor([[0.0, 0.5, 4.0], [1.0, 2.0, 9.0]], dtype=f64)
+    for loss in (fg.Huber(1.0), fg.Cauchy(1.0), fg.GemanMcClure(1.0), fg.Tukey(2.0)):
+        want = torch.stack([loss.evaluate(row)[0] for row in s])
+        torch.testing.assert_close(torch.func.vmap(loss)(s), want, rtol=1e-15, atol=0)
+        assert loss(torch.empty(3, device="meta", dtype=f64)).shape == (3,)
+        torch.testing.assert_close(torch.compile(loss, fullgraph=True)(s[0]), want[0], rtol=1e-15, atol=0)
+
+
 class _Convex(RobustLoss):
     """rho(s) = s + s^2 / 4 (rho'' > 0: Ceres applies the full Triggs correction)."""
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import torch
 
 from ...functional import checks
+from ...functional._blocking import values_readable
 from ...functional.blocks import last_axis_dot
 
 __all__ = ["RobustLoss", "TrivialLoss", "Huber", "Cauchy", "GemanMcClure", "Tukey", "correct"]
@@ -37,7 +38,7 @@ class RobustLoss:
         """rho(s) for s >= 0 (a negative s raises; ``evaluate``, which the solvers call on
         squared norms, does not check the values)."""
         checks.floating(s, "s")
-        if bool((s < 0).any()):
+        if values_readable(s) and bool((s < 0).any()):  # one read, where values can be read
             raise ValueError(f"s must be >= 0 (a squared whitened norm), got a minimum of {float(s.min()):g}")
         return self.evaluate(s)[0]
 
