@@ -296,8 +296,9 @@ class LieGroup(MatrixBatch):
         ``g.compose(h)``: dynamo (torch 2.13) traces ``+`` and ``*`` of objects that are
         not tensors through their ``__add__``/``__mul__``, but its object protocol has no matrix
         multiplication slot, so ``__matmul__`` is never inlined and ``@`` is a graph break (an
-        error under fullgraph; without it ``@`` works, in two graphs).  The methods below use
-        ``compose``."""
+        error under fullgraph; without it ``@`` works, but dynamo does not resume the function
+        after it: the rest runs eagerly, with only the methods it calls compiled one by one).
+        The methods below use ``compose``."""
         self._same_type(other, "other")
         return type(self)._new(self._f.compose(self._matrix, other._matrix))
 
