@@ -54,6 +54,20 @@ def test_non_unit_axis_is_normalised(axis):
     np.testing.assert_allclose(p.numpy(), q.numpy() * unit, rtol=0, atol=1e-14)
 
 
+@pytest.mark.parametrize("axis", [(1e-3, 0.0, -1.0), (0.0, 1e-5, -1.0), (3e-7, 0.0, -1.0),
+                                  (1e-9, -1e-9, -1.0), (0.0, 0.0, -1.0), (-0.6, 0.0, -0.8)])
+def test_axis_close_to_minus_z_is_exact(axis):
+    """An axis near -z lost accuracy (the canonical frame divided by 1 + a_z, which cancels,
+    and axes within ~1e-6 of -z were replaced by -z): a 1e-5 tilt gave rotations 3e-7 off."""
+    q = torch.tensor([0.7, -2.1, math.pi], dtype=F64)[:, None]
+    R = _one_joint(axis).pose(q).rotation()
+    for b in range(3):
+        np.testing.assert_allclose(R[b].numpy(), _rodrigues(axis, float(q[b, 0])),
+                                   rtol=0, atol=1e-14)
+    p = _one_joint(axis, "prismatic").pose(q).position()
+    np.testing.assert_allclose(p.numpy(), q.numpy() * _unit(axis), rtol=0, atol=1e-14)
+
+
 @pytest.mark.parametrize("axis", [(0.0, 0.0, 0.0), (math.nan, 0.0, 1.0), (math.inf, 0.0, 0.0),
                                   (0.0, -math.inf, 1.0)])
 def test_zero_or_non_finite_axis_raises(axis):
@@ -184,6 +198,25 @@ def test_ik_q0_reading_when_seeds_equal_targets():
         inverse_kinematics(chain, T, num_seeds=3, **kw)
     with pytest.raises(ValueError, match=r"num_seeds \(2\) conflicts with q0 of shape \(1,\)"):
         inverse_kinematics(chain, T, q0=q0[0], num_seeds=2)
+
+
+def test_ik_non_finite_position_target_or_seed_raises():
+    """Pose targets were checked finite (as rigid transforms) but position targets and q0
+    were not: a NaN/inf target or seed ran the solver and came back as NaN errors and joints."""
+    chain = _planar()
+    good = torch.tensor([[0.6, 0.8, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
+    for bad_value in (math.nan, math.inf, -math.inf):
+        bad = good.clone()
+        bad[1, 0] = bad_value
+        with pytest.raises(ValueError, match=r"^target must be finite"):
+            inverse_kinematics(chain, bad, orientation=False)
+        with pytest.raises(ValueError, match=r"^q0 must be finite"):
+            inverse_kinematics(chain, good, orientation=False,
+                               q0=torch.tensor([[0.1], [bad_value]], dtype=F64))
+    res = inverse_kinematics(chain, good, orientation=False, q0=torch.tensor([[0.1], [1.0]], dtype=F64))
+    assert bool(res.success.all())
+    torch.testing.assert_close(res.q, torch.tensor([[math.atan2(0.8, 0.6)], [math.pi / 2]],
+                                                   dtype=F64), rtol=0, atol=1e-6)
 
 
 def test_ik_respects_one_sided_limits():
@@ -404,3 +437,27 @@ def test_build_pk_chain_checks_columns_as_gdh(column, message):
         build_pk_chain(column, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
     with pytest.raises(TypeError, match=message):  # the same error as GDHChain's
         GDHChain(column, [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+
+
+def test_sparse_joint_tensors_are_refused_by_name():
+    """A sparse q, qdot or q0 failed inside torch (expand/reshape/where not implemented for
+    sparse tensors) without naming the argument."""
+    chain = KinematicChain.from_dh([0.5, 0.25], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    gdh = GDHChain([0.5, 0.25], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
+    q = torch.zeros(1, 2, dtype=F64)
+    sparse = q.to_sparse()
+    calls = {
+        "q": [lambda: chain.forward(sparse), lambda: chain.jacobian(sparse),
+              lambda: chain.within_limits(sparse), lambda: gdh.forward(sparse),
+              lambda: gdh.link_transforms(sparse)],
+        "qdot": [lambda: chain.forward(q, sparse), lambda: chain.jacobian_derivative(q, sparse),
+                 lambda: gdh.forward(q, sparse)],
+        "q0": [lambda: inverse_kinematics(chain, torch.tensor([[0.75, 0.0, 0.0]], dtype=F64),
+                                          orientation=False, q0=sparse)],
+    }
+    for name, fns in calls.items():
+        for fn in fns:
+            with pytest.raises(TypeError, match=rf"^{name} must be a dense \(strided\) torch.Tensor"):
+                fn()
+    torch.testing.assert_close(chain.pose(q).position(),
+                               torch.tensor([[0.75, 0.0, 0.0]], dtype=F64), rtol=0, atol=1e-15)

@@ -775,6 +775,43 @@ def test_log_distance_and_r_squared_name_their_arguments():
         reg.r_squared(Y, Y32)
     with pytest.raises(TypeError, match="mean has dtype torch.float32 but samples has dtype torch.float64"):
         reg.r_squared(Y, Y, mean=Y32[0])
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: .*weights \(3,\)"):
+        reg.log_distance(Y, Y, weights=torch.ones(3, 6, dtype=F64))
+    with pytest.raises(ValueError, match=r"batch shapes do not broadcast: .*weights \(3,\)"):
+        reg.r_squared(Y.unsqueeze(0).expand(2, 5), Y, weights=torch.ones(3, 6, dtype=F64))
+
+
+@pytest.mark.parametrize("n", [4, 2])
+def test_r_squared_with_batched_weights_weighs_every_sample_of_a_data_set(n):
+    """weights (..., dof) are per data set, as in the fits and ``frechet_mean``: they weigh
+    every sample of the data set.  They were paired with the samples instead (weights (B, dof)
+    with B != N raised a bare RuntimeError; B == N gave a wrong R^2 of a wrong shape).
+    Expected values: (50) with the log distances taken from scipy's matrix logarithm."""
+    gen = torch.Generator().manual_seed(5)
+    Y = ts.SE3.exp(0.4 * torch.randn(n, 6, dtype=F64, generator=gen))
+    fitted = Y.rplus(0.1 * torch.randn(n, 6, dtype=F64, generator=gen))
+    mean = ts.SE3.exp(0.2 * torch.randn(6, dtype=F64, generator=gen))
+    w = torch.tensor([[1.0, 2.0, 0.5, 3.0, 1.0, 0.25], [4.0, 1.0, 1.0, 0.5, 2.0, 1.0]], dtype=F64)
+
+    def logs(a, b):  # (n, 6): vee(logm(a_j^-1 b_j))
+        A, Bm = a.as_matrix().numpy(), b.as_matrix().numpy()
+        return np.stack([ts.SE3.vee(torch.from_numpy(logm(np.linalg.solve(A[j], Bm[j])).real)).numpy()
+                         for j in range(n)])
+
+    r_fit = logs(fitted, Y)
+    r_mean = logs(mean.unsqueeze(0).expand(n), Y)
+    wn = w.numpy()
+    want = 1 - (wn[:, None, :] * r_fit ** 2).sum((1, 2)) / (wn[:, None, :] * r_mean ** 2).sum((1, 2))
+    got = reg.r_squared(Y, fitted, weights=w, mean=mean)
+    assert got.shape == (2,)
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-10)
+    # without the mean: each data set's Frechet mean of its own weights, as frechet_mean gives
+    got_default = reg.r_squared(Y, fitted, weights=w)
+    means = reg.frechet_mean(Y, weights=w).mean
+    assert got_default.shape == (2,)
+    for b in range(2):
+        torch.testing.assert_close(got_default[b], reg.r_squared(Y, fitted, weights=w[b],
+                                                                 mean=means[b]), rtol=0, atol=1e-12)
 
 
 # ------------------------------------------------------------------ time origin, integration

@@ -19,11 +19,15 @@ import torch
 
 def axis_frame(a: torch.Tensor) -> torch.Tensor:
     """A rotation Q (3, 3), float64, with Q e_z = a (a unit vector)."""
+    a = a.to(torch.float64)
+    if float(a[2]) < 0.0:
+        # Q = F Q'(F a), F = diag(1, -1, -1) a half turn about x: F a has a_z >= 0, so the
+        # 1 / (1 + c) below stays >= 1/2 (near a = -e_z it cancelled and lost accuracy).
+        F = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+        return F @ axis_frame(F @ a)
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     v = torch.linalg.cross(z, a)
     c = float(a[2])
-    if c < -1.0 + 1e-12:  # a = -e_z: a half turn about x
-        return torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
     K = torch.tensor([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]],
                      dtype=torch.float64)
     return torch.eye(3, dtype=torch.float64) + K + K @ K / (1.0 + c)

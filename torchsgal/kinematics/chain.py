@@ -242,6 +242,7 @@ class KinematicChain:
     def _joint_tensor(self, x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:
         if not isinstance(x, torch.Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        checks.dense(x, name)
         if x.dtype not in SUPPORTED_DTYPES:
             raise TypeError(f"{name} must have a floating dtype (torch.float32 or "
                             f"torch.float64), got {x.dtype}")

@@ -30,6 +30,7 @@ import torch
 
 from ..estimation import gauss_newton
 from ..functional import checks
+from ..functional._blocking import values_readable
 from ..groups import SE3, SO3
 from .chain import KinematicChain
 
@@ -98,6 +99,8 @@ def _targets(chain: KinematicChain, target, position: bool, orientation: bool):
         raise TypeError(f"target must be an SE3 element or a tensor, got {type(target).__name__}")
     ref = chain.lower
     checks.same_device_dtype(**{f"the chain {chain.name!r}": ref, "target": p})
+    if R is None:  # poses were checked finite (and rigid) by _rigid
+        _finite(p, "target")
     return p, R
 
 
@@ -111,6 +114,14 @@ def _rigid(chain: KinematicChain, m: torch.Tensor) -> None:
         raise ValueError(f"target must be rigid transforms [[R, p], [0, 1]]: {err}") from None
 
 
+def _finite(x: torch.Tensor, name: str) -> None:
+    """ValueError naming ``name`` where x has a NaN or an infinite entry (one host read, at
+    validation; skipped where the values cannot be read)."""
+    if values_readable(x) and not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} must be finite, got non-finite entries in a tensor of shape "
+                         f"{tuple(x.shape)}")
+
+
 def _seeds(chain: KinematicChain, q0, B: int, num_seeds: int | None, generator) -> torch.Tensor:
     """(B, S, n) starting joint positions (the reading of q0 in ``inverse_kinematics``)."""
     n = chain.n_joints
@@ -118,6 +129,7 @@ def _seeds(chain: KinematicChain, q0, B: int, num_seeds: int | None, generator) 
         return chain.random_configuration((B, 8 if num_seeds is None else num_seeds),
                                           generator=generator)
     q0 = chain._joint_tensor(q0, "q0")
+    _finite(q0, "q0")
     given = tuple(q0.shape)
     if q0.dim() == 1:
         q0 = q0.expand(B, 1, n)
@@ -164,12 +176,12 @@ def inverse_kinematics(
         target: SE3 poses of batch (B,) (or one pose), a (B, 4, 4) or (4, 4) tensor, or
             positions (B, 3) with ``orientation=False``; in the chain's base frame, dtype and
             device.  Poses must be rigid transforms (``SE3.from_matrix(check=True)``,
-            ValueError naming ``target``).
+            ValueError naming ``target``), positions finite (ValueError naming ``target``).
         q0: starting joint positions: (n,) (one seed for every target), (B, n) (one seed per
             target), (S, n) (S seeds shared by all targets) or (B, S, n).  A 2-D q0 with
             q0.shape[0] == B is read as (B, n), one seed per target, unless ``num_seeds``
             equals B (> 1), which selects the shared (S, n) reading; (B, S, n) is never
-            ambiguous.
+            ambiguous.  Finite (ValueError naming ``q0``).
         num_seeds: the number of random seeds per target within the limits (default 8) when
             q0 is None.  With q0 it is not needed (None); if given it must equal the number of
             seeds per target of q0's reading (ValueError otherwise).

@@ -45,7 +45,9 @@ def log_distance(a: LieGroup, b: LieGroup, weights=None) -> torch.Tensor:
     positive and finite (a tensor of a's dtype and device, or numbers); their values are
     checked in one host sync, skipped on 'meta', under torch.func transforms and torch.compile."""
     _group_pair(a, b, "a", "b")
-    sq = _squared_log_distance(a, b, _weights(weights, type(a), a.as_matrix(), "a"))
+    w = _weights(weights, type(a), a.as_matrix(), "a")
+    checks.broadcast_batch(a=a.batch_shape, b=b.batch_shape, weights=w.shape[:-1])
+    sq = _squared_log_distance(a, b, w)
     # sqrt on a safe input: d sqrt(s)/ds is infinite at s = 0, and 0 * inf is NaN.
     positive = sq > 0
     safe = torch.where(positive, sq, torch.ones_like(sq))
@@ -88,7 +90,9 @@ def r_squared(samples: LieGroup, fitted: LieGroup, weights=None, mean: LieGroup 
               ) -> torch.Tensor:
     """R^2 = 1 - sum_j d(gamma(t_j), y_j)^2 / min_y sum_j d(y, y_j)^2, (50); with the true
     samples in place of the noisy ones it is (51).  samples, fitted: batch (..., N);
-    mean: the Frechet mean of samples (computed when not given), batch (...).
+    mean: the Frechet mean of samples (computed when not given), batch (...); weights (dof,)
+    or (..., dof), per data set (each weighs all N samples of its data set), as in
+    ``frechet_mean`` and the fits.
 
     Where the total variation min_y sum_j d(y, y_j)^2 is zero (all samples equal, e.g. N = 1)
     R^2 is undefined; as scikit-learn's ``r2_score(force_finite=True)`` it is then 1.0 if the
@@ -106,10 +110,17 @@ def r_squared(samples: LieGroup, fitted: LieGroup, weights=None, mean: LieGroup 
         checks.same_device_dtype(samples=samples.as_matrix(), mean=mean.as_matrix())
         checks.broadcast_batch(samples=samples.batch_shape[:-1], mean=mean.batch_shape)
     w = _weights(weights, type(samples), samples.as_matrix(), "samples")
-    sse = _squared_log_distance(fitted, samples, w).sum(-1)
+    # weights (..., dof) are per data set (as in the fits): they weigh each of its N samples
+    batches = {"samples": samples.batch_shape[:-1], "fitted": fitted.batch_shape[:-1],
+               "weights": w.shape[:-1]}
+    if mean is not None:
+        batches["mean"] = mean.batch_shape
+    checks.broadcast_batch(**batches)
+    w_n = w.unsqueeze(-2)
+    sse = _squared_log_distance(fitted, samples, w_n).sum(-1)
     if mean is None:
         mean = _frechet_mean(samples, w, 50, None).mean
-    sst = _squared_log_distance(mean.unsqueeze(-1), samples, w).sum(-1)
+    sst = _squared_log_distance(mean.unsqueeze(-1), samples, w_n).sum(-1)
     # No NaN where sst = 0: both branches on safe inputs, selected without a host sync.
     varies = sst > 0
     r2 = 1.0 - sse / torch.where(varies, sst, torch.ones_like(sst))
