@@ -8,7 +8,10 @@
   magnitude; SinusoidalTrajectory names a parameter that is not a 3-vector of numbers;
 - results do not follow in-place updates of the caller's biases or chains (K = 1 products);
 - fuse / fuse_event refuse a covariance with known directions with a message saying what to do;
-- a number dt is filled on the device when the held samples are flushed (no torch.tensor).
+- a number dt is filled on the device when the held samples are flushed (no torch.tensor);
+- a non-tensor gyro beside a number dt is named (not dt); sensor_to_body refuses samples without
+  a sample axis; trajectory tensor parameters must broadcast with the times; the peers'
+  gtsam_params, pypose_predict and from_gtsam_navstate check their arguments before calling out.
 """
 from __future__ import annotations
 
@@ -209,3 +212,77 @@ def test_number_dt_is_filled_on_the_device(monkeypatch):
     pre = preintegrate(gyro, acc, dt, bg, ba, **DENS)
     assert (delta - pre.delta.as_matrix()).abs().max() < 1e-12
     assert (cov - pre.covariance).abs().max() < 1e-12 * pre.covariance.abs().max()
+
+
+def test_a_non_tensor_gyro_is_named_beside_a_number_dt():
+    """preintegrate(gyro as a list, acc, 0.01) said "dt must be a number or a tensor (..., K),
+    got float": the valid dt was named instead of gyro."""
+    gyro, acc, _, _, _ = samples((), 4, seed=1)
+    for f in (preintegrate, increment_tangents):
+        for bad, kind in ((gyro.tolist(), "list"), (gyro.numpy(), "ndarray")):
+            with pytest.raises(TypeError, match=rf"^gyro must be a torch.Tensor, got {kind}$"):
+                f(bad, acc, 0.01)
+    # a number dt beside a tensor gyro still means one interval for every sample
+    ref = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01], dtype=F64)
+    assert torch.equal(increment_tangents(torch.zeros(4, 3, dtype=F64), torch.zeros(4, 3, dtype=F64),
+                                          0.01), ref.expand(4, 10))
+
+
+def test_sensor_to_body_refuses_samples_without_a_sample_axis():
+    """gyro, acc (3,) (no K axis) came back as (1, 3): the shape of the samples changed."""
+    gyro, acc, _, _, _ = samples((), 4, seed=2)
+    T = SE3.exp(0.1 * torch.randn(6, dtype=F64, generator=torch.Generator().manual_seed(1)))
+    for kw in ({}, {"angular_acceleration": torch.zeros(3, dtype=F64)}):
+        with pytest.raises(ValueError, match=r"^gyro must have shape \(\.\.\., K, 3\) .* got \(3,\)$"):
+            sensor_to_body(gyro[0], acc[0], T, **kw)
+    w, f = sensor_to_body(gyro[:1], acc[:1], T)  # one sample with its axis: (1, 3)
+    w_ref, f_ref = lever_arm_formula(gyro[:1], acc[:1], T, torch.zeros(1, 3, dtype=F64))
+    assert w.shape == f.shape == (1, 3)
+    assert (w - w_ref).abs().max() < 1e-13 and (f - f_ref).abs().max() < 1e-13
+
+
+def test_trajectory_tensor_parameters_must_broadcast_with_the_times():
+    """A tensor parameter whose batch does not broadcast with t gave torch's "The size of tensor
+    a (4) must match ..." without naming the parameter."""
+    t = torch.zeros(3, dtype=F64)
+    traj = SinusoidalTrajectory(pos_amplitude=torch.ones(4, 3, dtype=F64))
+    with pytest.raises(ValueError, match=r"^batch shapes do not broadcast: t \(3,\), .*pos_amplitude \(4,\)"):
+        traj.state(t)
+    with pytest.raises(ValueError, match=r"^batch shapes do not broadcast: t \(3,\), .*pos_amplitude \(4,\)"):
+        traj.imu(t, gravity_vector(dtype=F64))
+    # a parameter batch (4, 1) broadcasts with t (3,): (4, 3) states, each row its own amplitude
+    amp = torch.arange(1.0, 5.0, dtype=F64)[:, None, None] * torch.ones(4, 1, 3, dtype=F64)
+    t = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
+    p = SinusoidalTrajectory(pos_amplitude=amp).state(t).position()
+    ref = SinusoidalTrajectory(pos_amplitude=(1.0, 1.0, 1.0)).state(t).position()
+    assert p.shape == (4, 3, 3)
+    assert (p - torch.arange(1.0, 5.0, dtype=F64)[:, None, None] * ref).abs().max() < 1e-14
+
+
+def test_gtsam_params_refuse_negative_or_non_finite_densities():
+    """peers.gtsam_params(gyro_noise_density=-1e-3) squared the density into a valid covariance
+    and took a NaN gravity magnitude; it is checked before GTSAM is imported."""
+    from torchsgal.imu import peers
+    for name, bad in (("gyro_noise_density", -1e-3), ("acc_noise_density", float("nan")),
+                      ("integration_sigma", -1.0), ("magnitude", float("nan")), ("magnitude", -9.8)):
+        with pytest.raises(ValueError, match=rf"^{name} must be a finite number >= 0, got"):
+            peers.gtsam_params(**{name: bad})
+    with pytest.raises(TypeError, match=r"^gyro_noise_density must be a finite number >= 0, got True"):
+        peers.gtsam_params(gyro_noise_density=True)
+
+
+def test_pypose_predict_and_navstates_check_dtypes_first():
+    """pypose_predict with a float32 start and float64 samples failed inside pypose ("expected
+    scalar type Float but found Double"); from_gtsam_navstate took an integer time and named
+    "rotation", and a list time raised AttributeError."""
+    from torchsgal.imu import peers
+    gyro, acc, dt, _, _ = samples((1,), 5, seed=5)
+    start = SGal3.identity((1,), dtype=torch.float32)
+    with pytest.raises(TypeError, match=r"^start has dtype torch.float32 but gyro has dtype torch.float64"):
+        peers.pypose_predict(gyro, acc, dt, start)
+    with pytest.raises(TypeError, match=r"^acc has dtype torch.float32 but gyro has dtype torch.float64"):
+        peers.pypose_predict(gyro, acc.float(), dt, SGal3.identity((1,), dtype=F64))
+    with pytest.raises(TypeError, match=r"^time must have a floating dtype"):
+        peers.from_gtsam_navstate([], torch.zeros(0, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"^time must be a torch.Tensor, got list"):
+        peers.from_gtsam_navstate([], [])

@@ -299,6 +299,8 @@ def sensor_to_body(gyro: torch.Tensor, acc: torch.Tensor, body_P_sensor: SE3, dt
     bias-corrected samples)."""
     checks.vector(gyro, 3, "gyro")
     checks.vector(acc, 3, "acc")
+    if gyro.dim() < 2:  # (3,) came back as (1, 3)
+        raise ValueError(f"gyro must have shape (..., K, 3) with a sample axis K, got {tuple(gyro.shape)}")
     if acc.shape != gyro.shape:
         raise ValueError(f"acc must have gyro's shape {tuple(gyro.shape)}, got {tuple(acc.shape)}")
     if not isinstance(body_P_sensor, SE3):

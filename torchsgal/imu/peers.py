@@ -54,7 +54,9 @@ def to_gtsam_navstate(frames: SGal3) -> list:
 
 
 def from_gtsam_navstate(states, time: torch.Tensor) -> SGal3:
-    """SGal3 of batch ``time.shape`` from a flat list of NavState (row-major) and the times."""
+    """SGal3 of batch ``time.shape`` from a flat list of NavState (row-major) and the times
+    (a float32 or float64 tensor, whose dtype and device the result takes)."""
+    checks.floating(time, "time")
     n = time.numel()
     if len(states) != n:
         raise ValueError(f"states must have {n} entries (time.numel()), got {len(states)}")
@@ -87,11 +89,17 @@ def gtsam_params(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY,
                  gyro_noise_density: float = 1e-3, acc_noise_density: float = 1e-2,
                  integration_sigma: float = 0.0):
     """``PreintegrationParams`` (MakeSharedU for z-up, MakeSharedD for NED) with isotropic
-    continuous-time noise densities."""
-    import gtsam
-
+    continuous-time noise densities; the magnitude, densities and integration sigma are finite
+    numbers >= 0 (ValueError naming them otherwise)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
+    # checked before GTSAM sees them: a negative density was squared into a valid covariance
+    magnitude = checks.finite_number(magnitude, "magnitude", ">= 0")
+    gyro_noise_density = checks.finite_number(gyro_noise_density, "gyro_noise_density", ">= 0")
+    acc_noise_density = checks.finite_number(acc_noise_density, "acc_noise_density", ">= 0")
+    integration_sigma = checks.finite_number(integration_sigma, "integration_sigma", ">= 0")
+    import gtsam
+
     params = (gtsam.PreintegrationParams.MakeSharedU if frame == "z_up"
               else gtsam.PreintegrationParams.MakeSharedD)(magnitude)
     params.setGyroscopeCovariance(gyro_noise_density**2 * np.eye(3))
@@ -157,13 +165,16 @@ def gtsam_covariance(pim, dtype=torch.float64) -> torch.Tensor:
 def pypose_predict(gyro, acc, dt, start: SGal3, frame: str = "z_up",
                    magnitude: float = STANDARD_GRAVITY) -> SGal3:
     """pypose ``IMUPreintegrator`` (batched over windows, reset each call) from ``start`` (B,):
-    the state at the end of each window.  gyro, acc (B, K, 3), dt (B, K)."""
-    import pypose as pp
-
+    the state at the end of each window.  gyro, acc (B, K, 3), dt (B, K) and start of one
+    dtype and device."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
     _stream(gyro, acc, dt)
     _frames(start, "start")
+    # pypose's own error on mixed dtypes ("expected scalar type Float ...") named no argument
+    checks.same_device_dtype(gyro=gyro, acc=acc, dt=dt, start=start.as_matrix())
+    import pypose as pp
+
     gravity = magnitude if frame == "z_up" else -magnitude  # pypose subtracts R^T [0, 0, gravity]
     integrator = pp.module.IMUPreintegrator(gravity=gravity, prop_cov=False, reset=True).to(gyro.dtype)
     out = integrator(dt.unsqueeze(-1), gyro, acc, init_state=to_pypose_state(start))

@@ -54,8 +54,8 @@ from .products import window_product as window_product
 def _dt_arg(dt, gyro):
     """A number dt (one sampling interval for every sample) as a tensor (..., K) like gyro's,
     filled on its device; tensors are left to _check_stream."""
-    if isinstance(dt, numbers.Real) and not isinstance(dt, bool) and isinstance(gyro, torch.Tensor):
-        checks.floating(gyro, "gyro")
+    if isinstance(dt, numbers.Real) and not isinstance(dt, bool):
+        checks.floating(gyro, "gyro")  # a non-tensor gyro is named (not the valid number dt)
         dt = checks.finite_number(dt, "dt", ">= 0")  # inf gave a NaN increment
         return torch.full(gyro.shape[:-1], dt, dtype=gyro.dtype, device=gyro.device)
     if not isinstance(dt, torch.Tensor):

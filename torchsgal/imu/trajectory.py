@@ -33,9 +33,10 @@ def _param(value, name: str, t: torch.Tensor) -> torch.Tensor:
 class SinusoidalTrajectory:
     """R(t) = Exp(phi(t)), phi_i(t) = A_i sin(w_i t + c_i); p_i(t) = B_i sin(u_i t + d_i).
 
-    All parameters are 3-vectors (finite real numbers or tensors; TypeError or ValueError
-    naming the parameter otherwise); the navigation frame is inertial with
-    constant gravity (prediction's model without Earth rotation).  Body rate
+    All parameters are 3-vectors (finite real numbers or tensors (..., 3) whose batch
+    broadcasts with the times'; TypeError or ValueError naming the parameter otherwise); the
+    navigation frame is inertial with constant gravity (prediction's model without Earth
+    rotation).  Body rate
     omega = J_r(phi) phi_dot (so that R_dot = R omega^), specific force f = R^T (p_ddot - g).
     """
 
@@ -55,6 +56,8 @@ class SinusoidalTrajectory:
                 raise ValueError(f"{field} must be a 3-vector (shape (..., 3)), got shape "
                                  f"{tuple(x.shape)}")
             out.append(x)
+        # a tensor parameter's batch broadcasts with the times' (torch's error named neither)
+        checks.broadcast_batch(**{name: t.shape}, **{f: x.shape[:-1] for f, x in zip(_PARAMS, out)})
         return out
 
     def state(self, t: torch.Tensor) -> SGal3:
