@@ -177,3 +177,23 @@ def test_load_is_an_attribute_of_the_package():
     code = "import torchsgal; print(torchsgal.load.threads_for_load.__name__)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "threads_for_load"
+
+
+@pytest.mark.parametrize("seed", [str(2**64), str(-(2**63) - 1), "99999999999999999999999"])
+def test_command_line_demo_refuses_a_seed_torch_cannot_take(capsys, seed):
+    """``python -m torchsgal demo --seed S``: torch.manual_seed takes 64-bit seeds only
+    ([-2^63, 2^64 - 1]); one outside is a usage error (exit status 2), not a traceback."""
+    from torchsgal.__main__ import main
+    with pytest.raises(SystemExit) as info:
+        main(["demo", "--seed", seed])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --seed: must be between" in err and seed in err
+
+
+@pytest.mark.parametrize("seed", [2**64 - 1, -(2**63)])
+def test_command_line_demo_takes_the_extreme_seeds(capsys, seed):
+    from torchsgal.__main__ import main
+    with torch.random.fork_rng():  # the demo seeds torch's global generator
+        assert main(["demo", "--seed", str(seed)]) == 0
+    assert "d loss / d xi finite: True" in capsys.readouterr().out

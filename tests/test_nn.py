@@ -296,3 +296,17 @@ def test_example_runs():
     # Adam reaches the closed-form least squares; its error to the truth is the noise's
     assert float(fields["kabsch_gap"]) < 1e-3, out.stdout
     assert float(fields["rot_err_deg"]) < 1.0 and float(fields["trans_err"]) < 0.05, out.stdout
+
+
+@pytest.mark.parametrize("G", [ts.SO3, ts.SE3, ts.SGal3])
+def test_a_module_converted_to_float64_reloads_its_own_state(G):
+    """``module.to(torch.float64)`` of a float32 GroupParameter holds float32-rounded anchors in
+    float64 tensors (|C^T C - I| about 1e-7): its own state dict must load back, into itself
+    and into a fresh float64 module, unchanged."""
+    p = GroupParameter(G.random((50,), dtype=F32, generator=_gen(12))).to(F64)
+    state = {k: v.clone() for k, v in p.state_dict().items()}
+    p.load_state_dict(state)
+    assert torch.equal(p.anchor, state["anchor"])
+    q = GroupParameter(G.identity((50,), dtype=F64))
+    q.load_state_dict(state)
+    assert torch.equal(q.anchor, state["anchor"]) and torch.equal(q.delta, state["delta"])

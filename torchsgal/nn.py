@@ -32,6 +32,7 @@ from .groups import LieGroup
 
 G = TypeVar("G", bound=LieGroup)
 PROJECT_EVERY = 64  # retract_ puts the anchor back on the group every this many re-anchorings
+LOAD_TOL = 1e-4  # load_state_dict's membership tolerance for anchors: from_matrix's float32 one
 
 __all__ = ["GroupParameter", "group_parameters", "retract_all_", "retract_after_step"]
 
@@ -46,8 +47,11 @@ def _check_loaded_anchor(module, state_dict, prefix, local_metadata, strict, mis
         return  # torch reports a missing key or a size mismatch itself
     if anchor.dtype not in (torch.float32, torch.float64):  # checked as it will be stored
         anchor = anchor.to(module.anchor.dtype)
-    try:  # within the tolerance of the state's own dtype (a float32 state may load into float64)
-        module.group.from_matrix(anchor, check=True)
+    # Within float32's tolerance whatever the dtype: a float64 state may hold float32-rounded
+    # anchors (a float32 module converted by module.to(torch.float64)), and the test is for
+    # another group's or a spoiled state, off the group by O(1), not by rounding.
+    try:
+        module.group.from_matrix(anchor, check=True, tol=LOAD_TOL)
     except (TypeError, ValueError) as err:  # raised here: torch would still copy the anchor
         raise ValueError(f"{key} is not an element of {module.group.__name__} (a state dict of "
                          f"another group or a spoiled one): {err}") from None

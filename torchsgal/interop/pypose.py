@@ -74,11 +74,16 @@ def from_pypose(x) -> LieGroup:
     normalised; differentiable).  A Sim3 scale must be finite and > 0 (ValueError naming x;
     checked, with one host sync, where the values can be read: not on 'meta', inside a
     torch.func transform or while torch.compile traces)."""
-    kind = _lie_tensor(x, "x", ("SO3", "SE3", "Sim3"))
+    return _from_pypose(x, "x")
+
+
+def _from_pypose(x, name: str) -> LieGroup:
+    """``from_pypose``, its errors naming the argument ``name``."""
+    kind = _lie_tensor(x, name, ("SO3", "SE3", "Sim3"))
     data = x.tensor()
     if kind == "SO3":
-        return SO3.from_quaternion(data, order="xyzw")
-    C = SO3.from_quaternion(data[..., 3:7], order="xyzw").as_matrix()
+        return SO3.from_matrix(_so3.from_quaternion(data, "xyzw", name))
+    C = _so3.from_quaternion(data[..., 3:7], "xyzw", name)
     if kind == "SE3":
         return SE3.from_components(rotation=C, position=data[..., 0:3])
     s = data[..., 7]
@@ -86,7 +91,7 @@ def from_pypose(x) -> LieGroup:
         bad = ~(torch.isfinite(s) & (s > 0))
         if bad.any():  # the host sync
             first = s.detach().reshape(-1)[bad.reshape(-1).int().argmax()].item()
-            raise ValueError(f"x must be a pypose Sim3 with finite scales > 0 (its last "
+            raise ValueError(f"{name} must be a pypose Sim3 with finite scales > 0 (its last "
                              f"component), got a scale of {first}")
     return Sim3.from_components(rotation=C, position=data[..., 0:3] / s.unsqueeze(-1), scale=s)
 
@@ -111,14 +116,17 @@ def _element(at, name: str) -> LieGroup:
     """Our element, or a pypose LieTensor converted."""
     if isinstance(at, LieGroup):
         return _group_arg(at, name)
-    _lie_tensor(at, name, ("SO3", "SE3", "Sim3"))
-    return from_pypose(at)
+    return _from_pypose(at, name)
 
 
 def perturbation_map(at) -> torch.Tensor:
     """M = Ad(at) (..., d, d) with ``d_pypose = M d_ours`` (pypose's left perturbation of the
     element ``at``, ours or a LieTensor, from our right one)."""
-    return _element(at, "at").adjoint()
+    return _adjoint(at, "at")
+
+
+def _adjoint(at, name: str) -> torch.Tensor:
+    return _element(at, name).adjoint()
 
 
 def _inverse_adjoint(at, name: str) -> torch.Tensor:
@@ -167,7 +175,7 @@ def jacobian_from_pypose(J: torch.Tensor, *, output, input) -> torch.Tensor:
     the element ``output`` (ours or LieTensors; None for a plain vector side) on our right
     perturbations: ``Ad(output)^-1 J Ad(input)``."""
     left = None if output is None else _inverse_adjoint(output, "output")
-    right = None if input is None else perturbation_map(input)
+    right = None if input is None else _adjoint(input, "input")
     return _jacobian(J, left, right)
 
 
@@ -175,6 +183,6 @@ def jacobian_to_pypose(J: torch.Tensor, *, output, input) -> torch.Tensor:
     """Our Jacobian (..., m, n) (right perturbations) of a map from ``input`` to ``output``
     (elements, or None for a plain vector side) on pypose's left ones:
     ``Ad(output) J Ad(input)^-1``."""
-    left = None if output is None else perturbation_map(output)
+    left = None if output is None else _adjoint(output, "output")
     right = None if input is None else _inverse_adjoint(input, "input")
     return _jacobian(J, left, right)
