@@ -311,6 +311,17 @@ def test_residual_and_jacobian_must_match_the_unknowns():
     # An empty batch is solved trivially.
     sol = gauss_newton(lambda x: x - 1, x0[:0], jacobian=lambda x: eye[:0])
     assert sol.covariance.shape == (0, 3, 3) and sol.report.status.shape == (0,)
+    # Unknowns without a tangent (nothing to solve for) are refused by name; they failed with
+    # an IndexError of amax deep in the loop.
+    none = torch.zeros(2, 0, dtype=f64)
+    with pytest.raises(ValueError, match=r"x0 must have at least one unknown .* got tangent "
+                                         r"sizes \[0\]"):
+        gauss_newton(lambda x: torch.ones(2, 3, dtype=f64), none)
+    with pytest.raises(ValueError, match=r"x0 must have at least one unknown .* got tangent "
+                                         r"sizes \[0, 0\]"):
+        gauss_helmert(lambda x, e: (torch.ones(2, 4, 1, dtype=f64), torch.zeros(2, 4, 1, 0, dtype=f64),
+                                    torch.ones(2, 4, 1, 1, dtype=f64)),
+                      (none, none), torch.eye(1, dtype=f64))
 
 
 def test_lbfgs_matches_gauss_newton_on_a_group_problem():
@@ -690,6 +701,25 @@ def test_non_finite_problem_reports_nan_costs_not_a_perfect_fit():
         value = getattr(rep, name)
         assert torch.isnan(value[2]) and torch.isfinite(value[[0, 1, 3]]).all(), name
     assert (rep.initial_cost[[0, 1, 3]] > 0).all()
+
+
+@pytest.mark.parametrize("damping", [None, 1e-3])
+def test_cost_that_overflows_at_x0_is_non_finite(damping):
+    """Finite residuals whose cost overflows at x0 (|r| ~ 1e200: 1/2 |r|^2 = inf) are
+    NON_FINITE with NaN costs (SolverStatus); it was reported SINGULAR with an infinite cost,
+    and its information (inf) made the covariance NaN for the wrong reason."""
+    t = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], dtype=f64)
+    scale = torch.tensor([1.0, 1e200, 1.0], dtype=f64)[:, None]
+    sol = gauss_newton(lambda x: (x - t) * scale, torch.zeros(3, 2, dtype=f64),
+                       jacobian=lambda x: torch.diag_embed(scale.expand(3, 2)), damping=damping)
+    rep = sol.report
+    assert rep.status.tolist() == [SolverStatus.CONVERGED, SolverStatus.NON_FINITE,
+                                   SolverStatus.CONVERGED]
+    for name in ("initial_cost", "cost", "step_norm", "gradient_norm"):
+        value = getattr(rep, name)
+        assert torch.isnan(value[1]) and torch.isfinite(value[[0, 2]]).all(), name
+    assert (sol.x[[0, 2]] - t[[0, 2]]).abs().max() < 1e-9  # the others solved (a linear problem)
+    assert torch.isnan(sol.covariance[1]).all()
 
 
 def _sim3_alignment(M=40, N=10, seed=0):

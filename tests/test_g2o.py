@@ -200,6 +200,18 @@ def test_malformed_files(tmp_path, text, message):
         read_pose_graph(path)
 
 
+def test_bytes_that_are_not_text(tmp_path):
+    """A byte that is not UTF-8 in a data line is an error naming the file and line (it was a
+    UnicodeDecodeError at a position of the decoder's buffer, without either); in a comment it
+    is skipped with the comment."""
+    path = tmp_path / "bad.graph"
+    path.write_bytes(b"# caf\xe9\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\nEDGE2 1 2 1 0 \xff 1 0 1 1 0 0\n")
+    with pytest.raises(ValueError, match=r"bad\.graph:3: EDGE2 field 5, token .*, is not a finite number"):
+        read_pose_graph(path)
+    path.write_bytes(b"# caf\xe9\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n")
+    assert read_pose_graph(path).edges.tolist() == [[0, 1]]
+
+
 def test_write_errors(tmp_path):
     graph = random_graph(ts.SE2, edge_tag="EDGE2")
     with pytest.raises(ValueError, match="edge_tag must be one of"):

@@ -241,6 +241,18 @@ def test_problem_and_unknowns_are_checked():
     # A list of indices is taken as a tensor.
     listed = tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[0, 1, 2, 3, 4])
     assert torch.equal(listed.indices, P.indices)
+    # Non-finite sample indices (shared by every trial) are bad input, not 4 NON_FINITE trials;
+    # bool or complex ones are not sample indices (they were cast to 0/1, or lost their
+    # imaginary part).
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="indices must be finite"):
+            tls.TLSProblem(P.F_ga, P.F_gb, S, S,
+                           indices=torch.tensor([0.0, 1.0, bad, 3.0, 4.0], dtype=f64))
+    with pytest.raises(ValueError, match="indices must be finite"):
+        tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[0, 1, 2, float("nan"), 4])
+    for bad in (torch.ones(5, dtype=torch.bool), torch.arange(5.0).to(torch.complex128)):
+        with pytest.raises(TypeError, match=f"indices must be real numbers, got {bad.dtype}"):
+            tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=bad)
 
     F0, dt = P.initial_guess(-1.0)
     X0, t0 = tls.split_clock(F0)
@@ -616,3 +628,13 @@ def test_subset_and_dtau0_name_bad_arguments():
     assert tls.subset(P, torch.tensor([0, 2])).batch_size == 2
     with pytest.raises(TypeError, match="dtau0 must be a torch.Tensor, a real number"):
         tls.solve_sgal3(P, dtau0=True)
+    # A dtau0 tensor of another dtype is named as dtau0, not as x0[1] (an argument not given),
+    # and initial_guess does not hand back an integer dtau.
+    for solve in (tls.solve_sgal3, tls.solve_baseline):
+        with pytest.raises(TypeError, match="dtau0 must have a floating dtype .* got torch.int64"):
+            solve(P, dtau0=torch.tensor([-1, -1, -1]))
+        with pytest.raises(TypeError, match="dtau0 has dtype torch.float32 but"):
+            solve(P, dtau0=torch.tensor([-1.0, -1.0, -1.0]))
+    with pytest.raises(TypeError, match="dtau must have a floating dtype .* got torch.int64"):
+        P.initial_guess(torch.tensor(-1))
+    assert P.initial_guess(-1)[1].dtype == torch.float64  # a Python number is converted

@@ -96,7 +96,9 @@ def read_pose_graph(path: str | os.PathLike) -> PoseGraph:
         raise FileNotFoundError(f"no pose-graph file at {os.fspath(path)!r}")
     vertices: dict[str, list] = {}
     edges: dict[str, list] = {}
-    with open(path) as f:
+    # Bytes that are not UTF-8 become U+FFFD: harmless in a comment, a token that is not a
+    # number (an error naming the line) elsewhere.
+    with open(path, encoding="utf-8", errors="replace") as f:
         for number, line in enumerate(f, start=1):
             tokens = line.split()
             if not tokens or tokens[0].startswith("#") or tokens[0] in _SKIPPED:

@@ -265,7 +265,8 @@ def iterate(
     an accepted step is shorter than ``step_tol`` in the metric of the information,
     sqrt(delta^T J^T J delta) (that is, in standard deviations of the Laplace posterior, a
     dimensionless test), or when the cost falls by less than ``cost_tol`` relative.
-    Raises ValueError for a negative ``max_iterations``, ``damping`` or tolerance.
+    Raises ValueError for a negative ``max_iterations``, ``damping`` or tolerance, and for
+    unknowns without a tangent (nothing to solve for).
     Host reads (syncs on CUDA): one per iteration (the stop test), one before the loop and the
     singularity test's eigenvalues at the end.
     Not differentiable: x0 and aux0 are detached, and the solution carries no graph.
@@ -276,6 +277,9 @@ def iterate(
     # give d x_hat / d x0 = 1, and one through the data would be incomplete), and so is
     # everything returned.
     x = V.detach(V.check_values(x0))
+    if V.tangent_dim(x) == 0:
+        raise ValueError(f"x0 must have at least one unknown (a tangent of size >= 1), got "
+                         f"tangent sizes {V.block_dims(x)}")
     aux = _detach(aux0)
     lin = linearise(x, aux)
     Bn = V.batch_size(x)
@@ -285,6 +289,10 @@ def iterate(
     eye = torch.eye(d, dtype=dtype, device=device)
 
     ok0 = V.finite(x) & lin.finite()
+    if lin.J is not None:  # finite residuals whose cost overflows (|r| beyond ~1e154)
+        assert lin.r is not None  # given with J
+        cost0 = 0.5 * torch.where(ok0[:, None], lin.r, 0).square().sum(dim=-1)
+        ok0 = ok0 & torch.isfinite(cost0)
     status = torch.where(ok0, SolverStatus.RUNNING, SolverStatus.NON_FINITE).to(torch.int64)
     # Sanitise non-finite problems so that they cannot poison shared reductions.
     if lin.J is not None:

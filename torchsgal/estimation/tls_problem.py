@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import torch
 
 from ..functional import checks
+from ..functional._blocking import values_readable
 from ..groups import SE23, LieGroup, SGal3
 from . import variables as V
 from .gauss_helmert import check_covariance
@@ -95,6 +96,7 @@ class TLSProblem:
     def __post_init__(self):
         _check_frames(self.F_ga, self.F_gb)
         checks.same_device_dtype(F_ga=self.F_ga.as_matrix(), F_gb=self.F_gb.as_matrix())
+        given = self.indices is not None  # the default 0..N needs no value check
         if self.indices is None:
             self.indices = torch.arange(self.F_ga.batch_shape[-1], dtype=self.F_ga.dtype,
                                         device=self.F_ga.device)
@@ -107,7 +109,14 @@ class TLSProblem:
         elif self.indices.device != self.F_ga.device:
             raise ValueError(f"indices is on {self.indices.device} but F_ga is on "
                              f"{self.F_ga.device}; move them to one device")
+        if self.indices.dtype == torch.bool or self.indices.is_complex():
+            raise TypeError(f"indices must be real numbers, got {self.indices.dtype}")
+        # Integers are finite: only given floating-point indices are read (one host read).
+        read = given and self.indices.is_floating_point() and values_readable(self.indices)
         self.indices = self.indices.to(self.F_ga.dtype)
+        if read and not bool(torch.isfinite(self.indices).all()):
+            raise ValueError(f"indices must be finite (the sample indices n, shared by every "
+                             f"trial), got {self.indices.tolist()}")
         _check_observations(self.F_ga, self.F_gb, self.cov_a, self.cov_b, self.indices)
         self.M = self.F_gb.inverse() @ self.F_ga  # (B, N+1)
         self.covariance = (self.cov_a, self.cov_b)  # block-diagonal over (eps_a, eps_b)
@@ -123,6 +132,8 @@ class TLSProblem:
                              f"{self.F_ga.device}; move them to one device")
         F0 = self.F_ga[:, 0].inverse() @ self.F_gb[:, 0]
         dt = checks.numbers_as_tensor(dtau, name, self.F_ga.dtype, self.F_ga.device)
+        checks.floating(dt, name)  # a tensor given is not converted: the problem's dtype
+        checks.same_device_dtype(F_ga=self.F_ga.as_matrix(), **{name: dt})
         if dt.dim() > 1 or (dt.dim() == 1 and dt.shape[0] != self.batch_size):
             raise ValueError(f"{name} must be a scalar or have shape (B,) = ({self.batch_size},), "
                              f"got {tuple(dt.shape)}")
