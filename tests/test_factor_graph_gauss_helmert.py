@@ -410,3 +410,33 @@ def test_a_solve_leaves_no_reference_cycle_and_a_copy_runs_its_own_methods():
     assert factor.residual.__self__ is factor
     with pytest.raises(AttributeError, match="residual"):
         factor.residual = _line_condition
+
+
+def test_dim_is_required():
+    """dim is the condition's size, required: None was accepted and failed in the solve on a
+    bare assertion."""
+    obs, _ = _line_data(B=2, E=5)
+    idx = torch.zeros(5, dtype=torch.int64)
+    with pytest.raises(TypeError, match="dim must be an integer >= 1, got None"):
+        fg.GaussHelmert(_line_condition, [("x", idx)], torch.eye(2, dtype=f64), data=[obs], dim=None)
+
+
+def test_other_solvers_refuse_an_iterated_graph_also_after_a_gauss_helmert_solve():
+    """The iterated conditions' state is the solve's own: after ``gauss_helmert`` the other
+    solvers refuse the graph as before it (they reported NON_FINITE, with NaN costs, for finite
+    data), and ``gauss_helmert`` solves it again from the estimated corrections."""
+    obs, truth = _line_data(B=2, E=30)
+    cov = 0.05 ** 2 * torch.eye(2, dtype=f64)
+    graph, factor = _line_graph(obs, cov, True, truth + 0.3)
+    first = fg.gauss_helmert(graph)
+    assert (first.report.status == SolverStatus.CONVERGED).all()
+    for solver in (fg.levenberg_marquardt, fg.gauss_newton, fg.dogleg):
+        with pytest.raises(RuntimeError, match="solve its graph with graph.gauss_helmert"):
+            solver(graph)
+    again = fg.gauss_helmert(graph)
+    assert (again.report.status == SolverStatus.CONVERGED).all()
+    # the orthogonal regression of isotropic noise (the smallest principal axis of the points)
+    centred = obs - obs.mean(1, keepdim=True)
+    normal = torch.linalg.eigh(centred.mT @ centred)[1][..., 0]  # (B, 2), smallest eigenvalue
+    slope = -normal[:, 0] / normal[:, 1]
+    torch.testing.assert_close(again.values["x"][:, 0, 0], slope, rtol=1e-6, atol=1e-8)

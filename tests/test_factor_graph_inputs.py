@@ -12,6 +12,7 @@ import torch
 
 import torchsgal as ts
 from torchsgal.estimation import graph as fg
+from torchsgal.estimation.solver import SolverStatus
 
 f64 = torch.float64
 
@@ -162,3 +163,50 @@ def test_marginal_covariance_takes_integer_indices_only():
 def test_lambda_initial_lies_between_its_bounds(options):
     with pytest.raises(ValueError, match=r"lambda_initial must lie in \[lambda_lower, lambda_upper\]"):
         fg.levenberg_marquardt(_line(), **options)
+
+
+@pytest.mark.parametrize("batch", [(), (1, 1, 1)], ids=str)
+def test_group_measurements_need_one_or_two_batch_axes(batch):
+    """A group element of batch () or of three axes is no (E,) / (B, E) measurement: it is
+    refused by name (it failed in torch's indexing or expand, with no argument named)."""
+    Z = ts.SE3.identity(batch, dtype=f64)
+    with pytest.raises(ValueError, match=rf"measured must be a group element of batch \(E,\) or "
+                                         rf"\(B, E\), got batch {re.escape(str(batch))}"):
+        fg.Prior("x", 0, Z)
+    with pytest.raises(ValueError, match=r"measured must be a group element of batch \(E,\)"):
+        fg.Between("x", 0, 1, Z)
+    graph = fg.FactorGraph()
+    graph.add_variable("x", ts.SE3.identity((2, 3), dtype=f64))
+    graph.add(fg.Factor(lambda X, Z: Z.inverse().compose(X).log(), variables=[("x", 0)], data=[Z],
+                        dim=6))
+    with pytest.raises(ValueError, match=rf"data\[0\]: expected a leading batch \(E,\) = \(1,\) or "
+                                         rf"\(B, E\) = \(2, 1\), got {re.escape(str(batch))}"):
+        fg.levenberg_marquardt(graph)
+
+
+def test_noise_of_another_size_dtype_or_device_is_refused_at_once():
+    """A factor of known size refuses noise of another size when it is made,
+    and the graph noise of another dtype or device when the factor is added (as its data),
+    naming the noise (they surfaced only in the solve)."""
+    Z = ts.SE3.identity((3,), dtype=f64)
+    with pytest.raises(ValueError, match=r"information must be \(6, 6\), \(E, 6, 6\) or \(B, E, 6, 6\) "
+                                         r"for a residual of size 6, got \(5, 5\)"):
+        fg.Prior("x", [0, 1, 2], Z, information=torch.eye(5, dtype=f64))
+    with pytest.raises(ValueError, match=r"sqrt_information must be \(6, 6\), .* got \(3, 3, 3\)"):
+        fg.Between("x", [0, 1, 2], [1, 2, 3], Z, sqrt_information=torch.eye(3, dtype=f64).expand(3, 3, 3))
+    graph = fg.FactorGraph()
+    graph.add_variable("x", ts.SE3.identity((3,), dtype=f64))
+    with pytest.raises(TypeError, match=r"information has dtype torch.float32 but the graph's first "
+                                        r"variable has dtype torch.float64"):
+        graph.add(fg.Prior("x", [0, 1, 2], Z, information=torch.eye(6).expand(3, 6, 6)))
+    with pytest.raises(ValueError, match=r"sqrt_information is on meta but the graph's first variable"):
+        graph.add(fg.Prior("x", 0, Z[:1], sqrt_information=torch.eye(6, dtype=f64, device="meta")))
+    assert not graph.factors
+    # the shapes the docstring gives are accepted: shared, per factor, per problem and factor
+    for W in (torch.eye(6, dtype=f64), torch.eye(6, dtype=f64).expand(3, 6, 6),
+              torch.eye(6, dtype=f64).expand(1, 3, 6, 6), torch.eye(6, dtype=f64).expand(1, 1, 6, 6)):
+        graph.add(fg.Prior("x", [0, 1, 2], Z, information=2 * W))
+    result = fg.levenberg_marquardt(graph)
+    assert result.report.status.tolist() == [SolverStatus.CONVERGED]
+    torch.testing.assert_close(result.marginal_covariance("x", 0),
+                               torch.eye(6, dtype=f64)[None] / 8, rtol=1e-12, atol=0)  # 4 priors of 2 I

@@ -50,13 +50,17 @@ def _indices(index, name: str) -> torch.Tensor:
     return index.to(torch.int64)
 
 
-def _noise(noise, name: str) -> None:
-    """A noise matrix: a float tensor (m, m), (E, m, m) or (B, E, m, m) (m against the
-    residual's size and E, B against the graph are checked when the graph is linearised)."""
+def _noise(noise, name: str, dim: int | None) -> None:
+    """A noise matrix: a float tensor (m, m), (E, m, m) or (B, E, m, m), m the residual's size
+    ``dim`` where it is given (else checked when the graph is linearised; E and B against the
+    graph when its layout is made)."""
     checks.floating(noise, name)
     if noise.dim() not in (2, 3, 4) or noise.shape[-2] != noise.shape[-1]:
         raise ValueError(f"{name} must have shape (m, m), (E, m, m) or (B, E, m, m), got "
                          f"{tuple(noise.shape)}")
+    if dim is not None and noise.shape[-1] != dim:
+        raise ValueError(f"{name} must be ({dim}, {dim}), (E, {dim}, {dim}) or (B, E, {dim}, {dim}) "
+                         f"for a residual of size {dim}, got {tuple(noise.shape)}")
 
 
 class Factor:
@@ -124,7 +128,7 @@ class Factor:
             raise ValueError("give information or sqrt_information, not both")
         for noise_name, noise in (("information", information), ("sqrt_information", sqrt_information)):
             if noise is not None:
-                _noise(noise, noise_name)
+                _noise(noise, noise_name, self.dim)
         self.information = information
         self.sqrt_information = sqrt_information
         if loss is not None and not isinstance(loss, RobustLoss):
@@ -151,6 +155,15 @@ def _between_jacobians(Ti, Tj, Z):
     return r, [Ji, Jj]
 
 
+def _measured(measured) -> None:
+    """A group element of batch (E,) or (B, E): the measurement of a ``Prior`` or ``Between``."""
+    if not isinstance(measured, LieGroup):
+        raise TypeError(f"measured must be a group element, got {type(measured).__name__}")
+    if len(measured.batch_shape) not in (1, 2):
+        raise ValueError(f"measured must be a group element of batch (E,) or (B, E), got batch "
+                         f"{tuple(measured.batch_shape)}")
+
+
 def _prior_residual(T, Z):
     """r = log(Z^-1 T)."""
     return Z.inverse().compose(T).log()
@@ -168,8 +181,7 @@ class Prior(Factor):
     def __init__(self, variable: str, index, measured: LieGroup, *,
                  information: torch.Tensor | None = None,
                  sqrt_information: torch.Tensor | None = None, loss: RobustLoss | None = None):
-        if not isinstance(measured, LieGroup):
-            raise TypeError(f"measured must be a group element, got {type(measured).__name__}")
+        _measured(measured)
         super().__init__(_prior_residual, [(variable, index)], data=[measured], dim=measured.dof,
                          information=information, sqrt_information=sqrt_information, loss=loss,
                          jacobians=_prior_jacobians)
@@ -183,8 +195,7 @@ class Between(Factor):
     def __init__(self, variable: str, i, j, measured: LieGroup, *,
                  information: torch.Tensor | None = None,
                  sqrt_information: torch.Tensor | None = None, loss: RobustLoss | None = None):
-        if not isinstance(measured, LieGroup):
-            raise TypeError(f"measured must be a group element, got {type(measured).__name__}")
+        _measured(measured)
         super().__init__(_between_residual, [(variable, i), (variable, j)], data=[measured],
                          dim=measured.dof, information=information,
                          sqrt_information=sqrt_information, loss=loss,

@@ -93,6 +93,7 @@ class GaussHelmert(Factor):
             raise TypeError(f"condition must be callable, got {type(condition).__name__}")
         if jacobians is not None and not callable(jacobians):
             raise TypeError(f"jacobians must be callable or None, got {type(jacobians).__name__}")
+        dim = checks.integer(dim, "dim", 1)  # required: the condition's size
         self.iterated = checks.boolean(iterated, "iterated")
         self.left_factor = checks.boolean(left_factor, "left_factor")
         if self.left_factor and jacobians is None:

@@ -85,7 +85,6 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
     checks.finite_number(corrections_tol, "corrections_tol", ">= 0")
     if not isinstance(graph, FactorGraph):
         raise TypeError(f"graph must be a FactorGraph, got {type(graph).__name__}")
-    _prepare_states(graph)
     o = dict(damped=damped, lambda_initial=lambda_initial if damped else 0.0,
              lambda_factor=lambda_factor, lambda_upper=lambda_upper, lambda_lower=lambda_lower,
              min_fidelity=min_model_fidelity, diagonal=diagonal_damping,
@@ -93,7 +92,11 @@ def gauss_helmert(graph: FactorGraph, max_iterations: int = 100, *, damped: bool
              step_tol=step_tol, cost_tests=cost_tests,
              update_below=math.inf if update_below is None else update_below,
              corrections_tol=corrections_tol, linear_solver=linear_solver, round=_gauss_helmert_round)
-    solution = _solve(graph, max_iterations, "none", o)
+    try:
+        _prepare_states(graph)
+        solution = _solve(graph, max_iterations, "none", o)
+    finally:
+        _release_states(graph)
     for f in graph.factors:  # the caller's factors behind the graph's copies
         if isinstance(f, GaussHelmert) and f.iterated and f.source is not None:
             f.source.corrections = f.corrections
@@ -132,6 +135,16 @@ def _prepare_states(graph: FactorGraph) -> None:
         Dk = sum(graph.dof(name) for name, _ in f.slots)
         f._refresh, f._fresh = True, None
         f._update = (leaf.new_zeros(lead + (f.size, k, f.m)), leaf.new_zeros(lead + (f.size, k, 1 + Dk)))
+
+
+def _release_states(graph: FactorGraph) -> None:
+    """The iterated conditions' data without the solve's state (the corrections stay): the
+    other solvers refuse such a factor again, as before the solve (with the state left, they
+    evaluated it with a stale linearisation, NaN), and the next ``gauss_helmert`` prepares it
+    anew from the corrections."""
+    for f in graph.factors:
+        if isinstance(f, GaussHelmert) and f.iterated:
+            f.data = f.data[:len(f.user_data) + 1]  # the user's data and the covariance factor
 
 
 def _iterated_blocks(problem: Problem) -> list:

@@ -72,8 +72,8 @@ class FactorGraph:
         self.variables[name] = value
 
     def add(self, factor: Factor, loss: RobustLoss | None = None) -> None:
-        """Adds a ``Factor`` (its variables must already be in the graph, its data of their dtype
-        and device; a ``Prior`` or ``Between`` measured in its variable's group); ``loss`` (a
+        """Adds a ``Factor`` (its variables must already be in the graph, its data and noise of
+        their dtype and device; a ``Prior`` or ``Between`` measured in its variable's group); ``loss`` (a
         ``RobustLoss``) replaces the factor's own."""
         if not isinstance(factor, Factor):
             raise TypeError(f"factor must be a Factor, got {type(factor).__name__}")
@@ -117,6 +117,11 @@ class FactorGraph:
         for k, d in enumerate(factor.data):
             checks.same_device_dtype(**{"the graph's first variable": first,
                                         f"factor {factor!r} data[{k}]": _leaf(d)})
+        for noise_name in ("information", "sqrt_information"):
+            noise = getattr(factor, noise_name, None)
+            if isinstance(noise, torch.Tensor):
+                checks.same_device_dtype(**{"the graph's first variable": first,
+                                            f"factor {factor!r} {noise_name}": noise})
         self.factors.append(factor)
 
     # ------------------------------------------------------------------ queries

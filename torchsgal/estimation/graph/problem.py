@@ -113,7 +113,7 @@ class Problem:
             nb = len(d.batch_shape) if isinstance(d, LieGroup) else None
             if nb is not None:
                 per_problem = nb == 2
-                shape_ok = (d.batch_shape[-1] in (E, 1)
+                shape_ok = (nb in (1, 2) and d.batch_shape[-1] in (E, 1)
                             and (nb == 1 or d.batch_shape[0] in (B, 1)))
             else:
                 per_problem = self.batched and leaf.dim() >= 2 and tuple(leaf.shape[:2]) == (B, E)
