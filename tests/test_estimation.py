@@ -248,6 +248,32 @@ def test_gauss_helmert_covariance_checks():
         gauss_helmert(cond, x0, torch.eye(3, dtype=f64))
 
 
+def test_gauss_helmert_checks_e0_observation_count_at_entry():
+    """An e0 with another number of observations N than the condition's (40) is named with the
+    expected and given shapes before the condition sees it (a RuntimeError from inside the
+    user's condition before)."""
+    x, y = _line_data()
+    cond = _line_condition(x, y)
+    seen = []
+
+    def recording(p, e):
+        seen.append(None if e is None else tuple(e.shape))
+        return cond(p, e)
+    x0 = (torch.zeros(3, 2, dtype=f64),)
+    cov = torch.eye(2, dtype=f64)
+    for n in (39, 1, 41):
+        seen.clear()
+        with pytest.raises(ValueError, match=rf"e0 must have shape \(B, N, m\) = \(3, 40, 2\), "
+                                             rf"got \(3, {n}, 2\)"):
+            gauss_helmert(recording, x0, cov, e0=torch.zeros(3, n, 2, dtype=f64))
+        assert (3, n, 2) not in seen  # the condition never received the bad e0
+    # a right e0 (the residuals of a converged solve) is accepted and gives the same solution
+    ref = gauss_helmert(cond, x0, cov, step_tol=1e-10, max_iterations=100)
+    warm = gauss_helmert(cond, x0, cov, e0=ref.aux, step_tol=1e-10, max_iterations=100)
+    slope, icpt = _orthogonal_regression(x[0], y[0])
+    assert abs(warm.x[0][0, 0].item() - slope) < 1e-8 and abs(warm.x[0][0, 1].item() - icpt) < 1e-8
+
+
 def test_gauss_helmert_checks_its_inputs_and_the_condition():
     x, y = _line_data()
     cond = _line_condition(x, y)
@@ -384,6 +410,71 @@ def test_study_summarise_checks_its_arguments():
     with pytest.raises(TypeError, match="status must be an int64 tensor of SolverStatus codes, got list"):
         study.summarise(err, cov, [0, 0, 0, 0])
     assert study.summarise(err, cov, ok)["ANEES"] == pytest.approx(0.11)
+
+
+def _summarise_case():
+    """6 trials, 2 of them not converged with garbage (NaN error, NaN or asymmetric covariance)
+    that a summary must ignore."""
+    g = torch.Generator().manual_seed(3)
+    K = 6
+    err = torch.randn(K, 11, generator=g, dtype=f64)
+    A = torch.randn(K, 11, 11, generator=g, dtype=f64)
+    cov = A @ A.mT + 0.5 * torch.eye(11, dtype=f64)
+    status = torch.full((K,), int(SolverStatus.CONVERGED), dtype=torch.int64)
+    status[1] = int(SolverStatus.MAX_ITERATIONS)
+    status[4] = int(SolverStatus.SINGULAR)
+    err[1, 2] = float("nan")
+    cov[1, 0, 5] = 7.0  # not symmetric
+    cov[4] = float("nan")
+    return err, cov, status
+
+
+def test_study_summarise_equals_direct_computation_over_converged_trials():
+    err, cov, status = _summarise_case()
+    out = study.summarise(err, cov, status)
+    E, P = err.numpy(), cov.numpy()
+    ok = [k for k in range(E.shape[0]) if int(status[k]) == int(SolverStatus.CONVERGED)]
+    assert ok == [0, 2, 3, 5]
+    comps = {"position": (0, 3), "velocity": (3, 6), "orientation": (6, 9), "time_offset": (9, 10),
+             "interval": (10, 11)}
+    for name, (a, b) in comps.items():
+        expect = math.sqrt(sum(float(E[k, a:b] @ E[k, a:b]) for k in ok) / len(ok))
+        assert out[name] == pytest.approx(expect, rel=1e-13, abs=0), name
+    q = [float(E[k] @ np.linalg.solve(P[k], E[k])) for k in ok]
+    assert out["nees"] == pytest.approx(q, rel=1e-10)
+    assert out["ANEES"] == pytest.approx(sum(q) / len(q), rel=1e-10)
+    assert out["MMD"] == pytest.approx(sum(math.sqrt(v) for v in q) / len(q), rel=1e-10)
+    assert out["converged"] == 4 and out["trials"] == 6
+    # no converged trial: NaN statistics, as the mean of nothing (and no error)
+    none = study.summarise(err, cov, torch.full((6,), int(SolverStatus.MAX_ITERATIONS), dtype=torch.int64))
+    assert math.isnan(none["position"]) and math.isnan(none["ANEES"]) and math.isnan(none["MMD"])
+    assert none["converged"] == 0 and none["nees"] == []
+
+
+class _NoDataDependentShapes(torch.overrides.TorchFunctionMode):
+    """Refuses the ops whose output shape depends on tensor values (boolean-mask indexing,
+    masked_select, nonzero), which break vmap and torch.compile."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in (torch.Tensor.__getitem__, torch.Tensor.__setitem__):
+            index = args[1] if isinstance(args[1], tuple) else (args[1],)
+            if any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in index):
+                raise AssertionError("boolean-mask indexing")
+        if func in (torch.masked_select, torch.Tensor.masked_select, torch.nonzero, torch.Tensor.nonzero,
+                    torch.argwhere, torch.Tensor.argwhere):
+            raise AssertionError(f"data-dependent shape: {func.__name__}")
+        return func(*args, **kwargs)
+
+
+def test_study_summarise_uses_no_data_dependent_shapes():
+    err, cov, status = _summarise_case()
+    expect = study.summarise(err, cov, status)
+    with _NoDataDependentShapes():
+        out = study.summarise(err, cov, status)
+    assert out == expect or all(
+        (out[k] == expect[k]) or (isinstance(out[k], float) and math.isnan(out[k]) and math.isnan(expect[k]))
+        for k in expect)
 
 
 def test_metrics_check_their_arguments():

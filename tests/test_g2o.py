@@ -175,6 +175,25 @@ def test_odometry_initial_guess_sphere2500_matches_gtsam_compose(data):
     np.testing.assert_allclose(odometry_initial_guess(graph).as_matrix().numpy(), P, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("group", [ts.SE2, ts.SE3])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_odometry_initial_guess_keeps_the_graph_dtype(group, dtype):
+    """A graph of float32 measurements gives float32 poses (always float64 before)."""
+    graph = random_graph(group, poses=False)
+    graph.measurements = graph.measurements.to(dtype=dtype)
+    graph.information = graph.information.to(dtype)
+    guess = odometry_initial_guess(graph)
+    assert isinstance(guess, group) and guess.dtype == dtype and guess.batch_shape == (6,)
+    # the chain by hand: edges (0,1) (1,2) (2,0) (3,4) (5,3) (1,5) place 0 = I, 1 = Z01,
+    # 2 = Z01 Z12, 3 = I, 4 = Z34, 5 = I (edge (5, 3) meets 5 first: an edge's first vertex
+    # not yet placed is put at the identity)
+    Z = graph.measurements.as_matrix().double().numpy()
+    eye = np.eye(Z.shape[-1])
+    P = np.stack([eye, Z[0], Z[0] @ Z[1], eye, Z[3], eye])
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    np.testing.assert_allclose(guess.as_matrix().double().numpy(), P, rtol=0, atol=tol)
+
+
 # --------------------------------------------------------------------------- errors
 @pytest.mark.parametrize("text, message", [
     ("VERTEX2 0 0 0 0\nEDGE2 0 1 1 0 zero 1 0 1 1 0 0\n", r":2: EDGE2 field 5, token 'zero', is not a finite number"),

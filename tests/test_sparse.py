@@ -171,3 +171,35 @@ def test_bad_input_errors():
         S.marginal_blocks(torch.tensor([n - 2]), 3)
     with pytest.raises(ValueError, match="block must be an integer >= 1"):
         S.marginal_blocks(torch.tensor([0]), 0)
+
+
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_rhs_gives_non_finite_column_on_every_backend(backend, bad):
+    # a non-finite right-hand side is not a singular matrix (cholespy raised
+    # NotPositiveDefiniteError before): every backend returns the non-finite column as such,
+    # the finite columns solved, and keeps its factor
+    A, rows, cols, values = block_system()
+    n = A.shape[0]
+    S = SparseCholesky(rows, cols, n, backend=backend)
+    S.factor(values)
+    rhs = torch.stack([torch.arange(n, dtype=torch.float64), torch.ones(n, dtype=torch.float64)], 1)
+    rhs[4, 1] = bad
+    x = S.solve(rhs)
+    assert x.shape == (n, 2)
+    torch.testing.assert_close(x[:, 0], torch.linalg.solve(A, rhs[:, 0]), rtol=1e-10, atol=1e-12)
+    assert not bool(torch.isfinite(x[:, 1]).all())
+    assert not bool(torch.isfinite(S.solve(rhs[:, 1])).all())  # a vector rhs alike
+    b = torch.ones(n, dtype=torch.float64)
+    torch.testing.assert_close(S.solve(b), torch.linalg.solve(A, b), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKEND_PARAMS)
+def test_empty_pattern_is_not_positive_definite(backend):
+    # no entries at all: A is the zero matrix, singular, on every backend the module's own error
+    empty = torch.zeros(0, dtype=torch.int64)
+    S = SparseCholesky(empty, empty, 3, backend=backend)
+    with pytest.raises(NotPositiveDefiniteError):
+        S.factor(torch.zeros(0, dtype=torch.float64))
+    with pytest.raises(RuntimeError, match="successful factor"):
+        S.solve(torch.ones(3, dtype=torch.float64))

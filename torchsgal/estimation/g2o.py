@@ -177,7 +177,8 @@ def odometry_initial_guess(graph: PoseGraph) -> SE3 | SE2:
     """Initial poses (N,) in the order of ``graph.ids`` as GTSAM's ``load2D`` builds them for a
     file without vertices: in file order, an edge's first vertex not yet placed is put at the
     identity and its second at ``T_i Z_ij``; vertices no edge reaches stay at the identity.
-    Sequential by nature (each pose depends on the one before), so it runs on the host once."""
+    Sequential by nature (each pose depends on the one before), so it runs on the host once,
+    in float64; the poses come back with the dtype and device of ``graph.measurements``."""
     _pose_graph(graph)
     _check_graph(graph)
     M = graph.measurements.as_matrix().detach().cpu().numpy()
@@ -189,7 +190,8 @@ def odometry_initial_guess(graph: PoseGraph) -> SE3 | SE2:
         if not placed[j]:
             poses[j] = poses[i] @ M[e]
             placed[j] = True
-    return graph.group.from_matrix(torch.from_numpy(poses))
+    Z = graph.measurements
+    return graph.group.from_matrix(torch.from_numpy(poses)).to(dtype=Z.dtype, device=Z.device)
 
 
 def _check_graph(graph: PoseGraph) -> None:

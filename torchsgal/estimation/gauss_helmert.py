@@ -192,6 +192,8 @@ def gauss_helmert(
         it is Levenberg-Marquardt damped (``damping`` 1e-4).  The paper variant takes plain
         Gauss-Newton steps by default (``damping=None``): Levenberg-Marquardt's cost test
         stalls it at its fixed point, which does not minimise the cost it evaluates.
+    e0: the start of the residual estimate e (B, N, m) (default zero); for the iterated variant
+        the condition is called once more, at e = None, to check e0's N before its first use.
     Returns a ``Solution`` whose ``aux`` holds the estimated observation residuals e.  Not
     differentiable: the solution carries no autograd graph.
     """
@@ -257,6 +259,13 @@ def gauss_helmert(
         z = (lin.r + (lin.J @ delta[..., None])[..., 0]).reshape(Bn, N, k)
         y = torch.linalg.solve_triangular(L.transpose(-1, -2), z[..., None], upper=True)[..., 0]
         return -cov.apply_transposed(Bw, y)
+
+    if e0 is not None and iterated:
+        # N is known only from the condition: read it at e = 0 (the cheap path, without e0) so
+        # that an e0 of another N is named here, not failed on inside the condition
+        with torch.no_grad():
+            c0, A0, B0 = condition(V.detach(x0), None)
+            check_condition(c0, A0, B0, e0)
 
     # The observation residual estimate starts at e0; None is zero (the condition's cheap path).
     return _as_given(iterate(linearise, x0, e0, post_step, **options), single)

@@ -19,10 +19,14 @@ there; cholespy comes first of the two as it also runs on CUDA):
 
 A matrix that is not positive definite (indefinite, or singular: a squared pivot not above
 ``PIVOT_RTOL`` times the largest, where the backend exposes its pivots: all but cholespy,
-which reports CHOLMOD's refusals, and from ``solve`` a result that is not finite) raises
-``NotPositiveDefiniteError`` from ``factor``; the solver then holds no factor and ``solve``
-raises until a ``factor`` succeeds.  The sparse backends compute in float64 on the CPU (one
-copy to and from the host per call); the results come back with the values' dtype and device.
+which reports CHOLMOD's refusals, and from ``solve`` a result that is not finite for a finite
+rhs) raises ``NotPositiveDefiniteError`` from ``factor``; the solver then holds no factor and
+``solve`` raises until a ``factor`` succeeds.  ``factor`` raises ValueError for NaN or
+infinite values; ``solve`` with a non-finite rhs is not a singular matrix: on every backend the
+columns of rhs with NaN or infinite entries come back with non-finite entries (which ones
+depends on the backend), the others as usual, and the factor is kept (the solvers test the
+step for finiteness themselves).  The sparse backends compute in float64 on the CPU (one copy
+to and from the host per call); the results come back with the values' dtype and device.
 """
 from __future__ import annotations
 
@@ -125,7 +129,8 @@ class SparseCholesky:
 
     def solve(self, rhs: torch.Tensor) -> torch.Tensor:
         """A^-1 rhs for rhs (size,) or (size, k), with the factor of the last ``factor``; the
-        result has the dtype and device of the values factored."""
+        result has the dtype and device of the values factored.  A column of rhs with NaN or
+        infinite entries gives a column with non-finite entries (every backend alike)."""
         if self._dtype is None:
             raise RuntimeError("SparseCholesky.solve needs a successful factor(values) first")
         checks.floating(rhs, "rhs")
@@ -248,6 +253,9 @@ class _Cholespy:
     def factor(self, values: torch.Tensor) -> None:
         self.device = values.device
         self._solver = None
+        if values.numel() == 0:  # cholespy fails on it with a bare RuntimeError
+            raise NotPositiveDefiniteError("cholespy: the pattern is empty: the matrix is zero, "
+                                           "not positive definite")
         try:
             self._solver = self._cholespy.CholeskySolverD(
                 self._size, self._rows.to(values.device), self._cols.to(values.device),
@@ -263,9 +271,11 @@ class _Cholespy:
             part = torch.empty_like(rhs[:, c:c + step])
             self._solver.solve(rhs[:, c:c + step].contiguous(), part)
             x[:, c:c + step] = part
-        if not bool(torch.isfinite(x).all()):
-            raise NotPositiveDefiniteError("cholespy: the solve gave non-finite values: "
-                                           "the matrix is singular")
+        # a non-finite result for a finite rhs column means a singular factor; a non-finite
+        # rhs column gives a non-finite result, as on the other backends
+        if bool((~torch.isfinite(x).all(0) & torch.isfinite(rhs).all(0)).any()):
+            raise NotPositiveDefiniteError("cholespy: the solve gave non-finite values for a finite "
+                                           "rhs: the matrix is singular")
         return x
 
 

@@ -273,15 +273,21 @@ def summarise(err: torch.Tensor, cov: torch.Tensor, status: torch.Tensor) -> dic
         raise TypeError(f"status must be an int64 tensor of SolverStatus codes, got {got}")
     if tuple(status.shape) != (K,):
         raise ValueError(f"status must have shape (K,) = ({K},), got {tuple(status.shape)}")
+    # masked reductions (no boolean-mask indexing: fixed shapes): the other trials get a zero
+    # error and a unit covariance, weight 0, so that their NaN or garbage never reaches a sum
     ok = status == SolverStatus.CONVERGED
-    e, P = err[ok], cov[ok]
+    n = ok.sum().to(err.dtype)  # 0 converged: the statistics are 0/0 = NaN, as a mean of nothing
+    e = torch.where(ok[:, None], err, 0)
+    P = torch.where(ok[:, None, None], cov, torch.eye(width, dtype=cov.dtype, device=cov.device))
     q = metrics.nees(e, P)
-    out: dict[str, float | list[float]] = {name: float(metrics.rmse(e[:, sl])) for name, sl in COMPONENTS.items()}
-    out["ANEES"] = float(q.mean())
-    out["MMD"] = float(q.sqrt().mean())
+    sq = e.square()
+    out: dict[str, float | list[float]] = {name: float((sq[:, sl].sum(-1).sum() / n).sqrt())
+                                           for name, sl in COMPONENTS.items()}
+    out["ANEES"] = float(torch.where(ok, q, 0).sum() / n)
+    out["MMD"] = float(torch.where(ok, q, 0).sqrt().sum() / n)
     out["converged"] = int(ok.sum())
     out["trials"] = int(status.numel())
-    out["nees"] = q.tolist()
+    out["nees"] = [v for v, keep in zip(q.tolist(), ok.tolist()) if keep]  # the converged ones
     return out
 
 
