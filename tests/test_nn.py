@@ -259,6 +259,26 @@ def test_a_state_dict_of_another_group_or_off_the_group_is_refused():
     assert torch.equal(so3.anchor, single.anchor.double())
 
 
+def test_a_state_dict_with_a_non_finite_delta_is_refused():
+    """A NaN or inf delta loaded without a word (only the anchor was checked) and made the
+    value NaN; it is refused by key, and the module keeps its own delta."""
+    p = GroupParameter(ts.SE3.identity((2,), dtype=F64))
+    holder = nn.Module()
+    holder.pose = p
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        delta = torch.zeros(2, 6, dtype=F64)
+        delta[1, 4] = bad
+        with pytest.raises(ValueError, match=r"^delta must be finite .*found 1 non-finite entries of 12$"):
+            p.load_state_dict({"anchor": torch.eye(4, dtype=F64).expand(2, 4, 4), "delta": delta})
+        with pytest.raises(ValueError, match=r"^pose\.delta must be finite"):
+            holder.load_state_dict({"pose.anchor": torch.eye(4, dtype=F64).expand(2, 4, 4),
+                                    "pose.delta": delta})
+        assert torch.equal(p.delta.detach(), torch.zeros(2, 6, dtype=F64))
+    finite = torch.full((2, 6), 0.25, dtype=F64)
+    p.load_state_dict({"anchor": torch.eye(4, dtype=F64).expand(2, 4, 4), "delta": finite})
+    assert torch.equal(p.delta.detach(), finite)
+
+
 def test_module_to_converts_anchor_and_delta():
     p = GroupParameter(ts.SGal3.random((2,), dtype=F32, generator=_gen(9))).to(F64)
     assert p.anchor.dtype == F64 and p.delta.dtype == F64 and p().dtype == F64

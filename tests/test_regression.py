@@ -714,6 +714,25 @@ def test_fitted_curve_checks_tensor_times_as_the_fits_do():
     assert fit32([0.25, 0.5]).as_matrix().dtype == torch.float32
 
 
+def test_bools_are_no_weights_or_times():
+    """weights or times given as (nested) lists of bools were read as 1.0 and 0.0; a bool is no
+    number here (as a bare bool, or a bool tensor, is refused): TypeError naming the argument."""
+    Y = ts.SE3.exp(torch.randn(6, 6, dtype=F64, generator=torch.Generator().manual_seed(2)))
+    t = torch.linspace(0, 1, 6, dtype=F64)
+    for w in ([True] * 6, (True,) * 6, [[True] * 6], [1.0] * 5 + [True], np.ones(6, dtype=bool)):
+        with pytest.raises(TypeError, match="^weights must be a torch.Tensor, a real number"):
+            reg.fit_subgroup(Y, t, weights=w)
+        with pytest.raises(TypeError, match="^weights must be a torch.Tensor, a real number"):
+            reg.frechet_mean(Y, weights=w)
+    fit = reg.fit_subgroup(Y, t)
+    for times in ([True, False], (True,), [[0.5, True]], [np.True_]):
+        with pytest.raises(TypeError, match=r"^times must be a torch.Tensor or a \(nested\) list of numbers"):
+            fit(times)
+    # numbers, as before
+    assert reg.fit_subgroup(Y, t, weights=[1.0] * 6).cost.shape == ()
+    assert fit([0.0, 1]).batch_shape == (2,)
+
+
 def test_lbfgs_on_an_empty_batch_returns_an_empty_fit_like_gauss_newton():
     Y = ts.SE3.exp(torch.randn(2, 6, 6, dtype=F64))[:0]
     t = torch.linspace(0, 1, 6, dtype=F64)

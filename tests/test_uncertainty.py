@@ -335,6 +335,22 @@ def test_empty_batch():
     assert a.mean.shape == (0, 4) and a.covariance.shape == (0, 4, 4)
 
 
+def test_check_covariance_validates_dim():
+    """dim=True passed a (1, 1) covariance as dim 1 and dim "1" or -1 gave a shape message about
+    the covariance; dim is now checked first, by name: an integer >= 0, bool refused."""
+    from torchsgal.uncertainty import check_covariance
+
+    S = torch.eye(1, dtype=torch.float64)
+    for bad in (True, False, 1.0, "1", None):
+        with pytest.raises(TypeError, match=f"^dim must be an integer >= 0, got {bad!r}$"):
+            check_covariance(S, bad)
+    with pytest.raises(ValueError, match="^dim must be an integer >= 0, got -1$"):
+        check_covariance(S, -1)
+    check_covariance(S, 1)
+    check_covariance(S, np.int64(1))  # numpy integers are integers
+    check_covariance(torch.zeros(0, 0, dtype=torch.float64), 0)
+
+
 def test_propagation_covariance_arguments_validated():
     """x_covariance (act) and cross_covariance (compose, between): shape, dtype, device, batch
     named; x_covariance is a covariance (symmetric positive semi-definite: zero is an exact

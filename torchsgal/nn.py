@@ -28,6 +28,7 @@ from torch import nn
 from torch.utils.hooks import RemovableHandle
 
 from .functional import checks
+from .functional._blocking import values_readable
 from .groups import LieGroup
 
 G = TypeVar("G", bound=LieGroup)
@@ -57,6 +58,20 @@ def _check_loaded_anchor(module, state_dict, prefix, local_metadata, strict, mis
                          f"another group or a spoiled one): {err}") from None
 
 
+def _check_loaded_delta(module, state_dict, prefix, local_metadata, strict, missing_keys,
+                        unexpected_keys, error_msgs) -> None:
+    """A state dict's delta must be finite (a spoiled state, NaN or inf, would load without a
+    word and make every value NaN); refused before torch copies it, as the anchor is."""
+    key = prefix + "delta"
+    delta = state_dict.get(key)
+    if not isinstance(delta, torch.Tensor) or delta.shape != module.delta.shape:
+        return  # torch reports a missing key or a size mismatch itself
+    if values_readable(delta) and not bool(torch.isfinite(delta).all()):
+        raise ValueError(f"{key} must be finite (a spoiled state dict): found "
+                         f"{int((~torch.isfinite(delta)).sum())} non-finite entries of "
+                         f"{delta.numel()}")
+
+
 class GroupParameter(nn.Module, Generic[G]):
     """A trainable element ``anchor exp(delta)`` of a group, batched as the element given.
 
@@ -64,7 +79,7 @@ class GroupParameter(nn.Module, Generic[G]):
     zero at construction; both are in ``state_dict`` and follow ``module.to(...)``.  The group
     (``group``, a class such as ``torchsgal.SE3``) is fixed at construction: load a state dict
     into a ``GroupParameter`` of the same group and batch shape (an anchor that is not an
-    element of the group is refused by ``load_state_dict``).
+    element of the group, or a non-finite delta, is refused by ``load_state_dict``).
 
     Example::
 
@@ -95,6 +110,7 @@ class GroupParameter(nn.Module, Generic[G]):
         self.delta = nn.Parameter(delta, requires_grad=requires_grad)
         self._retractions = 0  # re-anchorings so far (see retract_)
         self.register_load_state_dict_pre_hook(_check_loaded_anchor)
+        self.register_load_state_dict_pre_hook(_check_loaded_delta)
 
     @property
     def value(self) -> G:

@@ -72,6 +72,9 @@ URDF_ROBOTS = {
 def robot_urdf(name: str) -> Path:
     """The path of the URDF file of a robot shipped by ``example-robot-data``: one of
     ``URDF_ROBOTS`` ("panda", "ur3", "ur5", "ur10", "xarm7", "kinova", "z1", "allegro")."""
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a robot name (a str), one of {sorted(URDF_ROBOTS)}, got "
+                        f"{type(name).__name__} {name!r}")
     if name not in URDF_ROBOTS:
         raise ValueError(f"name must be one of {sorted(URDF_ROBOTS)}, got {name!r}")
     path = example_robot_data_dir() / URDF_ROBOTS[name][0]
@@ -91,9 +94,10 @@ def load_robot(name: str, end_link: str | Sequence[str] | None = None,
     ``panda_hand_tcp``, the UR arms' ``tool0``, the Allegro hand's four fingertips: a tree);
     ``root_link`` to the URDF's root.
     """
-    default_end = URDF_ROBOTS[name][1] if name in URDF_ROBOTS else None
-    return from_urdf(robot_urdf(name), end_link or default_end, root_link, base=base,
-                     tool=tool, dtype=dtype, device=device)
+    path = robot_urdf(name)  # checks name
+    # only None takes the default: "", [] or 0 are refused by from_urdf as any bad end link is
+    end_link = URDF_ROBOTS[name][1] if end_link is None else end_link
+    return from_urdf(path, end_link, root_link, base=base, tool=tool, dtype=dtype, device=device)
 
 
 def panda(end_link: str = "panda_hand_tcp", dtype: torch.dtype = torch.float64,

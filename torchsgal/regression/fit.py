@@ -69,6 +69,9 @@ class CurveFit:
             checks.same_device_dtype(**{"the fit": self.time_origin, "times": times})
         elif isinstance(times, (list, tuple)) or (isinstance(times, numbers.Real)
                                                   and not isinstance(times, bool)):
+            if _checks.holds_bool(times):  # torch would read True as 1.0
+                raise TypeError(f"times must be a torch.Tensor or a (nested) list of numbers of "
+                                f"shape (..., M), not bools, got {times!r}")
             try:
                 times = torch.tensor(times, dtype=self.origin.dtype, device=self.origin.device)
             except (TypeError, ValueError, RuntimeError):

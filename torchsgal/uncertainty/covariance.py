@@ -28,7 +28,10 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
     positive semi-definite, within ``tol`` of the largest entry).  Shape and dtype are always
     checked; the values (one host sync: all the measures are read together) only where they can
     be read: not on 'meta', under a torch.func transform or torch.compile.  An empty batch
-    passes.  ``tol``: None (1e-5 float32, 1e-10 float64) or a finite real number >= 0."""
+    passes.  ``tol``: None (1e-5 float32, 1e-10 float64) or a finite real number >= 0;
+    ``dim``: an integer >= 0 (bool refused)."""
+    if not isinstance(dim, torch.SymInt):  # a traced size (torch.compile) is taken as it is
+        dim = checks.integer(dim, "dim", 0)
     _covariance_shape(S, dim, name)
     checks.dense(S, name)
     checks.boolean(definite, "definite")
