@@ -509,3 +509,45 @@ def test_indexing_gives_views_and_names_a_negative_step(G):
     assert g[1:3].as_matrix().data_ptr() == g.as_matrix()[1].data_ptr()  # a view, as documented
     with pytest.raises(IndexError, match=r"does not fit the batch shape \(4,\) of this .*step must be greater"):
         g[::-1]
+
+
+@pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
+def test_indexing_refuses_float_lists_and_arrays_and_names_the_index(G):
+    """torch truncates a list or numpy array of floats to integers (t[[0.7]] is t[[0]]): the
+    batch index refuses them, as it refuses a float index tensor, and names the index for a
+    string too; integer and bool lists and arrays index as the matrices do."""
+    g = G.random((4,), dtype=torch.float64)
+    M = g.as_matrix()
+    for bad, got in (([0.7], "0.7"), ([1, 2.5], "2.5"), ([[0], [1.0]], "1.0"),
+                     (np.array([0.5]), "dtype float64"), (np.array([1 + 0j]), "dtype complex128"),
+                     ([np.float32(1.0)], "np.float32")):
+        with pytest.raises(IndexError, match=rf"does not fit the batch shape \(4,\) of this {G.__name__}: "
+                                             rf"index lists and arrays must hold integers or bools, got {got}"):
+            g[bad]
+    with pytest.raises(IndexError, match="must hold integers or bools"):
+        g[None, [0.5]]
+    with pytest.raises(TypeError, match=rf"index \('a',\) does not fit the batch shape \(4,\) of this {G.__name__}"):
+        g["a"]
+    picks = [[0, 2], np.array([3, 1]), [True, False, True, False], np.array([False, True, True, False])]
+    for ok, rows in zip(picks, ([0, 2], [3, 1], [0, 2], [1, 2])):
+        assert torch.equal(g[ok].as_matrix(), torch.stack([M[i] for i in rows]))
+
+
+def test_stack_cat_squeeze_name_what_is_wrong():
+    """LieGroup.stack/cat (no group of its own) took elements of different groups and failed on
+    their matrix sizes ("equal batch shape: () and ()", or torch's RuntimeError); a
+    non-iterable ``elements`` failed in Python; squeeze(dim) of an unbatched element asked for a
+    dim "in [0, -1]"."""
+    from torchsgal.groups.base import LieGroup
+
+    with pytest.raises(TypeError, match="LieGroup is the abstract base class"):
+        LieGroup.stack([ts.SO3.identity(), ts.SE3.identity()])
+    with pytest.raises(TypeError, match="LieGroup is the abstract base class"):
+        LieGroup.cat([ts.SO3.identity((2,)), ts.SE3.identity((2,))])
+    for op, bad in ((ts.SE3.stack, None), (ts.SE3.cat, 5)):
+        with pytest.raises(TypeError, match=rf"elements must be a sequence of elements \(a list or tuple\), "
+                                            rf"got {type(bad).__name__}"):
+            op(bad)
+    for dim in (0, -1):
+        with pytest.raises(IndexError, match=rf"dim must index a batch axis, but an unbatched element has none, got {dim}"):
+            ts.SE3.identity().squeeze(dim)

@@ -274,7 +274,7 @@ class LieGroup(MatrixBatch):
         return self._matrix
 
     def rotation(self) -> torch.Tensor:
-        """Rotation matrix C (..., 3, 3) (2 x 2 for the planar groups)."""
+        """Rotation matrix C (..., 3, 3) (2 x 2 for the planar groups) (a view of the matrix)."""
         k = self.rotation_dim
         return self._matrix[..., :k, :k]
 

@@ -9,6 +9,7 @@ built by the class's ``_new`` from the matrices' batch axes.
 from __future__ import annotations
 
 import numbers
+import sys
 from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -31,6 +32,9 @@ class MatrixBatch:
         def _new(cls, matrix: torch.Tensor) -> Self: ...
 
         def _summary(self) -> str: ...
+
+        @classmethod
+        def _concrete(cls) -> None: ...
 
     # ------------------------------------------------------------------ properties
     @property
@@ -96,22 +100,37 @@ class MatrixBatch:
 
     # ---------------------------------------------------------------- batch handling
     def __getitem__(self, index: Any) -> Self:
-        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors).
+        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors, lists
+        and numpy arrays of ints or bools).  A float index (tensor, list or array) is refused with
+        IndexError (torch would truncate a list or array of floats: ``t[[0.7]]`` is ``t[[0]]``).
 
         As for tensors, ints, slices and None give a view of this element's matrix: it shares
         the storage (``torch.save`` of ``g[0]`` writes the whole batch; save ``g[0].clone()``),
         and in-place changes to either show in both."""
         if not isinstance(index, tuple):
             index = (index,)
+        for entry in index:
+            # torch truncates a list or numpy array of floats to integers (g[[0.5]] is g[[0]]);
+            # refused as it refuses a float index tensor
+            if (isinstance(entry, list) or type(entry).__name__ == "ndarray") and (why := _non_integer_index(entry)):
+                raise IndexError(f"{self._misfit(index)}: index lists and arrays must hold integers or "
+                                 f"bools, got {why}")
         try:
-            return type(self)._new(self._matrix[index + (slice(None), slice(None))])
+            matrix = self._matrix[index + (slice(None), slice(None))]
         except (IndexError, ValueError) as err:  # ValueError: a negative slice step
             why = str(err)
             if "too many indices" in why:  # torch counts the matrix axes too
                 n = len(self.batch_shape)
                 why = f"too many indices for {n} batch ax{'is' if n == 1 else 'es'}"
-            raise IndexError(f"index {index!r} does not fit the batch shape "
-                             f"{tuple(self.batch_shape)} of this {type(self).__name__}: {why}") from None
+            raise IndexError(f"{self._misfit(index)}: {why}") from None
+        except TypeError as err:  # a string, say: torch's message does not name the index
+            raise TypeError(f"{self._misfit(index)}: {err}") from None
+        return type(self)._new(matrix)
+
+    def _misfit(self, index: tuple) -> str:
+        """The start of an indexing error (built only when one is raised: it reads the index's repr)."""
+        return (f"index {index!r} does not fit the batch shape {tuple(self.batch_shape)} of this "
+                f"{type(self).__name__}")
 
     def __len__(self) -> int:
         if not self.batch_shape:
@@ -197,11 +216,16 @@ class MatrixBatch:
 
     @classmethod
     def _matrices(cls, elements: Sequence[MatrixBatch], op: str) -> list[torch.Tensor]:
+        cls._concrete()  # LieGroup.stack would take elements of different groups
         if isinstance(elements, MatrixBatch):  # iterating it would stack or cat its first batch axis
             raise TypeError(f"{cls.__name__}.{op}: elements must be a sequence of elements (a list "
                             f"or tuple), got one {type(elements).__name__}; write "
                             f"{cls.__name__}.{op}([g, ...])")
-        elements = list(elements)
+        try:
+            elements = list(elements)
+        except TypeError:
+            raise TypeError(f"{cls.__name__}.{op}: elements must be a sequence of elements (a list "
+                            f"or tuple), got {type(elements).__name__}") from None
         if not elements:
             raise ValueError(f"{cls.__name__}.{op} needs at least one element")
         for i, e in enumerate(elements):
@@ -241,6 +265,25 @@ class MatrixBatch:
         return type(self)._new(self._matrix.clone())
 
 
+def _non_integer_index(entry: Any) -> str | None:
+    """What makes a list or numpy array index non-integer (a float or complex item or dtype),
+    None for integer and bool ones and for other entries (ints, slices, None, Ellipsis, tensors:
+    torch checks those).  Pure Python: no tensor is made, so nothing is traced or synced."""
+    if isinstance(entry, list):
+        for item in entry:
+            why = _non_integer_index(item)
+            if why is None and isinstance(item, (float, complex)):
+                why = f"{item!r}"
+            if why is not None:
+                return why
+        return None
+    np = sys.modules.get("numpy")  # a numpy value can only come from an imported numpy
+    if np is not None and isinstance(entry, (np.ndarray, np.floating, np.complexfloating)):
+        if entry.dtype.kind in "fc":
+            return f"dtype {entry.dtype}" if isinstance(entry, np.ndarray) else f"{entry!r}"
+    return None
+
+
 def _sizes(shape: tuple, name: str) -> tuple:
     """The sizes of ``reshape(*shape)`` / ``reshape(shape)`` (ints, -1 among them; bool refused)."""
     if len(shape) == 1 and not isinstance(shape[0], (numbers.Integral, torch.SymInt)):
@@ -257,6 +300,8 @@ def _sizes(shape: tuple, name: str) -> tuple:
 def _batch_axis(dim: int, n_axes: int, name: str) -> int:
     """``dim`` in [-n_axes, n_axes) as a non-negative axis; the matrix axes are never counted."""
     dim = checks.integer(dim, name)
+    if n_axes == 0:  # "must be in [0, -1]" would make no sense
+        raise IndexError(f"{name} must index a batch axis, but an unbatched element has none, got {dim}")
     if not -n_axes <= dim < n_axes:
         raise IndexError(f"{name} must be in [{-n_axes}, {n_axes - 1}] (batch axes only), got {dim}")
     return dim % n_axes

@@ -46,7 +46,7 @@ class SGal3(LieGroup):
         return self._matrix[..., :3, 4]
 
     def time(self) -> torch.Tensor:
-        """The time offset tau (...)."""
+        """The time offset tau (...) (a view of the matrix)."""
         return self._matrix[..., 3, 4]
 
     def act(self, e: torch.Tensor, point_axes: int = 0) -> torch.Tensor:

@@ -61,7 +61,7 @@ class Sim3(LieGroup):
             raise ValueError(f"matrix is not in Sim3: M[3, 3] = 1/s must be positive, got {values[0]:.3g}")
 
     def position(self) -> torch.Tensor:
-        """r (..., 3), the translation column of the matrix."""
+        """r (..., 3), the translation column of the matrix (a view of it)."""
         return self._matrix[..., :3, 3]
 
     def scale(self) -> torch.Tensor:
