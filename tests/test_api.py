@@ -513,8 +513,8 @@ def test_indexing_gives_views_and_names_a_negative_step(G):
 
 @pytest.mark.parametrize("G", ts.ALL_GROUPS, ids=IDS)
 def test_indexing_refuses_float_lists_and_arrays_and_names_the_index(G):
-    """torch truncates a list or numpy array of floats to integers (t[[0.7]] is t[[0]]): the
-    batch index refuses them, as it refuses a float index tensor, and names the index for a
+    """torch truncates a list, tuple or numpy array of floats to integers (t[[0.7]] is t[[0]]):
+    the batch index refuses them, as it refuses a float index tensor, and names the index for a
     string too; integer and bool lists and arrays index as the matrices do."""
     g = G.random((4,), dtype=torch.float64)
     M = g.as_matrix()
@@ -522,10 +522,16 @@ def test_indexing_refuses_float_lists_and_arrays_and_names_the_index(G):
                      (np.array([0.5]), "dtype float64"), (np.array([1 + 0j]), "dtype complex128"),
                      ([np.float32(1.0)], "np.float32")):
         with pytest.raises(IndexError, match=rf"does not fit the batch shape \(4,\) of this {G.__name__}: "
-                                             rf"index lists and arrays must hold integers or bools, got {got}"):
+                                             rf"index lists, tuples and arrays must hold integers or bools, got {got}"):
             g[bad]
     with pytest.raises(IndexError, match="must hold integers or bools"):
         g[None, [0.5]]
+    # a tuple inside the index is a sequence index too (torch truncated (0.7, 1.9) to [0, 1])
+    g2 = G.random((4, 3), dtype=torch.float64)
+    for bad in ((slice(None), (0.7, 1.9)), ((0.7,),), ([(0.5,)],), (np.array([1]), [(0.5,)])):
+        with pytest.raises(IndexError, match="must hold integers or bools, got 0"):
+            g2[bad]
+    torch.testing.assert_close(g2[:, (0, 2)].as_matrix(), g2.as_matrix()[:, [0, 2]], rtol=0, atol=0)
     with pytest.raises(TypeError, match=rf"index \('a',\) does not fit the batch shape \(4,\) of this {G.__name__}"):
         g["a"]
     picks = [[0, 2], np.array([3, 1]), [True, False, True, False], np.array([False, True, True, False])]

@@ -222,13 +222,24 @@ def test_page_guide__robots(tmp_path, capsys):
     assert arm.within_limits(res.q).all()
 
 
-def test_page_guide__threads(tmp_path, capsys):
-    threads = torch.get_num_threads()
-    n, _ = run_page("guide/threads.md", tmp_path, capsys)     # restores the thread count after
-    assert torch.get_num_threads() == threads
-    # "sets torch.set_num_threads to the number of idle cores ... at least one, and returns it"
-    count = n["torchsgal"].load.threads_for_load()
-    assert 1 <= count <= (os.cpu_count() or 1)
+def test_page_guide__threads(tmp_path, capsys, monkeypatch):
+    import torchsgal
+
+    # "sets torch.set_num_threads to the number of idle cores ... at least one, and returns it":
+    # the call the page makes is observed (run_page restores the thread count afterwards)
+    calls = []
+    original = torchsgal.load.use_threads_for_load
+
+    def observed(*args, **kwargs):
+        count = original(*args, **kwargs)
+        calls.append((count, torch.get_num_threads()))
+        return count
+
+    monkeypatch.setattr(torchsgal.load, "use_threads_for_load", observed)
+    run_page("guide/threads.md", tmp_path, capsys)
+    assert len(calls) == 1
+    count, set_to = calls[0]
+    assert count == set_to and 1 <= count <= (os.cpu_count() or 1)
 
 
 def test_page_guide__training(tmp_path, capsys):

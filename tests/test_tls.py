@@ -248,8 +248,11 @@ def test_problem_and_unknowns_are_checked():
         with pytest.raises(ValueError, match="indices must be finite"):
             tls.TLSProblem(P.F_ga, P.F_gb, S, S,
                            indices=torch.tensor([0.0, 1.0, bad, 3.0, 4.0], dtype=f64))
-    with pytest.raises(ValueError, match="indices must be finite"):
+    with pytest.raises(ValueError, match="indices must be finite .*got 1 non-finite of 5, the first "
+                                         "at position 3"):
         tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[0, 1, 2, float("nan"), 4])
+    with pytest.raises(TypeError, match=r"indices must be .* \(not bools\)"):  # read as 1.0 before
+        tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[True] * 5)
     for bad in (torch.ones(5, dtype=torch.bool), torch.arange(5.0).to(torch.complex128)):
         with pytest.raises(TypeError, match=f"indices must be real numbers, got {bad.dtype}"):
             tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=bad)

@@ -79,7 +79,9 @@ class GroupParameter(nn.Module, Generic[G]):
     zero at construction; both are in ``state_dict`` and follow ``module.to(...)``.  The group
     (``group``, a class such as ``torchsgal.SE3``) is fixed at construction: load a state dict
     into a ``GroupParameter`` of the same group and batch shape (an anchor that is not an
-    element of the group, or a non-finite delta, is refused by ``load_state_dict``).
+    element of the group, or a non-finite delta, is refused by ``load_state_dict``; membership is
+    tested within ``LOAD_TOL`` = 1e-4 whatever the dtype, as a float64 state may hold anchors
+    rounded in float32, and the test is for another group's or a spoiled state, off by O(1)).
 
     Example::
 

@@ -115,8 +115,10 @@ class TLSProblem:
         read = given and self.indices.is_floating_point() and values_readable(self.indices)
         self.indices = self.indices.to(self.F_ga.dtype)
         if read and not bool(torch.isfinite(self.indices).all()):
+            bad = ~torch.isfinite(self.indices)
             raise ValueError(f"indices must be finite (the sample indices n, shared by every "
-                             f"trial), got {self.indices.tolist()}")
+                             f"trial), got {int(bad.sum())} non-finite of {bad.numel()}, the first "
+                             f"at position {int(bad.int().argmax())}")
         _check_observations(self.F_ga, self.F_gb, self.cov_a, self.cov_b, self.indices)
         self.M = self.F_gb.inverse() @ self.F_ga  # (B, N+1)
         self.covariance = (self.cov_a, self.cov_b)  # block-diagonal over (eps_a, eps_b)

@@ -42,17 +42,37 @@ def dense(x: torch.Tensor, name: str) -> torch.Tensor:
 def numbers_as_tensor(value, name: str, dtype: torch.dtype, device) -> torch.Tensor:
     """A tensor argument that may also be given as a real number or a (nested) sequence of
     them, converted to ``dtype`` on ``device``; a tensor is returned as it is (dense).  A
-    string, or anything torch cannot read as numbers, is a TypeError naming the argument."""
+    string, a bool (also inside a sequence or numpy array), or anything torch cannot read as
+    numbers, is a TypeError naming the argument."""
     if isinstance(value, torch.Tensor):
         return dense(value, name)
     message = (f"{name} must be a torch.Tensor, a real number or a sequence of real numbers, "
                f"got {value!r}")
-    if isinstance(value, (str, bytes, bool)):  # a bool is no number here (True read as 1.0)
+    if isinstance(value, (str, bytes)):
         raise TypeError(message)
+    if holds_bool(value):  # a bool is no number here (torch reads True as 1.0)
+        raise TypeError(f"{name} must be a torch.Tensor, a real number or a sequence of real "
+                        f"numbers (not bools), got {value!r}")
     try:
         return torch.as_tensor(value, dtype=dtype, device=device)
     except (TypeError, ValueError, RuntimeError):
         raise TypeError(message) from None
+
+
+def holds_bool(value) -> bool:
+    """Whether ``value`` is a bool (Python or numpy) or a (nested) list, tuple or numpy array
+    holding one: torch would read True as 1.0, but a bool is no number where numbers are asked
+    for (``numbers_as_tensor``)."""
+    np = sys.modules.get("numpy")  # a numpy bool or array can only come from an imported numpy
+    if isinstance(value, bool) or (np is not None and isinstance(value, np.bool_)):
+        return True
+    if np is not None and isinstance(value, np.ndarray):
+        if value.dtype == np.bool_:
+            return True
+        return value.dtype == object and any(holds_bool(v) for v in value.flat)
+    if isinstance(value, (list, tuple)):
+        return any(holds_bool(v) for v in value)
+    return False
 
 
 def dtype_arg(dtype, name: str = "dtype") -> torch.dtype:

@@ -100,9 +100,9 @@ class MatrixBatch:
 
     # ---------------------------------------------------------------- batch handling
     def __getitem__(self, index: Any) -> Self:
-        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors, lists
-        and numpy arrays of ints or bools).  A float index (tensor, list or array) is refused with
-        IndexError (torch would truncate a list or array of floats: ``t[[0.7]]`` is ``t[[0]]``).
+        """Indexes the batch axes only (ints, slices, None, Ellipsis, index or mask tensors, lists,
+        tuples and numpy arrays of ints or bools).  A float index (tensor, list, tuple or array) is
+        refused with IndexError (torch would truncate a sequence of floats: ``t[[0.7]]`` is ``t[[0]]``).
 
         As for tensors, ints, slices and None give a view of this element's matrix: it shares
         the storage (``torch.save`` of ``g[0]`` writes the whole batch; save ``g[0].clone()``),
@@ -112,9 +112,10 @@ class MatrixBatch:
         for entry in index:
             # torch truncates a list or numpy array of floats to integers (g[[0.5]] is g[[0]]);
             # refused as it refuses a float index tensor
-            if (isinstance(entry, list) or type(entry).__name__ == "ndarray") and (why := _non_integer_index(entry)):
-                raise IndexError(f"{self._misfit(index)}: index lists and arrays must hold integers or "
-                                 f"bools, got {why}")
+            if (isinstance(entry, (list, tuple)) or type(entry).__name__ == "ndarray") and (
+                    why := _non_integer_index(entry)):
+                raise IndexError(f"{self._misfit(index)}: index lists, tuples and arrays must hold "
+                                 f"integers or bools, got {why}")
         try:
             matrix = self._matrix[index + (slice(None), slice(None))]
         except (IndexError, ValueError) as err:  # ValueError: a negative slice step
@@ -266,10 +267,10 @@ class MatrixBatch:
 
 
 def _non_integer_index(entry: Any) -> str | None:
-    """What makes a list or numpy array index non-integer (a float or complex item or dtype),
+    """What makes a list, tuple or numpy array index non-integer (a float or complex item or dtype),
     None for integer and bool ones and for other entries (ints, slices, None, Ellipsis, tensors:
     torch checks those).  Pure Python: no tensor is made, so nothing is traced or synced."""
-    if isinstance(entry, list):
+    if isinstance(entry, (list, tuple)):  # a tuple inside the index is a sequence index too
         for item in entry:
             why = _non_integer_index(item)
             if why is None and isinstance(item, (float, complex)):

@@ -285,9 +285,9 @@ def points_to_gtsam(p: torch.Tensor) -> Any:
 
 def points_from_gtsam(points, *, dtype: torch.dtype = torch.float64,
                       device: torch.device | str | None = None) -> torch.Tensor:
-    """A tensor (..., k) of GTSAM points (numpy vectors of length k = 2 or 3, float32 or
-    float64 as GTSAM's; other dtypes are refused as ``_tensor`` refuses them), one or (nested)
-    lists of them."""
+    """A tensor (..., k) of GTSAM points (numpy vectors of length k = 2 or 3: float32 or
+    float64, or integers, which ``gtsam.Point3`` of an integer array returns; complex, half,
+    bool and other dtypes are refused), one or (nested) lists of them."""
     dtype = checks.dtype_arg(dtype)
     is_point = lambda o: isinstance(o, np.ndarray) and o.ndim == 1  # noqa: E731
     flat, shape = nested_shape(points, is_point, "points", "a point (1-D numpy array)")
@@ -295,9 +295,9 @@ def points_from_gtsam(points, *, dtype: torch.dtype = torch.float64,
         raise ValueError("points is empty: there is no length to read")
     k = flat[0].shape[0]
     for i, p in enumerate(flat):
-        if p.dtype not in (np.float32, np.float64):
-            raise TypeError(f"points must be float32 or float64 arrays, but point {i} (row-major) "
-                            f"has dtype {p.dtype}")
+        if p.dtype not in (np.float32, np.float64) and p.dtype.kind not in "iu":
+            raise TypeError(f"points must be float32, float64 or integer arrays, but point {i} "
+                            f"(row-major) has dtype {p.dtype}")
         if p.shape != (k,) or k not in (2, 3):
             raise ValueError(f"points must all have length 2 or 3 and the same length, but point {i} "
                              f"(row-major) has shape {p.shape} and the first {(k,)}")

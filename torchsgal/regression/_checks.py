@@ -9,7 +9,6 @@ transform, while torch.compile traces).
 from __future__ import annotations
 
 import numbers
-import sys
 
 import torch
 
@@ -88,22 +87,6 @@ def time_origin(value, like: torch.Tensor, like_name: str = "samples", name: str
     return torch.tensor(value, dtype=like.dtype, device=like.device)
 
 
-def holds_bool(value) -> bool:
-    """Whether ``value`` is a bool (Python or numpy) or a (nested) list, tuple or numpy array
-    holding one: torch would read True as 1.0, but a bool is no number here (as in
-    ``checks.numbers_as_tensor``, which refuses a bare bool only)."""
-    np = sys.modules.get("numpy")  # a numpy bool or array can only come from an imported numpy
-    if isinstance(value, bool) or (np is not None and isinstance(value, np.bool_)):
-        return True
-    if np is not None and isinstance(value, np.ndarray):
-        if value.dtype == np.bool_:
-            return True
-        return value.dtype == object and any(holds_bool(v) for v in value.flat)
-    if isinstance(value, (list, tuple)):
-        return any(holds_bool(v) for v in value)
-    return False
-
-
 def metric_weights(weights, G, like: torch.Tensor, like_name: str = "samples",
                    name: str = "weights") -> torch.Tensor:
     """Weights per tangent component, shape (dof,) or (..., dof); default ones.  A tensor must
@@ -111,9 +94,6 @@ def metric_weights(weights, G, like: torch.Tensor, like_name: str = "samples",
     only: their values (positive, finite) are checked by ``weight_values``."""
     if weights is None:
         return torch.ones(G.dof, dtype=like.dtype, device=like.device)
-    if not isinstance(weights, torch.Tensor) and holds_bool(weights):
-        raise TypeError(f"{name} must be a torch.Tensor, a real number or a sequence of real "
-                        f"numbers (not bools), got {weights!r}")
     weights = checks.numbers_as_tensor(weights, name, like.dtype, like.device)
     checks.floating(weights, name)
     if weights.dim() < 1 or weights.shape[-1] != G.dof:

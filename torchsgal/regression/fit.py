@@ -69,7 +69,7 @@ class CurveFit:
             checks.same_device_dtype(**{"the fit": self.time_origin, "times": times})
         elif isinstance(times, (list, tuple)) or (isinstance(times, numbers.Real)
                                                   and not isinstance(times, bool)):
-            if _checks.holds_bool(times):  # torch would read True as 1.0
+            if checks.holds_bool(times):  # torch would read True as 1.0
                 raise TypeError(f"times must be a torch.Tensor or a (nested) list of numbers of "
                                 f"shape (..., M), not bools, got {times!r}")
             try:

@@ -151,8 +151,9 @@ class GaussHelmert(Factor):
         state = tuple(rest[nd + 1:nd + 4 + self.left_factor]) if self.iterated else None
         if state == ():
             raise RuntimeError("an iterated GaussHelmert factor carries state that "
-                               "graph.gauss_helmert updates after each step: solve its graph "
-                               "with graph.gauss_helmert (or give iterated=False)")
+                               "torchsgal.estimation.graph.gauss_helmert updates after each step: solve "
+                               "its graph with torchsgal.estimation.graph.gauss_helmert(graph) (or give "
+                               "iterated=False)")
         return variables, rest[:nd], rest[nd], state
 
     def _linearise(self, args, want_jacobian: bool):
