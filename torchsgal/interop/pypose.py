@@ -122,11 +122,7 @@ def _element(at, name: str) -> LieGroup:
 def perturbation_map(at) -> torch.Tensor:
     """M = Ad(at) (..., d, d) with ``d_pypose = M d_ours`` (pypose's left perturbation of the
     element ``at``, ours or a LieTensor, from our right one)."""
-    return _adjoint(at, "at")
-
-
-def _adjoint(at, name: str) -> torch.Tensor:
-    return _element(at, name).adjoint()
+    return _element(at, "at").adjoint()
 
 
 def _inverse_adjoint(at, name: str) -> torch.Tensor:
@@ -175,7 +171,7 @@ def jacobian_from_pypose(J: torch.Tensor, *, output, input) -> torch.Tensor:
     the element ``output`` (ours or LieTensors; None for a plain vector side) on our right
     perturbations: ``Ad(output)^-1 J Ad(input)``."""
     left = None if output is None else _inverse_adjoint(output, "output")
-    right = None if input is None else _adjoint(input, "input")
+    right = None if input is None else _element(input, "input").adjoint()
     return _jacobian(J, left, right)
 
 
@@ -183,6 +179,6 @@ def jacobian_to_pypose(J: torch.Tensor, *, output, input) -> torch.Tensor:
     """Our Jacobian (..., m, n) (right perturbations) of a map from ``input`` to ``output``
     (elements, or None for a plain vector side) on pypose's left ones:
     ``Ad(output) J Ad(input)^-1``."""
-    left = None if output is None else _adjoint(output, "output")
+    left = None if output is None else _element(output, "output").adjoint()
     right = None if input is None else _inverse_adjoint(input, "input")
     return _jacobian(J, left, right)
