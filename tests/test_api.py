@@ -526,7 +526,7 @@ def test_indexing_refuses_float_lists_and_arrays_and_names_the_index(G):
             g[bad]
     with pytest.raises(IndexError, match="must hold integers or bools"):
         g[None, [0.5]]
-    # a tuple inside the index is a sequence index too (torch truncated (0.7, 1.9) to [0, 1])
+    # a tuple inside the index is a sequence index too (torch would truncate (0.7, 1.9) to [0, 1])
     g2 = G.random((4, 3), dtype=torch.float64)
     for bad in ((slice(None), (0.7, 1.9)), ((0.7,),), ([(0.5,)],), (np.array([1]), [(0.5,)])):
         with pytest.raises(IndexError, match="must hold integers or bools, got 0"):
@@ -540,10 +540,10 @@ def test_indexing_refuses_float_lists_and_arrays_and_names_the_index(G):
 
 
 def test_stack_cat_squeeze_name_what_is_wrong():
-    """LieGroup.stack/cat (no group of its own) took elements of different groups and failed on
-    their matrix sizes ("equal batch shape: () and ()", or torch's RuntimeError); a
-    non-iterable ``elements`` failed in Python; squeeze(dim) of an unbatched element asked for a
-    dim "in [0, -1]"."""
+    """LieGroup.stack/cat (no group of its own) refuse elements of different groups by name
+    (unchecked, they would fail on their matrix sizes: "equal batch shape: () and ()", or torch's
+    RuntimeError); a non-iterable ``elements`` is named; squeeze(dim) of an unbatched element
+    says it has no batch axis (not a dim "in [0, -1]")."""
     from torchsgal.groups.base import LieGroup
 
     with pytest.raises(TypeError, match="LieGroup is the abstract base class"):

@@ -214,7 +214,7 @@ def test_page_guide__robots(tmp_path, capsys):
     assert n["mdh"].n_joints == 4 and n["dh"].n_joints == 4
     assert s.pose.batch_shape == (10000,) and s.extended_pose.batch_shape == (10000,)
     assert arm.forward(n["q"][:3], n["qd"][:3], all_links=True).pose.batch_shape[0] == 3
-    # IK: success is decided by the tolerances; the Panda reached about 92% with 4 seeds
+    # IK: success is decided by the tolerances; the Panda reaches about 92% with 4 seeds
     res = n["res"]
     assert res.q.shape == (100, 7) and res.success.shape == (100,)
     assert (res.position_error[res.success] <= 1e-4).all() and (res.rotation_error[res.success] <= 1e-3).all()

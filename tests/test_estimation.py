@@ -250,8 +250,8 @@ def test_gauss_helmert_covariance_checks():
 
 def test_gauss_helmert_checks_e0_observation_count_at_entry():
     """An e0 with another number of observations N than the condition's (40) is named with the
-    expected and given shapes before the condition sees it (a RuntimeError from inside the
-    user's condition before)."""
+    expected and given shapes before the condition sees it (without the check, a RuntimeError
+    from inside the user's condition)."""
     x, y = _line_data()
     cond = _line_condition(x, y)
     seen = []
@@ -337,8 +337,8 @@ def test_residual_and_jacobian_must_match_the_unknowns():
     # An empty batch is solved trivially.
     sol = gauss_newton(lambda x: x - 1, x0[:0], jacobian=lambda x: eye[:0])
     assert sol.covariance.shape == (0, 3, 3) and sol.report.status.shape == (0,)
-    # Unknowns without a tangent (nothing to solve for) are refused by name; they failed with
-    # an IndexError of amax deep in the loop.
+    # Unknowns without a tangent (nothing to solve for) are refused by name; unchecked, they
+    # would fail with an IndexError of amax deep in the loop.
     none = torch.zeros(2, 0, dtype=f64)
     with pytest.raises(ValueError, match=r"x0 must have at least one unknown .* got tangent "
                                          r"sizes \[0\]"):
@@ -797,8 +797,8 @@ def test_non_finite_problem_reports_nan_costs_not_a_perfect_fit():
 @pytest.mark.parametrize("damping", [None, 1e-3])
 def test_cost_that_overflows_at_x0_is_non_finite(damping):
     """Finite residuals whose cost overflows at x0 (|r| ~ 1e200: 1/2 |r|^2 = inf) are
-    NON_FINITE with NaN costs (SolverStatus); it was reported SINGULAR with an infinite cost,
-    and its information (inf) made the covariance NaN for the wrong reason."""
+    NON_FINITE with NaN costs (SolverStatus), not SINGULAR with an infinite cost (whose
+    information, inf, would make the covariance NaN for the wrong reason)."""
     t = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], dtype=f64)
     scale = torch.tensor([1.0, 1e200, 1.0], dtype=f64)[:, None]
     sol = gauss_newton(lambda x: (x - t) * scale, torch.zeros(3, 2, dtype=f64),

@@ -413,8 +413,8 @@ def test_a_solve_leaves_no_reference_cycle_and_a_copy_runs_its_own_methods():
 
 
 def test_dim_is_required():
-    """dim is the condition's size, required: None was accepted and failed in the solve on a
-    bare assertion."""
+    """dim is the condition's size, required: None is refused by name (accepted, it would fail
+    in the solve on a bare assertion)."""
     obs, _ = _line_data(B=2, E=5)
     idx = torch.zeros(5, dtype=torch.int64)
     with pytest.raises(TypeError, match="dim must be an integer >= 1, got None"):
@@ -423,8 +423,9 @@ def test_dim_is_required():
 
 def test_other_solvers_refuse_an_iterated_graph_also_after_a_gauss_helmert_solve():
     """The iterated conditions' state is the solve's own: after ``gauss_helmert`` the other
-    solvers refuse the graph as before it (they reported NON_FINITE, with NaN costs, for finite
-    data), and ``gauss_helmert`` solves it again from the estimated corrections."""
+    solvers refuse the graph as they do before it (with the state left, they would report
+    NON_FINITE, with NaN costs, for finite data), and ``gauss_helmert`` solves it again from the
+    estimated corrections."""
     obs, truth = _line_data(B=2, E=30)
     cov = 0.05 ** 2 * torch.eye(2, dtype=f64)
     graph, factor = _line_graph(obs, cov, True, truth + 0.3)

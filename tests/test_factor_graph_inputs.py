@@ -168,7 +168,7 @@ def test_lambda_initial_lies_between_its_bounds(options):
 @pytest.mark.parametrize("batch", [(), (1, 1, 1)], ids=str)
 def test_group_measurements_need_one_or_two_batch_axes(batch):
     """A group element of batch () or of three axes is no (E,) / (B, E) measurement: it is
-    refused by name (it failed in torch's indexing or expand, with no argument named)."""
+    refused by name (unchecked, it would fail in torch's indexing or expand, naming no argument)."""
     Z = ts.SE3.identity(batch, dtype=f64)
     with pytest.raises(ValueError, match=rf"measured must be a group element of batch \(E,\) or "
                                          rf"\(B, E\), got batch {re.escape(str(batch))}"):
@@ -187,7 +187,7 @@ def test_group_measurements_need_one_or_two_batch_axes(batch):
 def test_noise_of_another_size_dtype_or_device_is_refused_at_once():
     """A factor of known size refuses noise of another size when it is made,
     and the graph noise of another dtype or device when the factor is added (as its data),
-    naming the noise (they surfaced only in the solve)."""
+    naming the noise (unchecked, they would surface only in the solve)."""
     Z = ts.SE3.identity((3,), dtype=f64)
     with pytest.raises(ValueError, match=r"information must be \(6, 6\), \(E, 6, 6\) or \(B, E, 6, 6\) "
                                          r"for a residual of size 6, got \(5, 5\)"):

@@ -178,7 +178,7 @@ def test_odometry_initial_guess_sphere2500_matches_gtsam_compose(data):
 @pytest.mark.parametrize("group", [ts.SE2, ts.SE3])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_odometry_initial_guess_keeps_the_graph_dtype(group, dtype):
-    """A graph of float32 measurements gives float32 poses (always float64 before)."""
+    """A graph of float32 measurements gives float32 poses (the chain runs in float64 on the host)."""
     graph = random_graph(group, poses=False)
     graph.measurements = graph.measurements.to(dtype=dtype)
     graph.information = graph.information.to(dtype)
@@ -220,8 +220,8 @@ def test_malformed_files(tmp_path, text, message):
 
 
 def test_bytes_that_are_not_text(tmp_path):
-    """A byte that is not UTF-8 in a data line is an error naming the file and line (it was a
-    UnicodeDecodeError at a position of the decoder's buffer, without either); in a comment it
+    """A byte that is not UTF-8 in a data line is an error naming the file and line (not a
+    UnicodeDecodeError at a position of the decoder's buffer, naming neither); in a comment it
     is skipped with the comment."""
     path = tmp_path / "bad.graph"
     path.write_bytes(b"# caf\xe9\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\nEDGE2 1 2 1 0 \xff 1 0 1 1 0 0\n")

@@ -215,21 +215,22 @@ def test_number_dt_is_filled_on_the_device(monkeypatch):
 
 
 def test_a_non_tensor_gyro_is_named_beside_a_number_dt():
-    """preintegrate(gyro as a list, acc, 0.01) said "dt must be a number or a tensor (..., K),
-    got float": the valid dt was named instead of gyro."""
+    """preintegrate(gyro as a list, acc, 0.01) names gyro, not the valid dt (as in "dt must be a
+    number or a tensor (..., K), got float")."""
     gyro, acc, _, _, _ = samples((), 4, seed=1)
     for f in (preintegrate, increment_tangents):
         for bad, kind in ((gyro.tolist(), "list"), (gyro.numpy(), "ndarray")):
             with pytest.raises(TypeError, match=rf"^gyro must be a torch.Tensor, got {kind}$"):
                 f(bad, acc, 0.01)
-    # a number dt beside a tensor gyro still means one interval for every sample
+    # a number dt beside a tensor gyro means one interval for every sample
     ref = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01], dtype=F64)
     assert torch.equal(increment_tangents(torch.zeros(4, 3, dtype=F64), torch.zeros(4, 3, dtype=F64),
                                           0.01), ref.expand(4, 10))
 
 
 def test_sensor_to_body_refuses_samples_without_a_sample_axis():
-    """gyro, acc (3,) (no K axis) came back as (1, 3): the shape of the samples changed."""
+    """gyro, acc (3,) (no K axis) are refused: read as one sample, they would come back as
+    (1, 3), another shape than the samples'."""
     gyro, acc, _, _, _ = samples((), 4, seed=2)
     T = SE3.exp(0.1 * torch.randn(6, dtype=F64, generator=torch.Generator().manual_seed(1)))
     for kw in ({}, {"angular_acceleration": torch.zeros(3, dtype=F64)}):
@@ -242,8 +243,8 @@ def test_sensor_to_body_refuses_samples_without_a_sample_axis():
 
 
 def test_trajectory_tensor_parameters_must_broadcast_with_the_times():
-    """A tensor parameter whose batch does not broadcast with t gave torch's "The size of tensor
-    a (4) must match ..." without naming the parameter."""
+    """A tensor parameter whose batch does not broadcast with t is named (unchecked, torch's
+    "The size of tensor a (4) must match ..." would name no parameter)."""
     t = torch.zeros(3, dtype=F64)
     traj = SinusoidalTrajectory(pos_amplitude=torch.ones(4, 3, dtype=F64))
     with pytest.raises(ValueError, match=r"^batch shapes do not broadcast: t \(3,\), .*pos_amplitude \(4,\)"):
@@ -260,8 +261,8 @@ def test_trajectory_tensor_parameters_must_broadcast_with_the_times():
 
 
 def test_gtsam_params_refuse_negative_or_non_finite_densities():
-    """peers.gtsam_params(gyro_noise_density=-1e-3) squared the density into a valid covariance
-    and took a NaN gravity magnitude; it is checked before GTSAM is imported."""
+    """peers.gtsam_params checks the densities and the gravity magnitude before GTSAM is imported
+    (unchecked, a density of -1e-3 would be squared into a valid covariance, a NaN magnitude taken)."""
     from torchsgal.imu import peers
     for name, bad in (("gyro_noise_density", -1e-3), ("acc_noise_density", float("nan")),
                       ("integration_sigma", -1.0), ("magnitude", float("nan")), ("magnitude", -9.8)):
@@ -272,9 +273,9 @@ def test_gtsam_params_refuse_negative_or_non_finite_densities():
 
 
 def test_pypose_predict_and_navstates_check_dtypes_first():
-    """pypose_predict with a float32 start and float64 samples failed inside pypose ("expected
-    scalar type Float but found Double"); from_gtsam_navstate took an integer time and named
-    "rotation", and a list time raised AttributeError."""
+    """pypose_predict names a float32 start beside float64 samples (pypose would fail on it:
+    "expected scalar type Float but found Double"); from_gtsam_navstate names an integer or a
+    list time (not "rotation", nor an AttributeError)."""
     from torchsgal.imu import peers
     gyro, acc, dt, _, _ = samples((1,), 5, seed=5)
     start = SGal3.identity((1,), dtype=torch.float32)

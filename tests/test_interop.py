@@ -334,7 +334,7 @@ def test_gtsam_arrays_of_other_kinds_are_refused(array):
         with pytest.raises(TypeError, match=f"^{name} must be a float32 or float64"):
             fn(np.zeros((6, 6), dtype=array.dtype) if array.dtype.kind != "U" else np.array([["a"] * 6] * 6), "Pose3")
     assert tg.tangent_from_gtsam(np.arange(6, dtype=np.float32), "Pose3").dtype == torch.float64
-    # points too (a complex one lost its imaginary part with only a warning), naming the point;
+    # points too (a complex one would lose its imaginary part with only a warning), naming the point;
     # integer points are GTSAM's own (gtsam.Point3 of an integer array returns int64)
     good = np.array([1.0, 2.0, 3.0])
     if array.dtype.kind == "i":

@@ -57,8 +57,8 @@ def test_non_unit_axis_is_normalised(axis):
 @pytest.mark.parametrize("axis", [(1e-3, 0.0, -1.0), (0.0, 1e-5, -1.0), (3e-7, 0.0, -1.0),
                                   (1e-9, -1e-9, -1.0), (0.0, 0.0, -1.0), (-0.6, 0.0, -0.8)])
 def test_axis_close_to_minus_z_is_exact(axis):
-    """An axis near -z lost accuracy (the canonical frame divided by 1 + a_z, which cancels,
-    and axes within ~1e-6 of -z were replaced by -z): a 1e-5 tilt gave rotations 3e-7 off."""
+    """An axis near -z keeps its accuracy (a canonical frame dividing by 1 + a_z, which cancels,
+    or replacing axes within ~1e-6 of -z by -z, would be 3e-7 off Rodrigues' formula at a 1e-5 tilt)."""
     q = torch.tensor([0.7, -2.1, math.pi], dtype=F64)[:, None]
     R = _one_joint(axis).pose(q).rotation()
     for b in range(3):
@@ -201,8 +201,8 @@ def test_ik_q0_reading_when_seeds_equal_targets():
 
 
 def test_ik_non_finite_position_target_or_seed_raises():
-    """Pose targets were checked finite (as rigid transforms) but position targets and q0
-    were not: a NaN/inf target or seed ran the solver and came back as NaN errors and joints."""
+    """Position targets and q0 are checked finite, as pose targets are (as rigid transforms):
+    unchecked, a NaN/inf target or seed would run the solver and return NaN errors and joints."""
     chain = _planar()
     good = torch.tensor([[0.6, 0.8, 0.0], [0.0, 1.0, 0.0]], dtype=F64)
     for bad_value in (math.nan, math.inf, -math.inf):
@@ -440,8 +440,8 @@ def test_build_pk_chain_checks_columns_as_gdh(column, message):
 
 
 def test_sparse_joint_tensors_are_refused_by_name():
-    """A sparse q, qdot or q0 failed inside torch (expand/reshape/where not implemented for
-    sparse tensors) without naming the argument."""
+    """A sparse q, qdot or q0 is refused by name (unchecked, it would fail inside torch:
+    expand/reshape/where not implemented for sparse tensors)."""
     chain = KinematicChain.from_dh([0.5, 0.25], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
     gdh = GDHChain([0.5, 0.25], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], "RR")
     q = torch.zeros(1, 2, dtype=F64)

@@ -393,9 +393,9 @@ def test_bad_input():
 
 
 def test_load_robot_refuses_empty_and_non_string_names():
-    """end_link "" (or [], 0) fell back to the default tool frame through ``end_link or
-    default``; only None takes the default, the rest is refused as any bad end link.  A robot
-    name that is not a str gave "unhashable type" instead of a TypeError naming it."""
+    """Only end_link None takes the default tool frame; "" (or [], 0) is refused as any bad end
+    link (through ``end_link or default`` it would fall back to the default).  A robot name
+    that is not a str is a TypeError naming it (not "unhashable type")."""
     with pytest.raises(ValueError, match=r"^end_link '' is not a link of the robot 'panda'; its links are .*'panda_link0'"):
         load_robot("panda", end_link="")
     with pytest.raises(ValueError, match="^end_link must name at least one link$"):
@@ -405,7 +405,7 @@ def test_load_robot_refuses_empty_and_non_string_names():
     for call in (robot_urdf, load_robot):
         with pytest.raises(TypeError, match=r"^name must be a robot name \(a str\).*'panda'.*got list \['panda'\]$"):
             call(["panda"])
-    assert load_robot("panda", end_link=None).end_link == "panda_hand_tcp"  # the default, as before
+    assert load_robot("panda", end_link=None).end_link == "panda_hand_tcp"  # the default
 
 
 def test_tree_branches_against_pinocchio():

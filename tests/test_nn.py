@@ -260,8 +260,8 @@ def test_a_state_dict_of_another_group_or_off_the_group_is_refused():
 
 
 def test_a_state_dict_with_a_non_finite_delta_is_refused():
-    """A NaN or inf delta loaded without a word (only the anchor was checked) and made the
-    value NaN; it is refused by key, and the module keeps its own delta."""
+    """A NaN or inf delta is refused by key, and the module keeps its own delta (unchecked, it
+    would load without a word and make the value NaN)."""
     p = GroupParameter(ts.SE3.identity((2,), dtype=F64))
     holder = nn.Module()
     holder.pose = p

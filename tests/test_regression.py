@@ -715,8 +715,8 @@ def test_fitted_curve_checks_tensor_times_as_the_fits_do():
 
 
 def test_bools_are_no_weights_or_times():
-    """weights or times given as (nested) lists of bools were read as 1.0 and 0.0; a bool is no
-    number here (as a bare bool, or a bool tensor, is refused): TypeError naming the argument."""
+    """weights or times given as (nested) lists of bools are not read as 1.0 and 0.0; a bool is
+    no number here (as a bare bool, or a bool tensor, is refused): TypeError naming the argument."""
     Y = ts.SE3.exp(torch.randn(6, 6, dtype=F64, generator=torch.Generator().manual_seed(2)))
     t = torch.linspace(0, 1, 6, dtype=F64)
     for w in ([True] * 6, (True,) * 6, [[True] * 6], [1.0] * 5 + [True], np.ones(6, dtype=bool)):
@@ -728,7 +728,7 @@ def test_bools_are_no_weights_or_times():
     for times in ([True, False], (True,), [[0.5, True]], [np.True_]):
         with pytest.raises(TypeError, match=r"^times must be a torch.Tensor or a \(nested\) list of numbers"):
             fit(times)
-    # numbers, as before
+    # lists of numbers are read
     assert reg.fit_subgroup(Y, t, weights=[1.0] * 6).cost.shape == ()
     assert fit([0.0, 1]).batch_shape == (2,)
 
@@ -803,8 +803,8 @@ def test_log_distance_and_r_squared_name_their_arguments():
 @pytest.mark.parametrize("n", [4, 2])
 def test_r_squared_with_batched_weights_weighs_every_sample_of_a_data_set(n):
     """weights (..., dof) are per data set, as in the fits and ``frechet_mean``: they weigh
-    every sample of the data set.  They were paired with the samples instead (weights (B, dof)
-    with B != N raised a bare RuntimeError; B == N gave a wrong R^2 of a wrong shape).
+    every sample of the data set.  Paired with the samples instead, weights (B, dof) with
+    B != N would raise a bare RuntimeError, and B == N give a wrong R^2 of a wrong shape.
     Expected values: (50) with the log distances taken from scipy's matrix logarithm."""
     gen = torch.Generator().manual_seed(5)
     Y = ts.SE3.exp(0.4 * torch.randn(n, 6, dtype=F64, generator=gen))

@@ -176,8 +176,8 @@ def test_bad_input_errors():
 @pytest.mark.parametrize("backend", BACKEND_PARAMS)
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_non_finite_rhs_gives_non_finite_column_on_every_backend(backend, bad):
-    # a non-finite right-hand side is not a singular matrix (cholespy raised
-    # NotPositiveDefiniteError before): every backend returns the non-finite column as such,
+    # a non-finite right-hand side is not a singular matrix (no NotPositiveDefiniteError,
+    # cholespy's included): every backend returns the non-finite column as such,
     # the finite columns solved, and keeps its factor
     A, rows, cols, values = block_system()
     n = A.shape[0]

@@ -242,7 +242,7 @@ def test_problem_and_unknowns_are_checked():
     listed = tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[0, 1, 2, 3, 4])
     assert torch.equal(listed.indices, P.indices)
     # Non-finite sample indices (shared by every trial) are bad input, not 4 NON_FINITE trials;
-    # bool or complex ones are not sample indices (they were cast to 0/1, or lost their
+    # bool or complex ones are not sample indices (cast, they would become 0/1, or lose their
     # imaginary part).
     for bad in (float("nan"), float("inf")):
         with pytest.raises(ValueError, match="indices must be finite"):
@@ -251,7 +251,7 @@ def test_problem_and_unknowns_are_checked():
     with pytest.raises(ValueError, match="indices must be finite .*got 1 non-finite of 5, the first "
                                          "at position 3"):
         tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[0, 1, 2, float("nan"), 4])
-    with pytest.raises(TypeError, match=r"indices must be .* \(not bools\)"):  # read as 1.0 before
+    with pytest.raises(TypeError, match=r"indices must be .* \(not bools\)"):  # not read as 1.0
         tls.TLSProblem(P.F_ga, P.F_gb, S, S, indices=[True] * 5)
     for bad in (torch.ones(5, dtype=torch.bool), torch.arange(5.0).to(torch.complex128)):
         with pytest.raises(TypeError, match=f"indices must be real numbers, got {bad.dtype}"):

@@ -336,8 +336,8 @@ def test_empty_batch():
 
 
 def test_check_covariance_validates_dim():
-    """dim=True passed a (1, 1) covariance as dim 1 and dim "1" or -1 gave a shape message about
-    the covariance; dim is now checked first, by name: an integer >= 0, bool refused."""
+    """dim is checked first, by name: an integer >= 0, bool refused (unchecked, dim=True would
+    pass a (1, 1) covariance as dim 1, and dim "1" or -1 give a shape message about it)."""
     from torchsgal.uncertainty import check_covariance
 
     S = torch.eye(1, dtype=torch.float64)

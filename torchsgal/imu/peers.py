@@ -93,7 +93,7 @@ def gtsam_params(frame: str = "z_up", magnitude: float = STANDARD_GRAVITY,
     numbers >= 0 (ValueError naming them otherwise)."""
     if frame not in ("z_up", "ned"):
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
-    # checked before GTSAM sees them: a negative density was squared into a valid covariance
+    # checked before GTSAM sees them: a negative density would be squared into a valid covariance
     magnitude = checks.finite_number(magnitude, "magnitude", ">= 0")
     gyro_noise_density = checks.finite_number(gyro_noise_density, "gyro_noise_density", ">= 0")
     acc_noise_density = checks.finite_number(acc_noise_density, "acc_noise_density", ">= 0")
@@ -171,7 +171,7 @@ def pypose_predict(gyro, acc, dt, start: SGal3, frame: str = "z_up",
         raise ValueError(f"frame must be 'z_up' or 'ned', got {frame!r}")
     _stream(gyro, acc, dt)
     _frames(start, "start")
-    # pypose's own error on mixed dtypes ("expected scalar type Float ...") named no argument
+    # pypose's own error on mixed dtypes ("expected scalar type Float ...") names no argument
     checks.same_device_dtype(gyro=gyro, acc=acc, dt=dt, start=start.as_matrix())
     import pypose as pp
 

@@ -22,7 +22,7 @@ def axis_frame(a: torch.Tensor) -> torch.Tensor:
     a = a.to(torch.float64)
     if float(a[2]) < 0.0:
         # Q = F Q'(F a), F = diag(1, -1, -1) a half turn about x: F a has a_z >= 0, so the
-        # 1 / (1 + c) below stays >= 1/2 (near a = -e_z it cancelled and lost accuracy).
+        # 1 / (1 + c) below stays >= 1/2 (near a = -e_z it would cancel and lose accuracy).
         F = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
         return F @ axis_frame(F @ a)
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)

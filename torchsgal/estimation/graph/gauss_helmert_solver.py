@@ -139,9 +139,9 @@ def _prepare_states(graph: FactorGraph) -> None:
 
 def _release_states(graph: FactorGraph) -> None:
     """The iterated conditions' data without the solve's state (the corrections stay): the
-    other solvers refuse such a factor again, as before the solve (with the state left, they
-    evaluated it with a stale linearisation, NaN), and the next ``gauss_helmert`` prepares it
-    anew from the corrections."""
+    other solvers refuse such a factor, as they do before the solve (were the state left, they
+    would evaluate it with a stale linearisation: NaN), and the next ``gauss_helmert`` prepares
+    it anew from the corrections."""
     for f in graph.factors:
         if isinstance(f, GaussHelmert) and f.iterated:
             f.data = f.data[:len(f.user_data) + 1]  # the user's data and the covariance factor
