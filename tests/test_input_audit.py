@@ -19,10 +19,10 @@ from scipy.spatial.transform import Rotation
 import torchsgal as ts
 from torchsgal import regression
 from torchsgal.estimation import study, tls
-from torchsgal.estimation.gauss_helmert import check_covariance as gh_check_covariance
 from torchsgal.functional import native, numerics, ops
 from torchsgal.regression import models
 from torchsgal.uncertainty import events, gaussian
+from torchsgal.uncertainty.covariance import covariance_factor
 
 F32, F64 = torch.float32, torch.float64
 
@@ -201,7 +201,7 @@ BAD_INPUTS = {
     "sparse-components": ("rotation", lambda: ts.SE3.from_components(
         _sparse(torch.eye(3, dtype=F64)), torch.zeros(3, dtype=F64))),
     "sparse-covariance": ("covariance", lambda: gaussian.check_covariance(_sparse(torch.eye(3, dtype=F64)), 3)),
-    "sparse-gauss_helmert": ("S", lambda: gh_check_covariance(_sparse(torch.eye(3, dtype=F64)), 3, "S")),
+    "sparse-covariance-factor": ("S", lambda: covariance_factor(_sparse(torch.eye(3, dtype=F64)), "S")),
     "sparse-times": ("times", lambda: regression.fit_polynomial(_fit_samples()[0], _sparse(_fit_samples()[1]))),
     "sparse-weights": ("weights", lambda: regression.fit_polynomial(
         *_fit_samples(), weights=_sparse(torch.ones(6, dtype=F64)))),

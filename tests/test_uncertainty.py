@@ -1005,3 +1005,53 @@ def test_singular_covariance_gradients_are_finite_where_eigenvalues_repeat():
         return ConcentratedGaussian(mean, B @ B.mT, allow_singular=True, validate=False).log_prob(on_support)
 
     assert torch.autograd.gradcheck(log_prob, (B.clone().requires_grad_(),))
+
+
+def test_covariance_factor_is_the_checked_square_root():
+    """covariance_factor gives the Cholesky factor of a full covariance and the square-root
+    diagonal of a diagonal one, refuses what check_covariance refuses (with its messages), and
+    every estimator that reads a noise covariance (IMU factors, Gauss-Helmert conditions, TLS)
+    applies the same tolerance: an asymmetry of 1e-12 relative passes all of them, 1e-6 none."""
+    from torchsgal.estimation import graph as fg
+    from torchsgal.imu.factors import sqrt_information_from_covariance
+    from torchsgal.uncertainty.covariance import check_covariance, covariance_factor
+
+    D = torch.float64
+    gen = torch.Generator().manual_seed(3)
+    A = torch.randn(4, 5, 5, dtype=D, generator=gen)
+    S = A @ A.mT + 0.1 * torch.eye(5, dtype=D)
+    diagonal, L = covariance_factor(S, "S")
+    assert not diagonal
+    torch.testing.assert_close(L, torch.linalg.cholesky(S), rtol=0, atol=1e-13)
+    d = torch.tensor([4.0, 9.0, 0.25], dtype=D)
+    diagonal, R = covariance_factor(torch.diag(d), "S")
+    assert diagonal and torch.equal(R, torch.tensor([2.0, 3.0, 0.5], dtype=D))
+    info = sqrt_information_from_covariance(S)
+    torch.testing.assert_close(info.mT @ info, torch.linalg.inv(S), rtol=1e-10, atol=1e-10)
+    assert torch.equal(sqrt_information_from_covariance(torch.diag(d)), torch.diag(1 / d.sqrt()))
+    with pytest.raises(ValueError, match=r"^S is not positive definite \(1 of the batch\)$"):
+        covariance_factor(torch.diag(torch.tensor([1.0, -1.0], dtype=D)), "S")
+    with pytest.raises(ValueError, match=r"^S has non-finite entries$"):
+        covariance_factor(torch.diag(torch.tensor([1.0, float("nan")], dtype=D)), "S")
+    with pytest.raises(ValueError, match=r"^S must have shape \(\.\.\., m, m\) with m >= 1, got \(0, 0\)$"):
+        covariance_factor(torch.zeros(0, 0, dtype=D), "S")
+    with pytest.raises(TypeError, match=r"^S must be a tensor \(\.\.\., m, m\), got list$"):
+        covariance_factor([[1.0]], "S")
+
+    def skewed(eps):
+        C = torch.eye(10, dtype=D)
+        C[0, 1] = eps
+        return C
+
+    for eps, passes in ((1e-12, True), (1e-6, False)):
+        C = skewed(eps)
+        readers = [lambda C=C: check_covariance(C, 10), lambda C=C: covariance_factor(C),
+                   lambda C=C: sqrt_information_from_covariance(C),
+                   lambda C=C: fg.GaussHelmert(lambda F, e: F.log() - e,
+                                               [("F", torch.zeros(1, dtype=torch.int64))], C, dim=10)]
+        for read in readers:
+            if passes:
+                read()
+            else:
+                with pytest.raises(ValueError, match="is not symmetric"):
+                    read()

@@ -25,55 +25,11 @@ from collections.abc import Callable
 import torch
 
 from ..functional import checks
-from ..functional._blocking import values_readable
-from ..functional.checks import SUPPORTED_DTYPES
+from ..uncertainty.covariance import covariance_factor
 from . import variables as V
 from .solver import Linearisation, Solution, _as_given, iterate
 
 VARIANTS = ("iterated", "paper")
-
-
-def check_covariance(S: torch.Tensor, m: int, name: str) -> torch.Tensor:
-    """Symmetric positive definite (..., m, m); raises naming ``name`` otherwise.  The value
-    checks read their measures together (one host sync) and are skipped where values cannot be
-    read (on 'meta', under torch.func transforms and torch.compile); shape and dtype always."""
-    _checked_factor(S, m, name)
-    return S
-
-
-def _checked_factor(S: torch.Tensor, m: int, name: str):
-    """check_covariance's checks, then (diagonal, factor): whether every matrix of S is diagonal
-    and its square-root diagonal if so, else its Cholesky factor, in the same single read
-    (unreadable values: not diagonal, the factor unchecked)."""
-    if not isinstance(S, torch.Tensor):
-        raise TypeError(f"{name} must be a tensor (..., {m}, {m}), got {type(S).__name__}")
-    checks.dense(S, name)
-    if S.dim() < 2 or S.shape[-2:] != (m, m):
-        raise ValueError(f"{name} must have shape (..., {m}, {m}), got {tuple(S.shape)}")
-    if S.dtype not in SUPPORTED_DTYPES:
-        raise TypeError(f"{name} must be floating point (torch.float32 or torch.float64), got {S.dtype}")
-    if m < 1:
-        raise ValueError(f"{name} must have shape (..., m, m) with m >= 1, got {tuple(S.shape)}")
-    d = S.diagonal(dim1=-2, dim2=-1)
-    if S.numel() == 0:  # an empty batch: nothing to check
-        return True, d.sqrt()
-    L, info = torch.linalg.cholesky_ex(S)
-    if not values_readable(S):
-        return False, L
-    measures = torch.stack((torch.isfinite(S).all().to(S.dtype),
-                            (S - S.transpose(-1, -2)).abs().amax(),
-                            S.abs().amax().clamp_min(torch.finfo(S.dtype).tiny),
-                            (info != 0).sum().to(S.dtype),
-                            (S - torch.diag_embed(d)).abs().amax()))
-    finite, asym, scale, bad, off_diagonal = measures.tolist()
-    if not finite:
-        raise ValueError(f"{name} has non-finite entries")
-    if asym > 1e3 * torch.finfo(S.dtype).eps * scale:
-        raise ValueError(f"{name} is not symmetric: max |S - S^T| = {asym:.3g}")
-    if bad:
-        raise ValueError(f"{name} is not positive definite ({int(bad)} of "
-                         f"{info.numel()} matrices fail Cholesky)")
-    return (True, d.sqrt()) if off_diagonal == 0 else (False, L)
 
 
 class _CovarianceBlocks:
@@ -93,7 +49,7 @@ class _CovarianceBlocks:
             if not isinstance(S, torch.Tensor) or S.dim() < 2:
                 raise ValueError(f"{name} must be a tensor (..., m, m), got "
                                  f"{tuple(getattr(S, 'shape', ()))}")
-            diagonal, factor = _checked_factor(S, S.shape[-1], name)
+            diagonal, factor = covariance_factor(S, name)
             self.sizes.append(S.shape[-1])
             self.diagonal.append(diagonal)
             self.factors.append(factor)

@@ -37,8 +37,8 @@ import torch
 from ..functional import checks
 from ..functional._blocking import values_readable
 from ..groups import SE23, LieGroup, SGal3
+from ..uncertainty.covariance import check_covariance
 from . import variables as V
-from .gauss_helmert import check_covariance
 from .solver import Solution, SolverReport
 
 E10 = 9  # index of iota, the time component of the SGal(3) tangent

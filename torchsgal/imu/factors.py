@@ -32,10 +32,10 @@ import numbers
 import torch
 
 from .. import SE3, SE23, SO3, SGal3
-from ..estimation.gauss_helmert import check_covariance
 from ..estimation.graph.factors import Factor
 from ..functional import checks
 from ..groups import LieGroup
+from ..uncertainty.covariance import covariance_factor
 from .preintegration import Preintegration
 
 __all__ = ["ImuFactor", "BiasRandomWalkFactor", "GnssPositionFactor", "imu_residual",
@@ -46,13 +46,13 @@ __all__ = ["ImuFactor", "BiasRandomWalkFactor", "GnssPositionFactor", "imu_resid
 def sqrt_information_from_covariance(covariance: torch.Tensor, name: str = "covariance"
                                      ) -> torch.Tensor:
     """L (..., m, m) with L^T L = covariance^-1: L = C^-1 for the Cholesky factor C C^T =
-    covariance.  Raises naming ``name`` unless the covariance is symmetric positive definite
-    (``estimation.gauss_helmert.check_covariance``: a construction-time check, one read)."""
+    covariance (1 / sqrt of the diagonal where every matrix is diagonal).  Raises naming
+    ``name`` unless the covariance is symmetric positive definite
+    (``uncertainty.covariance.covariance_factor``: one read, which also gives C)."""
     checks.floating(covariance, name)
-    if covariance.dim() < 2 or covariance.shape[-1] != covariance.shape[-2]:
-        raise ValueError(f"{name} must have shape (..., m, m), got {tuple(covariance.shape)}")
-    check_covariance(covariance, covariance.shape[-1], name)
-    C = torch.linalg.cholesky(covariance)
+    diagonal, C = covariance_factor(covariance, name)
+    if diagonal:
+        return torch.diag_embed(C.reciprocal())
     eye = torch.eye(covariance.shape[-1], dtype=covariance.dtype, device=covariance.device)
     return torch.linalg.solve_triangular(C, eye.expand_as(C), upper=False)
 

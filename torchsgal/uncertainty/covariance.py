@@ -1,7 +1,9 @@
 """Covariance matrices: the checks of a covariance argument and the factors that whiten by one.
 
 ``check_covariance`` raises unless a tensor is a symmetric positive (semi-)definite covariance,
-reading all its measures in one host sync; ``_supported_factor`` gives a square root of a
+reading all its measures in one host sync; ``covariance_factor`` runs the same check on a
+definite covariance and returns the square root it factored on the way (the estimators' noise
+models); ``_supported_factor`` gives a square root of a
 covariance on its supported directions (exactly zero rows and columns are known directions)
 and the whitening by it.
 """
@@ -43,6 +45,32 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
     _raise_for_measures(_read(_covariance_measures(S, definite, tol)), S, name, definite, tol)
 
 
+def covariance_factor(S: torch.Tensor, name: str = "covariance") -> tuple[bool, torch.Tensor]:
+    """(diagonal, factor) of a covariance S (..., m, m), m >= 1, checked as ``check_covariance``
+    (definite, default tolerance) in the same single read: ``diagonal`` says whether every
+    matrix of S is diagonal; ``factor`` is then the square-root diagonal (..., m), else the
+    Cholesky factor (..., m, m) of S's symmetric part.  Where values cannot be read (on 'meta',
+    under torch.func or torch.compile): not diagonal, the factor unchecked.  Differentiable in
+    S."""
+    if not isinstance(S, torch.Tensor):
+        raise TypeError(f"{name} must be a tensor (..., m, m), got {type(S).__name__}")
+    if S.dim() < 2 or S.shape[-1] != S.shape[-2] or S.shape[-1] < 1:
+        raise ValueError(f"{name} must have shape (..., m, m) with m >= 1, got {tuple(S.shape)}")
+    _covariance_shape(S, S.shape[-1], name)
+    checks.dense(S, name)
+    d = S.diagonal(dim1=-2, dim2=-1)
+    if S.numel() == 0:  # an empty batch: nothing to check
+        return True, d.sqrt()
+    tol = _default_tol(S, None)
+    measures, L = _covariance_measures(S, True, tol, factor=True)
+    if not values_readable(S):
+        return False, L
+    off_diagonal = (S - torch.diag_embed(d)).abs().amax().reshape(1).to(S.dtype)
+    *values, off = _read(measures, off_diagonal)
+    _raise_for_measures(values, S, name, True, tol)
+    return (True, d.sqrt()) if off == 0 else (False, L)
+
+
 def _covariance_shape(S, dim: int, name: str) -> None:
     if not isinstance(S, torch.Tensor) or S.dtype not in SUPPORTED_DTYPES:
         raise TypeError(f"{name} must be a torch.Tensor of dtype torch.float32 or torch.float64, got "
@@ -55,13 +83,14 @@ def _default_tol(S: torch.Tensor, tol: float | None) -> float:
     return (1e-5 if S.dtype == torch.float32 else 1e-10) if tol is None else tol
 
 
-def _covariance_measures(S: torch.Tensor, definite: bool, tol: float) -> torch.Tensor:
+def _covariance_measures(S: torch.Tensor, definite: bool, tol: float, factor: bool = False):
     """The measures that check_covariance reads, as one tensor (3,) of S's dtype, not read here
     (no host sync): all entries finite (1 or 0), the largest relative asymmetry, and how many of
     the batch fail the (semi-)definiteness test.  Semi-definite within ``tol``: the smallest
     eigenvalue of S / max|S| is > -tol, tested as a Cholesky factorisation of S / max|S| + tol I
     (not with an eigensolver, which checks its own convergence: a host sync of its own on CUDA).
-    S non-empty."""
+    S non-empty.  ``factor`` (definite only): also the Cholesky factor of S's symmetric part that
+    the test computes, as (measures, factor)."""
     finite = torch.isfinite(S)
     S0 = torch.where(finite, S, torch.zeros((), dtype=S.dtype, device=S.device))
     scale = S0.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(S.dtype).tiny)
@@ -70,8 +99,9 @@ def _covariance_measures(S: torch.Tensor, definite: bool, tol: float) -> torch.T
     if not definite:
         eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
         sym = sym / scale[..., None, None] + tol * eye
-    _, info = torch.linalg.cholesky_ex(sym)
-    return torch.stack((finite.all().to(S.dtype), asym, (info != 0).sum().to(S.dtype)))
+    L, info = torch.linalg.cholesky_ex(sym)
+    measures = torch.stack((finite.all().to(S.dtype), asym, (info != 0).sum().to(S.dtype)))
+    return (measures, L) if factor else measures
 
 
 def _raise_for_measures(values, S: torch.Tensor, name: str, definite: bool, tol: float) -> None:

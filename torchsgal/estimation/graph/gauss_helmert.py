@@ -39,8 +39,8 @@ import torch
 
 from ...functional import checks
 from ...groups import LieGroup
+from ...uncertainty.covariance import covariance_factor
 from ..dense_solve import gram_cholesky_solve, triangular_solve
-from ..gauss_helmert import check_covariance
 from .factors import Data, Factor
 
 __all__ = ["GaussHelmert"]
@@ -103,12 +103,8 @@ class GaussHelmert(Factor):
         if not isinstance(covariance, torch.Tensor) or not 2 <= covariance.dim() <= 4:
             got = tuple(covariance.shape) if isinstance(covariance, torch.Tensor) else type(covariance).__name__
             raise ValueError(f"covariance must have shape (m, m), (E, m, m) or (B, E, m, m), got {got}")
-        check_covariance(covariance, covariance.shape[-1], "covariance")
+        self.diagonal, factor = covariance_factor(covariance, "covariance")
         self.m = covariance.shape[-1]
-        off = covariance - torch.diag_embed(covariance.diagonal(dim1=-2, dim2=-1))
-        self.diagonal = not bool(off.any())
-        factor = (covariance.diagonal(dim1=-2, dim2=-1).sqrt() if self.diagonal
-                  else torch.linalg.cholesky(covariance))
         if covariance.dim() == 2:
             factor = factor[None]  # one for every condition: leading size 1
         self.user_data = tuple(data)
