@@ -30,6 +30,20 @@ class EntryLayout:
         self.h_index, self.slots = h_index, slots
         self.block_slots = slots.split(block_sizes)  # one index per factor block, in order
         self._entries: tuple[torch.Tensor, ...] | None = None
+        self._block_index: dict[tuple[int, int], tuple[torch.Tensor, ...]] = {}
+
+    def block_index(self, n: int, g_index: torch.Tensor, rows: int, Dk: int
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(slots (rows, Dk * Dk), g_slots (rows, Dk)): the columns of factor block n's entries
+        and the positions ``g_index`` of its gradient, one row per factor (a block whose
+        factors share one row expanded to ``rows``), as the assembly takes them; kept per
+        block and ``rows`` (views of the fixed indices)."""
+        kept = self._block_index.get((n, rows))
+        if kept is None or kept[0] is not g_index:
+            kept = (g_index, self.block_slots[n].reshape(-1, Dk * Dk).expand(rows, -1),
+                    g_index.reshape(-1, Dk).expand(rows, -1))
+            self._block_index[(n, rows)] = kept
+        return kept[1], kept[2]
 
     def entries(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(rows, cols, columns): H[rows[k], cols[k]] is the sum of the values' ``columns[k]``

@@ -47,6 +47,8 @@ from .problem import Problem
 __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 
 RUNNING = int(SolverStatus.RUNNING)
+CONVERGED, MAX_ITERATIONS = int(SolverStatus.CONVERGED), int(SolverStatus.MAX_ITERATIONS)
+DIVERGED = int(SolverStatus.DIVERGED)
 SPARSE_ABOVE = 1000  # linear_solver="auto": one problem with more unknowns takes SparseCholesky
 # linear_solver="auto": the block-sparse factorisation where its multiply-adds are at most this
 # share of the dense one's (and its kernel runs)
@@ -204,12 +206,9 @@ class _State:
 def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
            out: torch.Tensor | None = None) -> torch.Tensor:
     """``a`` where ``mask`` (one flag per problem), else ``b``; into ``out`` if given."""
-    mask = mask.reshape(mask.shape + (1,) * (a.dim() - 1))
+    if a.dim() > 1:
+        mask = mask.reshape(mask.shape + (1,) * (a.dim() - 1))
     return torch.where(mask, a, b) if out is None else torch.where(mask, a, b, out=out)
-
-
-def _full(like: torch.Tensor, code) -> torch.Tensor:
-    return torch.full_like(like, int(code))
 
 
 def _solve(graph: FactorGraph, max_iterations: int, backward_mode: str, o: dict) -> GraphResult:
@@ -239,19 +238,14 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
     dev, dt = x0[0].device, x0[0].dtype
     finite = (torch.isfinite(lin.cost) & torch.isfinite(lin.values).all(dim=-1)
               & torch.isfinite(lin.g).all(dim=-1))
-    status = torch.full((B,), RUNNING, dtype=torch.int64, device=dev)
-    status = torch.where(finite, status, _full(status, SolverStatus.NON_FINITE))
-    status = torch.where(finite & (lin.cost <= o["error_tol"]), _full(status, SolverStatus.CONVERGED),
-                         status)
-    if max_iterations == 0:
-        status = torch.where(status == RUNNING, _full(status, SolverStatus.MAX_ITERATIONS), status)
+    status = torch.where(finite, torch.where(lin.cost <= o["error_tol"], int(SolverStatus.CONVERGED),
+                                             MAX_ITERATIONS if max_iterations == 0 else RUNNING),
+                         int(SolverStatus.NON_FINITE))
     zeros = torch.zeros(B, dtype=dt, device=dev)
     state = _State(torch.arange(B, device=dev), x0, lin, lin.cost,
                    torch.full((B,), o.get("lambda_initial", 0.0), dtype=dt, device=dev),
                    torch.zeros(B, dtype=torch.int64, device=dev), zeros, status)
-    out = _State(state.rows, [v.clone() for v in x0],
-                 Linearization(*[t.clone() for t in (lin.values, lin.g, lin.cost, lin.model_cost)]),
-                 lin.cost, state.lam, state.iterations.clone(), zeros.clone(), status.clone())
+    out: _State | None = None  # the full batch's results, from the first change of the working set
     initial_cost = lin.cost.clone()
     problem, working = full, system
     eps = torch.finfo(dt).eps
@@ -259,18 +253,19 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
         running = state.status == RUNNING
         n_running = int(running.sum())  # the one host read per round
         if n_running < state.rows.numel():
-            _write_back(out, state)
+            out = _write_back(out, state)
             if n_running == 0:
                 break
             state = state.take(running.nonzero().squeeze(-1))
             problem = full.select(state.rows)
             working = system.select(problem)
         state = o.get("round", _round)(problem, working, state, o, max_iterations, eps)
+    assert out is not None  # the loop ends with every problem written back
     system.set_solution(out.lin.values.detach())
     status = out.status
     status = torch.where((status == SolverStatus.CONVERGED) & system.singular(),
-                         _full(status, SolverStatus.CONVERGED_RANK_DEFICIENT), status)
-    nan = torch.full_like(initial_cost, float("nan"))
+                         int(SolverStatus.CONVERGED_RANK_DEFICIENT), status)
+    nan = float("nan")
     bad = status == SolverStatus.NON_FINITE
     report = SolverReport(status, out.iterations, torch.where(bad, nan, initial_cost.detach()),
                           torch.where(bad, nan, out.lin.cost.detach()),
@@ -295,8 +290,19 @@ def _system(problem: Problem, linear_solver: str, unrolled: bool = False) -> Lin
     return SparseSystem(problem, "auto" if linear_solver in ("auto", "sparse") else linear_solver)
 
 
-def _write_back(out: _State, state: _State) -> None:
-    """Copies the working set's state into the full-batch results (rows ``state.rows``)."""
+def _write_back(out: _State | None, state: _State) -> _State:
+    """Copies the working set's state into the full-batch results (rows ``state.rows``) and
+    returns them.  The first call (``out`` None, the working set still the full batch) takes
+    the state itself, or a copy where autograd records (the later in-place copies would
+    modify tensors that the recorded graph holds)."""
+    if out is None:
+        if not torch.is_grad_enabled():
+            return state
+        lin = state.lin
+        return _State(state.rows, [v.clone() for v in state.x],
+                      Linearization(*[t.clone() for t in (lin.values, lin.g, lin.cost, lin.model_cost)]),
+                      state.cost_start, state.lam,
+                      *[t.clone() for t in (state.iterations, state.step_norm, state.status)])
     r = state.rows
     for o_v, s_v in zip(out.x, state.x):
         o_v.index_copy_(0, r, s_v)
@@ -304,6 +310,7 @@ def _write_back(out: _State, state: _State) -> None:
         getattr(out.lin, n).index_copy_(0, r, getattr(state.lin, n))
     for n in ("iterations", "step_norm", "status"):
         getattr(out, n).index_copy_(0, r, getattr(state, n))
+    return out
 
 
 def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_iterations: int, eps: float) -> _State:
@@ -314,7 +321,7 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
     x_new, lin_new, new_cost = _trial(problem, system, s, delta)
     success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps, o["rel_tol"])
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
-    iterations = s.iterations + success.to(torch.int64)
+    iterations = s.iterations + success  # int64 + bool: int64
     converged = _converged(s, lin, o)
     status = _round_status(s.status, done, gave_up, converged, iterations, max_iterations)
     cost_start = torch.where(done, lin.cost, s.cost_start)
@@ -326,12 +333,11 @@ def _round_status(status: torch.Tensor, done: torch.Tensor, gave_up: torch.Tenso
     """The statuses after a round: where the round is ``done``, DIVERGED where the search gave up
     (``gave_up``; None: never), else CONVERGED where ``converged``, else MAX_ITERATIONS where the
     iterations reached ``max_iterations``; unchanged elsewhere."""
-    ended = done if gave_up is None else done & ~gave_up
+    ended = torch.where(converged, CONVERGED, torch.where(iterations >= max_iterations,
+                                                          MAX_ITERATIONS, status))
     if gave_up is not None:
-        status = torch.where(done & gave_up, _full(status, SolverStatus.DIVERGED), status)
-    status = torch.where(ended & converged, _full(status, SolverStatus.CONVERGED), status)
-    return torch.where(ended & ~converged & (iterations >= max_iterations),
-                       _full(status, SolverStatus.MAX_ITERATIONS), status)
+        ended = torch.where(gave_up, DIVERGED, ended)
+    return torch.where(done, ended, status)
 
 
 def _decide(s: _State, o: dict, solved: torch.Tensor, lin_change: torch.Tensor,
@@ -346,16 +352,19 @@ def _decide(s: _State, o: dict, solved: torch.Tensor, lin_change: torch.Tensor,
         return success, ~success, torch.ones_like(success), torch.zeros_like(s.lam)
     cost = s.lin.cost
     cost_change = cost - new_cost
+    # a success needs lin_change > eps model_cost >= 0 (a sum of squares): a valid step, and the
+    # fidelity quotient is read only where lin_change > 0
+    success = (solved & (lin_change > eps * s.lin.model_cost)
+               & (cost_change / lin_change > o["min_fidelity"]) & torch.isfinite(new_cost))
     valid = solved & (lin_change >= 0)
-    fidelity = cost_change / torch.where(lin_change > 0, lin_change, torch.ones_like(lin_change))
-    success = (valid & (lin_change > eps * s.lin.model_cost) & (fidelity > o["min_fidelity"])
-               & torch.isfinite(new_cost))
-    stop_search = valid & ~success & (cost_change.abs() < judge_tol * cost)
+    # valid and not a success (a success is valid): valid ^ success
+    stop_search = (valid ^ success) & (cost_change.abs() < judge_tol * cost)
     lam_up = s.lam * o["lambda_factor"]
     lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
                       torch.where(stop_search, s.lam, lam_up))
-    gave_up = ~success & ~stop_search & (lam_up >= o["lambda_upper"])
-    return success, gave_up, success | stop_search | gave_up, lam
+    settled = success | stop_search
+    done = settled | (lam_up >= o["lambda_upper"])
+    return success, done ^ settled, done, lam  # gave up: done, not settled
 
 
 def _trial(problem: Problem, system: LinearSystem, s: _State, delta: torch.Tensor
@@ -377,20 +386,26 @@ def _accept(problem: Problem, system: LinearSystem, s: _State, success: torch.Te
     current ones."""
     if lin_new is None:  # cost_first: one problem
         lin_new = linearize(problem, x_new, system.layout) if bool(success[0]) else s.lin
-    x = [_take_trial(success, a, b) for a, b in zip(x_new, s.x)]
-    lin = Linearization(*[_take_trial(success, a, b) for a, b in
+    masks = {1: success}  # success shaped for each number of dimensions, once
+    x = [_take_trial(masks, a, b) for a, b in zip(x_new, s.x)]
+    lin = Linearization(*[_take_trial(masks, a, b) for a, b in
                           ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
                            (new_cost, s.lin.cost), (lin_new.model_cost, s.lin.model_cost))])
     return x, lin
 
 
-def _take_trial(success: torch.Tensor, trial: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
-    """``trial`` where ``success``, else ``current``: written into ``trial`` (the trial's own
-    tensor, or ``current`` itself) where nothing records gradients, so that a round allocates
-    no further copy of the normal equations."""
+def _take_trial(masks: dict[int, torch.Tensor], trial: torch.Tensor, current: torch.Tensor
+                ) -> torch.Tensor:
+    """``trial`` where success (``masks[1]``, one flag per problem; ``masks`` keeps its views
+    per number of dimensions), else ``current``: written into ``trial`` (the trial's own tensor,
+    or ``current`` itself) where nothing records gradients, so that a round allocates no further
+    copy of the normal equations."""
+    mask = masks.get(trial.dim())
+    if mask is None:
+        mask = masks[trial.dim()] = masks[1].reshape(masks[1].shape + (1,) * (trial.dim() - 1))
     if torch.is_grad_enabled() and (trial.requires_grad or current.requires_grad):
-        return _where(success, trial, current)
-    return _where(success, trial, current, out=trial)
+        return torch.where(mask, trial, current)
+    return torch.where(mask, trial, current, out=trial)
 
 
 def _converged(s: _State, lin: Linearization, o: dict) -> torch.Tensor:

@@ -37,6 +37,19 @@ DIAGONAL_RCOND_FACTOR = 1.0
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
 
 
+def _damping(lam: torch.Tensor, d: torch.Tensor | None, n: int) -> torch.Tensor:
+    """The damping (B, n) added to H's diagonal: lam clamp(d) for diagonal damping (d (B, n) the
+    diagonal's values), else (d None) lam broadcast over the n entries (a view)."""
+    lam = lam.unsqueeze(-1)
+    return lam.expand(-1, n) if d is None else lam * d.clamp(*DIAGONAL_CLAMP)
+
+
+def _finite_rows(x: torch.Tensor) -> torch.Tensor:
+    """(B,) True where every entry of x (B, n) is finite: the largest |entry| is below inf (amax
+    propagates NaN); over a short last axis a quicker reduction than ``isfinite(x).all(-1)``."""
+    return x.abs().amax(dim=-1) < float("inf")
+
+
 def _tiny_diagonal(H: torch.Tensor, rcond: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(the diagonal (B, D) of H, (B,) True where an entry is <= rcond times the largest or H
     has a non-finite entry).  A non-finite entry makes the sum of H's entries non-finite (inf,
@@ -53,10 +66,13 @@ class DenseSystem:
 
     cost_first = False  # the solver linearises every trial point (one pass for the batch)
 
-    def __init__(self, problem: Problem, workspace: tuple[torch.Tensor, ...] | None = None):
+    def __init__(self, problem: Problem, workspace: tuple[torch.Tensor, ...] | None = None,
+                 layout: EntryLayout | None = None, eye: torch.Tensor | None = None):
         self.problem = problem
-        self.layout = dense_layout(problem.h_index, problem.block_entries, problem.D)
-        self.eye = torch.eye(problem.D, dtype=problem.dtype, device=problem.device)
+        self.layout = layout if layout is not None else dense_layout(
+            problem.h_index, problem.block_entries, problem.D)
+        self.eye = eye if eye is not None else torch.eye(problem.D, dtype=problem.dtype,
+                                                         device=problem.device)
         self.rcond = RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self.diagonal_rcond = DIAGONAL_RCOND_FACTOR * torch.finfo(problem.dtype).eps
         self._H: torch.Tensor | None = None
@@ -64,8 +80,8 @@ class DenseSystem:
 
     def select(self, problem: Problem) -> DenseSystem:
         """The system of a subset of the problems (the solver's active set); it reuses this
-        system's work buffers (the active set only shrinks)."""
-        return DenseSystem(problem, self._work)
+        system's work buffers (the active set only shrinks) and its layout."""
+        return DenseSystem(problem, self._work, self.layout, self.eye)
 
     def _workspace(self, B: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(H (B, D * D), L (B, D, D), info (B,) int32): the damped matrix and, for LAPACK, its
@@ -76,7 +92,9 @@ class DenseSystem:
             like = self.eye
             self._work = (like.new_empty(B, D * D), like.new_empty(B, D, D),
                           torch.empty(B, dtype=torch.int32, device=like.device))
-        return tuple(w[:B] for w in self._work)  # type: ignore[return-value]
+        elif self._work[0].shape[0] > B:  # kept at this size: no slicing per step
+            self._work = tuple(w[:B] for w in self._work)
+        return self._work  # type: ignore[return-value]
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -88,10 +106,13 @@ class DenseSystem:
         flat, L, info = self._workspace(B)
         Hd = flat.copy_(values).view(B, D, D)
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
-        damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
+        damp = _damping(lam, diag if diagonal else None, D)
         diag.add_(damp)
         if B >= MIN_BATCH and uses_kernel(Hd):  # batches of small systems: the kernel
-            delta, info = cholesky_solve(Hd, -g.unsqueeze(-1), back=True)[2:]
+            # a failed factorisation gives a NaN solution (``cholesky_solve``): the finiteness
+            # test below is the whole verdict
+            delta = cholesky_solve(Hd, -g.unsqueeze(-1), back=True)[2]
+            solved = None
         else:  # LAPACK in the work buffers (larger systems; a few systems: no operator call)
             torch.linalg.cholesky_ex(Hd, out=(L, info))
             # an infinite pivot, which LAPACK takes, fails here as in the kernel
@@ -99,9 +120,11 @@ class DenseSystem:
             # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
             y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
             delta = torch.linalg.solve_triangular(L.mT, y, upper=True)
+            solved = info == 0
         delta = delta.squeeze(-1)  # type: ignore[union-attr]
-        solved = (info == 0) & torch.isfinite(delta).all(dim=-1)
-        delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
+        finite = _finite_rows(delta)
+        solved = finite if solved is None else solved & finite
+        delta = torch.where(solved.unsqueeze(-1), delta, 0.0)
         # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta
         quad = (delta * (Hd @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1) - (damp * delta * delta).sum(-1)
         return delta, solved, quad
@@ -241,6 +264,7 @@ class BlockSparseSystem:
             assert analysed is not None  # no bound: always analysed
             structure, maps = analysed
         self.structure, self._maps = structure, maps
+        self._unorder: torch.Tensor | None = None  # the elimination order's inverse (``_unordered``)
         self.layout = layout if layout is not None else EntryLayout(
             problem.h_index, problem.block_entries, problem.D, maps[0], structure.panels + 1,
             spare=structure.panels)
@@ -251,7 +275,9 @@ class BlockSparseSystem:
 
     def select(self, problem: Problem) -> BlockSparseSystem:
         """The system of a subset of the problems (one pattern: the analysis is shared)."""
-        return BlockSparseSystem(problem, self.structure, self._maps, self.layout)
+        new = BlockSparseSystem(problem, self.structure, self._maps, self.layout)
+        new._unorder = self._unorder
+        return new
 
     def _panels(self, values: torch.Tensor) -> torch.Tensor:
         """H's stored triangle (B, P), a copy of the values (B, P + 1) in ``layout`` without
@@ -266,17 +292,25 @@ class BlockSparseSystem:
             return DenseSystem(self.problem)._solve_differentiable(H, g, lam, diagonal)
         _, order, diag = self._maps
         v = self._panels(values)
-        d = v.index_select(1, diag)
-        damp = lam[:, None] * (d.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(d))
+        damp = _damping(lam, v.index_select(1, diag) if diagonal else None, diag.numel())
         v.index_add_(1, diag, damp)
-        _, X, Q, info = block_cholesky_solve(v, g.index_select(1, order).neg_().unsqueeze(-1),
-                                             self.structure)
+        _, X, Q, _ = block_cholesky_solve(v, g.index_select(1, order).neg_().unsqueeze(-1),
+                                          self.structure)
         x = X.squeeze(-1)
-        solved = (info == 0) & torch.isfinite(x).all(dim=-1)
-        x = torch.where(solved[:, None], x, torch.zeros_like(x))
+        solved = _finite_rows(x)  # a failed factorisation's X is NaN (info != 0)
+        x = torch.where(solved.unsqueeze(-1), x, 0.0)
         # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta (elimination order)
-        quad = torch.where(solved, Q.squeeze(-1), torch.zeros_like(Q[:, 0])) - (damp * x * x).sum(-1)
-        return torch.empty_like(g).index_copy_(1, order, x), solved, quad
+        quad = torch.where(solved, Q.squeeze(-1), 0.0) - (damp * x * x).sum(-1)
+        return x.index_select(1, self._unordered()), solved, quad
+
+    def _unordered(self) -> torch.Tensor:
+        """The inverse of the elimination order: x.index_select(1, it) puts x (B, D) in
+        elimination order back in the layout's order."""
+        if self._unorder is None:
+            order = self._maps[1]
+            self._unorder = torch.empty_like(order).index_copy_(
+                0, order, torch.arange(order.numel(), device=order.device))
+        return self._unorder
 
     def _dense_solution(self) -> DenseSystem:
         """The dense system at the solution, built when first asked (marginals, the implicit

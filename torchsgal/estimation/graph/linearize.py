@@ -204,13 +204,16 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
     stacks: dict[type[LieGroup], list] = {}
     inverses: dict[int, torch.Tensor] = {}  # variable -> its elements' inverses, once
     out: dict[int, tuple] = {}
+    kernels: bool | None = None  # whether the kernels may read x (asked once)
     for n, block in enumerate(problem.blocks):
         if block.log_form is None:
             continue
         group = problem.variables[block.slots[0][0]].group
         Z_inv = block.measured_inv
         assert group is not None and Z_inv is not None  # set with log_form (``_log_form``)
-        if group in (SE3, SE2) and factor_kernels.usable(Z_inv, *x):  # one call per block
+        if kernels is None and group in (SE3, SE2):
+            kernels = factor_kernels.usable(*x)
+        if group in (SE3, SE2) and kernels and factor_kernels.usable(Z_inv):  # one call per block
             n_ = 4 if group is SE3 else 3
             shape = (B, block.size, n_, n_)
             Ts = [T.expand(shape) for T in _args(block, x)]
@@ -223,9 +226,8 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                     L = L.expand(shape[:2] + L.shape[-2:])
                 op = (torch.ops.torchsgal.se3_factor_assemble if group is SE3
                       else torch.ops.torchsgal.se2_factor_assemble)
-                Dk = sum(block.dofs)
-                slots = normal.layout.block_slots[n].reshape(-1, Dk * Dk).expand(block.size, -1)
-                g_slots = block.g_index.reshape(-1, Dk).expand(block.size, -1)
+                slots, g_slots = normal.layout.block_index(n, block.g_index, block.size,
+                                                           sum(block.dofs))
                 r, normal.values, normal.g = op(Z_inv.expand(shape), Ti, Ts[-1], L, slots,
                                                 normal.values, g_slots, normal.g)
                 out[n] = (r,)
@@ -289,11 +291,12 @@ def evaluate_cost(problem: Problem, x: list[torch.Tensor]) -> torch.Tensor:
     """The costs (B,) = 1/2 sum rho(|L r|^2) at x, without Jacobians."""
     B = x[0].shape[0]
     fused = _log_form_terms(problem, x, False)
-    cost = x[0].new_zeros(B)
+    cost: torch.Tensor | None = None
     for n, block in enumerate(problem.blocks):
         terms = (_whiten(block, fused[n][0], None, B, built_in=True) if n in fused
                  else _block_terms(problem, block, x, False))
-        cost = cost + 0.5 * terms[2].sum(dim=-1)
+        cost = _plus(cost, 0.5 * terms[2].sum(dim=-1))
+    assert cost is not None  # a graph has factors
     return cost
 
 
@@ -303,14 +306,16 @@ def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | Non
     gradient, cost and model cost at x (``Linearization``)."""
     B, D = x[0].shape[0], problem.D
     layout = problem.layout if layout is None else layout
-    cost, model = x[0].new_zeros(B), x[0].new_zeros(B)
+    # the sums over the blocks, from the first block's term (0 + t = t: no zeros to add to)
+    cost: torch.Tensor | None = None
+    model: torch.Tensor | None = None
     normal = Assembly(x[0].new_zeros(B, layout.size), x[0].new_zeros(B, D), layout)
     fused = _log_form_terms(problem, x, True, normal=normal)
     values, g = normal.values, normal.g  # with the blocks the kernels added
     for n, block in enumerate(problem.blocks):
         if n in fused and len(fused[n]) == 1:  # whitened, its blocks of H and g assembled
             half = 0.5 * (fused[n][0] ** 2).sum(dim=(-1, -2))
-            cost, model = cost + half, model + half
+            cost, model = _plus(cost, half), _plus(model, half)
             continue
         if n in fused:
             r, J = fused[n]
@@ -319,11 +324,18 @@ def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | Non
             r, J, rho = _block_terms(problem, block, x, True)
         assert J is not None  # asked for
         half = 0.5 * rho.sum(dim=-1)
-        cost = cost + half
+        cost = _plus(cost, half)
         J = J.expand((B, block.size) + J.shape[-2:])
         # 1/2 |r~|^2; without a loss rho(s) = s = |r~|^2 already (``robust.correct``)
-        model = model + (half if block.factor.loss is None else 0.5 * (r * r).sum(dim=(-1, -2)))
-        Dk, rows = J.shape[-1], 1 if block.reduced else block.size
-        values, g = assemble(J, r, layout.block_slots[n].reshape(rows, Dk * Dk), values,
-                             block.g_index.reshape(rows, Dk), g, block.reduced)
-    return Linearization(values, g, cost, model)
+        model = _plus(model, half if block.factor.loss is None else 0.5 * (r * r).sum(dim=(-1, -2)))
+        slots, g_slots = layout.block_index(n, block.g_index, 1 if block.reduced else block.size,
+                                            J.shape[-1])
+        values, g = assemble(J, r, slots, values, g_slots, g, block.reduced)
+    assert cost is not None and model is not None  # a graph has factors
+    # cost and model are separate tensors (the solvers write a trial's into its own in place)
+    return Linearization(values, g, cost, model.clone() if model is cost else model)
+
+
+def _plus(total: torch.Tensor | None, term: torch.Tensor) -> torch.Tensor:
+    """total + term; term where there is no total yet."""
+    return term if total is None else total + term
