@@ -40,7 +40,14 @@ from ..solver import SolverReport, SolverStatus
 from .factors import _indices
 from .graph import FactorGraph
 from .implicit import attach_implicit
-from .linear_system import BlockSparseSystem, DenseSystem, LinearSystem, SparseSystem, block_layout
+from .linear_system import (
+    BlockSparseSystem,
+    DenseSystem,
+    LinearSystem,
+    SparseSystem,
+    _finite_rows,
+    block_layout,
+)
 from .linearize import Linearization, evaluate_cost, linearize
 from .problem import Problem
 
@@ -236,8 +243,7 @@ def _iterate(graph: FactorGraph, full: Problem, max_iterations: int, o: dict
     x0 = full.initial(graph)
     lin = linearize(full, x0, system.layout)
     dev, dt = x0[0].device, x0[0].dtype
-    finite = (torch.isfinite(lin.cost) & torch.isfinite(lin.values).all(dim=-1)
-              & torch.isfinite(lin.g).all(dim=-1))
+    finite = torch.isfinite(lin.cost) & _finite_rows(lin.values) & _finite_rows(lin.g)
     status = torch.where(finite, torch.where(lin.cost <= o["error_tol"], int(SolverStatus.CONVERGED),
                                              MAX_ITERATIONS if max_iterations == 0 else RUNNING),
                          int(SolverStatus.NON_FINITE))

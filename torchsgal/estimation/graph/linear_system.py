@@ -46,7 +46,7 @@ def _damping(lam: torch.Tensor, d: torch.Tensor | None, n: int) -> torch.Tensor:
 
 def _finite_rows(x: torch.Tensor) -> torch.Tensor:
     """(B,) True where every entry of x (B, n) is finite: the largest |entry| is below inf (amax
-    propagates NaN); over a short last axis a quicker reduction than ``isfinite(x).all(-1)``."""
+    propagates NaN); a quicker reduction than ``isfinite(x).all(-1)``."""
     return x.abs().amax(dim=-1) < float("inf")
 
 
@@ -177,7 +177,7 @@ class DenseSystem:
         # chol(S H S) = S chol(H), so its pivots are L_ii^2 / H_ii (rows where ``tiny`` holds
         # are decided by ``tiny`` whatever their factorisation gives)
         L, info = torch.linalg.cholesky_ex(H)
-        pivots = L.diagonal(dim1=-2, dim2=-1) ** 2 / torch.where(d > 0, d, torch.ones_like(d))
+        pivots = L.diagonal(dim1=-2, dim2=-1) ** 2 / torch.where(d > 0, d, 1.0)
         return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
 
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:
@@ -280,9 +280,9 @@ class BlockSparseSystem:
         return new
 
     def _panels(self, values: torch.Tensor) -> torch.Tensor:
-        """H's stored triangle (B, P), a copy of the values (B, P + 1) in ``layout`` without
-        their spare column (always a copy: ``solve`` damps it in place)."""
-        return values[:, :self.structure.panels].clone(memory_format=torch.contiguous_format)
+        """H's stored triangle (B, P): the values (B, P + 1) in ``layout`` without their spare
+        column (a view)."""
+        return values[:, :self.structure.panels]
 
     def solve(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -291,9 +291,8 @@ class BlockSparseSystem:
             H = dense(self.layout, values).flatten(1)
             return DenseSystem(self.problem)._solve_differentiable(H, g, lam, diagonal)
         _, order, diag = self._maps
-        v = self._panels(values)
-        damp = _damping(lam, v.index_select(1, diag) if diagonal else None, diag.numel())
-        v.index_add_(1, diag, damp)
+        damp = _damping(lam, values.index_select(1, diag) if diagonal else None, diag.numel())
+        v = self._panels(values).index_add(1, diag, damp)  # damped, in a new tensor
         _, X, Q, _ = block_cholesky_solve(v, g.index_select(1, order).neg_().unsqueeze(-1),
                                           self.structure)
         x = X.squeeze(-1)
@@ -357,7 +356,7 @@ class BlockSparseSystem:
             self._values.sum(dim=-1))  # every entry of H, both triangles
         L, _, _, info = block_cholesky_solve(v, v.new_zeros(v.shape[0], self.problem.D, 0),
                                              self.structure)
-        pivots = L.index_select(1, self._maps[2]) ** 2 / torch.where(d > 0, d, torch.ones_like(d))
+        pivots = L.index_select(1, self._maps[2]) ** 2 / torch.where(d > 0, d, 1.0)
         return tiny | (info != 0) | (pivots.amin(dim=-1) <= self.rcond)
 
     def marginal_blocks(self, starts: torch.Tensor, block: int) -> torch.Tensor:

@@ -216,7 +216,7 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
         if group in (SE3, SE2) and kernels and factor_kernels.usable(Z_inv):  # one call per block
             n_ = 4 if group is SE3 else 3
             shape = (B, block.size, n_, n_)
-            Ts = [T.expand(shape) for T in _args(block, x)]
+            Ts = [_shaped(T, shape) for T in _args(block, x)]
             Ti = None if block.log_form == "prior" else Ts[0]
             L = block.sqrt_info
             if normal and block.factor.loss is None and (L is None or factor_kernels.usable(L)):
@@ -228,13 +228,13 @@ def _log_form_terms(problem: Problem, x: list[torch.Tensor], want_jacobian: bool
                       else torch.ops.torchsgal.se2_factor_assemble)
                 slots, g_slots = normal.layout.block_index(n, block.g_index, block.size,
                                                            sum(block.dofs))
-                r, normal.values, normal.g = op(Z_inv.expand(shape), Ti, Ts[-1], L, slots,
+                r, normal.values, normal.g = op(_shaped(Z_inv, shape), Ti, Ts[-1], L, slots,
                                                 normal.values, g_slots, normal.g)
                 out[n] = (r,)
                 continue
             op = (torch.ops.torchsgal.se3_factor_terms if group is SE3
                   else torch.ops.torchsgal.se2_factor_terms)
-            r, J = op(Z_inv.expand(shape), Ti, Ts[-1], want_jacobian)
+            r, J = op(_shaped(Z_inv, shape), Ti, Ts[-1], want_jacobian)
             out[n] = (r, J if want_jacobian else None)
             continue
         f = group._f
@@ -309,7 +309,10 @@ def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | Non
     # the sums over the blocks, from the first block's term (0 + t = t: no zeros to add to)
     cost: torch.Tensor | None = None
     model: torch.Tensor | None = None
-    normal = Assembly(x[0].new_zeros(B, layout.size), x[0].new_zeros(B, D), layout)
+    # the sums start as broadcast zeros (views: no buffer filled); every block's assembly
+    # returns new tensors
+    zero = x[0].new_zeros(())
+    normal = Assembly(zero.expand(B, layout.size), zero.expand(B, D), layout)
     fused = _log_form_terms(problem, x, True, normal=normal)
     values, g = normal.values, normal.g  # with the blocks the kernels added
     for n, block in enumerate(problem.blocks):
@@ -334,6 +337,11 @@ def linearize(problem: Problem, x: list[torch.Tensor], layout: EntryLayout | Non
     assert cost is not None and model is not None  # a graph has factors
     # cost and model are separate tensors (the solvers write a trial's into its own in place)
     return Linearization(values, g, cost, model.clone() if model is cost else model)
+
+
+def _shaped(t: torch.Tensor, shape: tuple) -> torch.Tensor:
+    """``t`` expanded to ``shape`` (itself where it has that shape already)."""
+    return t if t.shape == shape else t.expand(shape)
 
 
 def _plus(total: torch.Tensor | None, term: torch.Tensor) -> torch.Tensor:

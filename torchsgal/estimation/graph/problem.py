@@ -18,7 +18,7 @@ from ...uncertainty.covariance import check_covariance
 from . import factors as _factors
 from .factors import Factor
 from .graph import FactorGraph
-from .layout import raw_layout
+from .layout import EntryLayout, raw_layout
 from .log_terms import se2_log_jacobians, se3_log_jacobians
 
 
@@ -78,12 +78,20 @@ class Problem:
             self.variables.append(info)
         self.D = offset
         self.index = {v.name: k for k, v in enumerate(self.variables)}
-        self.blocks = [self._block(f) for f in graph.factors]
+        made: dict = {}  # what the blocks share, made once: tangent positions, noise checks
+        self.blocks = [self._block(f, made) for f in graph.factors]
         self.h_index = torch.cat([b.h_index for b in self.blocks])  # (nnz,) flat into (D * D)
         self.block_entries = [b.h_index.numel() for b in self.blocks]  # each block's share
-        self.layout = raw_layout(self.h_index, self.block_entries, self.D)
+        self._layout: EntryLayout | None = None
 
-    def _block(self, factor: Factor) -> Block:
+    @property
+    def layout(self) -> EntryLayout:
+        """The raw layout (one column per entry, ``linearize``'s default), made when first asked."""
+        if self._layout is None:
+            self._layout = raw_layout(self.h_index, self.block_entries, self.D)
+        return self._layout
+
+    def _block(self, factor: Factor, made: dict) -> Block:
         E, B = factor.size, self.B
         slots, dofs, starts = [], [], []
         for name, idx in factor.slots:
@@ -92,13 +100,15 @@ class Problem:
             idx = idx.to(self.device)
             slots.append((k, idx))
             dofs.append(info.dof)
-            # (E, dof) positions of each slot's tangent in the stacked vector
-            starts.append(info.offset + idx[:, None] * info.dof
-                          + torch.arange(info.dof, device=self.device))
+            # (E, dof) positions of each slot's tangent in the stacked vector: element idx of
+            # variable k starts at offset + idx dof
+            first = made.get(("first", k))
+            if first is None:
+                first = made["first", k] = info.offset + torch.arange(info.dof, device=self.device)
+            starts.append(idx[:, None] * info.dof + first)
         # a slot whose factors all read one element is passed as that element (batch (B, 1)),
         # broadcast against the data; when every slot is, the factors' J^T J sum by one product
-        uniform = [int(idx[0]) if E and bool((idx == idx[0]).all()) else None
-                   for _, idx in slots]
+        uniform = [_uniform(idx) if E else None for _, idx in slots]
         reduced = all(u is not None for u in uniform)
         pos = torch.cat(starts, dim=1)  # (E, Dk)
         if reduced:
@@ -129,7 +139,7 @@ class Problem:
                 d = _expand_problem(d, B)
             data.append(d)
             batched.append(per_problem)
-        L, L_batched = self._noise(factor)
+        L, L_batched = self._noise(factor, made)
         form = _log_form(factor, [self.variables[k].group for k, _ in slots], data)
         inv = adj = None
         if form is not None:
@@ -139,7 +149,9 @@ class Problem:
         return Block(factor, slots, data, batched, L, L_batched, dofs, h_index, pos.reshape(-1),
                      E, uniform, reduced, None if form is None else form[0], inv, adj)
 
-    def _noise(self, factor: Factor) -> tuple[torch.Tensor | None, bool]:
+    def _noise(self, factor: Factor, made: dict) -> tuple[torch.Tensor | None, bool]:
+        """The square-root information of a factor, its shape checked for the factor and its
+        values once per tensor (a noise tensor several factors share is read once)."""
         W, L = factor.information, factor.sqrt_information
         if W is None and L is None:
             return None, False
@@ -159,13 +171,17 @@ class Problem:
         if given.dim() == 4 and tuple(given.shape[:2]) not in ((self.B, factor.size), (self.B, 1)):
             raise ValueError(f"{factor!r} {name}: leading sizes must be (B, E) = "
                              f"({self.B}, {factor.size}), got {tuple(given.shape[:2])}")
-        if not torch.isfinite(given).all():
-            raise ValueError(f"{factor!r} {name} has non-finite entries")
+        key = ("noise", id(given), W is not None)  # ``given`` lives as long as ``made``
+        if key not in made:
+            if not torch.isfinite(given).all():
+                raise ValueError(f"{factor!r} {name} has non-finite entries")
+            if W is not None:
+                # symmetric (the factorisation reads one triangle: an asymmetric W would be
+                # solved as another matrix) and positive definite, as a covariance is checked
+                check_covariance(W, W.shape[-1], f"{factor!r} information")
+            made[key] = True
         sqrt = given if self.attach else given.detach()
         if W is not None:
-            # symmetric (the factorisation reads one triangle: an asymmetric W would be solved as
-            # another matrix) and positive definite, as a covariance is checked
-            check_covariance(W, W.shape[-1], f"{factor!r} information")
             sqrt = torch.linalg.cholesky_ex(sqrt)[0].mT  # W = C C^T = L^T L
         return sqrt, sqrt.dim() == 4
 
@@ -222,6 +238,12 @@ class Problem:
 ONE_PASS = {SE3: se3_log_jacobians, SE2: se2_log_jacobians}
 
 
+def _uniform(idx: torch.Tensor) -> int | None:
+    """The one index every entry of ``idx`` (E,), E > 0, holds, or None (one host read)."""
+    low, high = torch.stack(idx.aminmax()).tolist()
+    return low if low == high else None
+
+
 def _log_form(factor: Factor, groups: list, data: list) -> tuple[str, type[LieGroup]] | None:
     """("prior" | "between", the group) for the built-in Prior / Between residuals (with their
     analytic Jacobians) on group variables of the measurement's group; None otherwise."""
@@ -236,11 +258,11 @@ def _log_form(factor: Factor, groups: list, data: list) -> tuple[str, type[LieGr
 
 
 def _expand_problem(d, B: int):
-    """Data with a problem axis of size 1 expanded to B (a view)."""
+    """Data with a problem axis of size 1 expanded to B (a view; itself where it has B)."""
     if isinstance(d, LieGroup):
         m = d.as_matrix()
-        return type(d)._from_leaf(m.expand((B,) + m.shape[1:]))
-    return d.expand((B,) + d.shape[1:])
+        return d if m.shape[0] == B else type(d)._from_leaf(m.expand((B,) + m.shape[1:]))
+    return d if d.shape[0] == B else d.expand((B,) + d.shape[1:])
 
 
 def _take(d, rows: torch.Tensor):
