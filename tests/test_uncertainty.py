@@ -1055,3 +1055,43 @@ def test_covariance_factor_is_the_checked_square_root():
             else:
                 with pytest.raises(ValueError, match="is not symmetric"):
                     read()
+
+
+def test_covariance_factor_of_a_differentiated_diagonal_covariance_keeps_its_derivatives():
+    """At a diagonal covariance that something differentiates, the factor is the Cholesky
+    factor, whose derivatives in the off-diagonal entries are not zero: the IMU factors'
+    square-root information then has the gradient of cholesky + triangular solve (reverse mode,
+    forward mode and torch.func alike), where the square-root diagonal would give zero to every
+    off-diagonal entry (a full covariance learnt from a diagonal start would never leave it)."""
+    from torch.autograd import forward_ad
+
+    from torchsgal.imu.factors import sqrt_information_from_covariance
+    from torchsgal.uncertainty.covariance import covariance_factor
+
+    D = torch.float64
+    w = torch.arange(9, dtype=D).reshape(3, 3) / 7 - 0.5
+
+    def reference(C):
+        L = torch.linalg.cholesky(C)
+        return torch.linalg.solve_triangular(L, torch.eye(3, dtype=D), upper=False)
+
+    A = torch.diag(torch.tensor([1.0, 2.0, 3.0], dtype=D)).requires_grad_()
+    (sqrt_information_from_covariance(A @ A.mT) * w).sum().backward()
+    A_ref = A.detach().clone().requires_grad_()
+    (reference(A_ref @ A_ref.mT) * w).sum().backward()
+    torch.testing.assert_close(A.grad, A_ref.grad, rtol=1e-12, atol=1e-14)
+    assert A.grad[0, 1] != 0
+    C = torch.diag(torch.tensor([1.0, 4.0, 9.0], dtype=D))
+    diagonal, _ = covariance_factor(C.requires_grad_())
+    assert not diagonal
+    assert covariance_factor(C.detach())[0]
+    with torch.no_grad():
+        assert covariance_factor(C)[0]  # nothing records: the square-root diagonal
+    E = torch.zeros(3, 3, dtype=D)
+    E[0, 1] = E[1, 0] = 1.0
+    with forward_ad.dual_level():
+        out = sqrt_information_from_covariance(forward_ad.make_dual(C.detach(), E))
+        tangent = forward_ad.unpack_dual(out).tangent
+    expected = torch.func.jvp(reference, (C.detach(),), (E,))[1]
+    torch.testing.assert_close(tangent, expected, rtol=1e-12, atol=1e-14)
+    assert tangent[1, 0] != 0

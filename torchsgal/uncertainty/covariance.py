@@ -10,6 +10,7 @@ and the whitening by it.
 from __future__ import annotations
 
 import torch
+from torch.autograd import forward_ad
 
 from ..functional import checks
 from ..functional._blocking import values_readable
@@ -48,10 +49,11 @@ def check_covariance(S: torch.Tensor, dim: int, name: str = "covariance", tol: f
 def covariance_factor(S: torch.Tensor, name: str = "covariance") -> tuple[bool, torch.Tensor]:
     """(diagonal, factor) of a covariance S (..., m, m), m >= 1, checked as ``check_covariance``
     (definite, default tolerance) in the same single read: ``diagonal`` says whether every
-    matrix of S is diagonal; ``factor`` is then the square-root diagonal (..., m), else the
-    Cholesky factor (..., m, m) of S's symmetric part.  Where values cannot be read (on 'meta',
-    under torch.func or torch.compile): not diagonal, the factor unchecked.  Differentiable in
-    S."""
+    matrix of S is diagonal and nothing differentiates S; ``factor`` is then the square-root
+    diagonal (..., m), else the Cholesky factor (..., m, m) of S's symmetric part, whose
+    derivatives in S's off-diagonal entries the square-root diagonal would miss.  Where values
+    cannot be read (on 'meta', under torch.func or torch.compile): not diagonal, the factor
+    unchecked."""
     if not isinstance(S, torch.Tensor):
         raise TypeError(f"{name} must be a tensor (..., m, m), got {type(S).__name__}")
     if S.dim() < 2 or S.shape[-1] != S.shape[-2] or S.shape[-1] < 1:
@@ -68,7 +70,9 @@ def covariance_factor(S: torch.Tensor, name: str = "covariance") -> tuple[bool, 
     off_diagonal = (S - torch.diag_embed(d)).abs().amax().reshape(1).to(S.dtype)
     *values, off = _read(measures, off_diagonal)
     _raise_for_measures(values, S, name, True, tol)
-    return (True, d.sqrt()) if off == 0 else (False, L)
+    differentiated = (torch.is_grad_enabled() and S.requires_grad) or \
+        forward_ad.unpack_dual(S).tangent is not None
+    return (True, d.sqrt()) if off == 0 and not differentiated else (False, L)
 
 
 def _covariance_shape(S, dim: int, name: str) -> None:

@@ -171,7 +171,7 @@ class Problem:
         if given.dim() == 4 and tuple(given.shape[:2]) not in ((self.B, factor.size), (self.B, 1)):
             raise ValueError(f"{factor!r} {name}: leading sizes must be (B, E) = "
                              f"({self.B}, {factor.size}), got {tuple(given.shape[:2])}")
-        key = ("noise", id(given), W is not None)  # ``given`` lives as long as ``made``
+        key = ("noise", id(given), W is not None)  # ``made`` holds ``given``: its id stays its own
         if key not in made:
             if not torch.isfinite(given).all():
                 raise ValueError(f"{factor!r} {name} has non-finite entries")
@@ -179,7 +179,7 @@ class Problem:
                 # symmetric (the factorisation reads one triangle: an asymmetric W would be
                 # solved as another matrix) and positive definite, as a covariance is checked
                 check_covariance(W, W.shape[-1], f"{factor!r} information")
-            made[key] = True
+            made[key] = given
         sqrt = given if self.attach else given.detach()
         if W is not None:
             sqrt = torch.linalg.cholesky_ex(sqrt)[0].mT  # W = C C^T = L^T L
