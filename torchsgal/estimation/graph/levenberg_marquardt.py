@@ -392,26 +392,20 @@ def _accept(problem: Problem, system: LinearSystem, s: _State, success: torch.Te
     current ones."""
     if lin_new is None:  # cost_first: one problem
         lin_new = linearize(problem, x_new, system.layout) if bool(success[0]) else s.lin
-    masks = {1: success}  # success shaped for each number of dimensions, once
-    x = [_take_trial(masks, a, b) for a, b in zip(x_new, s.x)]
-    lin = Linearization(*[_take_trial(masks, a, b) for a, b in
+    x = [_take_trial(success, a, b) for a, b in zip(x_new, s.x)]
+    lin = Linearization(*[_take_trial(success, a, b) for a, b in
                           ((lin_new.values, s.lin.values), (lin_new.g, s.lin.g),
                            (new_cost, s.lin.cost), (lin_new.model_cost, s.lin.model_cost))])
     return x, lin
 
 
-def _take_trial(masks: dict[int, torch.Tensor], trial: torch.Tensor, current: torch.Tensor
-                ) -> torch.Tensor:
-    """``trial`` where success (``masks[1]``, one flag per problem; ``masks`` keeps its views
-    per number of dimensions), else ``current``: written into ``trial`` (the trial's own tensor,
-    or ``current`` itself) where nothing records gradients, so that a round allocates no further
-    copy of the normal equations."""
-    mask = masks.get(trial.dim())
-    if mask is None:
-        mask = masks[trial.dim()] = masks[1].reshape(masks[1].shape + (1,) * (trial.dim() - 1))
+def _take_trial(success: torch.Tensor, trial: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+    """``trial`` where ``success``, else ``current``: written into ``trial`` (the trial's own
+    tensor, or ``current`` itself) where nothing records gradients, so that a round allocates
+    no further copy of the normal equations."""
     if torch.is_grad_enabled() and (trial.requires_grad or current.requires_grad):
-        return torch.where(mask, trial, current)
-    return torch.where(mask, trial, current, out=trial)
+        return _where(success, trial, current)
+    return _where(success, trial, current, out=trial)
 
 
 def _converged(s: _State, lin: Linearization, o: dict) -> torch.Tensor:

@@ -365,9 +365,8 @@ class BlockSparseSystem:
         if self._values is None:
             raise RuntimeError("set_solution(values) first")
         singular = self.singular()
-        order = self._maps[1]
         B, K, D = self._values.shape[0], starts.numel(), self.problem.D
-        place = torch.empty_like(order).index_copy_(0, order, torch.arange(D, device=order.device))
+        place = self._unordered()  # each unknown's position in elimination order
         offsets = torch.arange(block, device=starts.device)
         rows = place[starts[:, None] + offsets]  # (K, block): the unknowns in elimination order
         unit = self._values.new_zeros(D, K * block)
