@@ -1,13 +1,15 @@
 /* torchsgal.estimation._native: the estimation engine's CPU kernels: batched Cholesky
  * factorisations and triangular solves of small dense systems (_native_cholesky.h; the operators
- * torchsgal::cholesky_solve, gram_cholesky_solve and triangular_solve, estimation/dense_solve.py), and the
+ * torchsgal::cholesky_solve, gram_cholesky_solve and triangular_solve, estimation/dense_solve.py,
+ * and damped_solve, estimation/graph/damped_solve.py), and the
  * batched Cholesky solves of block-sparse systems sharing one pattern (_native_block_cholesky.h;
  * torchsgal::block_cholesky_solve, estimation/block_cholesky.py), and the
  * residuals and Jacobians of the built-in SE(3) and SE(2) priors and betweens (_native_factors.h,
  * SE(3) on the closed forms of functional/_native_sgal3.h; torchsgal::se3_factor_terms and
  * se2_factor_terms, estimation/graph/factor_kernels.py), and the blocks J^T J and J^T r of
  * any factor's normal equations (_native_normal.h; torchsgal::normal_assemble,
- * estimation/graph/normal_kernel.py).
+ * estimation/graph/normal_kernel.py), and a Levenberg-Marquardt round's verdict and bookkeeping
+ * per problem (_native_round.h; torchsgal::lm_round_update, estimation/graph/round_update.py).
  *
  * No torch headers: the Python side passes data pointers of CPU tensors it checked: contiguous
  * ones it allocated, and for normal_assemble the caller's J and r with their strides.  The splitting of a batch over threads is the core kernels' (_native_common.h).
@@ -50,6 +52,7 @@
 #define ATAN2 atan2
 #include "_native_factors.h"
 #include "_native_normal.h"
+#include "_native_round.h"
 #include "_native_block_cholesky.h"
 #include "_native_cholesky.h"  /* undefines T, SFX and SQRT */
 #undef SIN
@@ -63,6 +66,7 @@
 #define ATAN2 atan2_f32
 #include "_native_factors.h"
 #include "_native_normal.h"
+#include "_native_round.h"
 #include "_native_block_cholesky.h"
 #include "_native_cholesky.h"
 #undef SIN
@@ -87,6 +91,21 @@ static PyObject *py_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_
     Py_BEGIN_ALLOW_THREADS
     run_parallel(ints[5] ? cholesky_solve_range_f64 : cholesky_solve_range_f32, args, ints[0],
                  solve_cost(ints[1], ints[2], ptr[4] != NULL), (int)ints[4]);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+/* damped_solve(H, g, lam, delta, solved, quad, W, clamp, n, m, diagonal, threads, is_double):
+ * _native_cholesky.h's damped_solve_range */
+static PyObject *py_damped_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    void *ptr[8];
+    int64_t ints[5]; /* n, m, diagonal, threads, is_double */
+    if (read_call(a, nargs, 8, ptr, 5, ints, "damped_solve") < 0) return NULL;
+    void *args[10] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], ptr[7], &ints[1], &ints[2]};
+    Py_BEGIN_ALLOW_THREADS
+    run_parallel(ints[4] ? damped_solve_range_f64 : damped_solve_range_f32, args, ints[0],
+                 solve_cost(ints[1], 1, 1), (int)ints[3]);
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
 }
@@ -266,10 +285,34 @@ static PyObject *py_normal_assemble(PyObject *self, PyObject *const *a, Py_ssize
     Py_RETURN_NONE;
 }
 
+/* lm_round_update(14 pointers, 9 params, n, 5 codes, is_double): _native_round.h; one pass over
+ * the n problems (no threads: a few operations each) */
+static PyObject *py_lm_round_update(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
+    (void)self;
+    enum { NP = 14, NF = 9, NC = 5 };
+    if (nargs != NP + NF + 1 + NC + 1) {
+        PyErr_Format(PyExc_TypeError, "lm_round_update takes %d arguments", NP + NF + NC + 2);
+        return NULL;
+    }
+    void *ptr[NP];
+    double params[NF];
+    int64_t codes[NC];
+    for (int i = 0; i < NP; ++i) ptr[i] = PyLong_AsVoidPtr(a[i]);
+    for (int i = 0; i < NF; ++i) params[i] = PyFloat_AsDouble(a[NP + i]);
+    const int64_t n = PyLong_AsLongLong(a[NP + NF]);
+    for (int i = 0; i < NC; ++i) codes[i] = PyLong_AsLongLong(a[NP + NF + 1 + i]);
+    const int is_double = PyObject_IsTrue(a[NP + NF + 1 + NC]);
+    if (PyErr_Occurred() || is_double < 0) return NULL;
+    (is_double ? lm_round_update_f64 : lm_round_update_f32)(ptr, params, codes, n);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"parallel_backend", py_parallel_backend, METH_NOARGS, "what splits large batches over threads"},
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
      "batched Cholesky and solves (A, R, L, X, Y, info, n, m, k, lanes, threads, is_double)"},
+    {"damped_solve", (PyCFunction)(void (*)(void))py_damped_solve, METH_FASTCALL,
+     "a Levenberg-Marquardt step's damped normal equations (H, g, lam, delta, solved, quad, W, clamp, n, m, diagonal, threads, is_double)"},
     {"gram_cholesky_solve", (PyCFunction)(void (*)(void))py_gram_cholesky_solve, METH_FASTCALL,
      "batched Cholesky and solves of G diag(d) G^T (G, d, R, L, X, Y, info, n, m, p, k, d_stride, threads, is_double)"},
     {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,
@@ -290,6 +333,8 @@ static PyMethodDef methods[] = {
      "SE(2) normal-equation blocks added into the problems' values (Zinv, Ti, Tj, L, rw, values, g, slots, g_slots, series, B, E, size, D, shared, threads, is_double)"},
     {"normal_assemble", (PyCFunction)(void (*)(void))py_normal_assemble, METH_FASTCALL,
      "normal-equation blocks J^T J, J^T r added into the problems' values and g (J, r, values, g, slots, g_slots, dims, B, cost, threads, is_double)"},
+    {"lm_round_update", (PyCFunction)(void (*)(void))py_lm_round_update, METH_FASTCALL,
+     "a Levenberg-Marquardt round's verdict and bookkeeping per problem (14 pointers, 9 params, n, 5 codes, is_double)"},
     {"set_constants", py_set_constants, METH_VARARGS, "thresholds and series tables from numerics.py"},
     {NULL, NULL, 0, NULL},
 };

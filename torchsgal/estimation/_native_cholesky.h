@@ -324,6 +324,85 @@ WIDE_LOOPS static void CAT(triangular_solve_range, SFX)(void **args, int64_t lo,
     }
 }
 
+/* The damped normal equations of a Levenberg-Marquardt step, n systems (estimation/graph/
+ * damped_solve.py): (H + lam D) delta = -g, D = I, or with ``diagonal`` D = diag(H) clamped to
+ * [clamp[0], clamp[1]]; solved = the factor succeeded and delta is finite (else delta = 0),
+ * quad = delta^T H delta (the undamped H, all of it read).  args: H (n, m, m), g (n, m),
+ * lam (n), delta (n, m), solved (n) uint8, quad (n), W (n, m, m) workspace (used where the
+ * lanes' workspace cannot be allocated), clamp (2 doubles), and m, diagonal as int64. */
+static inline T CAT(damping_of, SFX)(const T *Hb, int64_t i, int64_t m, T lam, int64_t diagonal,
+                                    const double *clamp) {
+    if (!diagonal) return lam;
+    const T d = Hb[i * m + i], lo = (T)clamp[0], hi = (T)clamp[1];
+    return lam * (d < lo ? lo : d > hi ? hi : d); /* clamp: NaN stays NaN */
+}
+
+static inline void CAT(damped_finish, SFX)(const T *Hb, T *db, uint8_t *solved, T *quad, int ok, int64_t m) {
+    for (int64_t i = 0; i < m; ++i) ok = ok && isfinite(db[i]);
+    solved[0] = (uint8_t)ok;
+    T q = 0;
+    for (int64_t i = 0; i < m; ++i) {
+        if (!ok) db[i] = 0;
+    }
+    if (ok)
+        for (int64_t i = 0; i < m; ++i) {
+            T row = 0;
+            for (int64_t j = 0; j < m; ++j) row += Hb[i * m + j] * db[j];
+            q += db[i] * row;
+        }
+    quad[0] = q;
+}
+
+WIDE_LOOPS static void CAT(damped_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
+    const T *H = args[0], *g = args[1], *lam = args[2];
+    T *delta = args[3], *quad = args[5], *W = args[6];
+    uint8_t *solved = args[4];
+    const double *clamp = args[7];
+    const int64_t m = *(const int64_t *)args[8], diagonal = *(const int64_t *)args[9];
+    T(*lanes)[LANES] = m <= LANE_MAX_M ? malloc((size_t)(m * m + 2 * m) * sizeof(T[LANES])) : NULL;
+    if (lanes) {
+        T(*l)[LANES] = lanes, (*r)[LANES] = lanes + m * m, (*x)[LANES] = lanes + m * m + m;
+        for (int64_t b0 = lo; b0 < hi; b0 += LANES) {
+            const int64_t n = hi - b0 < LANES ? hi - b0 : LANES;
+            int32_t bad[LANES];
+            CAT(lanes_load, SFX)(l, H + b0 * m * m, n, m, m, 0, m);
+            for (int w = 0; w < LANES; ++w) {
+                const int64_t b = b0 + (w < n ? w : n - 1);
+                for (int64_t i = 0; i < m; ++i) {
+                    l[i * m + i][w] += CAT(damping_of, SFX)(H + b * m * m, i, m, lam[b], diagonal, clamp);
+                    x[i][w] = -g[b * m + i];
+                }
+            }
+            CAT(lanes_factor, SFX)(l, r, bad, m);
+            CAT(lanes_solve, SFX)(l, r, x, m, 1, 0);
+            CAT(lanes_solve, SFX)(l, r, x, m, 1, 1);
+            for (int64_t w = 0; w < n; ++w) {
+                const int64_t b = b0 + w;
+                T *db = delta + b * m;
+                for (int64_t i = 0; i < m; ++i) db[i] = x[i][w];
+                CAT(damped_finish, SFX)(H + b * m * m, db, solved + b, quad + b, !bad[w], m);
+            }
+        }
+        free(lanes);
+        return;
+    }
+    for (int64_t b = lo; b < hi; ++b) { /* one system at a time: the damped H in W, factored in place */
+        const T *Hb = H + b * m * m;
+        T *Wb = W + b * m * m, *db = delta + b * m;
+        for (int64_t i = 0; i < m * m; ++i) Wb[i] = Hb[i];
+        for (int64_t i = 0; i < m; ++i) {
+            Wb[i * m + i] += CAT(damping_of, SFX)(Hb, i, m, lam[b], diagonal, clamp);
+            db[i] = -g[b * m + i];
+        }
+        const int32_t f = CAT(cholesky_one, SFX)(Wb, Wb, m);
+        if (!f) {
+            CAT(forward_one, SFX)(Wb, db, db, m, 1);
+            CAT(back_one, SFX)(Wb, db, db, m, 1);
+        }
+        CAT(damped_finish, SFX)(Hb, db, solved + b, quad + b, !f, m);
+    }
+}
+
 #undef CAT
 #undef CAT_
 #undef T

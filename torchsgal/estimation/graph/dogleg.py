@@ -36,10 +36,12 @@ import torch
 from ...functional import checks
 from .graph import FactorGraph
 from .layout import diagonal, times
-from .levenberg_marquardt import GraphResult, _accept, _check, _converged, _round_status, _solve, _State, _trial, _where
+from .levenberg_marquardt import GraphResult, _accept, _check, _solve, _State, _trial, _where
 from .linear_system import LinearSystem
 from .linearize import Linearization
 from .problem import Problem
+from .round_update import converged as cost_converged
+from .round_update import round_status
 
 __all__ = ["dogleg"]
 
@@ -145,8 +147,8 @@ def _dogleg_round(problem: Problem, system: LinearSystem, s: _State, o: dict,
     done = success | ~above  # otherwise: the same linearisation again with Delta / 2
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     iterations = s.iterations + done.to(torch.int64)
-    converged = _converged(s, lin, o)
-    status = _round_status(s.status, done, None, converged, iterations, max_iterations)
+    converged = cost_converged(s.cost_start, lin.cost, o)
+    status = round_status(s.status, done, None, converged, iterations, max_iterations)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     return _DoglegState(s.rows, x, lin, cost_start, delta_new, iterations,
                         quad.clamp_min(0).sqrt(), status, damped)

@@ -30,9 +30,6 @@ from .levenberg_marquardt import (
     GraphResult,
     _accept,
     _check,
-    _converged,
-    _decide,
-    _round_status,
     _solve,
     _State,
     _trial,
@@ -41,6 +38,8 @@ from .levenberg_marquardt import (
 from .linear_system import LinearSystem
 from .linearize import Linearization, evaluate_cost, linearize
 from .problem import Problem
+from .round_update import converged as cost_converged
+from .round_update import round_status, verdict
 
 __all__ = ["gauss_helmert"]
 
@@ -243,8 +242,8 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     # a cost change within the rounding of the cost (1e3 eps relative) cannot be judged: the
     # iteration ends without a step, as GTSAM's below ``relative_error_tol``
     rounding = 1e3 * eps
-    success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps,
-                                          max(o["rel_tol"], rounding))
+    success, gave_up, done, lam = verdict(s.lin.cost, s.lin.model_cost, s.lam, o, solved, lin_change,
+                                          new_cost, eps, max(o["rel_tol"], rounding))
     in_place = done & ~success & ~gave_up
     if blocks:  # only the cost of ``lin`` is read before it is replaced below
         # a step whose predicted decrease is itself within the cost's rounding is taken
@@ -257,7 +256,8 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
     else:
         x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
     short = success & (quad.clamp_min(0).sqrt() <= o["step_tol"])
-    converged = (_converged(s, lin, o) if o["cost_tests"] else torch.zeros_like(short)) | short
+    converged = (cost_converged(s.cost_start, lin.cost, o) if o["cost_tests"]
+                 else torch.zeros_like(short)) | short
     # the corrections' update after accepted steps (shorter than ``update_below`` standard
     # deviations where that is set); a round that ends without a step updates them at the
     # current point
@@ -290,7 +290,7 @@ def _gauss_helmert_round(problem: Problem, system: LinearSystem, s: _State, o: d
         lin = updated
     iterations = s.iterations + (success | in_place).to(torch.int64) if blocks else \
         s.iterations + success.to(torch.int64)
-    status = _round_status(s.status, done, gave_up, converged, iterations, max_iterations)
+    status = round_status(s.status, done, gave_up, converged, iterations, max_iterations)
     cost_start = torch.where(done, lin.cost, s.cost_start)
     if blocks:  # the refreshed linearisation into the state now: the working set may shrink
         _take_fresh(blocks, s.rows)

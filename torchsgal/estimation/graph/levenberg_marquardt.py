@@ -50,12 +50,12 @@ from .linear_system import (
 )
 from .linearize import Linearization, evaluate_cost, linearize
 from .problem import Problem
+from .round_update import round_update
 
 __all__ = ["GraphResult", "levenberg_marquardt", "gauss_newton"]
 
 RUNNING = int(SolverStatus.RUNNING)
-CONVERGED, MAX_ITERATIONS = int(SolverStatus.CONVERGED), int(SolverStatus.MAX_ITERATIONS)
-DIVERGED = int(SolverStatus.DIVERGED)
+MAX_ITERATIONS = int(SolverStatus.MAX_ITERATIONS)
 SPARSE_ABOVE = 1000  # linear_solver="auto": one problem with more unknowns takes SparseCholesky
 # linear_solver="auto": the block-sparse factorisation where its multiply-adds are at most this
 # share of the dense one's (and its kernel runs)
@@ -325,52 +325,10 @@ def _round(problem: Problem, system: LinearSystem, s: _State, o: dict, max_itera
     delta, solved, quad = system.solve(s.lin.values, s.lin.g, lam, o.get("diagonal", False))
     lin_change = -((s.lin.g * delta).sum(-1) + 0.5 * quad)
     x_new, lin_new, new_cost = _trial(problem, system, s, delta)
-    success, gave_up, done, lam = _decide(s, o, solved, lin_change, new_cost, eps, o["rel_tol"])
+    success, lam, iterations, status, cost_start, step_norm = round_update(
+        s, o, solved, lin_change, quad, new_cost, eps, max_iterations)
     x, lin = _accept(problem, system, s, success, x_new, lin_new, new_cost)
-    iterations = s.iterations + success  # int64 + bool: int64
-    converged = _converged(s, lin, o)
-    status = _round_status(s.status, done, gave_up, converged, iterations, max_iterations)
-    cost_start = torch.where(done, lin.cost, s.cost_start)
-    return _State(s.rows, x, lin, cost_start, lam, iterations, quad.clamp_min(0).sqrt(), status)
-
-
-def _round_status(status: torch.Tensor, done: torch.Tensor, gave_up: torch.Tensor | None,
-                  converged: torch.Tensor, iterations: torch.Tensor, max_iterations: int) -> torch.Tensor:
-    """The statuses after a round: where the round is ``done``, DIVERGED where the search gave up
-    (``gave_up``; None: never), else CONVERGED where ``converged``, else MAX_ITERATIONS where the
-    iterations reached ``max_iterations``; unchanged elsewhere."""
-    ended = torch.where(converged, CONVERGED, torch.where(iterations >= max_iterations,
-                                                          MAX_ITERATIONS, status))
-    if gave_up is not None:
-        ended = torch.where(gave_up, DIVERGED, ended)
-    return torch.where(done, ended, status)
-
-
-def _decide(s: _State, o: dict, solved: torch.Tensor, lin_change: torch.Tensor,
-            new_cost: torch.Tensor, eps: float, judge_tol: float) -> tuple:
-    """GTSAM's verdict on one trial step per problem (module docstring, steps 3-5): (success,
-    gave_up, done, lambda for the next trial).  Damped: a step is taken where the model predicts
-    a decrease that the cost confirms (fidelity); a cost change below ``judge_tol`` times the
-    cost ends the search without a step; lambda grows until ``lambda_upper`` (gave up).
-    Undamped: every finite solved step is taken."""
-    if not o["damped"]:
-        success = solved & torch.isfinite(new_cost)
-        return success, ~success, torch.ones_like(success), torch.zeros_like(s.lam)
-    cost = s.lin.cost
-    cost_change = cost - new_cost
-    # a success needs lin_change > eps model_cost >= 0 (a sum of squares): a valid step, and the
-    # fidelity quotient is read only where lin_change > 0
-    success = (solved & (lin_change > eps * s.lin.model_cost)
-               & (cost_change / lin_change > o["min_fidelity"]) & torch.isfinite(new_cost))
-    valid = solved & (lin_change >= 0)
-    # valid and not a success (a success is valid): valid ^ success
-    stop_search = (valid ^ success) & (cost_change.abs() < judge_tol * cost)
-    lam_up = s.lam * o["lambda_factor"]
-    lam = torch.where(success, (s.lam / o["lambda_factor"]).clamp_min(o["lambda_lower"]),
-                      torch.where(stop_search, s.lam, lam_up))
-    settled = success | stop_search
-    done = settled | (lam_up >= o["lambda_upper"])
-    return success, done ^ settled, done, lam  # gave up: done, not settled
+    return _State(s.rows, x, lin, cost_start, lam, iterations, step_norm, status)
 
 
 def _trial(problem: Problem, system: LinearSystem, s: _State, delta: torch.Tensor
@@ -406,10 +364,3 @@ def _take_trial(success: torch.Tensor, trial: torch.Tensor, current: torch.Tenso
     if torch.is_grad_enabled() and (trial.requires_grad or current.requires_grad):
         return _where(success, trial, current)
     return _where(success, trial, current, out=trial)
-
-
-def _converged(s: _State, lin: Linearization, o: dict) -> torch.Tensor:
-    """GTSAM's checkConvergence(cost at the iteration's start, cost now), per problem."""
-    decrease = s.cost_start - lin.cost
-    return ((lin.cost <= o["error_tol"]) | (decrease <= o["rel_tol"] * s.cost_start)
-            | (decrease <= o["abs_tol"]))

@@ -1,9 +1,10 @@
 """The damped normal equations (H + lambda D) delta = -g of a linearised graph.
 
 ``DenseSystem``: a batch of small problems; H (B, D, D) assembled from the factors' blocks
-(``linearize.dense``) and solved by a batched Cholesky (no host sync per problem): the kernel of
-``estimation.dense_solve`` where it runs (batches of small systems), LAPACK's ``cholesky_ex``
-otherwise.
+(``linearize.dense``) and solved by a batched Cholesky (no host sync per problem): the operator
+``torchsgal::damped_solve`` (``damped_solve``: damping, factor, solves and delta^T H delta in one
+C pass) where its kernel runs (batches of small systems), LAPACK's ``cholesky_ex`` otherwise,
+and its tensor code where autograd records.
 ``SparseSystem``: one large problem; the lower triangle of H's block pattern is analysed once by
 ``estimation.sparse.SparseCholesky`` (fill-reducing ordering) and refactored numerically at each
 step.
@@ -23,7 +24,8 @@ from collections import OrderedDict
 import torch
 
 from ..block_cholesky import Structure, analyse, block_cholesky_solve
-from ..dense_solve import MIN_BATCH, cholesky_solve, uses_kernel
+from .damped_solve import DIAGONAL_CLAMP, solve_damped
+from .damped_solve import _tensor_code as damped_tensor_code
 from .layout import EntryLayout, dense, dense_layout, times
 from .problem import Problem
 
@@ -34,7 +36,6 @@ RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype: the Jacobi-scaled
 # float64); RCOND_FACTOR * eps would flag well-posed float32 graphs whose standard deviations
 # are 92 apart
 DIAGONAL_RCOND_FACTOR = 1.0
-DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
 
 
 def _damping(lam: torch.Tensor, d: torch.Tensor | None, n: int) -> torch.Tensor:
@@ -102,48 +103,27 @@ class DenseSystem:
         ``values`` (B, D * D) in ``layout``: H itself."""
         B, D = values.shape[0], self.problem.D
         if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
-            return self._solve_differentiable(values, g, lam, diagonal)
+            return damped_tensor_code(dense(self.layout, values), g, lam, diagonal)
+        out = solve_damped(values.reshape(B, D, D), g, lam, diagonal)  # batches of small systems
+        if out is not None:
+            return out
+        # LAPACK in the work buffers (larger systems, a few systems, kernels off)
         flat, L, info = self._workspace(B)
         Hd = flat.copy_(values).view(B, D, D)
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
         damp = _damping(lam, diag if diagonal else None, D)
         diag.add_(damp)
-        if B >= MIN_BATCH and uses_kernel(Hd):  # batches of small systems: the kernel
-            # a failed factorisation gives a NaN solution (``cholesky_solve``): the finiteness
-            # test below is the whole verdict
-            delta = cholesky_solve(Hd, -g.unsqueeze(-1), back=True)[2]
-            solved = None
-        else:  # LAPACK in the work buffers (larger systems; a few systems: no operator call)
-            torch.linalg.cholesky_ex(Hd, out=(L, info))
-            # an infinite pivot, which LAPACK takes, fails here as in the kernel
-            info = info.masked_fill(~torch.isfinite(L.diagonal(dim1=-2, dim2=-1)).all(-1), 1)
-            # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
-            y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
-            delta = torch.linalg.solve_triangular(L.mT, y, upper=True)
-            solved = info == 0
-        delta = delta.squeeze(-1)  # type: ignore[union-attr]
-        finite = _finite_rows(delta)
-        solved = finite if solved is None else solved & finite
+        torch.linalg.cholesky_ex(Hd, out=(L, info))
+        # an infinite pivot, which LAPACK takes, fails here as in the kernel
+        info = info.masked_fill(~torch.isfinite(L.diagonal(dim1=-2, dim2=-1)).all(-1), 1)
+        # L L^T delta = -g by two triangular solves (cholesky_solve would copy L)
+        y = torch.linalg.solve_triangular(L, -g.unsqueeze(-1), upper=False)
+        delta = torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
+        solved = (info == 0) & _finite_rows(delta)
         delta = torch.where(solved.unsqueeze(-1), delta, 0.0)
         # delta^T H delta = delta^T (H + damping) delta - delta^T damping delta
         quad = (delta * (Hd @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1) - (damp * delta * delta).sum(-1)
-        return delta, solved, quad
-
-    def _solve_differentiable(self, values: torch.Tensor, g: torch.Tensor, lam: torch.Tensor,
-                              diagonal: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``solve`` without work buffers or in-place steps (autograd through the iterations:
-        ``backward_mode="unroll"``)."""
-        H = dense(self.layout, values)
-        diag = H.diagonal(dim1=-2, dim2=-1)
-        damp = lam[:, None] * (diag.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(diag))
-        L, info = torch.linalg.cholesky_ex(H + torch.diag_embed(damp))
-        ok = info == 0
-        L = torch.where(ok[:, None, None], L, self.eye)  # a failed factor: no step, no NaN
-        delta = torch.cholesky_solve(-g.unsqueeze(-1), L).squeeze(-1)
-        solved = ok & torch.isfinite(delta).all(dim=-1)
-        delta = torch.where(solved[:, None], delta, torch.zeros_like(delta))
-        quad = (delta * (H @ delta.unsqueeze(-1)).squeeze(-1)).sum(-1)
-        return delta, solved, quad
+        return delta, solved, torch.where(solved, quad, 0.0)  # 0 H 0 = 0 where H is not finite
 
     def solve_information(self, rhs: torch.Tensor) -> torch.Tensor:
         """H^-1 rhs (B, D) with H at the solution (undamped), by a batched Cholesky (the
@@ -288,8 +268,7 @@ class BlockSparseSystem:
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """As ``DenseSystem.solve``, on the block-sparse factorisation."""
         if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
-            H = dense(self.layout, values).flatten(1)
-            return DenseSystem(self.problem)._solve_differentiable(H, g, lam, diagonal)
+            return damped_tensor_code(dense(self.layout, values), g, lam, diagonal)
         _, order, diag = self._maps
         damp = _damping(lam, values.index_select(1, diag) if diagonal else None, diag.numel())
         v = self._panels(values).index_add(1, diag, damp)  # damped, in a new tensor
