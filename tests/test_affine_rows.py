@@ -153,11 +153,11 @@ def test_vmap_is_a_loop_over_the_mapped_axis():
 
 # the products of ``act`` and ``act_jacobians`` the kernel forms (``affine.KERNEL_MAX_M``): the
 # action's rows (every group, both dtypes; Sim(3)'s Jacobian acts once more, without the
-# translation, for its quotient rule) and the Jacobian's rows (rows x dof) of at most 18 entries
-# in float64 and 4 in float32 (SO(2)'s 2)
+# translation, for its quotient rule) and the Jacobian's rows (rows x dof) of at most 40 entries
+# in float64 (every group's: SGal(3)'s 4 x 10) and 9 in float32 (SO(2)'s 2, SE(2)'s 6, SO(3)'s 9)
 _KERNEL_PRODUCTS = {(name, dtype): n for name, d64, d32 in
-                    (("SO2", 2, 2), ("SE2", 2, 1), ("SO3", 2, 1), ("SE3", 2, 1), ("SE23", 1, 1),
-                     ("SGal3", 1, 1), ("Sim3", 2, 2))
+                    (("SO2", 2, 2), ("SE2", 2, 2), ("SO3", 2, 2), ("SE3", 2, 1), ("SE23", 2, 1),
+                     ("SGal3", 2, 1), ("Sim3", 3, 2))
                     for dtype, n in ((f64, d64), (torch.float32, d32))}
 
 

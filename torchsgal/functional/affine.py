@@ -7,19 +7,20 @@ rotation block, c the translation column) and the Jacobian of that action
 (``blocks.act_homogeneous_jacobian``: W the element times the generators, (k, rows * dof)).
 
 torch's CPU ``baddbmm`` hands each of the B products to BLAS, whose fixed cost per product
-dominates for k of 3 or 4; the C kernel (``_native_affine.h``) forms each output row in place
-with its length a compile-time constant.  On one thread, 256 products of 100 x 3 rows: rows of 3
-entries (the action) 0.056 ms against 0.16 ms, of 18 (SE(3)'s Jacobian) 0.16 ms against 0.33 ms
-in float64, but 0.12 ms against 0.11 ms in float32 (BLAS's float32 products are twice as fast),
-and on two threads, where BLAS splits the products and the kernel splits only batches of at
-least some hundred microseconds of work (``_native_common.h``), float64 rows of 18 are as fast
-either way and rows of 27 (SE_2(3)'s) 0.25 ms against 0.18 ms.  Hence ``rows_times``, the
-groups' call, takes the operator for rows of up to ``KERNEL_MAX_M[dtype]`` entries (every
-action; in float64 the Jacobians of SO(2), SE(2), SO(3) and SE(3)) on CPU float32/float64
-tensors where nothing observes the call (``_blocking.unobserved``), the kernels are on in the
-calling thread (``native.enabled``) and the output has at least ``MIN_KERNEL_ENTRIES`` entries
-(below, the operator's fixed cost exceeds the product's), and the tensor code (``baddbmm``)
-elsewhere; that is the reference the tests compare the kernel with.
+dominates for k of 3 or 4; the C kernel (``_native_affine.h``) forms each output row in place,
+its length a compile-time constant, as vectors of four entries.  On one thread, 256 products of
+100 x 3 rows: rows of 3 entries (the action) 0.034 ms against 0.17 ms, of 18 (SE(3)'s Jacobian)
+0.076 ms against 0.34 ms, of 40 0.24 ms against 0.47 ms in float64; in float32 (whose BLAS
+products are twice as fast) 18 entries 0.072 ms against 0.115 ms, and on two threads, where BLAS
+splits the products and the kernel splits only batches of at least some hundred microseconds of
+work (``_native_common.h``), float32 rows of 18 take 0.072 ms against 0.062 ms, while float64
+rows of 27 (SE_2(3)'s) take 0.12 ms against 0.18 ms.  Hence ``rows_times``, the groups' call,
+takes the operator for rows of up to ``KERNEL_MAX_M[dtype]`` entries (every action and, in
+float64, every group's Jacobian) on CPU float32/float64 tensors where nothing observes the call
+(``_blocking.unobserved``), the kernels are on in the calling thread (``native.enabled``) and
+the output has at least ``MIN_KERNEL_ENTRIES`` entries (below, the operator's fixed cost exceeds
+the product's), and the tensor code (``baddbmm``) elsewhere; that is the reference the tests
+compare the kernel with.
 The operator has a fake implementation, a vmap rule and its derivatives (the product's), and
 ``tests/test_affine_rows.py`` runs ``torch.library.opcheck`` on it.
 """
@@ -35,7 +36,7 @@ __all__ = ["affine_rows", "rows_times"]
 
 MIN_KERNEL_ENTRIES = 4096  # B * N * m below which the tensor code runs (the call's own cost)
 # the longest rows ``rows_times`` forms by the kernel, per dtype (module docstring)
-KERNEL_MAX_M = {torch.float32: 4, torch.float64: 18}
+KERNEL_MAX_M = {torch.float32: 9, torch.float64: 40}
 MAX_M = 64  # AF_MAX_M of _native_affine.h: the longest row the kernel forms
 
 
