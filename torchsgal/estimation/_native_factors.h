@@ -143,7 +143,9 @@ static void K(se3_factor_range)(void **a, int64_t lo, int64_t hi) {
 }
 
 /* The whitened terms and their normal-equation blocks of one factor: r~ = L r, J~ = L J (L (m, m)
- * row-major; null: the identity), H = J~^T J~ (Dk, Dk) and g = J~^T r~ (Dk) */
+ * row-major; null: the identity), H = J~^T J~ (Dk, Dk) and g = J~^T r~ (Dk); with GCC/Clang the
+ * same on vectors (whitened_normal_M_DK below) */
+#if !defined(__GNUC__)
 static void K(whitened_normal)(const T *r, const T *J, const T *L, int m, int Dk, T *rw, T *H, T *g) {
     T Jw[6 * 12];
     for (int i = 0; i < m; ++i) {
@@ -173,33 +175,113 @@ static void K(whitened_normal)(const T *r, const T *J, const T *L, int m, int Dk
         g[a] = acc;
     }
 }
+#endif
+
+#if defined(__GNUC__)
+/* whitened_normal for constant sizes M and DK on GCC/Clang's vectors of four: J~'s rows as
+ * WN_NB(DK) vectors, H's rows accumulated as vectors (the blocks of columns that hold some
+ * b >= a) and mirrored, g as vectors; every entry is the same products summed in the same
+ * order as the scalar function above, so the results are equal, bit for bit. */
+#define WN_NB(DK) (((DK) + 3) / 4)
+#define WN_UNROLL _Pragma("GCC unroll 16")
+typedef T K(wn_vec4) __attribute__((vector_size(4 * sizeof(T))));
+#define WN_DEF(M, DK)                                                                            \
+    static inline void K(whitened_normal_##M##_##DK)(const T *r, const T *J, const T *L, T *rw,  \
+                                                     T *H, T *g) {                              \
+        typedef K(wn_vec4) V;                                                                   \
+        T Jp[M][WN_NB(DK) * 4];                                                                 \
+        V Jw[M][WN_NB(DK)], w;                                                                  \
+        WN_UNROLL for (int i = 0; i < M; ++i)                                                   \
+            WN_UNROLL for (int c = 0; c < WN_NB(DK) * 4; ++c) Jp[i][c] = c < DK ? J[DK * i + c] : 0; \
+        WN_UNROLL for (int i = 0; i < M; ++i) {                                                 \
+            if (L) {                                                                            \
+                T acc = 0;                                                                      \
+                WN_UNROLL for (int k = 0; k < M; ++k) acc += L[M * i + k] * r[k];               \
+                rw[i] = acc;                                                                    \
+                WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) {                                 \
+                    V v = {0, 0, 0, 0};                                                         \
+                    WN_UNROLL for (int k = 0; k < M; ++k) {                                     \
+                        const T l = L[M * i + k];                                               \
+                        memcpy(&w, Jp[k] + 4 * n, sizeof w);                                    \
+                        v += (V){l, l, l, l} * w;                                               \
+                    }                                                                           \
+                    Jw[i][n] = v;                                                               \
+                }                                                                               \
+            } else {                                                                            \
+                rw[i] = r[i];                                                                   \
+                WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) memcpy(&Jw[i][n], Jp[i] + 4 * n, sizeof w); \
+            }                                                                                   \
+        }                                                                                       \
+        V h[DK][WN_NB(DK)], gv[WN_NB(DK)];                                                      \
+        WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) {                                         \
+            gv[n] = (V){0, 0, 0, 0};                                                            \
+            WN_UNROLL for (int a = 0; a < DK; ++a) h[a][n] = (V){0, 0, 0, 0};                   \
+        }                                                                                       \
+        WN_UNROLL for (int i = 0; i < M; ++i) {                                                 \
+            T x[WN_NB(DK) * 4];                                                                 \
+            memcpy(x, Jw[i], sizeof x);                                                         \
+            const T ri = rw[i];                                                                 \
+            WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) gv[n] += Jw[i][n] * (V){ri, ri, ri, ri}; \
+            WN_UNROLL for (int a = 0; a < DK; ++a) {                                            \
+                const V xa = {x[a], x[a], x[a], x[a]};                                          \
+                WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n)                                   \
+                    if (4 * n + 3 >= a) h[a][n] += xa * Jw[i][n];                               \
+            }                                                                                   \
+        }                                                                                       \
+        WN_UNROLL for (int a = 0; a < DK; ++a) {                                                \
+            g[a] = gv[a / 4][a % 4];                                                            \
+            WN_UNROLL for (int b = 0; b < DK; ++b)                                              \
+                H[DK * a + b] = a <= b ? h[a][b / 4][b % 4] : h[b][a / 4][a % 4];               \
+        }                                                                                       \
+    }
+/* GCC takes (falsely) the vectors built from entries for reads of uninitialised memory */
+#if !defined(__clang__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#endif
+WN_DEF(6, 12)
+WN_DEF(6, 6)
+WN_DEF(3, 6)
+WN_DEF(3, 3)
+#if !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
+#undef WN_DEF
+#undef WN_NB
+#undef WN_UNROLL
+#define WN_CALL(M, DK, r, J, L, rw, H, g) K(whitened_normal_##M##_##DK)(r, J, L, rw, H, g)
+#else
+#define WN_CALL(M, DK, r, J, L, rw, H, g) K(whitened_normal)(r, J, L, M, DK, rw, H, g)
+#endif
 
 /* args: Zinv, Ti (null for priors), Tj, L (null: none), rw, H, g, series (SE(2) only; see
  * se2_factor_range), each (n, ...) contiguous; L (n, m, m), or (m, m) for all with L_shared */
-static void K(se3_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
+WIDE_LOOPS static void K(se3_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
     const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
     T *rw = a[4], *H = a[5], *g = a[6];
     const int64_t shared = *(const int64_t *)a[7];
-    const int Dk = Ti ? 12 : 6;
     for (int64_t b = lo; b < hi; ++b) {
         T r[6], J[72];
         K(se3_factor_one)(Zinv + 16 * b, Ti ? Ti + 16 * b : NULL, Tj + 16 * b, r, J);
-        K(whitened_normal)(r, J, L ? L + (shared ? 0 : 36 * b) : NULL, 6, Dk, rw + 6 * b,
-                           H + Dk * Dk * b, g + Dk * b);
+        if (Ti)
+            WN_CALL(6, 12, r, J, L ? L + (shared ? 0 : 36 * b) : NULL, rw + 6 * b, H + 144 * b, g + 12 * b);
+        else
+            WN_CALL(6, 6, r, J, L ? L + (shared ? 0 : 36 * b) : NULL, rw + 6 * b, H + 36 * b, g + 6 * b);
     }
 }
 
-static void K(se2_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
+WIDE_LOOPS static void K(se2_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
     const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
     T *rw = a[4], *H = a[5], *g = a[6];
     const int64_t shared = *(const int64_t *)a[7];
     const double *series = a[8];
-    const int Dk = Ti ? 6 : 3;
     for (int64_t b = lo; b < hi; ++b) {
         T r[3], J[18];
         K(se2_factor_one)(Zinv + 9 * b, Ti ? Ti + 9 * b : NULL, Tj + 9 * b, series, r, J);
-        K(whitened_normal)(r, J, L ? L + (shared ? 0 : 9 * b) : NULL, 3, Dk, rw + 3 * b,
-                           H + Dk * Dk * b, g + Dk * b);
+        if (Ti)
+            WN_CALL(3, 6, r, J, L ? L + (shared ? 0 : 9 * b) : NULL, rw + 3 * b, H + 36 * b, g + 6 * b);
+        else
+            WN_CALL(3, 3, r, J, L ? L + (shared ? 0 : 9 * b) : NULL, rw + 3 * b, H + 9 * b, g + 3 * b);
     }
 }
 
@@ -208,7 +290,7 @@ static void K(se2_factor_normal_range)(void **a, int64_t lo, int64_t hi) {
  * series (SE(2) only).  Problem b owns factors b * E .. b * E + E - 1 of the matrices; factor e
  * adds its H (Dk * Dk, row-major) into values[b, slots[e, k]] and its g into g[b, g_slots[e, k]]
  * (every index checked by the caller).  One problem per work item: no two threads share a row. */
-static void K(se3_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
+WIDE_LOOPS static void K(se3_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
     const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
     T *rw = a[4], *values = a[5], *g = a[6];
     const int64_t shared = *(const int64_t *)a[7];
@@ -222,14 +304,17 @@ static void K(se3_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
             const int64_t *s = slots + Dk * Dk * e, *t = g_slots + Dk * e;
             T r[6], J[72], H[144], gf[12];
             K(se3_factor_one)(Zinv + 16 * f, Ti ? Ti + 16 * f : NULL, Tj + 16 * f, r, J);
-            K(whitened_normal)(r, J, L ? L + (shared ? 0 : 36 * f) : NULL, 6, Dk, rw + 6 * f, H, gf);
+            if (Ti)
+                WN_CALL(6, 12, r, J, L ? L + (shared ? 0 : 36 * f) : NULL, rw + 6 * f, H, gf);
+            else
+                WN_CALL(6, 6, r, J, L ? L + (shared ? 0 : 36 * f) : NULL, rw + 6 * f, H, gf);
             for (int k = 0; k < Dk * Dk; ++k) vb[s[k]] += H[k];
             for (int k = 0; k < Dk; ++k) gb[t[k]] += gf[k];
         }
     }
 }
 
-static void K(se2_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
+WIDE_LOOPS static void K(se2_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
     const T *Zinv = a[0], *Ti = a[1], *Tj = a[2], *L = a[3];
     T *rw = a[4], *values = a[5], *g = a[6];
     const int64_t shared = *(const int64_t *)a[7];
@@ -244,13 +329,17 @@ static void K(se2_factor_assemble_range)(void **a, int64_t lo, int64_t hi) {
             const int64_t *s = slots + Dk * Dk * e, *t = g_slots + Dk * e;
             T r[3], J[18], H[36], gf[6];
             K(se2_factor_one)(Zinv + 9 * f, Ti ? Ti + 9 * f : NULL, Tj + 9 * f, series, r, J);
-            K(whitened_normal)(r, J, L ? L + (shared ? 0 : 9 * f) : NULL, 3, Dk, rw + 3 * f, H, gf);
+            if (Ti)
+                WN_CALL(3, 6, r, J, L ? L + (shared ? 0 : 9 * f) : NULL, rw + 3 * f, H, gf);
+            else
+                WN_CALL(3, 3, r, J, L ? L + (shared ? 0 : 9 * f) : NULL, rw + 3 * f, H, gf);
             for (int k = 0; k < Dk * Dk; ++k) vb[s[k]] += H[k];
             for (int k = 0; k < Dk; ++k) gb[t[k]] += gf[k];
         }
     }
 }
 
+#undef WN_CALL
 #undef K
 #undef KF__
 #undef KF_
