@@ -44,6 +44,9 @@
 #pragma GCC diagnostic pop
 #endif
 
+/* The out-of-line lane loops of the Cholesky solves get an AVX2 clone too in float64 (6-24%
+ * faster on 6 to 40 unknowns); in float32 their AVX2 clone measured up to 12% slower. */
+#define WIDE_LANES WIDE_LOOPS
 #define T double
 #define SFX f64
 #define SQRT sqrt
@@ -58,6 +61,8 @@
 #undef SIN
 #undef COS
 #undef ATAN2
+#undef WIDE_LANES
+#define WIDE_LANES
 #define T float
 #define SFX f32
 #define SQRT sqrtf

@@ -77,7 +77,7 @@ static void CAT(block_quadratic, SFX)(const int64_t *S, const T *A, const T *X, 
     }
 }
 
-static void CAT(block_cholesky_one, SFX)(const int64_t *S, const T *A, const T *R, T *L, T *X,
+WIDE_LANES static void CAT(block_cholesky_one, SFX)(const int64_t *S, const T *A, const T *R, T *L, T *X,
                                          T *Q, int32_t *info, int64_t k) {
     const int64_t n = S[0], D = S[1], P = S[2], U = S[3], Rt = S[5];
     const int64_t *size = S + 7, *eoff = size + n, *poff = eoff + n, *prows = poff + n;
@@ -179,7 +179,7 @@ static void CAT(block_cholesky_one, SFX)(const int64_t *S, const T *A, const T *
 #define BC_LANES_MAX_BYTES (8 << 20) /* the lanes' workspace at most (else one system at a time) */
 #endif
 
-static void CAT(block_cholesky_lanes, SFX)(const int64_t *S, const T *A, const T *R, T *L, T *X, T *Q,
+WIDE_LANES static void CAT(block_cholesky_lanes, SFX)(const int64_t *S, const T *A, const T *R, T *L, T *X, T *Q,
                                            int32_t *info, int64_t k, int64_t nsys, T (*restrict l)[BC_LANES],
                                            T (*restrict x)[BC_LANES]) {
     const int64_t n = S[0], D = S[1], P = S[2], U = S[3], Rt = S[5];

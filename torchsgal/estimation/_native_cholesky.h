@@ -167,7 +167,7 @@ static inline void CAT(lanes_store, SFX)(T (*restrict x)[LANES], T *restrict dst
 
 /* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range, their matrices already in the
  * lanes l (lower triangle) */
-static void CAT(lanes_factor_solve, SFX)(const T *R, T *L, T *X, T *Y, int32_t *info,
+WIDE_LANES static void CAT(lanes_factor_solve, SFX)(const T *R, T *L, T *X, T *Y, int32_t *info,
                                         int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
                                         T (*r)[LANES], T (*x)[LANES]) {
     int32_t bad[LANES];
@@ -196,7 +196,7 @@ static void CAT(lanes_factor_solve, SFX)(const T *R, T *L, T *X, T *Y, int32_t *
 }
 
 /* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range */
-static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T *Y, int32_t *info,
+WIDE_LANES static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T *Y, int32_t *info,
                                           int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
                                           T (*r)[LANES], T (*x)[LANES]) {
     CAT(lanes_load, SFX)(l, A + b0 * m * m, n, m, m, 0, m);
@@ -225,7 +225,7 @@ static inline void CAT(lanes_gram, SFX)(T (*restrict l)[LANES], T (*restrict g)[
 }
 
 /* the systems [b0, b0 + n) (n <= LANES) of gram_cholesky_solve_range */
-static void CAT(lanes_gram_cholesky_solve, SFX)(const T *G, const T *d, int64_t d_stride, const T *R, T *L,
+WIDE_LANES static void CAT(lanes_gram_cholesky_solve, SFX)(const T *G, const T *d, int64_t d_stride, const T *R, T *L,
                                                T *X, T *Y, int32_t *info, int64_t b0, int64_t n, int64_t m,
                                                int64_t p, int64_t k, T (*l)[LANES], T (*r)[LANES],
                                                T (*x)[LANES], T (*g)[LANES]) {
@@ -234,7 +234,7 @@ static void CAT(lanes_gram_cholesky_solve, SFX)(const T *G, const T *d, int64_t 
 }
 
 /* the systems [b0, b0 + n) (n <= LANES) of triangular_solve_range */
-static void CAT(lanes_triangular_solve, SFX)(const T *Lin, const T *R, T *X, int64_t b0, int64_t n,
+WIDE_LANES static void CAT(lanes_triangular_solve, SFX)(const T *Lin, const T *R, T *X, int64_t b0, int64_t n,
                                             int64_t m, int64_t k, int transpose, T (*l)[LANES],
                                             T (*r)[LANES], T (*x)[LANES]) {
     CAT(lanes_load, SFX)(l, Lin + b0 * m * m, n, m, m, 0, m);
