@@ -47,7 +47,7 @@ def kernel_calls(monkeypatch):
 @needs_kernel
 @pytest.mark.parametrize("dtype", [torch.float32, f64], ids=str)
 @pytest.mark.parametrize("m", [1, 2, 3, 4, 5, 6, 9, 18, 21, 27, 40, 64])
-@pytest.mark.parametrize("k", [1, 3, 4, 7])
+@pytest.mark.parametrize("k", [1, 3, 4, 7, 9, 12])
 def test_the_kernel_is_the_batched_product(k, m, dtype, kernel_calls):
     """Every row length with a loop of its own (2, 3, 4, 6, 9, 18, 21, 27, 40) and others (1, 5,
     64), with and without c: the kernel's rows equal baddbmm's to a few units in the last place
@@ -60,6 +60,24 @@ def test_the_kernel_is_the_batched_product(k, m, dtype, kernel_calls):
         scale = (x.abs() @ W.abs() + (c.abs().unsqueeze(1) if with_c else 0)).to(f64)
         assert ((got.to(f64) - want.to(f64)).abs() <= 4 * eps * scale).all()
     assert len(kernel_calls) == 2
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64], ids=str)
+@pytest.mark.parametrize("k", [1, 3, 8, 9])
+def test_each_entry_is_the_products_summed_in_order(k, dtype):
+    """Rows of x (up to 8 entries: vectors of four; more: one entry at a time) and every row
+    length: each entry is ((x_0 W_0 + x_1 W_1) + ...) + c, one rounding per operation, in that
+    order: written out here with elementwise tensor operations, equal bit for bit."""
+    for m in (2, 3, 4, 5, 6, 9, 18, 21, 27, 40):
+        for with_c in (True, False):
+            x, W, c = _inputs(3, 13, k, m, dtype, seed=7 * k + m, with_c=with_c)
+            want = x[..., :1] * W[:, None, 0]
+            for a in range(1, k):
+                want = want + x[..., a:a + 1] * W[:, None, a]
+            if with_c:
+                want = want + c[:, None]
+            assert torch.equal(op(x, W, c), want), (k, m, with_c)
 
 
 @needs_kernel

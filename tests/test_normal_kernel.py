@@ -79,6 +79,42 @@ def test_blocks_are_the_products_added_at_their_slots(dtype, summed, kernel):
 
 
 @needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("summed", [False, True])
+def test_each_entry_is_the_row_products_summed_in_order(dtype, summed):
+    """Every block width (vectors of four from 3 columns, one entry at a time below): entry
+    (a, c), a <= c, of a factor's H is ((x_a x_c of row 0 + that of row 1) + ...) over its rows
+    in order (a summed block: over its factors' rows in order), mirrored, and added once to the
+    value at its slot; g likewise with x_a r.  Written out here with elementwise operations
+    (distinct slots: one addition each), equal bit for bit."""
+    B, E, m = 3, 4, 3
+    for Dk in range(1, normal_kernel.MAX_DK + 1):
+        J, r, _, _, _, _ = case(B=B, E=E, m=m, Dk=Dk, dtype=dtype, seed=Dk)
+        rows = 1 if summed else E
+        size, D = rows * Dk * Dk + 5, rows * Dk + 3
+        slots = torch.randperm(size, generator=torch.Generator().manual_seed(Dk))[:rows * Dk * Dk]
+        g_slots = torch.randperm(D, generator=torch.Generator().manual_seed(Dk + 1))[:rows * Dk]
+        slots, g_slots = slots.reshape(rows, Dk * Dk), g_slots.reshape(rows, Dk)
+        values = torch.randn(B, size, dtype=f64).to(dtype)
+        g = torch.randn(B, D, dtype=f64).to(dtype)
+        Jr = J.reshape(B, 1, E * m, Dk) if summed else J
+        rr = r.reshape(B, 1, E * m) if summed else r
+        h = torch.zeros(B, rows, Dk, Dk, dtype=dtype)
+        gb = torch.zeros(B, rows, Dk, dtype=dtype)
+        for i in range(Jr.shape[2]):
+            x = Jr[:, :, i]
+            h = h + x[..., :, None] * x[..., None, :]
+            gb = gb + x * rr[:, :, i, None]
+        upper = torch.triu(torch.ones(Dk, Dk, dtype=torch.bool))
+        h = torch.where(upper, h, h.mT)  # the kernel forms x_a x_c for a <= c and mirrors it
+        want_v, want_g = values.clone(), g.clone()
+        want_v[:, slots.reshape(-1)] += h.reshape(B, -1)
+        want_g[:, g_slots.reshape(-1)] += gb.reshape(B, -1)
+        v, gv = op(J, r, slots, values, g_slots, g, summed)
+        assert torch.equal(v, want_v) and torch.equal(gv, want_g), Dk
+
+
+@needs_kernel
 def test_kernel_and_tensor_code_agree_and_blocks_are_symmetric():
     """The kernel's blocks are exactly symmetric (the upper triangle mirrored); against the
     tensor code to rounding; one or two threads give the same bits."""
