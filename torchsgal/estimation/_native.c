@@ -100,14 +100,14 @@ static PyObject *py_cholesky_solve(PyObject *self, PyObject *const *a, Py_ssize_
     Py_RETURN_NONE;
 }
 
-/* damped_solve(H, g, lam, delta, solved, quad, W, clamp, n, m, diagonal, threads, is_double):
+/* damped_solve(H, g, lam, delta, solved, quad, clamp, n, m, diagonal, threads, is_double):
  * _native_cholesky.h's damped_solve_range */
 static PyObject *py_damped_solve(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
-    void *ptr[8];
+    void *ptr[7];
     int64_t ints[5]; /* n, m, diagonal, threads, is_double */
-    if (read_call(a, nargs, 8, ptr, 5, ints, "damped_solve") < 0) return NULL;
-    void *args[10] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], ptr[7], &ints[1], &ints[2]};
+    if (read_call(a, nargs, 7, ptr, 5, ints, "damped_solve") < 0) return NULL;
+    void *args[9] = {ptr[0], ptr[1], ptr[2], ptr[3], ptr[4], ptr[5], ptr[6], &ints[1], &ints[2]};
     Py_BEGIN_ALLOW_THREADS
     run_parallel(ints[4] ? damped_solve_range_f64 : damped_solve_range_f32, args, ints[0],
                  solve_cost(ints[1], 1, 1), (int)ints[3]);
@@ -317,7 +317,7 @@ static PyMethodDef methods[] = {
     {"cholesky_solve", (PyCFunction)(void (*)(void))py_cholesky_solve, METH_FASTCALL,
      "batched Cholesky and solves (A, R, L, X, Y, info, n, m, k, lanes, threads, is_double)"},
     {"damped_solve", (PyCFunction)(void (*)(void))py_damped_solve, METH_FASTCALL,
-     "a Levenberg-Marquardt step's damped normal equations (H, g, lam, delta, solved, quad, W, clamp, n, m, diagonal, threads, is_double)"},
+     "a Levenberg-Marquardt step's damped normal equations (H, g, lam, delta, solved, quad, clamp, n, m, diagonal, threads, is_double)"},
     {"gram_cholesky_solve", (PyCFunction)(void (*)(void))py_gram_cholesky_solve, METH_FASTCALL,
      "batched Cholesky and solves of G diag(d) G^T (G, d, R, L, X, Y, info, n, m, p, k, d_stride, threads, is_double)"},
     {"triangular_solve", (PyCFunction)(void (*)(void))py_triangular_solve, METH_FASTCALL,

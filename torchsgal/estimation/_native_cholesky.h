@@ -328,8 +328,9 @@ WIDE_LOOPS static void CAT(triangular_solve_range, SFX)(void **args, int64_t lo,
  * damped_solve.py): (H + lam D) delta = -g, D = I, or with ``diagonal`` D = diag(H) clamped to
  * [clamp[0], clamp[1]]; solved = the factor succeeded and delta is finite (else delta = 0),
  * quad = delta^T H delta (the undamped H, all of it read).  args: H (n, m, m), g (n, m),
- * lam (n), delta (n, m), solved (n) uint8, quad (n), W (n, m, m) workspace (used where the
- * lanes' workspace cannot be allocated), clamp (2 doubles), and m, diagonal as int64. */
+ * lam (n), delta (n, m), solved (n) uint8, quad (n), clamp (2 doubles), and m, diagonal as
+ * int64.  Where the lanes' workspace cannot be allocated, one system at a time in a buffer of
+ * m * m (and where not even that can be, every step unsolved). */
 static inline T CAT(damping_of, SFX)(const T *Hb, int64_t i, int64_t m, T lam, int64_t diagonal,
                                     const double *clamp) {
     if (!diagonal) return lam;
@@ -355,10 +356,10 @@ static inline void CAT(damped_finish, SFX)(const T *Hb, T *db, uint8_t *solved, 
 
 WIDE_LOOPS static void CAT(damped_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
     const T *H = args[0], *g = args[1], *lam = args[2];
-    T *delta = args[3], *quad = args[5], *W = args[6];
+    T *delta = args[3], *quad = args[5];
     uint8_t *solved = args[4];
-    const double *clamp = args[7];
-    const int64_t m = *(const int64_t *)args[8], diagonal = *(const int64_t *)args[9];
+    const double *clamp = args[6];
+    const int64_t m = *(const int64_t *)args[7], diagonal = *(const int64_t *)args[8];
     T(*lanes)[LANES] = m <= LANE_MAX_M ? malloc((size_t)(m * m + 2 * m) * sizeof(T[LANES])) : NULL;
     if (lanes) {
         T(*l)[LANES] = lanes, (*r)[LANES] = lanes + m * m, (*x)[LANES] = lanes + m * m + m;
@@ -386,9 +387,16 @@ WIDE_LOOPS static void CAT(damped_solve_range, SFX)(void **args, int64_t lo, int
         free(lanes);
         return;
     }
-    for (int64_t b = lo; b < hi; ++b) { /* one system at a time: the damped H in W, factored in place */
+    T *Wb = malloc((size_t)(m * m > 0 ? m * m : 1) * sizeof(T));
+    for (int64_t b = lo; b < hi; ++b) { /* one system at a time: the damped H in Wb, factored in place */
         const T *Hb = H + b * m * m;
-        T *Wb = W + b * m * m, *db = delta + b * m;
+        T *db = delta + b * m;
+        if (!Wb) {
+            for (int64_t i = 0; i < m; ++i) db[i] = 0;
+            solved[b] = 0;
+            quad[b] = 0;
+            continue;
+        }
         for (int64_t i = 0; i < m * m; ++i) Wb[i] = Hb[i];
         for (int64_t i = 0; i < m; ++i) {
             Wb[i * m + i] += CAT(damping_of, SFX)(Hb, i, m, lam[b], diagonal, clamp);
@@ -401,6 +409,7 @@ WIDE_LOOPS static void CAT(damped_solve_range, SFX)(void **args, int64_t lo, int
         }
         CAT(damped_finish, SFX)(Hb, db, solved + b, quad + b, !f, m);
     }
+    free(Wb);
 }
 
 #undef CAT

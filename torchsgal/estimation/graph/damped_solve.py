@@ -78,11 +78,10 @@ def _kernel(H, g, lam, diagonal):
     H, g, lam = (t.resolve_neg().contiguous() for t in (H, g, lam))
     delta, quad = torch.empty(B, D, dtype=H.dtype), torch.empty(B, dtype=H.dtype)
     solved = torch.empty(B, dtype=torch.bool)
-    work = torch.empty(B, D, D, dtype=H.dtype)  # the one-system-at-a-time path's factors
     clamp = _clamp_bounds()
     dense_solve._lib.damped_solve(H.data_ptr(), g.data_ptr(), lam.data_ptr(), delta.data_ptr(),
-                                  solved.data_ptr(), quad.data_ptr(), work.data_ptr(), clamp.data_ptr(),
-                                  B, D, int(diagonal), torch.get_num_threads(), H.dtype is torch.float64)
+                                  solved.data_ptr(), quad.data_ptr(), clamp.data_ptr(), B, D,
+                                  int(diagonal), torch.get_num_threads(), H.dtype is torch.float64)
     return delta, solved, quad
 
 

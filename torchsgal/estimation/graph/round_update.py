@@ -17,14 +17,18 @@ code (``_tensor_code``, the reference the tests compare it with) operation for o
 the parameters rounded to the problems' dtype as torch rounds a Python scalar, so both give the
 same values bit for bit.  ``round_update``, the solvers' call, takes the operator where the
 kernels run and nothing records (``factor_kernels.usable``), the tensor code elsewhere, and
-adds the step norm sqrt(max(delta^T H delta, 0)) (torch's sqrt, which the kernel's would not
-match to the last bit).  No derivative is registered: the outputs are decisions and counters (the
-cost that the gradient flows through is ``_accept``'s, in the solver).
+adds the step norm sqrt(max(delta^T H delta, 0)) by torch (whose vectorised sqrt differs from
+C's correctly rounded one in the last bit for some inputs).  No derivative is registered: the
+outputs are decisions and counters (the cost that the gradient flows through is ``_accept``'s,
+in the solver).
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
+from ...functional import native
 from ...functional.registration import operator
 from .. import dense_solve
 from ..solver import SolverStatus
@@ -130,6 +134,12 @@ def _check(*args) -> None:
     if len(params) != N_PARAMS or len(codes) != N_CODES:
         raise ValueError(f"lm_round_update: params must have {N_PARAMS} entries and codes "
                          f"{N_CODES}, got {len(params)} and {len(codes)}")
+    # finite and within the problems' dtype (torch rounds each to it, as the kernel does)
+    largest = torch.finfo(cost.dtype).max
+    bad = [p for p in params if not math.isfinite(p) or abs(p) > largest]
+    if bad:
+        raise ValueError(f"lm_round_update: params must be finite numbers within the range of "
+                         f"{cost.dtype}, got {bad[0]}")
 
 
 @operator("torchsgal::lm_round_update", schema=_SCHEMA)
@@ -151,13 +161,14 @@ def _kernel(cost, model_cost, new_cost, lin_change, solved, lam, cost_start, ite
             params, codes)
     _check(*args)
     lib = dense_solve._lib
-    if lib is None or cost.dtype not in (torch.float32, torch.float64):
+    if lib is None or not native.enabled() or cost.dtype not in (torch.float32, torch.float64):
         return _tensor_code(*args)
+    ins = [t.contiguous() for t in args[:9]]  # held while the kernel reads them
     B = cost.shape[0]
     success = torch.empty(B, dtype=torch.bool)
     lam_out, cost_start_out = torch.empty(B, dtype=cost.dtype), torch.empty(B, dtype=cost.dtype)
     iterations_out, status_out = torch.empty(B, dtype=torch.int64), torch.empty(B, dtype=torch.int64)
-    lib.lm_round_update(*[t.contiguous().data_ptr() for t in args[:9]],
+    lib.lm_round_update(*[t.data_ptr() for t in ins],
                         *[t.data_ptr() for t in (success, lam_out, cost_start_out, iterations_out,
                                                  status_out)],
                         *[float(p) for p in params], B, *codes, CONVERGED, MAX_ITERATIONS, DIVERGED,
