@@ -24,9 +24,16 @@ from ...functional.registration import operator
 from .. import dense_solve
 from .factor_kernels import usable
 
-__all__ = ["damped_solve", "uses_damped_kernel", "DIAGONAL_CLAMP"]
+__all__ = ["damped_solve", "damping", "uses_damped_kernel", "DIAGONAL_CLAMP"]
 
 DIAGONAL_CLAMP = (1e-6, 1e32)  # GTSAM's minDiagonal, maxDiagonal for diagonal damping
+
+
+def damping(lam: torch.Tensor, d: torch.Tensor | None, n: int) -> torch.Tensor:
+    """The damping (B, n) added to H's diagonal: lam clamp(d) for diagonal damping (d (B, n) the
+    diagonal's values), else (d None) lam broadcast over the n entries (a view)."""
+    lam = lam.unsqueeze(-1)
+    return lam.expand(-1, n) if d is None else lam * d.clamp(*DIAGONAL_CLAMP)
 
 
 def _check(H, g, lam, diagonal) -> None:
@@ -48,8 +55,7 @@ def _check(H, g, lam, diagonal) -> None:
 
 
 def _tensor_code(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool):
-    d = H.diagonal(dim1=-2, dim2=-1)
-    damp = lam[:, None] * (d.clamp(*DIAGONAL_CLAMP) if diagonal else torch.ones_like(d))
+    damp = damping(lam, H.diagonal(dim1=-2, dim2=-1) if diagonal else None, H.shape[-1])
     L, info = torch.linalg.cholesky_ex(H + torch.diag_embed(damp))
     # LAPACK takes an infinite pivot, which the kernel refuses
     ok = (info == 0) & torch.isfinite(L.diagonal(dim1=-2, dim2=-1)).all(-1)
@@ -104,8 +110,7 @@ def _fake(H, g, lam, diagonal):
 def uses_damped_kernel(H: torch.Tensor) -> bool:
     """Whether the operator runs its C kernel for H (B, D, D): CPU float32/float64, the dense
     kernels' size rule (``dense_solve``), kernels built and on in the calling thread."""
-    return (dense_solve._lib is not None and H.shape[0] >= dense_solve.MIN_BATCH
-            and dense_solve.uses_kernel(H))
+    return H.shape[0] >= dense_solve.MIN_BATCH and dense_solve.uses_kernel(H)
 
 
 def solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor, diagonal: bool):

@@ -24,8 +24,8 @@ from collections import OrderedDict
 import torch
 
 from ..block_cholesky import Structure, analyse, block_cholesky_solve
-from .damped_solve import DIAGONAL_CLAMP, solve_damped
 from .damped_solve import _tensor_code as damped_tensor_code
+from .damped_solve import damping, solve_damped
 from .layout import EntryLayout, dense, dense_layout, times
 from .problem import Problem
 
@@ -37,12 +37,6 @@ RCOND_FACTOR = 1e3  # RCOND = RCOND_FACTOR * eps of the dtype: the Jacobi-scaled
 # are 92 apart
 DIAGONAL_RCOND_FACTOR = 1.0
 
-
-def _damping(lam: torch.Tensor, d: torch.Tensor | None, n: int) -> torch.Tensor:
-    """The damping (B, n) added to H's diagonal: lam clamp(d) for diagonal damping (d (B, n) the
-    diagonal's values), else (d None) lam broadcast over the n entries (a view)."""
-    lam = lam.unsqueeze(-1)
-    return lam.expand(-1, n) if d is None else lam * d.clamp(*DIAGONAL_CLAMP)
 
 
 def _finite_rows(x: torch.Tensor) -> torch.Tensor:
@@ -111,7 +105,7 @@ class DenseSystem:
         flat, L, info = self._workspace(B)
         Hd = flat.copy_(values).view(B, D, D)
         diag = Hd.diagonal(dim1=-2, dim2=-1)  # damped in place
-        damp = _damping(lam, diag if diagonal else None, D)
+        damp = damping(lam, diag if diagonal else None, D)
         diag.add_(damp)
         torch.linalg.cholesky_ex(Hd, out=(L, info))
         # an infinite pivot, which LAPACK takes, fails here as in the kernel
@@ -270,7 +264,7 @@ class BlockSparseSystem:
         if torch.is_grad_enabled() and (values.requires_grad or g.requires_grad):
             return damped_tensor_code(dense(self.layout, values), g, lam, diagonal)
         _, order, diag = self._maps
-        damp = _damping(lam, values.index_select(1, diag) if diagonal else None, diag.numel())
+        damp = damping(lam, values.index_select(1, diag) if diagonal else None, diag.numel())
         v = self._panels(values).index_add(1, diag, damp)  # damped, in a new tensor
         _, X, Q, _ = block_cholesky_solve(v, g.index_select(1, order).neg_().unsqueeze(-1),
                                           self.structure)
@@ -411,8 +405,7 @@ class SparseSystem:
         """As ``DenseSystem.solve`` for B = 1, through the sparse factorisation."""
         v = values[0]
         D = self.problem.D
-        damp = self._diagonal(v).clamp(*DIAGONAL_CLAMP) if diagonal else v.new_ones(D)
-        ok = self._factor(v, lam[0] * damp)
+        ok = self._factor(v, damping(lam, self._diagonal(v)[None] if diagonal else None, D)[0])
         delta = self.factorization.solve(-g[0]) if ok else torch.zeros_like(g[0])
         ok = ok and bool(torch.isfinite(delta).all())
         if not ok:
