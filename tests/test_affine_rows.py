@@ -94,8 +94,10 @@ def test_strided_inputs_are_read_as_their_values(kernel_calls):
 
 def test_bad_arguments_name_themselves():
     x, W, c = _inputs(2, 3, 4, 5, f64)
-    with pytest.raises(ValueError, match=r"x must have shape \(B, N, k\) and W \(B, k, m\)"):
+    with pytest.raises(ValueError, match=r"x must have shape \(Bx, N, k\) and W \(B, k, m\) with Bx a divisor of B"):
         op(x, W[:, :3], c)
+    with pytest.raises(ValueError, match=r"divisor of B, got x \(2, 3, 4\) and W \(3, 4, 5\)"):
+        op(x, torch.cat([W, W[:1]]), torch.cat([c, c[:1]]))
     with pytest.raises(ValueError, match=r"x must have shape"):
         op(x[0], W, c)
     with pytest.raises(ValueError, match=r"c must have shape \(2, 5\) \(B, m\), got \(2, 4\)"):
@@ -200,14 +202,65 @@ def test_every_group_acts_on_a_broadcast_batch_through_it(G, dtype, kernel_calls
     assert len(kernel_calls) == n_on
 
 
-def test_recorded_and_transformed_calls_take_the_tensor_code(kernel_calls):
-    """Where autograd records or torch.func transforms, ``rows_times`` is the tensor code, and
-    its gradients are those of the product."""
+def test_recorded_and_transformed_calls_have_the_products_derivatives():
+    """Where autograd records or torch.func transforms, ``rows_times`` (through ``_RowsTimes``
+    where the kernel runs) has the product's derivatives: gradients, jacrev, and jvp mapped over
+    directions, against the same through ``baddbmm``."""
     x, W, c = _inputs(4, 300, 3, 18, f64)
     Wg = W.clone().requires_grad_()
     affine.rows_times(x, Wg, c).square().sum().backward()
     torch.testing.assert_close(Wg.grad, 2 * x.mT @ torch.baddbmm(c.unsqueeze(1), x, W), rtol=1e-13, atol=1e-12)
+    xg = x.clone().requires_grad_()
+    affine.rows_times(xg, W, c).square().sum().backward()
+    torch.testing.assert_close(xg.grad, 2 * torch.baddbmm(c.unsqueeze(1), x, W) @ W.mT, rtol=1e-13, atol=1e-12)
     jac = torch.func.jacrev(lambda w: affine.rows_times(x[:1], w, c[:1]))(W[:1])
     assert jac.shape == (1, 300, 18, 1, 3, 18)
     torch.testing.assert_close(jac[0, :, :, 0], torch.einsum("na,jl->njal", x[0], torch.eye(18, dtype=f64)))
-    assert kernel_calls == []
+    dW = torch.randn(6, *W.shape, dtype=f64)
+    dc = torch.randn(6, *c.shape, dtype=f64)
+    dx = torch.randn(6, *x.shape, dtype=f64)
+    for f, ref in ((lambda w, b: affine.rows_times(x, w, b), lambda w, b: torch.baddbmm(b.unsqueeze(1), x, w)),):
+        r, t = torch.func.vmap(lambda u, v: torch.func.jvp(f, (W, c), (u, v)))(dW, dc)
+        r0, t0 = torch.func.vmap(lambda u, v: torch.func.jvp(ref, (W, c), (u, v)))(dW, dc)
+        torch.testing.assert_close(r, r0, rtol=1e-14, atol=1e-14)
+        torch.testing.assert_close(t, t0, rtol=1e-14, atol=1e-14)
+    t = torch.func.vmap(lambda u: torch.func.jvp(lambda a: affine.rows_times(a, W, c), (x,), (u,))[1])(dx)
+    torch.testing.assert_close(t, dx @ W, rtol=1e-14, atol=1e-14)
+    # second derivatives: hessian (jacfwd of jacrev) through the Function, jacfwd of jacfwd
+    # through the tensor code
+    small = (x[:1, :200], W[:1], c[:1])
+    for second in (torch.func.hessian, lambda f: torch.func.jacfwd(torch.func.jacfwd(f))):
+        h = second(lambda w: affine.rows_times(small[0], w, small[2]).square().sum())(small[1])
+        want = 2 * torch.einsum("na,nb,jl->ajbl", small[0][0], small[0][0], torch.eye(18, dtype=f64))
+        torch.testing.assert_close(h[0, :, :, 0], want, rtol=1e-12, atol=1e-10)
+
+
+@needs_kernel
+def test_derivatives_run_the_kernel(kernel_calls):
+    """Reverse mode, and forward mode mapped over six directions of W and c (the engine's
+    forward-mode Jacobian of a user's ``T.act(p) - q``), form their products by the kernel: one
+    call for the value and one for all six tangents, x not copied six times."""
+    x, W, c = _inputs(4, 400, 3, 3, f64)
+    affine.rows_times(x, W.clone().requires_grad_(), c).sum().backward()
+    assert kernel_calls == [4]
+    kernel_calls.clear()
+    dW, dc = torch.randn(6, *W.shape, dtype=f64), torch.randn(6, *c.shape, dtype=f64)
+    torch.func.vmap(lambda u, v: torch.func.jvp(lambda w, b: affine.rows_times(x, w, b), (W, c), (u, v)))(dW, dc)
+    assert kernel_calls == [4, 24]
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, f64], ids=str)
+def test_one_x_for_several_W(dtype, kernel_calls):
+    """x (Bx, N, k) with Bx a divisor of B: problem b reads x[b mod Bx], equal bit for bit to the
+    kernel on x repeated; the gradient of x sums over the problems that share it."""
+    x, W, c = _inputs(6, 50, 4, 9, dtype)
+    got = op(x[:2], W, c)
+    assert torch.equal(got, op(x[:2].repeat(3, 1, 1), W, c))
+    assert kernel_calls == [6, 6]
+    with native.disabled():
+        torch.testing.assert_close(op(x[:2], W, c), got, rtol=0, atol=8 * torch.finfo(dtype).eps * 10)
+    if dtype == f64:
+        args = (x[:1, :5].clone().requires_grad_(), W[:3, :, :4].clone().requires_grad_(), c[:3, :4].clone().requires_grad_())
+        assert torch.autograd.gradcheck(lambda *a: op(*a), args)
+        opcheck(op.default, args)

@@ -183,24 +183,22 @@ static void K(whitened_normal)(const T *r, const T *J, const T *L, int m, int Dk
  * b >= a) and mirrored, g as vectors; every entry is the same products summed in the same
  * order as the scalar function above, so the results are equal, bit for bit. */
 #define WN_NB(DK) (((DK) + 3) / 4)
-#define WN_UNROLL _Pragma("GCC unroll 16")
-typedef T K(wn_vec4) __attribute__((vector_size(4 * sizeof(T))));
 #define WN_DEF(M, DK)                                                                            \
     static inline void K(whitened_normal_##M##_##DK)(const T *r, const T *J, const T *L, T *rw,  \
                                                      T *H, T *g) {                              \
-        typedef K(wn_vec4) V;                                                                   \
+        typedef VEC4 V;                                                                         \
         T Jp[M][WN_NB(DK) * 4];                                                                 \
         V Jw[M][WN_NB(DK)], w;                                                                  \
-        WN_UNROLL for (int i = 0; i < M; ++i)                                                   \
-            WN_UNROLL for (int c = 0; c < WN_NB(DK) * 4; ++c) Jp[i][c] = c < DK ? J[DK * i + c] : 0; \
-        WN_UNROLL for (int i = 0; i < M; ++i) {                                                 \
+        UNROLL for (int i = 0; i < M; ++i)                                                      \
+            UNROLL for (int c = 0; c < WN_NB(DK) * 4; ++c) Jp[i][c] = c < DK ? J[DK * i + c] : 0; \
+        UNROLL for (int i = 0; i < M; ++i) {                                                    \
             if (L) {                                                                            \
                 T acc = 0;                                                                      \
-                WN_UNROLL for (int k = 0; k < M; ++k) acc += L[M * i + k] * r[k];               \
+                UNROLL for (int k = 0; k < M; ++k) acc += L[M * i + k] * r[k];                  \
                 rw[i] = acc;                                                                    \
-                WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) {                                 \
+                UNROLL for (int n = 0; n < WN_NB(DK); ++n) {                                    \
                     V v = {0, 0, 0, 0};                                                         \
-                    WN_UNROLL for (int k = 0; k < M; ++k) {                                     \
+                    UNROLL for (int k = 0; k < M; ++k) {                                        \
                         const T l = L[M * i + k];                                               \
                         memcpy(&w, Jp[k] + 4 * n, sizeof w);                                    \
                         v += (V){l, l, l, l} * w;                                               \
@@ -209,28 +207,28 @@ typedef T K(wn_vec4) __attribute__((vector_size(4 * sizeof(T))));
                 }                                                                               \
             } else {                                                                            \
                 rw[i] = r[i];                                                                   \
-                WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) memcpy(&Jw[i][n], Jp[i] + 4 * n, sizeof w); \
+                UNROLL for (int n = 0; n < WN_NB(DK); ++n) memcpy(&Jw[i][n], Jp[i] + 4 * n, sizeof w); \
             }                                                                                   \
         }                                                                                       \
         V h[DK][WN_NB(DK)], gv[WN_NB(DK)];                                                      \
-        WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) {                                         \
+        UNROLL for (int n = 0; n < WN_NB(DK); ++n) {                                            \
             gv[n] = (V){0, 0, 0, 0};                                                            \
-            WN_UNROLL for (int a = 0; a < DK; ++a) h[a][n] = (V){0, 0, 0, 0};                   \
+            UNROLL for (int a = 0; a < DK; ++a) h[a][n] = (V){0, 0, 0, 0};                      \
         }                                                                                       \
-        WN_UNROLL for (int i = 0; i < M; ++i) {                                                 \
+        UNROLL for (int i = 0; i < M; ++i) {                                                    \
             T x[WN_NB(DK) * 4];                                                                 \
             memcpy(x, Jw[i], sizeof x);                                                         \
             const T ri = rw[i];                                                                 \
-            WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n) gv[n] += Jw[i][n] * (V){ri, ri, ri, ri}; \
-            WN_UNROLL for (int a = 0; a < DK; ++a) {                                            \
+            UNROLL for (int n = 0; n < WN_NB(DK); ++n) gv[n] += Jw[i][n] * (V){ri, ri, ri, ri}; \
+            UNROLL for (int a = 0; a < DK; ++a) {                                               \
                 const V xa = {x[a], x[a], x[a], x[a]};                                          \
-                WN_UNROLL for (int n = 0; n < WN_NB(DK); ++n)                                   \
+                UNROLL for (int n = 0; n < WN_NB(DK); ++n)                                      \
                     if (4 * n + 3 >= a) h[a][n] += xa * Jw[i][n];                               \
             }                                                                                   \
         }                                                                                       \
-        WN_UNROLL for (int a = 0; a < DK; ++a) {                                                \
+        UNROLL for (int a = 0; a < DK; ++a) {                                                   \
             g[a] = gv[a / 4][a % 4];                                                            \
-            WN_UNROLL for (int b = 0; b < DK; ++b)                                              \
+            UNROLL for (int b = 0; b < DK; ++b)                                                 \
                 H[DK * a + b] = a <= b ? h[a][b / 4][b % 4] : h[b][a / 4][a % 4];               \
         }                                                                                       \
     }
@@ -248,7 +246,6 @@ WN_DEF(3, 3)
 #endif
 #undef WN_DEF
 #undef WN_NB
-#undef WN_UNROLL
 #define WN_CALL(M, DK, r, J, L, rw, H, g) K(whitened_normal_##M##_##DK)(r, J, L, rw, H, g)
 #else
 #define WN_CALL(M, DK, r, J, L, rw, H, g) K(whitened_normal)(r, J, L, M, DK, rw, H, g)

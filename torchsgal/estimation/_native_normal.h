@@ -42,30 +42,28 @@
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #endif
 #define NP_VEC(KK) ((KK) >= 3)
-#define NP_UNROLL _Pragma("GCC unroll 16")
-typedef T NP(vec4) __attribute__((vector_size(4 * sizeof(T))));
-#define NP_ACC(KK) T h[KK * KK], v[KK]; NP(vec4) hv[KK][NP_NB(KK)], vv[NP_NB(KK)];
+#define NP_ACC(KK) T h[KK * KK], v[KK]; VEC4 hv[KK][NP_NB(KK)], vv[NP_NB(KK)];
 #define NP_ZERO(KK)                                                                              \
     for (int a = 0; a < KK * KK; ++a) h[a] = 0;                                                  \
     for (int a = 0; a < KK; ++a) v[a] = 0;                                                       \
-    NP_UNROLL for (int n = 0; n < NP_NB(KK); ++n) {                                             \
-        vv[n] = (NP(vec4)){0, 0, 0, 0};                                                          \
-        NP_UNROLL for (int a = 0; a < KK; ++a) hv[a][n] = (NP(vec4)){0, 0, 0, 0};               \
+    UNROLL for (int n = 0; n < NP_NB(KK); ++n) {                                                \
+        vv[n] = (VEC4){0, 0, 0, 0};                                                              \
+        UNROLL for (int a = 0; a < KK; ++a) hv[a][n] = (VEC4){0, 0, 0, 0};                      \
     }
 #define NP_VECTOR_ROWS(KK, ENTRY)                                                                \
     for (int64_t i = 0; i < m; ++i) {                                                            \
         T x[NP_NB(KK) * 4];                                                                      \
-        NP_UNROLL for (int a = 0; a < NP_NB(KK) * 4; ++a) x[a] = a < KK ? ENTRY : 0;             \
+        UNROLL for (int a = 0; a < NP_NB(KK) * 4; ++a) x[a] = a < KK ? ENTRY : 0;                \
         const T ri = re_[i * rm];                                                                \
-        const NP(vec4) rv = {ri, ri, ri, ri};                                                    \
-        NP(vec4) xs[NP_NB(KK)];                                                                  \
-        NP_UNROLL for (int n = 0; n < NP_NB(KK); ++n) {                                          \
-            xs[n] = (NP(vec4)){x[4 * n], x[4 * n + 1], x[4 * n + 2], x[4 * n + 3]};              \
+        const VEC4 rv = {ri, ri, ri, ri};                                                        \
+        VEC4 xs[NP_NB(KK)];                                                                      \
+        UNROLL for (int n = 0; n < NP_NB(KK); ++n) {                                             \
+            xs[n] = (VEC4){x[4 * n], x[4 * n + 1], x[4 * n + 2], x[4 * n + 3]};                  \
             vv[n] += xs[n] * rv;                                                                 \
         }                                                                                        \
-        NP_UNROLL for (int a = 0; a < KK; ++a) {                                                 \
-            const NP(vec4) xa = {x[a], x[a], x[a], x[a]};                                        \
-            NP_UNROLL for (int n = 0; n < NP_NB(KK); ++n)                                       \
+        UNROLL for (int a = 0; a < KK; ++a) {                                                    \
+            const VEC4 xa = {x[a], x[a], x[a], x[a]};                                            \
+            UNROLL for (int n = 0; n < NP_NB(KK); ++n)                                          \
                 if (4 * n + 3 >= a) hv[a][n] += xa * xs[n]; /* the blocks with some c >= a */    \
         }                                                                                        \
     }
@@ -79,7 +77,6 @@ typedef T NP(vec4) __attribute__((vector_size(4 * sizeof(T))));
 #define NP_H(KK, a, c) (NP_VEC(KK) ? hv[a][(c) / 4][(c) % 4] : h[(a) * KK + (c)])
 #define NP_V(KK, a) (NP_VEC(KK) ? vv[(a) / 4][(a) % 4] : v[a])
 #else
-#define NP_UNROLL
 #define NP_ACC(KK) T h[KK * KK], v[KK];
 #define NP_ZERO(KK)                                                                              \
     for (int a = 0; a < KK * KK; ++a) h[a] = 0;                                                  \
@@ -100,9 +97,9 @@ typedef T NP(vec4) __attribute__((vector_size(4 * sizeof(T))));
     {                                                                                            \
         const int64_t *hs = slots + (e) * KK * KK, *gs = g_slots + (e) * KK;                     \
         T *vb = values + b * size, *gb = g + b * D;                                              \
-        NP_UNROLL for (int a = 0; a < KK; ++a) {                                                 \
+        UNROLL for (int a = 0; a < KK; ++a) {                                                    \
             gb[gs[a]] += NP_V(KK, a);                                                                \
-            NP_UNROLL for (int c = 0; c < KK; ++c)                                               \
+            UNROLL for (int c = 0; c < KK; ++c)                                                  \
                 vb[hs[a * KK + c]] += a <= c ? NP_H(KK, a, c) : NP_H(KK, c, a);                  \
         }                                                                                        \
     }
@@ -164,7 +161,6 @@ NP_FIXED(12)
 #undef NP_ROWS_AT
 #undef NP_SCATTER
 #undef NP_NB
-#undef NP_UNROLL
 #undef NP_ACC
 #undef NP_VEC
 #undef NP_SCALAR_ROWS

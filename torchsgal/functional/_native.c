@@ -75,16 +75,17 @@
 #define SFX f32
 #include "_native_affine.h"
 
-/* affine_rows(x, W, c or 0, out, dims, B, threads, is_double): dims {N, k, m} (int64) */
+/* affine_rows(x, W, c or 0, out, dims, B, threads, is_double): dims {N, k, m, Bx} (int64) */
 static PyObject *py_affine_rows(PyObject *self, PyObject *const *a, Py_ssize_t nargs) {
     (void)self;
     void *ptr[5];
     int64_t ints[3]; /* B, threads, is_double */
     if (read_call(a, nargs, 5, ptr, 3, ints, "affine_rows") < 0) return NULL;
     const int64_t *d = (const int64_t *)ptr[4];
-    if (d[1] < 1 || d[2] < 1 || d[2] > AF_MAX_M) {
-        PyErr_Format(PyExc_ValueError, "affine_rows: k must be at least 1 and m in [1, %d], got k = %lld, "
-                     "m = %lld", AF_MAX_M, (long long)d[1], (long long)d[2]);
+    if (d[1] < 1 || d[2] < 1 || d[2] > AF_MAX_M || d[3] < 1 || ints[0] % d[3] != 0) {
+        PyErr_Format(PyExc_ValueError, "affine_rows: k must be at least 1, m in [1, %d] and x's batch "
+                     "a divisor of B = %lld, got k = %lld, m = %lld, x's batch %lld", AF_MAX_M,
+                     (long long)ints[0], (long long)d[1], (long long)d[2], (long long)d[3]);
         return NULL;
     }
     const int64_t cost = d[0] * d[1] * d[2] / 400 + 1;  /* in units of one SGal(3) exp */

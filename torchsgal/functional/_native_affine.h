@@ -8,8 +8,9 @@
  * Jacobians have (so that the loop over a row's entries is unrolled and vectorised).  Included
  * by functional/_native.c once per element type T with suffix SFX.
  *
- * args: x (B, N, k), W (B, k, m), c (B, m) or NULL, out (B, N, m), all contiguous, and dims
- * {N, k, m} with k >= 1; the range [lo, hi) runs over b.
+ * args: x (Bx, N, k), W (B, k, m), c (B, m) or NULL, out (B, N, m), all contiguous, and dims
+ * {N, k, m, Bx} with k >= 1 and B a multiple of Bx >= 1 (problem b reads x[b mod Bx]: one x
+ * for several W, as forward mode's tangents of an action); the range [lo, hi) runs over b.
  */
 #if defined(_MSC_VER) && !defined(restrict)
 #define restrict __restrict /* C99's restrict, as MSVC spells it */
@@ -26,7 +27,7 @@
     const T *x = (const T *)args[0], *W = (const T *)args[1], *c = (const T *)args[2];          \
     T *out = (T *)args[3];                                                                      \
     const int64_t *d = (const int64_t *)args[4];                                                \
-    const int64_t N = d[0], k = d[1], m = d[2];                                                 \
+    const int64_t N = d[0], k = d[1], m = d[2], Bx = d[3];                                      \
     (void)m;
 
 /* the loop over the problems, one entry of a row at a time */
@@ -34,7 +35,7 @@
     for (int64_t b = lo; b < hi; ++b) {                                                         \
         const T *restrict Wb = W + b * k * (MM), *restrict cb = c ? c + b * (MM) : NULL;       \
         for (int64_t i = 0; i < N; ++i) {                                                       \
-            const T *restrict xi = x + (b * N + i) * k;                                         \
+            const T *restrict xi = x + ((b % Bx) * N + i) * k;                                  \
             T o[AF_MAX_M];                                                                      \
             for (int64_t j = 0; j < (MM); ++j) o[j] = xi[0] * Wb[j];                            \
             for (int64_t a = 1; a < k; ++a) {                                                   \
@@ -57,38 +58,36 @@
  * bit. */
 #define AF_VEC_MAX_K 8
 #define AF_NB(MM) (((MM) + 3) / 4)
-#define AF_UNROLL _Pragma("GCC unroll 16")
-typedef T AF(vec4) __attribute__((vector_size(4 * sizeof(T))));
 #define AF_VECTOR_BODY(MM)                                                                       \
     for (int64_t b = lo; b < hi; ++b) {                                                         \
         T wp[AF_VEC_MAX_K][AF_NB(MM) * 4], cp[AF_NB(MM) * 4];                                   \
         for (int64_t a = 0; a < k; ++a)                                                         \
-            AF_UNROLL for (int j = 0; j < AF_NB(MM) * 4; ++j)                                   \
+            UNROLL for (int j = 0; j < AF_NB(MM) * 4; ++j)                                      \
                 wp[a][j] = j < (MM) ? W[(b * k + a) * (MM) + j] : 0;                            \
-        AF_UNROLL for (int j = 0; j < AF_NB(MM) * 4; ++j) cp[j] = c && j < (MM) ? c[b * (MM) + j] : 0; \
+        UNROLL for (int j = 0; j < AF_NB(MM) * 4; ++j) cp[j] = c && j < (MM) ? c[b * (MM) + j] : 0; \
         for (int64_t i = 0; i < N; ++i) {                                                       \
-            const T *xi = x + (b * N + i) * k;                                                  \
-            AF(vec4) o[AF_NB(MM)], w;                                                           \
-            const AF(vec4) x0 = {xi[0], xi[0], xi[0], xi[0]};                                   \
-            AF_UNROLL for (int n = 0; n < AF_NB(MM); ++n) {                                     \
+            const T *xi = x + ((b % Bx) * N + i) * k;                                           \
+            VEC4 o[AF_NB(MM)], w;                                                               \
+            const VEC4 x0 = {xi[0], xi[0], xi[0], xi[0]};                                       \
+            UNROLL for (int n = 0; n < AF_NB(MM); ++n) {                                        \
                 memcpy(&w, wp[0] + 4 * n, sizeof w);                                            \
                 o[n] = x0 * w;                                                                  \
             }                                                                                   \
             for (int64_t a = 1; a < k; ++a) {                                                   \
-                const AF(vec4) xa = {xi[a], xi[a], xi[a], xi[a]};                               \
-                AF_UNROLL for (int n = 0; n < AF_NB(MM); ++n) {                                 \
+                const VEC4 xa = {xi[a], xi[a], xi[a], xi[a]};                                   \
+                UNROLL for (int n = 0; n < AF_NB(MM); ++n) {                                    \
                     memcpy(&w, wp[a] + 4 * n, sizeof w);                                        \
                     o[n] += xa * w;                                                             \
                 }                                                                               \
             }                                                                                   \
             if (c) /* the product first, then the row: as x @ W + c */                          \
-                AF_UNROLL for (int n = 0; n < AF_NB(MM); ++n) {                                 \
+                UNROLL for (int n = 0; n < AF_NB(MM); ++n) {                                    \
                     memcpy(&w, cp + 4 * n, sizeof w);                                           \
                     o[n] += w;                                                                  \
                 }                                                                               \
             T *oi = out + (b * N + i) * (MM);                                                   \
-            AF_UNROLL for (int n = 0; n < (MM) / 4; ++n) memcpy(oi + 4 * n, &o[n], sizeof o[n]); \
-            AF_UNROLL for (int j = ((MM) / 4) * 4; j < (MM); ++j) oi[j] = o[j / 4][j % 4];       \
+            UNROLL for (int n = 0; n < (MM) / 4; ++n) memcpy(oi + 4 * n, &o[n], sizeof o[n]);    \
+            UNROLL for (int j = ((MM) / 4) * 4; j < (MM); ++j) oi[j] = o[j / 4][j % 4];          \
         }                                                                                       \
     }
 #define AF_FIXED(MM)                                                                             \
@@ -130,7 +129,6 @@ WIDE_LOOPS static void AF(affine_rows_any)(void **args, int64_t lo, int64_t hi) 
 #undef AF_VECTOR_BODY
 #undef AF_VEC_MAX_K
 #undef AF_NB
-#undef AF_UNROLL
 #endif
 
 static range_fn AF(affine_rows_for)(int64_t m) {

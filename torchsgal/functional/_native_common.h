@@ -29,6 +29,19 @@
 #define WIDE_LOOPS
 #endif
 
+/* VEC4: GCC/Clang's vector of four entries of the element type, picked by the suffix SFX in force
+ * where it is used (vec4_f64, vec4_f32); UNROLL: a short loop unrolled in full (GCC/Clang) */
+#if defined(__GNUC__)
+typedef double vec4_f64 __attribute__((vector_size(4 * sizeof(double))));
+typedef float vec4_f32 __attribute__((vector_size(4 * sizeof(float))));
+#define VEC4_(sfx) vec4_##sfx
+#define VEC4__(sfx) VEC4_(sfx)
+#define VEC4 VEC4__(SFX)
+#define UNROLL _Pragma("GCC unroll 16")
+#else
+#define UNROLL
+#endif
+
 /* c ? a : b by masks on the bits (compilers branch on a float select, and a branch on data
  * is mispredicted half the time) */
 static inline float select_f32(int c, float a, float b) {

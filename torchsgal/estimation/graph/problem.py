@@ -226,7 +226,8 @@ class Problem:
             if info.group is None:
                 out.append(xv + d)
             else:
-                out.append(xv @ info.group._f.exp(d))  # the group product: the matrices' product
+                f = info.group._f
+                out.append(f.compose(xv, f.exp(d)))  # the group product (its operator on large batches)
         return out
 
     def wrap(self, k: int, leaf: torch.Tensor):
