@@ -28,6 +28,7 @@ setup(
             sources=["torchsgal/estimation/_native.c"],
             depends=common + ["torchsgal/functional/_native_products.h",
                               "torchsgal/estimation/_native_cholesky.h",
+                              "torchsgal/estimation/_native_cholesky_lanes.h",
                               "torchsgal/estimation/_native_block_cholesky.h",
                               "torchsgal/estimation/_native_factors.h",
                               "torchsgal/estimation/_native_normal.h",

@@ -44,8 +44,9 @@
 #pragma GCC diagnostic pop
 #endif
 
-/* The out-of-line lane loops of the Cholesky solves get an AVX2 clone too in float64 (6-24%
- * faster on 6 to 40 unknowns); in float32 their AVX2 clone measured up to 12% slower. */
+/* The out-of-line lane loops of the block Cholesky solves get an AVX2 clone too in float64; in
+ * float32 their AVX2 clone measured up to 12% slower.  (The dense solves' lane loops pick their
+ * vector width by the CPU themselves: _native_cholesky.h.) */
 #define WIDE_LANES WIDE_LOOPS
 #define T double
 #define SFX f64

@@ -1,7 +1,7 @@
 /* Batched Cholesky factorisation and triangular solves of small dense systems (included by
- * estimation/_native.c once per element type T with suffix SFX): eight systems per pass, one per
- * vector lane (below), or, where the lanes' workspace is not wanted or not allocated, one system
- * at a time.
+ * estimation/_native.c once per element type T with suffix SFX): a vector's width of systems per
+ * pass, one per vector lane (_native_cholesky_lanes.h), or, where the lanes' workspace is not
+ * wanted or not allocated, one system at a time.
  *
  * Row-major storage throughout.  A (m, m) symmetric positive definite (its lower triangle is
  * read), L its lower Cholesky factor (A = L L^T, the strict upper triangle written as zeros),
@@ -89,164 +89,68 @@ static inline void CAT(solve_one, SFX)(int32_t f, T *L, const T *R, T *X, T *Y, 
     if (Y) CAT(back_one, SFX)(L, X, Y, m, k);
 }
 
-/* Systems of at most LANE_MAX_M unknowns go LANES at a time, lane w of every array holding
- * system w: each step of the factor and the solves is one operation on LANES values (vector
- * instructions, and LANES independent chains where one system's steps wait on each other).
- * Every lane runs the same operations, so a system's result does not depend on its group. */
-#ifndef LANES
-#define LANES 8
+/* the damping added to H's diagonal entry i (damped_solve_range) */
+static inline T CAT(damping_of, SFX)(const T *Hb, int64_t i, int64_t m, T lam, int64_t diagonal,
+                                    const double *clamp) {
+    if (!diagonal) return lam;
+    const T d = Hb[i * m + i], lo = (T)clamp[0], hi = (T)clamp[1];
+    return lam * (d < lo ? lo : d > hi ? hi : d); /* clamp: NaN stays NaN */
+}
+
+/* delta^T H delta: row i of H times delta, summed in the order of i (the lane loop sums alike) */
+static inline T CAT(damped_quad, SFX)(const T *Hb, const T *db, int64_t m) {
+    T q = 0;
+    for (int64_t i = 0; i < m; ++i) {
+        T row = 0;
+        for (int64_t j = 0; j < m; ++j) row += Hb[i * m + j] * db[j];
+        q += db[i] * row;
+    }
+    return q;
+}
+
+/* solved, delta and quad of one system from its factor's status ok and its quad q */
+static inline void CAT(damped_finish, SFX)(T *db, uint8_t *solved, T *quad, int ok, T q, int64_t m) {
+    for (int64_t i = 0; i < m; ++i) ok = ok && isfinite(db[i]);
+    solved[0] = (uint8_t)ok;
+    if (!ok)
+        for (int64_t i = 0; i < m; ++i) db[i] = 0;
+    quad[0] = ok ? q : 0;
+}
+
+/* Systems of at most LANE_MAX_M unknowns go a lane vector at a time, one per lane
+ * (_native_cholesky_lanes.h), its machine vectors as wide as the code is built for (a vector type
+ * wider than the machine's compiles to slow code): two of 16 bytes of T side by side, or where
+ * the CPU has AVX2 (wide_cpu) one of 32 bytes, or two where a system's steps mostly wait on each
+ * other (at most LANE_PAIR_M unknowns and fewer than 4 right-hand sides; larger systems measured
+ * slower in pairs).  Every choice gives every system the same result. */
+#ifndef LANE_MAX_M
 #define LANE_MAX_M 64
 #define LANE_COLS 16 /* right-hand-side columns per pass */
+#define LANE_PAIR_M 8
 #endif
-
-/* rows m of the lanes' factors l (lower triangle used), pivots' reciprocals r; bad[w] = the row
- * + 1 of lane w's first pivot that is not positive (0 if none; the lane goes on with pivot 1) */
-static inline void CAT(lanes_factor, SFX)(T (*restrict l)[LANES], T (*restrict r)[LANES], int32_t *restrict bad,
-                                         int64_t m) {
-    for (int w = 0; w < LANES; ++w) bad[w] = 0;
-    for (int64_t j = 0; j < m; ++j) {
-        T d[LANES];
-        for (int w = 0; w < LANES; ++w) d[w] = l[j * m + j][w];
-        for (int64_t p = 0; p < j; ++p)
-            for (int w = 0; w < LANES; ++w) d[w] -= l[j * m + p][w] * l[j * m + p][w];
-        for (int w = 0; w < LANES; ++w) {
-            const int ok = d[w] > 0 && d[w] < INFINITY;
-            if (!ok && !bad[w]) bad[w] = (int32_t)(j + 1);
-            d[w] = ok ? d[w] : 1;
-        }
-        for (int w = 0; w < LANES; ++w) {
-            l[j * m + j][w] = SQRT(d[w]);
-            r[j][w] = 1 / l[j * m + j][w];
-        }
-        for (int64_t i = j + 1; i < m; ++i) {
-            T t[LANES];
-            for (int w = 0; w < LANES; ++w) t[w] = l[i * m + j][w];
-            for (int64_t p = 0; p < j; ++p)
-                for (int w = 0; w < LANES; ++w) t[w] -= l[i * m + p][w] * l[j * m + p][w];
-            for (int w = 0; w < LANES; ++w) l[i * m + j][w] = t[w] * r[j][w];
-        }
-    }
-}
-
-/* x (m rows of kc columns) = l^-1 x, or l^-T x with ``back`` */
-static inline void CAT(lanes_solve, SFX)(T (*restrict l)[LANES], T (*restrict r)[LANES], T (*restrict x)[LANES], int64_t m,
-                                        int64_t kc, int back) {
-    for (int64_t s = 0; s < m; ++s) {
-        const int64_t i = back ? m - 1 - s : s;
-        T(*xi)[LANES] = x + i * kc;
-        const int64_t p0 = back ? i + 1 : 0, p1 = back ? m : i;
-        for (int64_t p = p0; p < p1; ++p) {
-            const T *lp = back ? l[p * m + i] : l[i * m + p];
-            T(*xp)[LANES] = x + p * kc;
-            for (int64_t c = 0; c < kc; ++c)
-                for (int w = 0; w < LANES; ++w) xi[c][w] -= lp[w] * xp[c][w];
-        }
-        for (int64_t c = 0; c < kc; ++c)
-            for (int w = 0; w < LANES; ++w) xi[c][w] *= r[i][w];
-    }
-}
-
-/* lanes <- columns [c0, c0 + kc) of n systems' (m, k) blocks at src (the last system repeated) */
-static inline void CAT(lanes_load, SFX)(T (*restrict x)[LANES], const T *restrict src, int64_t n, int64_t m, int64_t k,
-                                       int64_t c0, int64_t kc) {
-    for (int w = 0; w < LANES; ++w) {
-        const T *b = src + (w < n ? w : n - 1) * m * k;
-        for (int64_t i = 0; i < m; ++i)
-            for (int64_t c = 0; c < kc; ++c) x[i * kc + c][w] = b[i * k + c0 + c];
-    }
-}
-
-static inline void CAT(lanes_store, SFX)(T (*restrict x)[LANES], T *restrict dst, int64_t n, int64_t m, int64_t k,
-                                        int64_t c0, int64_t kc) {
-    for (int64_t w = 0; w < n; ++w) {
-        T *b = dst + w * m * k;
-        for (int64_t i = 0; i < m; ++i)
-            for (int64_t c = 0; c < kc; ++c) b[i * k + c0 + c] = x[i * kc + c][w];
-    }
-}
-
-/* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range, their matrices already in the
- * lanes l (lower triangle) */
-WIDE_LANES static void CAT(lanes_factor_solve, SFX)(const T *R, T *L, T *X, T *Y, int32_t *info,
-                                        int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
-                                        T (*r)[LANES], T (*x)[LANES]) {
-    int32_t bad[LANES];
-    CAT(lanes_factor, SFX)(l, r, bad, m);
-    for (int64_t w = 0; w < n; ++w) {
-        T *Lb = L + (b0 + w) * m * m;
-        info[b0 + w] = bad[w];
-        for (int64_t i = 0; i < m; ++i)
-            for (int64_t j = 0; j < m; ++j) Lb[i * m + j] = bad[w] ? (T)NAN : j <= i ? l[i * m + j][w] : 0;
-    }
-    for (int64_t c0 = 0; c0 < k; c0 += LANE_COLS) {
-        const int64_t kc = k - c0 < LANE_COLS ? k - c0 : LANE_COLS;
-        CAT(lanes_load, SFX)(x, R + b0 * m * k, n, m, k, c0, kc);
-        CAT(lanes_solve, SFX)(l, r, x, m, kc, 0);
-        CAT(lanes_store, SFX)(x, X + b0 * m * k, n, m, k, c0, kc);
-        if (Y) {
-            CAT(lanes_solve, SFX)(l, r, x, m, kc, 1);
-            CAT(lanes_store, SFX)(x, Y + b0 * m * k, n, m, k, c0, kc);
-        }
-    }
-    for (int64_t w = 0; w < n; ++w)
-        if (bad[w]) {
-            CAT(fill_nan, SFX)(X + (b0 + w) * m * k, m * k);
-            if (Y) CAT(fill_nan, SFX)(Y + (b0 + w) * m * k, m * k);
-        }
-}
-
-/* the systems [b0, b0 + n) (n <= LANES) of cholesky_solve_range */
-WIDE_LANES static void CAT(lanes_cholesky_solve, SFX)(const T *A, const T *R, T *L, T *X, T *Y, int32_t *info,
-                                          int64_t b0, int64_t n, int64_t m, int64_t k, T (*l)[LANES],
-                                          T (*r)[LANES], T (*x)[LANES]) {
-    CAT(lanes_load, SFX)(l, A + b0 * m * m, n, m, m, 0, m);
-    CAT(lanes_factor_solve, SFX)(R, L, X, Y, info, b0, n, m, k, l, r, x);
-}
-
-/* the lower triangle of A = G diag(d) G^T into the lanes l for the systems [b0, b0 + n): G (m, p)
- * per system, d (p) per system (d_stride p) or shared (d_stride 0); g: m * p lanes of workspace */
-static inline void CAT(lanes_gram, SFX)(T (*restrict l)[LANES], T (*restrict g)[LANES], const T *restrict G,
-                                       const T *restrict d, int64_t d_stride, int64_t b0, int64_t n,
-                                       int64_t m, int64_t p) {
-    CAT(lanes_load, SFX)(g, G + b0 * m * p, n, m, p, 0, p);
-    T dw[LANES];
-    for (int64_t i = 0; i < m; ++i)
-        for (int64_t j = 0; j <= i; ++j)
-            for (int w = 0; w < LANES; ++w) l[i * m + j][w] = 0;
-    for (int64_t q = 0; q < p; ++q) {
-        for (int w = 0; w < LANES; ++w) dw[w] = d[(b0 + (w < n ? w : n - 1)) * d_stride + q];
-        for (int64_t j = 0; j < m; ++j) {
-            T u[LANES];  /* d_q G[j, q] */
-            for (int w = 0; w < LANES; ++w) u[w] = dw[w] * g[j * p + q][w];
-            for (int64_t i = j; i < m; ++i)
-                for (int w = 0; w < LANES; ++w) l[i * m + j][w] += g[i * p + q][w] * u[w];
-        }
-    }
-}
-
-/* the systems [b0, b0 + n) (n <= LANES) of gram_cholesky_solve_range */
-WIDE_LANES static void CAT(lanes_gram_cholesky_solve, SFX)(const T *G, const T *d, int64_t d_stride, const T *R, T *L,
-                                               T *X, T *Y, int32_t *info, int64_t b0, int64_t n, int64_t m,
-                                               int64_t p, int64_t k, T (*l)[LANES], T (*r)[LANES],
-                                               T (*x)[LANES], T (*g)[LANES]) {
-    CAT(lanes_gram, SFX)(l, g, G, d, d_stride, b0, n, m, p);
-    CAT(lanes_factor_solve, SFX)(R, L, X, Y, info, b0, n, m, k, l, r, x);
-}
-
-/* the systems [b0, b0 + n) (n <= LANES) of triangular_solve_range */
-WIDE_LANES static void CAT(lanes_triangular_solve, SFX)(const T *Lin, const T *R, T *X, int64_t b0, int64_t n,
-                                            int64_t m, int64_t k, int transpose, T (*l)[LANES],
-                                            T (*r)[LANES], T (*x)[LANES]) {
-    CAT(lanes_load, SFX)(l, Lin + b0 * m * m, n, m, m, 0, m);
-    for (int64_t i = 0; i < m; ++i)
-        for (int w = 0; w < LANES; ++w) r[i][w] = 1 / l[i * m + i][w];
-    for (int64_t c0 = 0; c0 < k; c0 += LANE_COLS) {
-        const int64_t kc = k - c0 < LANE_COLS ? k - c0 : LANE_COLS;
-        CAT(lanes_load, SFX)(x, R + b0 * m * k, n, m, k, c0, kc);
-        CAT(lanes_solve, SFX)(l, r, x, m, kc, transpose);
-        CAT(lanes_store, SFX)(x, X + b0 * m * k, n, m, k, c0, kc);
-    }
-}
+#define LANE_BYTES 16
+#define LANE_GROUPS 2
+#define LANE_SFX SFX
+#define LANE_TARGET
+#include "_native_cholesky_lanes.h"
+#if defined(WIDE_TARGET)
+#define LANE_BYTES 32
+#define LANE_GROUPS 1
+#define LANE_SFX CAT(SFX, wide)
+#define LANE_TARGET WIDE_TARGET
+#include "_native_cholesky_lanes.h"
+#define LANE_BYTES 32
+#define LANE_GROUPS 2
+#define LANE_SFX CAT(SFX, wide_pair)
+#define LANE_TARGET WIDE_TARGET
+#include "_native_cholesky_lanes.h"
+#define LANES_RUN(name, m, k, args, lo, hi)                                                        \
+    (!wide_cpu()                       ? CAT(name, SFX)                                             \
+     : (m) <= LANE_PAIR_M && (k) < 4 ? CAT(name, CAT(SFX, wide_pair))                             \
+                                       : CAT(name, CAT(SFX, wide)))(args, lo, hi)
+#else
+#define LANES_RUN(name, m, k, args, lo, hi) CAT(name, SFX)(args, lo, hi)
+#endif
 
 /* args: A, R, L, X, Y (null: not wanted), info, and m, k, lanes as int64 (lanes 0: one system at
  * a time, also where the lanes' workspace cannot be allocated) */
@@ -255,14 +159,7 @@ WIDE_LOOPS static void CAT(cholesky_solve_range, SFX)(void **args, int64_t lo, i
     T *L = args[2], *X = args[3], *Y = args[4];
     int32_t *info = args[5];
     const int64_t m = *(const int64_t *)args[6], k = *(const int64_t *)args[7];
-    T(*lanes)[LANES] = *(const int64_t *)args[8] && m <= LANE_MAX_M ? malloc((size_t)(m * m + m + m * LANE_COLS) * sizeof(T[LANES])) : NULL;
-    if (lanes) {
-        for (int64_t b = lo; b < hi; b += LANES)
-            CAT(lanes_cholesky_solve, SFX)(A, R, L, X, Y, info, b, hi - b < LANES ? hi - b : LANES, m, k,
-                                           lanes, lanes + m * m, lanes + m * m + m);
-        free(lanes);
-        return;
-    }
+    if (*(const int64_t *)args[8] && m <= LANE_MAX_M && LANES_RUN(cholesky_solve_lanes, m, k, args, lo, hi)) return;
     for (int64_t b = lo; b < hi; ++b) {
         T *Lb = L + b * m * m, *Xb = X + b * m * k, *Yb = Y ? Y + b * m * k : NULL;
         info[b] = CAT(cholesky_one, SFX)(A + b * m * m, Lb, m);
@@ -279,15 +176,7 @@ WIDE_LOOPS static void CAT(gram_cholesky_solve_range, SFX)(void **args, int64_t 
     int32_t *info = args[6];
     const int64_t m = *(const int64_t *)args[7], p = *(const int64_t *)args[8];
     const int64_t k = *(const int64_t *)args[9], d_stride = *(const int64_t *)args[10];
-    T(*lanes)[LANES] = m <= LANE_MAX_M ? malloc((size_t)(m * m + m + m * LANE_COLS + m * p) * sizeof(T[LANES])) : NULL;
-    if (lanes) {
-        for (int64_t b = lo; b < hi; b += LANES)
-            CAT(lanes_gram_cholesky_solve, SFX)(G, d, d_stride, R, L, X, Y, info, b, hi - b < LANES ? hi - b : LANES,
-                                                m, p, k, lanes, lanes + m * m, lanes + m * m + m,
-                                                lanes + m * m + m + m * LANE_COLS);
-        free(lanes);
-        return;
-    }
+    if (m <= LANE_MAX_M && LANES_RUN(gram_cholesky_solve_lanes, m, k, args, lo, hi)) return;
     for (int64_t b = lo; b < hi; ++b) {
         T *Lb = L + b * m * m, *Xb = X + b * m * k, *Yb = Y ? Y + b * m * k : NULL;
         const T *Gb = G + b * m * p, *db = d + b * d_stride;
@@ -308,14 +197,7 @@ WIDE_LOOPS static void CAT(triangular_solve_range, SFX)(void **args, int64_t lo,
     T *X = args[2];
     const int64_t m = *(const int64_t *)args[3], k = *(const int64_t *)args[4];
     const int64_t transpose = *(const int64_t *)args[5];
-    T(*lanes)[LANES] = *(const int64_t *)args[6] && m <= LANE_MAX_M ? malloc((size_t)(m * m + m + m * LANE_COLS) * sizeof(T[LANES])) : NULL;
-    if (lanes) {
-        for (int64_t b = lo; b < hi; b += LANES)
-            CAT(lanes_triangular_solve, SFX)(L, R, X, b, hi - b < LANES ? hi - b : LANES, m, k, (int)transpose,
-                                             lanes, lanes + m * m, lanes + m * m + m);
-        free(lanes);
-        return;
-    }
+    if (*(const int64_t *)args[6] && m <= LANE_MAX_M && LANES_RUN(triangular_solve_lanes, m, k, args, lo, hi)) return;
     for (int64_t b = lo; b < hi; ++b) {
         if (transpose)
             CAT(back_one, SFX)(L + b * m * m, R + b * m * k, X + b * m * k, m, k);
@@ -331,62 +213,13 @@ WIDE_LOOPS static void CAT(triangular_solve_range, SFX)(void **args, int64_t lo,
  * lam (n), delta (n, m), solved (n) uint8, quad (n), clamp (2 doubles), and m, diagonal as
  * int64.  Where the lanes' workspace cannot be allocated, one system at a time in a buffer of
  * m * m (and where not even that can be, every step unsolved). */
-static inline T CAT(damping_of, SFX)(const T *Hb, int64_t i, int64_t m, T lam, int64_t diagonal,
-                                    const double *clamp) {
-    if (!diagonal) return lam;
-    const T d = Hb[i * m + i], lo = (T)clamp[0], hi = (T)clamp[1];
-    return lam * (d < lo ? lo : d > hi ? hi : d); /* clamp: NaN stays NaN */
-}
-
-static inline void CAT(damped_finish, SFX)(const T *Hb, T *db, uint8_t *solved, T *quad, int ok, int64_t m) {
-    for (int64_t i = 0; i < m; ++i) ok = ok && isfinite(db[i]);
-    solved[0] = (uint8_t)ok;
-    T q = 0;
-    for (int64_t i = 0; i < m; ++i) {
-        if (!ok) db[i] = 0;
-    }
-    if (ok)
-        for (int64_t i = 0; i < m; ++i) {
-            T row = 0;
-            for (int64_t j = 0; j < m; ++j) row += Hb[i * m + j] * db[j];
-            q += db[i] * row;
-        }
-    quad[0] = q;
-}
-
 WIDE_LOOPS static void CAT(damped_solve_range, SFX)(void **args, int64_t lo, int64_t hi) {
     const T *H = args[0], *g = args[1], *lam = args[2];
     T *delta = args[3], *quad = args[5];
     uint8_t *solved = args[4];
     const double *clamp = args[6];
     const int64_t m = *(const int64_t *)args[7], diagonal = *(const int64_t *)args[8];
-    T(*lanes)[LANES] = m <= LANE_MAX_M ? malloc((size_t)(m * m + 2 * m) * sizeof(T[LANES])) : NULL;
-    if (lanes) {
-        T(*l)[LANES] = lanes, (*r)[LANES] = lanes + m * m, (*x)[LANES] = lanes + m * m + m;
-        for (int64_t b0 = lo; b0 < hi; b0 += LANES) {
-            const int64_t n = hi - b0 < LANES ? hi - b0 : LANES;
-            int32_t bad[LANES];
-            CAT(lanes_load, SFX)(l, H + b0 * m * m, n, m, m, 0, m);
-            for (int w = 0; w < LANES; ++w) {
-                const int64_t b = b0 + (w < n ? w : n - 1);
-                for (int64_t i = 0; i < m; ++i) {
-                    l[i * m + i][w] += CAT(damping_of, SFX)(H + b * m * m, i, m, lam[b], diagonal, clamp);
-                    x[i][w] = -g[b * m + i];
-                }
-            }
-            CAT(lanes_factor, SFX)(l, r, bad, m);
-            CAT(lanes_solve, SFX)(l, r, x, m, 1, 0);
-            CAT(lanes_solve, SFX)(l, r, x, m, 1, 1);
-            for (int64_t w = 0; w < n; ++w) {
-                const int64_t b = b0 + w;
-                T *db = delta + b * m;
-                for (int64_t i = 0; i < m; ++i) db[i] = x[i][w];
-                CAT(damped_finish, SFX)(H + b * m * m, db, solved + b, quad + b, !bad[w], m);
-            }
-        }
-        free(lanes);
-        return;
-    }
+    if (m <= LANE_MAX_M && LANES_RUN(damped_solve_lanes, m, 1, args, lo, hi)) return;
     T *Wb = malloc((size_t)(m * m > 0 ? m * m : 1) * sizeof(T));
     for (int64_t b = lo; b < hi; ++b) { /* one system at a time: the damped H in Wb, factored in place */
         const T *Hb = H + b * m * m;
@@ -407,11 +240,12 @@ WIDE_LOOPS static void CAT(damped_solve_range, SFX)(void **args, int64_t lo, int
             CAT(forward_one, SFX)(Wb, db, db, m, 1);
             CAT(back_one, SFX)(Wb, db, db, m, 1);
         }
-        CAT(damped_finish, SFX)(Hb, db, solved + b, quad + b, !f, m);
+        CAT(damped_finish, SFX)(db, solved + b, quad + b, !f, f ? 0 : CAT(damped_quad, SFX)(Hb, db, m), m);
     }
     free(Wb);
 }
 
+#undef LANES_RUN
 #undef CAT
 #undef CAT_
 #undef T

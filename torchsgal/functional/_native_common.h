@@ -25,6 +25,9 @@
  * (-ffp-contract=off): both clones round alike, element for element. */
 #if defined(__x86_64__) && defined(__GNUC__) && defined(__linux__) && !defined(TORCHSGAL_NO_CLONES)
 #define WIDE_LOOPS __attribute__((target_clones("avx2", "default")))
+/* WIDE_TARGET: AVX2 for one of two versions of a function, the caller picking it where wide_cpu() */
+#define WIDE_TARGET __attribute__((target("avx2")))
+static inline int wide_cpu(void) { return __builtin_cpu_supports("avx2"); }
 #else
 #define WIDE_LOOPS
 #endif
