@@ -1,6 +1,6 @@
 """Batched Cholesky solves (torchsgal/estimation/dense_solve.py, the C kernel of
-torchsgal/estimation/_native_cholesky.h): the kernel's two loops (a vector's width of systems
-per pass, one at a time) against torch's LAPACK Cholesky and triangular solves at the sizes and batches where
+torchsgal/estimation/_native_cholesky.h): the kernel's two loops (several systems per pass, one
+at a time) against torch's LAPACK Cholesky and triangular solves at the sizes and batches where
 each runs, both dtypes; failures (the pivot reported, NaN in that system only); results that do
 not depend on the batch around a system or on the threads; torch.library.opcheck, gradcheck,
 vmap and torch.compile of the operators; bad arguments; and the engine's use of the combined
@@ -27,7 +27,8 @@ def needs_kernel(test):
     return pytest.mark.kernels(_no_kernel(test))
 
 # (systems, unknowns, right-hand sides): one and a few systems, full and partial groups of lanes
-# (2, 4 or 8), the largest sizes of each loop, and more columns than one pass of the kernel takes (16)
+# (4 to 16 systems), the largest sizes of each loop, and more columns than one pass of the kernel
+# takes (16)
 CASES = [(1, 1, 1), (1, 6, 3), (3, 10, 12), (8, 16, 1), (13, 10, 20), (5, 17, 2), (9, 48, 1),
          (4, 64, 5), (2, 3, 0)]
 
@@ -62,8 +63,7 @@ def tolerance(dtype, m):
 
 
 def call_kernel(A, R, back, lanes):
-    """The C loop called directly (lanes 1: a vector's width of systems per pass; 0: one at a
-    time)."""
+    """The C loop called directly (lanes 1: several systems per pass; 0: one at a time)."""
     n, m, k = A.shape[0], A.shape[-1], R.shape[-1]
     A, R = A.contiguous(), R.contiguous()
     L, X, Y = torch.empty_like(A), torch.empty_like(R), torch.empty_like(R)
@@ -111,8 +111,8 @@ def test_both_kernel_loops_match_lapack(n, m, k, dtype):
 @needs_kernel
 @pytest.mark.parametrize("n,m", [(1, 6), (3, 16), (20, 10), (4, 48), (6, 64)])
 def test_the_operator_runs_the_kernel_where_the_rule_says(n, m):
-    """Bitwise: the operator's CPU results are the kernel's (lanes 1) where the
-    size rule picks it (dense_solve.uses_kernel), and torch's otherwise."""
+    """Bitwise: the operator's CPU results are the kernel's (lanes 1) where the size rule
+    picks it (dense_solve.uses_kernel), and torch's otherwise."""
     A, R = spd(n, m, torch.float64, seed=2), torch.randn(n, m, 3, dtype=torch.float64)
     got = cholesky_solve(A, R, back=True)
     assert dense_solve.uses_kernel(A)

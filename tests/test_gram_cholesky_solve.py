@@ -72,8 +72,8 @@ def call_kernel(G, d, R, back, d_stride):
 
 
 # (batch, unknowns, columns of G, right-hand sides): one system, partial and full groups of
-# lanes (2, 4 or 8), the Gauss-Helmert sizes (10 x 20 with 12 columns), more columns than one pass (16),
-# and two mid-sized systems (fewer than dense_solve.MIN_BATCH: the tensor code)
+# lanes (4 to 16 systems), the Gauss-Helmert sizes (10 x 20 with 12 columns), more columns than
+# one pass (16), and two mid-sized systems (fewer than dense_solve.MIN_BATCH: the tensor code)
 CASES = [((1,), 1, 1, 1), ((3,), 6, 6, 2), ((8,), 10, 20, 12), ((4, 5), 10, 20, 12),
          ((13,), 9, 30, 20), ((2,), 16, 17, 1), ((9,), 40, 41, 3), ((3,), 5, 7, 0),
          ((2,), 20, 21, 2)]

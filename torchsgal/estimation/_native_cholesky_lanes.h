@@ -1,10 +1,10 @@
 /* The lane loops of _native_cholesky.h, included by it for its element type T (suffix SFX) once
- * per lane width: LANES systems per pass, lane w of every lane vector (LV) holding system w.  A
- * lane vector is LANE_GROUPS machine vectors (V) of LANE_BYTES each: each step of the factor and
+ * per lane layout: LANES systems per pass, lane w of every lane vector (LV) holding system w.  A
+ * lane vector is LANE_GROUPS machine vectors (MV) of LANE_BYTES each: each step of the factor and
  * the solves is one operation on each of them, the groups' operations side by side (independent
  * chains where one system's steps wait on each other), and each sum runs in registers over its
  * terms in the order of one system's loops.  Every lane runs the same operations, so a system's
- * result does not depend on its group or on the lane width.  The includer sets LANE_BYTES,
+ * result does not depend on its group or on the lane layout.  The includer sets LANE_BYTES,
  * LANE_GROUPS, LANE_SFX (the suffix of the names defined here) and LANE_TARGET (the functions'
  * target attribute, or nothing); undefined at the end.  Without GCC/Clang's vector types, a
  * machine vector is one value of T.
@@ -13,13 +13,13 @@
  * only after other work where that is cheap: a vector read of values still on their way to memory
  * waits for them. */
 #define LK(name) CAT(name, LANE_SFX)
-#define V LK(lane_vec)
+#define MV LK(lane_vec)
 #define VM LK(lane_mask) /* a comparison's result: all bits set in a lane where it holds */
 #define LV LK(lanes)
 #define LG LANE_GROUPS
 #if defined(__GNUC__)
 #define VW (LANE_BYTES / (int)sizeof(T)) /* values in a machine vector */
-typedef T V __attribute__((vector_size(LANE_BYTES)));
+typedef T MV __attribute__((vector_size(LANE_BYTES)));
 #ifndef LANE_INTS
 #define LANE_INTS
 typedef int64_t lane_int_f64;
@@ -28,25 +28,25 @@ typedef int32_t lane_int_f32;
 typedef CAT(lane_int, SFX) VM __attribute__((vector_size(LANE_BYTES)));
 #define VLANE(v, w) ((v)[w])
 #define MASK_SELECT(ok, a, b) (((ok) & (a)) | (~(ok) & (b))) /* ok ? a : b by lane, a and b VM */
-#define LANE_SELECT(ok, a, b) ((V)MASK_SELECT(ok, (VM)(a), (VM)(b)))
+#define LANE_SELECT(ok, a, b) ((MV)MASK_SELECT(ok, (VM)(a), (VM)(b)))
 #else
 #define VW 1
-typedef T V;
+typedef T MV;
 typedef int VM;
 #define VLANE(v, w) (v)
 #define MASK_SELECT(ok, a, b) ((ok) ? (a) : (b))
 #define LANE_SELECT(ok, a, b) ((ok) ? (a) : (b))
 #endif
 #define LANES (LG * VW)
-typedef V LV[LG];
+typedef MV LV[LG];
 #define LANE(x, w) VLANE((x)[(w) / VW], (w) % VW) /* lane w of a lane vector */
 #define EACH for (int u = 0; u < LG; ++u)          /* each machine vector of the lane vectors */
 
 /* n lane vectors aligned to a machine vector (the address to free in *raw), NULL where malloc
  * fails */
 static inline LV *LK(lanes_alloc)(int64_t n, void **raw) {
-    *raw = malloc((size_t)n * sizeof(LV) + sizeof(V));
-    return *raw ? (LV *)(((uintptr_t)*raw + sizeof(V) - 1) & ~(uintptr_t)(sizeof(V) - 1)) : NULL;
+    *raw = malloc((size_t)n * sizeof(LV) + sizeof(MV));
+    return *raw ? (LV *)(((uintptr_t)*raw + sizeof(MV) - 1) & ~(uintptr_t)(sizeof(MV) - 1)) : NULL;
 }
 
 /* rows m of the lanes' factors l (lower triangle used), pivots' reciprocals r; bad[w] = the row
@@ -54,17 +54,17 @@ static inline LV *LK(lanes_alloc)(int64_t n, void **raw) {
  * Left-looking: entry (i, j) is A's less the products of rows i and j left of column j, four
  * rows at a time. */
 LANE_TARGET static inline void LK(lanes_factor)(LV *restrict l, LV *restrict r, int32_t *restrict bad, int64_t m) {
-    const V one = (V){0} + 1;
+    const MV one = (MV){0} + 1;
     VM first[LG]; /* bad, by lane */
     EACH first[u] = (VM){0};
     for (int64_t j = 0; j < m; ++j) {
         const LV *lj = l + j * m;
-        V d[LG];
+        MV d[LG];
         EACH d[u] = lj[j][u];
         for (int64_t p = 0; p < j; ++p) EACH d[u] -= lj[p][u] * lj[p][u];
         EACH {
             const VM ok = (d[u] > 0) & (d[u] < INFINITY), row = (VM){0} + (int32_t)(j + 1);
-            V s;
+            MV s;
             first[u] = MASK_SELECT(ok | (first[u] != 0), first[u], row);
             d[u] = LANE_SELECT(ok, d[u], one);
             for (int w = 0; w < VW; ++w) VLANE(s, w) = SQRT(VLANE(d[u], w));
@@ -74,7 +74,7 @@ LANE_TARGET static inline void LK(lanes_factor)(LV *restrict l, LV *restrict r, 
         int64_t i = j + 1;
         for (; i + 4 <= m; i += 4) {
             const LV *l0 = l + i * m, *l1 = l0 + m, *l2 = l1 + m, *l3 = l2 + m;
-            V t0[LG], t1[LG], t2[LG], t3[LG];
+            MV t0[LG], t1[LG], t2[LG], t3[LG];
             EACH {
                 t0[u] = l0[j][u];
                 t1[u] = l1[j][u];
@@ -96,7 +96,7 @@ LANE_TARGET static inline void LK(lanes_factor)(LV *restrict l, LV *restrict r, 
         }
         for (; i < m; ++i) {
             const LV *li = l + i * m;
-            V t[LG];
+            MV t[LG];
             EACH t[u] = li[j][u];
             for (int64_t p = 0; p < j; ++p) EACH t[u] -= li[p][u] * lj[p][u];
             EACH l[i * m + j][u] = t[u] * r[j][u];
@@ -117,7 +117,7 @@ LANE_TARGET static inline void LK(lanes_solve)(const LV *restrict l, const LV *r
         LV *xi = x + i * kc;
         int64_t c = 0;
         for (; c + 4 <= kc; c += 4) {
-            V t0[LG], t1[LG], t2[LG], t3[LG];
+            MV t0[LG], t1[LG], t2[LG], t3[LG];
             EACH {
                 t0[u] = xi[c][u];
                 t1[u] = xi[c + 1][u];
@@ -141,7 +141,7 @@ LANE_TARGET static inline void LK(lanes_solve)(const LV *restrict l, const LV *r
             }
         }
         for (; c < kc; ++c) {
-            V t[LG];
+            MV t[LG];
             EACH t[u] = xi[c][u];
             for (int64_t p = p0; p < p1; ++p) EACH t[u] -= li[p * step][u] * x[p * kc + c][u];
             EACH xi[c][u] = t[u] * r[i][u];
@@ -161,7 +161,7 @@ LANE_TARGET static inline void LK(lanes_load)(LV *restrict x, const T *restrict 
         const T *b[LANES];
         for (int w = 0; w < LANES; ++w) b[w] = src + (w < n ? w : n - 1) * m * k;
         for (int64_t i = 0; i < m * k; ++i) EACH {
-            V v;
+            MV v;
             for (int w = 0; w < VW; ++w) VLANE(v, w) = b[u * VW + w][i];
             x[i][u] = v;
         }
@@ -195,7 +195,7 @@ LANE_TARGET static inline void LK(lanes_store)(const LV *restrict x, T *restrict
                                              int64_t c0, int64_t kc) {
     if (n == LANES && kc == k && m * k * (int64_t)sizeof(T) <= LANE_SMALL) {
         for (int64_t i = 0; i < m * k; ++i) EACH {
-            const V v = x[i][u];
+            const MV v = x[i][u];
             for (int w = 0; w < VW; ++w) dst[(u * VW + w) * m * k + i] = VLANE(v, w);
         }
         return;
@@ -280,8 +280,8 @@ LANE_TARGET static inline void LK(lanes_gram)(LV *restrict l, LV *restrict g, LV
         int64_t j = 0;
         for (; j + 4 <= i + 1; j += 4) {
             const LV *g0 = gd + j * p, *g1 = g0 + p, *g2 = g1 + p, *g3 = g2 + p;
-            V t0[LG], t1[LG], t2[LG], t3[LG];
-            EACH t0[u] = t1[u] = t2[u] = t3[u] = (V){0};
+            MV t0[LG], t1[LG], t2[LG], t3[LG];
+            EACH t0[u] = t1[u] = t2[u] = t3[u] = (MV){0};
             for (int64_t q = 0; q < p; ++q) EACH {
                 t0[u] += gi[q][u] * g0[q][u];
                 t1[u] += gi[q][u] * g1[q][u];
@@ -297,8 +297,8 @@ LANE_TARGET static inline void LK(lanes_gram)(LV *restrict l, LV *restrict g, LV
         }
         for (; j <= i; ++j) {
             const LV *gj = gd + j * p;
-            V t[LG];
-            EACH t[u] = (V){0};
+            MV t[LG];
+            EACH t[u] = (MV){0};
             for (int64_t q = 0; q < p; ++q) EACH t[u] += gi[q][u] * gj[q][u];
             EACH l[i * m + j][u] = t[u];
         }
@@ -385,10 +385,10 @@ LANE_TARGET static int LK(damped_solve_lanes)(void **args, int64_t lo, int64_t h
         LK(lanes_solve)(l, r, x, m, 1, 0);
         LK(lanes_solve)(l, r, x, m, 1, 1);
         LV q;
-        EACH q[u] = (V){0};
+        EACH q[u] = (MV){0};
         for (int64_t i = 0; i < m; ++i) {
-            V row[LG];
-            EACH row[u] = (V){0};
+            MV row[LG];
+            EACH row[u] = (MV){0};
             for (int64_t j = 0; j < m; ++j) EACH row[u] += h[i * m + j][u] * x[j][u];
             EACH q[u] += x[i][u] * row[u];
         }
@@ -413,7 +413,7 @@ LANE_TARGET static int LK(damped_solve_lanes)(void **args, int64_t lo, int64_t h
 #undef LG
 #undef LV
 #undef VM
-#undef V
+#undef MV
 #undef LK
 #undef LANE_SMALL
 #undef LANE_BYTES

@@ -17,10 +17,10 @@ small graphs (``graph.linear_system.DenseSystem``), and the covariance S = B Sig
 condition of a Gauss-Helmert factor (``graph.gauss_helmert``).  torch's
 ``linalg.cholesky_ex`` and ``linalg.solve_triangular`` run LAPACK one matrix at a time on
 one thread and copy every batch into column-major order and back; the C kernel of
-``_native_cholesky.h`` factors and solves a vector's width of systems per pass (four in float64
-and eight in float32 with AVX2, two and four without), one per vector lane, with the batch split
-over ``torch.get_num_threads()`` threads (``benchmarks/bench_factor_graph.py``, case
-6, times it against torch.linalg).
+``_native_cholesky.h`` factors and solves four float64 or eight float32 systems per pass, one
+per vector lane (on CPUs with AVX2 twice as many where systems of up to eight unknowns have fewer
+than four right-hand sides), with the batch split over ``torch.get_num_threads()`` threads
+(``benchmarks/bench_factor_graph.py``, case 6, times it against torch.linalg).
 
 One registration (``functional.registration``, through ``torch.library``) that autograd, ``torch.func`` and
 ``torch.compile`` all see:
@@ -65,8 +65,8 @@ if _lib is not None:
     native.set_constants(_lib)
 
 # The kernel runs systems of up to SMALL_SIZE unknowns, and of up to KERNEL_MAX_SIZE where a batch
-# holds at least MIN_BATCH of them (the C loop factors a vector's width of systems at once, one per
-# vector lane); LAPACK's blocked factorisation is faster for larger systems and for a few mid-sized ones.
+# holds at least MIN_BATCH of them (the C loop factors several systems at once, one per vector
+# lane); LAPACK's blocked factorisation is faster for larger systems and for a few mid-sized ones.
 SMALL_SIZE, KERNEL_MAX_SIZE, MIN_BATCH = 16, 64, 4
 
 __all__ = ["cholesky_solve", "gram_cholesky_solve", "triangular_solve", "uses_kernel", "available"]

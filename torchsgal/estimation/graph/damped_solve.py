@@ -10,8 +10,8 @@ As tensor code (``_tensor_code``, the reference the tests compare the kernel wit
 differentiable form ``DenseSystem`` runs where autograd records) the step is some twenty
 operations: the damped copy, the factor, two triangular solves, the finiteness test and the
 products of ``quad``.  The CPU kernel (``damped_solve_range`` of
-``estimation/_native_cholesky.h``) does it in one pass, a vector's width of systems at once (one
-per vector lane), the batch split over ``torch.get_num_threads()`` threads; ``DenseSystem.solve`` takes the
+``estimation/_native_cholesky.h``) does it in one pass, several systems at once (one per vector
+lane), the batch split over ``torch.get_num_threads()`` threads; ``DenseSystem.solve`` takes the
 operator where ``dense_solve.uses_kernel`` holds for the batch (systems of up to
 ``dense_solve.KERNEL_MAX_SIZE`` unknowns, at least ``dense_solve.MIN_BATCH`` of them) and nothing
 records (``factor_kernels.usable``).  No derivative is registered.
